@@ -1,0 +1,204 @@
+"""The `recon` command line: `recon run PHOTOS --out SCENE`, single stages, status, and tools.
+
+Every command goes through `_guard`, which turns user-fixable errors into one paragraph and an exit
+code (2), Ctrl-C into a note on how to resume (130), and anything unexpected into a short message with
+the traceback saved to a log file instead of the screen.
+"""
+from __future__ import annotations
+
+import contextlib
+import os
+import sys
+import tempfile
+import traceback
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Annotated, Any, Optional
+
+import typer
+from rich.console import Console
+from rich.table import Table
+
+from recon.config import RunConfig, available_presets, load_config, preset_description
+from recon.errors import ReconError
+from recon.pipeline import install_sigterm_as_interrupt, is_disk_full
+from recon.progress import Reporter, format_seconds, format_summary
+
+app = typer.Typer(
+    add_completion=False,
+    no_args_is_help=True,
+    pretty_exceptions_enable=False,
+    help="Photos → camera poses → neural radiance field → colored mesh you can open in Blender.",
+)
+console = Console(stderr=True, highlight=False)
+out_console = Console(highlight=False)
+
+EXIT_USER_ERROR = 2
+EXIT_INTERRUPTED = 130
+
+PresetOpt = Annotated[Optional[str], typer.Option("--preset", "-p", help="Preset from pipelines/ (or a .toml path).")]
+SetOpt = Annotated[Optional[list[str]], typer.Option("--set", help="Override an option: section.key=value (repeatable).")]
+QuietOpt = Annotated[bool, typer.Option("--quiet", "-q", help="Only warnings and errors.")]
+
+
+@contextlib.contextmanager
+def _guard(scene_dir: Path | None = None) -> Iterator[None]:
+    """User errors → one paragraph + exit 2; Ctrl-C → how to resume; bugs → message + traceback in a log file."""
+    try:
+        yield
+    except ReconError as exc:
+        console.print(f"[bold red]error:[/] {exc}")
+        raise typer.Exit(EXIT_USER_ERROR) from None
+    except KeyboardInterrupt:
+        console.print(
+            "\n[yellow]Interrupted.[/] Finished stages (and the last training checkpoint) are kept; "
+            "run the same command again to resume where it stopped."
+        )
+        raise typer.Exit(EXIT_INTERRUPTED) from None
+    except OSError as exc:
+        if is_disk_full(exc):
+            console.print(
+                f"[bold red]error:[/] the disk is full ({exc.filename or 'writing output'}). Nothing finished was lost; "
+                f"free some space and run the same command again to resume."
+            )
+            raise typer.Exit(EXIT_USER_ERROR) from None
+        _report_bug(exc, scene_dir)
+    except typer.Exit:
+        raise
+    except Exception as exc:  # a bug: keep the screen readable, keep the details
+        _report_bug(exc, scene_dir)
+
+
+def _report_bug(exc: BaseException, scene_dir: Path | None) -> None:
+    log_dir = scene_dir if scene_dir is not None and scene_dir.is_dir() else Path(tempfile.gettempdir())
+    log = log_dir / "recon-error.log"
+    with contextlib.suppress(OSError):
+        log.write_text("".join(traceback.format_exception(exc)))
+    console.print(
+        f"[bold red]internal error:[/] {type(exc).__name__}: {exc}\n"
+        f"This is a bug in recon, not in your input. The details are in {log}; please include that file in a report."
+    )
+    raise typer.Exit(1) from None
+
+
+def _config(preset: str | None, overrides: list[str] | None) -> RunConfig:
+    return load_config(preset, overrides)
+
+
+def _pipeline():
+    from recon.stages import default_pipeline
+
+    return default_pipeline()
+
+
+def _summary_table(outcomes: list[Any], scene_dir: Path) -> None:
+    table = Table(title=f"recon — {scene_dir}", show_lines=False)
+    table.add_column("stage")
+    table.add_column("")
+    table.add_column("time", justify="right")
+    table.add_column("result")
+    for o in outcomes:
+        table.add_row(o.name, "ran" if o.action == "ran" else "cached", format_seconds(o.wall_s) if o.action == "ran" else "—", format_summary(o.summary))
+    out_console.print(table)
+
+
+def _run(
+    scene_dir: Path,
+    source: Path | None,
+    preset: str | None,
+    overrides: list[str] | None,
+    quiet: bool,
+    from_stage: str | None = None,
+    until_stage: str | None = None,
+    force: bool = False,
+) -> None:
+    install_sigterm_as_interrupt()
+    with _guard(scene_dir):
+        config = _config(preset, overrides)
+        report = Reporter(console, quiet=quiet)
+        if preset and not quiet:
+            report.info(f"preset [bold]{preset}[/]: {preset_description(preset)}")
+        outcomes = _pipeline().run(
+            scene_dir,
+            config,
+            report,
+            source=source.resolve() if source is not None else None,
+            from_stage=from_stage,
+            until_stage=until_stage,
+            force=force,
+        )
+        if not quiet:
+            _summary_table(outcomes, scene_dir)
+
+
+@app.command()
+def run(
+    photos: Annotated[Path, typer.Argument(help="Folder of photos, or poses you have: transforms.json folder, NeRF-synthetic folder, COLMAP model, .npz.")],
+    out: Annotated[Path, typer.Option("--out", "-o", help="Scene folder for every stage's output.")],
+    preset: PresetOpt = None,
+    set_: SetOpt = None,
+    from_stage: Annotated[Optional[str], typer.Option("--from", help="Re-run from this stage on.")] = None,
+    until_stage: Annotated[Optional[str], typer.Option("--until", help="Stop after this stage.")] = None,
+    force: Annotated[bool, typer.Option("--force", help="Re-run every selected stage even if cached.")] = False,
+    quiet: QuietOpt = False,
+) -> None:
+    """Run every stage in order, reusing what is already done."""
+    _run(out, photos, preset, set_, quiet, from_stage, until_stage, force)
+
+
+def _single_stage(name: str) -> Callable[..., None]:
+    def command(
+        scene: Annotated[Path, typer.Argument(help="Scene folder (made by `recon run`).")],
+        photos: Annotated[Optional[Path], typer.Option("--photos", help="Photos folder (defaults to the one recorded in the scene).")] = None,
+        preset: PresetOpt = None,
+        set_: SetOpt = None,
+        quiet: QuietOpt = False,
+    ) -> None:
+        _run(scene, photos, preset, set_, quiet, from_stage=name, until_stage=name, force=True)
+
+    command.__doc__ = f"Run the {name} stage alone (again), with its upstream stages already done."
+    return command
+
+
+for _name in ("poses", "normalize"):
+    app.command(name=_name)(_single_stage(_name))
+
+
+@app.command()
+def status(
+    scene: Annotated[Path, typer.Argument(help="Scene folder.")],
+    preset: PresetOpt = None,
+    set_: SetOpt = None,
+) -> None:
+    """Each stage's state (done / stale / missing / failed / corrupt), wall time and what it produced."""
+    with _guard(scene):
+        if not (scene / "manifest.json").is_file():
+            raise ReconError(f"{scene} is not a recon scene folder (no manifest.json). Create one with `recon run PHOTOS --out {scene}`.")
+        config = _config(preset, set_)
+        rows = _pipeline().state(scene, config)
+        table = Table(title=f"recon status — {scene}")
+        for col in ("stage", "state", "time", "finished", "result"):
+            table.add_column(col)
+        colors = {"done": "green", "stale": "yellow", "missing": "dim", "failed": "red", "corrupt": "red"}
+        for row in rows:
+            state = row["state"]
+            result = format_summary(row["summary"]) if state != "failed" else row.get("error", "")
+            table.add_row(row["stage"], f"[{colors[state]}]{state}[/]", format_seconds(row["wall_s"]), str(row.get("finished") or ""), result)
+        out_console.print(table)
+
+
+@app.command()
+def presets() -> None:
+    """List the presets in pipelines/ and what each trades."""
+    with _guard():
+        for name in available_presets():
+            out_console.print(f"[bold]{name}[/]: {preset_description(name)}")
+
+
+def main() -> None:
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+    app(prog_name="recon")
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,222 @@
+"""Typed configuration: one dataclass per stage, presets from `pipelines/*.toml`, `--set a.b=c` overrides.
+
+A preset is data: a TOML file whose tables mirror the dataclasses below (`[train]`, `[train.fast]`, ...).
+Every field has a default and a line of doc; unknown keys and wrong types are refused with a message
+naming the key, so a typo never silently falls back to a default.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import tomllib
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+from recon.errors import ConfigError
+
+PIPELINES_DIR = Path(__file__).resolve().parent.parent / "pipelines"
+
+
+@dataclass
+class PosesConfig:
+    """Structure from motion (pycolmap) on the photos, or import of poses the user already has."""
+
+    max_side: int = 1600
+    """Photos are downscaled to this longest side for feature extraction (intrinsics are scaled back)."""
+    matcher: Literal["auto", "exhaustive", "sequential"] = "auto"
+    """auto: exhaustive matching up to 150 photos, sequential (video-like sets) beyond."""
+    sequential_overlap: int = 10
+    """Sequential matching: how many following frames each frame is matched with."""
+    max_features: int = 8192
+    """SIFT features per image."""
+    camera_model: Literal["auto", "SIMPLE_RADIAL", "OPENCV", "PINHOLE", "SIMPLE_PINHOLE", "RADIAL"] = "auto"
+    """COLMAP camera model; auto picks SIMPLE_RADIAL (one radial distortion term)."""
+    shared_intrinsics: Literal["auto", "yes", "no"] = "auto"
+    """auto: one camera for all photos when they share a size."""
+    min_registered: int = 3
+    """Fail below this many registered photos."""
+    min_registered_fraction: float = 0.5
+    """Fail when fewer than this fraction of the photos register."""
+    seed: int = 0
+    """Random seed for COLMAP's RANSAC and mapping."""
+
+
+@dataclass
+class NormalizeConfig:
+    """Orient, center and scale the scene into the canonical box; near/far per camera; data split."""
+
+    up: Literal["auto", "z", "y", "none"] = "auto"
+    """auto: the mean camera up vector becomes +Z; z/y: the source's own +Z/+Y is up; none: keep rotation."""
+    point_percentile: float = 2.0
+    """The box is fit to sparse points between this percentile and 100 minus it (outliers ignored)."""
+    box_margin: float = 0.1
+    """The box is enlarged by this fraction of its size on each side."""
+    depth_percentile: float = 1.0
+    """Per-camera near/far come from this low/high percentile of the depths of the points it sees."""
+    test_every: int = 8
+    """Every Nth photo (sorted by name) is held out for testing (when the source gives no split); 0: none."""
+    val_every: int = 8
+    """Every Nth photo, offset by half of it, is held out for validation; 0: none."""
+
+
+@dataclass
+class RunConfig:
+    """The whole pipeline's configuration: one slice per stage (a stage's fingerprint covers only its slice)."""
+
+    poses: PosesConfig = field(default_factory=PosesConfig)
+    normalize: NormalizeConfig = field(default_factory=NormalizeConfig)
+
+
+def available_presets() -> list[str]:
+    """Names of the presets in pipelines/ (file stems)."""
+    return sorted(p.stem for p in PIPELINES_DIR.glob("*.toml"))
+
+
+def preset_path(name: str) -> Path:
+    """The TOML file of a preset: a name from pipelines/ or a path to a TOML file."""
+    candidate = Path(name)
+    if candidate.suffix == ".toml" and candidate.is_file():
+        return candidate
+    path = PIPELINES_DIR / f"{name}.toml"
+    if not path.is_file():
+        raise ConfigError(
+            f"Unknown preset '{name}'. Available presets: {', '.join(available_presets()) or 'none'} "
+            f"(files in {PIPELINES_DIR}); or pass a path to a .toml file."
+        )
+    return path
+
+
+def load_config(preset: str | None = None, overrides: list[str] | None = None) -> RunConfig:
+    """Defaults, then the preset's TOML, then each `section.key=value` override, all type-checked."""
+    config = RunConfig()
+    if preset:
+        path = preset_path(preset)
+        try:
+            data = tomllib.loads(path.read_text())
+        except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+            raise ConfigError(f"Preset file {path} is not valid TOML: {exc}. Fix the file.") from None
+        data.pop("description", None)
+        _apply_table(config, data, prefix="", source=str(path))
+    for item in overrides or []:
+        key, sep, raw = item.partition("=")
+        if not sep or not key.strip():
+            raise ConfigError(f"--set expects KEY=VALUE (e.g. --set train.steps=2000), got '{item}'.")
+        set_value(config, key.strip(), raw.strip(), source="--set")
+    return config
+
+
+def preset_description(name: str) -> str:
+    """The one-line `description` a preset gives of what it trades."""
+    data = tomllib.loads(preset_path(name).read_text())
+    return str(data.get("description", ""))
+
+
+def set_value(config: Any, dotted: str, raw: Any, source: str) -> None:
+    """Set `a.b.c` on nested dataclasses; raw strings are parsed to the field's type."""
+    parts = dotted.split(".")
+    target = config
+    for i, part in enumerate(parts):
+        names = [f.name for f in dataclasses.fields(target)]
+        if part not in names:
+            where = ".".join(parts[:i]) or "the top level"
+            raise ConfigError(
+                f"Unknown option '{dotted}' ({source}): '{part}' is not a key of {where}. "
+                f"Valid keys there: {', '.join(names)}."
+            )
+        if i == len(parts) - 1:
+            ftype = _field_types(type(target))[part]
+            setattr(target, part, _coerce(raw, ftype, dotted, source))
+        else:
+            target = getattr(target, part)
+            if not dataclasses.is_dataclass(target):
+                raise ConfigError(f"Option '{dotted}' ({source}): '{part}' is a value, not a section.")
+
+
+def _apply_table(config: Any, table: dict, prefix: str, source: str) -> None:
+    for key, value in table.items():
+        dotted = f"{prefix}{key}"
+        if isinstance(value, dict):
+            names = [f.name for f in dataclasses.fields(config)]
+            if key not in names or not dataclasses.is_dataclass(getattr(config, key)):
+                raise ConfigError(f"Unknown section [{dotted}] in {source}. Valid sections: {', '.join(names)}.")
+            _apply_table(getattr(config, key), value, f"{dotted}.", source)
+        else:
+            set_value_on(config, key, value, dotted, source)
+
+
+def set_value_on(target: Any, key: str, value: Any, dotted: str, source: str) -> None:
+    names = [f.name for f in dataclasses.fields(target)]
+    if key not in names:
+        raise ConfigError(f"Unknown option '{dotted}' in {source}. Valid keys there: {', '.join(names)}.")
+    setattr(target, key, _coerce(value, _field_types(type(target))[key], dotted, source))
+
+
+def _field_types(cls: type) -> dict[str, Any]:
+    return typing.get_type_hints(cls)
+
+
+def _coerce(raw: Any, ftype: Any, dotted: str, source: str) -> Any:
+    """Parse a TOML value or a `--set` string into the field's declared type, or explain why not."""
+    origin = typing.get_origin(ftype)
+    args = typing.get_args(ftype)
+    if origin is Literal:
+        value = raw
+        if isinstance(raw, str) and all(not isinstance(a, str) for a in args):
+            value = _parse_scalar(raw)
+        if value not in args:
+            raise ConfigError(
+                f"Option '{dotted}' ({source}) must be one of {', '.join(map(str, args))}; got '{raw}'."
+            )
+        return value
+    if origin in (typing.Union, getattr(__import__("types"), "UnionType", None)):
+        if raw in (None, "none", "None", "") and type(None) in args:
+            return None
+        for arg in args:
+            if arg is type(None):
+                continue
+            try:
+                return _coerce(raw, arg, dotted, source)
+            except ConfigError:
+                continue
+        raise ConfigError(f"Option '{dotted}' ({source}) got '{raw}', which is not a valid {ftype}.")
+    if origin in (list, tuple):
+        value = json.loads(raw) if isinstance(raw, str) else raw
+        if not isinstance(value, (list, tuple)):
+            raise ConfigError(f"Option '{dotted}' ({source}) expects a list like [1, 2]; got '{raw}'.")
+        inner = args[0] if args else Any
+        items = [_coerce(v, inner, dotted, source) if inner is not Any and inner is not Ellipsis else v for v in value]
+        return tuple(items) if origin is tuple else items
+    if ftype is bool:
+        if isinstance(raw, bool):
+            return raw
+        if isinstance(raw, str) and raw.lower() in ("true", "1", "yes", "on", "false", "0", "no", "off"):
+            return raw.lower() in ("true", "1", "yes", "on")
+        raise ConfigError(f"Option '{dotted}' ({source}) expects true or false; got '{raw}'.")
+    if ftype in (int, float):
+        value = _parse_scalar(raw) if isinstance(raw, str) else raw
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ConfigError(f"Option '{dotted}' ({source}) expects a number; got '{raw}'.")
+        if ftype is int:
+            if isinstance(value, float) and not value.is_integer():
+                raise ConfigError(f"Option '{dotted}' ({source}) expects a whole number; got '{raw}'.")
+            return int(value)
+        if value != value or value in (float("inf"), float("-inf")):
+            raise ConfigError(f"Option '{dotted}' ({source}) must be a finite number; got '{raw}'.")
+        return float(value)
+    if ftype is str:
+        return str(raw)
+    return raw
+
+
+def _parse_scalar(raw: str) -> Any:
+    try:
+        return json.loads(raw)
+    except json.JSONDecodeError:
+        return raw
+
+
+def config_slice(config: RunConfig, name: str) -> dict:
+    """A stage's slice as plain data: what its fingerprint hashes and what the manifest records."""
+    return dataclasses.asdict(getattr(config, name))

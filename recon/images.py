@@ -1,0 +1,142 @@
+"""Reading photos the way a user means them: EXIF orientation applied, any bit depth, clear errors.
+
+Every stage reads images through here, so orientation, 16-bit, grayscale and RGBA are handled once.
+Arrays are float32 in [0, 1], shape (H, W, 3) or (H, W, 4) when the file has alpha.
+"""
+from __future__ import annotations
+
+import warnings
+from pathlib import Path
+
+import numpy as np
+from PIL import Image, ImageOps, UnidentifiedImageError
+
+from recon.errors import InputError
+
+IMAGE_SUFFIXES = {".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".webp"}
+MIN_SIDE = 32
+MAX_PIXELS = 400_000_000
+"""Refuse decompression bombs; huge photos below this are downscaled on read."""
+
+Image.MAX_IMAGE_PIXELS = MAX_PIXELS
+
+
+def list_photos(folder: Path) -> tuple[list[Path], list[Path]]:
+    """Image files directly in `folder` (sorted by name) and the other files that were skipped."""
+    if not folder.exists():
+        raise InputError(f"The photos folder {folder} does not exist. Check the path.")
+    if not folder.is_dir():
+        raise InputError(f"{folder} is a file, not a folder of photos. Pass the folder that holds the photos.")
+    photos, skipped = [], []
+    for path in sorted(folder.iterdir()):
+        if path.name.startswith("."):
+            continue
+        if path.is_file() and path.suffix.lower() in IMAGE_SUFFIXES:
+            photos.append(path)
+        elif path.is_file():
+            skipped.append(path)
+    return photos, skipped
+
+
+def _open(path: Path) -> Image.Image:
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("error", Image.DecompressionBombWarning)
+            img = Image.open(path)
+            img.load()
+    except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as exc:
+        raise InputError(
+            f"Cannot read the image {path}: {exc}. The file is corrupt or not an image; "
+            f"remove it from the folder or replace it with a good copy."
+        ) from None
+    except (Image.DecompressionBombError, Image.DecompressionBombWarning):
+        raise InputError(
+            f"The image {path} is too large to decode safely (over {MAX_PIXELS // 1_000_000} Mpx). "
+            f"Downscale it before running recon."
+        ) from None
+    return ImageOps.exif_transpose(img)
+
+
+def oriented_size(path: Path) -> tuple[int, int]:
+    """(width, height) after EXIF orientation, without decoding the pixels."""
+    try:
+        with Image.open(path) as img:
+            w, h = img.size
+            orientation = img.getexif().get(0x0112, 1)
+    except (UnidentifiedImageError, OSError) as exc:
+        raise InputError(f"Cannot read the image {path}: {exc}. Remove or replace the file.") from None
+    return (h, w) if orientation in (5, 6, 7, 8) else (w, h)
+
+
+def to_array(img: Image.Image) -> np.ndarray:
+    """PIL image of any mode → float32 (H, W, 3|4) in [0, 1]."""
+    if img.mode in ("I;16", "I;16B", "I;16L", "I"):
+        arr = np.asarray(img, dtype=np.float32)
+        arr = arr / (65535.0 if arr.max() > 255 else 255.0)
+        return np.repeat(arr[..., None], 3, axis=-1)
+    if img.mode in ("RGBA", "LA", "PA") or (img.mode == "P" and "transparency" in img.info):
+        return np.asarray(img.convert("RGBA"), dtype=np.float32) / 255.0
+    if img.mode == "F":
+        arr = np.clip(np.asarray(img, dtype=np.float32), 0.0, 1.0)
+        return np.repeat(arr[..., None], 3, axis=-1)
+    arr = np.asarray(img)
+    if arr.dtype == np.uint16:
+        return arr.astype(np.float32) / 65535.0
+    return np.asarray(img.convert("RGB"), dtype=np.float32) / 255.0
+
+
+def read_image(path: Path, max_side: int | None = None) -> np.ndarray:
+    """Read a photo as float32 (H, W, C) in [0, 1], EXIF-oriented, area-downscaled to `max_side` if larger."""
+    img = _open(path)
+    w, h = img.size
+    if min(w, h) < MIN_SIDE:
+        raise InputError(
+            f"The image {path} is only {w}×{h} px; recon needs at least {MIN_SIDE} px on each side. "
+            f"Use the original photo, not a thumbnail."
+        )
+    if max_side and max(w, h) > max_side:
+        scale = max_side / max(w, h)
+        size = (max(1, round(w * scale)), max(1, round(h * scale)))
+        if img.mode not in ("RGB", "RGBA", "L", "LA"):
+            arr = to_array(img)
+            return resize(arr, size)
+        img = img.resize(size, Image.Resampling.BOX if scale < 0.5 else Image.Resampling.LANCZOS)
+    return to_array(img)
+
+
+def resize(arr: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """Area-resize a float image to (width, height)."""
+    import cv2
+
+    interp = cv2.INTER_AREA if size[0] < arr.shape[1] else cv2.INTER_LINEAR
+    return cv2.resize(arr, size, interpolation=interp)
+
+
+def composite(image: np.ndarray, background: np.ndarray | tuple[float, float, float]) -> np.ndarray:
+    """RGBA → RGB over a constant background; RGB passes through."""
+    if image.shape[-1] == 3:
+        return image
+    alpha = image[..., 3:4]
+    return image[..., :3] * alpha + np.asarray(background, dtype=np.float32) * (1.0 - alpha)
+
+
+def save_image(path: Path, image: np.ndarray, quality: int = 95) -> None:
+    """Save a float [0, 1] image (RGB/RGBA/gray) as 8-bit PNG or JPEG, by suffix."""
+    arr = np.clip(np.asarray(image) * 255.0 + 0.5, 0, 255).astype(np.uint8)
+    if arr.ndim == 3 and arr.shape[-1] == 1:
+        arr = arr[..., 0]
+    img = Image.fromarray(arr)
+    if path.suffix.lower() in (".jpg", ".jpeg"):
+        img.convert("RGB").save(path, quality=quality)
+    else:
+        img.save(path)
+
+
+def undistort(image: np.ndarray, fl_x: float, fl_y: float, cx: float, cy: float, dist: tuple[float, ...]) -> np.ndarray:
+    """Remove OpenCV radial-tangential distortion (k1, k2, p1, p2) keeping the same pinhole intrinsics."""
+    if not any(abs(d) > 0 for d in dist):
+        return image
+    import cv2
+
+    K = np.array([[fl_x, 0, cx], [0, fl_y, cy], [0, 0, 1]], dtype=np.float64)
+    return cv2.undistort(image, K, np.asarray(dist, dtype=np.float64))

@@ -1,0 +1,249 @@
+"""Put any capture into one canonical frame: upright (+Z up), centred, scaled to a box of about [-1, 1]^3.
+
+One set of training defaults then works for a coin or a building. The similarity used is stored
+(`world_from_source`) so meshes go back to the original frame exactly. Pure numpy on a `Scene`.
+"""
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+
+from recon.config import NormalizeConfig
+from recon.errors import InputError
+from recon.scene import Frame, Scene
+
+OBJECT_MAX_MEAN_VIEW = 0.9
+"""Cameras count as 'around the object' when the mean of their unit view directions is shorter than this."""
+
+
+def rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The smallest rotation taking unit vector a to unit vector b (Rodrigues; handles a ≈ -b)."""
+    a = a / np.linalg.norm(a)
+    b = b / np.linalg.norm(b)
+    v = np.cross(a, b)
+    c = float(np.dot(a, b))
+    if c < -1 + 1e-9:  # opposite: rotate 180° about any axis orthogonal to a
+        axis = np.cross(a, [1.0, 0.0, 0.0])
+        if np.linalg.norm(axis) < 1e-6:
+            axis = np.cross(a, [0.0, 1.0, 0.0])
+        axis /= np.linalg.norm(axis)
+        return 2 * np.outer(axis, axis) - np.eye(3)
+    vx = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
+    return np.eye(3) + vx + vx @ vx / (1 + c)
+
+
+def estimate_up(c2ws: np.ndarray, mode: str) -> tuple[np.ndarray, str]:
+    """The source-frame direction that should become +Z, and why.
+
+    auto: mean of the cameras' up vectors (+Y of each camera), re-averaged over those within 45° of the
+    first mean so a few rolled photos don't tilt the scene. Falls back to the normal of the plane of the
+    camera centres when the up vectors cancel out (cameras rolled every which way).
+    """
+    if mode == "z":
+        return np.array([0.0, 0.0, 1.0]), "source +Z kept as up (normalize.up=z)"
+    if mode == "y":
+        return np.array([0.0, 1.0, 0.0]), "source +Y taken as up (normalize.up=y)"
+    ups = c2ws[:, :3, 1]
+    mean = ups.mean(axis=0)
+    rights = c2ws[:, :3, 0]
+    evals, evecs = np.linalg.eigh(rights.T @ rights / len(rights))
+    if len(rights) >= 3 and evals[0] < 0.02 and evals[1] > 0.1 and np.linalg.norm(mean) > 0.3:
+        # photos taken without roll: every camera's right vector is level, so up is orthogonal to all of them
+        up = evecs[:, 0] * np.sign(evecs[:, 0] @ mean)
+        return up, f"orthogonal to every camera's (level) right vector (residual tilt {np.degrees(np.sqrt(evals[0])):.2f}°)"
+    if np.linalg.norm(mean) > 0.3:
+        mean /= np.linalg.norm(mean)
+        inliers = ups[ups @ mean > np.cos(np.radians(45))]
+        up = inliers.mean(axis=0)
+        up /= np.linalg.norm(up)
+        return up, f"mean camera up vector ({len(inliers)}/{len(ups)} cameras agree within 45°)"
+    centers = c2ws[:, :3, 3]
+    if len(centers) >= 3:
+        _, sv, vt = np.linalg.svd(centers - centers.mean(axis=0))
+        if sv[1] > 1e-6 * max(sv[0], 1e-30) and sv[2] < 0.5 * sv[1]:
+            normal = vt[2]
+            if normal @ mean < 0:
+                normal = -normal
+            return normal, "camera up vectors disagree; up is the normal of the plane of the camera centres"
+    raise InputError(
+        "Cannot tell which way is up: the cameras' up vectors point in all directions and their centres do not "
+        "lie on a plane. Set it explicitly with --set normalize.up=z (or y) to keep the source frame's axis."
+    )
+
+
+def focus_point(c2ws: np.ndarray) -> tuple[np.ndarray, float]:
+    """Least-squares point nearest to every camera's optical axis, and the fraction of cameras it is in front of."""
+    origins = c2ws[:, :3, 3]
+    dirs = -c2ws[:, :3, 2]
+    proj = np.eye(3)[None] - dirs[:, :, None] * dirs[:, None, :]
+    A = proj.sum(axis=0)
+    b = (proj @ origins[:, :, None]).sum(axis=0)[:, 0]
+    if np.linalg.cond(A) > 1e8:  # all axes parallel (or a single camera): no unique focus
+        return origins.mean(axis=0) + dirs.mean(axis=0), 0.0
+    p = np.linalg.solve(A, b)
+    in_front = float(np.mean(((p - origins) * dirs).sum(axis=1) > 0))
+    return p, in_front
+
+
+def classify_capture(c2ws: np.ndarray) -> tuple[str, np.ndarray, str]:
+    """'object' (cameras around a point, looking at it) or 'unbounded' (forward-facing / looking out)."""
+    dirs = -c2ws[:, :3, 2]
+    mean_view = float(np.linalg.norm(dirs.mean(axis=0)))
+    focus, in_front = focus_point(c2ws)
+    if len(c2ws) >= 3 and in_front >= 0.9 and mean_view < OBJECT_MAX_MEAN_VIEW:
+        return "object", focus, (
+            f"object capture: the cameras look inward at a common point (in front of {in_front:.0%} of them) "
+            f"from spread-out directions (mean view length {mean_view:.2f} < {OBJECT_MAX_MEAN_VIEW})"
+        )
+    return "unbounded", focus, (
+        f"unbounded/forward capture: views are {'nearly parallel' if mean_view >= OBJECT_MAX_MEAN_VIEW else 'not converging'} "
+        f"(mean view length {mean_view:.2f}, common point in front of {in_front:.0%} of the cameras)"
+    )
+
+
+def similarity(scale: float, R: np.ndarray, center: np.ndarray) -> np.ndarray:
+    """4×4 x ↦ scale · R · (x − center)."""
+    T = np.eye(4)
+    T[:3, :3] = scale * R
+    T[:3, 3] = -scale * R @ center
+    return T
+
+
+def transform_c2w(T: np.ndarray, c2w: np.ndarray) -> np.ndarray:
+    """Apply a similarity to a camera pose, keeping the rotation orthonormal (scale moves the centre only)."""
+    scale = np.cbrt(np.linalg.det(T[:3, :3]))
+    R = T[:3, :3] / scale
+    out = np.eye(4)
+    out[:3, :3] = R @ c2w[:3, :3]
+    out[:3, 3] = T[:3, :3] @ c2w[:3, 3] + T[:3, 3]
+    return out
+
+
+def _box_from_points(points: np.ndarray, percentile: float) -> np.ndarray | None:
+    finite = points[np.all(np.isfinite(points), axis=1)]
+    if len(finite) < 20:
+        return None
+    lo = np.percentile(finite, percentile, axis=0)
+    hi = np.percentile(finite, 100 - percentile, axis=0)
+    if np.any(hi - lo <= 0):
+        return None
+    return np.stack([lo, hi])
+
+
+def _box_from_cameras(c2ws: np.ndarray, frames: list[Frame], focus: np.ndarray) -> np.ndarray:
+    """Without sparse points: assume the object about fills the narrowest view at the median camera distance."""
+    dist = float(np.median(np.linalg.norm(c2ws[:, :3, 3] - focus, axis=1)))
+    half_fov = min(min(np.arctan(0.5 * f.w / f.fl_x), np.arctan(0.5 * f.h / f.fl_y)) for f in frames)
+    half = max(dist * np.tan(half_fov), 1e-12)
+    return np.stack([focus - half, focus + half])
+
+
+def _depth_range(c2w: np.ndarray, points: np.ndarray, percentile: float) -> tuple[float, float] | None:
+    if len(points) < 10:
+        return None
+    depth = (points - c2w[:3, 3]) @ (-c2w[:3, 2])
+    depth = depth[depth > 0]
+    if len(depth) < 10:
+        return None
+    return float(np.percentile(depth, percentile)), float(np.percentile(depth, 100 - percentile))
+
+
+def _box_depth_range(c2w: np.ndarray, aabb: np.ndarray) -> tuple[float, float]:
+    corners = np.array([[aabb[i, 0], aabb[j, 1], aabb[k, 2]] for i in (0, 1) for j in (0, 1) for k in (0, 1)])
+    depth = (corners - c2w[:3, 3]) @ (-c2w[:3, 2])
+    inside = np.all((c2w[:3, 3] >= aabb[0]) & (c2w[:3, 3] <= aabb[1]))
+    return (0.0 if inside else float(depth.min())), float(depth.max())
+
+
+def assign_split(frames: list[Frame], test_every: int, val_every: int) -> str:
+    """Keep a split the source gave; otherwise hold out every Nth photo by name (deterministic)."""
+    if any(f.split for f in frames):
+        for f in frames:
+            f.split = f.split or "train"
+        return "split given by the source"
+    order = sorted(range(len(frames)), key=lambda i: frames[i].name)
+    if len(frames) < 10:
+        for f in frames:
+            f.split = "train"
+        return f"only {len(frames)} photos: all are used for training (evaluation uses training views)"
+    for rank, i in enumerate(order):
+        if test_every and rank % test_every == 0:
+            frames[i].split = "test"
+        elif val_every and rank % val_every == val_every // 2:
+            frames[i].split = "val"
+        else:
+            frames[i].split = "train"
+    counts = {s: sum(f.split == s for f in frames) for s in ("train", "val", "test")}
+    return f"every {test_every}th photo held out for test, every {val_every}th (offset) for validation: {counts}"
+
+
+def normalize(scene: Scene, cfg: NormalizeConfig) -> Scene:
+    """The canonical scene: +Z up, centred on the object (or the points), scaled so the box fits [-1, 1]^3."""
+    if len(scene.frames) < 1:
+        raise InputError("The scene has no cameras to normalize.")
+    c2ws = np.stack([f.c2w for f in scene.frames])
+    if not np.all(np.isfinite(c2ws)):
+        raise InputError("Some camera poses contain NaN or infinite values; re-run the poses stage.")
+    notes: dict[str, str] = {}
+    up, notes["up"] = estimate_up(c2ws, cfg.up) if cfg.up != "none" else (np.array([0.0, 0, 1]), "rotation kept")
+    R = rotation_between(up, np.array([0.0, 0.0, 1.0]))
+    capture, focus, notes["capture"] = classify_capture(c2ws)
+
+    points = np.asarray(scene.points, dtype=np.float64).reshape(-1, 3)
+    finite = np.all(np.isfinite(points), axis=1)
+    centers = c2ws[:, :3, 3]
+    if capture == "object":
+        center = focus
+        # points of the object: those nearer to the focus than the cameras are (drops walls/background)
+        radius = np.median(np.linalg.norm(centers - focus, axis=1))
+        near_obj = finite & (np.linalg.norm(points - focus, axis=1) < radius)
+        box = _box_from_points((points[near_obj] - center) @ R.T, cfg.point_percentile)
+        notes["box"] = "sparse points around the focus (percentiles)" if box is not None else ""
+    else:
+        center = np.median(points[finite], axis=0) if finite.sum() >= 20 else focus
+        box = _box_from_points((points[finite] - center) @ R.T, cfg.point_percentile)
+        notes["box"] = "sparse points (percentiles)" if box is not None else ""
+    if box is None:
+        box = _box_from_cameras(c2ws, scene.frames, focus) - focus
+        notes["box"] = "no sparse points: box from the cameras' field of view at their distance"
+    if capture != "object":
+        # keep the cameras inside the modelled region of a forward/unbounded capture
+        cam_box = np.stack([((centers - center) @ R.T).min(0), ((centers - center) @ R.T).max(0)])
+        box = np.stack([np.minimum(box[0], cam_box[0]), np.maximum(box[1], cam_box[1])])
+    size = box[1] - box[0]
+    box = box + np.stack([-size, size]) * cfg.box_margin
+    extent = float(np.abs(box).max())
+    if not np.isfinite(extent) or extent <= 0:
+        raise InputError("The scene has no extent (all cameras and points coincide); the capture cannot be scaled.")
+    scale = 1.0 / extent
+    T = similarity(scale, R, center)
+    aabb = box * scale
+
+    new_frames = [replace(f, c2w=transform_c2w(T, f.c2w)) for f in scene.frames]
+    new_points = (points - center) @ R.T * scale
+    for f, old in zip(new_frames, scene.frames, strict=True):
+        near, far = _box_depth_range(f.c2w, aabb)
+        if capture != "object":
+            visible = scene.point_visibility.get(old.name)
+            pts = new_points[visible] if visible is not None and len(visible) else new_points[finite]
+            rng = _depth_range(f.c2w, pts, cfg.depth_percentile)
+            if rng is not None:
+                near, far = rng[0] * 0.8, max(rng[1] * 1.2, far)
+        f.near = float(max(near, 1e-3 * float(np.linalg.norm(f.c2w[:3, 3]) + 1e-3), 1e-4))
+        f.far = float(max(far, f.near * 1.01))
+    notes["split"] = assign_split(new_frames, cfg.test_every, cfg.val_every)
+    notes["scale"] = f"scale {scale:.6g}: the box's largest half-extent becomes 1"
+    return Scene(
+        frames=new_frames,
+        points=new_points,
+        point_colors=scene.point_colors,
+        point_visibility=scene.point_visibility,
+        aabb=aabb,
+        capture=capture,
+        world_from_source=T @ scene.world_from_source,
+        has_alpha=scene.has_alpha,
+        source_kind=scene.source_kind,
+        notes=notes,
+        root=scene.root,
+    )

@@ -1,0 +1,436 @@
+"""The stage runner: the one place that owns caching, fingerprints, the manifest and atomic stage folders.
+
+A stage is a name, its upstream stages, its config slice and a function that writes into a fresh
+temporary folder. Its fingerprint hashes the upstream stages' output digests, its config slice, its
+format version and any outside input it declares (the photos). A stage whose fingerprint matches the
+manifest and whose files still match the checksums recorded when they were written is skipped;
+anything else re-runs, and so (through the changed digest) does everything downstream of a changed
+output. A stage's folder only ever appears complete: it is written as `.tmp-NAME-PID/`, then renamed
+into place, and only then is the manifest (itself written atomically) updated.
+"""
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import errno
+import fcntl
+import hashlib
+import json
+import os
+import shutil
+import signal
+import sys
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any
+
+from recon.config import RunConfig, config_slice
+from recon.errors import ReconError
+from recon.progress import Reporter
+
+MANIFEST = "manifest.json"
+LOCK = ".lock"
+MANIFEST_VERSION = 1
+
+
+@dataclass
+class StageContext:
+    """What a stage function gets: where to write, what to read, its config, and a progress reporter."""
+
+    name: str
+    folder: str
+    """The stage's folder name inside the scene folder (e.g. '01_poses')."""
+    out: Path
+    """Fresh temporary folder: write every artifact here; it becomes SCENE/<folder> when the stage returns."""
+    work: Path
+    """Scratch that survives a crash (checkpoints), keyed by the fingerprint; removed after success."""
+    inputs: dict[str, Path]
+    """Upstream stage name → its finished folder."""
+    config: Any
+    """This stage's config slice (a dataclass)."""
+    run_config: RunConfig
+    source: Path | None
+    """The photos folder or poses file given to `recon run` (recorded in the manifest)."""
+    scene_dir: Path
+    report: Reporter
+
+
+@dataclass(frozen=True)
+class Stage:
+    """One step of the pipeline. `run` returns a short summary dict (shown by the CLI and `recon status`)."""
+
+    name: str
+    folder: str
+    inputs: tuple[str, ...]
+    version: int
+    run: Callable[[StageContext], dict]
+    needs_source: bool = False
+    source_digest: Callable[[Path, Any], str] | None = None
+    """Digest of the stage's outside input (e.g. every photo's bytes), part of the fingerprint."""
+
+
+@dataclass
+class StageOutcome:
+    name: str
+    action: str  # "ran" | "cached"
+    wall_s: float
+    summary: dict = field(default_factory=dict)
+
+
+def _now() -> str:
+    return datetime.now(timezone.utc).isoformat(timespec="seconds")
+
+
+def sha256_file(path: Path, block: int = 1 << 20) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        while chunk := f.read(block):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def folder_files(folder: Path) -> dict[str, dict]:
+    """Per-file checksums of a stage folder: recorded at write time, checked before a cached stage is reused."""
+    files = {}
+    for path in sorted(p for p in folder.rglob("*") if p.is_file()):
+        files[path.relative_to(folder).as_posix()] = {"sha256": sha256_file(path), "size": path.stat().st_size}
+    return files
+
+
+def digest_of(files: dict[str, dict]) -> str:
+    return hashlib.sha256(json.dumps(files, sort_keys=True).encode()).hexdigest()
+
+
+def package_versions() -> dict[str, str]:
+    from importlib import metadata
+
+    versions = {"python": sys.version.split()[0]}
+    for name in ("recon", "numpy", "torch", "pycolmap", "trimesh", "scikit-image", "opencv-contrib-python-headless"):
+        try:
+            versions[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            continue
+    return versions
+
+
+def write_json_atomic(path: Path, data: Any) -> None:
+    """Write JSON next to its final place, fsync, then rename over it: readers see old or new, never half."""
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    with open(tmp, "w") as f:
+        json.dump(data, f, indent=2, sort_keys=False)
+        f.write("\n")
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+
+
+class Manifest:
+    """SCENE/manifest.json: per stage, its fingerprint, status, times, versions, outputs and summary."""
+
+    def __init__(self, scene_dir: Path):
+        self.path = scene_dir / MANIFEST
+        self.data: dict[str, Any] = {"version": MANIFEST_VERSION, "source": None, "stages": {}}
+        self.warning: str | None = None
+        if self.path.exists():
+            try:
+                data = json.loads(self.path.read_text())
+                if not isinstance(data, dict) or not isinstance(data.get("stages"), dict):
+                    raise ValueError("missing 'stages'")
+                self.data = data
+            except (ValueError, UnicodeDecodeError) as exc:
+                self.warning = f"{self.path} was unreadable ({exc}); every stage's cache is ignored and re-checked."
+
+    @property
+    def stages(self) -> dict[str, dict]:
+        return self.data["stages"]
+
+    def save(self) -> None:
+        write_json_atomic(self.path, self.data)
+
+
+@contextlib.contextmanager
+def scene_lock(scene_dir: Path) -> Iterator[None]:
+    """One `recon` writer per scene folder. flock is released by the kernel when a process dies."""
+    lock_path = scene_dir / LOCK
+    fd = os.open(lock_path, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.pread(fd, 64, 0).decode(errors="replace").strip() or "another process"
+            raise ReconError(
+                f"{scene_dir} is in use by another recon process (pid {holder}). Wait for it to finish, "
+                f"or stop it, or choose another --out folder."
+            ) from None
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, str(os.getpid()).encode(), 0)
+        yield
+    finally:
+        os.close(fd)
+
+
+def prepare_scene_dir(scene_dir: Path) -> None:
+    """Create the output folder or explain why it cannot be used."""
+    if scene_dir.exists() and not scene_dir.is_dir():
+        raise ReconError(f"The output path {scene_dir} is a file, not a folder. Choose a folder path for --out.")
+    try:
+        scene_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ReconError(f"Cannot create the output folder {scene_dir}: {exc.strerror}. Choose another --out.") from None
+    if not os.access(scene_dir, os.W_OK | os.X_OK):
+        raise ReconError(
+            f"The output folder {scene_dir} is not writable. Fix its permissions or choose another --out folder."
+        )
+
+
+class Pipeline:
+    """Runs an ordered list of stages over one scene folder."""
+
+    def __init__(self, stages: list[Stage]):
+        self.stages = stages
+        self.by_name = {s.name: s for s in stages}
+
+    def names(self) -> list[str]:
+        return [s.name for s in self.stages]
+
+    def select(self, from_stage: str | None, until_stage: str | None) -> list[Stage]:
+        names = self.names()
+        for given in (from_stage, until_stage):
+            if given is not None and given not in names:
+                raise ReconError(f"Unknown stage '{given}'. Stages, in order: {', '.join(names)}.")
+        start = names.index(from_stage) if from_stage else 0
+        stop = names.index(until_stage) if until_stage else len(names) - 1
+        if start > stop:
+            raise ReconError(f"--from {from_stage} comes after --until {until_stage}; nothing to run.")
+        return self.stages[start : stop + 1]
+
+    def fingerprint(self, stage: Stage, manifest: Manifest, config: RunConfig, source: Path | None) -> str:
+        parts: dict[str, Any] = {
+            "stage": stage.name,
+            "version": stage.version,
+            "config": config_slice(config, stage.name) if hasattr(config, stage.name) else None,
+            "inputs": {name: manifest.stages.get(name, {}).get("output_digest") for name in stage.inputs},
+        }
+        if stage.source_digest is not None and source is not None:
+            parts["source"] = stage.source_digest(source, getattr(config, stage.name, None))
+        return hashlib.sha256(json.dumps(parts, sort_keys=True, default=str).encode()).hexdigest()
+
+    def state(self, scene_dir: Path, config: RunConfig | None = None, source: Path | None = None) -> list[dict]:
+        """Each stage's state for `recon status`: done / stale / missing / failed / corrupt."""
+        manifest = Manifest(scene_dir)
+        rows = []
+        for stage in self.stages:
+            entry = manifest.stages.get(stage.name)
+            folder = scene_dir / stage.folder
+            row = {"stage": stage.name, "folder": stage.folder, "state": "missing", "wall_s": None, "summary": {}}
+            if entry:
+                row["wall_s"] = entry.get("wall_s")
+                row["summary"] = entry.get("summary", {})
+                row["finished"] = entry.get("finished")
+                if entry.get("last_error"):
+                    row["error"] = entry["last_error"]
+                if entry.get("status") == "done" and folder.is_dir():
+                    row["state"] = "done" if self._outputs_intact(folder, entry) else "corrupt"
+                    if row["state"] == "done" and config is not None:
+                        fp = self.fingerprint(stage, manifest, config, source or _manifest_source(manifest))
+                        if fp != entry.get("fingerprint"):
+                            row["state"] = "stale"
+                    upstream_changed = any(
+                        manifest.stages.get(u, {}).get("output_digest") != entry.get("input_digests", {}).get(u)
+                        for u in stage.inputs
+                    )
+                    if row["state"] == "done" and upstream_changed:
+                        row["state"] = "stale"
+                elif entry.get("status") == "failed":
+                    row["state"] = "failed"
+            rows.append(row)
+        return rows
+
+    @staticmethod
+    def _outputs_intact(folder: Path, entry: dict) -> bool:
+        recorded = entry.get("files")
+        if not isinstance(recorded, dict):
+            return False
+        try:
+            return folder_files(folder) == recorded
+        except OSError:
+            return False
+
+    def run(
+        self,
+        scene_dir: Path,
+        config: RunConfig,
+        report: Reporter,
+        source: Path | None = None,
+        from_stage: str | None = None,
+        until_stage: str | None = None,
+        force: bool = False,
+    ) -> list[StageOutcome]:
+        """Run the selected stages in order, skipping those whose cache is valid.
+
+        `from_stage` forces that stage to re-run (and what follows re-runs if its output changed);
+        `force` re-runs every selected stage.
+        """
+        prepare_scene_dir(scene_dir)
+        outcomes: list[StageOutcome] = []
+        with scene_lock(scene_dir):
+            manifest = Manifest(scene_dir)
+            if manifest.warning:
+                report.warn(manifest.warning)
+            _remove_leftovers(scene_dir)
+            if source is not None:
+                manifest.data["source"] = str(source)
+            source = source or _manifest_source(manifest)
+            selected = self.select(from_stage, until_stage)
+            for stage in selected:
+                forced = force or stage.name == from_stage
+                outcomes.append(self._run_stage(stage, scene_dir, manifest, config, report, source, forced))
+        return outcomes
+
+    def _run_stage(
+        self,
+        stage: Stage,
+        scene_dir: Path,
+        manifest: Manifest,
+        config: RunConfig,
+        report: Reporter,
+        source: Path | None,
+        forced: bool,
+    ) -> StageOutcome:
+        for upstream in stage.inputs:
+            entry = manifest.stages.get(upstream, {})
+            if entry.get("status") != "done" or not (scene_dir / self.by_name[upstream].folder).is_dir():
+                raise ReconError(
+                    f"Stage '{stage.name}' needs the output of '{upstream}', which {scene_dir} does not have yet. "
+                    f"Run `recon run PHOTOS --out {scene_dir}` (or `recon {upstream} ...`) first."
+                )
+        if stage.needs_source and source is None:
+            raise ReconError(
+                f"Stage '{stage.name}' needs the photos folder; give it: `recon run PHOTOS_DIR --out {scene_dir}`."
+            )
+        if stage.needs_source and source is not None and not source.exists():
+            raise ReconError(f"The input {source} does not exist. Check the path (it is recorded in {MANIFEST}).")
+
+        fingerprint = self.fingerprint(stage, manifest, config, source)
+        entry = manifest.stages.get(stage.name)
+        folder = scene_dir / stage.folder
+        if not forced and entry and entry.get("status") == "done" and entry.get("fingerprint") == fingerprint:
+            if folder.is_dir() and self._outputs_intact(folder, entry):
+                report.stage_cached(stage.name, entry.get("summary", {}))
+                return StageOutcome(stage.name, "cached", 0.0, entry.get("summary", {}))
+            report.warn(
+                f"Stage '{stage.name}': its files in {folder} no longer match the checksums recorded when they were "
+                f"written (changed, truncated or deleted); re-running it."
+            )
+
+        tmp = scene_dir / f".tmp-{stage.folder}-{os.getpid()}"
+        if tmp.exists():
+            shutil.rmtree(tmp)
+        tmp.mkdir()
+        work = scene_dir / ".work" / f"{stage.name}-{fingerprint[:16]}"
+        work.mkdir(parents=True, exist_ok=True)
+        ctx = StageContext(
+            name=stage.name,
+            folder=stage.folder,
+            out=tmp,
+            work=work,
+            inputs={u: scene_dir / self.by_name[u].folder for u in stage.inputs},
+            config=getattr(config, stage.name, None),
+            run_config=config,
+            source=source,
+            scene_dir=scene_dir,
+            report=report,
+        )
+        started, t0 = _now(), time.perf_counter()
+        report.stage_start(stage.name)
+        try:
+            summary = stage.run(ctx) or {}
+            files = folder_files(tmp)
+        except BaseException as exc:
+            shutil.rmtree(tmp, ignore_errors=True)
+            if not isinstance(exc, (KeyboardInterrupt, SystemExit)):
+                record = manifest.stages.setdefault(stage.name, {})
+                record["last_error"] = _error_line(exc)
+                record["last_attempt"] = _now()
+                if record.get("status") != "done":
+                    record["status"] = "failed"
+                manifest.save()
+            raise
+        wall = time.perf_counter() - t0
+        _swap_into_place(tmp, folder)
+        manifest.stages[stage.name] = {
+            "status": "done",
+            "fingerprint": fingerprint,
+            "input_digests": {u: manifest.stages[u]["output_digest"] for u in stage.inputs},
+            "output_digest": digest_of(files),
+            "files": files,
+            "started": started,
+            "finished": _now(),
+            "wall_s": round(wall, 3),
+            "config": config_slice(config, stage.name) if hasattr(config, stage.name) else None,
+            "versions": package_versions(),
+            "summary": summary,
+        }
+        manifest.save()
+        shutil.rmtree(work, ignore_errors=True)
+        report.stage_done(stage.name, wall, summary)
+        return StageOutcome(stage.name, "ran", wall, summary)
+
+
+def _error_line(exc: BaseException) -> str:
+    text = str(exc).strip() or type(exc).__name__
+    return text.splitlines()[0][:300]
+
+
+def _manifest_source(manifest: Manifest) -> Path | None:
+    src = manifest.data.get("source")
+    return Path(src) if src else None
+
+
+def _swap_into_place(tmp: Path, folder: Path) -> None:
+    """Replace `folder` by `tmp` so that a crash at any point leaves one complete folder or a leftover to clean.
+
+    Old folder → `.old-NAME` (rename), tmp → folder (rename), then delete the old one. A crash between
+    the two renames leaves no `folder`: the manifest's checksums then fail and the stage re-runs.
+    """
+    old = folder.with_name(f".old-{folder.name}-{os.getpid()}")
+    if folder.exists():
+        os.rename(folder, old)
+    os.rename(tmp, folder)
+    _fsync_dir(folder.parent)
+    if old.exists():
+        shutil.rmtree(old, ignore_errors=True)
+
+
+def _fsync_dir(path: Path) -> None:
+    with contextlib.suppress(OSError):
+        fd = os.open(path, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+
+
+def _remove_leftovers(scene_dir: Path) -> None:
+    """Temporary and superseded folders of interrupted runs (we hold the lock, so none is in use)."""
+    for path in scene_dir.iterdir():
+        if path.name.startswith((".tmp-", ".old-")) and path.is_dir():
+            shutil.rmtree(path, ignore_errors=True)
+        elif path.name.startswith(".") and path.name.endswith(".tmp") and path.is_file():
+            path.unlink(missing_ok=True)
+
+
+def install_sigterm_as_interrupt() -> None:
+    """Treat SIGTERM like Ctrl-C so a stopped run cleans its temporary folder and checkpoints."""
+    def handler(signum: int, frame: Any) -> None:
+        raise KeyboardInterrupt
+
+    with contextlib.suppress(ValueError):
+        signal.signal(signal.SIGTERM, handler)
+
+
+def is_disk_full(exc: BaseException) -> bool:
+    return isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, errno.EDQUOT)

@@ -1,0 +1,119 @@
+"""Progress display: stage headers, bars with ETA, warnings, and the closing summary (rich).
+
+Stages never print directly; they call a Reporter so that the CLI, tests (quiet) and benchmarks can
+choose how much is shown.
+"""
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Iterator
+from typing import Any
+
+from rich.console import Console
+from rich.progress import (
+    BarColumn,
+    MofNCompleteColumn,
+    Progress,
+    SpinnerColumn,
+    TaskID,
+    TextColumn,
+    TimeElapsedColumn,
+    TimeRemainingColumn,
+)
+
+
+class Task:
+    """A handle on one progress bar: advance it, change its total, or show a short status text."""
+
+    def __init__(self, progress: Progress | None, task_id: TaskID | None):
+        self._progress, self._id = progress, task_id
+
+    def advance(self, n: float = 1) -> None:
+        if self._progress is not None and self._id is not None:
+            self._progress.advance(self._id, n)
+
+    def update(self, completed: float | None = None, total: float | None = None, info: str | None = None) -> None:
+        if self._progress is None or self._id is None:
+            return
+        kwargs: dict[str, Any] = {}
+        if completed is not None:
+            kwargs["completed"] = completed
+        if total is not None:
+            kwargs["total"] = total
+        if info is not None:
+            kwargs["info"] = info
+        self._progress.update(self._id, **kwargs)
+
+
+class Reporter:
+    """Console output for a run. `quiet=True` keeps warnings and errors only (used by tests)."""
+
+    def __init__(self, console: Console | None = None, quiet: bool = False):
+        self.console = console or Console(stderr=True, highlight=False)
+        self.quiet = quiet
+        self.current_stage: str | None = None
+        self.warnings: list[str] = []
+
+    def stage_start(self, name: str) -> None:
+        self.current_stage = name
+        if not self.quiet:
+            self.console.rule(f"[bold]{name}")
+
+    def stage_cached(self, name: str, summary: dict) -> None:
+        if not self.quiet:
+            self.console.print(f"[green]✓[/] {name}: up to date (cached) — {format_summary(summary)}")
+
+    def stage_done(self, name: str, wall_s: float, summary: dict) -> None:
+        if not self.quiet:
+            self.console.print(f"[green]✓[/] {name} done in {format_seconds(wall_s)} — {format_summary(summary)}")
+
+    def info(self, message: str) -> None:
+        if not self.quiet:
+            self.console.print(message)
+
+    def warn(self, message: str) -> None:
+        self.warnings.append(message)
+        self.console.print(f"[yellow]warning:[/] {message}")
+
+    @contextlib.contextmanager
+    def task(self, description: str, total: float | None = None, unit: str = "") -> Iterator[Task]:
+        """A bar with elapsed time and ETA (a spinner when the total is unknown)."""
+        if self.quiet:
+            yield Task(None, None)
+            return
+        stage = f"[cyan]{self.current_stage}[/] " if self.current_stage else ""
+        columns = [
+            SpinnerColumn(),
+            TextColumn(f"{stage}{description}"),
+            BarColumn(),
+            MofNCompleteColumn(),
+            TextColumn(unit),
+            TimeElapsedColumn(),
+            TextColumn("ETA"),
+            TimeRemainingColumn(),
+            TextColumn("{task.fields[info]}"),
+        ]
+        with Progress(*columns, console=self.console, transient=False) as progress:
+            task_id = progress.add_task(description, total=total, info="")
+            yield Task(progress, task_id)
+
+
+def format_seconds(seconds: float | None) -> str:
+    if seconds is None:
+        return "—"
+    if seconds < 60:
+        return f"{seconds:.1f} s"
+    minutes, sec = divmod(int(round(seconds)), 60)
+    if minutes < 60:
+        return f"{minutes} min {sec:02d} s"
+    hours, minutes = divmod(minutes, 60)
+    return f"{hours} h {minutes:02d} min"
+
+
+def format_summary(summary: dict) -> str:
+    """The stage's own one-line summary: its `headline` if it gave one, else key=value pairs."""
+    if not summary:
+        return ""
+    if "headline" in summary:
+        return str(summary["headline"])
+    return ", ".join(f"{k}={v}" for k, v in summary.items() if not isinstance(v, (dict, list)))

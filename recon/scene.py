@@ -1,0 +1,497 @@
+"""The scene contract: cameras, sparse points, box, split and frame transform — and imports into it.
+
+`scene.json` is a transforms.json (instant-ngp / nerfstudio convention: OpenGL camera-to-world
+`transform_matrix`, `fl_x fl_y cx cy w h`, OpenCV distortion `k1 k2 p1 p2`, `file_path`) with our own
+keys: `aabb`, `capture`, per-frame `near`/`far`/`split`, and `world_from_source` / `source_from_world`
+(the similarity between the SfM/import frame and ours), so other tools can read it and meshes can
+be returned to the original frame. File paths are absolute (the scene folder can live anywhere).
+
+The poses stage writes a `Scene` in the source frame (identity transform, no box); normalize writes
+the canonical one. Every import (COLMAP model, transforms.json, NeRF-synthetic splits, `.npz`) ends
+up as the same `Scene`, so nothing downstream knows where the poses came from.
+"""
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+
+from recon.errors import InputError
+from recon.images import IMAGE_SUFFIXES, oriented_size
+from recon.pipeline import write_json_atomic
+
+SCENE_FORMAT = "recon-scene"
+SCENE_VERSION = 1
+Split = Literal["train", "val", "test"]
+SPLITS: tuple[str, ...] = ("train", "val", "test")
+
+
+@dataclass
+class Frame:
+    """One photo: its file, camera-to-world pose (OpenGL axes) and pinhole intrinsics in pixels."""
+
+    file_path: str
+    c2w: np.ndarray
+    """(4, 4) camera-to-world, OpenGL axes (camera looks down -Z, +Y up)."""
+    fl_x: float
+    fl_y: float
+    cx: float
+    cy: float
+    w: int
+    h: int
+    k1: float = 0.0
+    k2: float = 0.0
+    p1: float = 0.0
+    p2: float = 0.0
+    split: str | None = None
+    near: float | None = None
+    far: float | None = None
+
+    @property
+    def name(self) -> str:
+        return Path(self.file_path).name
+
+    @property
+    def stem(self) -> str:
+        return Path(self.file_path).stem
+
+    @property
+    def distortion(self) -> tuple[float, float, float, float]:
+        return (self.k1, self.k2, self.p1, self.p2)
+
+    @property
+    def center(self) -> np.ndarray:
+        return self.c2w[:3, 3]
+
+
+@dataclass
+class Scene:
+    """Cameras + sparse points + what normalize decided about the capture."""
+
+    frames: list[Frame]
+    points: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    """(P, 3) sparse points in the scene frame."""
+    point_colors: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), dtype=np.uint8))
+    point_visibility: dict[str, np.ndarray] = field(default_factory=dict)
+    """frame name → indices of the points that frame sees (for near/far)."""
+    aabb: np.ndarray | None = None
+    """(2, 3) scene box [min, max] in the scene frame."""
+    capture: str | None = None
+    """'object' (cameras around, looking in) or 'unbounded' (forward-facing / wide scene)."""
+    world_from_source: np.ndarray = field(default_factory=lambda: np.eye(4))
+    """(4, 4) similarity mapping the source (SfM or import) frame into this scene's frame."""
+    has_alpha: bool = False
+    """Photos carry an alpha channel (known background, e.g. NeRF-synthetic RGBA)."""
+    source_kind: str = "photos"
+    notes: dict[str, Any] = field(default_factory=dict)
+    root: Path | None = None
+    """Folder that relative `file_path`s are resolved against (the scene folder for images recon wrote)."""
+
+    def image_path(self, frame: Frame) -> Path:
+        path = Path(frame.file_path)
+        if path.is_absolute() or self.root is None:
+            return path
+        return self.root / path
+
+    @property
+    def source_from_world(self) -> np.ndarray:
+        return np.linalg.inv(self.world_from_source)
+
+    def split(self, name: str) -> list[Frame]:
+        return [f for f in self.frames if f.split == name]
+
+    def to_json(self) -> dict:
+        doc: dict[str, Any] = {
+            "format": SCENE_FORMAT,
+            "version": SCENE_VERSION,
+            "camera_model": "OPENCV",
+            "capture": self.capture,
+            "source_kind": self.source_kind,
+            "has_alpha": self.has_alpha,
+            "aabb": None if self.aabb is None else np.asarray(self.aabb).tolist(),
+            "world_from_source": np.asarray(self.world_from_source).tolist(),
+            "source_from_world": self.source_from_world.tolist(),
+            "notes": self.notes,
+            "frames": [],
+        }
+        shared = _shared_intrinsics(self.frames)
+        doc.update(shared)
+        for f in self.frames:
+            entry: dict[str, Any] = {"file_path": f.file_path, "transform_matrix": np.asarray(f.c2w).tolist()}
+            for key in ("fl_x", "fl_y", "cx", "cy", "w", "h", "k1", "k2", "p1", "p2"):
+                if key not in shared:
+                    entry[key] = getattr(f, key)
+            for key in ("split", "near", "far"):
+                if getattr(f, key) is not None:
+                    entry[key] = getattr(f, key)
+            doc["frames"].append(entry)
+        return doc
+
+    def save(self, folder: Path) -> None:
+        """Write scene.json and points.npz into `folder` (atomically each)."""
+        write_json_atomic(folder / "scene.json", self.to_json())
+        vis_names = sorted(self.point_visibility)
+        np.savez(
+            folder / "points.npz",
+            xyz=np.asarray(self.points, dtype=np.float64).reshape(-1, 3),
+            rgb=np.asarray(self.point_colors, dtype=np.uint8).reshape(-1, 3),
+            vis_names=np.array(vis_names, dtype=str),
+            **{f"vis_{i}": np.asarray(self.point_visibility[n], dtype=np.int64) for i, n in enumerate(vis_names)},
+        )
+
+
+def _shared_intrinsics(frames: list[Frame]) -> dict[str, Any]:
+    keys = ("fl_x", "fl_y", "cx", "cy", "w", "h", "k1", "k2", "p1", "p2")
+    if not frames:
+        return {}
+    first = {k: getattr(frames[0], k) for k in keys}
+    if all(all(getattr(f, k) == first[k] for k in keys) for f in frames):
+        return first
+    return {}
+
+
+def load_scene(folder: Path) -> Scene:
+    """Read scene.json (+ points.npz) written by `Scene.save`."""
+    path = folder / "scene.json"
+    try:
+        doc = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise InputError(f"Cannot read {path}: {exc}. Re-run the stage that writes it (recon run --from normalize).") from None
+    if doc.get("format") != SCENE_FORMAT:
+        raise InputError(f"{path} is not a recon scene file (format '{doc.get('format')}').")
+    frames = parse_frames(doc, base=folder, source=path, check_files=False)
+    scene = Scene(
+        frames=frames,
+        aabb=None if doc.get("aabb") is None else _matrix(doc["aabb"], (2, 3), path, "aabb"),
+        capture=doc.get("capture"),
+        world_from_source=_matrix(doc.get("world_from_source", np.eye(4).tolist()), (4, 4), path, "world_from_source"),
+        has_alpha=bool(doc.get("has_alpha", False)),
+        source_kind=doc.get("source_kind", "photos"),
+        notes=doc.get("notes", {}),
+        root=folder.parent,
+    )
+    points_path = folder / "points.npz"
+    if points_path.exists():
+        with np.load(points_path) as data:
+            scene.points = data["xyz"]
+            scene.point_colors = data["rgb"]
+            names = [str(n) for n in data["vis_names"]]
+            scene.point_visibility = {n: data[f"vis_{i}"] for i, n in enumerate(names)}
+    return scene
+
+
+# --------------------------------------------------------------------------------------------- parsing
+
+
+def _matrix(value: Any, shape: tuple[int, ...], source: Path | str, what: str) -> np.ndarray:
+    try:
+        arr = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise InputError(f"{source}: '{what}' is not a numeric matrix. Fix or regenerate the file.") from None
+    if arr.shape != shape:
+        raise InputError(f"{source}: '{what}' has shape {arr.shape}, expected {shape}. Fix or regenerate the file.")
+    if not np.all(np.isfinite(arr)):
+        raise InputError(f"{source}: '{what}' contains NaN or infinite values. Fix or regenerate the file.")
+    return arr
+
+
+def check_pose(c2w: np.ndarray, source: Path | str, what: str) -> np.ndarray:
+    """A camera-to-world must be a rigid transform (orthonormal rotation, det +1, last row 0 0 0 1)."""
+    R = c2w[:3, :3]
+    if not np.allclose(c2w[3], [0, 0, 0, 1], atol=1e-6):
+        raise InputError(f"{source}: {what} does not end in the row [0, 0, 0, 1]; it is not a camera pose.")
+    err = np.abs(R.T @ R - np.eye(3)).max()
+    if err > 1e-3 or np.linalg.det(R) < 0:
+        raise InputError(
+            f"{source}: {what} has a rotation that is not orthonormal (error {err:.2g}, det {np.linalg.det(R):.3f}). "
+            f"Poses must be rigid camera-to-world matrices; scaled or sheared matrices are not supported."
+        )
+    # re-orthonormalize tiny float noise so downstream math sees an exact rotation
+    u, _, vt = np.linalg.svd(R)
+    out = c2w.copy()
+    out[:3, :3] = u @ vt
+    return out
+
+
+def _number(value: Any, source: Path | str, what: str, positive: bool = False) -> float:
+    try:
+        x = float(value)
+    except (TypeError, ValueError):
+        raise InputError(f"{source}: '{what}' must be a number, got {value!r}.") from None
+    if not math.isfinite(x) or (positive and x <= 0):
+        raise InputError(f"{source}: '{what}' must be a finite{' positive' if positive else ''} number, got {value!r}.")
+    return x
+
+
+def resolve_image(base: Path, file_path: str, source: Path | str) -> Path:
+    """Find a frame's image under `base`, allowing a missing extension (NeRF-synthetic writes './train/r_0')."""
+    if not isinstance(file_path, str) or not file_path:
+        raise InputError(f"{source}: a frame has no 'file_path'.")
+    path = Path(file_path)
+    if not path.is_absolute():
+        path = (base / path).resolve()
+        root = base.resolve()
+        if root not in path.parents:
+            raise InputError(
+                f"{source}: the image path '{file_path}' points outside the capture folder {root}. "
+                f"Image paths must stay inside the folder that holds the poses file."
+            )
+    if path.is_file():
+        return path
+    for suffix in sorted(IMAGE_SUFFIXES) + [s.upper() for s in sorted(IMAGE_SUFFIXES)]:
+        candidate = path.with_name(path.name + suffix)
+        if candidate.is_file():
+            return candidate
+    raise InputError(f"{source}: the image '{file_path}' does not exist (looked for {path}). Fix the path or add the file.")
+
+
+def parse_frames(
+    doc: dict, base: Path, source: Path | str, check_files: bool = True, split: str | None = None
+) -> list[Frame]:
+    """Frames of a transforms.json-style document; intrinsics per frame or shared at the top level."""
+    if not isinstance(doc, dict):
+        raise InputError(f"{source}: expected a JSON object with a 'frames' list.")
+    frames_doc = doc.get("frames")
+    if not isinstance(frames_doc, list) or not frames_doc:
+        raise InputError(f"{source}: no 'frames' list (or it is empty). A poses file needs one entry per photo.")
+    frames = []
+    for i, fd in enumerate(frames_doc):
+        if not isinstance(fd, dict):
+            raise InputError(f"{source}: frame {i} is not an object.")
+        what = f"frame {i} ('{fd.get('file_path', '?')}')"
+        if "transform_matrix" not in fd:
+            raise InputError(f"{source}: {what} has no 'transform_matrix'.")
+        c2w = check_pose(_matrix(fd["transform_matrix"], (4, 4), source, f"{what} transform_matrix"), source, what)
+        path = resolve_image(base, fd.get("file_path"), source) if check_files else Path(fd.get("file_path", ""))
+        merged = {**doc, **fd}
+        if "w" in merged and "h" in merged:
+            w, h = int(_number(merged["w"], source, "w", True)), int(_number(merged["h"], source, "h", True))
+        elif check_files:
+            w, h = oriented_size(path)
+        else:
+            raise InputError(f"{source}: {what} has no image size (w, h).")
+        if "fl_x" in merged:
+            fl_x = _number(merged["fl_x"], source, "fl_x", True)
+            fl_y = _number(merged.get("fl_y", fl_x), source, "fl_y", True)
+        elif "camera_angle_x" in merged:
+            angle = _number(merged["camera_angle_x"], source, "camera_angle_x", True)
+            if angle >= math.pi:
+                raise InputError(f"{source}: camera_angle_x = {angle} rad is not a field of view below 180°.")
+            fl_x = 0.5 * w / math.tan(0.5 * angle)
+            fl_y = fl_x
+            if "camera_angle_y" in merged:
+                fl_y = 0.5 * h / math.tan(0.5 * _number(merged["camera_angle_y"], source, "camera_angle_y", True))
+        else:
+            raise InputError(f"{source}: no focal length: give 'fl_x' (pixels) or 'camera_angle_x' (radians).")
+        frame = Frame(
+            file_path=str(path),
+            c2w=c2w,
+            fl_x=fl_x,
+            fl_y=fl_y,
+            cx=_number(merged.get("cx", w / 2), source, "cx"),
+            cy=_number(merged.get("cy", h / 2), source, "cy"),
+            w=w,
+            h=h,
+            **{k: _number(merged.get(k, 0.0), source, k) for k in ("k1", "k2", "p1", "p2")},
+            split=fd.get("split", split),
+            near=_number(fd["near"], source, "near", True) if "near" in fd else None,
+            far=_number(fd["far"], source, "far", True) if "far" in fd else None,
+        )
+        if frame.split is not None and frame.split not in SPLITS:
+            raise InputError(f"{source}: {what} has split '{frame.split}'; expected one of {', '.join(SPLITS)}.")
+        frames.append(frame)
+    return frames
+
+
+# --------------------------------------------------------------------------------------------- imports
+
+
+def detect_source(path: Path) -> str:
+    """What the user handed us: 'photos', 'transforms', 'nerf_synthetic', 'colmap' or 'npz'."""
+    if path.is_file() and path.suffix.lower() == ".npz":
+        return "npz"
+    if path.is_file() and path.name.endswith(".json"):
+        return "transforms"
+    if path.is_dir():
+        if all((path / f"transforms_{s}.json").is_file() for s in ("train", "test")):
+            return "nerf_synthetic"
+        if (path / "transforms.json").is_file():
+            return "transforms"
+        if find_colmap_model(path) is not None:
+            return "colmap"
+        return "photos"
+    if not path.exists():
+        raise InputError(f"The input {path} does not exist. Pass a folder of photos (or a poses file).")
+    raise InputError(
+        f"The input {path} is a file recon cannot use. Pass a folder of photos, a folder with transforms.json, "
+        f"a COLMAP project/model folder, or a NeRF .npz file."
+    )
+
+
+def find_colmap_model(path: Path) -> Path | None:
+    """A COLMAP sparse model folder: `path` itself, `path/sparse/0`, or `path/sparse`."""
+    for cand in (path, path / "sparse" / "0", path / "sparse", path / "colmap" / "sparse" / "0"):
+        if (cand / "cameras.bin").is_file() or (cand / "cameras.txt").is_file():
+            return cand
+    return None
+
+
+def _load_json(path: Path) -> Any:
+    try:
+        return json.loads(path.read_text())
+    except UnicodeDecodeError:
+        raise InputError(f"{path} is not a UTF-8 text file. Is it really a transforms.json?") from None
+    except json.JSONDecodeError as exc:
+        raise InputError(f"{path} is not valid JSON ({exc}). Fix or regenerate the file.") from None
+
+
+def import_transforms(path: Path) -> Scene:
+    """instant-ngp / nerfstudio transforms.json (a file, or a folder holding one)."""
+    json_path = path / "transforms.json" if path.is_dir() else path
+    doc = _load_json(json_path)
+    frames = parse_frames(doc, base=json_path.parent, source=json_path)
+    return Scene(frames=frames, has_alpha=_has_alpha(frames[0]), source_kind="transforms")
+
+
+def import_nerf_synthetic(folder: Path) -> Scene:
+    """Blender NeRF-synthetic layout: transforms_{train,val,test}.json; its splits are kept."""
+    frames: list[Frame] = []
+    for split in SPLITS:
+        json_path = folder / f"transforms_{split}.json"
+        if not json_path.is_file():
+            continue
+        doc = _load_json(json_path)
+        split_frames = parse_frames(doc, base=folder, source=json_path, split=split)
+        frames += [f for f in split_frames if Path(f.file_path).is_file()]
+    return Scene(frames=frames, has_alpha=_has_alpha(frames[0]), source_kind="nerf_synthetic")
+
+
+def _has_alpha(frame: Frame) -> bool:
+    from PIL import Image
+
+    with Image.open(frame.file_path) as img:
+        return img.mode in ("RGBA", "LA", "PA") or "transparency" in img.info
+
+
+def opencv_to_opengl(cam_from_world: np.ndarray) -> np.ndarray:
+    """COLMAP world→camera (3×4, OpenCV axes) → camera-to-world 4×4 in OpenGL axes."""
+    w2c = np.eye(4)
+    w2c[:3, :4] = cam_from_world
+    c2w = np.linalg.inv(w2c)
+    c2w[:3, 1:3] *= -1.0  # OpenCV (+Y down, +Z forward) → OpenGL (+Y up, -Z forward)
+    return c2w
+
+
+def colmap_intrinsics(model_name: str, params: np.ndarray) -> dict[str, float]:
+    """COLMAP camera params → fl_x, fl_y, cx, cy, k1, k2, p1, p2."""
+    p = [float(x) for x in params]
+    out = {"k1": 0.0, "k2": 0.0, "p1": 0.0, "p2": 0.0}
+    if model_name in ("SIMPLE_PINHOLE",):
+        out.update(fl_x=p[0], fl_y=p[0], cx=p[1], cy=p[2])
+    elif model_name == "PINHOLE":
+        out.update(fl_x=p[0], fl_y=p[1], cx=p[2], cy=p[3])
+    elif model_name == "SIMPLE_RADIAL":
+        out.update(fl_x=p[0], fl_y=p[0], cx=p[1], cy=p[2], k1=p[3])
+    elif model_name == "RADIAL":
+        out.update(fl_x=p[0], fl_y=p[0], cx=p[1], cy=p[2], k1=p[3], k2=p[4])
+    elif model_name in ("OPENCV", "FULL_OPENCV"):
+        out.update(fl_x=p[0], fl_y=p[1], cx=p[2], cy=p[3], k1=p[4], k2=p[5], p1=p[6], p2=p[7])
+    else:
+        raise InputError(
+            f"COLMAP camera model {model_name} is not supported. Use SIMPLE_RADIAL, RADIAL, OPENCV or a pinhole model."
+        )
+    return out
+
+
+def scene_from_reconstruction(rec: Any, image_root: Path, name_to_path: dict[str, Path] | None = None) -> Scene:
+    """A pycolmap.Reconstruction → Scene in COLMAP's world frame (poses, intrinsics, points, visibility)."""
+    frames: list[Frame] = []
+    visibility: dict[str, list[int]] = {}
+    point_ids = sorted(rec.points3D.keys())
+    index_of = {pid: i for i, pid in enumerate(point_ids)}
+    for image_id in sorted(rec.images.keys(), key=lambda i: rec.images[i].name):
+        image = rec.images[image_id]
+        if not image.has_pose:
+            continue
+        cam = rec.cameras[image.camera_id]
+        model_name = getattr(cam, "model_name", None) or cam.model.name
+        intr = colmap_intrinsics(str(model_name), np.asarray(cam.params))
+        path = (name_to_path or {}).get(image.name) or resolve_image(image_root, image.name, image_root)
+        frames.append(
+            Frame(
+                file_path=str(path),
+                c2w=opencv_to_opengl(np.asarray(image.cam_from_world().matrix())),
+                w=int(cam.width),
+                h=int(cam.height),
+                **intr,
+            )
+        )
+        visibility[Path(path).name] = [
+            index_of[p.point3D_id] for p in image.points2D if p.has_point3D() and p.point3D_id in index_of
+        ]
+    xyz = np.array([rec.points3D[p].xyz for p in point_ids], dtype=np.float64).reshape(-1, 3)
+    rgb = np.array([rec.points3D[p].color for p in point_ids], dtype=np.uint8).reshape(-1, 3)
+    return Scene(
+        frames=frames,
+        points=xyz,
+        point_colors=rgb,
+        point_visibility={k: np.asarray(v, dtype=np.int64) for k, v in visibility.items()},
+        source_kind="colmap",
+    )
+
+
+def import_colmap(folder: Path) -> Scene:
+    """A COLMAP sparse model (cameras/images/points3D .bin or .txt); images from the project's images/ folder."""
+    import pycolmap
+
+    model = find_colmap_model(folder)
+    if model is None:
+        raise InputError(f"{folder} holds no COLMAP model (cameras.bin / cameras.txt).")
+    try:
+        rec = pycolmap.Reconstruction(str(model))
+    except Exception as exc:  # pycolmap raises plain RuntimeError/ValueError on damaged files
+        raise InputError(f"Cannot read the COLMAP model in {model}: {exc}. Re-export it from COLMAP.") from None
+    for root in (folder / "images", model / "images", model.parent / "images", model.parent.parent / "images", folder):
+        if root.is_dir() and any(
+            (root / rec.images[i].name).is_file() for i in list(rec.images.keys())[:5]
+        ):
+            return scene_from_reconstruction(rec, root)
+    raise InputError(
+        f"Found the COLMAP model in {model} but not its images. Put them in {folder / 'images'} "
+        f"(the usual COLMAP project layout)."
+    )
+
+
+def import_npz(path: Path, image_dir: Path) -> Scene:
+    """The tiny-NeRF `.npz` (images (N,H,W,3) in [0,1] or uint8, poses (N,4,4) c2w OpenGL, focal): writes PNGs."""
+    from recon.images import save_image
+
+    try:
+        data = np.load(path, allow_pickle=False)
+        images, poses, focal = data["images"], data["poses"], data["focal"]
+    except KeyError as exc:
+        raise InputError(f"{path}: missing array {exc}; a NeRF .npz needs 'images', 'poses' and 'focal'.") from None
+    except (OSError, ValueError) as exc:
+        raise InputError(f"Cannot read {path}: {exc}. Is it a NumPy .npz file?") from None
+    if images.ndim != 4 or images.shape[-1] not in (3, 4):
+        raise InputError(f"{path}: 'images' has shape {images.shape}; expected (N, H, W, 3 or 4).")
+    n, h, w = images.shape[:3]
+    if poses.shape not in ((n, 4, 4), (n, 3, 4)):
+        raise InputError(f"{path}: 'poses' has shape {poses.shape}; expected ({n}, 4, 4) for the {n} images.")
+    focal = _number(np.asarray(focal).reshape(-1)[0], path, "focal", True)
+    imgs = images.astype(np.float32) / (255.0 if images.dtype == np.uint8 else 1.0)
+    if not np.all(np.isfinite(imgs)):
+        raise InputError(f"{path}: 'images' contains NaN or infinite values.")
+    image_dir.mkdir(parents=True, exist_ok=True)
+    frames = []
+    for i in range(n):
+        c2w = np.eye(4)
+        c2w[: poses.shape[1], :] = _matrix(poses[i], poses.shape[1:], path, f"poses[{i}]")
+        out = image_dir / f"{i:04d}.png"
+        save_image(out, np.clip(imgs[i], 0, 1))
+        frames.append(Frame(str(out), check_pose(c2w, path, f"poses[{i}]"), focal, focal, w / 2, h / 2, w, h))
+    return Scene(frames=frames, has_alpha=images.shape[-1] == 4, source_kind="npz")

@@ -1,0 +1,11 @@
+"""The pipeline's stages, in order. Each module is thin: it wires config and artifacts to the libraries."""
+from __future__ import annotations
+
+from recon.pipeline import Pipeline, Stage
+from recon.stages import normalize, poses
+
+STAGES: list[Stage] = [poses.STAGE, normalize.STAGE]
+
+
+def default_pipeline() -> Pipeline:
+    return Pipeline(STAGES)

@@ -1,0 +1,28 @@
+"""normalize stage: the canonical scene (upright, centred, scaled), near/far per camera, the data split."""
+from __future__ import annotations
+
+from recon.normalization import normalize
+from recon.pipeline import Stage, StageContext
+from recon.scene import load_scene
+
+
+def run(ctx: StageContext) -> dict:
+    source = load_scene(ctx.inputs["poses"])
+    scene = normalize(source, ctx.config)
+    scene.save(ctx.out)
+    for key in ("up", "capture", "box", "scale", "split"):
+        if scene.notes.get(key):
+            ctx.report.info(f"{key}: {scene.notes[key]}")
+    counts = {s: len(scene.split(s)) for s in ("train", "val", "test")}
+    near = min(f.near for f in scene.frames)
+    far = max(f.far for f in scene.frames)
+    return {
+        "headline": f"{scene.capture} capture, {counts['train']}/{counts['val']}/{counts['test']} train/val/test views, "
+        f"near {near:.3g} far {far:.3g}",
+        "capture": scene.capture,
+        "split": counts,
+        "aabb": scene.aabb.round(4).tolist(),
+    }
+
+
+STAGE = Stage(name="normalize", folder="02_scene", inputs=("poses",), version=1, run=run)

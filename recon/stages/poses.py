@@ -1,0 +1,168 @@
+"""poses stage: camera poses for every photo — by SfM (pycolmap) or imported from poses the user has.
+
+Writes `scene.json` + `points.npz` in the source frame (COLMAP's or the import's), and for SfM also
+`colmap/database.db`, `colmap/sparse/` and the downscaled `colmap/images/` that COLMAP saw.
+"""
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+from pathlib import Path
+
+import numpy as np
+
+from recon.config import PosesConfig
+from recon.errors import InputError
+from recon.images import list_photos, oriented_size, read_image, save_image
+from recon.pipeline import Stage, StageContext, sha256_file
+from recon.scene import (
+    Frame,
+    Scene,
+    detect_source,
+    import_colmap,
+    import_nerf_synthetic,
+    import_npz,
+    import_transforms,
+)
+
+MIN_PHOTOS = 3
+
+
+def source_digest(source: Path, cfg: PosesConfig | None) -> str:
+    """Digest of every input file (names + bytes): adding, removing or editing a photo re-runs poses."""
+    h = hashlib.sha256()
+    kind = detect_source(source)
+    h.update(kind.encode())
+    files = [source] if source.is_file() else sorted(p for p in source.rglob("*") if p.is_file() and not p.name.startswith("."))
+    for path in files:
+        h.update(str(path.relative_to(source) if source.is_dir() else path.name).encode())
+        h.update(sha256_file(path).encode())
+    return h.hexdigest()
+
+
+def run(ctx: StageContext) -> dict:
+    assert ctx.source is not None
+    kind = detect_source(ctx.source)
+    if kind == "photos":
+        scene, summary = _structure_from_motion(ctx)
+    else:
+        ctx.report.info(f"Poses given ({kind}): importing {ctx.source}, structure from motion is skipped.")
+        if kind == "npz":
+            scene = import_npz(ctx.source, ctx.out / "images")
+            for frame in scene.frames:  # images we wrote live inside the scene folder: store them relative to it
+                frame.file_path = str(Path(ctx.folder) / Path(frame.file_path).relative_to(ctx.out))
+        elif kind == "nerf_synthetic":
+            scene = import_nerf_synthetic(ctx.source)
+        elif kind == "colmap":
+            scene = import_colmap(ctx.source)
+        else:
+            scene = import_transforms(ctx.source)
+        splits = {s: sum(f.split == s for f in scene.frames) for s in ("train", "val", "test") if any(f.split == s for f in scene.frames)}
+        summary = {
+            "headline": f"imported {len(scene.frames)} cameras from {kind}" + (f" (splits {splits})" if splits else ""),
+            "source_kind": kind,
+            "cameras": len(scene.frames),
+        }
+    scene.save(ctx.out)
+    return summary
+
+
+def _structure_from_motion(ctx: StageContext) -> tuple[Scene, dict]:
+    from recon.sfm import SfmOptions, run_sfm
+
+    cfg: PosesConfig = ctx.config
+    photos, skipped = list_photos(ctx.source)
+    for path in skipped:
+        ctx.report.warn(f"Skipping {path.name}: not an image file recon reads ({', '.join(['jpg', 'png', 'tif'])}…).")
+    if not photos:
+        raise InputError(
+            f"No photos found in {ctx.source}. Put the photos (JPEG/PNG/TIFF) directly in that folder and run again."
+        )
+    if len(photos) < MIN_PHOTOS:
+        raise InputError(
+            f"Only {len(photos)} photo(s) in {ctx.source}; structure from motion needs at least {MIN_PHOTOS}, and a "
+            f"good reconstruction 20 or more taken all around the subject with about 60% overlap between neighbours."
+        )
+    sfm_dir = ctx.out / "colmap"
+    image_dir = sfm_dir / "images"
+    image_dir.mkdir(parents=True)
+    original_size: dict[str, tuple[int, int]] = {}
+    sfm_size: dict[str, tuple[int, int]] = {}
+    names = []
+    with ctx.report.task("reading photos", total=len(photos)) as bar:
+        for path in photos:
+            # read once: EXIF orientation applied, downscaled for SfM, saved as 8-bit for COLMAP
+            original_size[path.name] = oriented_size(path)
+            small = read_image(path, max_side=cfg.max_side)
+            sfm_size[path.name] = (small.shape[1], small.shape[0])
+            name = path.stem + (".png" if small.shape[-1] == 4 or path.suffix.lower() == ".png" else ".jpg")
+            save_image(image_dir / name, small[..., :3])
+            names.append((path, name))
+            bar.advance()
+    by_sfm_name = {name: path for path, name in names}
+    options = SfmOptions(**{f.name: getattr(cfg, f.name) for f in dataclasses.fields(SfmOptions) if hasattr(cfg, f.name)})
+    with ctx.report.task("structure from motion", total=3) as bar:
+        phases = {"extract": "extracting SIFT features", "match": "matching", "map": "incremental mapping"}
+
+        def progress(phase: str, fraction: float) -> None:
+            if fraction == 0.0:
+                bar.update(info=phases.get(phase, phase))
+            elif fraction >= 1.0:
+                bar.advance()
+
+        result = run_sfm(image_dir, [n for _, n in names], sfm_dir, options, progress=progress)
+    ctx.report.info(f"Camera model: {result.camera_model} — {result.choice_reason}")
+    if result.dropped:
+        ctx.report.warn(
+            f"{len(result.dropped)} of {len(names)} photos could not be registered and are left out: "
+            + ", ".join(by_sfm_name[n].name for n in result.dropped)
+        )
+    frames = []
+    for sfm_name, fd in result.frames.items():
+        path = by_sfm_name[sfm_name]
+        ow, oh = original_size[path.name]
+        sw, sh = sfm_size[path.name]
+        sx, sy = ow / sw, oh / sh
+        frames.append(
+            Frame(
+                file_path=str(path.resolve()),
+                c2w=np.asarray(fd["c2w"], dtype=np.float64),
+                fl_x=fd["fl_x"] * sx,
+                fl_y=fd["fl_y"] * sy,
+                cx=fd["cx"] * sx,
+                cy=fd["cy"] * sy,
+                w=ow,
+                h=oh,
+                k1=fd["k1"],
+                k2=fd["k2"],
+                p1=fd["p1"],
+                p2=fd["p2"],
+            )
+        )
+    visibility = {by_sfm_name[n].name: np.asarray(v, dtype=np.int64) for n, v in result.points_visible.items()}
+    scene = Scene(
+        frames=frames,
+        points=result.points_xyz,
+        point_colors=result.points_rgb,
+        point_visibility=visibility,
+        source_kind="photos",
+        notes={"camera_model": result.camera_model, "camera_choice": result.choice_reason},
+    )
+    summary = {
+        "headline": (
+            f"{len(result.registered)}/{len(names)} photos registered, {result.num_points} points, "
+            f"reprojection error {result.mean_reprojection_error:.2f} px"
+        ),
+        "registered": len(result.registered),
+        "total": len(names),
+        "dropped": [by_sfm_name[n].name for n in result.dropped],
+        "points": result.num_points,
+        "reprojection_error_px": round(result.mean_reprojection_error, 4),
+        "camera_model": result.camera_model,
+        "shared_intrinsics": result.shared_intrinsics,
+        "timings_s": {k: round(v, 2) for k, v in result.timings.items()},
+    }
+    return scene, summary
+
+
+STAGE = Stage(name="poses", folder="01_poses", inputs=(), version=1, run=run, needs_source=True, source_digest=source_digest)
