@@ -38,6 +38,13 @@ def list_photos(folder: Path) -> tuple[list[Path], list[Path]]:
     return photos, skipped
 
 
+def unreadable(path: Path, exc: BaseException) -> InputError:
+    return InputError(
+        f"Cannot read the image {path}: {exc}. The file is corrupt or not an image; "
+        f"remove it from the folder or replace it with a good copy."
+    )
+
+
 def _open(path: Path) -> Image.Image:
     try:
         with warnings.catch_warnings():
@@ -45,10 +52,7 @@ def _open(path: Path) -> Image.Image:
             img = Image.open(path)
             img.load()
     except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as exc:
-        raise InputError(
-            f"Cannot read the image {path}: {exc}. The file is corrupt or not an image; "
-            f"remove it from the folder or replace it with a good copy."
-        ) from None
+        raise unreadable(path, exc) from None
     except (Image.DecompressionBombError, Image.DecompressionBombWarning):
         raise InputError(
             f"The image {path} is too large to decode safely (over {MAX_PIXELS // 1_000_000} Mpx). "
@@ -63,8 +67,8 @@ def oriented_size(path: Path) -> tuple[int, int]:
         with Image.open(path) as img:
             w, h = img.size
             orientation = img.getexif().get(0x0112, 1)
-    except (UnidentifiedImageError, OSError) as exc:
-        raise InputError(f"Cannot read the image {path}: {exc}. Remove or replace the file.") from None
+    except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as exc:
+        raise unreadable(path, exc) from None
     return (h, w) if orientation in (5, 6, 7, 8) else (w, h)
 
 

@@ -51,7 +51,7 @@ def estimate_up(c2ws: np.ndarray, mode: str) -> tuple[np.ndarray, str]:
     if len(rights) >= 3 and evals[0] < 0.02 and evals[1] > 0.1 and np.linalg.norm(mean) > 0.3:
         # photos taken without roll: every camera's right vector is level, so up is orthogonal to all of them
         up = evecs[:, 0] * np.sign(evecs[:, 0] @ mean)
-        return up, f"orthogonal to every camera's (level) right vector (residual tilt {np.degrees(np.sqrt(evals[0])):.2f}°)"
+        return up, f"orthogonal to every camera's (level) right vector (residual tilt {np.degrees(np.sqrt(max(evals[0], 0.0))):.2f}°)"
     if np.linalg.norm(mean) > 0.3:
         mean /= np.linalg.norm(mean)
         inliers = ups[ups @ mean > np.cos(np.radians(45))]
@@ -70,6 +70,20 @@ def estimate_up(c2ws: np.ndarray, mode: str) -> tuple[np.ndarray, str]:
         "Cannot tell which way is up: the cameras' up vectors point in all directions and their centres do not "
         "lie on a plane. Set it explicitly with --set normalize.up=z (or y) to keep the source frame's axis."
     )
+
+
+def facing_front(c2ws: np.ndarray, frames: list[Frame], R: np.ndarray) -> np.ndarray:
+    """Rotation about +Z that makes the first photo (by name) look along +Y, like Blender's front view.
+
+    Fixing the heading this way makes the normalized frame independent of the source frame's yaw.
+    """
+    first = min(range(len(frames)), key=lambda i: frames[i].name)
+    view = R @ -c2ws[first, :3, 2]
+    if np.hypot(view[0], view[1]) < 1e-6:  # looking straight down/up: use its up vector as the heading
+        view = R @ c2ws[first, :3, 1]
+    angle = np.arctan2(view[0], view[1])  # rotate the heading onto +Y
+    c, s = np.cos(angle), np.sin(angle)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
 def focus_point(c2ws: np.ndarray) -> tuple[np.ndarray, float]:
@@ -188,6 +202,7 @@ def normalize(scene: Scene, cfg: NormalizeConfig) -> Scene:
     notes: dict[str, str] = {}
     up, notes["up"] = estimate_up(c2ws, cfg.up) if cfg.up != "none" else (np.array([0.0, 0, 1]), "rotation kept")
     R = rotation_between(up, np.array([0.0, 0.0, 1.0]))
+    R = facing_front(c2ws, scene.frames, R) @ R
     capture, focus, notes["capture"] = classify_capture(c2ws)
 
     points = np.asarray(scene.points, dtype=np.float64).reshape(-1, 3)

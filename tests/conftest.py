@@ -1,9 +1,12 @@
 """Shared test fixtures: paths to the shipped sample and to the optional ../shared data sets."""
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import pytest
+
+os.environ.setdefault("COLUMNS", "400")  # rich must not wrap the error messages tests look for
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = REPO.parent / "shared" / "data"

@@ -1,0 +1,102 @@
+"""Bad input through the real CLI: one clear paragraph, a non-zero exit, no traceback, nothing lost."""
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+from typer.testing import CliRunner
+
+from recon.cli import app
+
+runner = CliRunner()
+
+
+def recon(*args: str) -> tuple[int, str]:
+    result = runner.invoke(app, list(args))
+    return result.exit_code, result.output
+
+
+def assert_clean_error(code: int, output: str, *needles: str) -> None:
+    assert code == 2, output
+    assert "Traceback" not in output
+    for needle in needles:
+        assert needle in output, output
+
+
+def _noise_photos(folder: Path, n: int, size: int = 160, seed: int = 0) -> None:
+    folder.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(seed)
+    for i in range(n):
+        Image.fromarray(rng.integers(0, 255, (size, size, 3), dtype=np.uint8)).save(folder / f"p{i}.jpg")
+
+
+def test_missing_and_empty_folder(tmp_path: Path) -> None:
+    assert_clean_error(*recon("run", str(tmp_path / "nope"), "--out", str(tmp_path / "s")), "does not exist")
+    (tmp_path / "empty").mkdir()
+    assert_clean_error(*recon("run", str(tmp_path / "empty"), "--out", str(tmp_path / "s")), "No photos found")
+
+
+def test_too_few_photos(tmp_path: Path) -> None:
+    _noise_photos(tmp_path / "two", 2)
+    assert_clean_error(*recon("run", str(tmp_path / "two"), "--out", str(tmp_path / "s")), "Only 2 photo(s)", "at least 3")
+
+
+def test_corrupt_jpeg_names_the_file(tmp_path: Path) -> None:
+    _noise_photos(tmp_path / "p", 3)
+    (tmp_path / "p" / "bad.jpg").write_bytes(b"\xff\xd8\xff\xe0 not really a jpeg")
+    assert_clean_error(*recon("run", str(tmp_path / "p"), "--out", str(tmp_path / "s")), "bad.jpg", "remove it")
+
+
+def test_photos_that_do_not_overlap(tmp_path: Path) -> None:
+    _noise_photos(tmp_path / "p", 4)
+    (tmp_path / "p" / "notes.txt").write_text("not a photo")
+    code, out = recon("run", str(tmp_path / "p"), "--out", str(tmp_path / "s"), "--set", "poses.max_side=160")
+    assert_clean_error(code, out, "overlap")
+    assert "Skipping notes.txt" in out
+
+
+def test_output_is_a_file(tmp_path: Path) -> None:
+    _noise_photos(tmp_path / "p", 3)
+    (tmp_path / "out").write_text("x")
+    assert_clean_error(*recon("run", str(tmp_path / "p"), "--out", str(tmp_path / "out")), "is a file")
+
+
+def test_bad_options(tmp_path: Path) -> None:
+    _noise_photos(tmp_path / "p", 3)
+    out = str(tmp_path / "s")
+    assert_clean_error(*recon("run", str(tmp_path / "p"), "--out", out, "--preset", "nonexistent"), "Unknown preset")
+    assert_clean_error(*recon("run", str(tmp_path / "p"), "--out", out, "--set", "poses.bogus=1"), "Unknown option")
+    assert_clean_error(*recon("run", str(tmp_path / "p"), "--out", out, "--set", "poses.max_side=big"), "expects a number")
+    assert_clean_error(*recon("run", str(tmp_path / "p"), "--out", out, "--from", "nostage"), "Unknown stage")
+
+
+def test_status_of_non_scene(tmp_path: Path) -> None:
+    assert_clean_error(*recon("status", str(tmp_path)), "not a recon scene folder")
+
+
+def test_failed_stage_keeps_earlier_complete_stages(tmp_path: Path, shared_data: Path) -> None:
+    scene = tmp_path / "s"
+    code, out = recon("run", str(shared_data / "nerf_synthetic_lego_half"), "--out", str(scene), "-q")
+    assert code == 0, out
+    before = (scene / "02_scene" / "scene.json").read_bytes()
+    code, out = recon("normalize", str(scene), "--set", "normalize.up=sideways")
+    assert_clean_error(code, out, "must be one of")
+    assert (scene / "02_scene" / "scene.json").read_bytes() == before
+    code, out = recon("status", str(scene))
+    assert code == 0 and "done" in out
+
+
+def test_real_process_exit_code_and_no_traceback(tmp_path: Path) -> None:
+    proc = subprocess.run(
+        [sys.executable, "-m", "recon.cli", "run", str(tmp_path / "missing"), "--out", str(tmp_path / "s")],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert proc.returncode == 2
+    assert "Traceback" not in proc.stderr + proc.stdout
+    assert "does not exist" in proc.stderr

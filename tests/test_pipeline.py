@@ -1,0 +1,213 @@
+"""The stage runner: caching by fingerprint, re-runs on change, atomic folders, checksums, lock."""
+from __future__ import annotations
+
+import json
+import multiprocessing
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import pytest
+
+from recon.config import RunConfig
+from recon.errors import ReconError
+from recon.pipeline import Manifest, Pipeline, Stage, StageContext, scene_lock
+from recon.progress import Reporter
+
+CALLS: list[str] = []
+
+
+@dataclass
+class _A:
+    value: int = 1
+
+
+@dataclass
+class _B:
+    factor: int = 2
+
+
+@dataclass
+class _Config(RunConfig):
+    a: _A = field(default_factory=_A)
+    b: _B = field(default_factory=_B)
+
+
+def _digest_source(source: Path, cfg: object) -> str:
+    return "|".join(f"{p.name}:{p.read_text()}" for p in sorted(source.iterdir()))
+
+
+def _stage_a(ctx: StageContext) -> dict:
+    CALLS.append("a")
+    total = sum(int(p.read_text()) for p in sorted(ctx.source.iterdir()))
+    (ctx.out / "a.txt").write_text(str(total * ctx.config.value))
+    return {"total": total}
+
+
+def _stage_b(ctx: StageContext) -> dict:
+    CALLS.append("b")
+    a = int((ctx.inputs["a"] / "a.txt").read_text())
+    (ctx.out / "b.txt").write_text(str(a * ctx.config.factor))
+    if os.environ.get("RECON_TEST_FAIL_B"):
+        raise RuntimeError("boom")
+    return {"b": a * ctx.config.factor}
+
+
+PIPE = Pipeline(
+    [
+        Stage("a", "01_a", (), 1, _stage_a, needs_source=True, source_digest=_digest_source),
+        Stage("b", "02_b", ("a",), 1, _stage_b),
+    ]
+)
+
+
+@pytest.fixture
+def source(tmp_path: Path) -> Path:
+    src = tmp_path / "src"
+    src.mkdir()
+    (src / "x").write_text("3")
+    (src / "y").write_text("4")
+    return src
+
+
+def _run(scene: Path, source: Path | None, config: _Config | None = None, **kw) -> list[str]:
+    CALLS.clear()
+    PIPE.run(scene, config or _Config(), Reporter(quiet=True), source=source, **kw)
+    return list(CALLS)
+
+
+def test_second_run_is_cached(tmp_path: Path, source: Path) -> None:
+    scene = tmp_path / "scene"
+    assert _run(scene, source) == ["a", "b"]
+    assert (scene / "02_b" / "b.txt").read_text() == "14"
+    assert _run(scene, source) == []
+    manifest = json.loads((scene / "manifest.json").read_text())
+    entry = manifest["stages"]["b"]
+    assert entry["status"] == "done" and entry["wall_s"] >= 0 and "numpy" in entry["versions"]
+    assert entry["files"]["b.txt"]["size"] == 2
+
+
+def test_config_change_reruns_that_stage_and_downstream_only(tmp_path: Path, source: Path) -> None:
+    scene = tmp_path / "scene"
+    _run(scene, source)
+    assert _run(scene, source, _Config(b=_B(factor=3))) == ["b"]
+    assert (scene / "02_b" / "b.txt").read_text() == "21"
+    assert _run(scene, source, _Config(a=_A(value=2), b=_B(factor=3))) == ["a", "b"]
+
+
+def test_source_change_reruns_everything(tmp_path: Path, source: Path) -> None:
+    scene = tmp_path / "scene"
+    _run(scene, source)
+    (source / "z").write_text("1")
+    assert _run(scene, source) == ["a", "b"]
+    (source / "z").unlink()
+    assert _run(scene, source) == ["a", "b"]
+
+
+def test_unchanged_upstream_output_keeps_downstream_cached(tmp_path: Path, source: Path) -> None:
+    scene = tmp_path / "scene"
+    _run(scene, source)
+    assert _run(scene, source, from_stage="a") == ["a"]  # forced, same output → b stays valid
+
+
+def test_from_until_force(tmp_path: Path, source: Path) -> None:
+    scene = tmp_path / "scene"
+    assert _run(scene, source, until_stage="a") == ["a"]
+    assert not (scene / "02_b").exists()
+    assert _run(scene, source, from_stage="b") == ["b"]
+    assert _run(scene, source, force=True) == ["a", "b"]
+    with pytest.raises(ReconError, match="Unknown stage"):
+        _run(scene, source, from_stage="nope")
+
+
+def test_downstream_alone_needs_upstream(tmp_path: Path, source: Path) -> None:
+    with pytest.raises(ReconError, match="needs the output of 'a'"):
+        _run(tmp_path / "scene", source, from_stage="b")
+
+
+def test_failure_keeps_previous_complete_state(tmp_path: Path, source: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    scene = tmp_path / "scene"
+    _run(scene, source)
+    monkeypatch.setenv("RECON_TEST_FAIL_B", "1")
+    with pytest.raises(RuntimeError):
+        _run(scene, source, _Config(b=_B(factor=5)))
+    assert (scene / "02_b" / "b.txt").read_text() == "14"  # the old complete output is intact
+    assert not [p for p in scene.iterdir() if p.name.startswith(".tmp-")]
+    rows = {r["stage"]: r for r in PIPE.state(scene)}
+    assert rows["b"]["state"] == "done" and "boom" in rows["b"]["error"]
+    monkeypatch.delenv("RECON_TEST_FAIL_B")
+    assert _run(scene, source, _Config(b=_B(factor=5))) == ["b"]
+
+
+def test_corrupted_artifact_is_detected_and_rerun(tmp_path: Path, source: Path) -> None:
+    scene = tmp_path / "scene"
+    _run(scene, source)
+    (scene / "02_b" / "b.txt").write_text("99")
+    assert {r["stage"]: r["state"] for r in PIPE.state(scene)}["b"] == "corrupt"
+    assert _run(scene, source) == ["b"]
+    assert (scene / "02_b" / "b.txt").read_text() == "14"
+
+
+def test_corrupted_manifest_means_rerun_not_crash(tmp_path: Path, source: Path) -> None:
+    scene = tmp_path / "scene"
+    _run(scene, source)
+    (scene / "manifest.json").write_text('{"stages": {"a": ')
+    assert _run(scene, source) == ["a", "b"]
+    assert Manifest(scene).warning is None
+
+
+def test_leftover_temporary_folders_are_cleaned(tmp_path: Path, source: Path) -> None:
+    scene = tmp_path / "scene"
+    _run(scene, source)
+    (scene / ".tmp-02_b-12345").mkdir()
+    (scene / ".tmp-02_b-12345" / "b.txt").write_text("half")
+    assert _run(scene, source) == []
+    assert not (scene / ".tmp-02_b-12345").exists()
+
+
+def test_output_path_that_is_a_file(tmp_path: Path, source: Path) -> None:
+    target = tmp_path / "file"
+    target.write_text("x")
+    with pytest.raises(ReconError, match="is a file"):
+        _run(target, source)
+
+
+@pytest.mark.skipif(os.geteuid() == 0, reason="root ignores directory permissions")
+def test_read_only_output_folder(tmp_path: Path, source: Path) -> None:
+    scene = tmp_path / "ro"
+    scene.mkdir()
+    scene.chmod(0o555)
+    with pytest.raises(ReconError, match="not writable"):
+        _run(scene, source)
+
+
+def _hold_lock(scene: str, ready: multiprocessing.synchronize.Event, release: multiprocessing.synchronize.Event) -> None:
+    with scene_lock(Path(scene)):
+        ready.set()
+        release.wait(10)
+
+
+def test_second_writer_is_refused_and_dead_holder_releases(tmp_path: Path) -> None:
+    scene = tmp_path / "scene"
+    scene.mkdir()
+    ctx = multiprocessing.get_context("fork")
+    ready, release = ctx.Event(), ctx.Event()
+    proc = ctx.Process(target=_hold_lock, args=(str(scene), ready, release))
+    proc.start()
+    assert ready.wait(10)
+    with pytest.raises(ReconError, match="in use by another recon process"):
+        with scene_lock(scene):
+            pass
+    proc.kill()  # a dead process must not hold the lock forever
+    proc.join()
+    with scene_lock(scene):
+        pass
+
+
+def test_cached_run_is_fast(tmp_path: Path, source: Path) -> None:
+    scene = tmp_path / "scene"
+    _run(scene, source)
+    t0 = time.perf_counter()
+    _run(scene, source)
+    assert time.perf_counter() - t0 < 1.0
