@@ -160,7 +160,7 @@ def _single_stage(name: str) -> Callable[..., None]:
     return command
 
 
-for _name in ("poses", "normalize"):
+for _name in ("poses", "normalize", "train"):
     app.command(name=_name)(_single_stage(_name))
 
 

@@ -62,11 +62,63 @@ class NormalizeConfig:
 
 
 @dataclass
+class ClassicConfig:
+    """The classic NeRF (Mildenhall et al. 2020): 8×256 MLP, skip at layer 5, coarse + fine networks."""
+
+    n_coarse: int = 64
+    """Stratified samples per ray for the coarse network."""
+    n_fine: int = 128
+    """Extra samples per ray drawn from the coarse weights for the fine network (0: coarse only)."""
+    pos_freqs: int = 10
+    """Positional-encoding frequencies for positions (L)."""
+    dir_freqs: int = 4
+    """Positional-encoding frequencies for view directions."""
+    depth: int = 8
+    """Layers of the density trunk."""
+    width: int = 256
+    """Units per trunk layer."""
+
+
+@dataclass
+class TrainConfig:
+    """Fitting the radiance field to the training photos."""
+
+    model: Literal["auto", "fast", "classic"] = "auto"
+    """auto: the fast grid model (practical on a CPU); classic: the original NeRF MLP."""
+    steps: int = 2000
+    """Optimizer steps."""
+    batch_rays: int = 4096
+    """Rays per step, drawn across all training photos."""
+    lr: float = 0.0
+    """Initial learning rate; 0 uses the model's own default."""
+    lr_decay: float = 0.1
+    """The learning rate decays exponentially to lr × lr_decay at the last step."""
+    max_side: int = 400
+    """Training photos are downscaled to this longest side (intrinsics scaled with them)."""
+    background: Literal["auto", "white", "black", "random"] = "auto"
+    """Color behind the scene. auto: random for RGBA photos (known alpha), else the photos' border color."""
+    eval_every: int = 500
+    """Evaluate held-out views every N steps (0: only at the end)."""
+    eval_views: int = 3
+    """Held-out views rendered at each interval evaluation."""
+    final_eval_views: int = 8
+    """Test views rendered for the final metrics and preview renders (`recon eval` renders all)."""
+    checkpoint_every: int = 250
+    """Save a resumable checkpoint every N steps (and on Ctrl-C)."""
+    seed: int = 0
+    """Seed for initialization, ray shuffling and sampling jitter."""
+    device: str = "auto"
+    """auto (CUDA when present), cpu, cuda or cuda:K."""
+    classic: ClassicConfig = field(default_factory=ClassicConfig)
+
+
+@dataclass
 class RunConfig:
     """The whole pipeline's configuration: one slice per stage (a stage's fingerprint covers only its slice)."""
 
     poses: PosesConfig = field(default_factory=PosesConfig)
     normalize: NormalizeConfig = field(default_factory=NormalizeConfig)
+    train: TrainConfig = field(default_factory=TrainConfig)
 
 
 def available_presets() -> list[str]:

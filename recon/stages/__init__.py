@@ -2,9 +2,9 @@
 from __future__ import annotations
 
 from recon.pipeline import Pipeline, Stage
-from recon.stages import normalize, poses
+from recon.stages import normalize, poses, train
 
-STAGES: list[Stage] = [poses.STAGE, normalize.STAGE]
+STAGES: list[Stage] = [poses.STAGE, normalize.STAGE, train.STAGE]
 
 
 def default_pipeline() -> Pipeline:

@@ -1,0 +1,55 @@
+"""A trained radiance field on disk: which model, how it was built, its weights — and loading it back.
+
+`field.pt` holds the model kind, its constructor arguments and its state dict, so render, eval and
+mesh rebuild exactly the model train fitted without knowing the training config.
+"""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from recon.errors import ReconError
+
+FIELD_FILE = "field.pt"
+FIELD_FORMAT = 1
+
+
+def build_model(kind: str, kwargs: dict[str, Any]) -> torch.nn.Module:
+    """Construct a RadianceModel from its kind and constructor arguments (tensors given as lists)."""
+    args = {k: (torch.tensor(v, dtype=torch.float32) if k == "aabb" else v) for k, v in kwargs.items()}
+    if kind == "classic":
+        from recon.nerf.classic import ClassicModel
+
+        return ClassicModel(**args)
+    if kind == "fast":
+        from recon.nerf.fast import FastConfig, FastModel
+
+        cfg = FastConfig(**args.pop("config", {}))
+        return FastModel(cfg, **args)
+    raise ReconError(f"Unknown model kind '{kind}' in a field file; it was written by a newer recon?")
+
+
+def save_field(path: Path, kind: str, kwargs: dict[str, Any], model: torch.nn.Module, meta: dict[str, Any]) -> None:
+    """Atomically write the model (weights on CPU) with what is needed to rebuild it."""
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    state = {k: v.detach().cpu() for k, v in model.state_dict().items()}
+    torch.save({"format": FIELD_FORMAT, "kind": kind, "kwargs": kwargs, "state_dict": state, "meta": meta}, tmp)
+    os.replace(tmp, path)
+
+
+def load_field(folder: Path, device: torch.device | str = "cpu") -> tuple[torch.nn.Module, dict[str, Any]]:
+    """The trained model (eval mode, on `device`) and its metadata (aabb, background, image size...)."""
+    path = folder / FIELD_FILE
+    try:
+        data = torch.load(path, map_location="cpu", weights_only=True)
+    except FileNotFoundError:
+        raise ReconError(f"No trained field at {path}. Run the train stage first (recon run ... or recon train SCENE).") from None
+    except Exception as exc:  # truncated/corrupt pickle: torch raises several types
+        raise ReconError(f"The trained field {path} is unreadable ({exc}). Re-run training: recon train SCENE.") from None
+    model = build_model(data["kind"], data["kwargs"])
+    model.load_state_dict(data["state_dict"])
+    model.to(device).eval()
+    return model, {"kind": data["kind"], **data.get("meta", {})}

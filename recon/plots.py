@@ -1,0 +1,99 @@
+"""PNG outputs people look at: training curves, render-vs-photo panels, depth maps, the speed/accuracy plot."""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+os.environ.setdefault("MPLBACKEND", "Agg")
+
+
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _save(fig, path: Path) -> None:
+    tmp = path.with_name(f".{path.stem}.{os.getpid()}.tmp.png")
+    fig.savefig(tmp, dpi=110, bbox_inches="tight")
+    os.replace(tmp, path)
+
+
+def depth_to_color(depth: np.ndarray, opacity: np.ndarray | None = None, near: float | None = None, far: float | None = None) -> np.ndarray:
+    """Depth (H, W) → turbo-colored (H, W, 3) in [0, 1]; transparent pixels (opacity < 0.5) black."""
+    from matplotlib import colormaps
+
+    d = np.asarray(depth, dtype=np.float64)
+    mask = np.isfinite(d) if opacity is None else (np.asarray(opacity) > 0.5) & np.isfinite(d)
+    if mask.any():
+        lo = np.percentile(d[mask], 1) if near is None else near
+        hi = np.percentile(d[mask], 99) if far is None else far
+    else:
+        lo, hi = 0.0, 1.0
+    x = np.clip((d - lo) / max(hi - lo, 1e-12), 0, 1)
+    rgb = colormaps["turbo"](x)[..., :3]
+    rgb[~mask] = 0.0
+    return rgb.astype(np.float32)
+
+
+def training_curves(history: Sequence[dict], evals: Sequence[dict], path: Path, title: str = "") -> None:
+    """PSNR vs step and vs wall time (train batches and held-out evaluations), loss on a log axis."""
+    plt = _pyplot()
+    fig, axes = plt.subplots(1, 3, figsize=(15, 4))
+    if history:
+        steps = [h["step"] for h in history]
+        axes[0].plot(steps, [h["psnr"] for h in history], lw=0.8, alpha=0.7, label="train batch")
+        axes[1].plot([h["time_s"] for h in history], [h["psnr"] for h in history], lw=0.8, alpha=0.7, label="train batch")
+        axes[2].semilogy(steps, [max(h["loss"], 1e-12) for h in history], lw=0.8)
+    if evals:
+        axes[0].plot([e["step"] for e in evals], [e["psnr"] for e in evals], "o-", label="held-out views")
+        axes[1].plot([e["time_s"] for e in evals], [e["psnr"] for e in evals], "o-", label="held-out views")
+    axes[0].set(xlabel="step", ylabel="PSNR (dB)", title="PSNR vs step")
+    axes[1].set(xlabel="training wall time (s)", ylabel="PSNR (dB)", title="PSNR vs time")
+    axes[2].set(xlabel="step", ylabel="loss (MSE)", title="loss")
+    for ax in axes[:2]:
+        ax.grid(alpha=0.3)
+        ax.legend()
+    if title:
+        fig.suptitle(title)
+    _save(fig, path)
+    plt.close(fig)
+
+
+def comparison_panel(render: np.ndarray, photo: np.ndarray | None, depth_rgb: np.ndarray | None, path: Path, caption: str = "") -> None:
+    """Side by side: photo | render | depth, saved as one PNG (no axes, pixel-exact)."""
+    from recon.images import save_image
+
+    tiles = [t for t in (photo, render, depth_rgb) if t is not None]
+    h = max(t.shape[0] for t in tiles)
+    gap = np.ones((h, 4, 3), dtype=np.float32)
+    row = []
+    for t in tiles:
+        t = t[..., :3]
+        if t.shape[0] != h:
+            t = np.pad(t, ((0, h - t.shape[0]), (0, 0), (0, 0)), constant_values=1.0)
+        row += [t, gap]
+    save_image(path, np.concatenate(row[:-1], axis=1))
+    if caption:
+        path.with_suffix(".txt").write_text(caption + "\n")
+
+
+def tradeoff_plot(runs: Sequence[dict], path: Path, title: str = "PSNR vs wall time") -> None:
+    """One curve per preset: held-out PSNR against training wall time."""
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(7, 5))
+    for run in runs:
+        evals = run.get("evals", [])
+        if evals:
+            ax.plot([e["time_s"] for e in evals], [e["psnr"] for e in evals], "o-", label=run["name"])
+    ax.set(xlabel="training wall time (s)", ylabel="held-out PSNR (dB)", title=title)
+    ax.grid(alpha=0.3)
+    ax.legend()
+    _save(fig, path)
+    plt.close(fig)

@@ -1,0 +1,320 @@
+"""train stage: fit a radiance field to the training photos, evaluate held-out views, keep renders.
+
+Writes `field.pt` (the model), `metrics.json` (PSNR/SSIM per held-out view and their means, the
+training curve, the choices made and why), `curves.png` (PSNR vs step and vs wall time) and
+`renders/NAME.png` (photo | render | depth) for a few test views. A checkpoint is written to the
+stage's work folder every `checkpoint_every` steps and on Ctrl-C; running the same command again
+resumes from it.
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from recon.config import TrainConfig
+from recon.errors import ReconError
+from recon.field import FIELD_FILE, build_model, save_field
+from recon.images import read_image, undistort
+from recon.pipeline import Stage, StageContext, write_json_atomic
+from recon.scene import Frame, Scene, load_scene
+
+CHECKPOINT = "checkpoint.pt"
+
+
+@dataclass
+class View:
+    """One photo at training resolution, ready for rays: image (H, W, C) uint8, pose, intrinsics."""
+
+    name: str
+    image: np.ndarray
+    c2w: np.ndarray
+    intrinsics: tuple[float, float, float, float]
+    near: float
+    far: float
+
+    @property
+    def hw(self) -> tuple[int, int]:
+        return self.image.shape[0], self.image.shape[1]
+
+
+def load_view(scene: Scene, frame: Frame, max_side: int, keep_alpha: bool) -> View:
+    """Read, downscale and undistort one photo; intrinsics scaled to the new size."""
+    image = read_image(scene.image_path(frame), max_side=max_side)
+    h, w = image.shape[:2]
+    sx, sy = w / frame.w, h / frame.h
+    fl_x, fl_y, cx, cy = frame.fl_x * sx, frame.fl_y * sy, frame.cx * sx, frame.cy * sy
+    image = undistort(image, fl_x, fl_y, cx, cy, frame.distortion)
+    if not keep_alpha:
+        image = image[..., :3]
+    elif image.shape[-1] == 3:
+        image = np.concatenate([image, np.ones_like(image[..., :1])], axis=-1)
+    return View(frame.stem, np.round(np.clip(image, 0, 1) * 255).astype(np.uint8), frame.c2w, (fl_x, fl_y, cx, cy), frame.near or 0.0, frame.far or 0.0)
+
+
+def load_views(scene: Scene, frames: list[Frame], max_side: int, report: Any = None, what: str = "photos") -> list[View]:
+    views = []
+    if report is None:
+        return [load_view(scene, f, max_side, scene.has_alpha) for f in frames]
+    with report.task(f"loading {what}", total=len(frames)) as bar:
+        for f in frames:
+            views.append(load_view(scene, f, max_side, scene.has_alpha))
+            bar.advance()
+    return views
+
+
+def border_color(views: list[View]) -> np.ndarray:
+    """Median color of the photos' outer pixel rows/columns: the backdrop of a typical object capture."""
+    border = np.concatenate(
+        [np.concatenate([v.image[0], v.image[-1], v.image[:, 0], v.image[:, -1]])[:, :3] for v in views]
+    )
+    return np.median(border.astype(np.float32) / 255.0, axis=0)
+
+
+def choose_background(cfg: TrainConfig, scene: Scene, views: list[View]) -> tuple[np.ndarray, bool, str]:
+    """(evaluation background color, train on random backgrounds?, why)."""
+    if cfg.background == "white":
+        return np.ones(3, np.float32), False, "white (train.background=white)"
+    if cfg.background == "black":
+        return np.zeros(3, np.float32), False, "black (train.background=black)"
+    if cfg.background == "random" or (cfg.background == "auto" and scene.has_alpha):
+        return np.ones(3, np.float32), scene.has_alpha, (
+            "photos have alpha (known background): trained on random backgrounds so nothing paints the backdrop, shown on white"
+            if scene.has_alpha else "random backgrounds requested but the photos have no alpha: white"
+        )
+    color = border_color(views)
+    return color.astype(np.float32), False, f"the photos' border color {np.round(color, 3).tolist()} (median of edge pixels)"
+
+
+def model_spec(cfg: TrainConfig, scene: Scene, views: list[View], steps: int) -> tuple[str, dict[str, Any], float, list[str]]:
+    """(model kind, constructor kwargs, learning rate, reasons) — the simplest model the scene needs."""
+    aabb = np.asarray(scene.aabb, dtype=np.float64)
+    reasons = []
+    kind = "fast" if cfg.model in ("auto", "fast") else "classic"
+    if kind == "classic":
+        c = cfg.classic
+        reasons.append(f"classic NeRF (train.model={cfg.model}): {c.depth}×{c.width} MLP, L={c.pos_freqs}/{c.dir_freqs}, {c.n_coarse}+{c.n_fine} samples")
+        kwargs = {"aabb": aabb.tolist(), **asdict(c)}
+        return kind, kwargs, cfg.lr or 5e-4, reasons
+    from recon.nerf.fast import FastConfig, auto_fast_config
+
+    base = getattr(cfg, "fast", None) or FastConfig()
+    fast_cfg, why = auto_fast_config(base, scene_capture=scene.capture or "object", has_alpha=scene.has_alpha, footprint=pixel_footprint(scene, views), aabb=aabb)
+    reasons.append("fast grid model" + (" (train.model=auto: practical on a CPU)" if cfg.model == "auto" else ""))
+    reasons += why
+    return kind, {"aabb": aabb.tolist(), "config": asdict(fast_cfg)}, cfg.lr or fast_cfg.lr, reasons
+
+
+def pixel_footprint(scene: Scene, views: list[View]) -> float:
+    """World size of one training pixel at the median camera-to-box-centre distance."""
+    centre = np.asarray(scene.aabb).mean(axis=0)
+    dist = np.median([np.linalg.norm(v.c2w[:3, 3] - centre) for v in views])
+    focal = np.median([v.intrinsics[0] for v in views])
+    return float(dist / focal)
+
+
+def _tensor(views: list[View], device: torch.device) -> tuple[list[torch.Tensor], torch.Tensor, torch.Tensor, torch.Tensor]:
+    images = [torch.from_numpy(v.image).to(device) for v in views]
+    c2w = torch.tensor(np.stack([v.c2w for v in views]), dtype=torch.float32, device=device)
+    intr = torch.tensor([v.intrinsics for v in views], dtype=torch.float32, device=device)
+    near_far = torch.tensor([[v.near, v.far] for v in views], dtype=torch.float32, device=device)
+    return images, c2w, intr, near_far
+
+
+def render_view(model: torch.nn.Module, view: View, aabb: torch.Tensor | None, background: np.ndarray, chunk: int = 8192) -> dict[str, np.ndarray]:
+    """Render a view at its resolution → numpy rgb (H, W, 3), depth (H, W), opacity (H, W)."""
+    from recon.nerf.trainer import render_image
+
+    h, w = view.hw
+    device = next(model.parameters()).device
+    kwargs: dict[str, Any] = {"aabb": aabb} if aabb is not None else {"near": view.near, "far": view.far}
+    out = render_image(model, torch.tensor(view.c2w, dtype=torch.float32, device=device), view.intrinsics, h, w, chunk, background=torch.tensor(background), **kwargs)
+    return {k: v.detach().cpu().numpy() for k, v in out.items()}
+
+
+def target_rgb(view: View, background: np.ndarray) -> np.ndarray:
+    img = view.image.astype(np.float32) / 255.0
+    if img.shape[-1] == 4:
+        return img[..., :3] * img[..., 3:] + background * (1 - img[..., 3:])
+    return img
+
+
+def evaluate(model: torch.nn.Module, views: list[View], aabb: torch.Tensor | None, background: np.ndarray, keep: bool = False) -> dict[str, Any]:
+    """PSNR/SSIM of renders against photos; with keep=True also the renders themselves."""
+    from recon.metrics import psnr, ssim
+
+    per_view, renders = [], []
+    for view in views:
+        out = render_view(model, view, aabb, background)
+        gt = target_rgb(view, background)
+        p = float(psnr(torch.from_numpy(out["rgb"]), torch.from_numpy(gt)))
+        s = float(ssim(torch.from_numpy(out["rgb"]), torch.from_numpy(gt)))
+        per_view.append({"view": view.name, "psnr": round(p, 3), "ssim": round(s, 4)})
+        if keep:
+            renders.append((view, out, gt))
+    result: dict[str, Any] = {
+        "psnr": float(np.mean([v["psnr"] for v in per_view])) if per_view else math.nan,
+        "ssim": float(np.mean([v["ssim"] for v in per_view])) if per_view else math.nan,
+        "views": per_view,
+    }
+    if keep:
+        result["renders"] = renders
+    return result
+
+
+def write_previews(renders: list, folder: Path, near: float | None = None, far: float | None = None) -> None:
+    from recon.plots import comparison_panel, depth_to_color
+
+    folder.mkdir(parents=True, exist_ok=True)
+    for view, out, gt in renders:
+        depth_rgb = depth_to_color(out["depth"], out["opacity"], near, far)
+        comparison_panel(out["rgb"], gt, depth_rgb, folder / f"{view.name}.png")
+
+
+def _save_checkpoint(path: Path, state: dict[str, Any]) -> None:
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    torch.save(state, tmp)
+    os.replace(tmp, path)
+
+
+def _load_checkpoint(path: Path, report: Any) -> dict[str, Any] | None:
+    if not path.exists():
+        return None
+    try:
+        return torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as exc:  # truncated or corrupt: start over rather than load garbage
+        report.warn(f"The training checkpoint {path} is unreadable ({type(exc).__name__}); training starts over.")
+        path.unlink(missing_ok=True)
+        return None
+
+
+def run(ctx: StageContext) -> dict:
+    from recon.nerf.device import select_device
+    from recon.nerf.trainer import RayBatcher, TrainingDiverged, TrainingInterrupted, train
+    from recon.plots import training_curves
+
+    cfg: TrainConfig = ctx.config
+    if cfg.steps <= 0 or cfg.batch_rays <= 0:
+        raise ReconError(f"train.steps and train.batch_rays must be positive (got {cfg.steps}, {cfg.batch_rays}).")
+    try:
+        device = select_device(cfg.device)
+    except ValueError as exc:
+        raise ReconError(f"train.device={cfg.device}: {exc}") from None
+    torch.manual_seed(cfg.seed)
+    scene = load_scene(ctx.inputs["normalize"])
+    train_frames = scene.split("train")
+    held_out = scene.split("val") or scene.split("test") or train_frames[:1]
+    test_frames = scene.split("test") or held_out
+    if not train_frames:
+        raise ReconError("The scene has no training views. Re-run normalize (recon normalize SCENE).")
+    views = load_views(scene, train_frames, cfg.max_side, ctx.report, "training photos")
+    background, random_bg, bg_why = choose_background(cfg, scene, views)
+    kind, kwargs, lr, reasons = model_spec(cfg, scene, views, cfg.steps)
+    ctx.report.info(f"device: {device}; background: {bg_why}")
+    for r in reasons:
+        ctx.report.info(f"model: {r}")
+    bounded = scene.capture == "object"
+    aabb = torch.tensor(np.asarray(scene.aabb), dtype=torch.float32, device=device) if bounded else None
+
+    model = build_model(kind, kwargs).to(device)
+    images, c2w, intr, near_far = _tensor(views, device)
+    batcher = RayBatcher(
+        images, c2w, intr,
+        aabb=aabb, near_far=None if bounded else near_far,
+        background=torch.tensor(background), random_background=random_bg, seed=cfg.seed, device=device,
+    )
+    eval_views = load_views(scene, held_out[: cfg.eval_views], cfg.max_side)
+
+    ckpt_path = ctx.work / CHECKPOINT
+    checkpoint = _load_checkpoint(ckpt_path, ctx.report)
+    evals: list[dict] = checkpoint["evals"] if checkpoint else []
+    history: list[dict] = checkpoint["history"] if checkpoint else []
+    time_before = checkpoint["train_time_s"] if checkpoint else 0.0
+    if checkpoint:
+        ctx.report.info(f"resuming from the checkpoint at step {checkpoint['state']['step']} of {cfg.steps}")
+    eval_time = [0.0]
+
+    def eval_fn(m: torch.nn.Module, step: int) -> dict[str, float]:
+        t = time.perf_counter()
+        r = evaluate(m, eval_views, aabb, background)
+        eval_time[0] += time.perf_counter() - t
+        return {"psnr": r["psnr"], "ssim": r["ssim"]}
+
+    t_start = time.perf_counter()
+
+    def train_time() -> float:
+        return time_before + time.perf_counter() - t_start - eval_time[0]
+
+    with ctx.report.task("training", total=cfg.steps, unit="steps") as bar:
+        bar.update(completed=checkpoint["state"]["step"] if checkpoint else 0)
+
+        def on_step(p: Any) -> None:
+            bar.update(completed=p.step, info=f"loss {p.loss:.4f}  PSNR {p.psnr:.2f} dB  {p.rays_per_s:,.0f} rays/s")
+            if p.step % 10 == 0 or p.step == p.steps:
+                history.append({"step": p.step, "loss": p.loss, "psnr": p.psnr, "time_s": round(train_time(), 3)})
+            if p.metrics is not None:
+                evals.append({"step": p.step, "time_s": round(train_time(), 3), **p.metrics})
+                ctx.report.info(f"step {p.step}: held-out PSNR {p.metrics['psnr']:.2f} dB, SSIM {p.metrics['ssim']:.3f}")
+            if cfg.checkpoint_every and p.step % cfg.checkpoint_every == 0 and p.step < p.steps:
+                _save_checkpoint(ckpt_path, {"state": p.state_dict(), "evals": evals, "history": history, "train_time_s": train_time()})
+
+        try:
+            result = train(
+                model, batcher, steps=cfg.steps, lr=lr, lr_final=lr * cfg.lr_decay, batch_rays=cfg.batch_rays,
+                eval_fn=eval_fn, eval_every=cfg.eval_every or cfg.steps, callbacks=[on_step],
+                state=checkpoint["state"] if checkpoint else None,
+            )
+        except TrainingInterrupted as stop:
+            _save_checkpoint(ckpt_path, {"state": stop.state, "evals": evals, "history": history, "train_time_s": train_time()})
+            raise KeyboardInterrupt from None
+        except TrainingDiverged as exc:
+            raise ReconError(
+                f"Training diverged at step {exc.step}: {exc.cause}. {exc.advice} "
+                f"(e.g. --set train.lr={lr / 3:.3g}; the last checkpoint is kept in {ctx.work})."
+            ) from None
+    total_train_time = train_time()
+
+    test_views = load_views(scene, test_frames[: cfg.final_eval_views], cfg.max_side)
+    with ctx.report.task("evaluating test views", total=None):
+        final = evaluate(model, test_views, aabb, background, keep=True)
+    write_previews(final.pop("renders"), ctx.out / "renders")
+    meta = {
+        "aabb": np.asarray(scene.aabb).tolist(),
+        "bounded": bounded,
+        "background": background.tolist(),
+        "max_side": cfg.max_side,
+        "capture": scene.capture,
+    }
+    save_field(ctx.out / FIELD_FILE, kind, kwargs, model.cpu(), meta)
+    metrics = {
+        "model": kind,
+        "reasons": reasons + [f"background: {bg_why}"],
+        "steps": cfg.steps,
+        "train_time_s": round(total_train_time, 2),
+        "rays_per_s": round(result["rays_per_s"], 1),
+        "device": str(device),
+        "test": {k: v for k, v in final.items()},
+        "evals": evals,
+        "history": history,
+        "n_train_views": len(views),
+        "n_rays_dropped_missing_box": int(batcher.n_dropped),
+    }
+    write_json_atomic(ctx.out / "metrics.json", metrics)
+    training_curves(history, evals, ctx.out / "curves.png", title=f"{kind} model — test PSNR {final['psnr']:.2f} dB")
+    ckpt_path.unlink(missing_ok=True)
+    return {
+        "headline": f"{kind} model, {cfg.steps} steps in {total_train_time:.0f} s: test PSNR {final['psnr']:.2f} dB, SSIM {final['ssim']:.3f} ({len(test_views)} views)",
+        "psnr": round(final["psnr"], 3),
+        "ssim": round(final["ssim"], 4),
+        "train_time_s": round(total_train_time, 1),
+    }
+
+
+STAGE = Stage(name="train", folder="03_field", inputs=("normalize",), version=1, run=run)
