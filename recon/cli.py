@@ -188,6 +188,80 @@ def status(
 
 
 @app.command()
+def render(
+    scene: Annotated[Path, typer.Argument(help="Scene folder with a trained field.")],
+    out: Annotated[Path, typer.Option("--out", "-o", help="Folder for the frames and the GIF/MP4.")],
+    path: Annotated[str, typer.Option("--path", help="orbit | spiral | train | test")] = "orbit",
+    frames: Annotated[int, typer.Option("--frames", help="Frames on an orbit/spiral path.")] = 60,
+    max_side: Annotated[Optional[int], typer.Option("--size", help="Longest image side (default: training size).")] = None,
+    depth: Annotated[bool, typer.Option("--depth", help="Also write colored depth maps and a depth video.")] = False,
+    device: Annotated[str, typer.Option("--device", help="auto | cpu | cuda")] = "auto",
+) -> None:
+    """Render a novel-view camera path (or the train/test cameras) to PNG frames and a GIF/MP4."""
+    from recon.novel_views import render_path
+
+    with _guard(scene):
+        if path not in ("orbit", "spiral", "train", "test"):
+            raise ReconError(f"--path must be orbit, spiral, train or test; got '{path}'.")
+        if frames < 1:
+            raise ReconError(f"--frames must be at least 1; got {frames}.")
+        written = render_path(scene, path, out, frames=frames, max_side=max_side, depth=depth, device=device, report=Reporter(console))  # type: ignore[arg-type]
+        out_console.print("wrote " + ", ".join(str(p) for p in written) + f" and the frames in {out}")
+
+
+@app.command(name="eval")
+def eval_(
+    scene: Annotated[Path, typer.Argument(help="Scene folder with a trained field.")],
+    out: Annotated[Optional[Path], typer.Option("--out", "-o", help="Report folder (default SCENE/eval).")] = None,
+    split: Annotated[str, typer.Option("--split", help="test | val | train")] = "test",
+    max_side: Annotated[Optional[int], typer.Option("--size", help="Longest image side (default: training size).")] = None,
+    device: Annotated[str, typer.Option("--device", help="auto | cpu | cuda")] = "auto",
+) -> None:
+    """Render every held-out view: per-view and mean PSNR/SSIM, and image grids."""
+    from recon.novel_views import evaluate_scene
+
+    with _guard(scene):
+        target = out or scene / "eval"
+        result = evaluate_scene(scene, target, split=split, max_side=max_side, device=device, report=Reporter(console))
+        out_console.print(
+            f"{split}: mean PSNR {result['psnr']:.2f} dB, SSIM {result['ssim']:.3f} over {len(result['views'])} views "
+            f"— {target / 'metrics.json'}, {target / 'grid.png'}"
+        )
+
+
+@app.command(name="fit-image")
+def fit_image_cmd(
+    image: Annotated[Path, typer.Argument(help="An image to fit with a 2D neural field.")],
+    out: Annotated[Path, typer.Option("--out", "-o", help="Folder for the fitted image and PSNR curve.")] = Path("fit-image"),
+    steps: Annotated[int, typer.Option("--steps")] = 1000,
+    freqs: Annotated[int, typer.Option("--freqs", help="Positional-encoding frequencies (0: none).")] = 10,
+    max_side: Annotated[int, typer.Option("--size", help="Downscale the image to this longest side.")] = 256,
+) -> None:
+    """Fit an MLP with positional encoding to one image and plot its PSNR curve (a check of the encoding)."""
+    import json
+
+    import torch
+
+    from recon.images import read_image, save_image
+    from recon.nerf.image_fit import fit_image, render_field
+
+    with _guard():
+        if steps < 1 or freqs < 0:
+            raise ReconError("--steps must be ≥ 1 and --freqs ≥ 0.")
+        img = torch.from_numpy(read_image(image, max_side=max_side)[..., :3].copy())
+        out.mkdir(parents=True, exist_ok=True)
+        report = Reporter(console)
+        with report.task("fitting", total=steps) as bar:
+            model, curve = fit_image(img, steps=steps, n_freqs=freqs, on_step=lambda s, loss: bar.advance())
+        save_image(out / "fitted.png", render_field(model, *img.shape[:2]).numpy())
+        (out / "curve.json").write_text(json.dumps(curve, indent=1))
+        from recon.plots import training_curves
+
+        training_curves([], curve, out / "curve.png", title=f"2D field, L={freqs}")
+        out_console.print(f"PSNR {curve[-1]['psnr']:.2f} dB after {steps} steps — {out / 'fitted.png'}, {out / 'curve.png'}")
+
+
+@app.command()
 def presets() -> None:
     """List the presets in pipelines/ and what each trades."""
     with _guard():

@@ -15,32 +15,20 @@ from pathlib import Path
 from typing import Any, Literal
 
 from recon.errors import ConfigError
+from recon.sfm import SfmOptions
 
 PIPELINES_DIR = Path(__file__).resolve().parent.parent / "pipelines"
 
 
 @dataclass
-class PosesConfig:
-    """Structure from motion (pycolmap) on the photos, or import of poses the user already has."""
+class PosesConfig(SfmOptions):
+    """Structure from motion (pycolmap) on the photos — the SfM options plus how photos are prepared for it.
+
+    Ignored when the input already carries poses (transforms.json, NeRF-synthetic, COLMAP model, .npz).
+    """
 
     max_side: int = 1600
     """Photos are downscaled to this longest side for feature extraction (intrinsics are scaled back)."""
-    matcher: Literal["auto", "exhaustive", "sequential"] = "auto"
-    """auto: exhaustive matching up to 150 photos, sequential (video-like sets) beyond."""
-    sequential_overlap: int = 10
-    """Sequential matching: how many following frames each frame is matched with."""
-    max_features: int = 8192
-    """SIFT features per image."""
-    camera_model: Literal["auto", "SIMPLE_RADIAL", "OPENCV", "PINHOLE", "SIMPLE_PINHOLE", "RADIAL"] = "auto"
-    """COLMAP camera model; auto picks SIMPLE_RADIAL (one radial distortion term)."""
-    shared_intrinsics: Literal["auto", "yes", "no"] = "auto"
-    """auto: one camera for all photos when they share a size."""
-    min_registered: int = 3
-    """Fail below this many registered photos."""
-    min_registered_fraction: float = 0.5
-    """Fail when fewer than this fraction of the photos register."""
-    seed: int = 0
-    """Random seed for COLMAP's RANSAC and mapping."""
 
 
 @dataclass
@@ -113,12 +101,41 @@ class TrainConfig:
 
 
 @dataclass
+class MeshConfig:
+    """Density grid → marching cubes → cleaned, colored mesh in glTF/OBJ/PLY."""
+
+    resolution: int = 0
+    """Grid vertices per side; 0: from the scene (cell ≈ the pixel footprint), capped by max_resolution."""
+    max_resolution: int = 384
+    """Upper bound on the automatic resolution (and the memory budget caps it further)."""
+    memory_budget_mb: int = 2048
+    """The density grid (float32) must fit in this much memory; the resolution is lowered to fit."""
+    coarse_to_fine: bool = True
+    """Evaluate a coarse grid first and refine only blocks the surface crosses."""
+    iso: float = 0.0
+    """Density iso-level; 0: automatic (one cell of thickness is half opaque)."""
+    min_component_fraction: float = 0.05
+    """Drop disconnected pieces with less than this fraction of the largest piece's area (floaters)."""
+    smooth_iters: int = 0
+    """Taubin smoothing iterations (0: none)."""
+    target_faces: int = 300000
+    """Decimate to this many faces (0: keep all)."""
+    color: Literal["photos", "field"] = "photos"
+    """Per-vertex color: baked from the photos (depth-tested), or queried from the field."""
+    frame: Literal["normalized", "source"] = "normalized"
+    """Export in our normalized frame (+Z up, box ≈ [-1, 1]³) or back in the source (COLMAP/import) frame."""
+    real_size: float = 0.0
+    """> 0: scale the mesh so its largest bounding-box side is this many units (e.g. meters)."""
+
+
+@dataclass
 class RunConfig:
     """The whole pipeline's configuration: one slice per stage (a stage's fingerprint covers only its slice)."""
 
     poses: PosesConfig = field(default_factory=PosesConfig)
     normalize: NormalizeConfig = field(default_factory=NormalizeConfig)
     train: TrainConfig = field(default_factory=TrainConfig)
+    mesh: MeshConfig = field(default_factory=MeshConfig)
 
 
 def available_presets() -> list[str]:

@@ -377,70 +377,21 @@ def _has_alpha(frame: Frame) -> bool:
         return img.mode in ("RGBA", "LA", "PA") or "transparency" in img.info
 
 
-def opencv_to_opengl(cam_from_world: np.ndarray) -> np.ndarray:
-    """COLMAP world→camera (3×4, OpenCV axes) → camera-to-world 4×4 in OpenGL axes."""
-    w2c = np.eye(4)
-    w2c[:3, :4] = cam_from_world
-    c2w = np.linalg.inv(w2c)
-    c2w[:3, 1:3] *= -1.0  # OpenCV (+Y down, +Z forward) → OpenGL (+Y up, -Z forward)
-    return c2w
-
-
-def colmap_intrinsics(model_name: str, params: np.ndarray) -> dict[str, float]:
-    """COLMAP camera params → fl_x, fl_y, cx, cy, k1, k2, p1, p2."""
-    p = [float(x) for x in params]
-    out = {"k1": 0.0, "k2": 0.0, "p1": 0.0, "p2": 0.0}
-    if model_name in ("SIMPLE_PINHOLE",):
-        out.update(fl_x=p[0], fl_y=p[0], cx=p[1], cy=p[2])
-    elif model_name == "PINHOLE":
-        out.update(fl_x=p[0], fl_y=p[1], cx=p[2], cy=p[3])
-    elif model_name == "SIMPLE_RADIAL":
-        out.update(fl_x=p[0], fl_y=p[0], cx=p[1], cy=p[2], k1=p[3])
-    elif model_name == "RADIAL":
-        out.update(fl_x=p[0], fl_y=p[0], cx=p[1], cy=p[2], k1=p[3], k2=p[4])
-    elif model_name in ("OPENCV", "FULL_OPENCV"):
-        out.update(fl_x=p[0], fl_y=p[1], cx=p[2], cy=p[3], k1=p[4], k2=p[5], p1=p[6], p2=p[7])
-    else:
-        raise InputError(
-            f"COLMAP camera model {model_name} is not supported. Use SIMPLE_RADIAL, RADIAL, OPENCV or a pinhole model."
-        )
-    return out
-
-
-def scene_from_reconstruction(rec: Any, image_root: Path, name_to_path: dict[str, Path] | None = None) -> Scene:
-    """A pycolmap.Reconstruction → Scene in COLMAP's world frame (poses, intrinsics, points, visibility)."""
-    frames: list[Frame] = []
-    visibility: dict[str, list[int]] = {}
-    point_ids = sorted(rec.points3D.keys())
-    index_of = {pid: i for i, pid in enumerate(point_ids)}
-    for image_id in sorted(rec.images.keys(), key=lambda i: rec.images[i].name):
-        image = rec.images[image_id]
-        if not image.has_pose:
-            continue
-        cam = rec.cameras[image.camera_id]
-        model_name = getattr(cam, "model_name", None) or cam.model.name
-        intr = colmap_intrinsics(str(model_name), np.asarray(cam.params))
-        path = (name_to_path or {}).get(image.name) or resolve_image(image_root, image.name, image_root)
-        frames.append(
-            Frame(
-                file_path=str(path),
-                c2w=opencv_to_opengl(np.asarray(image.cam_from_world().matrix())),
-                w=int(cam.width),
-                h=int(cam.height),
-                **intr,
-            )
-        )
-        visibility[Path(path).name] = [
-            index_of[p.point3D_id] for p in image.points2D if p.has_point3D() and p.point3D_id in index_of
-        ]
-    xyz = np.array([rec.points3D[p].xyz for p in point_ids], dtype=np.float64).reshape(-1, 3)
-    rgb = np.array([rec.points3D[p].color for p in point_ids], dtype=np.uint8).reshape(-1, 3)
-    return Scene(
-        frames=frames,
-        points=xyz,
-        point_colors=rgb,
-        point_visibility={k: np.asarray(v, dtype=np.int64) for k, v in visibility.items()},
-        source_kind="colmap",
+def frame_from_sfm(file_path: str, fd: dict, sx: float = 1.0, sy: float = 1.0) -> Frame:
+    """A Frame from `recon.sfm`'s per-image dict, with intrinsics scaled by (sx, sy) to the photo's size."""
+    return Frame(
+        file_path=file_path,
+        c2w=np.asarray(fd["c2w"], dtype=np.float64),
+        fl_x=fd["fl_x"] * sx,
+        fl_y=fd["fl_y"] * sy,
+        cx=fd["cx"] * sx,
+        cy=fd["cy"] * sy,
+        w=round(fd["w"] * sx),
+        h=round(fd["h"] * sy),
+        k1=fd["k1"],
+        k2=fd["k2"],
+        p1=fd["p1"],
+        p2=fd["p2"],
     )
 
 
@@ -455,11 +406,23 @@ def import_colmap(folder: Path) -> Scene:
         rec = pycolmap.Reconstruction(str(model))
     except Exception as exc:  # pycolmap raises plain RuntimeError/ValueError on damaged files
         raise InputError(f"Cannot read the COLMAP model in {model}: {exc}. Re-export it from COLMAP.") from None
+    from recon.sfm import reconstruction_frames
+
+    names = sorted(rec.images[i].name for i in rec.images.keys())
     for root in (folder / "images", model / "images", model.parent / "images", model.parent.parent / "images", folder):
-        if root.is_dir() and any(
-            (root / rec.images[i].name).is_file() for i in list(rec.images.keys())[:5]
-        ):
-            return scene_from_reconstruction(rec, root)
+        if root.is_dir() and any((root / name).is_file() for name in names[:5]):
+            try:
+                fds, xyz, rgb, _, visible = reconstruction_frames(rec, names)
+                frames = [frame_from_sfm(str(resolve_image(root, n, model)), fd) for n, fd in fds.items()]
+            except ValueError as exc:
+                raise InputError(f"COLMAP model {model}: {exc}.") from None
+            return Scene(
+                frames=frames,
+                points=xyz,
+                point_colors=rgb,
+                point_visibility={Path(n).name: v for n, v in visible.items()},
+                source_kind="colmap",
+            )
     raise InputError(
         f"Found the COLMAP model in {model} but not its images. Put them in {folder / 'images'} "
         f"(the usual COLMAP project layout)."

@@ -80,7 +80,7 @@ def test_status_of_non_scene(tmp_path: Path) -> None:
 
 def test_failed_stage_keeps_earlier_complete_stages(tmp_path: Path, shared_data: Path) -> None:
     scene = tmp_path / "s"
-    code, out = recon("run", str(shared_data / "nerf_synthetic_lego_half"), "--out", str(scene), "-q")
+    code, out = recon("run", str(shared_data / "nerf_synthetic_lego_half"), "--out", str(scene), "-q", "--until", "normalize")
     assert code == 0, out
     before = (scene / "02_scene" / "scene.json").read_bytes()
     code, out = recon("normalize", str(scene), "--set", "normalize.up=sideways")

@@ -16,9 +16,9 @@ from recon.errors import InputError
 from recon.images import list_photos, oriented_size, read_image, save_image
 from recon.pipeline import Stage, StageContext, sha256_file
 from recon.scene import (
-    Frame,
     Scene,
     detect_source,
+    frame_from_sfm,
     import_colmap,
     import_nerf_synthetic,
     import_npz,
@@ -100,7 +100,7 @@ def _structure_from_motion(ctx: StageContext) -> tuple[Scene, dict]:
             names.append((path, name))
             bar.advance()
     by_sfm_name = {name: path for path, name in names}
-    options = SfmOptions(**{f.name: getattr(cfg, f.name) for f in dataclasses.fields(SfmOptions) if hasattr(cfg, f.name)})
+    options = SfmOptions(**{f.name: getattr(cfg, f.name) for f in dataclasses.fields(SfmOptions)})
     with ctx.report.task("structure from motion", total=3) as bar:
         phases = {"extract": "extracting SIFT features", "match": "matching", "map": "incremental mapping"}
 
@@ -120,25 +120,8 @@ def _structure_from_motion(ctx: StageContext) -> tuple[Scene, dict]:
     frames = []
     for sfm_name, fd in result.frames.items():
         path = by_sfm_name[sfm_name]
-        ow, oh = original_size[path.name]
-        sw, sh = sfm_size[path.name]
-        sx, sy = ow / sw, oh / sh
-        frames.append(
-            Frame(
-                file_path=str(path.resolve()),
-                c2w=np.asarray(fd["c2w"], dtype=np.float64),
-                fl_x=fd["fl_x"] * sx,
-                fl_y=fd["fl_y"] * sy,
-                cx=fd["cx"] * sx,
-                cy=fd["cy"] * sy,
-                w=ow,
-                h=oh,
-                k1=fd["k1"],
-                k2=fd["k2"],
-                p1=fd["p1"],
-                p2=fd["p2"],
-            )
-        )
+        (ow, oh), (sw, sh) = original_size[path.name], sfm_size[path.name]
+        frames.append(frame_from_sfm(str(path.resolve()), fd, ow / sw, oh / sh))
     visibility = {by_sfm_name[n].name: np.asarray(v, dtype=np.int64) for n, v in result.points_visible.items()}
     scene = Scene(
         frames=frames,

@@ -1,0 +1,157 @@
+"""Renders of a trained scene: camera paths (orbit, spiral, the photos' own), videos, and evaluation.
+
+Used by `recon render` and `recon eval`; the train stage's own held-out evaluation uses the same
+`evaluate` so the numbers agree.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+import torch
+
+from recon.errors import ReconError
+from recon.field import load_field
+from recon.images import save_image
+from recon.pipeline import write_json_atomic
+from recon.scene import Scene, load_scene
+from recon.stages.train import View, evaluate, load_views, render_view
+
+PathKind = Literal["orbit", "spiral", "train", "test"]
+
+
+def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray = np.array([0.0, 0.0, 1.0])) -> np.ndarray:
+    """OpenGL camera-to-world at `eye` looking at `target` with +Z up."""
+    back = eye - target
+    back /= np.linalg.norm(back)
+    right = np.cross(up, back)
+    if np.linalg.norm(right) < 1e-9:
+        right = np.array([1.0, 0.0, 0.0])
+    right /= np.linalg.norm(right)
+    c2w = np.eye(4)
+    c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = right, np.cross(back, right), back, eye
+    return c2w
+
+
+def orbit_poses(scene: Scene, n: int, spiral: bool = False) -> list[np.ndarray]:
+    """Cameras circling the box centre at the photos' median distance and elevation (spiral: elevation swings)."""
+    centre = np.asarray(scene.aabb).mean(axis=0)
+    offsets = np.stack([f.c2w[:3, 3] for f in scene.frames]) - centre
+    radius = float(np.median(np.linalg.norm(offsets, axis=1)))
+    elevation = float(np.median(np.arcsin(np.clip(offsets[:, 2] / np.linalg.norm(offsets, axis=1), -1, 1))))
+    poses = []
+    for i in range(n):
+        az = 2 * np.pi * i / n
+        el = elevation + (np.radians(15) * np.sin(2 * az) if spiral else 0.0)
+        eye = centre + radius * np.array([np.cos(az) * np.cos(el), np.sin(az) * np.cos(el), np.sin(el)])
+        poses.append(look_at(eye, centre))
+    return poses
+
+
+def _write_video(frames: list[np.ndarray], out: Path, fps: int) -> list[Path]:
+    """An animated GIF always (Pillow), and an MP4 when OpenCV's writer is available."""
+    from PIL import Image
+
+    written = []
+    pil = [Image.fromarray((np.clip(f, 0, 1) * 255).astype(np.uint8)) for f in frames]
+    gif = out.with_suffix(".gif")
+    pil[0].save(gif, save_all=True, append_images=pil[1:], duration=int(1000 / fps), loop=0)
+    written.append(gif)
+    try:
+        import cv2
+
+        h, w = frames[0].shape[:2]
+        mp4 = out.with_suffix(".mp4")
+        writer = cv2.VideoWriter(str(mp4), cv2.VideoWriter_fourcc(*"mp4v"), fps, (w, h))
+        if writer.isOpened():
+            for f in frames:
+                writer.write(cv2.cvtColor((np.clip(f, 0, 1) * 255).astype(np.uint8), cv2.COLOR_RGB2BGR))
+            writer.release()
+            written.append(mp4)
+    except Exception:  # no codec on this machine: the GIF is enough
+        pass
+    return written
+
+
+def _trained(scene_dir: Path, device: str) -> tuple[Scene, torch.nn.Module, dict[str, Any], torch.Tensor | None]:
+    from recon.nerf.device import select_device
+
+    scene = load_scene(scene_dir / "02_scene")
+    model, meta = load_field(scene_dir / "03_field", device=select_device(device))
+    aabb = torch.tensor(meta["aabb"], dtype=torch.float32, device=next(model.parameters()).device) if meta.get("bounded", True) else None
+    return scene, model, meta, aabb
+
+
+def render_path(scene_dir: Path, kind: PathKind, out_dir: Path, frames: int = 60, max_side: int | None = None,
+                depth: bool = False, fps: int = 24, device: str = "auto", report: Any = None) -> list[Path]:
+    """Render a camera path to PNG frames + GIF/MP4. train/test frames are named after their photos."""
+    from recon.plots import depth_to_color
+
+    scene, model, meta, aabb = _trained(scene_dir, device)
+    background = np.asarray(meta["background"], dtype=np.float32)
+    side = max_side or meta["max_side"]
+    if kind in ("train", "test"):
+        split = scene.split(kind) or scene.frames
+        views = load_views(scene, split, side)
+    else:
+        ref = load_views(scene, scene.frames[:1], side)[0]
+        views = [View(f"{kind}_{i:03d}", ref.image, pose, ref.intrinsics, ref.near, ref.far) for i, pose in enumerate(orbit_poses(scene, frames, kind == "spiral"))]
+    out_dir.mkdir(parents=True, exist_ok=True)
+    rgb_frames, depth_frames = [], []
+    task = report.task(f"rendering {kind} path", total=len(views)) if report else None
+    bar = task.__enter__() if task else None
+    try:
+        for view in views:
+            out = render_view(model, view, aabb, background)
+            save_image(out_dir / f"{view.name}.png", out["rgb"])
+            rgb_frames.append(out["rgb"])
+            if depth:
+                d = depth_to_color(out["depth"], out["opacity"])
+                save_image(out_dir / f"{view.name}_depth.png", d)
+                depth_frames.append(d)
+            if bar:
+                bar.advance()
+    finally:
+        if task:
+            task.__exit__(None, None, None)
+    written = _write_video(rgb_frames, out_dir / kind, fps)
+    if depth_frames:
+        written += _write_video(depth_frames, out_dir / f"{kind}_depth", fps)
+    return written
+
+
+def evaluate_scene(scene_dir: Path, out_dir: Path, split: str = "test", max_side: int | None = None, device: str = "auto", report: Any = None) -> dict[str, Any]:
+    """Render every view of a split: per-view and mean PSNR/SSIM (metrics.json) and an image grid PNG."""
+    from recon.stages.train import write_previews
+
+    scene, model, meta, aabb = _trained(scene_dir, device)
+    frames = scene.split(split)
+    if not frames:
+        raise ReconError(f"The scene has no '{split}' views to evaluate. Try --split val or --split train.")
+    background = np.asarray(meta["background"], dtype=np.float32)
+    views = load_views(scene, frames, max_side or meta["max_side"], report, f"{split} photos")
+    if report:
+        with report.task(f"rendering {len(views)} {split} views", total=None):
+            result = evaluate(model, views, aabb, background, keep=True)
+    else:
+        result = evaluate(model, views, aabb, background, keep=True)
+    renders = result.pop("renders")
+    out_dir.mkdir(parents=True, exist_ok=True)
+    write_previews(renders, out_dir / "views")
+    _grid([r[1]["rgb"] for r in renders], [r[2] for r in renders], out_dir / "grid.png")
+    result["split"] = split
+    write_json_atomic(out_dir / "metrics.json", result)
+    return result
+
+
+def _grid(renders: list[np.ndarray], photos: list[np.ndarray], path: Path, max_tiles: int = 8) -> None:
+    """Top row photos, bottom row renders, up to `max_tiles` views."""
+    n = min(len(renders), max_tiles)
+    h, w = renders[0].shape[:2]
+    grid = np.ones((2 * h + 4, n * (w + 4) - 4, 3), dtype=np.float32)
+    for i in range(n):
+        x = i * (w + 4)
+        grid[:h, x : x + w] = photos[i][:h, :w, :3]
+        grid[h + 4 :, x : x + w] = renders[i][:h, :w]
+    save_image(path, grid)

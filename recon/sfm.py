@@ -1,0 +1,394 @@
+"""Structure from motion with pycolmap: camera poses, intrinsics and a sparse point cloud from photos.
+
+`run_sfm` runs COLMAP's classical chain on CPU (SIFT extraction, exhaustive or sequential matching,
+incremental mapping) and converts the largest model into our conventions:
+
+- poses: COLMAP gives world->camera in OpenCV axes (camera looks down +Z, +Y down); we return
+  camera-to-world 4x4 matrices in the OpenGL convention (camera looks down -Z, +Y up, +X right),
+  still in COLMAP's (arbitrary similarity) world frame -- the normalize stage fixes scale and up;
+- intrinsics: fl_x, fl_y, cx, cy (pixels, for the images in `image_dir` as given) and the
+  OpenCV-style distortion k1, k2, p1, p2 of the transforms.json convention.
+
+The database (`work_dir/database.db`) is the cache of features and matches; the chosen model is
+written to `work_dir/sparse/` so other tools can open it.
+"""
+from __future__ import annotations
+
+import shutil
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+import pycolmap
+from PIL import Image
+
+from recon.errors import ReconError
+
+ProgressFn = Callable[[str, float], None]
+
+CAMERA_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV")
+EXHAUSTIVE_MAX_IMAGES = 150  # "auto" matcher: exhaustive up to here (quadratic cost), sequential above
+_EXIF_MODEL_TAG = 0x0110  # EXIF/TIFF "Model"
+
+
+@dataclass
+class SfmOptions:
+    """How to run structure from motion; the defaults suit an object captured by a phone."""
+
+    matcher: Literal["auto", "exhaustive", "sequential"] = "auto"
+    """Pairs to match. auto: exhaustive up to 150 images, else sequential (photos ordered by name)."""
+    sequential_overlap: int = 10
+    """Sequential matcher: each image is matched with this many following images (by name)."""
+    max_features: int = 8192
+    """Most SIFT features kept per image."""
+    camera_model: Literal["auto", "SIMPLE_RADIAL", "OPENCV", "PINHOLE", "SIMPLE_PINHOLE", "RADIAL"] = "auto"
+    """COLMAP camera model. auto: SIMPLE_RADIAL (one focal length, one radial distortion term)."""
+    shared_intrinsics: Literal["auto", "yes", "no"] = "auto"
+    """One camera for all images. auto: yes when all images have one size (and one EXIF camera model)."""
+    num_threads: int = -1
+    """Worker threads for extraction, matching and mapping; -1 uses every core."""
+    seed: int = 0
+    """Random seed for COLMAP's RANSAC and mapper."""
+    min_registered: int = 3
+    """Fail when fewer images than this register."""
+    min_registered_fraction: float = 0.5
+    """Fail when fewer than this fraction of the images register."""
+
+
+@dataclass
+class SfmResult:
+    """The largest reconstructed model, in COLMAP's world frame with OpenGL camera axes."""
+
+    camera_model: str
+    shared_intrinsics: bool
+    choice_reason: str
+    """One sentence saying which camera model and sharing were used, and why (printed by the stage)."""
+    registered: list[str]
+    """Names of the images that got a pose, in input order."""
+    dropped: list[str]
+    """Names of the images left out of the model, in input order."""
+    frames: dict[str, dict]
+    """name -> {"c2w": 4x4 nested list (OpenGL camera-to-world), "fl_x", "fl_y", "cx", "cy" (pixels),
+    "w", "h" (pixels), "k1", "k2", "p1", "p2"} for each registered image."""
+    points_xyz: np.ndarray
+    """(P, 3) float64 sparse points, world frame."""
+    points_rgb: np.ndarray
+    """(P, 3) uint8 colors of the sparse points."""
+    points_error: np.ndarray
+    """(P,) float64 mean reprojection error of each point, pixels."""
+    points_visible: dict[str, np.ndarray]
+    """name -> (K,) int64 indices into points_xyz of the points that image observes (for near/far)."""
+    mean_reprojection_error: float
+    """Pixels, over all observations of the model."""
+    num_points: int
+    timings: dict[str, float] = field(default_factory=dict)
+    """Seconds spent in "extract", "match" and "map"."""
+
+
+def opencv_w2c_to_opengl_c2w(cam_from_world: np.ndarray) -> np.ndarray:
+    """World->camera [R|t] in OpenCV axes (3, 4) -> camera-to-world (4, 4) in OpenGL axes.
+
+    Inverts the rigid transform (R^T, -R^T t) and flips the camera's Y and Z axes, so that the
+    camera looks down -Z with +Y up. The world frame is unchanged.
+    """
+    w2c = np.asarray(cam_from_world, dtype=np.float64)
+    if w2c.shape != (3, 4):
+        raise ValueError(f"cam_from_world must be (3, 4), got {w2c.shape}")
+    rot, trans = w2c[:, :3], w2c[:, 3]
+    c2w = np.eye(4)
+    c2w[:3, :3] = rot.T
+    c2w[:3, 3] = -rot.T @ trans
+    return c2w @ np.diag([1.0, -1.0, -1.0, 1.0])
+
+
+def camera_params_to_intrinsics(model_name: str, params: np.ndarray) -> dict[str, float]:
+    """COLMAP camera params -> {"fl_x", "fl_y", "cx", "cy", "k1", "k2", "p1", "p2"} (pixels; unitless k, p).
+
+    Supports the models whose distortion the transforms.json convention can hold:
+    SIMPLE_PINHOLE (f, cx, cy), PINHOLE (fx, fy, cx, cy), SIMPLE_RADIAL (f, cx, cy, k),
+    RADIAL (f, cx, cy, k1, k2), OPENCV (fx, fy, cx, cy, k1, k2, p1, p2).
+    """
+    p = [float(v) for v in params]
+    layouts: dict[str, tuple[str, ...]] = {
+        "SIMPLE_PINHOLE": ("f", "cx", "cy"),
+        "PINHOLE": ("fl_x", "fl_y", "cx", "cy"),
+        "SIMPLE_RADIAL": ("f", "cx", "cy", "k1"),
+        "RADIAL": ("f", "cx", "cy", "k1", "k2"),
+        "OPENCV": ("fl_x", "fl_y", "cx", "cy", "k1", "k2", "p1", "p2"),
+    }
+    if model_name not in layouts:
+        raise ValueError(f"camera model {model_name} is not supported; use one of {', '.join(CAMERA_MODELS)}")
+    names = layouts[model_name]
+    if len(p) != len(names):
+        raise ValueError(f"{model_name} takes {len(names)} params, got {len(p)}")
+    values = dict(zip(names, p))
+    if "f" in values:
+        values["fl_x"] = values["fl_y"] = values.pop("f")
+    out = {"k1": 0.0, "k2": 0.0, "p1": 0.0, "p2": 0.0}
+    out.update(values)
+    return {k: out[k] for k in ("fl_x", "fl_y", "cx", "cy", "k1", "k2", "p1", "p2")}
+
+
+def choose_camera(
+    sizes: list[tuple[int, int]],
+    exif_models: list[str | None],
+    camera_model: str = "auto",
+    shared_intrinsics: str = "auto",
+) -> tuple[str, bool, str]:
+    """Pick the COLMAP camera model and whether all images share one camera; say why in a sentence.
+
+    sizes: (width, height) in pixels per image; exif_models: EXIF camera "Model" per image or None.
+    Sharing one camera is right when one device took every photo: then all sizes match. A mix of
+    sizes (or of EXIF models) means several cameras or crops, so each image gets its own.
+    """
+    if not sizes:
+        raise ValueError("no images")
+    model = "SIMPLE_RADIAL" if camera_model == "auto" else camera_model
+    if model not in CAMERA_MODELS:
+        raise ValueError(f"unknown camera model {model!r}; use one of {', '.join(CAMERA_MODELS)}")
+    distinct_sizes = sorted(set(sizes))
+    known_models = sorted({m for m in exif_models if m})
+    one_size = len(distinct_sizes) == 1
+    one_device = len(known_models) <= 1
+    size_text = f"{distinct_sizes[0][0]}x{distinct_sizes[0][1]}" if one_size else f"{len(distinct_sizes)} sizes"
+    if shared_intrinsics == "yes":
+        if not one_size:
+            raise ReconError(
+                f"shared_intrinsics = \"yes\" needs every photo to have one size, but they come in {size_text} "
+                f"({', '.join(f'{w}x{h}' for w, h in distinct_sizes[:5])}). Set shared_intrinsics to "
+                "\"auto\" or \"no\", or resize/crop the photos to one size."
+            )
+        shared, why = True, "as configured"
+    elif shared_intrinsics == "no":
+        shared, why = False, "as configured"
+    elif shared_intrinsics == "auto":
+        shared = one_size and one_device
+        if shared:
+            device = f" from one camera ({known_models[0]})" if known_models else ""
+            why = f"all {len(sizes)} images are {size_text}{device}"
+        elif not one_size:
+            why = f"the images come in {size_text}"
+        else:
+            why = f"the images come from {len(known_models)} cameras ({', '.join(known_models)})"
+    else:
+        raise ValueError(f"shared_intrinsics must be auto, yes or no, got {shared_intrinsics!r}")
+    model_why = {
+        "SIMPLE_PINHOLE": "one focal length, no distortion",
+        "PINHOLE": "two focal lengths, no distortion",
+        "SIMPLE_RADIAL": "one focal length and one radial distortion term, estimated",
+        "RADIAL": "one focal length and two radial distortion terms, estimated",
+        "OPENCV": "two focal lengths, radial and tangential distortion, estimated",
+    }[model]
+    model_src = "the default" if camera_model == "auto" else "as configured"
+    sharing = "One shared" if shared else "One per-image"
+    reason = f"{sharing} {model} camera ({model_why}; {model_src}): {why}."
+    return model, shared, reason
+
+
+def _image_info(image_dir: Path, names: list[str]) -> tuple[list[tuple[int, int]], list[str | None]]:
+    """(width, height) in stored pixels and EXIF camera model (or None) per image, reading headers only."""
+    sizes: list[tuple[int, int]] = []
+    models: list[str | None] = []
+    for name in names:
+        path = image_dir / name
+        try:
+            with Image.open(path) as im:
+                sizes.append((int(im.width), int(im.height)))
+                model = im.getexif().get(_EXIF_MODEL_TAG)
+        except (OSError, ValueError) as exc:
+            raise ReconError(f"cannot read image {path}: {exc}. Remove it or replace it with a JPEG or PNG.") from exc
+        text = str(model).strip("\x00 ") if model else ""
+        models.append(text or None)
+    return sizes, models
+
+
+def _pick_matcher(matcher: str, num_images: int) -> str:
+    if matcher == "auto":
+        return "exhaustive" if num_images <= EXHAUSTIVE_MAX_IMAGES else "sequential"
+    if matcher not in ("exhaustive", "sequential"):
+        raise ValueError(f"matcher must be auto, exhaustive or sequential, got {matcher!r}")
+    return matcher
+
+
+def _too_few_message(num_registered: int, num_images: int, need: int) -> str:
+    return (
+        f"Structure from motion registered only {num_registered} of {num_images} photos "
+        f"(at least {need} needed), so their camera positions could not be recovered. "
+        "COLMAP needs each photo to share plenty of recognizable detail with others: take photos "
+        "with more overlap (move a little between shots, about 10-20 degrees around the object), "
+        "of a subject with more texture (plain walls, glass and shiny surfaces have too little), "
+        "sharper (steady the camera, avoid motion blur), or simply more photos."
+    )
+
+
+def reconstruction_frames(
+    rec: pycolmap.Reconstruction, names: list[str]
+) -> tuple[dict[str, dict], np.ndarray, np.ndarray, np.ndarray, dict[str, np.ndarray]]:
+    """Frames (OpenGL c2w + intrinsics) and sparse points of a reconstruction."""
+    frames: dict[str, dict] = {}
+    image_name_by_id: dict[int, str] = {}
+    for image_id, image in rec.images.items():
+        if not image.has_pose:
+            continue
+        camera = rec.cameras[image.camera_id]
+        c2w = opencv_w2c_to_opengl_c2w(image.cam_from_world().matrix())
+        frame: dict = {"c2w": c2w.tolist()}
+        frame.update(camera_params_to_intrinsics(camera.model_name, camera.params))
+        frame["w"], frame["h"] = int(camera.width), int(camera.height)
+        frames[image.name] = frame
+        image_name_by_id[image_id] = image.name
+    point_ids = sorted(rec.points3D.keys())
+    num = len(point_ids)
+    xyz = np.zeros((num, 3), dtype=np.float64)
+    rgb = np.zeros((num, 3), dtype=np.uint8)
+    err = np.zeros((num,), dtype=np.float64)
+    seen: dict[str, list[int]] = {name: [] for name in frames}
+    for index, point_id in enumerate(point_ids):
+        point = rec.points3D[point_id]
+        xyz[index] = point.xyz
+        rgb[index] = point.color
+        err[index] = point.error
+        for image_id in {el.image_id for el in point.track.elements}:
+            name = image_name_by_id.get(image_id)
+            if name is not None:
+                seen[name].append(index)
+    visible = {name: np.asarray(idx, dtype=np.int64) for name, idx in seen.items()}
+    ordered = {name: frames[name] for name in names if name in frames}
+    return ordered, xyz, rgb, err, visible
+
+
+def _map(
+    database: Path, image_dir: Path, models_dir: Path, options: SfmOptions, needed: int, relaxed: bool
+) -> pycolmap.Reconstruction | None:
+    """Incremental mapping; returns the model with the most registered images, or None.
+
+    relaxed lowers the inliers needed to start a model (100 -> 50) and to register an image
+    (30 -> 15): still RANSAC-verified, but reachable with a few hundred features per image.
+    """
+    mapping = pycolmap.IncrementalPipelineOptions()
+    mapping.num_threads = options.num_threads
+    mapping.random_seed = options.seed
+    mapping.min_model_size = max(2, min(mapping.min_model_size, needed))  # keep small photo sets
+    if relaxed:
+        mapping.mapper.init_min_num_inliers = 50
+        mapping.mapper.abs_pose_min_num_inliers = 15
+    shutil.rmtree(models_dir, ignore_errors=True)
+    models_dir.mkdir(parents=True)
+    models = pycolmap.incremental_mapping(database, image_dir, models_dir, options=mapping)
+    return max(models.values(), key=lambda r: r.num_reg_images(), default=None)
+
+
+def run_sfm(
+    image_dir: Path,
+    names: list[str],
+    work_dir: Path,
+    options: SfmOptions,
+    progress: ProgressFn | None = None,
+) -> SfmResult:
+    """Recover camera poses, intrinsics and sparse points for `names` (paths relative to image_dir).
+
+    Writes work_dir/database.db (features and matches; any old one is replaced) and the largest
+    model to work_dir/sparse/. Raises ReconError when fewer than options.min_registered images,
+    or fewer than options.min_registered_fraction of them, get a pose.
+    progress(phase, fraction) is called at the start and end of "extract", "match" and "map"
+    (and with ("map", 0.5) when mapping is retried with relaxed thresholds).
+    """
+    report: ProgressFn = progress if progress is not None else (lambda phase, fraction: None)
+    image_dir, work_dir = Path(image_dir), Path(work_dir)
+    names = list(names)
+    if len(set(names)) != len(names):
+        raise ValueError("image names must be unique")
+    if len(names) < max(2, options.min_registered):
+        raise ReconError(
+            f"Structure from motion needs at least {max(2, options.min_registered)} photos, got {len(names)}. "
+            "Take more photos of the subject from different viewpoints, with plenty of overlap between them."
+        )
+    sizes, exif_models = _image_info(image_dir, names)
+    model, shared, reason = choose_camera(sizes, exif_models, options.camera_model, options.shared_intrinsics)
+    matcher = _pick_matcher(options.matcher, len(names))
+
+    # glog errors only: COLMAP's INFO and WARNING lines (thread counts, focal priors) are noise to users
+    pycolmap.logging.minloglevel = max(int(pycolmap.logging.minloglevel), 2)
+    pycolmap.set_random_seed(options.seed)
+    work_dir.mkdir(parents=True, exist_ok=True)
+    database = work_dir / "database.db"
+    database.unlink(missing_ok=True)  # a stale database would keep old images and features
+    device = pycolmap.Device.cpu
+    timings: dict[str, float] = {}
+
+    report("extract", 0.0)
+    start = time.perf_counter()
+    extraction = pycolmap.FeatureExtractionOptions()
+    extraction.num_threads = options.num_threads
+    extraction.use_gpu = False
+    extraction.sift.max_num_features = options.max_features
+    pycolmap.extract_features(
+        database,
+        image_dir,
+        image_names=names,
+        camera_mode=pycolmap.CameraMode.SINGLE if shared else pycolmap.CameraMode.PER_IMAGE,
+        reader_options=pycolmap.ImageReaderOptions(camera_model=model),
+        extraction_options=extraction,
+        device=device,
+    )
+    timings["extract"] = time.perf_counter() - start
+    report("extract", 1.0)
+
+    report("match", 0.0)
+    start = time.perf_counter()
+    matching = pycolmap.FeatureMatchingOptions()
+    matching.num_threads = options.num_threads
+    matching.use_gpu = False
+    if matcher == "exhaustive":
+        pycolmap.match_exhaustive(database, matching_options=matching, device=device)
+    else:
+        pairing = pycolmap.SequentialPairingOptions()
+        pairing.overlap = options.sequential_overlap
+        pycolmap.match_sequential(database, matching_options=matching, pairing_options=pairing, device=device)
+    timings["match"] = time.perf_counter() - start
+    report("match", 1.0)
+
+    report("map", 0.0)
+    start = time.perf_counter()
+    needed = max(options.min_registered, int(np.ceil(options.min_registered_fraction * len(names))))
+    models_dir = work_dir / "models"
+    best = _map(database, image_dir, models_dir, options, needed, relaxed=False)
+    if best is None or best.num_reg_images() < len(names):
+        # COLMAP's inlier thresholds suit thousands of features per image; small or plain photos
+        # give hundreds, so retry with lower ones and keep whichever model registers more images.
+        report("map", 0.5)
+        retry = _map(database, image_dir, models_dir, options, needed, relaxed=True)
+        if retry is not None and (best is None or retry.num_reg_images() > best.num_reg_images()):
+            best = retry
+    shutil.rmtree(models_dir, ignore_errors=True)
+    timings["map"] = time.perf_counter() - start
+    report("map", 1.0)
+
+    num_registered = best.num_reg_images() if best is not None else 0
+    if best is None or num_registered < needed:
+        raise ReconError(_too_few_message(num_registered, len(names), needed))
+
+    sparse_dir = work_dir / "sparse"
+    shutil.rmtree(sparse_dir, ignore_errors=True)
+    sparse_dir.mkdir()
+    best.write(sparse_dir)
+
+    frames, xyz, rgb, err, visible = reconstruction_frames(best, names)
+    return SfmResult(
+        camera_model=model,
+        shared_intrinsics=shared,
+        choice_reason=reason,
+        registered=[n for n in names if n in frames],
+        dropped=[n for n in names if n not in frames],
+        frames=frames,
+        points_xyz=xyz,
+        points_rgb=rgb,
+        points_error=err,
+        points_visible=visible,
+        mean_reprojection_error=float(best.compute_mean_reprojection_error()),
+        num_points=int(xyz.shape[0]),
+        timings=timings,
+    )
