@@ -1,0 +1,149 @@
+"""Write the colored mesh as glTF binary (.glb), OBJ and PLY — atomically, in stated frames.
+
+Frames: input vertices are in the normalized scene frame (+Z up). ``transform`` (4×4, e.g. the
+inverse normalization similarity back to COLMAP's frame, or a scale to metres) is applied first;
+then, with ``y_up=True``:
+- ``mesh.glb``: rotated −90° about X, so scene +Z is glTF +Y (glTF 2.0 is +Y up, front +Z); Blender's
+  glTF importer turns it back to +Z up.
+- ``mesh.obj``: same +Y-up frame (Blender's OBJ importer also assumes +Y up, forward −Z).
+- ``mesh.ply``: kept +Z up (the transformed scene frame): Blender's and MeshLab's PLY importers
+  apply no axis change, so it opens upright in Z-up tools.
+Colors: OBJ and PLY carry the input colors (sRGB, as photos are); glTF defines COLOR_0 as *linear*,
+so the glb gets sRGB→linear converted colors, stored as float32 to keep dark tones from banding.
+"""
+from __future__ import annotations
+
+import json
+import os
+import struct
+import uuid
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+# Rotation −90° about X: (x, y, z) → (x, z, −y); scene +Z up becomes +Y up.
+Z_UP_TO_Y_UP = np.array([[1, 0, 0, 0], [0, 0, 1, 0], [0, -1, 0, 0], [0, 0, 0, 1]], np.float64)
+
+
+def srgb_to_linear(c: np.ndarray) -> np.ndarray:
+    """IEC 61966-2-1 sRGB decoding, elementwise on values in [0, 1]."""
+    c = np.clip(np.asarray(c, np.float64), 0.0, 1.0)
+    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
+
+
+def apply_transform(
+    vertices: np.ndarray, faces: np.ndarray, transform: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Map vertices (V, 3) by a 4×4 affine; a mirroring transform (det < 0) also flips face winding
+    so normals keep pointing outward."""
+    t = np.asarray(transform, np.float64)
+    if t.shape != (4, 4) or not np.allclose(t[3], [0, 0, 0, 1]):
+        raise ValueError(f"transform must be a 4x4 affine matrix with last row [0, 0, 0, 1], got {t.tolist()}")
+    out = np.asarray(vertices, np.float64) @ t[:3, :3].T + t[:3, 3]
+    return out, (faces[:, ::-1] if np.linalg.det(t[:3, :3]) < 0 else faces)
+
+
+def _write_atomic(path: Path, data: bytes | str) -> Path:
+    """Write to a temporary file in the same folder, then os.replace: readers never see half a file."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.{uuid.uuid4().hex[:8]}.tmp")  # open() honours umask
+    try:
+        with open(tmp, "xb") as f:
+            f.write(data.encode() if isinstance(data, str) else data)
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    return path
+
+
+def glb_bytes(vertices: np.ndarray, faces: np.ndarray, colors_linear: np.ndarray, normals: np.ndarray) -> bytes:
+    """Minimal glTF 2.0 binary: one mesh, POSITION/NORMAL/COLOR_0 (float32 VEC3), uint32 indices,
+    and an unlit-looking dielectric material (metallic 0, rough 1) so vertex colors show as they are."""
+    arrays = [
+        np.ascontiguousarray(vertices, np.float32),
+        np.ascontiguousarray(normals, np.float32),
+        np.ascontiguousarray(colors_linear, np.float32),
+        np.ascontiguousarray(faces, np.uint32).reshape(-1),
+    ]
+    views, accessors, offset = [], [], 0
+    for i, arr in enumerate(arrays):
+        is_index = i == 3
+        views.append({"buffer": 0, "byteOffset": offset, "byteLength": arr.nbytes,
+                      "target": 34963 if is_index else 34962})
+        acc = {"bufferView": i, "componentType": 5125 if is_index else 5126,
+               "count": int(arr.shape[0]), "type": "SCALAR" if is_index else "VEC3"}
+        if i == 0:  # POSITION requires min/max
+            acc["min"], acc["max"] = arr.min(axis=0).tolist(), arr.max(axis=0).tolist()
+        accessors.append(acc)
+        offset += arr.nbytes  # every array is 4-byte elements, so views stay 4-byte aligned
+    doc = {
+        "asset": {"version": "2.0", "generator": "recon"},
+        "scene": 0,
+        "scenes": [{"nodes": [0]}],
+        "nodes": [{"mesh": 0, "name": "mesh"}],
+        "meshes": [{"name": "mesh", "primitives": [{
+            "attributes": {"POSITION": 0, "NORMAL": 1, "COLOR_0": 2}, "indices": 3, "material": 0, "mode": 4}]}],
+        "materials": [{"name": "vertex_color", "pbrMetallicRoughness": {
+            "baseColorFactor": [1, 1, 1, 1], "metallicFactor": 0.0, "roughnessFactor": 1.0}}],
+        "accessors": accessors,
+        "bufferViews": views,
+        "buffers": [{"byteLength": offset}],
+    }
+    js = json.dumps(doc, separators=(",", ":")).encode()
+    js += b" " * (-len(js) % 4)
+    binary = b"".join(a.tobytes() for a in arrays)
+    binary += b"\0" * (-len(binary) % 4)
+    total = 12 + 8 + len(js) + 8 + len(binary)
+    return b"".join([
+        struct.pack("<4sII", b"glTF", 2, total),
+        struct.pack("<I4s", len(js), b"JSON"), js,
+        struct.pack("<I4s", len(binary), b"BIN\0"), binary,
+    ])
+
+
+def obj_text(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray) -> str:
+    """Wavefront OBJ with per-vertex colors as ``v x y z r g b`` (r, g, b in [0, 1]); 1-based faces."""
+    v = np.hstack([np.asarray(vertices, np.float64), np.clip(colors, 0, 1)])
+    lines = ["# recon mesh: vertex colors as 'v x y z r g b'"]
+    lines += [f"v {a:.7g} {b:.7g} {c:.7g} {r:.4f} {g:.4f} {bl:.4f}" for a, b, c, r, g, bl in v]
+    lines += [f"f {a} {b} {c}" for a, b, c in np.asarray(faces, np.int64) + 1]
+    return "\n".join(lines) + "\n"
+
+
+def export_mesh(
+    vertices: np.ndarray,
+    faces: np.ndarray,
+    colors: np.ndarray,
+    out_dir: str | os.PathLike,
+    stem: str = "mesh",
+    transform: np.ndarray | None = None,
+    y_up: bool = True,
+) -> dict[str, Path]:
+    """Write ``{stem}.glb``, ``{stem}.obj`` and ``{stem}.ply`` into out_dir; returns their paths by format.
+
+    vertices: (V, 3) scene frame (+Z up); faces: (F, 3) counter-clockwise from outside; colors:
+    (V, 3) float sRGB in [0, 1]; transform: optional (4, 4) scene → output frame, applied before the
+    up-axis change (see the module docstring for each file's frame).
+    """
+    vertices, faces = np.asarray(vertices, np.float64), np.asarray(faces, np.int64)
+    colors = np.clip(np.asarray(colors, np.float64), 0.0, 1.0)
+    if vertices.ndim != 2 or vertices.shape[1] != 3 or colors.shape != vertices.shape:
+        raise ValueError(f"need vertices (V, 3) and colors (V, 3); got {vertices.shape}, {colors.shape}")
+    if faces.ndim != 2 or faces.shape[1] != 3 or (faces.size and (faces.min() < 0 or faces.max() >= len(vertices))):
+        raise ValueError(f"faces must be (F, 3) indices into {len(vertices)} vertices")
+    if transform is not None:
+        vertices, faces = apply_transform(vertices, faces, transform)
+    up = apply_transform(vertices, faces, Z_UP_TO_Y_UP)[0] if y_up else vertices
+    mesh_up = trimesh.Trimesh(up, faces, process=False)
+    out = Path(out_dir)
+    paths = {
+        "glb": _write_atomic(out / f"{stem}.glb",
+                             glb_bytes(up, faces, srgb_to_linear(colors), mesh_up.vertex_normals)),
+        "obj": _write_atomic(out / f"{stem}.obj", obj_text(up, faces, colors)),
+    }
+    rgba = np.hstack([np.round(colors * 255), np.full((len(colors), 1), 255)]).astype(np.uint8)
+    ply = trimesh.Trimesh(vertices, faces, vertex_colors=rgba, process=False)
+    paths["ply"] = _write_atomic(out / f"{stem}.ply", ply.export(file_type="ply", encoding="binary"))
+    return paths

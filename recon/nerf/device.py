@@ -1,0 +1,53 @@
+"""Choosing where tensors live: CUDA when present, else the CPU with one thread per physical core."""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import torch
+
+__all__ = ["physical_cores", "select_device"]
+
+
+def physical_cores() -> int:
+    """Physical cores among the CPUs this process may run on (hyper-threads counted once).
+
+    Reads Linux sysfs topology; falls back to the usable logical CPU count elsewhere.
+    """
+    try:
+        cpus = sorted(os.sched_getaffinity(0))
+    except AttributeError:  # not Linux
+        return max(1, os.cpu_count() or 1)
+    cores = set()
+    for cpu in cpus:
+        topo = Path(f"/sys/devices/system/cpu/cpu{cpu}/topology")
+        try:
+            cores.add((topo.joinpath("physical_package_id").read_text().strip(), topo.joinpath("core_id").read_text().strip()))
+        except OSError:
+            return max(1, len(cpus))
+    return max(1, len(cores))
+
+
+def select_device(preference: str = "auto") -> torch.device:
+    """The torch device to train and render on.
+
+    preference: "auto" (CUDA when available, else CPU), "cpu", "cuda" or "cuda:K".
+    On the CPU this also sets torch's intra-op threads to the number of physical cores: extra
+    hyper-threads slow dense float math down, and OpenMP spin-waiting on a shared machine
+    wastes them (set OMP_WAIT_POLICY=PASSIVE in the environment too).
+    Raises ValueError for an unknown preference or when CUDA is requested but absent.
+    """
+    pref = preference.strip().lower()
+    if pref == "auto":
+        pref = "cuda" if torch.cuda.is_available() else "cpu"
+    if pref.startswith("cuda"):
+        if not torch.cuda.is_available():
+            raise ValueError(f"device {preference!r} requested but CUDA is not available; use 'cpu' or 'auto'")
+        dev = torch.device(pref)
+        if dev.index is not None and dev.index >= torch.cuda.device_count():
+            raise ValueError(f"device {preference!r}: only {torch.cuda.device_count()} CUDA device(s) present")
+        return dev
+    if pref == "cpu":
+        torch.set_num_threads(physical_cores())
+        return torch.device("cpu")
+    raise ValueError(f"unknown device {preference!r}: use 'auto', 'cpu', 'cuda' or 'cuda:K'")

@@ -1,0 +1,115 @@
+"""Camera rays for a pinhole camera, and ray / box intersection.
+
+Conventions (shared by the whole project):
+
+* ``c2w`` is camera-to-world, OpenGL style: the camera looks down its -Z axis, +Y is up, +X right.
+* Pixel (i, j) = (column, row) has its centre at (i + 0.5, j + 0.5); row 0 is the TOP of the image.
+* Intrinsics ``fl_x, fl_y, cx, cy`` are in pixels.
+* Rays are PINHOLE: lens distortion is removed from the images beforehand (the stages undistort).
+* ``rays_d`` is UNIT length, so a distance ``t`` along a ray is in world units:
+  ``x = rays_o + t * rays_d``.
+"""
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+__all__ = ["camera_rays", "pixel_rays", "ray_aabb"]
+
+
+def _directions_camera(px: Tensor, py: Tensor, fl_x, fl_y, cx, cy) -> Tensor:
+    """Camera-frame directions (..., 3), not normalized, for pixel coordinates px, py (pixels, centres)."""
+    x = (px - cx) / fl_x
+    y = -(py - cy) / fl_y  # image rows grow downwards, camera +Y is up
+    return torch.stack([x, y, -torch.ones_like(x)], dim=-1)  # camera looks down -Z
+
+
+def camera_rays(
+    c2w: Tensor, fl_x: float, fl_y: float, cx: float, cy: float, w: int, h: int
+) -> tuple[Tensor, Tensor]:
+    """All rays of one image.
+
+    Args:
+        c2w: (4, 4) or (3, 4) camera-to-world (OpenGL convention); sets the device and dtype.
+        fl_x, fl_y, cx, cy: pinhole intrinsics in pixels. w, h: image size in pixels.
+
+    Returns:
+        rays_o: (h, w, 3) camera centre in world coordinates (same for every pixel).
+        rays_d: (h, w, 3) unit-length world directions through pixel centres; ``[j, i]`` is row j,
+            column i, i.e. the layout of an (h, w, 3) image array.
+    """
+    if c2w.shape not in ((4, 4), (3, 4)):
+        raise ValueError(f"c2w must have shape (4, 4) or (3, 4), got {tuple(c2w.shape)}")
+    j, i = torch.meshgrid(
+        torch.arange(h, device=c2w.device, dtype=c2w.dtype) + 0.5,
+        torch.arange(w, device=c2w.device, dtype=c2w.dtype) + 0.5,
+        indexing="ij",
+    )
+    d_cam = _directions_camera(i, j, fl_x, fl_y, cx, cy)
+    d = d_cam @ c2w[:3, :3].T
+    d = d / torch.linalg.vector_norm(d, dim=-1, keepdim=True)
+    o = c2w[:3, 3].expand(h, w, 3)
+    return o, d
+
+
+def pixel_rays(
+    c2w: Tensor, fl_x: Tensor, fl_y: Tensor, cx: Tensor, cy: Tensor, px: Tensor, py: Tensor
+) -> tuple[Tensor, Tensor]:
+    """Rays through arbitrary pixels of many cameras (random training batches).
+
+    Args:
+        c2w: (N, 4, 4) or (N, 3, 4) camera-to-world per ray (OpenGL convention).
+        fl_x, fl_y, cx, cy: (N,) intrinsics per ray (pixels).
+        px, py: (N,) pixel coordinates (pixels; pass ``i + 0.5``, ``j + 0.5`` for pixel centres).
+            Unlike :func:`camera_rays` these are NOT offset by 0.5 here, so sub-pixel jitter is possible.
+
+    Returns:
+        rays_o: (N, 3) world origins; rays_d: (N, 3) unit world directions.
+    """
+    if c2w.dim() != 3 or c2w.shape[1:] not in ((4, 4), (3, 4)):
+        raise ValueError(f"c2w must have shape (N, 4, 4) or (N, 3, 4), got {tuple(c2w.shape)}")
+    n = c2w.shape[0]
+    for name, v in (("fl_x", fl_x), ("fl_y", fl_y), ("cx", cx), ("cy", cy), ("px", px), ("py", py)):
+        if v.shape != (n,):
+            raise ValueError(f"{name} must have shape ({n},), got {tuple(v.shape)}")
+    d_cam = _directions_camera(px, py, fl_x, fl_y, cx, cy)
+    d = torch.einsum("nij,nj->ni", c2w[:, :3, :3], d_cam)
+    d = d / torch.linalg.vector_norm(d, dim=-1, keepdim=True)
+    return c2w[:, :3, 3], d
+
+
+def ray_aabb(rays_o: Tensor, rays_d: Tensor, aabb: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Slab-method intersection of rays with an axis-aligned box.
+
+    Args:
+        rays_o: (N, 3) origins; rays_d: (N, 3) directions (any length; t is in units of |rays_d|,
+            world units for the unit directions made here).
+        aabb: (2, 3) box ``[min_xyz, max_xyz]``.
+
+    Returns:
+        t_near: (N,) entry distance, clamped to >= 0 (an origin inside the box starts at 0).
+        t_far: (N,) exit distance.
+        hit: (N,) bool, True where the ray meets the box in front of the origin (t_far > t_near).
+        For misses, t_near = t_far = 0 so that callers can use them without NaNs.
+
+    Axis-parallel rays (a zero direction component) are handled without dividing by zero: on
+    that axis the ray is inside the slab for all t (or never), decided by the origin alone.
+    """
+    if rays_o.shape != rays_d.shape or rays_o.shape[-1:] != (3,) or rays_o.dim() != 2:
+        raise ValueError(f"rays_o and rays_d must both be (N, 3), got {tuple(rays_o.shape)}, {tuple(rays_d.shape)}")
+    if aabb.shape != (2, 3):
+        raise ValueError(f"aabb must have shape (2, 3), got {tuple(aabb.shape)}")
+    aabb = aabb.to(rays_o)
+    parallel = rays_d == 0
+    safe_d = torch.where(parallel, torch.ones_like(rays_d), rays_d)
+    t0 = (aabb[0] - rays_o) / safe_d
+    t1 = (aabb[1] - rays_o) / safe_d
+    inside = (rays_o >= aabb[0]) & (rays_o <= aabb[1])
+    inf = torch.full_like(t0, torch.inf)
+    lo = torch.where(parallel, torch.where(inside, -inf, inf), torch.minimum(t0, t1))
+    hi = torch.where(parallel, torch.where(inside, inf, -inf), torch.maximum(t0, t1))
+    t_near = lo.amax(dim=-1).clamp_min(0.0)
+    t_far = hi.amin(dim=-1)
+    hit = t_far > t_near
+    zero = torch.zeros_like(t_near)
+    return torch.where(hit, t_near, zero), torch.where(hit, t_far, zero), hit

@@ -1,0 +1,51 @@
+"""PSNR and SSIM against closed forms and scikit-image's reference implementation."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from skimage.metrics import structural_similarity
+
+from recon.metrics import mse_to_psnr, psnr, ssim
+
+
+def test_psnr_closed_form() -> None:
+    a = torch.zeros(4, 4, 3)
+    b = torch.full((4, 4, 3), 0.1)
+    assert psnr(a, b).item() == pytest.approx(20.0)  # mse 0.01 -> 20 dB
+    assert psnr(a, a).item() == math.inf
+    assert mse_to_psnr(1e-3).item() == pytest.approx(30.0)
+    assert psnr(a * 255, b * 255, data_range=255).item() == pytest.approx(20.0)
+
+
+def _pair(seed: int, shape=(37, 41, 3)) -> tuple[np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    # smooth structure + noise, so that SSIM is far from 0 and 1
+    yy, xx = np.mgrid[: shape[0], : shape[1]]
+    base = 0.5 + 0.4 * np.sin(xx[..., None] / 5.0 + np.arange(shape[2])) * np.cos(yy[..., None] / 7.0)
+    a = np.clip(base + rng.normal(0, 0.05, shape), 0, 1)
+    b = np.clip(base * 0.9 + 0.05 + rng.normal(0, 0.1, shape), 0, 1)
+    return a, b
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_ssim_matches_skimage(seed: int) -> None:
+    a, b = _pair(seed)
+    ref = structural_similarity(a, b, data_range=1.0, channel_axis=-1, gaussian_weights=True, sigma=1.5, use_sample_covariance=False)
+    ours = ssim(torch.from_numpy(a).float(), torch.from_numpy(b).float())
+    assert 0.2 < ref < 0.95
+    assert ours.item() == pytest.approx(ref, abs=1e-5)
+
+
+def test_ssim_identity_batch_and_errors() -> None:
+    a, b = _pair(3, (20, 24, 3))
+    ta, tb = torch.from_numpy(a), torch.from_numpy(b)
+    assert ssim(ta, ta).item() == pytest.approx(1.0)
+    batch = ssim(torch.stack([ta, ta]), torch.stack([tb, tb]))
+    assert batch.item() == pytest.approx(ssim(ta, tb).item())
+    with pytest.raises(ValueError, match="at least 11x11"):
+        ssim(torch.zeros(8, 8, 3), torch.zeros(8, 8, 3))
+    with pytest.raises(ValueError, match="same shape"):
+        psnr(torch.zeros(2, 2, 3), torch.zeros(2, 3, 3))

@@ -1,0 +1,205 @@
+"""The training loop on a tiny synthetic scene: it learns, resumes identically, and stops on NaN."""
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from torch import Tensor
+
+from recon.nerf.classic import ClassicModel
+from recon.nerf.render import RadianceModel, render_dense
+from recon.nerf.sampling import stratified
+from recon.nerf.trainer import (
+    RayBatcher,
+    TrainingDiverged,
+    lr_at,
+    render_image,
+    train,
+)
+
+AABB = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
+COLOR = torch.tensor([0.9, 0.2, 0.1])
+
+
+class Ball(RadianceModel):
+    """Ground truth: a red ball of radius 0.6 and density 30 at the origin; nothing to train."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.register_buffer("color", COLOR.clone())
+
+    def density(self, x: Tensor) -> Tensor:
+        return 30.0 * (x.norm(dim=-1) < 0.6).to(x.dtype)
+
+    def radiance(self, x: Tensor, d: Tensor) -> Tensor:
+        return self.color.expand(x.shape[0], 3)
+
+    def render_rays(self, rays_o, rays_d, near, far, *, training, background):
+        t = stratified(near, far, 128, jitter=False)
+        x = rays_o[:, None] + t[..., None] * rays_d[:, None]
+        sigma = self.density(x.reshape(-1, 3)).view(t.shape)
+        rgb = self.color.expand(*t.shape, 3)
+        return render_dense(sigma, rgb, t, far, background)
+
+
+def _look_at(eye: Tensor) -> Tensor:
+    back = eye / eye.norm()
+    right = torch.linalg.cross(torch.tensor([0.0, 0.0, 1.0]), back)
+    right = right / right.norm()
+    c2w = torch.eye(4)
+    c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = right, torch.linalg.cross(back, right), back, eye
+    return c2w
+
+
+def _scene(n_views: int = 4, size: int = 12) -> tuple[Tensor, Tensor, Tensor]:
+    angles = torch.arange(n_views) * 2 * math.pi / n_views
+    c2w = torch.stack([_look_at(torch.stack([3 * torch.cos(a), 3 * torch.sin(a), torch.tensor(0.8)])) for a in angles])
+    f = size * 1.2
+    intr = torch.tensor([[f, f, size / 2, size / 2]]).expand(n_views, 4).contiguous()
+    images = torch.stack([render_image(Ball(), c, intr[0], size, size, aabb=AABB)["rgb"] for c in c2w])
+    return images, c2w, intr
+
+
+def _tiny_model(seed: int = 0) -> ClassicModel:
+    torch.manual_seed(seed)
+    return ClassicModel(AABB, n_coarse=24, n_fine=0, pos_freqs=3, dir_freqs=1, depth=2, width=32, skip=0)
+
+
+def test_ground_truth_renders_the_ball() -> None:
+    images, c2w, intr = _scene()
+    centre = images[:, 6, 6]
+    torch.testing.assert_close(centre, COLOR.expand(4, 3), atol=1e-3, rtol=0)
+    torch.testing.assert_close(images[:, 0, 0], torch.ones(4, 3))  # corners see the white background
+
+
+def test_batcher_covers_every_kept_pixel_once_per_epoch_and_composites_alpha() -> None:
+    images, c2w, intr = _scene(2, 6)
+    alpha = torch.rand(2, 6, 6, 1, generator=torch.Generator().manual_seed(0))
+    rgba = torch.cat([images, alpha], dim=-1)
+    b = RayBatcher(rgba, c2w, intr, aabb=AABB, background=(0.0, 0.0, 0.0), seed=3, drop_missed=False)
+    assert b.n_rays == 72 and b.n_dropped == 0
+    batch = b.next_batch(72)
+    targets = (images * alpha).reshape(-1, 3)
+    # every pixel exactly once: the multiset of targets matches
+    torch.testing.assert_close(torch.sort(batch["rgb"].sum(-1)).values, torch.sort(targets.sum(-1)).values)
+    assert torch.allclose(batch["rays_d"].norm(dim=-1), torch.ones(72))
+    # box intersections: near/far bracket the box for rays that hit
+    hit = batch["far"] > batch["near"]
+    p = batch["rays_o"][hit] + 0.5 * (batch["near"] + batch["far"])[hit, None] * batch["rays_d"][hit]
+    assert torch.all(p.abs() <= 1.0 + 1e-5)
+    dropped = RayBatcher(images, c2w, intr, aabb=AABB * 0.5, seed=3)
+    assert dropped.n_rays + dropped.n_dropped == 72 and dropped.n_dropped > 0
+
+
+def test_batcher_state_round_trip_and_seed() -> None:
+    images, c2w, intr = _scene(2, 6)
+    rgba = torch.cat([images, torch.rand(2, 6, 6, 1)], dim=-1)
+    a = RayBatcher(rgba, c2w, intr, aabb=AABB, random_background=True, seed=5)
+    a.next_batch(50)
+    s = a.state_dict()
+    want = [a.next_batch(37) for _ in range(3)]
+    b = RayBatcher(rgba, c2w, intr, aabb=AABB, random_background=True, seed=5)
+    b.load_state_dict(s)
+    for w in want:
+        got = b.next_batch(37)
+        for k in w:
+            torch.testing.assert_close(got[k], w[k], rtol=0, atol=0)
+    c = RayBatcher(rgba, c2w, intr, aabb=AABB, random_background=True, seed=6)
+    c.next_batch(50)
+    assert not torch.equal(c.next_batch(37)["rgb"], want[0]["rgb"])
+
+
+def test_lr_decay_is_exponential() -> None:
+    assert lr_at(0, 100, 1e-2, 1e-4) == pytest.approx(1e-2)
+    assert lr_at(50, 100, 1e-2, 1e-4) == pytest.approx(1e-3)
+    assert lr_at(100, 100, 1e-2, 1e-4) == pytest.approx(1e-4)
+    assert lr_at(7, 100, 1e-2, None) == 1e-2
+
+
+def test_training_learns_the_ball() -> None:
+    images, c2w, intr = _scene()
+    batcher = RayBatcher(images, c2w, intr, aabb=AABB, seed=0)
+    model = _tiny_model()
+    seen = []
+    result = train(model, batcher, steps=150, lr=1e-2, lr_final=2e-3, batch_rays=128,
+                   callbacks=[lambda p: seen.append(p.psnr)], history_every=50)
+    first, last = sum(seen[:10]) / 10, sum(seen[-10:]) / 10
+    assert last > first + 10.0, (first, last)
+    assert last > 22.0
+    assert len(result["history"]) == 3 and result["step"] == 150
+    view = render_image(model, c2w[1], intr[1], 12, 12, chunk=50, aabb=AABB)
+    assert view["rgb"].shape == (12, 12, 3) and view["depth"].shape == (12, 12)
+    err = ((view["rgb"] - images[1]) ** 2).mean()
+    assert -10 * math.log10(err) > 22.0
+
+
+def test_resume_equals_uninterrupted_run() -> None:
+    images, c2w, intr = _scene(3, 8)
+    kw = dict(steps=12, lr=5e-3, lr_final=1e-3, batch_rays=64)
+
+    full = _tiny_model(1)
+    torch.manual_seed(123)
+    train(full, RayBatcher(images, c2w, intr, aabb=AABB, seed=2), **kw)
+
+    saved = {}
+    part = _tiny_model(1)
+    torch.manual_seed(123)
+
+    def checkpoint(p):
+        if p.step == 5:
+            saved["state"] = p.state_dict()
+        if p.step == 7:
+            raise KeyboardInterrupt  # the run dies after its checkpoint; its later progress is lost
+
+    with pytest.raises(KeyboardInterrupt):
+        train(part, RayBatcher(images, c2w, intr, aabb=AABB, seed=2), callbacks=[checkpoint], **kw)
+    resumed = _tiny_model(99)  # a fresh process: different init and RNG, all restored from the state
+    torch.manual_seed(0)
+    out = train(resumed, RayBatcher(images, c2w, intr, aabb=AABB, seed=2), state=saved["state"], **kw)
+    assert out["step"] == 12
+    for (k, a), b in zip(full.state_dict().items(), resumed.state_dict().values()):
+        torch.testing.assert_close(a, b, rtol=0, atol=0, msg=k)
+
+
+def test_interrupt_carries_a_resumable_state() -> None:
+    images, c2w, intr = _scene(2, 6)
+    model = _tiny_model()
+
+    def stop(p):
+        if p.step == 3:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt) as info:
+        train(model, RayBatcher(images, c2w, intr, aabb=AABB), steps=10, lr=1e-3, batch_rays=16, callbacks=[stop])
+    assert info.value.step == 3 and info.value.state["step"] == 3
+
+
+def test_nan_guard_names_the_step_and_advice() -> None:
+    images, c2w, intr = _scene(2, 6)
+    model = _tiny_model()
+    with pytest.raises(TrainingDiverged) as info:
+        train(model, RayBatcher(images, c2w, intr, aabb=AABB), steps=10, lr=math.inf, batch_rays=32)
+    err = info.value
+    assert err.step == 1
+    assert "NaN" in err.cause
+    assert "Lower the learning rate" in str(err) and "step 1" in str(err)
+
+
+def test_bf16_autocast_trains_with_float32_rendering() -> None:
+    images, c2w, intr = _scene(2, 6)
+    model = _tiny_model()
+    out = train(model, RayBatcher(images, c2w, intr, aabb=AABB), steps=5, lr=1e-3, batch_rays=32, autocast=torch.bfloat16)
+    assert math.isfinite(out["loss"])
+    view = render_image(model, c2w[0], intr[0], 6, 6, aabb=AABB, autocast=torch.bfloat16)
+    assert view["rgb"].dtype == torch.float32 and torch.isfinite(view["rgb"]).all()
+
+
+def test_select_device() -> None:
+    from recon.nerf.device import physical_cores, select_device
+
+    assert select_device("cpu") == torch.device("cpu")
+    assert torch.get_num_threads() == physical_cores() >= 1
+    assert select_device("auto").type == ("cuda" if torch.cuda.is_available() else "cpu")
+    with pytest.raises(ValueError, match="unknown device"):
+        select_device("tpu")
