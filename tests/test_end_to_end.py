@@ -1,0 +1,94 @@
+"""The real pipeline on the shipped sample: SfM poses vs the true ones, caching, re-runs on change, status."""
+from __future__ import annotations
+
+import json
+import shutil
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from recon.cli import app
+from recon.geometry.compare import fit_sim3
+from recon.scene import load_scene
+
+SAMPLE = Path(__file__).resolve().parents[1] / "fixtures" / "sample"
+runner = CliRunner()
+
+
+def recon(*args: str) -> str:
+    result = runner.invoke(app, list(args))
+    assert result.exit_code == 0, result.output
+    return result.output
+
+
+@pytest.fixture(scope="module")
+def posed(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, float]:
+    """The sample photos (a copy we may edit) run through poses + normalize once for the module."""
+    root = tmp_path_factory.mktemp("e2e")
+    photos = root / "photos"
+    shutil.copytree(SAMPLE / "images", photos)
+    scene = root / "scene"
+    t0 = time.perf_counter()
+    recon("run", str(photos), "--out", str(scene), "--until", "normalize", "-q")
+    return photos, scene, time.perf_counter() - t0
+
+
+def test_sfm_poses_match_the_true_poses(posed: tuple[Path, Path, float]) -> None:
+    _, scene_dir, _ = posed
+    summary = json.loads((scene_dir / "manifest.json").read_text())["stages"]["poses"]["summary"]
+    assert summary["registered"] == summary["total"] == 40
+    ours = load_scene(scene_dir / "01_poses")
+    truth = json.loads((SAMPLE / "transforms.json").read_text())
+    true_c2w = {Path(f["file_path"]).name: np.asarray(f["transform_matrix"]) for f in truth["frames"]}
+    names = [f.name for f in ours.frames]
+    src = np.stack([f.c2w[:3, 3] for f in ours.frames])
+    dst = np.stack([true_c2w[n][:3, 3] for n in names])
+    s, R, t = fit_sim3(src, dst)
+    pos_err = np.linalg.norm((s * src @ R.T + t) - dst, axis=1)
+    spread = np.linalg.norm(dst - dst.mean(0), axis=1).mean()
+    assert np.median(pos_err) / spread < 0.01
+    rot_err = []
+    for f, n in zip(ours.frames, names, strict=True):
+        delta = (R @ f.c2w[:3, :3]).T @ true_c2w[n][:3, :3]
+        rot_err.append(np.degrees(np.arccos(np.clip((np.trace(delta) - 1) / 2, -1, 1))))
+    assert np.median(rot_err) < 1.0
+
+
+def test_normalized_sample_is_an_upright_object(posed: tuple[Path, Path, float]) -> None:
+    scene = load_scene(posed[1] / "02_scene")
+    assert scene.capture == "object"
+    assert {s: len(scene.split(s)) for s in ("train", "val", "test")} == {"train": 30, "val": 5, "test": 5}
+    ups = np.stack([f.c2w[:3, 1] for f in scene.frames])
+    assert ups[:, 2].mean() > 0.8
+    assert all(0 < f.near < f.far for f in scene.frames)
+
+
+def test_rerun_is_cached_and_fast(posed: tuple[Path, Path, float]) -> None:
+    photos, scene, first = posed
+    t0 = time.perf_counter()
+    out = recon("run", str(photos), "--out", str(scene), "--until", "normalize")
+    assert time.perf_counter() - t0 < 0.05 * first + 0.5
+    assert out.count("cached") >= 2
+    status = recon("status", str(scene))
+    assert status.count("done") >= 2
+
+
+def test_normalize_option_change_reruns_normalize_not_poses(posed: tuple[Path, Path, float]) -> None:
+    photos, scene, _ = posed
+    before = json.loads((scene / "manifest.json").read_text())["stages"]["poses"]["finished"]
+    out = recon("run", str(photos), "--out", str(scene), "--until", "normalize", "--set", "normalize.box_margin=0.2")
+    after = json.loads((scene / "manifest.json").read_text())["stages"]
+    assert after["poses"]["finished"] == before
+    assert after["normalize"]["config"]["box_margin"] == 0.2
+    assert "poses: up to date" in out
+
+
+def test_removing_a_photo_reruns_poses(posed: tuple[Path, Path, float]) -> None:
+    photos, scene, _ = posed
+    (photos / "view_039.jpg").unlink()
+    recon("run", str(photos), "--out", str(scene), "--until", "normalize", "-q")
+    summary = json.loads((scene / "manifest.json").read_text())["stages"]["poses"]["summary"]
+    assert summary["total"] == 39
