@@ -160,7 +160,7 @@ def _single_stage(name: str) -> Callable[..., None]:
     return command
 
 
-for _name in ("poses", "normalize", "train"):
+for _name in ("poses", "normalize", "train", "mesh"):
     app.command(name=_name)(_single_stage(_name))
 
 
@@ -216,13 +216,26 @@ def eval_(
     split: Annotated[str, typer.Option("--split", help="test | val | train")] = "test",
     max_side: Annotated[Optional[int], typer.Option("--size", help="Longest image side (default: training size).")] = None,
     device: Annotated[str, typer.Option("--device", help="auto | cpu | cuda")] = "auto",
+    limit: Annotated[int, typer.Option("--limit", help="Evaluate at most N views of the split (0: all).")] = 0,
+    gt_mesh: Annotated[Optional[Path], typer.Option("--gt-mesh", help="Ground-truth mesh: report Chamfer-L1 and F-score of our mesh.")] = None,
 ) -> None:
-    """Render every held-out view: per-view and mean PSNR/SSIM, and image grids."""
+    """Render every held-out view: per-view and mean PSNR/SSIM, and image grids (and mesh accuracy with --gt-mesh)."""
     from recon.novel_views import evaluate_scene
 
     with _guard(scene):
         target = out or scene / "eval"
-        result = evaluate_scene(scene, target, split=split, max_side=max_side, device=device, report=Reporter(console))
+        if gt_mesh is not None:
+            from recon.mesh_eval import compare_to_gt, format_comparison
+            from recon.pipeline import write_json_atomic
+
+            if not gt_mesh.is_file():
+                raise ReconError(f"The ground-truth mesh {gt_mesh} does not exist.")
+            comparison = compare_to_gt(scene, gt_mesh)
+            target.mkdir(parents=True, exist_ok=True)
+            write_json_atomic(target / "mesh_accuracy.json", comparison)
+            out_console.print(format_comparison(comparison))
+            return
+        result = evaluate_scene(scene, target, split=split, max_side=max_side, device=device, report=Reporter(console), limit=limit)
         out_console.print(
             f"{split}: mean PSNR {result['psnr']:.2f} dB, SSIM {result['ssim']:.3f} over {len(result['views'])} views "
             f"— {target / 'metrics.json'}, {target / 'grid.png'}"

@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 from recon.errors import ConfigError
+from recon.nerf.fast import FastConfig
 from recon.sfm import SfmOptions
 
 PIPELINES_DIR = Path(__file__).resolve().parent.parent / "pipelines"
@@ -98,6 +99,8 @@ class TrainConfig:
     device: str = "auto"
     """auto (CUDA when present), cpu, cuda or cuda:K."""
     classic: ClassicConfig = field(default_factory=ClassicConfig)
+    fast: FastConfig = field(default_factory=FastConfig)
+    """The fast grid model's options (its box and boundedness are set from the scene)."""
 
 
 @dataclass

@@ -27,8 +27,9 @@ def build_model(kind: str, kwargs: dict[str, Any]) -> torch.nn.Module:
     if kind == "fast":
         from recon.nerf.fast import FastConfig, FastModel
 
-        cfg = FastConfig(**args.pop("config", {}))
-        return FastModel(cfg, **args)
+        cfg = dict(args.pop("config", {}))
+        cfg["aabb"] = tuple(tuple(row) for row in cfg.get("aabb", FastConfig.aabb))
+        return FastModel(FastConfig(**cfg), **args)
     raise ReconError(f"Unknown model kind '{kind}' in a field file; it was written by a newer recon?")
 
 

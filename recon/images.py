@@ -143,4 +143,7 @@ def undistort(image: np.ndarray, fl_x: float, fl_y: float, cx: float, cy: float,
     import cv2
 
     K = np.array([[fl_x, 0, cx], [0, fl_y, cy], [0, 0, 1]], dtype=np.float64)
-    return cv2.undistort(image, K, np.asarray(dist, dtype=np.float64))
+    h, w = image.shape[:2]
+    map_x, map_y = cv2.initUndistortRectifyMap(K, np.asarray(dist, dtype=np.float64), None, K, (w, h), cv2.CV_32FC1)
+    # replicate edge pixels where the corrected image reaches outside the photo (never black borders to learn)
+    return cv2.remap(image, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)

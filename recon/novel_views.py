@@ -121,12 +121,14 @@ def render_path(scene_dir: Path, kind: PathKind, out_dir: Path, frames: int = 60
     return written
 
 
-def evaluate_scene(scene_dir: Path, out_dir: Path, split: str = "test", max_side: int | None = None, device: str = "auto", report: Any = None) -> dict[str, Any]:
+def evaluate_scene(scene_dir: Path, out_dir: Path, split: str = "test", max_side: int | None = None, device: str = "auto", report: Any = None, limit: int = 0) -> dict[str, Any]:
     """Render every view of a split: per-view and mean PSNR/SSIM (metrics.json) and an image grid PNG."""
     from recon.stages.train import write_previews
 
     scene, model, meta, aabb = _trained(scene_dir, device)
     frames = scene.split(split)
+    if limit > 0:
+        frames = frames[:: max(1, len(frames) // limit)][:limit]
     if not frames:
         raise ReconError(f"The scene has no '{split}' views to evaluate. Try --split val or --split train.")
     background = np.asarray(meta["background"], dtype=np.float32)

@@ -2,9 +2,9 @@
 from __future__ import annotations
 
 from recon.pipeline import Pipeline, Stage
-from recon.stages import normalize, poses, train
+from recon.stages import mesh, normalize, poses, train
 
-STAGES: list[Stage] = [poses.STAGE, normalize.STAGE, train.STAGE]
+STAGES: list[Stage] = [poses.STAGE, normalize.STAGE, train.STAGE, mesh.STAGE]
 
 
 def default_pipeline() -> Pipeline:

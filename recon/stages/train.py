@@ -103,13 +103,40 @@ def model_spec(cfg: TrainConfig, scene: Scene, views: list[View], steps: int) ->
         reasons.append(f"classic NeRF (train.model={cfg.model}): {c.depth}×{c.width} MLP, L={c.pos_freqs}/{c.dir_freqs}, {c.n_coarse}+{c.n_fine} samples")
         kwargs = {"aabb": aabb.tolist(), **asdict(c)}
         return kind, kwargs, cfg.lr or 5e-4, reasons
-    from recon.nerf.fast import FastConfig, auto_fast_config
-
-    base = getattr(cfg, "fast", None) or FastConfig()
-    fast_cfg, why = auto_fast_config(base, scene_capture=scene.capture or "object", has_alpha=scene.has_alpha, footprint=pixel_footprint(scene, views), aabb=aabb)
-    reasons.append("fast grid model" + (" (train.model=auto: practical on a CPU)" if cfg.model == "auto" else ""))
+    fast_cfg, why = auto_fast_config(cfg.fast, scene, pixel_footprint(scene, views))
+    reasons.append("fast grid model" + (" (train.model=auto: the practical choice on a CPU)" if cfg.model == "auto" else ""))
     reasons += why
-    return kind, {"aabb": aabb.tolist(), "config": asdict(fast_cfg)}, cfg.lr or fast_cfg.lr, reasons
+    return kind, {"config": asdict(fast_cfg)}, cfg.lr or FAST_LR, reasons
+
+
+FAST_LR = 5e-3
+"""Default learning rate of the fast model's MLP (its grids use lr × grid_lr_scale)."""
+
+
+def auto_fast_config(base: Any, scene: Scene, footprint: float) -> tuple[Any, list[str]]:
+    """Fit the fast model to the scene: box, bounded or not, and grid resolution no finer than the pixels."""
+    from dataclasses import replace
+
+    aabb = np.asarray(scene.aabb, dtype=np.float64)
+    unbounded = scene.capture != "object"
+    reasons = [
+        "unbounded scene: space outside the box is contracted (mip-NeRF 360, L∞)" if unbounded
+        else "object capture: a plain box around the object, nothing modelled outside it"
+    ]
+    extent = float((aabb[1] - aabb[0]).max()) if not unbounded else 4.0
+    needed = int(np.ceil(extent / max(footprint, 1e-12) / 16.0) * 16)
+    density_res = int(min(base.density_res, max(32, needed)))
+    feature_res = int(min(base.feature_res, max(32, needed)))
+    if density_res < base.density_res or feature_res < base.feature_res:
+        reasons.append(
+            f"grids {density_res}³/{feature_res}³ instead of {base.density_res}³/{base.feature_res}³: one training pixel "
+            f"covers {footprint:.4g} units at the cameras' distance, so finer voxels could not be seen"
+        )
+    else:
+        reasons.append(f"grids {density_res}³ density / {feature_res}³ features (the preset's cap; pixels would allow {needed}³)")
+    cfg = replace(base, aabb=tuple(tuple(float(x) for x in row) for row in aabb), unbounded=unbounded,
+                  density_res=density_res, feature_res=feature_res)
+    return cfg, reasons
 
 
 def pixel_footprint(scene: Scene, views: list[View]) -> float:

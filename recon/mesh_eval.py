@@ -1,0 +1,177 @@
+"""Geometry accuracy of a scene's mesh against a ground-truth mesh: `recon eval SCENE --gt-mesh GT.ply`.
+
+Our mesh lives in the frame it was exported in (mesh_report.json says which). It is mapped back to
+the normalized scene frame, then to the source frame with the stored normalization similarity
+(`scene.source_from_world`). With known poses (transforms.json, NeRF-synthetic, .npz) the source
+frame IS the ground truth's frame, so this is exact. With SfM poses the source frame is COLMAP's
+arbitrary one: when the capture folder (or the GT mesh's folder) holds a transforms.json with the
+true poses (the fixture generator writes one), a Sim(3) is fitted from our camera centres (source
+frame) to the true ones, frames matched by file name, and its residual reported.
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+import trimesh
+
+from recon.errors import ReconError
+from recon.geometry.compare import chamfer_fscore, fit_sim3
+from recon.scene import Scene, load_scene, parse_frames
+
+SCENE_FOLDER = "02_scene"
+MESH_FOLDER = "04_mesh"
+KNOWN_POSES = ("transforms", "nerf_synthetic", "npz")
+"""source_kind values whose source frame is the true world frame (no SfM gauge freedom)."""
+
+
+def _load_mesh(path: Path) -> trimesh.Trimesh:
+    try:
+        mesh = trimesh.load(path, force="mesh", process=False)
+    except Exception as exc:  # trimesh raises many types on bad files
+        raise ReconError(f"Cannot read the mesh {path}: {exc}. Check the file (PLY/OBJ/GLB/STL).") from None
+    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
+        raise ReconError(f"{path} holds no triangles; give a surface mesh.")
+    return mesh
+
+
+def our_mesh_in_scene_frame(scene_dir: Path) -> tuple[np.ndarray, np.ndarray, dict]:
+    """The scene's mesh.ply mapped back to the normalized scene frame: vertices (V, 3), faces (F, 3), report.
+
+    mesh.ply is written in the export frame with +Z up (no axis change); the report's
+    ``export.transform`` (4×4, scene → export frame) is inverted.
+    """
+    folder = scene_dir / MESH_FOLDER
+    try:
+        report = json.loads((folder / "mesh_report.json").read_text())
+    except (OSError, ValueError) as exc:
+        raise ReconError(f"No readable mesh report in {folder} ({exc}). Run the mesh stage first: recon mesh {scene_dir}.") from None
+    mesh = _load_mesh(folder / report.get("export", {}).get("files", {}).get("ply", "mesh.ply"))
+    transform = np.asarray(report["export"]["transform"], np.float64)
+    inv = np.linalg.inv(transform)
+    vertices = np.asarray(mesh.vertices, np.float64) @ inv[:3, :3].T + inv[:3, 3]
+    faces = np.asarray(mesh.faces, np.int64)
+    if np.linalg.det(inv[:3, :3]) < 0:
+        faces = faces[:, ::-1]
+    return vertices, faces, report
+
+
+def _true_poses(candidates: Sequence[Path]) -> tuple[Path, dict[str, np.ndarray]] | None:
+    """The first transforms.json among candidate folders: path and true camera centres by file name."""
+    for folder in candidates:
+        path = folder / "transforms.json" if folder.is_dir() else folder
+        if path.name == "transforms.json" and path.is_file():
+            try:
+                doc = json.loads(path.read_text())
+                frames = parse_frames(doc, base=path.parent, source=path, check_files=False)
+            except (ValueError, ReconError) as exc:
+                raise ReconError(f"The true poses {path} are unreadable ({exc}).") from None
+            return path, {f.name: f.c2w[:3, 3] for f in frames}
+    return None
+
+
+def align_sfm_to_truth(scene: Scene, truth: dict[str, np.ndarray]) -> tuple[np.ndarray, dict]:
+    """4×4 similarity source (SfM) frame → true frame fitted on camera centres matched by file name
+    (then by stem), and its residuals: rms and max in true units and relative to the camera-rig
+    radius (rms distance of the true centres from their mean)."""
+    by_stem = {Path(n).stem: c for n, c in truth.items()}
+    src, dst, names = [], [], []
+    for f in scene.frames:
+        c = truth.get(f.name, by_stem.get(f.stem))
+        if c is not None:
+            src.append(scene.source_from_world[:3, :3] @ f.c2w[:3, 3] + scene.source_from_world[:3, 3])
+            dst.append(c)
+            names.append(f.name)
+    if len(src) < 3:
+        raise ReconError(
+            f"Only {len(src)} of our {len(scene.frames)} cameras match the true poses by file name; need 3 or more "
+            f"to align the SfM frame to the ground truth. Check that the photos keep their original names."
+        )
+    src_a, dst_a = np.asarray(src), np.asarray(dst)
+    s, rot, t = fit_sim3(src_a, dst_a)
+    res = np.linalg.norm(s * src_a @ rot.T + t - dst_a, axis=1)
+    radius = float(np.sqrt(((dst_a - dst_a.mean(axis=0)) ** 2).sum(axis=1).mean()))
+    sim = np.eye(4)
+    sim[:3, :3], sim[:3, 3] = s * rot, t
+    info = {
+        "cameras_matched": len(src),
+        "scale": s,
+        "residual_rms": float(np.sqrt((res**2).mean())),
+        "residual_max": float(res.max()),
+        "residual_rms_rel": float(np.sqrt((res**2).mean()) / radius) if radius > 0 else float("nan"),
+        "worst_camera": names[int(res.argmax())],
+    }
+    return sim, info
+
+
+def compare_to_gt(
+    scene_dir: Path, gt_mesh: Path, thresholds: Sequence[float] = (0.01, 0.005), n_samples: int = 200_000
+) -> dict[str, Any]:
+    """Chamfer-L1 and precision/recall/F-score of the scene's mesh against gt_mesh, in the GT's frame.
+
+    thresholds: fractions of the GT bounding-box diagonal (1 % and 0.5 % by default). Returns a flat,
+    JSON-ready dict (see `format_comparison`): the alignment used and its residual, ``chamfer_l1``
+    (GT units), ``chamfer_l1_rel`` (÷ GT diagonal), ``precision@τ``, ``recall@τ``, ``fscore@τ``.
+    """
+    scene_dir, gt_mesh = Path(scene_dir), Path(gt_mesh)
+    vertices, faces, report = our_mesh_in_scene_frame(scene_dir)
+    scene = load_scene(scene_dir / SCENE_FOLDER)
+    to_source = scene.source_from_world
+    v_src = vertices @ to_source[:3, :3].T + to_source[:3, 3]
+    if np.linalg.det(to_source[:3, :3]) < 0:
+        faces = faces[:, ::-1]
+    alignment: dict[str, Any]
+    if scene.source_kind in KNOWN_POSES:
+        v_gt = v_src
+        alignment = {"method": f"exact: known poses ({scene.source_kind}), inverse normalization similarity"}
+    else:
+        candidates = [gt_mesh.parent]
+        try:
+            source = json.loads((scene_dir / "manifest.json").read_text()).get("source")
+        except (OSError, ValueError):
+            source = None
+        if source:
+            candidates = [Path(source), Path(source).parent, gt_mesh.parent]
+        found = _true_poses(candidates)
+        if found is None:
+            raise ReconError(
+                f"The poses of {scene_dir} come from SfM ({scene.source_kind}), whose frame is arbitrary, and no "
+                f"transforms.json with the true poses was found in {', '.join(str(c) for c in candidates)} to align it "
+                f"to {gt_mesh}. Put the true poses next to the GT mesh as transforms.json."
+            )
+        path, truth = found
+        sim, fit = align_sfm_to_truth(scene, truth)
+        v_gt = v_src @ sim[:3, :3].T + sim[:3, 3]
+        alignment = {"method": f"Sim(3) fit of our cameras to the true ones in {path}", **fit}
+    gt = _load_mesh(gt_mesh)
+    metrics = chamfer_fscore((v_gt, faces), gt, thresholds=thresholds, n_samples=n_samples)
+    return {
+        "mesh": str(scene_dir / MESH_FOLDER / report.get("export", {}).get("files", {}).get("ply", "mesh.ply")),
+        "gt_mesh": str(gt_mesh),
+        "alignment": alignment,
+        "thresholds": list(thresholds),
+        **metrics,
+    }
+
+
+def format_comparison(result: dict[str, Any]) -> str:
+    """Human-readable lines for a `compare_to_gt` result (what `recon eval --gt-mesh` prints)."""
+    al = result["alignment"]
+    lines = [f"mesh {result['mesh']}  vs  ground truth {result['gt_mesh']}", f"alignment: {al['method']}"]
+    if "residual_rms" in al:
+        lines.append(
+            f"  {al['cameras_matched']} cameras, residual rms {al['residual_rms']:.4g} ({al['residual_rms_rel']:.3%} of the "
+            f"rig radius), max {al['residual_max']:.4g} ({al['worst_camera']})"
+        )
+    lines.append(
+        f"Chamfer-L1 {result['chamfer_l1']:.4g} ({result['chamfer_l1_rel']:.3%} of the GT diagonal {result['gt_diagonal']:.4g}); "
+        f"accuracy {result['accuracy']:.4g}, completeness {result['completeness']:.4g}"
+    )
+    for tau in result["thresholds"]:
+        lines.append(
+            f"@{tau:.1%} of diagonal: precision {result[f'precision@{tau:g}']:.3f}  recall {result[f'recall@{tau:g}']:.3f}  "
+            f"F-score {result[f'fscore@{tau:g}']:.3f}"
+        )
+    return "\n".join(lines)

@@ -1,0 +1,366 @@
+"""The fast radiance field: grids for density and color features, a tiny color MLP, occupancy-guided marching.
+
+Design (DVGO-like, tuned for a small CPU; runs unchanged on CUDA):
+
+* density = activation(sum of a grid's channels + bias): no MLP on the many density samples. The bias
+  is set so that each step starts with opacity ``init_alpha`` (~1e-2: tiny initial opacities never form
+  surfaces, see CPU_NERF_NOTES.md lesson 2). softplus, or an exp whose input is clamped at 15
+  (``trunc_exp``), so densities never overflow.
+* color = sigmoid(MLP(feature grid, SH(view direction))), evaluated only on samples whose weight
+  exceeds ``color_min_weight``: the density pass decides where color matters.
+* samples come packed from :func:`recon.nerf.occupancy.march` (occupied cells only, early ray
+  termination in a no-grad pre-pass), ordered along each ray (grids read ordered points faster).
+  In a bounded scene rays are clipped to the box around the occupied cells once the grid is warm.
+
+Coordinates: world = normalized scene frame. Bounded scenes map the ``aabb`` onto the grids'
+unit cube; unbounded ones contract (:mod:`recon.nerf.contraction`) into [-2, 2]^3 first.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any, Literal
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from recon.nerf.contraction import contract
+from recon.nerf.grid import DenseGrid, HashGrid, VMGrid
+from recon.nerf.occupancy import OccupancyGrid, density_threshold, march
+from recon.nerf.rays import ray_aabb
+from recon.nerf.render import RadianceModel, accumulate_packed, render_weights_packed
+
+__all__ = ["FastConfig", "FastModel", "sh_encode", "distortion_loss_packed", "trunc_exp"]
+
+GridKind = Literal["dense", "vm", "hash"]
+
+
+@dataclass
+class FastConfig:
+    """Options of :class:`FastModel` (one named point per preset in pipelines/*.toml)."""
+
+    aabb: tuple[tuple[float, float, float], tuple[float, float, float]] = ((-1.5, -1.5, -1.5), (1.5, 1.5, 1.5))
+    """Scene box [min_xyz, max_xyz] in the normalized frame (world units); the grids span it when bounded."""
+    unbounded: bool = False
+    """Contract space outside the unit box into [-2, 2]^3 (mip-NeRF 360) instead of using ``aabb``."""
+    density_grid: GridKind = "dense"
+    """Grid holding density: "dense" voxels (default, cheapest per sample), "vm" (TensoRF) or "hash"."""
+    density_res: int = 128
+    """Vertices per side of the density grid (levels' finest resolution for "hash")."""
+    grid: GridKind = "vm"
+    """Grid holding the color features: "dense", "vm" (TensoRF vector-matrix, default) or "hash"."""
+    feature_res: int = 128
+    """Vertices per side of the feature grid (finest resolution for "hash")."""
+    feature_dim: int = 12
+    """Feature channels: dense = channels, vm = components per axis (3x channels out), hash = levels (x2)."""
+    color_model: Literal["mlp_view", "mlp", "direct"] = "mlp_view"
+    """"mlp_view": MLP(features, SH(direction)); "mlp": view-independent MLP; "direct": sigmoid(features[:3])."""
+    sh_degree: int = 2
+    """Spherical-harmonics degree of the view direction encoding (0..3; (degree+1)^2 channels)."""
+    mlp_width: int = 64
+    """Hidden width of the color MLP."""
+    mlp_layers: int = 2
+    """Hidden layers of the color MLP."""
+    occupancy_res: int = 64
+    """Occupancy grid cells per side."""
+    occupancy_alpha: float = 0.02
+    """A vertex is occupied when its density gives at least this opacity over one step. Keep it above
+    ``init_alpha``: space no ray has touched yet then gets culled at the first refresh (at 0.01 = init,
+    44% of Lego's box stayed occupied and steps were 3x slower; at 0.02, 8-10%)."""
+    occupancy_warmup: int = 16
+    """Steps during which every cell counts as occupied."""
+    occupancy_every: int = 8
+    """Refresh the occupancy grid every this many steps (1/4 of the vertices per refresh after warm-up)."""
+    warmup_step_scale: float = 4.0
+    """Ray-march step multiplier during the occupancy warm-up: few, coarse samples while nothing is culled."""
+    step_ratio: float = 0.5
+    """Ray-march step in density-grid voxels (world step = step_ratio * voxel size)."""
+    max_samples: int = 1024
+    """Cap on candidate samples per ray."""
+    cone_angle: float = 0.0
+    """> 0: steps grow like t * cone_angle beyond the base step (unbounded scenes, e.g. 1/256)."""
+    early_stop_transmittance: float = 1e-4
+    """Drop samples behind this transmittance (no-grad pre-pass); 0 disables the pre-pass."""
+    color_min_weight: float = 1e-4
+    """Evaluate color only on samples with at least this weight (0 = everywhere)."""
+    init_alpha: float = 0.01
+    """Opacity of one step of the initial (empty) density field."""
+    density_activation: Literal["softplus", "trunc_exp"] = "softplus"
+    """Density activation; both are overflow-safe."""
+    tv_weight: float = 0.0
+    """Weight of the total-variation loss on the grids (0 = off)."""
+    distortion_weight: float = 0.0
+    """Weight of the mip-NeRF 360 distortion loss (0 = off)."""
+    entropy_weight: float = 0.0
+    """Weight of the binary entropy of ray opacity (pushes opacity to 0 or 1; 0 = off)."""
+    background: Literal["white", "black", "learned", "random"] = "white"
+    """Background used when render_rays gets none; "learned" always uses the model's own color."""
+    grid_lr_scale: float = 10.0
+    """Grids train at lr * grid_lr_scale (the MLP at lr)."""
+
+
+def trunc_exp(x: Tensor, max_input: float = 15.0) -> Tensor:
+    """exp of x clamped at ``max_input`` (gradient 0 above it): overflow-free density activation."""
+    return torch.exp(x.clamp(max=max_input))
+
+
+_SH_C = (
+    0.28209479177387814,
+    0.4886025119029199,
+    (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792, 0.5462742152960396),
+    (-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325901154, -0.4570457994644658,
+     1.445305721320277, -0.5900435899266435),
+)
+
+
+def sh_encode(d: Tensor, degree: int) -> Tensor:
+    """Real spherical harmonics of unit directions d (M, 3) up to ``degree`` (0..3): (M, (degree+1)^2)."""
+    if not 0 <= degree <= 3:
+        raise ValueError(f"sh_degree must be in 0..3, got {degree}")
+    x, y, z = d.unbind(-1)
+    out = [torch.full_like(x, _SH_C[0])]
+    if degree >= 1:
+        out += [-_SH_C[1] * y, _SH_C[1] * z, -_SH_C[1] * x]
+    if degree >= 2:
+        c = _SH_C[2]
+        xx, yy, zz = x * x, y * y, z * z
+        out += [c[0] * x * y, c[1] * y * z, c[2] * (2 * zz - xx - yy), c[3] * x * z, c[4] * (xx - yy)]
+        if degree >= 3:
+            c3 = _SH_C[3]
+            out += [
+                c3[0] * y * (3 * xx - yy), c3[1] * x * y * z, c3[2] * y * (4 * zz - xx - yy),
+                c3[3] * z * (2 * zz - 3 * xx - 3 * yy), c3[4] * x * (4 * zz - xx - yy),
+                c3[5] * z * (xx - yy), c3[6] * x * (xx - 3 * yy),
+            ]
+    return torch.stack(out, dim=-1)
+
+
+def _packed_exclusive_cumsum(x: Tensor, ray_indices: Tensor) -> Tensor:
+    """Per-ray exclusive cumulative sum of packed x (M,) (float64 running sum, returned in x's dtype)."""
+    if x.shape[0] == 0:
+        return x.clone()
+    x64 = x.double()
+    excl = torch.cumsum(x64, 0) - x64
+    first = torch.ones_like(ray_indices, dtype=torch.bool)
+    first[1:] = ray_indices[1:] != ray_indices[:-1]
+    seg = torch.cumsum(first.long(), 0) - 1
+    return (excl - excl[first][seg]).to(x.dtype)
+
+
+def distortion_loss_packed(weights: Tensor, t_mid: Tensor, delta: Tensor, ray_indices: Tensor, n_rays: int) -> Tensor:
+    """mip-NeRF 360 distortion loss (Barron et al. 2022, eq. 15) on packed samples, mean over rays.
+
+    sum_{i,j} w_i w_j |m_i - m_j| + 1/3 sum_i w_i^2 delta_i, with the double sum in O(M) as
+    2 sum_i w_i (m_i W_<i - (wm)_<i) for samples sorted along each ray (Sun et al. 2022, DVGO v2).
+    weights, t_mid, delta, ray_indices: (M,) -> scalar.
+    """
+    w_excl = _packed_exclusive_cumsum(weights, ray_indices)
+    wm_excl = _packed_exclusive_cumsum(weights * t_mid, ray_indices)
+    per_sample = 2.0 * weights * (t_mid * w_excl - wm_excl) + weights**2 * delta / 3.0
+    return accumulate_packed(per_sample, None, ray_indices, n_rays).mean() if n_rays else per_sample.sum()
+
+
+def _make_grid(kind: GridKind, res: int, dim: int, *, density: bool) -> nn.Module:
+    """A grid encoder of the given kind; ``dim`` as documented on FastConfig.feature_dim."""
+    if kind == "dense":
+        return DenseGrid(res, dim, init_std=0.0)
+    if kind == "vm":
+        return VMGrid(res, dim, init_std=0.01 if density else 0.1)
+    if kind == "hash":
+        return HashGrid(levels=dim, features=2, log2_table=17, base_res=16, max_res=res)
+    raise ValueError(f"unknown grid kind {kind!r}; choose dense, vm or hash")
+
+
+class FastModel(RadianceModel):
+    """Grid radiance field with occupancy-guided packed marching (see the module docstring)."""
+
+    def __init__(self, config: FastConfig | None = None) -> None:
+        super().__init__()
+        cfg = self.config = config or FastConfig()
+        aabb = torch.tensor(cfg.aabb, dtype=torch.float32)
+        if aabb.shape != (2, 3) or not bool((aabb[1] > aabb[0]).all()):
+            raise ValueError(f"FastConfig.aabb must be [[min x, y, z], [max x, y, z]] with max > min, got {cfg.aabb}")
+        self.register_buffer("aabb", aabb)
+        box = torch.tensor([[-2.0] * 3, [2.0] * 3]) if cfg.unbounded else aabb
+        self.register_buffer("grid_box", box)
+        extent = float((box[1] - box[0]).max())
+        self.step_size = cfg.step_ratio * extent / (cfg.density_res - 1)
+        """World step along rays (in contracted units when unbounded)."""
+
+        self.density_grid = _make_grid(cfg.density_grid, cfg.density_res, 1 if cfg.density_grid == "dense" else 8, density=True)
+        s0 = -math.log1p(-cfg.init_alpha) / self.step_size  # initial density: opacity init_alpha per step
+        self.density_bias = math.log(math.expm1(s0)) if cfg.density_activation == "softplus" else math.log(s0)
+
+        self.color_grid = _make_grid(cfg.grid, cfg.feature_res, cfg.feature_dim, density=False)
+        feat = self.color_grid.out_dim
+        if cfg.color_model == "direct":
+            if feat < 3:
+                raise ValueError("color_model='direct' needs at least 3 feature channels")
+            self.color_mlp = None
+        else:
+            in_dim = feat + ((cfg.sh_degree + 1) ** 2 if cfg.color_model == "mlp_view" else 0)
+            layers: list[nn.Module] = []
+            for _ in range(cfg.mlp_layers):
+                layers += [nn.Linear(in_dim, cfg.mlp_width), nn.ReLU(inplace=True)]
+                in_dim = cfg.mlp_width
+            layers.append(nn.Linear(in_dim, 3))
+            self.color_mlp = nn.Sequential(*layers)
+        self.bg_logit = nn.Parameter(torch.zeros(3)) if cfg.background == "learned" else None
+
+        self.occupancy = OccupancyGrid(
+            aabb,
+            resolution=cfg.occupancy_res,
+            sigma_threshold=density_threshold(cfg.occupancy_alpha, self.step_size),
+            warmup_steps=cfg.occupancy_warmup,
+            contraction=cfg.unbounded,
+        )
+        self.register_buffer("march_box", aabb.clone())
+        self.register_buffer("step", torch.zeros((), dtype=torch.long))
+
+    # ------------------------------------------------------------------ fields
+    def _unit(self, x: Tensor) -> Tensor:
+        """World points (M, 3) -> grid unit cube coordinates (M, 3) (unclamped)."""
+        if self.config.unbounded:
+            x = contract(x)
+        box = self.grid_box.to(x)
+        return (x - box[0]) / (box[1] - box[0])
+
+    def _sigma_unit(self, u: Tensor) -> Tensor:
+        raw = self.density_grid(u).sum(-1) + self.density_bias
+        if self.config.density_activation == "softplus":
+            return F.softplus(raw)
+        return trunc_exp(raw)
+
+    def _rgb_unit(self, u: Tensor, d: Tensor) -> Tensor:
+        f = self.color_grid(u)
+        if self.color_mlp is None:
+            return torch.sigmoid(f[:, :3])
+        if self.config.color_model == "mlp_view":
+            f = torch.cat([f, sh_encode(d, self.config.sh_degree).to(f)], dim=-1)
+        return torch.sigmoid(self.color_mlp(f).float())
+
+    def density(self, x: Tensor) -> Tensor:
+        """World-space density sigma (M,) at x (M, 3), 1/world unit; 0 outside the scene box (bounded)."""
+        u = self._unit(x)
+        sigma = self._sigma_unit(u.clamp(0.0, 1.0))
+        if self.config.unbounded:
+            return sigma
+        inside = ((u >= 0) & (u <= 1)).all(-1)
+        return torch.where(inside, sigma, torch.zeros_like(sigma))
+
+    def radiance(self, x: Tensor, d: Tensor) -> Tensor:
+        """RGB (M, 3) in [0, 1] emitted at world points x (M, 3) towards unit directions d (M, 3)."""
+        return self._rgb_unit(self._unit(x).clamp(0.0, 1.0), d)
+
+    # ------------------------------------------------------------------ rendering
+    def _background(self, background: Tensor | None, n: int, like: Tensor, training: bool) -> Tensor:
+        mode = self.config.background
+        if mode == "learned":
+            return torch.sigmoid(self.bg_logit).to(like).expand(n, 3)
+        if background is not None:
+            bg = torch.as_tensor(background).to(like)
+            return bg.expand(n, 3) if bg.dim() == 1 else bg
+        if mode == "random" and training:
+            return torch.rand(n, 3, device=like.device, dtype=like.dtype)
+        value = 0.0 if mode == "black" else 1.0
+        return torch.full((n, 3), value, device=like.device, dtype=like.dtype)
+
+    def render_rays(
+        self,
+        rays_o: Tensor,
+        rays_d: Tensor,
+        near: Tensor,
+        far: Tensor,
+        *,
+        training: bool,
+        background: Tensor | None = None,
+    ) -> dict[str, Any]:
+        """Render rays (N, 3) between near/far (N,) (see RadianceModel.render_rays).
+
+        Returns rgb (N, 3), depth (N,), opacity (N,), background (N, 3) (the one composited, so a
+        trainer using "random" can composite its targets the same way), num_samples (int, packed M),
+        and 'reg' (weighted regularizers) when any regularizer weight is non-zero.
+        """
+        cfg = self.config
+        n = rays_o.shape[0]
+        if cfg.unbounded:
+            t_near, t_far = near, far
+        else:
+            box = self.march_box if bool(self.occupancy.warm) else self.aabb
+            tn, tf, hit = ray_aabb(rays_o, rays_d, box)
+            t_near = torch.maximum(near, tn)
+            t_far = torch.where(hit, torch.minimum(far, tf), t_near)
+
+        def sigma_fn(ts: Tensor, te: Tensor, ri: Tensor) -> Tensor:
+            x = rays_o[ri] + rays_d[ri] * (0.5 * (ts + te))[:, None]
+            return self._sigma_unit(self._unit(x).clamp(0.0, 1.0))
+
+        step_size = self.step_size
+        if training and int(self.step) < cfg.occupancy_warmup:
+            step_size *= cfg.warmup_step_scale
+        with torch.no_grad():
+            ts, te, ri = march(
+                rays_o, rays_d, t_near, t_far, self.occupancy, step_size, cfg.max_samples,
+                cone_angle=cfg.cone_angle, jitter=training,
+                sigma_fn=sigma_fn if cfg.early_stop_transmittance > 0 else None,
+                min_transmittance=cfg.early_stop_transmittance,
+            )
+        mid = 0.5 * (ts + te)
+        delta = te - ts
+        u = self._unit(rays_o[ri] + rays_d[ri] * mid[:, None]).clamp(0.0, 1.0)
+        sigma = self._sigma_unit(u)
+        weights, _ = render_weights_packed(sigma, delta, ri, n)
+        opacity = accumulate_packed(weights, None, ri, n)
+        if cfg.color_min_weight > 0:
+            sel = (weights.detach() > cfg.color_min_weight).nonzero().squeeze(-1)
+            u_c, ri_c, w_c = u[sel], ri[sel], weights[sel]
+        else:
+            u_c, ri_c, w_c = u, ri, weights
+        rgb_s = self._rgb_unit(u_c, rays_d[ri_c])
+        bg = self._background(background, n, rays_o, training)
+        remainder = (1.0 - opacity).clamp_min(0.0)
+        rgb = accumulate_packed(w_c, rgb_s, ri_c, n) + remainder[:, None] * bg
+        depth = accumulate_packed(weights, mid, ri, n) + remainder * far
+        out: dict[str, Any] = {"rgb": rgb, "depth": depth, "opacity": opacity, "background": bg,
+                               "num_samples": int(ri.shape[0])}
+        reg = self._regularizers(weights, mid, delta, ri, n, opacity)
+        if reg is not None:
+            out["reg"] = reg
+        return out
+
+    def _regularizers(self, weights: Tensor, mid: Tensor, delta: Tensor, ri: Tensor, n: int, opacity: Tensor) -> Tensor | None:
+        cfg = self.config
+        terms = []
+        if cfg.tv_weight > 0:
+            terms.append(cfg.tv_weight * (self.density_grid.tv_loss() + self.color_grid.tv_loss()))
+        if cfg.distortion_weight > 0:
+            terms.append(cfg.distortion_weight * distortion_loss_packed(weights, mid, delta, ri, n))
+        if cfg.entropy_weight > 0:
+            o = opacity.clamp(1e-6, 1 - 1e-6)
+            terms.append(cfg.entropy_weight * -(o * torch.log(o) + (1 - o) * torch.log(1 - o)).mean())
+        return sum(terms) if terms else None
+
+    # ------------------------------------------------------------------ training hooks
+    def step_update(self, step: int) -> None:
+        """Refresh the occupancy grid every ``occupancy_every`` steps (all vertices while warming up)."""
+        cfg = self.config
+        self.step.fill_(step)
+        if step % cfg.occupancy_every != 0:
+            return
+        warming = step < cfg.occupancy_warmup
+        self.occupancy.update(self.density, step, share=1 if warming else 4, jitter=not warming)
+        if bool(self.occupancy.warm):
+            box = self.occupancy.occupied_aabb()
+            if box is not None:
+                self.march_box.copy_(box)
+
+    def param_groups(self, lr: float) -> list[dict[str, Any]]:
+        """Grids (and the learned background) at lr * grid_lr_scale, the color MLP at lr."""
+        grids = list(self.density_grid.parameters()) + list(self.color_grid.parameters())
+        if self.bg_logit is not None:
+            grids.append(self.bg_logit)
+        groups = [{"params": grids, "lr": lr * self.config.grid_lr_scale}]
+        if self.color_mlp is not None:
+            groups.append({"params": list(self.color_mlp.parameters()), "lr": lr})
+        return groups

@@ -1,0 +1,477 @@
+"""mesh stage: the trained field → a cleaned, colored triangle mesh in glTF/OBJ/PLY, with a report.
+
+Steps (each a function below, `run` only glues them and does the I/O):
+1. `choose_resolution`: grid nodes per axis from the pixel footprint at the cameras' median distance,
+   capped by `mesh.max_resolution` and by `mesh.memory_budget_mb` (the float32 grid).
+2. `extract_mesh`: σ grid over the scene box (coarse-to-fine or dense), iso-level, marching cubes.
+3. `clean_mesh` (library): crop, drop floaters, smooth, decimate.
+4. `bake_colors` (photos, depth-tested against the field's rendered depth) or the field's colors.
+5. `export_mesh` (library) in the normalized or the source frame, optionally scaled to a real size;
+   `mesh_report.json`; two previews (`preview_front.png`, `preview_side.png`) from `render_preview`,
+   a z-buffered point splat of the colored mesh with Lambert shading (no OpenGL needed).
+"""
+from __future__ import annotations
+
+import math
+import resource
+import sys
+import time
+from pathlib import Path
+from typing import Any, Callable, Sequence
+
+import numpy as np
+import torch
+import trimesh
+
+from recon.config import MeshConfig
+from recon.errors import ReconError
+from recon.field import load_field
+from recon.geometry.clean import clean_mesh
+from recon.geometry.color import colors_from_field, colors_from_photos
+from recon.geometry.export import export_mesh
+from recon.geometry.extract import (
+    auto_iso_level,
+    density_grid,
+    density_grid_sparse,
+    grid_spacing,
+    marching_cubes,
+)
+from recon.pipeline import Stage, StageContext, write_json_atomic
+from recon.scene import Frame, Scene, load_scene
+from recon.stages.train import View, load_views, render_view
+
+REPORT_FILE = "mesh_report.json"
+MESH_STEM = "mesh"
+COARSE_NODES = 64
+"""Coarse grid nodes per axis: for coarse-to-fine refinement and for estimating the iso-level first."""
+CPU_BAKE_VIEWS = {"fast": 24, "classic": 6}
+"""On the CPU each baking view costs a render of its depth: at most this many views, spread evenly
+(fast model ~26k rays/s on the shared CPU: 24 views at 200 px ≈ 40 s; classic NeRF ~240 rays/s)."""
+CPU_DEPTH_SIDE = {"fast": 200, "classic": 64}
+"""On the CPU depth maps for baking are rendered at most this many pixels on the longest side."""
+DENSITY_CHUNK = 2**16
+"""Points per model.density call (the models are not chunked themselves)."""
+
+
+# ---------------------------------------------------------------------------------------- resolution
+def training_focal(frame: Frame, max_side: int) -> float:
+    """Horizontal focal length (pixels) of a frame at the training resolution (photos downscaled to max_side)."""
+    scale = min(1.0, max_side / max(frame.w, frame.h)) if max_side else 1.0
+    return float(frame.fl_x * scale)
+
+
+def pixel_footprint(aabb: np.ndarray, centres: np.ndarray, focals: np.ndarray) -> tuple[float, float]:
+    """World size of one training pixel at the cameras' median distance to the box centre.
+
+    aabb: (2, 3) scene box; centres: (K, 3) camera centres (scene frame); focals: (K,) pixels.
+    Returns ``(footprint, median distance)`` in scene units.
+    """
+    box = np.asarray(aabb, np.float64)
+    dist = float(np.median(np.linalg.norm(np.asarray(centres, np.float64) - box.mean(axis=0), axis=1)))
+    return dist / float(np.median(focals)), dist
+
+
+def grid_shape(aabb: np.ndarray, resolution: int) -> tuple[int, int, int]:
+    """Nodes per axis for cubic cells: ``resolution`` nodes along the box's longest side, the others in
+    proportion (at least 2)."""
+    extent = np.ptp(np.asarray(aabb, np.float64), axis=0)
+    cells = (resolution - 1) * extent / extent.max()
+    return tuple(max(2, int(round(c)) + 1) for c in cells)  # type: ignore[return-value]
+
+
+def choose_resolution(
+    aabb: np.ndarray, cfg: MeshConfig, footprint: float | None, footprint_why: str = ""
+) -> tuple[tuple[int, int, int], str]:
+    """Grid shape (nodes per axis, cubic cells over aabb (2, 3)) and the reason for it.
+
+    ``cfg.resolution > 0`` is used as given (nodes along the longest side); otherwise one cell per
+    pixel footprint (scene units), capped by ``cfg.max_resolution``. Either way the float32 grid
+    must fit in ``cfg.memory_budget_mb``; the resolution is lowered until it does.
+    """
+    longest = float(np.ptp(np.asarray(aabb, np.float64), axis=0).max())
+    if cfg.resolution > 0:
+        res, why = int(cfg.resolution), f"mesh.resolution={cfg.resolution}"
+    else:
+        if footprint is None or not footprint > 0:
+            raise ValueError("an automatic resolution needs the pixel footprint (> 0 scene units)")
+        res = int(math.ceil(longest / footprint)) + 1
+        why = f"cell ≈ pixel footprint {footprint:.4g} units{footprint_why} → {res} nodes along {longest:.3g} units"
+        if res > cfg.max_resolution:
+            res = int(cfg.max_resolution)
+            why += f", capped at mesh.max_resolution={cfg.max_resolution}"
+    res = max(res, 8)
+    budget = cfg.memory_budget_mb * 2**20
+    shape = grid_shape(aabb, res)
+    if 4 * math.prod(shape) > budget:
+        before = res
+        while res > 8 and 4 * math.prod(grid_shape(aabb, res)) > budget:
+            factor = (budget / (4 * math.prod(grid_shape(aabb, res)))) ** (1 / 3)
+            res = max(8, min(res - 1, int((res - 1) * factor) + 1))
+        shape = grid_shape(aabb, res)
+        why += f"; lowered from {before} to {res} to fit the float32 grid in mesh.memory_budget_mb={cfg.memory_budget_mb}"
+    mb = 4 * math.prod(shape) / 2**20
+    return shape, f"grid {shape[0]}×{shape[1]}×{shape[2]} ({mb:.0f} MB float32): {why}"
+
+
+# ---------------------------------------------------------------------------------------- extraction
+def _counting(density_fn: Callable[[torch.Tensor], torch.Tensor], bar: Any) -> Callable[[torch.Tensor], torch.Tensor]:
+    """density_fn that advances a progress bar by the number of points it evaluated."""
+    def fn(x: torch.Tensor) -> torch.Tensor:
+        sigma = density_fn(x)
+        bar.advance(int(x.shape[0]))
+        return sigma
+
+    return fn
+
+
+def extract_mesh(
+    model: torch.nn.Module, aabb: torch.Tensor, shape: tuple[int, int, int], cfg: MeshConfig, report: Any
+) -> tuple[np.ndarray, np.ndarray, dict]:
+    """Density grid over aabb (2, 3) (on aabb's device) → iso-level → marching cubes.
+
+    ``model.density(x (M, 3)) -> (M,)`` in 1/scene unit. Coarse-to-fine (``cfg.coarse_to_fine``) needs
+    the level before the fine grid: it is estimated with `auto_iso_level` on a 64³ preview grid (same
+    rule, the fine cell size) unless ``cfg.iso > 0`` gives it; grids under 127 nodes a side are
+    evaluated densely (a coarse block would be one cell, so refinement saves nothing). Returns vertices (V, 3) float32 and
+    faces (F, 3) int64 in the scene frame, and info (grid, iso and its reason, counts, timings).
+    """
+    cell = float(grid_spacing(aabb, shape).max())
+    override = cfg.iso if cfg.iso > 0 else None
+    # Refining pays only when a coarse block spans >= 2 fine cells; below that every node is coarse anyway.
+    sparse_ok = max(shape) - 1 >= 2 * (COARSE_NODES - 1)
+    mode = "coarse-to-fine" if cfg.coarse_to_fine and sparse_ok else "dense"
+    info: dict[str, Any] = {"grid": list(shape), "cell": cell, "mode": mode}
+    if cfg.coarse_to_fine and not sparse_ok:
+        info["mode_reason"] = f"dense: the grid is too small (< {2 * COARSE_NODES - 1} nodes) for coarse-to-fine to save work"
+    t0 = time.perf_counter()
+    dense = math.prod(shape)
+    try:
+        if mode == "coarse-to-fine":
+            n_preview = min(COARSE_NODES, max(shape))
+            with report.task("density preview grid", total=n_preview**3, unit="points") as bar:
+                preview = density_grid(_counting(model.density, bar), aabb, n_preview, chunk=DENSITY_CHUNK)
+            level, why = auto_iso_level(preview, cell, override=override)
+            if override is None:
+                why += f" [estimated on a {preview.shape[0]}³ preview grid]"
+            with report.task("density grid (coarse to fine)", total=None, unit="points") as bar:
+                grid, sparse = density_grid_sparse(
+                    _counting(model.density, bar), aabb, shape, level, coarse=COARSE_NODES, chunk=DENSITY_CHUNK
+                )
+            info["sparse"] = sparse
+            info["evaluated"] = sparse["evaluated"] + preview.size
+        else:
+            with report.task("density grid", total=dense, unit="points") as bar:
+                grid = density_grid(_counting(model.density, bar), aabb, shape, chunk=DENSITY_CHUNK)
+            level, why = auto_iso_level(grid, cell, override=override)
+            info["evaluated"] = dense
+        info["time_grid_s"] = round(time.perf_counter() - t0, 3)
+        info["iso"], info["iso_reason"] = float(level), why
+        report.info(f"density grid: {info['evaluated']:,} of {dense:,} nodes evaluated in {info['time_grid_s']:.1f} s; {why}")
+        t1 = time.perf_counter()
+        vertices, faces = marching_cubes(grid, level, aabb)
+        info["time_marching_cubes_s"] = round(time.perf_counter() - t1, 3)
+    except ValueError as exc:
+        raise ReconError(
+            f"No surface could be extracted from the trained field: {exc} Check the training metrics "
+            f"(03_field/metrics.json); set mesh.iso explicitly (e.g. --set mesh.iso=10) if the automatic level is wrong."
+        ) from None
+    del grid
+    if len(faces) == 0:
+        raise ReconError("Marching cubes found no surface at the chosen iso-level; lower mesh.iso or re-train.")
+    return vertices, faces, info
+
+
+# ---------------------------------------------------------------------------------------- colors
+def spread_evenly(items: Sequence[Any], k: int) -> list[Any]:
+    """At most k of items, evenly spaced over the sequence (first and last included)."""
+    if k <= 0 or len(items) <= k:
+        return list(items)
+    idx = np.unique(np.round(np.linspace(0, len(items) - 1, k)).astype(int))
+    return [items[i] for i in idx]
+
+
+def render_depth(
+    model: torch.nn.Module, view: View, aabb: torch.Tensor | None, background: np.ndarray, max_side: int | None = None
+) -> np.ndarray:
+    """Expected ray distance (H, W) of the view at its own size, rendered at most ``max_side`` pixels
+    on the longest side and upsampled nearest (each full-size pixel takes the low-res pixel it lies in)."""
+    h, w = view.hw
+    scale = min(1.0, max_side / max(h, w)) if max_side else 1.0
+    if scale >= 1.0:
+        return render_view(model, view, aabb, background)["depth"]
+    h2, w2 = max(1, round(h * scale)), max(1, round(w * scale))
+    sx, sy = w2 / w, h2 / h
+    fx, fy, cx, cy = view.intrinsics
+    small = View(view.name, np.zeros((h2, w2, 3), np.uint8), view.c2w, (fx * sx, fy * sy, cx * sx, cy * sy), view.near, view.far)
+    depth = render_view(model, small, aabb, background)["depth"]
+    rows = np.minimum(((np.arange(h) + 0.5) * sy).astype(np.int64), h2 - 1)
+    cols = np.minimum(((np.arange(w) + 0.5) * sx).astype(np.int64), w2 - 1)
+    return depth[rows[:, None], cols[None, :]]
+
+
+def bake_colors(
+    model: torch.nn.Module,
+    views: Sequence[View],
+    vertices: np.ndarray,
+    normals: np.ndarray,
+    aabb: torch.Tensor | None,
+    background: np.ndarray,
+    depth_max_side: int | None = None,
+    report: Any = None,
+) -> tuple[np.ndarray, dict]:
+    """Vertex colors (V, 3) float32 sRGB from the photos, occlusion-tested against the field's depth.
+
+    Each view's depth (distance along the unit ray, scene units) is rendered from the field
+    (`render_depth`); `colors_from_photos` keeps the samples whose vertex distance matches it.
+    Vertices no view sees take the field's color. vertices, normals: (V, 3) scene frame, normals
+    outward; views: photos at training size (uint8 images, OpenGL c2w). ``aabb`` None: unbounded
+    scene, rendered between each view's near/far.
+    """
+    depths = []
+    if report is not None:
+        with report.task("rendering depth for color baking", total=len(views), unit="views") as bar:
+            for v in views:
+                depths.append(render_depth(model, v, aabb, background, depth_max_side))
+                bar.advance()
+    else:
+        depths = [render_depth(model, v, aabb, background, depth_max_side) for v in views]
+    colors, seen = colors_from_photos(
+        vertices,
+        normals,
+        [v.image for v in views],
+        np.stack([v.c2w for v in views]),
+        np.asarray([v.intrinsics for v in views], np.float64),
+        depths=depths,
+        depth_kind="ray",
+    )
+    device = next(model.parameters(), torch.empty(0)).device
+    if not seen.all():
+        colors[~seen] = colors_from_field(model.radiance, vertices[~seen], normals[~seen], device=device)
+    return colors, {"views": len(views), "seen": int(seen.sum()), "unseen_from_field": int((~seen).sum())}
+
+
+# ---------------------------------------------------------------------------------------- export frame
+def export_transform(
+    vertices: np.ndarray, frame: str, source_from_world: np.ndarray, real_size: float
+) -> tuple[np.ndarray | None, str]:
+    """4×4 scene → output-frame transform (None: identity) and its description.
+
+    frame "normalized" keeps our frame, "source" maps back with ``source_from_world`` (the exact
+    inverse normalization similarity). ``real_size > 0`` then scales about the frame's origin so
+    the largest bounding-box side of vertices (V, 3) is ``real_size`` units.
+    """
+    if frame not in ("normalized", "source"):
+        raise ReconError(f"mesh.frame must be 'normalized' or 'source', got '{frame}'.")
+    transform = np.asarray(source_from_world, np.float64) if frame == "source" else np.eye(4)
+    why = "source frame (inverse of the normalization similarity)" if frame == "source" else "normalized scene frame (+Z up)"
+    if real_size > 0:
+        mapped = np.asarray(vertices, np.float64) @ transform[:3, :3].T + transform[:3, 3]
+        side = float(np.ptp(mapped, axis=0).max())
+        if side <= 0:
+            raise ReconError("The mesh has no extent; mesh.real_size cannot scale it.")
+        transform = np.diag([real_size / side] * 3 + [1.0]) @ transform
+        why += f", scaled ×{real_size / side:.6g} so the largest side is {real_size:g} units"
+    return (None if np.allclose(transform, np.eye(4)) else transform), why
+
+
+# ---------------------------------------------------------------------------------------- previews
+def _look_rotation(azimuth_deg: float, elevation_deg: float) -> np.ndarray:
+    """(3, 3) world→camera rotation rows (right, up, back) of a camera at (azimuth, elevation) around +Z,
+    looking at the origin; azimuth 0 looks along +Y (the camera sits on -Y)."""
+    az, el = math.radians(azimuth_deg), math.radians(elevation_deg)
+    back = np.array([-math.sin(az) * math.cos(el), -math.cos(az) * math.cos(el), math.sin(el)])
+    right = np.cross([0.0, 0.0, 1.0], back)
+    right /= np.linalg.norm(right)
+    return np.stack([right, np.cross(back, right), back])
+
+
+def render_preview(
+    vertices: np.ndarray,
+    faces: np.ndarray,
+    colors: np.ndarray,
+    azimuth_deg: float = 0.0,
+    elevation_deg: float = 20.0,
+    size: int = 512,
+    background: Sequence[float] = (1.0, 1.0, 1.0),
+    seed: int = 0,
+) -> np.ndarray:
+    """Orthographic image (size, size, 3) uint8 of a vertex-colored mesh, for a quick look without OpenGL.
+
+    Points are sampled on the surface by area (≈ 6 per covered pixel), colored and normal-interpolated
+    barycentrically, shaded Lambert (ambient 0.35 + 0.65·max(n·l, 0), light from the upper left of the
+    viewer) and z-buffered: each pixel shows its nearest point. vertices (V, 3) scene frame (+Z up);
+    faces (F, 3); colors (V, 3) in [0, 1]; the camera looks at the bbox centre from (azimuth, elevation).
+    """
+    bg = np.asarray(background, np.float64)
+    image = np.tile(bg, (size, size, 1))
+    mesh = trimesh.Trimesh(np.asarray(vertices, np.float64), np.asarray(faces, np.int64), process=False)
+    if len(mesh.faces) == 0 or mesh.area <= 0:
+        return np.round(image * 255).astype(np.uint8)
+    rot = _look_rotation(azimuth_deg, elevation_deg)
+    centre = 0.5 * (mesh.vertices.min(axis=0) + mesh.vertices.max(axis=0))
+    cam_v = (mesh.vertices - centre) @ rot.T
+    half = 1.1 * float(np.abs(cam_v[:, :2]).max())  # half the image width: 10 % margin
+    pix = 2 * half / size
+    # ~6 points per pixel of the visible half of the surface: a pixel stays empty with p ≈ e^-6
+    n = int(min(4_000_000, max(20_000, 6 * mesh.area / pix**2 / 2)))
+    rng = np.random.default_rng(seed)
+    face = rng.choice(len(mesh.faces), size=n, p=mesh.area_faces / mesh.area_faces.sum())
+    r1, r2 = np.sqrt(rng.random(n)), rng.random(n)
+    bary = np.stack([1 - r1, r1 * (1 - r2), r1 * r2], axis=1)  # uniform on each triangle
+    tri = mesh.faces[face]
+    pts = np.einsum("nk,nkc->nc", bary, cam_v[tri])
+    col = np.einsum("nk,nkc->nc", bary, np.clip(np.asarray(colors, np.float64), 0, 1)[tri])
+    nrm = np.einsum("nk,nkc->nc", bary, (mesh.vertex_normals @ rot.T)[tri])
+    nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-12)
+    light = np.array([-0.4, 0.5, 0.77])
+    light /= np.linalg.norm(light)
+    shade = 0.35 + 0.65 * np.clip(nrm @ light, 0.0, None)
+    u = ((pts[:, 0] + half) / pix).astype(np.int64)
+    v = ((half - pts[:, 1]) / pix).astype(np.int64)
+    ok = (u >= 0) & (u < size) & (v >= 0) & (v < size)
+    flat, depth = v[ok] * size + u[ok], -pts[ok, 2]  # camera looks down -Z: nearer = larger z
+    order = np.lexsort((depth, flat))  # by pixel, nearest first
+    first = order[np.r_[True, flat[order][1:] != flat[order][:-1]]]
+    image.reshape(-1, 3)[flat[first]] = np.clip(col[ok][first] * shade[ok][first, None], 0, 1)
+    return np.round(image * 255).astype(np.uint8)
+
+
+def write_previews(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray, folder: Path) -> list[str]:
+    """preview_front.png (from -Y, 20° above) and preview_side.png (from +X) of the mesh, scene frame."""
+    from PIL import Image
+
+    names = []
+    for name, az in (("preview_front.png", 0.0), ("preview_side.png", 90.0)):
+        Image.fromarray(render_preview(vertices, faces, colors, azimuth_deg=az)).save(folder / name)
+        names.append(name)
+    return names
+
+
+# ---------------------------------------------------------------------------------------- the stage
+def peak_rss_mb() -> float:
+    """Peak resident memory of this process so far, MB (ru_maxrss is KiB on Linux, bytes on macOS)."""
+    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return rss / 2**20 if sys.platform == "darwin" else rss / 1024
+
+
+def _scene_footprint(scene: Scene, frames: list[Frame], aabb: np.ndarray, max_side: int) -> tuple[float, str]:
+    centres = np.stack([f.c2w[:3, 3] for f in frames])
+    focals = np.array([training_focal(f, max_side) for f in frames])
+    fp, dist = pixel_footprint(aabb, centres, focals)
+    return fp, f" (median camera distance {dist:.3g}, focal {np.median(focals):.1f} px at training size {max_side})"
+
+
+def run(ctx: StageContext) -> dict:
+    from recon.nerf.device import select_device
+
+    cfg: MeshConfig = ctx.config
+    timings: dict[str, float] = {}
+    t_all = time.perf_counter()
+    device = select_device("auto")
+    scene = load_scene(ctx.inputs["normalize"])
+    model, meta = load_field(ctx.inputs["train"], device)
+    aabb = np.asarray(meta.get("aabb", scene.aabb), np.float64)
+    aabb_t = torch.tensor(aabb, dtype=torch.float32, device=device)
+    max_side = int(meta.get("max_side", 400))
+    background = np.asarray(meta.get("background", [1.0, 1.0, 1.0]), np.float32)
+    train_frames = scene.split("train") or scene.frames
+    if not meta.get("bounded", True):
+        ctx.report.info("unbounded scene: the mesh covers the scene box only (the background is not meshed)")
+
+    footprint, fp_why = (None, "") if cfg.resolution > 0 else _scene_footprint(scene, train_frames, aabb, max_side)
+    shape, res_why = choose_resolution(aabb, cfg, footprint, fp_why)
+    ctx.report.info(f"resolution: {res_why}")
+
+    t = time.perf_counter()
+    vertices, faces, extract = extract_mesh(model, aabb_t, shape, cfg, ctx.report)
+    timings["extract_s"] = round(time.perf_counter() - t, 3)
+
+    t = time.perf_counter()
+    vertices, faces, clean = clean_mesh(
+        vertices, faces, aabb,
+        min_component_fraction=cfg.min_component_fraction,
+        smooth_iters=cfg.smooth_iters,
+        target_faces=cfg.target_faces or None,
+    )
+    timings["clean_s"] = round(time.perf_counter() - t, 3)
+    if len(faces) == 0:
+        raise ReconError("Every piece of the extracted surface was removed while cleaning; lower mesh.min_component_fraction.")
+    removed = clean["components"]["removed"]
+    ctx.report.info(f"cleaning: {clean['components']['rule']}: {removed} of {clean['components']['components']} pieces removed")
+
+    t = time.perf_counter()
+    normals = np.asarray(trimesh.Trimesh(vertices, faces, process=False).vertex_normals, np.float32)
+    if cfg.color == "photos":
+        kind = "classic" if meta.get("kind") == "classic" else "fast"
+        limit = CPU_BAKE_VIEWS[kind] if device.type == "cpu" else 0
+        depth_side = CPU_DEPTH_SIDE[kind] if device.type == "cpu" else None
+        chosen = spread_evenly(train_frames, limit)
+        views = load_views(scene, chosen, max_side, ctx.report, "photos for color baking")
+        colors, color_info = bake_colors(
+            model, views, vertices, normals, aabb_t if meta.get("bounded", True) else None, background, depth_side, ctx.report
+        )
+        color_info["source"] = "photos"
+        note = f"baked from {len(views)} of {len(train_frames)} training photos"
+        if len(views) < len(train_frames):
+            note += f" (spread evenly; at most {limit} on the CPU for the {kind} model, each costs a depth render)"
+        if depth_side:
+            note += f", depth rendered at ≤ {depth_side} px"
+        note += f"; {color_info['unseen_from_field']:,} unseen vertices colored by the field"
+        color_info["note"] = note
+    else:
+        colors = colors_from_field(model.radiance, vertices, normals, device=device)
+        color_info = {"source": "field", "note": "queried from the field, viewed head-on (d = -normal)"}
+    ctx.report.info(f"colors: {color_info['note']}")
+    timings["color_s"] = round(time.perf_counter() - t, 3)
+
+    t = time.perf_counter()
+    transform, frame_why = export_transform(vertices, cfg.frame, scene.source_from_world, cfg.real_size)
+    paths = export_mesh(vertices, faces, colors, ctx.out, stem=MESH_STEM, transform=transform)
+    previews = write_previews(vertices, faces, colors, ctx.out)
+    timings["export_s"] = round(time.perf_counter() - t, 3)
+    timings["total_s"] = round(time.perf_counter() - t_all, 3)
+
+    out = clean["output"]
+    report = {
+        "vertices": out["vertices"],
+        "faces": out["faces"],
+        "watertight": out["watertight"],
+        "components_removed": removed,
+        "component_rule": clean["components"]["rule"],
+        "bbox_scene": out["bbox"],
+        "resolution": {"grid": list(shape), "reason": res_why, "pixel_footprint": footprint},
+        "extraction": extract,
+        "iso": extract["iso"],
+        "iso_reason": extract["iso_reason"],
+        "clean": clean,
+        "colors": color_info,
+        "export": {
+            "frame": cfg.frame,
+            "reason": frame_why,
+            "transform": (transform if transform is not None else np.eye(4)).tolist(),
+            "transform_note": "maps the normalized scene frame (+Z up) to the exported frame, before the up-axis change",
+            "files": {k: p.name for k, p in paths.items()},
+            "axes": {"glb": "+Y up (scene +Z rotated -90° about X)", "obj": "+Y up", "ply": "+Z up (the exported frame itself)"},
+        },
+        "previews": previews,
+        "device": str(device),
+        "timings_s": timings,
+        "peak_rss_mb": round(peak_rss_mb(), 1),
+    }
+    write_json_atomic(ctx.out / REPORT_FILE, report)
+    return {
+        "headline": (
+            f"{out['vertices']:,} vertices, {out['faces']:,} faces, "
+            f"{'watertight' if out['watertight'] else 'not watertight'}, {removed} floating piece(s) removed"
+        ),
+        "vertices": out["vertices"],
+        "faces": out["faces"],
+        "watertight": out["watertight"],
+        "components_removed": removed,
+        "grid": list(shape),
+        "iso": round(extract["iso"], 4),
+        "colors": color_info["note"],
+    }
+
+
+STAGE = Stage(name="mesh", folder="04_mesh", inputs=("normalize", "train"), version=1, run=run)

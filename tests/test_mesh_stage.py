@@ -1,0 +1,312 @@
+"""The mesh stage on an analytic radiance field (a soft sphere with a direction-dependent color):
+resolution choice, the extracted radius, colors baked from rendered photos, exports, previews, and
+`compare_to_gt` in the known-pose and SfM cases — all against closed forms, no training."""
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+from PIL import Image
+from torch import Tensor, nn
+
+from recon.config import MeshConfig
+from recon.geometry.compare import chamfer_fscore
+from recon.geometry.export import Z_UP_TO_Y_UP
+from recon.mesh_eval import compare_to_gt, format_comparison
+from recon.nerf.render import RadianceModel, render_dense
+from recon.nerf.sampling import stratified
+from recon.normalization import similarity, transform_c2w
+from recon.pipeline import StageContext
+from recon.progress import Reporter
+from recon.scene import Frame, Scene
+from recon.stages import mesh as mesh_stage
+from recon.stages.train import View, render_view
+from tests.test_scene import look_at
+
+CENTRE = np.array([0.1, -0.05, 0.05])
+R0 = 0.6
+AABB = np.array([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
+BACKGROUND = np.ones(3, np.float32)
+
+
+def sphere_color(x: np.ndarray | Tensor):
+    """Analytic albedo: depends only on the direction from the centre, (N, 3) in [0.1, 0.9]."""
+    if isinstance(x, Tensor):
+        d = x - torch.as_tensor(CENTRE, dtype=x.dtype, device=x.device)
+        return 0.5 + 0.4 * d / d.norm(dim=-1, keepdim=True).clamp_min(1e-9)
+    d = x - CENTRE
+    return 0.5 + 0.4 * d / np.maximum(np.linalg.norm(d, axis=-1, keepdims=True), 1e-9)
+
+
+class SoftSphere(RadianceModel):
+    """σ = A · sigmoid((R0 − r) / W): iso-surface σ = L at r = R0 − W · logit(L / A) exactly."""
+
+    def __init__(self, amplitude: float, width: float, samples: int = 256) -> None:
+        super().__init__()
+        self.amplitude, self.width, self.samples = amplitude, width, samples
+        self.dummy = nn.Parameter(torch.zeros(()))  # render_view finds the device through parameters()
+
+    def radius_at(self, level: float) -> float:
+        p = level / self.amplitude
+        return R0 - self.width * math.log(p / (1 - p))
+
+    def density(self, x: Tensor) -> Tensor:
+        r = (x - torch.as_tensor(CENTRE, dtype=x.dtype, device=x.device)).norm(dim=-1)
+        return self.amplitude * torch.sigmoid((R0 - r) / self.width)
+
+    def radiance(self, x: Tensor, d: Tensor) -> Tensor:
+        return sphere_color(x)
+
+    def render_rays(self, rays_o, rays_d, near, far, *, training, background):
+        t = stratified(near, far, self.samples, jitter=False)
+        x = rays_o[:, None] + t[..., None] * rays_d[:, None]
+        sigma = self.density(x.reshape(-1, 3)).view(t.shape)
+        rgb = self.radiance(x.reshape(-1, 3), None).view(*t.shape, 3)
+        return render_dense(sigma, rgb, t, far, background)
+
+
+def ring_views(model: SoftSphere, n: int = 8, size: int = 64) -> list[View]:
+    """n photos of the analytic field rendered from a ring (two heights) at distance 3; the sphere fills
+    ~85 % of the width, a pixel is ~0.023 units at the sphere (the depth test's tolerance is ~0.02)."""
+    views = []
+    focal = 2.0 * size
+    for i in range(n):
+        az = 2 * math.pi * (i + 0.3) / n
+        el = math.radians(35 if i % 2 else -20)
+        eye = 3.0 * np.array([math.cos(az) * math.cos(el), math.sin(az) * math.cos(el), math.sin(el)])
+        blank = View(f"v{i:02d}", np.zeros((size, size, 3), np.uint8), look_at(eye, np.zeros(3)), (focal, focal, size / 2, size / 2), 0.0, 0.0)
+        rgb = render_view(model, blank, torch.tensor(AABB, dtype=torch.float32), BACKGROUND)["rgb"]
+        blank.image[:] = np.round(np.clip(rgb, 0, 1) * 255).astype(np.uint8)
+        views.append(blank)
+    return views
+
+
+# ---------------------------------------------------------------------------------------- resolution
+def test_pixel_footprint_and_training_focal_closed_form() -> None:
+    centres = np.array([[4.0, 0, 0], [0, 4.0, 0], [0, 0, -4.0]])
+    fp, dist = mesh_stage.pixel_footprint(AABB, centres, np.array([400.0, 400.0, 400.0]))
+    assert dist == pytest.approx(4.0) and fp == pytest.approx(0.01)
+    frame = Frame("a.jpg", np.eye(4), 1000.0, 1000.0, 400.0, 300.0, 800, 600)
+    assert mesh_stage.training_focal(frame, 400) == pytest.approx(500.0)  # photo halved to 400 px
+    assert mesh_stage.training_focal(frame, 2000) == pytest.approx(1000.0)  # never upscaled
+
+
+def test_resolution_follows_footprint_and_is_capped_by_max_and_memory() -> None:
+    shape, why = mesh_stage.choose_resolution(AABB, MeshConfig(max_resolution=384), 0.01)
+    assert shape == (201, 201, 201) and "footprint" in why  # 2 units / 0.01 = 200 cells
+    shape, why = mesh_stage.choose_resolution(AABB, MeshConfig(max_resolution=128), 0.01)
+    assert shape == (128, 128, 128) and "max_resolution" in why
+    shape, why = mesh_stage.choose_resolution(AABB, MeshConfig(max_resolution=384, memory_budget_mb=1), 0.01)
+    assert 4 * math.prod(shape) <= 2**20 and shape[0] >= 60 and "memory_budget_mb" in why  # 64³ floats = 1 MiB
+    flat = np.array([[-1.0, -1.0, -0.5], [1.0, 1.0, 0.5]])
+    shape, _ = mesh_stage.choose_resolution(flat, MeshConfig(resolution=101), None)
+    assert shape == (101, 101, 51)  # cubic cells: half the nodes on the half-height axis
+    shape, why = mesh_stage.choose_resolution(AABB, MeshConfig(resolution=512, memory_budget_mb=8), None)
+    assert 4 * math.prod(shape) <= 8 * 2**20 and "lowered from 512" in why
+
+
+# ---------------------------------------------------------------------------------------- extraction
+@pytest.mark.parametrize(("coarse_to_fine", "nodes", "mode"), [(False, 65, "dense"), (True, 65, "dense"), (True, 161, "coarse-to-fine")])
+def test_extracted_surface_is_the_analytic_iso_sphere(coarse_to_fine: bool, nodes: int, mode: str) -> None:
+    cell = 2.0 / (nodes - 1)
+    model = SoftSphere(amplitude=2 * math.log(2) / cell, width=0.05)  # the auto iso sits at the profile's inflection
+    shape = (nodes,) * 3
+    cfg = MeshConfig(coarse_to_fine=coarse_to_fine)
+    v, f, info = mesh_stage.extract_mesh(model, torch.tensor(AABB, dtype=torch.float32), shape, cfg, Reporter(quiet=True))
+    assert info["mode"] == mode  # 65 nodes: a 64-node coarse grid would refine nothing
+    assert info["iso"] == pytest.approx(math.log(2) / cell, rel=1e-6)  # one cell of it is half opaque
+    r_iso = model.radius_at(info["iso"])
+    r = np.linalg.norm(v - CENTRE, axis=1)
+    assert abs(r.mean() - r_iso) < 0.02 * cell and np.abs(r - r_iso).max() < 0.1 * cell
+    sphere = trimesh.creation.icosphere(subdivisions=5, radius=r_iso).apply_translation(CENTRE)
+    cmp = chamfer_fscore((v, f), sphere, n_samples=50_000)
+    floor = chamfer_fscore(trimesh.creation.icosphere(4, r_iso).apply_translation(CENTRE), sphere, n_samples=50_000)
+    assert cmp["chamfer_l1"] < 1.05 * floor["chamfer_l1"]  # as close as a perfect sphere, at this sampling
+    assert cmp["fscore@0.01"] > 0.99
+    if mode == "coarse-to-fine":
+        assert info["evaluated"] < 0.5 * math.prod(shape)
+
+
+def test_explicit_iso_is_used_as_given() -> None:
+    model = SoftSphere(amplitude=400.0, width=0.05)
+    v, _, info = mesh_stage.extract_mesh(
+        model, torch.tensor(AABB, dtype=torch.float32), (49, 49, 49), MeshConfig(iso=200.0), Reporter(quiet=True)
+    )
+    assert info["iso"] == 200.0 and "set by caller" in info["iso_reason"]
+    assert np.linalg.norm(v - CENTRE, axis=1).mean() == pytest.approx(R0, abs=2e-3)  # σ = A/2 at r = R0
+
+
+def test_a_field_without_surface_fails_with_advice() -> None:
+    model = SoftSphere(amplitude=400.0, width=0.05)
+    model.density = lambda x: torch.full((x.shape[0],), 3.0)  # type: ignore[method-assign]
+    with pytest.raises(Exception, match="No surface could be extracted"):
+        mesh_stage.extract_mesh(model, torch.tensor(AABB, dtype=torch.float32), (17, 17, 17), MeshConfig(), Reporter(quiet=True))
+
+
+# ---------------------------------------------------------------------------------------- colors
+def test_colors_baked_from_rendered_photos_match_the_analytic_color() -> None:
+    model = SoftSphere(amplitude=3000.0, width=0.004, samples=384)
+    views = ring_views(model)
+    v, f, info = mesh_stage.extract_mesh(
+        model, torch.tensor(AABB, dtype=torch.float32), (97, 97, 97), MeshConfig(), Reporter(quiet=True)
+    )
+    normals = trimesh.Trimesh(v, f, process=False).vertex_normals
+    colors, bake = mesh_stage.bake_colors(model, views, v, normals, torch.tensor(AABB, dtype=torch.float32), BACKGROUND)
+    err = np.abs(colors - sphere_color(v.astype(np.float64))).max(axis=1)
+    assert bake["views"] == 8 and bake["seen"] > 0.9 * len(v)  # the depth test keeps the visible surface
+    assert np.median(err) < 0.02 and np.percentile(err, 95) < 0.06
+    # the photos, not the fallback, made the colors: a field with wrong colors bakes the same
+    model.radiance = lambda x, d: torch.zeros(x.shape[0], 3)  # type: ignore[method-assign]
+    colors_2, _ = mesh_stage.bake_colors(model, views, v, normals, torch.tensor(AABB, dtype=torch.float32), BACKGROUND)
+    seen = np.any(colors_2 > 0, axis=1)
+    np.testing.assert_allclose(colors_2[seen], colors[seen], atol=1e-6)
+
+
+def test_depth_is_rendered_small_and_upsampled_to_the_view() -> None:
+    model = SoftSphere(amplitude=3000.0, width=0.004, samples=128)
+    view = ring_views(model, n=1, size=40)[0]
+    full = render_view(model, view, torch.tensor(AABB, dtype=torch.float32), BACKGROUND)["depth"]
+    small = mesh_stage.render_depth(model, view, torch.tensor(AABB, dtype=torch.float32), BACKGROUND, max_side=20)
+    assert small.shape == full.shape
+    assert np.median(np.abs(small - full)) < 0.02  # equal away from the silhouette
+
+
+def test_spread_evenly_keeps_first_and_last() -> None:
+    assert mesh_stage.spread_evenly(list(range(100)), 5) == [0, 25, 50, 74, 99]
+    assert mesh_stage.spread_evenly([1, 2], 24) == [1, 2]
+
+
+# ---------------------------------------------------------------------------------------- export / previews
+def test_export_transform_source_frame_and_real_size() -> None:
+    w2s = similarity(2.5, np.eye(3), np.array([1.0, 2.0, 3.0]))  # world_from_source
+    s2w = np.linalg.inv(w2s)
+    v = np.array([[0.0, 0, 0], [0.5, 0.2, 0.1]])
+    t, _ = mesh_stage.export_transform(v, "normalized", s2w, 0.0)
+    assert t is None
+    t, _ = mesh_stage.export_transform(v, "source", s2w, 0.0)
+    np.testing.assert_allclose(t, s2w)
+    t, why = mesh_stage.export_transform(v, "source", s2w, 2.0)
+    mapped = v @ t[:3, :3].T + t[:3, 3]
+    assert np.ptp(mapped, axis=0).max() == pytest.approx(2.0) and "scaled" in why
+
+
+def test_preview_shows_the_colored_shaded_mesh_from_the_right_side() -> None:
+    sphere = trimesh.creation.icosphere(subdivisions=3, radius=0.5)
+    colors = np.where(sphere.vertices[:, 1:2] < 0, [[0.9, 0.1, 0.1]], [[0.1, 0.1, 0.9]])  # -Y half red
+    front = mesh_stage.render_preview(sphere.vertices, sphere.faces, colors, azimuth_deg=0, elevation_deg=0, size=64)
+    back = mesh_stage.render_preview(sphere.vertices, sphere.faces, colors, azimuth_deg=180, elevation_deg=0, size=64)
+    assert front.shape == (64, 64, 3) and front.dtype == np.uint8
+    assert (front[0, 0] == 255).all() and (front[32, 32, 0] > 2 * front[32, 32, 2])  # the camera on -Y sees red
+    assert back[32, 32, 2] > 2 * back[32, 32, 0]
+    lit, shadow = front[20, 22].astype(int), front[44, 42].astype(int)  # light from the upper left
+    assert lit.sum() > shadow.sum()
+    covered = (front != 255).any(axis=-1).mean()
+    assert covered == pytest.approx(math.pi * (0.5 / 1.1) ** 2, rel=0.08)  # disc of radius 0.5 in a 1.1-wide view
+
+
+# ---------------------------------------------------------------------------------------- the stage, end to end
+def _scene_dir(tmp_path: Path, model: SoftSphere, world_from_source: np.ndarray, kind: str) -> Path:
+    """A scene folder with a normalized scene of photos of the analytic field (no 03_field: load_field is patched)."""
+    scene_dir = tmp_path / "scene"
+    (scene_dir / "02_scene").mkdir(parents=True)
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    frames = []
+    for view in ring_views(model, n=6, size=64):
+        path = photos / f"{view.name}.png"
+        Image.fromarray(view.image).save(path)
+        fx, fy, cx, cy = view.intrinsics
+        frames.append(Frame(str(path), view.c2w, fx, fy, cx, cy, 64, 64, split="train", near=1.0, far=5.0))
+    Scene(frames=frames, aabb=AABB, capture="object", world_from_source=world_from_source, source_kind=kind).save(scene_dir / "02_scene")
+    (scene_dir / "manifest.json").write_text(json.dumps({"version": 1, "source": str(photos), "stages": {}}))
+    return scene_dir
+
+
+def _run_stage(scene_dir: Path, model: SoftSphere, cfg: MeshConfig, monkeypatch: pytest.MonkeyPatch) -> tuple[dict, Path]:
+    meta = {"aabb": AABB.tolist(), "bounded": True, "background": BACKGROUND.tolist(), "max_side": 64, "kind": "analytic"}
+    monkeypatch.setattr(mesh_stage, "load_field", lambda folder, device="cpu": (model, meta))
+    out = scene_dir / "04_mesh"
+    out.mkdir()
+    ctx = StageContext(
+        name="mesh", folder="04_mesh", out=out, work=scene_dir / ".work", inputs={"normalize": scene_dir / "02_scene", "train": scene_dir / "03_field"},
+        config=cfg, run_config=None, source=None, scene_dir=scene_dir, report=Reporter(quiet=True),
+    )
+    return mesh_stage.run(ctx), out
+
+
+def test_stage_writes_reloadable_meshes_report_and_previews_and_gt_comparison_is_exact(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    model = SoftSphere(amplitude=3000.0, width=0.004, samples=384)
+    w2s = similarity(0.5, trimesh.transformations.rotation_matrix(0.7, [0.3, 0.2, 1.0])[:3, :3], np.array([0.2, -0.4, 1.0]))
+    scene_dir = _scene_dir(tmp_path, model, w2s, kind="transforms")
+    cfg = MeshConfig(resolution=97, target_faces=6000, frame="source", color="photos")
+    summary, out = _run_stage(scene_dir, model, cfg, monkeypatch)
+
+    report = json.loads((out / "mesh_report.json").read_text())
+    assert summary["watertight"] and summary["components_removed"] == 0 and "vertices" in summary["headline"]
+    assert report["resolution"]["grid"] == [97, 97, 97] and report["peak_rss_mb"] > 0
+    assert report["colors"]["views"] == 6 and report["colors"]["seen"] > 0.9 * report["vertices"]
+    for name in ("mesh.glb", "mesh.obj", "mesh.ply", "preview_front.png", "preview_side.png"):
+        assert (out / name).stat().st_size > 0
+    # the ply is in the source frame, +Z up; the glb the same, rotated to +Y up
+    s2w = np.linalg.inv(w2s)
+    ply = trimesh.load(out / "mesh.ply", process=False)
+    glb = trimesh.load(out / "mesh.glb", force="mesh", process=False)
+    assert len(ply.vertices) == len(glb.vertices) == report["vertices"] and len(ply.faces) == report["faces"]
+    centre_src = s2w[:3, :3] @ CENTRE + s2w[:3, 3]
+    r_src = np.linalg.norm(ply.vertices - centre_src, axis=1) * 0.5  # world_from_source scale 0.5
+    # a near-step σ profile puts marching cubes' vertices up to ~1/4 cell off the exact iso-surface
+    assert r_src.mean() == pytest.approx(model.radius_at(report["iso"]), abs=0.25 * 2 / 96)
+    np.testing.assert_allclose(glb.vertices, ply.vertices @ Z_UP_TO_Y_UP[:3, :3].T, atol=1e-5)
+    world = ply.vertices @ w2s[:3, :3].T + w2s[:3, 3]
+    rgb = np.asarray(ply.visual.vertex_colors)[:, :3] / 255.0
+    assert np.median(np.abs(rgb - sphere_color(world)).max(axis=1)) < 0.03
+
+    # compare_to_gt, known poses: GT = the analytic iso-sphere in the source frame → F ≈ 1
+    gt = trimesh.creation.icosphere(subdivisions=5, radius=model.radius_at(report["iso"]) / 0.5)
+    gt.apply_translation(centre_src)
+    gt_path = tmp_path / "gt" / "gt_mesh.ply"
+    gt_path.parent.mkdir()
+    gt.export(gt_path)
+    result = compare_to_gt(scene_dir, gt_path)
+    assert result["alignment"]["method"].startswith("exact")
+    assert result["fscore@0.01"] > 0.99 and result["chamfer_l1_rel"] < 3e-3
+    assert "F-score" in format_comparison(result)
+
+    # the same scene as if from SfM: the GT lives in another frame, the true poses say which
+    true_from_source = similarity(3.0, trimesh.transformations.rotation_matrix(-1.1, [1.0, 0.0, 0.4])[:3, :3], np.array([5.0, 1.0, -2.0]))
+    scene_json = scene_dir / "02_scene" / "scene.json"
+    doc = json.loads(scene_json.read_text())
+    doc["source_kind"] = "photos"
+    scene_json.write_text(json.dumps(doc))
+    gt.apply_transform(true_from_source)
+    gt.export(gt_path)
+    frames = [{"file_path": f"images/{Path(fr['file_path']).name}", "transform_matrix": transform_c2w(true_from_source @ s2w, np.asarray(fr["transform_matrix"])).tolist()} for fr in doc["frames"]]
+    (gt_path.parent / "transforms.json").write_text(json.dumps({"fl_x": 128.0, "fl_y": 128.0, "cx": 32, "cy": 32, "w": 64, "h": 64, "frames": frames}))
+    result = compare_to_gt(scene_dir, gt_path)
+    assert result["alignment"]["cameras_matched"] == 6 and result["alignment"]["residual_rms_rel"] < 1e-9
+    assert result["alignment"]["scale"] == pytest.approx(3.0)
+    assert result["fscore@0.01"] > 0.99 and result["chamfer_l1_rel"] < 3e-3
+    (gt_path.parent / "transforms.json").unlink()
+    with pytest.raises(Exception, match="no transforms.json"):
+        compare_to_gt(scene_dir, gt_path)
+
+
+def test_stage_field_colors_and_normalized_frame(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    model = SoftSphere(amplitude=400.0, width=0.05, samples=64)
+    scene_dir = _scene_dir(tmp_path, model, np.eye(4), kind="transforms")
+    cfg = MeshConfig(resolution=33, target_faces=0, color="field", coarse_to_fine=False, real_size=3.0)
+    summary, out = _run_stage(scene_dir, model, cfg, monkeypatch)
+    ply = trimesh.load(out / "mesh.ply", process=False)
+    assert np.ptp(ply.vertices, axis=0).max() == pytest.approx(3.0, rel=1e-5)
+    report = json.loads((out / "mesh_report.json").read_text())
+    assert report["colors"]["source"] == "field" and report["extraction"]["mode"] == "dense"
+    scale = report["export"]["transform"][0][0]
+    rgb = np.asarray(ply.visual.vertex_colors)[:, :3] / 255.0
+    np.testing.assert_allclose(rgb, sphere_color(ply.vertices / scale), atol=3 / 255)

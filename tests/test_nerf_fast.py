@@ -1,0 +1,127 @@
+"""FastModel: interface shapes, initial opacity, regularizers against brute force, a few training steps."""
+from __future__ import annotations
+
+import math
+
+import torch
+import pytest
+
+from recon.nerf.fast import FastConfig, FastModel, distortion_loss_packed, sh_encode
+
+TINY = dict(density_res=24, feature_res=16, feature_dim=4, occupancy_res=8, occupancy_warmup=4,
+            occupancy_every=2, mlp_width=16, mlp_layers=1)
+
+
+def _rays(n: int, seed: int = 0, radius: float = 4.0):
+    g = torch.Generator().manual_seed(seed)
+    o = torch.nn.functional.normalize(torch.randn(n, 3, generator=g), dim=-1) * radius
+    d = torch.nn.functional.normalize(-o + torch.randn(n, 3, generator=g) * 0.8, dim=-1)
+    return o, d, torch.full((n,), 2.0), torch.full((n,), 6.0)
+
+
+@pytest.mark.parametrize("grid", ["dense", "vm", "hash"])
+@pytest.mark.parametrize("unbounded", [False, True])
+def test_render_rays_shapes_and_finite(grid: str, unbounded: bool) -> None:
+    torch.manual_seed(0)
+    cfg = FastConfig(grid=grid, unbounded=unbounded, cone_angle=0.01 if unbounded else 0.0,
+                     distortion_weight=0.01, entropy_weight=0.01, tv_weight=0.1, **TINY)
+    model = FastModel(cfg)
+    o, d, near, far = _rays(64)
+    o[:4] = torch.tensor([10.0, 10.0, 10.0])  # rays that miss the box entirely
+    d[:4] = torch.tensor([1.0, 0.0, 0.0])
+    for training in (True, False):
+        out = model.render_rays(o, d, near, far, training=training, background=torch.ones(3))
+        assert out["rgb"].shape == (64, 3) and out["depth"].shape == (64,) and out["opacity"].shape == (64,)
+        for key in ("rgb", "depth", "opacity", "reg"):
+            assert torch.isfinite(out[key]).all(), key
+        assert bool((out["opacity"] >= 0).all() and (out["opacity"] <= 1 + 1e-5).all())
+    if not unbounded:
+        torch.testing.assert_close(out["rgb"][:4], torch.ones(4, 3))  # misses show the background
+    x = torch.randn(100, 3)
+    assert model.density(x).shape == (100,) and model.radiance(x, d[:1].expand(100, 3)).shape == (100, 3)
+
+
+def test_initial_opacity_per_step_and_zero_outside_box() -> None:
+    cfg = FastConfig(init_alpha=0.01, **TINY)
+    model = FastModel(cfg)
+    sigma = model.density(torch.zeros(5, 3))
+    alpha = 1 - torch.exp(-sigma * model.step_size)
+    torch.testing.assert_close(alpha, torch.full_like(alpha, 0.01), rtol=1e-4, atol=1e-6)
+    assert float(model.density(torch.tensor([[3.0, 0.0, 0.0]])).detach()[0]) == 0.0
+
+
+def test_trunc_exp_density_never_overflows() -> None:
+    model = FastModel(FastConfig(density_activation="trunc_exp", **TINY))
+    with torch.no_grad():
+        model.density_grid.table.fill_(1e6)
+    assert torch.isfinite(model.density(torch.zeros(3, 3))).all()
+
+
+def test_distortion_loss_matches_brute_force() -> None:
+    g = torch.Generator().manual_seed(0)
+    counts = [3, 0, 5, 1]
+    ri = torch.repeat_interleave(torch.arange(4), torch.tensor(counts))
+    m = ri.shape[0]
+    w = torch.rand(m, generator=g, dtype=torch.float64)
+    delta = torch.rand(m, generator=g, dtype=torch.float64) * 0.1
+    t = torch.cat([torch.sort(torch.rand(c, generator=g, dtype=torch.float64))[0] for c in counts])
+    expected = 0.0
+    for r in range(4):
+        sel = ri == r
+        wr, tr, dr = w[sel], t[sel], delta[sel]
+        expected += float((wr[:, None] * wr[None, :] * (tr[:, None] - tr[None, :]).abs()).sum() + (wr**2 * dr).sum() / 3)
+    assert float(distortion_loss_packed(w, t, delta, ri, 4)) == pytest.approx(expected / 4, rel=1e-10)
+
+
+def test_sh_encoding_is_orthonormal_on_the_sphere() -> None:
+    """Real SH of degree <= 3: Gram matrix over a Fibonacci sphere = identity / (4 pi)."""
+    n = 20000
+    i = torch.arange(n, dtype=torch.float64) + 0.5
+    z = 1 - 2 * i / n
+    phi = math.pi * (1 + 5**0.5) * i
+    r = (1 - z**2).sqrt()
+    d = torch.stack([r * torch.cos(phi), r * torch.sin(phi), z], -1)
+    y = sh_encode(d, 3)
+    gram = y.t() @ y * (4 * math.pi / n)
+    torch.testing.assert_close(gram, torch.eye(16, dtype=torch.float64), atol=2e-3, rtol=0)
+
+
+def test_occupancy_refresh_culls_empty_space_after_warmup() -> None:
+    model = FastModel(FastConfig(**TINY))
+    with torch.no_grad():
+        model.density_grid.table.fill_(-30.0)  # empty everywhere...
+        model.density_grid.volume()[10:14, 10:14, 10:14] = 30.0  # ...but a small block at the centre
+    for step in range(0, 12, 2):
+        model.step_update(step)
+    assert 0.0 < model.occupancy.occupied_fraction() < 0.2
+    box = model.march_box
+    assert bool((box[0] > model.aabb[0]).all() and (box[1] < model.aabb[1]).all())
+
+
+def test_param_groups_cover_all_parameters_once() -> None:
+    model = FastModel(FastConfig(background="learned", **TINY))
+    groups = model.param_groups(1e-2)
+    ids = [id(p) for g in groups for p in g["params"]]
+    assert sorted(ids) == sorted(id(p) for p in model.parameters())
+    assert groups[0]["lr"] == pytest.approx(1e-2 * model.config.grid_lr_scale)
+
+
+def test_a_few_steps_reduce_the_loss_on_a_synthetic_target() -> None:
+    """Target: rays through a red ball of radius 0.5 are red, others white (over a white background)."""
+    torch.manual_seed(0)
+    model = FastModel(FastConfig(**TINY))
+    opt = torch.optim.Adam(model.param_groups(1e-2))
+    o, d, near, far = _rays(512, seed=1)
+    # distance of closest approach to the origin decides the target color
+    closest = (o - (o * d).sum(-1, keepdim=True) * d).norm(dim=-1)
+    target = torch.where((closest < 0.5)[:, None], torch.tensor([1.0, 0.1, 0.1]), torch.ones(3))
+    losses = []
+    for step in range(40):
+        model.step_update(step)
+        out = model.render_rays(o, d, near, far, training=True, background=torch.ones(3))
+        loss = (out["rgb"] - target).square().mean()
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        losses.append(float(loss))
+    assert sum(losses[-5:]) / 5 < 0.3 * sum(losses[:5]) / 5
