@@ -81,8 +81,12 @@ def _report_bug(exc: BaseException, scene_dir: Path | None) -> None:
     raise typer.Exit(1) from None
 
 
+DEFAULT_PRESET = "balanced"
+
+
 def _config(preset: str | None, overrides: list[str] | None) -> RunConfig:
-    return load_config(preset, overrides)
+    """The named preset (balanced when none is given) with the `--set` overrides."""
+    return load_config(preset or DEFAULT_PRESET, overrides)
 
 
 def _pipeline():
@@ -116,8 +120,8 @@ def _run(
     with _guard(scene_dir):
         config = _config(preset, overrides)
         report = Reporter(console, quiet=quiet)
-        if preset and not quiet:
-            report.info(f"preset [bold]{preset}[/]: {preset_description(preset)}")
+        if not quiet:
+            report.info(f"preset [bold]{preset or DEFAULT_PRESET}[/]: {preset_description(preset or DEFAULT_PRESET)}")
         outcomes = _pipeline().run(
             scene_dir,
             config,
@@ -140,10 +144,12 @@ def run(
     from_stage: Annotated[Optional[str], typer.Option("--from", help="Re-run from this stage on.")] = None,
     until_stage: Annotated[Optional[str], typer.Option("--until", help="Stop after this stage.")] = None,
     force: Annotated[bool, typer.Option("--force", help="Re-run every selected stage even if cached.")] = False,
+    budget: Annotated[Optional[str], typer.Option("--budget", help="Training time budget, e.g. 5m (same as --set train.budget=5m).")] = None,
     quiet: QuietOpt = False,
 ) -> None:
     """Run every stage in order, reusing what is already done."""
-    _run(out, photos, preset, set_, quiet, from_stage, until_stage, force)
+    overrides = list(set_ or []) + ([f"train.budget={budget}"] if budget else [])
+    _run(out, photos, preset, overrides, quiet, from_stage, until_stage, force)
 
 
 def _single_stage(name: str) -> Callable[..., None]:
@@ -272,6 +278,25 @@ def fit_image_cmd(
 
         training_curves([], curve, out / "curve.png", title=f"2D field, L={freqs}")
         out_console.print(f"PSNR {curve[-1]['psnr']:.2f} dB after {steps} steps — {out / 'fitted.png'}, {out / 'curve.png'}")
+
+
+@app.command()
+def bench(
+    data: Annotated[str, typer.Option("--data", help="sample | lego-half | fox | a path to photos or poses.")] = "sample",
+    presets_: Annotated[str, typer.Option("--presets", help="Comma-separated presets to compare.")] = "fast,balanced,quality",
+    out: Annotated[Path, typer.Option("--out", "-o", help="Folder for the scenes, bench.md, bench.json, bench.png.")] = Path("bench"),
+    set_: SetOpt = None,
+    until: Annotated[str, typer.Option("--until", help="train (PSNR only) or mesh (also mesh accuracy when a GT mesh exists).")] = "mesh",
+) -> None:
+    """Measure the speed/accuracy trade: each preset's time, held-out PSNR and mesh error, as a table and a plot."""
+    from recon.bench import run_bench
+
+    install_sigterm_as_interrupt()
+    with _guard():
+        names = [p.strip() for p in presets_.split(",") if p.strip()]
+        rows = run_bench(data, names, out, list(set_ or []), Reporter(console), until=until)
+        out_console.print((out / "bench.md").read_text())
+        out_console.print(f"{len(rows)} presets measured — {out / 'bench.md'}, {out / 'bench.png'}")
 
 
 @app.command()

@@ -75,7 +75,9 @@ class TrainConfig:
     model: Literal["auto", "fast", "classic"] = "auto"
     """auto: the fast grid model (practical on a CPU); classic: the original NeRF MLP."""
     steps: int = 2000
-    """Optimizer steps."""
+    """Optimizer steps (an upper bound when a time budget is set)."""
+    budget: str = ""
+    """Training time budget, e.g. "90s", "5m", "1h" (evaluation excluded); empty: train for `steps`."""
     batch_rays: int = 4096
     """Rays per step, drawn across all training photos."""
     lr: float = 0.0
@@ -176,7 +178,82 @@ def load_config(preset: str | None = None, overrides: list[str] | None = None) -
         if not sep or not key.strip():
             raise ConfigError(f"--set expects KEY=VALUE (e.g. --set train.steps=2000), got '{item}'.")
         set_value(config, key.strip(), raw.strip(), source="--set")
+    validate(config)
     return config
+
+
+def _at_least(low: float) -> tuple[Any, str]:
+    return (lambda v: v >= low), f"at least {low}"
+
+
+def _positive() -> tuple[Any, str]:
+    return (lambda v: v > 0), "greater than 0"
+
+
+def _between(low: float, high: float) -> tuple[Any, str]:
+    return (lambda v: low <= v <= high), f"between {low} and {high}"
+
+
+BOUNDS: dict[str, tuple[Any, str]] = {
+    "poses.max_side": _at_least(16),
+    "poses.max_features": _at_least(64),
+    "poses.sequential_overlap": _at_least(1),
+    "poses.num_threads": _at_least(-1),
+    "poses.min_registered": _at_least(2),
+    "poses.min_registered_fraction": _between(0, 1),
+    "normalize.point_percentile": _between(0, 49),
+    "normalize.box_margin": _between(0, 10),
+    "normalize.depth_percentile": _between(0, 49),
+    "normalize.test_every": _at_least(0),
+    "normalize.val_every": _at_least(0),
+    "train.steps": _at_least(1),
+    "train.batch_rays": _at_least(1),
+    "train.lr": _at_least(0),
+    "train.lr_decay": _positive(),
+    "train.max_side": _at_least(4),
+    "train.eval_every": _at_least(0),
+    "train.eval_views": _at_least(0),
+    "train.final_eval_views": _at_least(0),
+    "train.checkpoint_every": _at_least(0),
+    "train.classic.n_coarse": _at_least(1),
+    "train.classic.n_fine": _at_least(0),
+    "train.classic.pos_freqs": _at_least(0),
+    "train.classic.dir_freqs": _at_least(0),
+    "train.classic.depth": _at_least(1),
+    "train.classic.width": _at_least(1),
+    "train.fast.density_res": _at_least(2),
+    "train.fast.feature_res": _at_least(2),
+    "train.fast.feature_dim": _at_least(1),
+    "train.fast.sh_degree": _between(0, 4),
+    "train.fast.mlp_width": _at_least(1),
+    "train.fast.mlp_layers": _at_least(0),
+    "train.fast.occupancy_res": _at_least(2),
+    "train.fast.step_ratio": _positive(),
+    "train.fast.max_samples": _at_least(1),
+    "train.fast.cone_angle": _at_least(0),
+    "train.fast.grid_lr_scale": _positive(),
+    "mesh.resolution": ((lambda v: v == 0 or v >= 8), "0 (automatic) or at least 8"),
+    "mesh.max_resolution": _at_least(8),
+    "mesh.memory_budget_mb": _at_least(1),
+    "mesh.iso": _at_least(0),
+    "mesh.min_component_fraction": _between(0, 1),
+    "mesh.smooth_iters": _at_least(0),
+    "mesh.target_faces": _at_least(0),
+    "mesh.real_size": _at_least(0),
+}
+"""Allowed range of each numeric option: checked once the preset and every --set are applied."""
+
+
+def validate(config: RunConfig) -> None:
+    """Refuse out-of-range values (negative steps, zero batch...) before any stage runs, naming the option."""
+    for dotted, (ok, allowed) in BOUNDS.items():
+        value: Any = config
+        for part in dotted.split("."):
+            value = getattr(value, part, None)
+        if value is not None and not ok(value):
+            raise ConfigError(
+                f"Option '{dotted}' must be {allowed}; got {value}. Fix it in the preset or the --set override."
+            )
 
 
 def preset_description(name: str) -> str:
@@ -287,6 +364,27 @@ def _parse_scalar(raw: str) -> Any:
         return json.loads(raw)
     except json.JSONDecodeError:
         return raw
+
+
+def parse_duration(text: str) -> float:
+    """ "90s", "5m", "1.5h", "300" (seconds) → seconds; "" → 0 (no budget)."""
+    text = text.strip().lower()
+    if not text:
+        return 0.0
+    units = {"s": 1.0, "m": 60.0, "min": 60.0, "h": 3600.0}
+    for suffix in sorted(units, key=len, reverse=True):
+        if text.endswith(suffix):
+            number, scale = text[: -len(suffix)], units[suffix]
+            break
+    else:
+        number, scale = text, 1.0
+    try:
+        value = float(number) * scale
+    except ValueError:
+        raise ConfigError(f"Cannot read the time budget '{text}': write it like 90s, 5m or 1h.") from None
+    if not value > 0 or value == float("inf"):
+        raise ConfigError(f"The time budget must be positive and finite, got '{text}'.")
+    return value
 
 
 def config_slice(config: RunConfig, name: str) -> dict:

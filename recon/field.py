@@ -37,7 +37,12 @@ def save_field(path: Path, kind: str, kwargs: dict[str, Any], model: torch.nn.Mo
     """Atomically write the model (weights on CPU) with what is needed to rebuild it."""
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     state = {k: v.detach().cpu() for k, v in model.state_dict().items()}
-    torch.save({"format": FIELD_FORMAT, "kind": kind, "kwargs": kwargs, "state_dict": state, "meta": meta}, tmp)
+    try:
+        with open(tmp, "wb") as f:  # a Python file object: a full disk raises OSError(ENOSPC), not RuntimeError
+            torch.save({"format": FIELD_FORMAT, "kind": kind, "kwargs": kwargs, "state_dict": state, "meta": meta}, f)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
     os.replace(tmp, path)
 
 

@@ -53,17 +53,19 @@ def estimate_up(c2ws: np.ndarray, mode: str) -> tuple[np.ndarray, str]:
         up = evecs[:, 0] * np.sign(evecs[:, 0] @ mean)
         return up, f"orthogonal to every camera's (level) right vector (residual tilt {np.degrees(np.sqrt(max(evals[0], 0.0))):.2f}°)"
     if np.linalg.norm(mean) > 0.3:
-        mean /= np.linalg.norm(mean)
-        inliers = ups[ups @ mean > np.cos(np.radians(45))]
-        up = inliers.mean(axis=0)
-        up /= np.linalg.norm(up)
-        return up, f"mean camera up vector ({len(inliers)}/{len(ups)} cameras agree within 45°)"
+        inliers = ups[ups @ (mean / np.linalg.norm(mean)) > np.cos(np.radians(45))]
+        if 2 * len(inliers) > len(ups):  # a majority must agree, else the mean of random rolls decides
+            up = inliers.mean(axis=0)
+            up /= np.linalg.norm(up)
+            return up, f"mean camera up vector ({len(inliers)}/{len(ups)} cameras agree within 45°)"
     centers = c2ws[:, :3, 3]
     if len(centers) >= 3:
         _, sv, vt = np.linalg.svd(centers - centers.mean(axis=0))
         if sv[1] > 1e-6 * max(sv[0], 1e-30) and sv[2] < 0.5 * sv[1]:
             normal = vt[2]
-            if normal @ mean < 0:
+            # sign: toward the cameras' mean up and against their mean view (photos look level or down); the
+            # view alone decides for top-down shots, whose up vectors are horizontal
+            if normal @ (mean + c2ws[:, :3, 2].mean(axis=0)) < 0:
                 normal = -normal
             return normal, "camera up vectors disagree; up is the normal of the plane of the camera centres"
     raise InputError(
@@ -192,6 +194,23 @@ def assign_split(frames: list[Frame], test_every: int, val_every: int) -> str:
     return f"every {test_every}th photo held out for test, every {val_every}th (offset) for validation: {counts}"
 
 
+def _drop_nonfinite_points(scene: Scene) -> Scene:
+    """The scene without sparse points that have NaN/inf coordinates (visibility indices renumbered)."""
+    points = np.asarray(scene.points, dtype=np.float64).reshape(-1, 3)
+    keep = np.all(np.isfinite(points), axis=1)
+    if keep.all():
+        return scene
+    new_index = np.cumsum(keep) - 1
+    colors = np.asarray(scene.point_colors).reshape(-1, 3)
+    visibility = {
+        name: new_index[idx[keep[idx]]] for name, idx in ((n, np.asarray(v, dtype=np.int64)) for n, v in scene.point_visibility.items())
+    }
+    return replace(
+        scene, points=points[keep], point_colors=colors[keep] if len(colors) == len(points) else colors,
+        point_visibility=visibility,
+    )
+
+
 def normalize(scene: Scene, cfg: NormalizeConfig) -> Scene:
     """The canonical scene: +Z up, centred on the object (or the points), scaled so the box fits [-1, 1]^3."""
     if len(scene.frames) < 1:
@@ -199,6 +218,14 @@ def normalize(scene: Scene, cfg: NormalizeConfig) -> Scene:
     c2ws = np.stack([f.c2w for f in scene.frames])
     if not np.all(np.isfinite(c2ws)):
         raise InputError("Some camera poses contain NaN or infinite values; re-run the poses stage.")
+    spread = float(np.linalg.norm(c2ws[:, :3, 3] - c2ws[:, :3, 3].mean(axis=0), axis=1).max())
+    if spread <= 1e-12 * float(np.abs(c2ws[:, :3, 3]).max()):  # relative: scale-free, and 0 <= 0 for one camera
+        raise InputError(
+            f"All {len(scene.frames)} camera(s) sit at the same point (a single photo or a rotation-only/panorama "
+            "capture): without moving the camera between photos there is no parallax, so depth cannot be "
+            "recovered. Take the photos while walking around the object."
+        )
+    scene = _drop_nonfinite_points(scene)
     notes: dict[str, str] = {}
     up, notes["up"] = estimate_up(c2ws, cfg.up) if cfg.up != "none" else (np.array([0.0, 0, 1]), "rotation kept")
     R = rotation_between(up, np.array([0.0, 0.0, 1.0]))

@@ -20,6 +20,7 @@ import os
 import shutil
 import signal
 import sys
+import threading
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
@@ -116,14 +117,51 @@ def package_versions() -> dict[str, str]:
     return versions
 
 
+_FAULT_HITS: dict[str, int] = {}
+
+
+def fault_point(point: str) -> None:
+    """Fault injection for the reliability tests; a no-op unless RECON_FAULT is set.
+
+    RECON_FAULT="POINT[*N][:ACTION]" acts at the N-th (default first) pass through the named point.
+    Points: "STAGE/start", "STAGE/after-output", "STAGE/mid-swap", "STAGE/after-swap",
+    "STAGE/after-manifest", and "write/FILENAME" (inside `write_json_atomic`, before its rename).
+    ACTION: "kill" (default: SIGKILL now), "kill-after-S" (SIGKILL S seconds later, wherever the process
+    then is), "enospc" (raise OSError(ENOSPC) as a full disk would).
+    """
+    spec = os.environ.get("RECON_FAULT")
+    if not spec:
+        return
+    target, _, action = spec.partition(":")
+    name, _, nth = target.partition("*")
+    if name != point:
+        return
+    _FAULT_HITS[point] = _FAULT_HITS.get(point, 0) + 1
+    if _FAULT_HITS[point] != int(nth or 1):
+        return
+    if action == "enospc":
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), point)
+    if action.startswith("kill-after-"):
+        timer = threading.Timer(float(action.removeprefix("kill-after-")), os.kill, (os.getpid(), signal.SIGKILL))
+        timer.daemon = True
+        timer.start()
+        return
+    os.kill(os.getpid(), signal.SIGKILL)
+
+
 def write_json_atomic(path: Path, data: Any) -> None:
     """Write JSON next to its final place, fsync, then rename over it: readers see old or new, never half."""
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    with open(tmp, "w") as f:
-        json.dump(data, f, indent=2, sort_keys=False)
-        f.write("\n")
-        f.flush()
-        os.fsync(f.fileno())
+    try:
+        with open(tmp, "w") as f:
+            json.dump(data, f, indent=2, sort_keys=False)
+            f.write("\n")
+            f.flush()
+            os.fsync(f.fileno())
+        fault_point(f"write/{path.name}")
+    except BaseException:
+        tmp.unlink(missing_ok=True)  # a full disk must not also leave half a file behind
+        raise
     os.replace(tmp, path)
 
 
@@ -207,7 +245,16 @@ class Pipeline:
             raise ReconError(f"--from {from_stage} comes after --until {until_stage}; nothing to run.")
         return self.stages[start : stop + 1]
 
-    def fingerprint(self, stage: Stage, manifest: Manifest, config: RunConfig, source: Path | None) -> str:
+    @staticmethod
+    def source_digest(stage: Stage, config: RunConfig, source: Path | None) -> str | None:
+        """Digest of the stage's outside input (the photos), or None for stages that read none."""
+        if stage.source_digest is None or source is None:
+            return None
+        return stage.source_digest(source, getattr(config, stage.name, None))
+
+    def fingerprint(
+        self, stage: Stage, manifest: Manifest, config: RunConfig, source: Path | None, source_digest: str | None = None
+    ) -> str:
         parts: dict[str, Any] = {
             "stage": stage.name,
             "version": stage.version,
@@ -215,7 +262,7 @@ class Pipeline:
             "inputs": {name: manifest.stages.get(name, {}).get("output_digest") for name in stage.inputs},
         }
         if stage.source_digest is not None and source is not None:
-            parts["source"] = stage.source_digest(source, getattr(config, stage.name, None))
+            parts["source"] = source_digest or self.source_digest(stage, config, source)
         return hashlib.sha256(json.dumps(parts, sort_keys=True, default=str).encode()).hexdigest()
 
     def state(self, scene_dir: Path, config: RunConfig | None = None, source: Path | None = None) -> list[dict]:
@@ -314,11 +361,14 @@ class Pipeline:
         if stage.needs_source and source is not None and not source.exists():
             raise ReconError(f"The input {source} does not exist. Check the path (it is recorded in {MANIFEST}).")
 
-        fingerprint = self.fingerprint(stage, manifest, config, source)
+        source_digest = self.source_digest(stage, config, source)
+        fingerprint = self.fingerprint(stage, manifest, config, source, source_digest)
         entry = manifest.stages.get(stage.name)
         folder = scene_dir / stage.folder
+        work = scene_dir / ".work" / f"{stage.name}-{fingerprint[:16]}"
         if not forced and entry and entry.get("status") == "done" and entry.get("fingerprint") == fingerprint:
             if folder.is_dir() and self._outputs_intact(folder, entry):
+                shutil.rmtree(work, ignore_errors=True)  # scratch of a run killed after its manifest entry
                 report.stage_cached(stage.name, entry.get("summary", {}))
                 return StageOutcome(stage.name, "cached", 0.0, entry.get("summary", {}))
             report.warn(
@@ -330,7 +380,6 @@ class Pipeline:
         if tmp.exists():
             shutil.rmtree(tmp)
         tmp.mkdir()
-        work = scene_dir / ".work" / f"{stage.name}-{fingerprint[:16]}"
         work.mkdir(parents=True, exist_ok=True)
         ctx = StageContext(
             name=stage.name,
@@ -347,8 +396,10 @@ class Pipeline:
         started, t0 = _now(), time.perf_counter()
         report.stage_start(stage.name)
         try:
+            fault_point(f"{stage.name}/start")
             summary = stage.run(ctx) or {}
             files = folder_files(tmp)
+            fault_point(f"{stage.name}/after-output")
         except BaseException as exc:
             shutil.rmtree(tmp, ignore_errors=True)
             if not isinstance(exc, (KeyboardInterrupt, SystemExit)):
@@ -360,12 +411,16 @@ class Pipeline:
                 manifest.save()
             raise
         wall = time.perf_counter() - t0
-        _swap_into_place(tmp, folder)
+        _swap_into_place(tmp, folder, stage.name)
+        fault_point(f"{stage.name}/after-swap")
+        input_digests = {u: manifest.stages[u]["output_digest"] for u in stage.inputs}
         manifest.stages[stage.name] = {
             "status": "done",
             "fingerprint": fingerprint,
-            "input_digests": {u: manifest.stages[u]["output_digest"] for u in stage.inputs},
-            "output_digest": digest_of(files),
+            "input_digests": input_digests,
+            # what this output means, not only its bytes: it also stands for the upstream outputs and the photos it
+            # refers to by path, so a changed photo re-runs every later stage even when a scene.json comes out equal
+            "output_digest": digest_of({"files": files, "inputs": input_digests, "source": source_digest}),
             "files": files,
             "started": started,
             "finished": _now(),
@@ -375,6 +430,7 @@ class Pipeline:
             "summary": summary,
         }
         manifest.save()
+        fault_point(f"{stage.name}/after-manifest")
         shutil.rmtree(work, ignore_errors=True)
         report.stage_done(stage.name, wall, summary)
         return StageOutcome(stage.name, "ran", wall, summary)
@@ -390,7 +446,7 @@ def _manifest_source(manifest: Manifest) -> Path | None:
     return Path(src) if src else None
 
 
-def _swap_into_place(tmp: Path, folder: Path) -> None:
+def _swap_into_place(tmp: Path, folder: Path, stage: str = "") -> None:
     """Replace `folder` by `tmp` so that a crash at any point leaves one complete folder or a leftover to clean.
 
     Old folder → `.old-NAME` (rename), tmp → folder (rename), then delete the old one. A crash between
@@ -399,6 +455,7 @@ def _swap_into_place(tmp: Path, folder: Path) -> None:
     old = folder.with_name(f".old-{folder.name}-{os.getpid()}")
     if folder.exists():
         os.rename(folder, old)
+        fault_point(f"{stage}/mid-swap")
     os.rename(tmp, folder)
     _fsync_dir(folder.parent)
     if old.exists():

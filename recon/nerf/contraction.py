@@ -19,7 +19,12 @@ __all__ = ["contract", "uncontract"]
 
 
 def contract(x: Tensor) -> Tensor:
-    """Contract points x (..., 3), world units, into [-2, 2]^3 (identity inside the unit box)."""
+    """Contract points x (..., 3), world units, into [-2, 2]^3 (identity inside the unit box).
+
+    +-inf coordinates (a ray to infinity) land on the outer face (inf / inf would be NaN); NaN stays NaN.
+    """
+    big = torch.finfo(x.dtype).max
+    x = x.clamp(-big, big)
     n = torch.linalg.vector_norm(x, ord=float("inf"), dim=-1, keepdim=True)
     safe = n.clamp_min(1.0)  # also keeps the unused branch finite (no 1/0 at the origin)
     return torch.where(n <= 1.0, x, (2.0 - 1.0 / safe) * (x / safe))

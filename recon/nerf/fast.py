@@ -26,7 +26,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from recon.nerf.contraction import contract
-from recon.nerf.grid import DenseGrid, HashGrid, VMGrid
+from recon.nerf.grid import DenseGrid, HashGrid, MultiDenseGrid, VMGrid
 from recon.nerf.occupancy import OccupancyGrid, density_threshold, march
 from recon.nerf.rays import ray_aabb
 from recon.nerf.render import RadianceModel, accumulate_packed, render_weights_packed
@@ -54,6 +54,8 @@ class FastConfig:
     """Vertices per side of the feature grid (finest resolution for "hash")."""
     feature_dim: int = 12
     """Feature channels: dense = channels, vm = components per axis (3x channels out), hash = levels (x2)."""
+    dense_levels: int = 1
+    """Dense grids only: sum of this many grids, each half the resolution of the previous (coarse-to-fine)."""
     color_model: Literal["mlp_view", "mlp", "direct"] = "mlp_view"
     """"mlp_view": MLP(features, SH(direction)); "mlp": view-independent MLP; "direct": sigmoid(features[:3])."""
     sh_degree: int = 2
@@ -161,10 +163,10 @@ def distortion_loss_packed(weights: Tensor, t_mid: Tensor, delta: Tensor, ray_in
     return accumulate_packed(per_sample, None, ray_indices, n_rays).mean() if n_rays else per_sample.sum()
 
 
-def _make_grid(kind: GridKind, res: int, dim: int, *, density: bool) -> nn.Module:
+def _make_grid(kind: GridKind, res: int, dim: int, *, density: bool, levels: int = 1) -> nn.Module:
     """A grid encoder of the given kind; ``dim`` as documented on FastConfig.feature_dim."""
     if kind == "dense":
-        return DenseGrid(res, dim, init_std=0.0)
+        return DenseGrid(res, dim, init_std=0.0) if levels <= 1 else MultiDenseGrid(res, dim, levels)
     if kind == "vm":
         return VMGrid(res, dim, init_std=0.01 if density else 0.1)
     if kind == "hash":
@@ -188,11 +190,13 @@ class FastModel(RadianceModel):
         self.step_size = cfg.step_ratio * extent / (cfg.density_res - 1)
         """World step along rays (in contracted units when unbounded)."""
 
-        self.density_grid = _make_grid(cfg.density_grid, cfg.density_res, 1 if cfg.density_grid == "dense" else 8, density=True)
+        self.density_grid = _make_grid(
+            cfg.density_grid, cfg.density_res, 1 if cfg.density_grid == "dense" else 8, density=True, levels=cfg.dense_levels
+        )
         s0 = -math.log1p(-cfg.init_alpha) / self.step_size  # initial density: opacity init_alpha per step
         self.density_bias = math.log(math.expm1(s0)) if cfg.density_activation == "softplus" else math.log(s0)
 
-        self.color_grid = _make_grid(cfg.grid, cfg.feature_res, cfg.feature_dim, density=False)
+        self.color_grid = _make_grid(cfg.grid, cfg.feature_res, cfg.feature_dim, density=False, levels=cfg.dense_levels)
         feat = self.color_grid.out_dim
         if cfg.color_model == "direct":
             if feat < 3:

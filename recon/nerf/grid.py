@@ -49,7 +49,9 @@ def axis_cells(x01: Tensor, res: int) -> tuple[Tensor, Tensor]:
     if res < 2:
         raise ValueError(f"a grid needs at least 2 vertices per side, got res={res}")
     pos = x01.clamp(0.0, 1.0) * (res - 1)
-    i0 = pos.detach().floor().clamp_(0, res - 2)
+    # NaN (a diverged network upstream) reads cell 0 and keeps frac NaN: the output is NaN for the trainer's
+    # guard to name, instead of an int64-min index
+    i0 = pos.detach().nan_to_num(0.0).floor().clamp_(0, res - 2)
     return i0.long(), pos - i0
 
 
@@ -147,6 +149,37 @@ class DenseGrid(nn.Module):
         base = (ijk[:, 0] * r + ijk[:, 1]) * r + ijk[:, 2]
         v0 = self.table[base]
         return sum(((self.table[base + s] - v0) ** 2).mean() for s in (r * r, r, 1)) / 3.0
+
+
+class MultiDenseGrid(nn.Module):
+    """Sum of dense grids at several resolutions (finest ``res``, each level half the previous).
+
+    The coarse levels see many samples per vertex, so low frequencies are learned in a few steps while
+    the fine level adds detail: the same role as DVGO's coarse stage or TensoRF's upsampling schedule,
+    with fixed parameter shapes (an optimizer made once stays valid).
+    """
+
+    def __init__(self, res: int, channels: int, levels: int = 3, min_res: int = 16, init_std: float = 0.0) -> None:
+        super().__init__()
+        resolutions = sorted({max(min_res, int(round((res - 1) / 2**k)) + 1) for k in range(levels)})
+        self.resolutions = resolutions
+        self.channels = int(channels)
+        self.grids = nn.ModuleList(DenseGrid(r, channels, init_std) for r in resolutions)
+
+    @property
+    def out_dim(self) -> int:
+        return self.channels
+
+    def forward(self, x01: Tensor) -> Tensor:
+        """x01: (M, 3) in [0, 1] -> (M, C), the sum over levels."""
+        out = self.grids[0](x01)
+        for g in self.grids[1:]:
+            out = out + g(x01)
+        return out
+
+    def tv_loss(self, n: int = 65536) -> Tensor:
+        """Sum of the levels' sampled TV losses."""
+        return sum(g.tv_loss(n) for g in self.grids)
 
 
 class VMGrid(nn.Module):

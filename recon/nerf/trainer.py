@@ -230,11 +230,17 @@ def make_optimizer(model: RadianceModel, lr: float) -> torch.optim.Adam:
         return torch.optim.Adam(groups, lr=lr)
 
 
-def lr_at(step: int, steps: int, lr: float, lr_final: float | None) -> float:
-    """Exponential decay from ``lr`` at step 0 to ``lr_final`` at ``steps`` (constant if lr_final is None)."""
+def lr_at(step: int, steps: int, lr: float, lr_final: float | None, fraction: float | None = None) -> float:
+    """Exponential decay from ``lr`` at step 0 to ``lr_final`` at ``steps`` (constant if lr_final is None).
+
+    ``fraction`` (of the training done, e.g. of a time budget) overrides ``step / steps`` when larger.
+    """
     if lr_final is None or steps <= 0:
         return lr
-    return lr * (lr_final / lr) ** (min(step, steps) / steps)
+    frac = min(step, steps) / steps
+    if fraction is not None:
+        frac = min(max(frac, fraction), 1.0)
+    return lr * (lr_final / lr) ** frac
 
 
 def _rng_state() -> dict[str, Any]:
@@ -311,6 +317,9 @@ def train(
         state: a dict from :meth:`TrainProgress.state_dict` to resume from; model and batcher
             must be constructed as for the original run.
         history_every: record (step, loss, psnr) every this many steps in the result.
+        budget_s: > 0: stop once this much training time (evaluation excluded; ``spent_s`` of it
+            already used before a resume) is spent; the learning rate then decays with the
+            fraction of the budget used, so a budget-bound run still ends at ``lr_final``.
         autocast: e.g. ``torch.bfloat16`` to run the model's matmuls in mixed precision
             (``torch.autocast``); ~2x faster MLPs on CPUs with AMX/AVX512-BF16. Losses, and volume
             rendering in models that cast their network outputs to float32, stay in float32.
@@ -345,9 +354,16 @@ def train(
     loss_v = psnr_v = math.nan
     callbacks = list(callbacks)
     t0 = time.perf_counter()
+    eval_s = 0.0
     try:
         for step in range(start, steps):
-            cur_lr = lr_at(step, steps, lr, lr_final)
+            fraction = None
+            if budget_s > 0:
+                used = spent_s + time.perf_counter() - t0 - eval_s
+                if used >= budget_s:
+                    break
+                fraction = used / budget_s
+            cur_lr = lr_at(step, steps, lr, lr_final, fraction)
             for g in opt.param_groups:
                 g["lr"] = g["initial_lr"] * cur_lr / lr
             model.train()
@@ -379,8 +395,10 @@ def train(
                 history.append((done, loss_v, psnr_v))
             if eval_fn is not None and eval_every and (done % eval_every == 0 or done == steps):
                 model.eval()
+                t_eval = time.perf_counter()
                 with torch.no_grad():
                     metrics = eval_fn(model, done)
+                eval_s += time.perf_counter() - t_eval
                 model.train()
             elapsed = time.perf_counter() - t0
             progress = TrainProgress(

@@ -19,11 +19,11 @@ from typing import Any
 import numpy as np
 import torch
 
-from recon.config import TrainConfig
+from recon.config import TrainConfig, parse_duration
 from recon.errors import ReconError
 from recon.field import FIELD_FILE, build_model, save_field
 from recon.images import read_image, undistort
-from recon.pipeline import Stage, StageContext, write_json_atomic
+from recon.pipeline import Stage, StageContext, sha256_file, write_json_atomic
 from recon.scene import Frame, Scene, load_scene
 
 CHECKPOINT = "checkpoint.pt"
@@ -109,7 +109,7 @@ def model_spec(cfg: TrainConfig, scene: Scene, views: list[View], steps: int) ->
     return kind, {"config": asdict(fast_cfg)}, cfg.lr or FAST_LR, reasons
 
 
-FAST_LR = 5e-3
+FAST_LR = 1e-2
 """Default learning rate of the fast model's MLP (its grids use lr × grid_lr_scale)."""
 
 
@@ -205,20 +205,47 @@ def write_previews(renders: list, folder: Path, near: float | None = None, far: 
         comparison_panel(out["rgb"], gt, depth_rgb, folder / f"{view.name}.png")
 
 
+def _checksum_path(path: Path) -> Path:
+    return path.with_name(path.name + ".sha256")
+
+
 def _save_checkpoint(path: Path, state: dict[str, Any]) -> None:
+    """Atomically write a checkpoint and then its sha256 sidecar (checked before loading).
+
+    Written through a Python file object so a full disk raises OSError(ENOSPC), not torch's RuntimeError.
+    """
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    torch.save(state, tmp)
-    os.replace(tmp, path)
+    try:
+        with open(tmp, "wb") as f:
+            torch.save(state, f)
+            f.flush()
+            os.fsync(f.fileno())
+        digest = sha256_file(tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    write_json_atomic(_checksum_path(path), {"sha256": digest, "size": path.stat().st_size})
 
 
 def _load_checkpoint(path: Path, report: Any) -> dict[str, Any] | None:
+    """The checkpoint if its bytes match the checksum recorded when it was written, else None (start over)."""
     if not path.exists():
         return None
+    sidecar = _checksum_path(path)
     try:
+        recorded = json.loads(sidecar.read_text())["sha256"]
+        intact = sha256_file(path) == recorded
+    except (OSError, ValueError, KeyError, TypeError):
+        intact = False
+    try:
+        if not intact:
+            raise ValueError("its bytes do not match the checksum recorded when it was written")
         return torch.load(path, map_location="cpu", weights_only=False)
     except Exception as exc:  # truncated or corrupt: start over rather than load garbage
-        report.warn(f"The training checkpoint {path} is unreadable ({type(exc).__name__}); training starts over.")
+        report.warn(f"The training checkpoint {path} is unusable ({exc}); training starts over.")
         path.unlink(missing_ok=True)
+        sidecar.unlink(missing_ok=True)
         return None
 
 
@@ -234,6 +261,7 @@ def run(ctx: StageContext) -> dict:
         device = select_device(cfg.device)
     except ValueError as exc:
         raise ReconError(f"train.device={cfg.device}: {exc}") from None
+    budget_s = parse_duration(cfg.budget)
     torch.manual_seed(cfg.seed)
     scene = load_scene(ctx.inputs["normalize"])
     train_frames = scene.split("train")
@@ -244,6 +272,8 @@ def run(ctx: StageContext) -> dict:
     views = load_views(scene, train_frames, cfg.max_side, ctx.report, "training photos")
     background, random_bg, bg_why = choose_background(cfg, scene, views)
     kind, kwargs, lr, reasons = model_spec(cfg, scene, views, cfg.steps)
+    if budget_s:
+        reasons.append(f"time budget {cfg.budget}: at most {cfg.steps} steps, stopping when the budget is spent")
     ctx.report.info(f"device: {device}; background: {bg_why}")
     for r in reasons:
         ctx.report.info(f"model: {r}")
@@ -297,6 +327,7 @@ def run(ctx: StageContext) -> dict:
                 model, batcher, steps=cfg.steps, lr=lr, lr_final=lr * cfg.lr_decay, batch_rays=cfg.batch_rays,
                 eval_fn=eval_fn, eval_every=cfg.eval_every or cfg.steps, callbacks=[on_step],
                 state=checkpoint["state"] if checkpoint else None,
+                budget_s=budget_s, spent_s=time_before,
             )
         except TrainingInterrupted as stop:
             _save_checkpoint(ckpt_path, {"state": stop.state, "evals": evals, "history": history, "train_time_s": train_time()})
@@ -323,7 +354,8 @@ def run(ctx: StageContext) -> dict:
     metrics = {
         "model": kind,
         "reasons": reasons + [f"background: {bg_why}"],
-        "steps": cfg.steps,
+        "steps": result["step"],
+        "budget_s": budget_s,
         "train_time_s": round(total_train_time, 2),
         "rays_per_s": round(result["rays_per_s"], 1),
         "device": str(device),
@@ -336,8 +368,9 @@ def run(ctx: StageContext) -> dict:
     write_json_atomic(ctx.out / "metrics.json", metrics)
     training_curves(history, evals, ctx.out / "curves.png", title=f"{kind} model — test PSNR {final['psnr']:.2f} dB")
     ckpt_path.unlink(missing_ok=True)
+    _checksum_path(ckpt_path).unlink(missing_ok=True)
     return {
-        "headline": f"{kind} model, {cfg.steps} steps in {total_train_time:.0f} s: test PSNR {final['psnr']:.2f} dB, SSIM {final['ssim']:.3f} ({len(test_views)} views)",
+        "headline": f"{kind} model, {result['step']} steps in {total_train_time:.0f} s: test PSNR {final['psnr']:.2f} dB, SSIM {final['ssim']:.3f} ({len(test_views)} views)",
         "psnr": round(final["psnr"], 3),
         "ssim": round(final["ssim"], 4),
         "train_time_s": round(total_train_time, 1),

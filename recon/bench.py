@@ -1,0 +1,115 @@
+"""`recon bench`: run presets on a data set and measure the trade — wall time vs held-out PSNR vs mesh error.
+
+Each preset runs the real pipeline in its own scene folder (poses and normalize are computed once and
+reused through the stage cache), then the table (Markdown), the raw numbers (JSON) and a PNG of
+held-out PSNR against training time, one curve per preset, are written to the output folder.
+A benchmark measures; it asserts nothing.
+"""
+from __future__ import annotations
+
+import json
+import shutil
+import time
+from pathlib import Path
+from typing import Any
+
+from recon.config import load_config
+from recon.errors import ReconError
+from recon.pipeline import write_json_atomic
+from recon.progress import Reporter
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED = REPO.parent / "shared" / "data"
+DATASETS = {
+    "sample": (REPO / "fixtures" / "sample" / "images", REPO / "fixtures" / "sample" / "gt_mesh.ply"),
+    "lego-half": (SHARED / "nerf_synthetic_lego_half", None),
+    "fox": (SHARED / "fox" / "images", None),
+}
+
+
+def resolve_dataset(name: str) -> tuple[Path, Path | None]:
+    if name in DATASETS:
+        source, gt = DATASETS[name]
+    else:
+        source, gt = Path(name), None
+    if not source.exists():
+        raise ReconError(f"Benchmark data '{name}' not found at {source}. Known: {', '.join(DATASETS)} or a path.")
+    return source, gt if gt is not None and gt.exists() else None
+
+
+def run_bench(
+    data: str,
+    presets: list[str],
+    out_dir: Path,
+    overrides: list[str],
+    report: Reporter,
+    until: str = "mesh",
+) -> list[dict[str, Any]]:
+    """Run every preset on `data`; write bench.md, bench.json and bench.png into `out_dir`."""
+    from recon.stages import default_pipeline
+
+    source, gt = resolve_dataset(data)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    pipeline = default_pipeline()
+    base = out_dir / f"{Path(data).name}-poses"
+    pipeline.run(base, load_config(None, overrides), report, source=source.resolve(), until_stage="normalize")
+    rows = []
+    for preset in presets:
+        scene = out_dir / f"{Path(data).name}-{preset}"
+        if not scene.exists():  # start from the shared poses/normalize (re-run if the preset changes them)
+            shutil.copytree(base, scene, ignore=shutil.ignore_patterns(".lock", ".work"))
+        config = load_config(preset, overrides)
+        report.info(f"[bold]benchmark: {preset}[/] on {data}")
+        t0 = time.perf_counter()
+        outcomes = pipeline.run(scene, config, report, source=source.resolve(), until_stage=until, from_stage="train")
+        wall = time.perf_counter() - t0
+        metrics = json.loads((scene / "03_field" / "metrics.json").read_text())
+        row: dict[str, Any] = {
+            "name": preset,
+            "model": metrics["model"],
+            "steps": metrics["steps"],
+            "train_time_s": metrics["train_time_s"],
+            "wall_s": round(wall, 1),
+            "stage_wall_s": {o.name: round(o.wall_s, 1) for o in outcomes if o.action == "ran"},
+            "psnr": round(metrics["test"]["psnr"], 2),
+            "ssim": round(metrics["test"]["ssim"], 4),
+            "test_views": len(metrics["test"]["views"]),
+            "rays_per_s": metrics["rays_per_s"],
+            "evals": metrics["evals"],
+        }
+        if until == "mesh" and gt is not None:
+            from recon.mesh_eval import compare_to_gt
+
+            acc = compare_to_gt(scene, gt)
+            row["fscore_1pct"] = acc.get("fscore@0.01")
+            row["chamfer_rel"] = acc.get("chamfer_l1_rel")
+        rows.append(row)
+        write_results(rows, out_dir, data)
+    return rows
+
+
+def write_results(rows: list[dict[str, Any]], out_dir: Path, data: str) -> None:
+    from recon.plots import tradeoff_plot
+
+    write_json_atomic(out_dir / "bench.json", rows)
+    has_mesh = any("fscore_1pct" in r for r in rows)
+    lines = [
+        f"# recon bench — {data}",
+        "",
+        "| preset | model | steps | train time | wall (train+mesh) | test PSNR | SSIM | views | rays/s |"
+        + (" F-score@1% | Chamfer-L1 / diag |" if has_mesh else ""),
+        "|---|---|---|---|---|---|---|---|---|" + ("---|---|" if has_mesh else ""),
+    ]
+    for r in rows:
+        line = (
+            f"| {r['name']} | {r['model']} | {r['steps']} | {r['train_time_s']:.0f} s | {r['wall_s']:.0f} s | "
+            f"{r['psnr']:.2f} dB | {r['ssim']:.3f} | {r['test_views']} | {r['rays_per_s']:,.0f} |"
+        )
+        if has_mesh:
+            f1, ch = r.get("fscore_1pct"), r.get("chamfer_rel")
+            line += f" {f1:.3f} |" if f1 is not None else " — |"
+            line += f" {100 * ch:.2f}% |" if ch is not None else " — |"
+        lines.append(line)
+    lines += ["", f"![PSNR vs time](bench.png)", ""]
+    (out_dir / "bench.md").write_text("\n".join(lines))
+    tradeoff_plot(rows, out_dir / "bench.png", title=f"held-out PSNR vs training time — {data}")
