@@ -17,6 +17,7 @@ from typing import Annotated, Any, Optional
 
 import typer
 from rich.console import Console
+from rich.markup import escape
 from rich.table import Table
 
 from recon.config import RunConfig, available_presets, load_config, preset_description
@@ -47,7 +48,7 @@ def _guard(scene_dir: Path | None = None) -> Iterator[None]:
     try:
         yield
     except ReconError as exc:
-        console.print(f"[bold red]error:[/] {exc}")
+        console.print(f"[bold red]error:[/] {escape(str(exc))}")  # escaped: '[train]' in a message is text, not markup
         raise typer.Exit(EXIT_USER_ERROR) from None
     except KeyboardInterrupt:
         console.print(
@@ -58,7 +59,7 @@ def _guard(scene_dir: Path | None = None) -> Iterator[None]:
     except OSError as exc:
         if is_disk_full(exc):
             console.print(
-                f"[bold red]error:[/] the disk is full ({exc.filename or 'writing output'}). Nothing finished was lost; "
+                f"[bold red]error:[/] the disk is full ({escape(str(exc.filename or 'writing output'))}). Nothing finished was lost; "
                 f"free some space and run the same command again to resume."
             )
             raise typer.Exit(EXIT_USER_ERROR) from None
@@ -75,7 +76,7 @@ def _report_bug(exc: BaseException, scene_dir: Path | None) -> None:
     with contextlib.suppress(OSError):
         log.write_text("".join(traceback.format_exception(exc)))
     console.print(
-        f"[bold red]internal error:[/] {type(exc).__name__}: {exc}\n"
+        f"[bold red]internal error:[/] {type(exc).__name__}: {escape(str(exc))}\n"
         f"This is a bug in recon, not in your input. The details are in {log}; please include that file in a report."
     )
     raise typer.Exit(1) from None

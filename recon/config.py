@@ -275,6 +275,11 @@ def set_value(config: Any, dotted: str, raw: Any, source: str) -> None:
                 f"Valid keys there: {', '.join(names)}."
             )
         if i == len(parts) - 1:
+            if dataclasses.is_dataclass(getattr(target, part)):
+                raise ConfigError(
+                    f"Option '{dotted}' ({source}) is a section, not a value: set one of its keys, e.g. "
+                    f"{dotted}.{dataclasses.fields(getattr(target, part))[0].name}=..."
+                )
             ftype = _field_types(type(target))[part]
             setattr(target, part, _coerce(raw, ftype, dotted, source))
         else:

@@ -76,7 +76,9 @@ def to_array(img: Image.Image) -> np.ndarray:
     """PIL image of any mode → float32 (H, W, 3|4) in [0, 1]."""
     if img.mode in ("I;16", "I;16B", "I;16L", "I"):
         arr = np.asarray(img, dtype=np.float32)
-        arr = arr / (65535.0 if arr.max() > 255 else 255.0)
+        # 16-bit files span [0, 65535] whatever their content (a dark 16-bit photo must stay dark); only 32-bit
+        # "I" has no stated range: 8-bit data promoted to it (max <= 255) is told apart by its values
+        arr = arr / (255.0 if img.mode == "I" and arr.max() <= 255 else 65535.0)
         return np.repeat(arr[..., None], 3, axis=-1)
     if img.mode in ("RGBA", "LA", "PA") or (img.mode == "P" and "transparency" in img.info):
         return np.asarray(img.convert("RGBA"), dtype=np.float32) / 255.0

@@ -28,7 +28,8 @@ def rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
         if np.linalg.norm(axis) < 1e-6:
             axis = np.cross(a, [0.0, 1.0, 0.0])
         axis /= np.linalg.norm(axis)
-        return 2 * np.outer(axis, axis) - np.eye(3)
+        flip = 2 * np.outer(axis, axis) - np.eye(3)  # 180° about axis ⟂ a: a -> -a
+        return rotation_between(-a, b) @ flip  # then the small remaining turn, exact up to rounding
     vx = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
     return np.eye(3) + vx + vx @ vx / (1 + c)
 

@@ -125,7 +125,8 @@ def fault_point(point: str) -> None:
 
     RECON_FAULT="POINT[*N][:ACTION]" acts at the N-th (default first) pass through the named point.
     Points: "STAGE/start", "STAGE/after-output", "STAGE/mid-swap", "STAGE/after-swap",
-    "STAGE/after-manifest", and "write/FILENAME" (inside `write_json_atomic`, before its rename).
+    "STAGE/after-manifest", "train/checkpoint" (after each checkpoint is complete), and "write/FILENAME"
+    (inside `write_json_atomic`, before its rename).
     ACTION: "kill" (default: SIGKILL now), "kill-after-S" (SIGKILL S seconds later, wherever the process
     then is), "enospc" (raise OSError(ENOSPC) as a full disk would).
     """

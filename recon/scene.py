@@ -14,6 +14,8 @@ from __future__ import annotations
 
 import json
 import math
+import os
+import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -161,27 +163,38 @@ def load_scene(folder: Path) -> Scene:
         doc = json.loads(path.read_text())
     except (OSError, ValueError) as exc:
         raise InputError(f"Cannot read {path}: {exc}. Re-run the stage that writes it (recon run --from normalize).") from None
-    if doc.get("format") != SCENE_FORMAT:
-        raise InputError(f"{path} is not a recon scene file (format '{doc.get('format')}').")
+    if not isinstance(doc, dict) or doc.get("format") != SCENE_FORMAT:
+        found = doc.get("format") if isinstance(doc, dict) else type(doc).__name__
+        raise InputError(
+            f"{path} is not a recon scene file (format '{found}'). Re-run the stage that writes it "
+            f"(recon run --from normalize)."
+        )
     frames = parse_frames(doc, base=folder, source=path, check_files=False)
     scene = Scene(
         frames=frames,
         aabb=None if doc.get("aabb") is None else _matrix(doc["aabb"], (2, 3), path, "aabb"),
-        capture=doc.get("capture"),
+        capture=doc.get("capture") if doc.get("capture") in (None, "object", "unbounded") else _bad(path, "capture"),
         world_from_source=_matrix(doc.get("world_from_source", np.eye(4).tolist()), (4, 4), path, "world_from_source"),
         has_alpha=bool(doc.get("has_alpha", False)),
         source_kind=doc.get("source_kind", "photos"),
-        notes=doc.get("notes", {}),
+        notes=doc.get("notes") if isinstance(doc.get("notes", {}), dict) and doc.get("notes") else {},
         root=folder.parent,
     )
     points_path = folder / "points.npz"
     if points_path.exists():
-        with np.load(points_path) as data:
-            scene.points = data["xyz"]
-            scene.point_colors = data["rgb"]
-            names = [str(n) for n in data["vis_names"]]
-            scene.point_visibility = {n: data[f"vis_{i}"] for i, n in enumerate(names)}
+        try:
+            with np.load(points_path, allow_pickle=False) as data:
+                scene.points = _matrix(data["xyz"], (len(data["xyz"]), 3), points_path, "xyz")
+                scene.point_colors = data["rgb"]
+                names = [str(n) for n in data["vis_names"]]
+                scene.point_visibility = {n: data[f"vis_{i}"] for i, n in enumerate(names)}
+        except (OSError, ValueError, KeyError, zipfile.BadZipFile) as exc:
+            raise InputError(f"Cannot read {points_path}: {exc}. Re-run the stage that writes it (recon run --from poses).") from None
     return scene
+
+
+def _bad(path: Path, key: str) -> Any:
+    raise InputError(f"{path}: '{key}' has an unexpected value. Re-run the stage that writes it (recon run --from normalize).")
 
 
 # --------------------------------------------------------------------------------------------- parsing
@@ -231,21 +244,25 @@ def resolve_image(base: Path, file_path: str, source: Path | str) -> Path:
     """Find a frame's image under `base`, allowing a missing extension (NeRF-synthetic writes './train/r_0')."""
     if not isinstance(file_path, str) or not file_path:
         raise InputError(f"{source}: a frame has no 'file_path'.")
-    path = Path(file_path)
-    if not path.is_absolute():
-        path = (base / path).resolve()
-        root = base.resolve()
-        if root not in path.parents:
-            raise InputError(
-                f"{source}: the image path '{file_path}' points outside the capture folder {root}. "
-                f"Image paths must stay inside the folder that holds the poses file."
-            )
-    if path.is_file():
-        return path
-    for suffix in sorted(IMAGE_SUFFIXES) + [s.upper() for s in sorted(IMAGE_SUFFIXES)]:
-        candidate = path.with_name(path.name + suffix)
-        if candidate.is_file():
-            return candidate
+    if "\x00" in file_path:
+        raise InputError(f"{source}: the image path {file_path!r} contains a NUL character. Fix the file_path.")
+    # lexical containment (no symlink resolution): '..' cannot escape, but a symlinked photo folder inside works
+    root = Path(os.path.abspath(base))
+    path = Path(os.path.normpath(root / file_path))
+    if root not in path.parents:
+        raise InputError(
+            f"{source}: the image path '{file_path}' points outside the capture folder {root}. "
+            f"Image paths must be relative and stay inside the folder that holds the poses file."
+        )
+    try:
+        if path.is_file():
+            return path
+        for suffix in sorted(IMAGE_SUFFIXES) + [s.upper() for s in sorted(IMAGE_SUFFIXES)]:
+            candidate = path.with_name(path.name + suffix)
+            if candidate.is_file():
+                return candidate
+    except OSError as exc:  # e.g. a name too long for the file system
+        raise InputError(f"{source}: the image path '{file_path}' cannot be used ({exc.strerror}). Fix the file_path.") from None
     raise InputError(f"{source}: the image '{file_path}' does not exist (looked for {path}). Fix the path or add the file.")
 
 
@@ -266,7 +283,9 @@ def parse_frames(
         if "transform_matrix" not in fd:
             raise InputError(f"{source}: {what} has no 'transform_matrix'.")
         c2w = check_pose(_matrix(fd["transform_matrix"], (4, 4), source, f"{what} transform_matrix"), source, what)
-        path = resolve_image(base, fd.get("file_path"), source) if check_files else Path(fd.get("file_path", ""))
+        if not isinstance(fd.get("file_path"), str) or not fd["file_path"] or "\x00" in fd["file_path"]:
+            raise InputError(f"{source}: {what} has no usable 'file_path' (a relative path to its image).")
+        path = resolve_image(base, fd["file_path"], source) if check_files else Path(fd["file_path"])
         merged = {**doc, **fd}
         if "w" in merged and "h" in merged:
             w, h = int(_number(merged["w"], source, "w", True)), int(_number(merged["h"], source, "h", True))
@@ -373,8 +392,14 @@ def import_nerf_synthetic(folder: Path) -> Scene:
 def _has_alpha(frame: Frame) -> bool:
     from PIL import Image
 
-    with Image.open(frame.file_path) as img:
-        return img.mode in ("RGBA", "LA", "PA") or "transparency" in img.info
+    try:
+        with Image.open(frame.file_path) as img:
+            return img.mode in ("RGBA", "LA", "PA") or "transparency" in img.info
+    except (OSError, ValueError) as exc:  # PIL's UnidentifiedImageError is an OSError
+        raise InputError(
+            f"Cannot read the image {frame.file_path}: {exc}. The file is corrupt or not an image; "
+            f"fix the file_path or replace the file."
+        ) from None
 
 
 def frame_from_sfm(file_path: str, fd: dict, sx: float = 1.0, sy: float = 1.0) -> Frame:
@@ -438,10 +463,15 @@ def import_npz(path: Path, image_dir: Path) -> Scene:
         images, poses, focal = data["images"], data["poses"], data["focal"]
     except KeyError as exc:
         raise InputError(f"{path}: missing array {exc}; a NeRF .npz needs 'images', 'poses' and 'focal'.") from None
-    except (OSError, ValueError) as exc:
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
         raise InputError(f"Cannot read {path}: {exc}. Is it a NumPy .npz file?") from None
-    if images.ndim != 4 or images.shape[-1] not in (3, 4):
-        raise InputError(f"{path}: 'images' has shape {images.shape}; expected (N, H, W, 3 or 4).")
+    if images.dtype.kind not in "biuf" or poses.dtype.kind not in "biuf" or np.asarray(focal).dtype.kind not in "biuf":
+        raise InputError(f"{path}: 'images', 'poses' and 'focal' must be numeric arrays. Fix or regenerate the file.")
+    if images.ndim != 4 or images.shape[-1] not in (3, 4) or 0 in images.shape:
+        raise InputError(f"{path}: 'images' has shape {images.shape}; expected (N, H, W, 3 or 4) with no images "
+                         f"of zero size and N > 0 (the file holds no images otherwise).")
+    if np.asarray(focal).size == 0:
+        raise InputError(f"{path}: 'focal' is empty; it must hold the focal length in pixels.")
     n, h, w = images.shape[:3]
     if poses.shape not in ((n, 4, 4), (n, 3, 4)):
         raise InputError(f"{path}: 'poses' has shape {poses.shape}; expected ({n}, 4, 4) for the {n} images.")

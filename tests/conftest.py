@@ -5,8 +5,14 @@ import os
 from pathlib import Path
 
 import pytest
+from hypothesis import settings
 
 os.environ.setdefault("COLUMNS", "400")  # rich must not wrap the error messages tests look for
+
+# hypothesis: "ci" (few examples, no deadline: 2 shared cores make timings noisy) by default; "long" for
+# `pytest -m slow` or HYPOTHESIS_PROFILE=long
+settings.register_profile("ci", max_examples=15, deadline=None, print_blob=True)
+settings.register_profile("long", max_examples=300, deadline=None, print_blob=True)
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = REPO.parent / "shared" / "data"
@@ -22,3 +28,6 @@ def shared_data() -> Path:
 
 def pytest_configure(config: pytest.Config) -> None:
     config.addinivalue_line("markers", "slow: long runs kept out of the default suite (pytest -m slow)")
+    markexpr = config.getoption("markexpr", "") or ""
+    default = "long" if "slow" in markexpr and "not slow" not in markexpr else "ci"
+    settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", default))

@@ -48,14 +48,16 @@ class FastConfig:
     """Grid holding density: "dense" voxels (default, cheapest per sample), "vm" (TensoRF) or "hash"."""
     density_res: int = 128
     """Vertices per side of the density grid (levels' finest resolution for "hash")."""
-    grid: GridKind = "vm"
-    """Grid holding the color features: "dense", "vm" (TensoRF vector-matrix, default) or "hash"."""
+    grid: GridKind = "dense"
+    """Grid holding the color features: "dense" (default, fastest per sample here), "vm" (TensoRF) or "hash"."""
     feature_res: int = 128
     """Vertices per side of the feature grid (finest resolution for "hash")."""
     feature_dim: int = 12
     """Feature channels: dense = channels, vm = components per axis (3x channels out), hash = levels (x2)."""
-    dense_levels: int = 1
-    """Dense grids only: sum of this many grids, each half the resolution of the previous (coarse-to-fine)."""
+    density_levels: int = 3
+    """Dense density grid: sum of this many grids, each half the resolution of the previous (coarse-to-fine)."""
+    feature_levels: int = 1
+    """Dense feature grid: number of resolution levels, as density_levels."""
     color_model: Literal["mlp_view", "mlp", "direct"] = "mlp_view"
     """"mlp_view": MLP(features, SH(direction)); "mlp": view-independent MLP; "direct": sigmoid(features[:3])."""
     sh_degree: int = 2
@@ -191,12 +193,12 @@ class FastModel(RadianceModel):
         """World step along rays (in contracted units when unbounded)."""
 
         self.density_grid = _make_grid(
-            cfg.density_grid, cfg.density_res, 1 if cfg.density_grid == "dense" else 8, density=True, levels=cfg.dense_levels
+            cfg.density_grid, cfg.density_res, 1 if cfg.density_grid == "dense" else 8, density=True, levels=cfg.density_levels
         )
         s0 = -math.log1p(-cfg.init_alpha) / self.step_size  # initial density: opacity init_alpha per step
         self.density_bias = math.log(math.expm1(s0)) if cfg.density_activation == "softplus" else math.log(s0)
 
-        self.color_grid = _make_grid(cfg.grid, cfg.feature_res, cfg.feature_dim, density=False, levels=cfg.dense_levels)
+        self.color_grid = _make_grid(cfg.grid, cfg.feature_res, cfg.feature_dim, density=False, levels=cfg.feature_levels)
         feat = self.color_grid.out_dim
         if cfg.color_model == "direct":
             if feat < 3:

@@ -301,6 +301,8 @@ def train(
     state: dict[str, Any] | None = None,
     history_every: int = 100,
     autocast: torch.dtype | None = None,
+    budget_s: float = 0.0,
+    spent_s: float = 0.0,
 ) -> dict[str, Any]:
     """Optimize ``model`` on ``batcher``'s rays for ``steps`` steps (or the rest of them after a resume).
 

@@ -23,7 +23,7 @@ from recon.config import TrainConfig, parse_duration
 from recon.errors import ReconError
 from recon.field import FIELD_FILE, build_model, save_field
 from recon.images import read_image, undistort
-from recon.pipeline import Stage, StageContext, sha256_file, write_json_atomic
+from recon.pipeline import Stage, StageContext, fault_point, sha256_file, write_json_atomic
 from recon.scene import Frame, Scene, load_scene
 
 CHECKPOINT = "checkpoint.pt"
@@ -226,6 +226,7 @@ def _save_checkpoint(path: Path, state: dict[str, Any]) -> None:
         tmp.unlink(missing_ok=True)
         raise
     write_json_atomic(_checksum_path(path), {"sha256": digest, "size": path.stat().st_size})
+    fault_point("train/checkpoint")
 
 
 def _load_checkpoint(path: Path, report: Any) -> dict[str, Any] | None:
@@ -367,8 +368,8 @@ def run(ctx: StageContext) -> dict:
     }
     write_json_atomic(ctx.out / "metrics.json", metrics)
     training_curves(history, evals, ctx.out / "curves.png", title=f"{kind} model — test PSNR {final['psnr']:.2f} dB")
-    ckpt_path.unlink(missing_ok=True)
-    _checksum_path(ckpt_path).unlink(missing_ok=True)
+    # the checkpoint stays until the pipeline has recorded this stage as done (it then removes ctx.work):
+    # a crash between here and the manifest resumes from it instead of training again from step 0
     return {
         "headline": f"{kind} model, {result['step']} steps in {total_train_time:.0f} s: test PSNR {final['psnr']:.2f} dB, SSIM {final['ssim']:.3f} ({len(test_views)} views)",
         "psnr": round(final["psnr"], 3),

@@ -1,0 +1,259 @@
+"""Normalization at the extremes: invariance to any similarity of the source world, exact round trips back to
+the source frame (scene and exported mesh), and degenerate captures (a correct result or a clear InputError,
+never NaN in scene.json)."""
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from recon.config import NormalizeConfig
+from recon.errors import InputError
+from recon.normalization import normalize, similarity, transform_c2w
+from recon.scene import Frame, Scene, load_scene
+from recon.stages.mesh import export_transform
+
+
+def look_at(eye: np.ndarray, target: np.ndarray, up=(0.0, 0.0, 1.0)) -> np.ndarray:
+    """OpenGL camera-to-world (4, 4) at eye looking at target."""
+    back = (eye - target) / np.linalg.norm(eye - target)
+    right = np.cross(up, back)
+    right /= np.linalg.norm(right)
+    c2w = np.eye(4)
+    c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = right, np.cross(back, right), back, eye
+    return c2w
+
+
+def frame(i: int, c2w: np.ndarray) -> Frame:
+    return Frame(f"/p/{i:03d}.jpg", c2w, 400.0, 400.0, 200.0, 150.0, 400, 300)
+
+
+def ring(n: int = 16, radius: float = 4.0, n_points: int = 800, seed: int = 0) -> Scene:
+    """Cameras on a wavy ring around a blob of points at the origin (+Z up)."""
+    rng = np.random.default_rng(seed)
+    frames = []
+    for i in range(n):
+        az = 2 * np.pi * i / n
+        el = np.radians(20 + 15 * np.sin(3 * az))
+        eye = radius * np.array([np.cos(az) * np.cos(el), np.sin(az) * np.cos(el), np.sin(el)])
+        frames.append(frame(i, look_at(eye, np.zeros(3))))
+    points = rng.normal(size=(n_points, 3)) * 0.3
+    return Scene(frames=frames, points=points, point_colors=np.zeros((n_points, 3), np.uint8))
+
+
+def moved(scene: Scene, T: np.ndarray) -> Scene:
+    """The same capture seen in a world moved by the similarity T (4, 4)."""
+    frames = [Frame(**{**f.__dict__, "c2w": transform_c2w(T, f.c2w)}) for f in scene.frames]
+    return Scene(frames=frames, points=scene.points @ T[:3, :3].T + T[:3, 3], point_colors=scene.point_colors,
+                 point_visibility=scene.point_visibility)
+
+
+def quat_rotation(q: tuple[float, float, float, float]) -> np.ndarray:
+    w, x, y, z = np.asarray(q) / np.linalg.norm(q)
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+    ])
+
+
+def assert_scene_finite(scene: Scene) -> None:
+    """Everything that goes into scene.json / points.npz is finite."""
+    doc = scene.to_json()
+    json.dumps(doc, allow_nan=False)  # raises ValueError on NaN/inf anywhere in the document
+    assert np.all(np.isfinite(scene.points))
+    for f in scene.frames:
+        assert 0 < f.near < f.far < math.inf
+
+
+quaternions = st.tuples(*[st.floats(-1, 1) for _ in range(4)]).filter(lambda q: np.linalg.norm(q) > 0.1)
+log_scales = st.floats(-4, 4)
+offsets = st.tuples(*[st.sampled_from([0.0, 1.0, -1e3, 1e6, -1e6]) for _ in range(3)])
+
+
+@given(q=quaternions, log_scale=log_scales, offset=offsets)
+def test_normalize_is_invariant_to_any_similarity(q, log_scale: float, offset) -> None:
+    base = ring()
+    ref = normalize(base, NormalizeConfig())
+    scale = 10.0**log_scale
+    T = similarity(scale, quat_rotation(q), np.zeros(3))
+    T[:3, 3] = offset
+    src = moved(base, T)
+    out = normalize(src, NormalizeConfig())
+    assert out.capture == ref.capture == "object"
+    # float64 carries ~16 digits: an offset of 1e6 on a 1e-4 scene leaves ~6 significant digits of the ring
+    rel = 1e-6 + 1e-15 * max(np.abs(offset)) / scale
+    for a, b in zip(ref.frames, out.frames, strict=True):
+        np.testing.assert_allclose(b.c2w, a.c2w, atol=max(1e-6, 10 * rel))
+        assert b.near == pytest.approx(a.near, rel=max(1e-5, 10 * rel))
+        assert b.far == pytest.approx(a.far, rel=max(1e-5, 10 * rel))
+    np.testing.assert_allclose(out.aabb, ref.aabb, atol=max(1e-6, 10 * rel))
+    assert_scene_finite(out)
+    # the stored similarity maps every camera back onto the source exactly (to float64 rounding)
+    for f, s in zip(out.frames, src.frames, strict=True):
+        back = transform_c2w(out.source_from_world, f.c2w)
+        np.testing.assert_allclose(back[:3, 3], s.c2w[:3, 3], rtol=0, atol=1e-9 * (scale * 5 + max(np.abs(offset))))
+        np.testing.assert_allclose(back[:3, :3], s.c2w[:3, :3], atol=1e-9)
+
+
+@given(q=quaternions, log_scale=log_scales, offset=offsets, real_size=st.sampled_from([0.0, 0.25, 30.0]))
+def test_mesh_exported_in_source_frame_lands_on_the_source_points(q, log_scale: float, offset, real_size: float) -> None:
+    base = ring()
+    scale = 10.0**log_scale
+    T = similarity(scale, quat_rotation(q), np.zeros(3))
+    T[:3, 3] = offset
+    src = moved(base, T)
+    scene = normalize(src, NormalizeConfig())
+    # a "mesh" whose vertices are the normalized sparse points: frame="source" must return the source points
+    verts = scene.points.astype(np.float64)
+    transform, why = export_transform(verts, "source", scene.source_from_world, real_size)
+    assert "source frame" in why
+    mapped = verts @ transform[:3, :3].T + transform[:3, 3]
+    if real_size == 0:
+        np.testing.assert_allclose(mapped, src.points, rtol=0, atol=1e-9 * (scale + max(np.abs(offset))))
+    else:  # only a uniform scale about the source origin on top: the shape and the requested size are kept
+        side = np.ptp(mapped, axis=0).max()
+        assert side == pytest.approx(real_size, rel=1e-9)
+        np.testing.assert_allclose(mapped * (np.ptp(src.points, axis=0).max() / side), src.points,
+                                   rtol=0, atol=1e-7 * (scale + max(np.abs(offset))))
+
+
+def test_scene_json_round_trip_keeps_the_similarity_exact(tmp_path: Path) -> None:
+    T = similarity(3e-4, quat_rotation((0.3, -0.2, 0.9, 0.1)), np.zeros(3))
+    T[:3, 3] = (1e6, -2e5, 7.0)
+    src = moved(ring(), T)
+    scene = normalize(src, NormalizeConfig())
+    scene.save(tmp_path)
+    loaded = load_scene(tmp_path)
+    back = transform_c2w(loaded.source_from_world, loaded.frames[3].c2w)
+    np.testing.assert_allclose(back[:3, 3], src.frames[3].c2w[:3, 3], rtol=0, atol=1e-9)
+    json.loads((tmp_path / "scene.json").read_text(), parse_constant=lambda c: pytest.fail(f"{c} in scene.json"))
+
+
+# ----------------------------------------------------------------------------------------- degenerate captures
+BLOB = np.random.default_rng(1).normal(size=(400, 3)) * 0.3
+
+
+@pytest.mark.parametrize("with_points", [True, False])
+def test_rotation_only_capture_is_rejected_by_name(with_points: bool) -> None:
+    # every camera at one point, turning around: no parallax, no depth
+    frames = [frame(i, look_at(np.array([1e6, 0, 0]), np.array([1e6 + np.cos(a), np.sin(a), 0.1])))
+              for i, a in enumerate(np.linspace(0, 6, 12))]
+    pts = BLOB * 10 + [1e6, 0, 0] if with_points else np.zeros((0, 3))
+    with pytest.raises(InputError, match="same point.*rotation-only"):
+        normalize(Scene(frames=frames, points=pts), NormalizeConfig())
+
+
+@pytest.mark.parametrize("n", [1, 3])
+def test_a_single_viewpoint_is_rejected(n: int) -> None:
+    frames = [frame(i, look_at(np.array([4.0, 0, 1]), np.zeros(3))) for i in range(n)]
+    with pytest.raises(InputError, match="same point"):
+        normalize(Scene(frames=frames, points=BLOB), NormalizeConfig())
+
+
+@pytest.mark.parametrize("with_points", [True, False])
+def test_cameras_on_a_line_give_a_finite_scene(with_points: bool) -> None:
+    # a sideways sweep looking at the object, and a forward-facing dolly: both valid captures
+    sweep = [frame(i, look_at(np.array([4.0, i - 5.0, 0.5]), np.zeros(3))) for i in range(10)]
+    dolly = [frame(i, look_at(np.array([0.1 * i, 0, 0]), np.array([0.1 * i, 10.0, 0]))) for i in range(10)]
+    for frames in (sweep, dolly):
+        scene = normalize(Scene(frames=frames, points=BLOB if with_points else np.zeros((0, 3))), NormalizeConfig())
+        assert_scene_finite(scene)
+        assert np.abs(scene.aabb).max() == pytest.approx(1.0)
+        ups = np.stack([f.c2w[:3, 1] for f in scene.frames])
+        assert ups.mean(0)[2] > 0.9  # still upright
+
+
+def test_two_cameras_give_a_finite_scene() -> None:
+    frames = [frame(i, look_at(4 * np.array([np.cos(a), np.sin(a), 0.25]), np.zeros(3))) for i, a in enumerate([0, 0.5])]
+    for pts in (BLOB, np.zeros((0, 3))):
+        assert_scene_finite(normalize(Scene(frames=frames, points=pts), NormalizeConfig()))
+
+
+def test_points_at_infinity_are_dropped_and_visibility_renumbered() -> None:
+    base = ring()
+    pts = base.points.copy()
+    pts[[0, 5]] = np.inf
+    pts[7] = [np.nan, 1, 1]
+    pts[9] = [-np.inf, np.inf, 0]
+    vis = {base.frames[0].name: np.array([1, 5, 6, 8, 10])}
+    scene = normalize(Scene(frames=base.frames, points=pts, point_colors=np.arange(len(pts) * 3).reshape(-1, 3) % 255,
+                            point_visibility=vis), NormalizeConfig())
+    assert_scene_finite(scene)
+    assert len(scene.points) == len(pts) - 4
+    keep = np.all(np.isfinite(pts), axis=1)
+    # frame 0 still sees the same points after renumbering (5 is gone; 1, 6, 8, 10 remain)
+    seen = scene.points[scene.point_visibility[base.frames[0].name]]
+    T = scene.world_from_source
+    np.testing.assert_allclose(seen, pts[[1, 6, 8, 10]] @ T[:3, :3].T + T[:3, 3], atol=1e-12)
+    np.testing.assert_array_equal(scene.point_colors, (np.arange(len(pts) * 3).reshape(-1, 3) % 255)[keep])
+
+
+def test_one_far_outlier_point_does_not_change_the_box() -> None:
+    base = ring()
+    ref = normalize(base, NormalizeConfig())
+    pts = base.points.copy()
+    pts[3] = [1e12, -1e12, 1e12]
+    out = normalize(Scene(frames=base.frames, points=pts), NormalizeConfig())
+    np.testing.assert_allclose(out.aabb, ref.aabb, atol=0.02)
+    assert_scene_finite(out)
+    # forward-facing: the outlier is far beyond the scene; the percentile box ignores it
+    dolly = [frame(i, look_at(np.array([0.1 * i, 0, 0]), np.array([0.1 * i, 10.0, 0]))) for i in range(12)]
+    rng = np.random.default_rng(0)
+    fw = np.c_[rng.uniform(-3, 3, 500), rng.uniform(5, 30, 500), rng.uniform(-2, 2, 500)]
+    a = normalize(Scene(frames=dolly, points=fw), NormalizeConfig())
+    fw[0] = [0, 1e9, 0]
+    b = normalize(Scene(frames=dolly, points=fw), NormalizeConfig())
+    np.testing.assert_allclose(b.aabb, a.aabb, atol=0.02)
+    assert_scene_finite(b)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_top_down_cameras_with_random_roll_come_out_upright(seed: int) -> None:
+    # up vectors all horizontal in random directions (their mean can still be long): up is the normal of the
+    # plane of the camera centres, on the side the cameras look down from
+    rng = np.random.default_rng(seed)
+    frames = []
+    for i in range(12):
+        a = rng.uniform(0, 2 * np.pi)
+        eye = np.array([rng.uniform(-1, 1), rng.uniform(-1, 1), 5.0])
+        frames.append(frame(i, look_at(eye, np.array([0.0, 0, 0]), up=(np.cos(a), np.sin(a), 0))))
+    scene = normalize(Scene(frames=frames, points=BLOB), NormalizeConfig())
+    views = np.stack([-f.c2w[:3, 2] for f in scene.frames])
+    assert views.mean(0)[2] < -0.9, scene.notes["up"]  # cameras look down the new -Z
+
+
+def test_up_cannot_be_told_gives_a_clear_error_and_the_override_works() -> None:
+    # up vectors that cancel (±X, ±Y, ±Z, ±diagonal), centres on the corners of a cube (isotropic: no plane)
+    corners = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], dtype=float)
+    ups = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1], [1, 1, 1], [-1, -1, -1]], float)
+    frames = []
+    for i, (centre, up) in enumerate(zip(corners, ups, strict=True)):
+        up /= np.linalg.norm(up)
+        right = np.cross(up, [0.3, 0.5, 0.8])
+        right /= np.linalg.norm(right)
+        c2w = np.eye(4)
+        c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = right, up, np.cross(right, up), centre
+        frames.append(frame(i, c2w))
+    with pytest.raises(InputError, match="which way is up.*normalize.up"):
+        normalize(Scene(frames=frames, points=BLOB), NormalizeConfig())
+    assert_scene_finite(normalize(Scene(frames=frames, points=BLOB), NormalizeConfig(up="z")))
+
+
+@pytest.mark.parametrize("tilt", [0.0, 1e-12, 4e-6, 3e-5])
+def test_rotation_between_nearly_opposite_vectors_is_exact(tilt: float) -> None:
+    # regression: within ~4.5e-5 rad of opposite, the small tilt was dropped (180° flip only), which tilted the
+    # normalized scene of a world rotated by ~180° about a horizontal axis
+    from recon.normalization import rotation_between
+
+    a = np.array([0.0, np.sin(tilt), -np.cos(tilt)])
+    b = np.array([0.0, 0.0, 1.0])
+    R = rotation_between(a, b)
+    np.testing.assert_allclose(R @ a, b, rtol=0, atol=1e-15)
+    np.testing.assert_allclose(R.T @ R, np.eye(3), rtol=0, atol=1e-15)
+    assert np.linalg.det(R) == pytest.approx(1.0, abs=1e-15)
