@@ -15,23 +15,10 @@ from recon.errors import ReconError
 from recon.field import load_field
 from recon.images import save_image
 from recon.pipeline import write_json_atomic
-from recon.scene import Scene, load_scene
+from recon.scene import Scene, load_scene, look_at
 from recon.stages.train import View, evaluate, load_views, render_view
 
 PathKind = Literal["orbit", "spiral", "train", "test"]
-
-
-def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray = np.array([0.0, 0.0, 1.0])) -> np.ndarray:
-    """OpenGL camera-to-world at `eye` looking at `target` with +Z up."""
-    back = eye - target
-    back /= np.linalg.norm(back)
-    right = np.cross(up, back)
-    if np.linalg.norm(right) < 1e-9:
-        right = np.array([1.0, 0.0, 0.0])
-    right /= np.linalg.norm(right)
-    c2w = np.eye(4)
-    c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = right, np.cross(back, right), back, eye
-    return c2w
 
 
 def orbit_poses(scene: Scene, n: int, spiral: bool = False) -> list[np.ndarray]:

@@ -25,7 +25,7 @@ from typer.testing import CliRunner
 from recon.cli import app
 from recon.config import BOUNDS, RunConfig, load_config
 from recon.errors import ConfigError, InputError
-from recon.scene import Scene, import_npz, import_transforms, load_scene
+from recon.scene import look_at, Scene, import_npz, import_transforms, load_scene
 
 REPO = Path(__file__).resolve().parents[1]
 SAMPLE = REPO / "fixtures" / "sample"
@@ -53,15 +53,8 @@ def _rgb(path: Path, size: int = 32, seed: int = 0) -> None:
 
 def _pose(angle: float) -> list[list[float]]:
     """A camera 3 units from the origin on a circle, looking at it (OpenGL c2w)."""
-    c, s = math.cos(angle), math.sin(angle)
-    eye = np.array([3 * c, 3 * s, 0.5])
-    back = eye / np.linalg.norm(eye)
-    right = np.cross([0.0, 0.0, 1.0], back)
-    right /= np.linalg.norm(right)
-    up = np.cross(back, right)
-    m = np.eye(4)
-    m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = right, up, back, eye
-    return m.tolist()
+    eye = np.array([3 * math.cos(angle), 3 * math.sin(angle), 0.5])
+    return look_at(eye, np.zeros(3)).tolist()
 
 
 def _capture(folder: Path, n: int = 4) -> dict:

@@ -2,6 +2,8 @@
 from __future__ import annotations
 
 import numpy as np
+
+from recon.scene import look_at as scene_look_at
 import pytest
 import torch
 import trimesh
@@ -17,17 +19,9 @@ def texture(p: np.ndarray) -> np.ndarray:
     return 0.5 + 0.4 * np.sin(4.0 * p + np.array([0.0, 1.0, 2.0]))
 
 
-def look_at(eye: np.ndarray, up=(0.0, 0.0, 1.0)) -> np.ndarray:
-    """OpenGL c2w of a camera at eye looking at the origin (camera -Z forward, +Y up)."""
-    z = eye / np.linalg.norm(eye)  # camera +Z points away from the target
-    x = np.cross(up, z)
-    if np.linalg.norm(x) < 1e-6:
-        x = np.cross((0.0, 1.0, 0.0), z)
-    x /= np.linalg.norm(x)
-    c2w = np.eye(4)
-    c2w[:3, :3] = np.stack([x, np.cross(z, x), z], axis=1)
-    c2w[:3, 3] = eye
-    return c2w
+def look_at(eye: np.ndarray) -> np.ndarray:
+    """OpenGL c2w of a camera at eye looking at the origin."""
+    return scene_look_at(eye, np.zeros(3))
 
 
 def render(c2w: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

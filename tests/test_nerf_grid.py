@@ -139,3 +139,13 @@ def test_empty_batch(make) -> None:
     out = grid(torch.zeros(0, 3))
     assert out.shape == (0, grid.out_dim)
     out.sum().backward()
+
+
+def test_multi_dense_grid_is_the_sum_of_its_levels() -> None:
+    from recon.nerf.grid import MultiDenseGrid
+
+    grid = MultiDenseGrid(17, 2, levels=3, min_res=4, init_std=1.0)
+    assert grid.resolutions == [5, 9, 17]
+    x = _points(100)
+    ref = sum(trilinear_reference(g.volume().detach(), x) for g in grid.grids)
+    torch.testing.assert_close(grid(x), ref, rtol=1e-5, atol=1e-5)

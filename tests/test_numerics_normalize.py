@@ -15,18 +15,10 @@ from hypothesis import strategies as st
 from recon.config import NormalizeConfig
 from recon.errors import InputError
 from recon.normalization import normalize, similarity, transform_c2w
-from recon.scene import Frame, Scene, load_scene
+from recon.scene import look_at, Frame, Scene, load_scene
 from recon.stages.mesh import export_transform
 
 
-def look_at(eye: np.ndarray, target: np.ndarray, up=(0.0, 0.0, 1.0)) -> np.ndarray:
-    """OpenGL camera-to-world (4, 4) at eye looking at target."""
-    back = (eye - target) / np.linalg.norm(eye - target)
-    right = np.cross(up, back)
-    right /= np.linalg.norm(right)
-    c2w = np.eye(4)
-    c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = right, np.cross(back, right), back, eye
-    return c2w
 
 
 def frame(i: int, c2w: np.ndarray) -> Frame:

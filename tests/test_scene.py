@@ -10,19 +10,9 @@ import pytest
 from recon.config import NormalizeConfig
 from recon.errors import InputError
 from recon.normalization import normalize, rotation_between, similarity, transform_c2w
-from recon.scene import Frame, Scene, detect_source, import_nerf_synthetic, import_npz, import_transforms, load_scene
+from recon.scene import look_at, Frame, Scene, detect_source, import_nerf_synthetic, import_npz, import_transforms, load_scene
 
 
-def look_at(eye: np.ndarray, target: np.ndarray, up=(0.0, 0.0, 1.0)) -> np.ndarray:
-    """OpenGL camera-to-world looking from eye at target."""
-    back = eye - target
-    back = back / np.linalg.norm(back)
-    right = np.cross(up, back)
-    right /= np.linalg.norm(right)
-    cam_up = np.cross(back, right)
-    c2w = np.eye(4)
-    c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = right, cam_up, back, eye
-    return c2w
 
 
 def ring_scene(n: int = 24, radius: float = 4.0, seed: int = 0, with_points: bool = True) -> Scene:

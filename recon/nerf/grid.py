@@ -5,22 +5,36 @@ scene box, or the contracted [-2, 2]^3 box, onto it), and return features ``(M, 
 "align corners": a grid of ``R`` vertices per side puts vertex 0 at 0 and vertex ``R - 1`` at 1.
 
 Every encoder stores its values as a channels-last table ``(rows, C)`` and interpolates with one call of
-:func:`gather_interp` (``F.embedding_bag`` forward, ``index_add_`` backward): no custom CUDA, runs anywhere,
-CPU and GPU. Plain reference implementations (:func:`trilinear_reference`, :func:`hash_reference`) are
-slow per-corner loops that the tests compare the fast path against.
+:func:`gather_interp` (``F.embedding_bag`` forward, ``index_add_`` backward), except scalar dense grids,
+which use ``F.grid_sample`` on a view of the same storage: no custom CUDA, runs anywhere, CPU and GPU.
+Plain reference implementations (:func:`trilinear_reference`, :func:`hash_reference`) are slow
+per-corner loops that the tests compare the fast path against.
 
-Why embedding_bag + index_add (measured on this 2-core CPU, 300k points ordered along rays, 128^3 x 12,
-fwd + bwd + fused Adam, box shared with other jobs so absolute numbers are noisy):
-    grid_sample (N, C, D, H, W)          0.36 M points/s
-    autograd table[idx] gather           0.40 M points/s
-    embedding_bag (its own backward)     0.56 M points/s; its backward alone ~1.2 s (sort-based)
-    embedding_bag fwd + index_add bwd    see the benchmark table below
-Most of a big dense grid's step is *per-parameter* work, not per-point work: zeroing a 25 M-value gradient
-took ~136 ms and fused Adam ~77 ms per step here, whatever the batch. Small tables (VM factors, hash
-tables <= 2^17 rows) stay in cache and make the scatter-add backward cheap.
+Measurements on this shared 2-core CPU (2026-11; other jobs kept the load at 3-7, so absolute numbers are
+low and noisy; ratios taken back to back are the useful part). fwd+bwd+fused Adam on 200k points ordered
+along rays, then a fit of a 40-sphere RGB field (encoder + linear head, 300 steps x 8192 random points,
+Adam lr 0.05, PSNR on 50k held-out points):
 
-Benchmark (``python -m recon.nerf.grid`` prints it; numbers below from this machine, see report):
-BENCHMARK_TABLE
+    encoder              params   train Mpts/s (1 thr / 2 thr)   fwd Mpts/s   fit PSNR   fit time
+    dense 128^3 x 1      2.1 M    4.4 / 4.8                      15-16        -          -
+    dense 96^3 x 12      10.6 M   0.92 / 0.80                    3.6-4.7      25.2 dB    18 s
+    dense 128^3 x 12     25.2 M   0.66 / 0.57                    3.7-7.0      21.4 dB    23 s
+    multi-dense 3 levels 28.9 M   0.44 (2 thr)                   2.5          29.5 dB    30 s
+    VM 128 x 16 comps    0.79 M   0.34 / 0.30                    1.5-1.8      30.5 dB    11 s
+    hash 16 lv x 2, 2^17 3.2 M    0.12 / 0.10                    0.15-0.19    41.3 dB    31 s
+
+Two threads bought nothing here because the second core was busy with other jobs. Findings:
+* ``F.grid_sample`` vs this module's gather on the same points (CPU ms for 240k points): 1 channel
+  31 vs 50 fwd+bwd, 9 vs 34 fwd -> scalar grids use grid_sample; 12 channels 375 vs 217 fwd+bwd,
+  87 vs 41 fwd -> feature grids use the gather (channels-last rows are read and written contiguously).
+  ``F.embedding_bag``'s own backward (sort-based) was ~1.2 s for 2.4 M rows: ours uses ``index_add_``.
+* Building corner indices/weights as per-axis outer products instead of (M, 8, 3) temporaries made
+  the gather path 3x faster.
+* A big dense grid pays per *parameter* every step (zeroing a 25 M gradient ~20-130 ms, fused Adam
+  ~16-77 ms): at the small color batches of NeRF training that dominates, which is why the VM
+  factorization fits faster in wall time despite 3x the per-point cost. The hash encoding learns the
+  most per step but its 16 levels x 8 corners of integer work cost 5-8x a dense lookup on this CPU.
+* In the radiance field (recon.nerf.fast, Lego 200x200, same CPU budget) see that module's docstring.
 """
 from __future__ import annotations
 

@@ -37,7 +37,7 @@ from recon.geometry.extract import (
     marching_cubes,
 )
 from recon.pipeline import Stage, StageContext, write_json_atomic
-from recon.scene import Frame, Scene, load_scene
+from recon.scene import Frame, Scene, load_scene, look_at
 from recon.stages.train import View, load_views, render_view
 
 REPORT_FILE = "mesh_report.json"
@@ -279,10 +279,8 @@ def _look_rotation(azimuth_deg: float, elevation_deg: float) -> np.ndarray:
     """(3, 3) world→camera rotation rows (right, up, back) of a camera at (azimuth, elevation) around +Z,
     looking at the origin; azimuth 0 looks along +Y (the camera sits on -Y)."""
     az, el = math.radians(azimuth_deg), math.radians(elevation_deg)
-    back = np.array([-math.sin(az) * math.cos(el), -math.cos(az) * math.cos(el), math.sin(el)])
-    right = np.cross([0.0, 0.0, 1.0], back)
-    right /= np.linalg.norm(right)
-    return np.stack([right, np.cross(back, right), back])
+    eye = np.array([-math.sin(az) * math.cos(el), -math.cos(az) * math.cos(el), math.sin(el)])
+    return look_at(eye, np.zeros(3))[:3, :3].T
 
 
 def render_preview(
