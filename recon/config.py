@@ -100,6 +100,9 @@ class TrainConfig:
     """Seed for initialization, ray shuffling and sampling jitter."""
     device: str = "auto"
     """auto (CUDA when present), cpu, cuda or cuda:K."""
+    precision: Literal["fp32", "bf16"] = "fp32"
+    """bf16: the networks' matrix math in bfloat16 (autocast; volume rendering stays fp32). Faster on GPUs and
+    CPUs with AMX/AVX512-BF16, slower on older CPUs."""
     classic: ClassicConfig = field(default_factory=ClassicConfig)
     fast: FastConfig = field(default_factory=FastConfig)
     """The fast grid model's options (its box and boundedness are set from the scene)."""

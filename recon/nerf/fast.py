@@ -14,6 +14,21 @@ Design (DVGO-like, tuned for a small CPU; runs unchanged on CUDA):
 
 Coordinates: world = normalized scene frame. Bounded scenes map the ``aabb`` onto the grids'
 unit cube; unbounded ones contract (:mod:`recon.nerf.contraction`) into [-2, 2]^3 first.
+
+The trainer must call :meth:`FastModel.step_update` before every training step: it refreshes the
+occupancy grid, and until ``occupancy_warmup`` steps have passed training marches with coarse steps.
+
+Measured on the shared 2-core CPU (Lego half-res resized to 200x200, white background, aabb
+[-1.5, 1.5]^3, near 2, far 6, 4096 rays/step, Adam lr 1e-2 (grids 0.1), no lr decay, 5 test views;
+budgets in process CPU seconds because other jobs took 30-70% of the machine):
+
+    config (defaults unless named)              CPU budget  steps  samples/ray  test PSNR
+    default (3-level dense density, dense 128^3x12 features)   240 s     447    28.8     25.81 dB
+    grid="vm" (TensoRF 128, 12 comps)           240 s       341    28.9         25.06 dB
+    density_levels=1 (single 128^3 density)     ~150 s wall, 415 steps            23.01 dB
+    occupancy_alpha=0.01 (= init_alpha)         occupancy stuck at 44% of the box, ~100 samples/ray, 3x slower steps
+A coarse-to-fine density (3 levels) reached 22.2 dB at step 100 where a single 128^3 grid had 16.7 dB;
+occupancy culls to ~10% of the box after 16 steps and early termination leaves ~25-29 samples/ray.
 """
 from __future__ import annotations
 

@@ -20,6 +20,7 @@ import copy
 import itertools
 import math
 import time
+import warnings
 from dataclasses import dataclass, field
 from typing import Any, Callable, Iterable, Sequence
 
@@ -278,6 +279,40 @@ class TrainProgress:
         return self.state_fn()
 
 
+class StallDetector:
+    """Warns once when the batch PSNR has not risen after the first stretch of training.
+
+    A learning rate far too high can collapse a model to one flat color (no NaN, a loss that never
+    falls); far too low, nothing moves. Both are silent failures unless someone looks; this names them.
+    Compares the mean PSNR of steps 1–5 with that of the 5 steps before ``check_at``.
+    """
+
+    MIN_GAIN_DB = 0.5
+
+    def __init__(self, steps: int) -> None:
+        self.check_at = min(max(20, steps // 20), steps) if steps >= 20 else 0
+        self.first: list[float] = []
+        self.recent: list[float] = []
+
+    def observe(self, step: int, psnr: float, lr: float) -> None:
+        if not self.check_at or step > self.check_at:
+            return
+        if step <= 5:
+            self.first.append(psnr)
+        if step > self.check_at - 5:
+            self.recent.append(psnr)
+        if step == self.check_at:
+            start, now = sum(self.first) / len(self.first), sum(self.recent) / len(self.recent)
+            if now < start + self.MIN_GAIN_DB:
+                warnings.warn(
+                    f"training is not improving: batch PSNR {start:.2f} dB at the start, {now:.2f} dB after {step} "
+                    f"steps. The learning rate ({lr:.3g}) may be far too high (the model collapses to a flat color) "
+                    f"or far too low; try a value 10x lower or higher (--set train.lr=...).",
+                    UserWarning,
+                    stacklevel=3,
+                )
+
+
 def _diagnose(out: dict[str, Any], loss_terms: dict[str, Tensor]) -> str:
     bad = [name for name, v in loss_terms.items() if not torch.isfinite(v).all()]
     rgb_bad = not torch.isfinite(out["rgb"]).all()
@@ -357,6 +392,7 @@ def train(
     callbacks = list(callbacks)
     t0 = time.perf_counter()
     eval_s = 0.0
+    stall = StallDetector(steps) if start == 0 else StallDetector(0)
     try:
         for step in range(start, steps):
             fraction = None
@@ -393,6 +429,7 @@ def train(
             opt.step()
             done = step + 1
             psnr_v = float(mse_to_psnr(terms["rgb"].detach()))
+            stall.observe(done, psnr_v, cur_lr)
             if history_every and done % history_every == 0:
                 history.append((done, loss_v, psnr_v))
             if eval_fn is not None and eval_every and (done % eval_every == 0 or done == steps):

@@ -12,6 +12,7 @@ import json
 import math
 import os
 import time
+import warnings
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -155,14 +156,16 @@ def _tensor(views: list[View], device: torch.device) -> tuple[list[torch.Tensor]
     return images, c2w, intr, near_far
 
 
-def render_view(model: torch.nn.Module, view: View, aabb: torch.Tensor | None, background: np.ndarray, chunk: int = 8192) -> dict[str, np.ndarray]:
+def render_view(model: torch.nn.Module, view: View, aabb: torch.Tensor | None, background: np.ndarray, chunk: int = 8192,
+                autocast: torch.dtype | None = None) -> dict[str, np.ndarray]:
     """Render a view at its resolution → numpy rgb (H, W, 3), depth (H, W), opacity (H, W)."""
     from recon.nerf.trainer import render_image
 
     h, w = view.hw
     device = next(model.parameters()).device
     kwargs: dict[str, Any] = {"aabb": aabb} if aabb is not None else {"near": view.near, "far": view.far}
-    out = render_image(model, torch.tensor(view.c2w, dtype=torch.float32, device=device), view.intrinsics, h, w, chunk, background=torch.tensor(background), **kwargs)
+    out = render_image(model, torch.tensor(view.c2w, dtype=torch.float32, device=device), view.intrinsics, h, w, chunk,
+                       background=torch.tensor(background), autocast=autocast, **kwargs)
     return {k: v.detach().cpu().numpy() for k, v in out.items()}
 
 
@@ -173,13 +176,14 @@ def target_rgb(view: View, background: np.ndarray) -> np.ndarray:
     return img
 
 
-def evaluate(model: torch.nn.Module, views: list[View], aabb: torch.Tensor | None, background: np.ndarray, keep: bool = False) -> dict[str, Any]:
+def evaluate(model: torch.nn.Module, views: list[View], aabb: torch.Tensor | None, background: np.ndarray, keep: bool = False,
+             autocast: torch.dtype | None = None) -> dict[str, Any]:
     """PSNR/SSIM of renders against photos; with keep=True also the renders themselves."""
     from recon.metrics import psnr, ssim
 
     per_view, renders = [], []
     for view in views:
-        out = render_view(model, view, aabb, background)
+        out = render_view(model, view, aabb, background, autocast=autocast)
         gt = target_rgb(view, background)
         p = float(psnr(torch.from_numpy(out["rgb"]), torch.from_numpy(gt)))
         s = float(ssim(torch.from_numpy(out["rgb"]), torch.from_numpy(gt)))
@@ -263,6 +267,7 @@ def run(ctx: StageContext) -> dict:
     except ValueError as exc:
         raise ReconError(f"train.device={cfg.device}: {exc}") from None
     budget_s = parse_duration(cfg.budget)
+    autocast = torch.bfloat16 if cfg.precision == "bf16" else None
     torch.manual_seed(cfg.seed)
     scene = load_scene(ctx.inputs["normalize"])
     train_frames = scene.split("train")
@@ -301,7 +306,7 @@ def run(ctx: StageContext) -> dict:
 
     def eval_fn(m: torch.nn.Module, step: int) -> dict[str, float]:
         t = time.perf_counter()
-        r = evaluate(m, eval_views, aabb, background)
+        r = evaluate(m, eval_views, aabb, background, autocast=autocast)
         eval_time[0] += time.perf_counter() - t
         return {"psnr": r["psnr"], "ssim": r["ssim"]}
 
@@ -324,12 +329,17 @@ def run(ctx: StageContext) -> dict:
                 _save_checkpoint(ckpt_path, {"state": p.state_dict(), "evals": evals, "history": history, "train_time_s": train_time()})
 
         try:
-            result = train(
-                model, batcher, steps=cfg.steps, lr=lr, lr_final=lr * cfg.lr_decay, batch_rays=cfg.batch_rays,
-                eval_fn=eval_fn, eval_every=cfg.eval_every or cfg.steps, callbacks=[on_step],
-                state=checkpoint["state"] if checkpoint else None,
-                budget_s=budget_s, spent_s=time_before,
-            )
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always", UserWarning)
+                result = train(
+                    model, batcher, steps=cfg.steps, lr=lr, lr_final=lr * cfg.lr_decay, batch_rays=cfg.batch_rays,
+                    eval_fn=eval_fn, eval_every=cfg.eval_every or cfg.steps, callbacks=[on_step],
+                    state=checkpoint["state"] if checkpoint else None,
+                    budget_s=budget_s, spent_s=time_before, autocast=autocast,
+                )
+            for w in caught:
+                if "training is not improving" in str(w.message):
+                    ctx.report.warn(str(w.message))
         except TrainingInterrupted as stop:
             _save_checkpoint(ckpt_path, {"state": stop.state, "evals": evals, "history": history, "train_time_s": train_time()})
             raise KeyboardInterrupt from None
@@ -342,7 +352,7 @@ def run(ctx: StageContext) -> dict:
 
     test_views = load_views(scene, test_frames[: cfg.final_eval_views], cfg.max_side)
     with ctx.report.task("evaluating test views", total=None):
-        final = evaluate(model, test_views, aabb, background, keep=True)
+        final = evaluate(model, test_views, aabb, background, keep=True, autocast=autocast)
     write_previews(final.pop("renders"), ctx.out / "renders")
     meta = {
         "aabb": np.asarray(scene.aabb).tolist(),
