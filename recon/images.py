@@ -45,11 +45,15 @@ def unreadable(path: Path, exc: BaseException) -> InputError:
     )
 
 
-def _open(path: Path) -> Image.Image:
+def _open(path: Path, max_side: int | None = None) -> Image.Image:
+    """Decode (EXIF-oriented). With max_side, a JPEG is decoded at a reduced scale (1/2…1/8) that still
+    has at least max_side pixels on its long side, so a huge photo never occupies memory at full size."""
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("error", Image.DecompressionBombWarning)
             img = Image.open(path)
+            if max_side and img.format == "JPEG" and max(img.size) > 2 * max_side:
+                img.draft(img.mode, (max_side, max_side))  # keeps both sides >= the requested size
             img.load()
     except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as exc:
         raise unreadable(path, exc) from None
@@ -93,7 +97,13 @@ def to_array(img: Image.Image) -> np.ndarray:
 
 def read_image(path: Path, max_side: int | None = None) -> np.ndarray:
     """Read a photo as float32 (H, W, C) in [0, 1], EXIF-oriented, area-downscaled to `max_side` if larger."""
-    img = _open(path)
+    full_w, full_h = oriented_size(path)
+    if min(full_w, full_h) < MIN_SIDE:
+        raise InputError(
+            f"The image {path} is only {full_w}×{full_h} px; recon needs at least {MIN_SIDE} px on each side. "
+            f"Use the original photo, not a thumbnail."
+        )
+    img = _open(path, max_side)
     w, h = img.size
     if min(w, h) < MIN_SIDE:
         raise InputError(
