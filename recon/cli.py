@@ -90,6 +90,16 @@ def _config(preset: str | None, overrides: list[str] | None) -> RunConfig:
     return load_config(preset or DEFAULT_PRESET, overrides)
 
 
+def _recorded_preset(scene_dir: Path) -> str | None:
+    """The preset the scene was last run with (so `recon mesh SCENE` keeps the run's settings)."""
+    import json
+
+    try:
+        return json.loads((scene_dir / "manifest.json").read_text()).get("preset")
+    except (OSError, ValueError, AttributeError):
+        return None
+
+
 def _pipeline():
     from recon.stages import default_pipeline
 
@@ -119,6 +129,7 @@ def _run(
 ) -> None:
     install_sigterm_as_interrupt()
     with _guard(scene_dir):
+        preset = preset or _recorded_preset(scene_dir)
         config = _config(preset, overrides)
         report = Reporter(console, quiet=quiet)
         if not quiet:
@@ -131,6 +142,7 @@ def _run(
             from_stage=from_stage,
             until_stage=until_stage,
             force=force,
+            preset=preset or DEFAULT_PRESET,
         )
         if not quiet:
             _summary_table(outcomes, scene_dir)
@@ -181,7 +193,8 @@ def status(
     with _guard(scene):
         if not (scene / "manifest.json").is_file():
             raise ReconError(f"{scene} is not a recon scene folder (no manifest.json). Create one with `recon run PHOTOS --out {scene}`.")
-        config = _config(preset, set_)
+        # without options, "stale" means an upstream stage changed; with them, also "differs from these options"
+        config = _config(preset, set_) if (preset or set_) else None
         rows = _pipeline().state(scene, config)
         table = Table(title=f"recon status — {scene}")
         for col in ("stage", "state", "time", "finished", "result"):

@@ -316,11 +316,12 @@ class Pipeline:
         from_stage: str | None = None,
         until_stage: str | None = None,
         force: bool = False,
+        preset: str | None = None,
     ) -> list[StageOutcome]:
         """Run the selected stages in order, skipping those whose cache is valid.
 
         `from_stage` forces that stage to re-run (and what follows re-runs if its output changed);
-        `force` re-runs every selected stage.
+        `force` re-runs every selected stage; `preset` is recorded so later single-stage runs reuse it.
         """
         prepare_scene_dir(scene_dir)
         outcomes: list[StageOutcome] = []
@@ -331,6 +332,8 @@ class Pipeline:
             _remove_leftovers(scene_dir)
             if source is not None:
                 manifest.data["source"] = str(source)
+            if preset is not None:
+                manifest.data["preset"] = preset  # single-stage commands default to it
             source = source or _manifest_source(manifest)
             selected = self.select(from_stage, until_stage)
             for stage in selected:
