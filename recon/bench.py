@@ -61,7 +61,8 @@ def run_bench(
         config = load_config(preset, overrides)
         report.info(f"[bold]benchmark: {preset}[/] on {data}")
         t0 = time.perf_counter()
-        outcomes = pipeline.run(scene, config, report, source=source.resolve(), until_stage=until, from_stage="train")
+        outcomes = pipeline.run(scene, config, report, source=source.resolve(), until_stage=until, from_stage="train",
+                                preset=preset)
         wall = time.perf_counter() - t0
         metrics = json.loads((scene / "03_field" / "metrics.json").read_text())
         row: dict[str, Any] = {
