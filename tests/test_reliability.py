@@ -93,16 +93,30 @@ def test_sigkill_at_named_points_of_every_stage_resumes_to_the_same_result(
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("seed", [0, 1])
-def test_sigkill_at_seeded_random_times_inside_every_stage(capture: Path, reference: Path, tmp_path: Path, seed: int) -> None:
-    """Random SIGKILL delays after each stage starts (the timer fires wherever the process then is)."""
-    rng = random.Random(seed)
-    span = {"poses": 0.05, "normalize": 0.05, "train": 4.0, "mesh": 5.0}
-    chain = [f"{stage}/start:kill-after-{rng.uniform(0.0, span[stage]):.3f}" for stage in STAGES for _ in range(4)]
-    stats = kill_chain(capture, tmp_path / "scene", chain)
-    print(f"seed {seed}: {stats} over {len(chain)} random kill points")
-    assert stats["killed"] >= len(chain) // 2, stats
-    assert_same_result(tmp_path / "scene", reference)
+@pytest.mark.parametrize("stage", STAGES)
+def test_sigkill_at_seeded_random_times_inside_every_stage(capture: Path, reference: Path, tmp_path: Path, stage: str) -> None:
+    """Random SIGKILL delays after a stage starts (the timer fires wherever the process then is), each trial on a
+    fresh scene: the next run finishes, stages finished before the kill are not redone, the result matches."""
+    rng = random.Random(STAGES.index(stage))
+    span = {"poses": 0.05, "normalize": 0.05, "train": 4.0, "mesh": 5.0}[stage]
+    killed = 0
+    for trial in range(3):
+        scene = tmp_path / f"scene{trial}"
+        fault = f"{stage}/start:kill-after-{rng.uniform(0.0, span):.3f}"
+        first = run(capture, scene, fault=fault)
+        assert "Traceback" not in first.stderr, first.stderr
+        if first.returncode == 0:
+            continue  # the stage finished before the timer fired
+        assert first.returncode == -signal.SIGKILL, f"{fault}: exit {first.returncode}\n{first.stderr}"
+        killed += 1
+        done_before = finished_times(scene)
+        again = run(capture, scene)
+        assert again.returncode == 0, again.stderr
+        now = finished_times(scene)
+        assert all(now[s] == t for s, t in done_before.items()), f"{fault}: a finished stage was redone"
+        assert_same_result(scene, reference)
+    print(f"{stage}: {killed} of 3 random kills landed (timer started with the stage); every one resumed")
+    assert killed >= 1 or stage in ("poses", "normalize")
 
 
 def test_ctrl_c_stops_cleanly_and_the_same_command_resumes(capture: Path, reference: Path, tmp_path: Path) -> None:
