@@ -56,8 +56,8 @@ def _write_video(frames: list[np.ndarray], out: Path, fps: int) -> list[Path]:
                 writer.write(cv2.cvtColor((np.clip(f, 0, 1) * 255).astype(np.uint8), cv2.COLOR_RGB2BGR))
             writer.release()
             written.append(mp4)
-    except Exception:  # no codec on this machine: the GIF is enough
-        pass
+    except (ImportError, OSError, RuntimeError):  # no writer/codec on this machine: the GIF is enough
+        return written
     return written
 
 
