@@ -111,6 +111,6 @@ def write_results(rows: list[dict[str, Any]], out_dir: Path, data: str) -> None:
             line += f" {f1:.3f} |" if f1 is not None else " — |"
             line += f" {100 * ch:.2f}% |" if ch is not None else " — |"
         lines.append(line)
-    lines += ["", f"![PSNR vs time](bench.png)", ""]
+    lines += ["", "![PSNR vs time](bench.png)", ""]
     (out_dir / "bench.md").write_text("\n".join(lines))
     tradeoff_plot(rows, out_dir / "bench.png", title=f"held-out PSNR vs training time — {data}")

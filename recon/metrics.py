@@ -5,7 +5,6 @@ Geometry metrics (chamfer, F-score) live with the geometry code.
 """
 from __future__ import annotations
 
-import math
 
 import torch
 import torch.nn.functional as F

@@ -11,7 +11,6 @@ into place, and only then is the manifest (itself written atomically) updated.
 from __future__ import annotations
 
 import contextlib
-import dataclasses
 import errno
 import fcntl
 import hashlib

@@ -38,7 +38,7 @@ from recon.geometry.extract import (
 )
 from recon.pipeline import Stage, StageContext, write_json_atomic
 from recon.scene import Frame, Scene, load_scene, look_at
-from recon.stages.train import View, load_views, render_view
+from recon.stages.train import View, load_views, pixel_footprint, render_view
 
 REPORT_FILE = "mesh_report.json"
 MESH_STEM = "mesh"
@@ -58,17 +58,6 @@ def training_focal(frame: Frame, max_side: int) -> float:
     """Horizontal focal length (pixels) of a frame at the training resolution (photos downscaled to max_side)."""
     scale = min(1.0, max_side / max(frame.w, frame.h)) if max_side else 1.0
     return float(frame.fl_x * scale)
-
-
-def pixel_footprint(aabb: np.ndarray, centres: np.ndarray, focals: np.ndarray) -> tuple[float, float]:
-    """World size of one training pixel at the cameras' median distance to the box centre.
-
-    aabb: (2, 3) scene box; centres: (K, 3) camera centres (scene frame); focals: (K,) pixels.
-    Returns ``(footprint, median distance)`` in scene units.
-    """
-    box = np.asarray(aabb, np.float64)
-    dist = float(np.median(np.linalg.norm(np.asarray(centres, np.float64) - box.mean(axis=0), axis=1)))
-    return dist / float(np.median(focals)), dist
 
 
 def grid_shape(aabb: np.ndarray, resolution: int) -> tuple[int, int, int]:

@@ -8,6 +8,7 @@ resumes from it.
 """
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
@@ -61,13 +62,13 @@ def load_view(scene: Scene, frame: Frame, max_side: int, keep_alpha: bool) -> Vi
 
 
 def load_views(scene: Scene, frames: list[Frame], max_side: int, report: Any = None, what: str = "photos") -> list[View]:
+    """Every frame's photo at training resolution, with a progress bar when a reporter is given."""
     views = []
-    if report is None:
-        return [load_view(scene, f, max_side, scene.has_alpha) for f in frames]
-    with report.task(f"loading {what}", total=len(frames)) as bar:
+    with report.task(f"loading {what}", total=len(frames)) if report else contextlib.nullcontext() as bar:
         for f in frames:
             views.append(load_view(scene, f, max_side, scene.has_alpha))
-            bar.advance()
+            if bar is not None:
+                bar.advance()
     return views
 
 
@@ -94,7 +95,7 @@ def choose_background(cfg: TrainConfig, scene: Scene, views: list[View]) -> tupl
     return color.astype(np.float32), False, f"the photos' border color {np.round(color, 3).tolist()} (median of edge pixels)"
 
 
-def model_spec(cfg: TrainConfig, scene: Scene, views: list[View], steps: int) -> tuple[str, dict[str, Any], float, list[str]]:
+def model_spec(cfg: TrainConfig, scene: Scene, views: list[View]) -> tuple[str, dict[str, Any], float, list[str]]:
     """(model kind, constructor kwargs, learning rate, reasons) — the simplest model the scene needs."""
     aabb = np.asarray(scene.aabb, dtype=np.float64)
     reasons = []
@@ -104,7 +105,8 @@ def model_spec(cfg: TrainConfig, scene: Scene, views: list[View], steps: int) ->
         reasons.append(f"classic NeRF (train.model={cfg.model}): {c.depth}×{c.width} MLP, L={c.pos_freqs}/{c.dir_freqs}, {c.n_coarse}+{c.n_fine} samples")
         kwargs = {"aabb": aabb.tolist(), **asdict(c)}
         return kind, kwargs, cfg.lr or 5e-4, reasons
-    fast_cfg, why = auto_fast_config(cfg.fast, scene, pixel_footprint(scene, views))
+    footprint, _ = pixel_footprint(aabb, np.stack([v.c2w[:3, 3] for v in views]), np.array([v.intrinsics[0] for v in views]))
+    fast_cfg, why = auto_fast_config(cfg.fast, scene, footprint)
     reasons.append("fast grid model" + (" (train.model=auto: the practical choice on a CPU)" if cfg.model == "auto" else ""))
     reasons += why
     return kind, {"config": asdict(fast_cfg)}, cfg.lr or FAST_LR, reasons
@@ -140,12 +142,15 @@ def auto_fast_config(base: Any, scene: Scene, footprint: float) -> tuple[Any, li
     return cfg, reasons
 
 
-def pixel_footprint(scene: Scene, views: list[View]) -> float:
-    """World size of one training pixel at the median camera-to-box-centre distance."""
-    centre = np.asarray(scene.aabb).mean(axis=0)
-    dist = np.median([np.linalg.norm(v.c2w[:3, 3] - centre) for v in views])
-    focal = np.median([v.intrinsics[0] for v in views])
-    return float(dist / focal)
+def pixel_footprint(aabb: np.ndarray, centres: np.ndarray, focals: np.ndarray) -> tuple[float, float]:
+    """World size of one training pixel at the cameras' median distance to the box centre.
+
+    aabb: (2, 3) scene box; centres: (K, 3) camera centres (scene frame); focals: (K,) pixels.
+    Returns ``(footprint, median distance)`` in scene units. Used to size the field's grids and the mesh grid.
+    """
+    box = np.asarray(aabb, np.float64)
+    dist = float(np.median(np.linalg.norm(np.asarray(centres, np.float64) - box.mean(axis=0), axis=1)))
+    return dist / float(np.median(focals)), dist
 
 
 def _tensor(views: list[View], device: torch.device) -> tuple[list[torch.Tensor], torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -277,7 +282,7 @@ def run(ctx: StageContext) -> dict:
         raise ReconError("The scene has no training views. Re-run normalize (recon normalize SCENE).")
     views = load_views(scene, train_frames, cfg.max_side, ctx.report, "training photos")
     background, random_bg, bg_why = choose_background(cfg, scene, views)
-    kind, kwargs, lr, reasons = model_spec(cfg, scene, views, cfg.steps)
+    kind, kwargs, lr, reasons = model_spec(cfg, scene, views)
     if budget_s:
         reasons.append(f"time budget {cfg.budget}: at most {cfg.steps} steps, stopping when the budget is spent")
     ctx.report.info(f"device: {device}; background: {bg_why}")
