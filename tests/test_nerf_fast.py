@@ -7,6 +7,7 @@ import torch
 import pytest
 
 from recon.nerf.fast import FastConfig, FastModel, distortion_loss_packed, sh_encode
+from recon.nerf.grid import DenseGrid
 
 TINY = dict(density_res=24, feature_res=16, feature_dim=4, occupancy_res=8, occupancy_warmup=4,
             occupancy_every=2, mlp_width=16, mlp_layers=1)
@@ -185,3 +186,58 @@ def test_lego_100px_reaches_20db_in_150_steps(shared_data) -> None:
             rgb = model.render_rays(o, d, torch.full((n,), 2.0), torch.full((n,), 6.0), training=False, background=white)["rgb"]
             psnrs.append(-10 * math.log10(float((rgb.view(res, res, 3) - timgs[k]).square().mean())))
     assert sum(psnrs) / 2 > 20.0, psnrs
+
+
+def test_shrinking_the_grids_keeps_the_field_and_empties_the_outside() -> None:
+    """After the re-sample onto the occupied box, σ inside it is what it was (to interpolation error)."""
+    torch.manual_seed(0)
+    model = FastModel(FastConfig(**{**TINY, "density_res": 33, "feature_res": 33, "shrink_margin": 0.0}))
+    with torch.no_grad():
+        x = model.aabb[0] + (model.aabb[1] - model.aabb[0]) * torch.rand(4000, 3)
+        ball = lambda p: 8.0 * torch.exp(-(p.norm(dim=-1) / 0.5) ** 2)  # smooth field: small interpolation error
+        for level in model.density_grid.modules():
+            if isinstance(level, DenseGrid):
+                level.table.zero_()
+        first = model.density_grid.grids[-1]
+        lin = torch.linspace(0, 1, first.res)
+        u = torch.stack(torch.meshgrid(lin, lin, lin, indexing="ij"), -1).reshape(-1, 3)
+        first.table.copy_(ball(model.aabb[0] + u * (model.aabb[1] - model.aabb[0]))[:, None])
+        inner = torch.tensor([[-0.75] * 3, [0.75] * 3])
+        rgb_before = model.radiance(x, torch.nn.functional.normalize(torch.ones_like(x), dim=-1))
+        sigma_before = model.density(x)
+        assert model.shrink_grids(inner)
+        sigma_after = model.density(x)
+    torch.testing.assert_close(model.grid_box, inner)
+    inside = (x.abs() < 0.75).all(-1)
+    rel = (sigma_after[inside] - sigma_before[inside]).abs() / sigma_before[inside]
+    assert float(rel.max()) < 0.05
+    assert bool((sigma_after[~inside] == 0).all())
+    with torch.no_grad():
+        rgb_after = model.radiance(x[inside], torch.nn.functional.normalize(torch.ones_like(x[inside]), dim=-1))
+    assert float((rgb_after - rgb_before[inside]).abs().max()) < 0.05
+    assert not model.shrink_grids(torch.tensor([[-0.74] * 3, [0.74] * 3]))  # < 10% smaller: not worth it
+
+
+def test_shrink_happens_once_and_asks_for_fresh_optimizer_moments() -> None:
+    model = FastModel(FastConfig(**{**TINY, "density_levels": 1, "shrink_step": 6}))
+    with torch.no_grad():
+        model.density_grid.table.fill_(-30.0)
+        model.density_grid.volume()[10:14, 10:14, 10:14] = 30.0
+    moved = [model.step_update(step) for step in range(0, 16, 2)]
+    assert moved == [False, False, False, True, False, False, False, False]  # step 6: first refresh >= shrink_step
+    assert bool(model.shrunk)
+    assert float((model.grid_box[1] - model.grid_box[0]).max()) < 0.5 * float((model.aabb[1] - model.aabb[0]).max())
+    box = model.march_box  # marching never leaves the grids
+    assert bool((box[0] >= model.grid_box[0] - 1e-6).all() and (box[1] <= model.grid_box[1] + 1e-6).all())
+
+
+def test_density_is_counted_per_voxel_so_a_few_steps_make_a_surface_opaque() -> None:
+    """Adam moves a raw grid value by ~lr per step; per-voxel units make ~60 steps at lr 0.1 enough for an
+    opaque voxel, where world units (σ in the hundreds at real resolutions) would take thousands."""
+    model = FastModel(FastConfig(**{**TINY, "density_levels": 1}))
+    raw = torch.full((1, 1), 60 * 0.1)  # 60 steps of lr 0.1 above the initial value
+    with torch.no_grad():
+        model.density_grid.table.fill_(float(raw))
+    sigma = float(model.density(torch.zeros(1, 3)))
+    opacity_per_voxel = 1 - math.exp(-sigma * (model.aabb[1, 0] - model.aabb[0, 0]) / (model.config.density_res - 1))
+    assert opacity_per_voxel > 0.85

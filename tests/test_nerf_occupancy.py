@@ -158,3 +158,16 @@ def test_contracted_grid_covers_far_points() -> None:
     occ.update(lambda x: (x.norm(dim=-1) > 50).to(x.dtype) * 10, step=0)
     assert bool(occ.query(torch.tensor([[1000.0, 0.0, 0.0]]))[0])
     assert not bool(occ.query(torch.tensor([[0.1, 0.0, 0.0]]))[0])
+
+
+def test_core_aabb_leaves_out_scattered_floaters() -> None:
+    occ = OccupancyGrid(AABB, resolution=32, sigma_threshold=1.0, warmup_steps=0)
+    occ.update(lambda x: torch.zeros(x.shape[0]), step=0)
+    occ.occupied[10:20, 8:22, 12:18] = True  # the object
+    occ.occupied[20, 15, 15] = True  # a thin part touching it stays
+    occ.occupied[31, 1, 2] = True  # isolated floaters go
+    occ.occupied[0, 31, 31] = True
+    size = (AABB[1] - AABB[0]) / 32
+    expected = torch.stack([AABB[0] + size * torch.tensor([10, 8, 12]), AABB[0] + size * torch.tensor([21, 22, 18])])
+    torch.testing.assert_close(occ.core_aabb(), expected)
+    assert occ.occupied_aabb()[1, 0] == AABB[1, 0]  # the plain box still reaches the floaters

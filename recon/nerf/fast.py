@@ -41,7 +41,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from recon.nerf.contraction import contract
-from recon.nerf.grid import DenseGrid, HashGrid, MultiDenseGrid, VMGrid
+from recon.nerf.grid import DenseGrid, HashGrid, MultiDenseGrid, VMGrid, resample_dense
 from recon.nerf.occupancy import OccupancyGrid, density_threshold, march
 from recon.nerf.rays import ray_aabb
 from recon.nerf.render import RadianceModel, accumulate_packed, render_weights_packed
@@ -117,6 +117,12 @@ class FastConfig:
     """Background used when render_rays gets none; "learned" always uses the model's own color."""
     grid_lr_scale: float = 10.0
     """Grids train at lr * grid_lr_scale (the MLP at lr)."""
+    shrink_step: int = 64
+    """Bounded scenes with dense grids: at the first occupancy refresh from this step on, re-sample the grids
+    onto the box around the occupied cells (same parameter count, finer voxels where the object is;
+    CPU_NERF_NOTES lesson 3). 0 = never."""
+    shrink_margin: float = 0.05
+    """Margin added around the occupied box before shrinking, as a fraction of the scene box's extent."""
 
 
 def trunc_exp(x: Tensor, max_input: float = 15.0) -> Tensor:
@@ -202,7 +208,7 @@ class FastModel(RadianceModel):
             raise ValueError(f"FastConfig.aabb must be [[min x, y, z], [max x, y, z]] with max > min, got {cfg.aabb}")
         self.register_buffer("aabb", aabb)
         box = torch.tensor([[-2.0] * 3, [2.0] * 3]) if cfg.unbounded else aabb
-        self.register_buffer("grid_box", box)
+        self.register_buffer("grid_box", box.clone())  # shrink_grids moves it; aabb stays the scene box
         extent = float((box[1] - box[0]).max())
         self.step_size = cfg.step_ratio * extent / (cfg.density_res - 1)
         """World step along rays (in contracted units when unbounded)."""
@@ -210,7 +216,11 @@ class FastModel(RadianceModel):
         self.density_grid = _make_grid(
             cfg.density_grid, cfg.density_res, 1 if cfg.density_grid == "dense" else 8, density=True, levels=cfg.density_levels
         )
-        s0 = -math.log1p(-cfg.init_alpha) / self.step_size  # initial density: opacity init_alpha per step
+        self.density_scale = (cfg.density_res - 1) / extent
+        """σ = activation(raw) / voxel size: raw values count opacity per voxel, not per world unit. Adam moves
+        a raw value by about lr per step, so in world units (σ of hundreds for an opaque voxel) surfaces
+        would need thousands of steps to become sharp; per voxel a raw value of ~3 already is opaque."""
+        s0 = -math.log1p(-cfg.init_alpha) / self.step_size / self.density_scale  # opacity init_alpha per step
         self.density_bias = math.log(math.expm1(s0)) if cfg.density_activation == "softplus" else math.log(s0)
 
         self.color_grid = _make_grid(cfg.grid, cfg.feature_res, cfg.feature_dim, density=False, levels=cfg.feature_levels)
@@ -237,6 +247,7 @@ class FastModel(RadianceModel):
             contraction=cfg.unbounded,
         )
         self.register_buffer("march_box", aabb.clone())
+        self.register_buffer("shrunk", torch.zeros((), dtype=torch.bool))
         self.register_buffer("step", torch.zeros((), dtype=torch.long))
 
     # ------------------------------------------------------------------ fields
@@ -250,8 +261,8 @@ class FastModel(RadianceModel):
     def _sigma_unit(self, u: Tensor) -> Tensor:
         raw = self.density_grid(u).sum(-1) + self.density_bias
         if self.config.density_activation == "softplus":
-            return F.softplus(raw)
-        return trunc_exp(raw)
+            return F.softplus(raw) * self.density_scale
+        return trunc_exp(raw) * self.density_scale
 
     def _rgb_unit(self, u: Tensor, d: Tensor) -> Tensor:
         f = self.color_grid(u)
@@ -363,18 +374,54 @@ class FastModel(RadianceModel):
         return sum(terms) if terms else None
 
     # ------------------------------------------------------------------ training hooks
-    def step_update(self, step: int) -> None:
-        """Refresh the occupancy grid every ``occupancy_every`` steps (all vertices while warming up)."""
+    def step_update(self, step: int) -> bool:
+        """Refresh the occupancy grid every ``occupancy_every`` steps (all vertices while warming up), and
+        shrink the grids to the occupied box once (``shrink_step``). True when the grids were re-sampled."""
         cfg = self.config
         self.step.fill_(step)
         if step % cfg.occupancy_every != 0:
-            return
+            return False
+        moved = False
         warming = step < cfg.occupancy_warmup
         self.occupancy.update(self.density, step, share=1 if warming else 4, jitter=not warming)
         if bool(self.occupancy.warm):
             box = self.occupancy.occupied_aabb()
             if box is not None:
-                self.march_box.copy_(box)
+                if cfg.shrink_step and step >= cfg.shrink_step and not bool(self.shrunk):
+                    self.shrunk.fill_(True)
+                    core = self.occupancy.core_aabb()
+                    moved = self.shrink_grids(core if core is not None else box)
+                # march only where the grids are: outside them a sample would read the clamped border
+                self.march_box.copy_(torch.stack((torch.maximum(box[0], self.grid_box[0]), torch.minimum(box[1], self.grid_box[1]))))
+        return moved
+
+    @torch.no_grad()
+    def shrink_grids(self, occupied: Tensor) -> bool:
+        """Re-sample the dense grids onto ``occupied`` (2, 3) plus a margin, inside the scene box.
+
+        ``occupied`` comes from :meth:`OccupancyGrid.core_aabb`: clusters of early floaters are left
+        outside, where the field is then empty for good.
+
+        The field keeps its values (trilinear re-sampling) while its voxels get smaller by the ratio of
+        the boxes' extents. Returns True when the grids moved (the optimizer's moments are then stale).
+        """
+        cfg = self.config
+        if cfg.unbounded or any(isinstance(m, (VMGrid, HashGrid)) for m in (self.density_grid, self.color_grid)):
+            return False
+        old = self.grid_box.clone()
+        pad = cfg.shrink_margin * float((self.aabb[1] - self.aabb[0]).max())
+        new = torch.stack((torch.maximum(occupied[0] - pad, old[0]), torch.minimum(occupied[1] + pad, old[1])))
+        if bool((new[1] - new[0] >= 0.9 * (old[1] - old[0])).all()):
+            return False  # nothing worth gaining
+
+        def old_from_new(u: Tensor) -> Tensor:
+            return (new[0] + u * (new[1] - new[0]) - old[0]) / (old[1] - old[0])
+
+        for grid in (*self.density_grid.modules(), *self.color_grid.modules()):
+            if isinstance(grid, DenseGrid):
+                resample_dense(grid, old_from_new)
+        self.grid_box.copy_(new)
+        return True
 
     def param_groups(self, lr: float) -> list[dict[str, Any]]:
         """Grids (and the learned background) at lr * grid_lr_scale, the color MLP at lr."""

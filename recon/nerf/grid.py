@@ -39,6 +39,7 @@ Two threads bought nothing here because the second core was busy with other jobs
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import torch
 import torch.nn.functional as F
@@ -163,6 +164,22 @@ class DenseGrid(nn.Module):
         base = (ijk[:, 0] * r + ijk[:, 1]) * r + ijk[:, 2]
         v0 = self.table[base]
         return sum(((self.table[base + s] - v0) ** 2).mean() for s in (r * r, r, 1)) / 3.0
+
+
+@torch.no_grad()
+def resample_dense(grid: DenseGrid, old_from_new: Callable[[Tensor], Tensor], chunk: int = 1 << 18) -> None:
+    """Re-sample a dense grid in place after its box moved: vertex ``u`` of the new grid takes the old
+    grid's value at ``old_from_new(u)`` (unit-cube coordinates, (M, 3) -> (M, 3)). Shapes are unchanged,
+    so optimizers and checkpoints stay valid; values outside the old box take the clamped border value.
+    """
+    r = grid.res
+    lin = torch.linspace(0.0, 1.0, r, device=grid.table.device)
+    new_table = torch.empty_like(grid.table)
+    for s in range(0, r**3, chunk):
+        idx = torch.arange(s, min(s + chunk, r**3), device=lin.device)
+        u = torch.stack((lin[idx // (r * r)], lin[(idx // r) % r], lin[idx % r]), dim=-1)
+        new_table[s : s + idx.shape[0]] = grid(old_from_new(u)).to(new_table.dtype)
+    grid.table.copy_(new_table)
 
 
 class MultiDenseGrid(nn.Module):

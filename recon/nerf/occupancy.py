@@ -26,6 +26,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 
+import numpy as np
 import torch
 from torch import Tensor, nn
 
@@ -151,6 +152,27 @@ class OccupancyGrid(nn.Module):
     def occupied_fraction(self) -> float:
         """Share of occupied cells, in [0, 1]."""
         return float(self.occupied.float().mean())
+
+    def core_aabb(self, min_fraction: float = 0.01) -> Tensor | None:
+        """World box (2, 3) around the connected clusters of occupied cells (26-connectivity) that hold at
+        least ``min_fraction`` of them: the object without the scattered floaters of early training.
+        None if unbounded or nothing is occupied."""
+        from scipy import ndimage
+
+        if self.contraction:
+            return None
+        occ = self.occupied.cpu().numpy()
+        labels, n = ndimage.label(occ, structure=np.ones((3, 3, 3), bool))
+        if n == 0:
+            return None
+        sizes = np.bincount(labels.ravel())[1:]
+        keep = np.flatnonzero(sizes >= min_fraction * sizes.sum()) + 1
+        idx = np.argwhere(np.isin(labels, keep))
+        lo, hi = idx.min(0), idx.max(0) + 1
+        size = (self.box[1] - self.box[0]) / self.res
+        lo_t = torch.as_tensor(lo, dtype=self.box.dtype, device=self.box.device)
+        hi_t = torch.as_tensor(hi, dtype=self.box.dtype, device=self.box.device)
+        return torch.stack((self.box[0] + lo_t * size, self.box[0] + hi_t * size))
 
     def occupied_aabb(self) -> Tensor | None:
         """World box (2, 3) around the occupied cells (None if unbounded or nothing is occupied)."""

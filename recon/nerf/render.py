@@ -338,8 +338,13 @@ class RadianceModel(nn.Module, abc.ABC):
     def radiance(self, x: Tensor, d: Tensor) -> Tensor:
         """RGB (M, 3) in [0, 1] emitted at x (M, 3) towards unit view directions d (M, 3)."""
 
-    def step_update(self, step: int) -> None:
-        """Per-step hook called by the trainer before each step (e.g. occupancy refresh); no-op here."""
+    def step_update(self, step: int) -> bool:
+        """Per-step hook called by the trainer before each step (e.g. occupancy refresh); no-op here.
+
+        Returns True when it moved parameters in a way that makes the optimizer's moments stale
+        (e.g. grids re-sampled onto a new box); the trainer then resets them.
+        """
+        return False
 
     def param_groups(self, lr: float) -> list[dict[str, Any]]:
         """Adam parameter groups; one group at ``lr`` by default. Override for per-part rates."""

@@ -405,7 +405,8 @@ def train(
             for g in opt.param_groups:
                 g["lr"] = g["initial_lr"] * cur_lr / lr
             model.train()
-            model.step_update(step)
+            if model.step_update(step):
+                opt.state.clear()  # grids were re-sampled: old Adam moments point at other places
             batch = batcher.next_batch(batch_rays)
             with torch.autocast(batch["rgb"].device.type, dtype=autocast or torch.bfloat16, enabled=autocast is not None):
                 out = model.render_rays(batch["rays_o"], batch["rays_d"], batch["near"], batch["far"],
