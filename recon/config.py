@@ -128,6 +128,10 @@ class MeshConfig:
     """Taubin smoothing iterations (0: none)."""
     target_faces: int = 300000
     """Decimate to this many faces (0: keep all)."""
+    carve: bool = False
+    """Before marching cubes, empty the space the photos see through and fill what every photo sees as
+    hidden behind the surface (uses the baking views' depth). Off by default: on the shipped sample's
+    4-minute field it raised recall (0.78 → 0.87) but cost precision (0.73 → 0.40), F@1% 0.755 → 0.543."""
     color: Literal["photos", "field"] = "photos"
     """Per-vertex color: baked from the photos (depth-tested), or queried from the field."""
     frame: Literal["normalized", "source"] = "normalized"

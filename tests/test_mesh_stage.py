@@ -17,6 +17,7 @@ from torch import Tensor, nn
 from recon.config import MeshConfig
 from recon.geometry.compare import chamfer_fscore
 from recon.geometry.export import Z_UP_TO_Y_UP
+from recon.geometry.extract import density_grid, grid_spacing
 from recon.mesh_eval import compare_to_gt, format_comparison
 from recon.nerf.render import RadianceModel, render_dense
 from recon.nerf.sampling import stratified
@@ -156,13 +157,15 @@ def test_colors_baked_from_rendered_photos_match_the_analytic_color() -> None:
         model, torch.tensor(AABB, dtype=torch.float32), (97, 97, 97), MeshConfig(), Reporter(quiet=True)
     )
     normals = trimesh.Trimesh(v, f, process=False).vertex_normals
-    colors, bake = mesh_stage.bake_colors(model, views, v, normals, torch.tensor(AABB, dtype=torch.float32), BACKGROUND)
+    maps = mesh_stage.render_depths(model, views, torch.tensor(AABB, dtype=torch.float32), BACKGROUND, None, Reporter(quiet=True))
+    depths = [m[0] for m in maps]
+    colors, bake = mesh_stage.bake_colors(model, views, depths, v, normals)
     err = np.abs(colors - sphere_color(v.astype(np.float64))).max(axis=1)
     assert bake["views"] == 8 and bake["seen"] > 0.9 * len(v)  # the depth test keeps the visible surface
     assert np.median(err) < 0.02 and np.percentile(err, 95) < 0.06
     # the photos, not the fallback, made the colors: a field with wrong colors bakes the same
     model.radiance = lambda x, d: torch.zeros(x.shape[0], 3)  # type: ignore[method-assign]
-    colors_2, _ = mesh_stage.bake_colors(model, views, v, normals, torch.tensor(AABB, dtype=torch.float32), BACKGROUND)
+    colors_2, _ = mesh_stage.bake_colors(model, views, depths, v, normals)
     seen = np.any(colors_2 > 0, axis=1)
     np.testing.assert_allclose(colors_2[seen], colors[seen], atol=1e-6)
 
@@ -171,8 +174,8 @@ def test_depth_is_rendered_small_and_upsampled_to_the_view() -> None:
     model = SoftSphere(amplitude=3000.0, width=0.004, samples=128)
     view = ring_views(model, n=1, size=40)[0]
     full = render_view(model, view, torch.tensor(AABB, dtype=torch.float32), BACKGROUND)["depth"]
-    small = mesh_stage.render_depth(model, view, torch.tensor(AABB, dtype=torch.float32), BACKGROUND, max_side=20)
-    assert small.shape == full.shape
+    small, opacity = mesh_stage.render_depth(model, view, torch.tensor(AABB, dtype=torch.float32), BACKGROUND, max_side=20)
+    assert small.shape == full.shape == opacity.shape
     assert np.median(np.abs(small - full)) < 0.02  # equal away from the silhouette
 
 
@@ -310,3 +313,29 @@ def test_stage_field_colors_and_normalized_frame(tmp_path: Path, monkeypatch: py
     scale = report["export"]["transform"][0][0]
     rgb = np.asarray(ply.visual.vertex_colors)[:, :3] / 255.0
     np.testing.assert_allclose(rgb, sphere_color(ply.vertices / scale), atol=3 / 255)
+
+
+def test_carving_empties_floaters_in_front_and_fills_a_hollow_inside() -> None:
+    """A sphere shell with a floater in front of it: carving with the ring views' depth removes the floater
+    and makes the hollow inside solid, so marching cubes gives one outer surface."""
+    model = SoftSphere(amplitude=3000.0, width=0.004, samples=384)
+    views = ring_views(model)
+    aabb_t = torch.tensor(AABB, dtype=torch.float32)
+    maps = mesh_stage.render_depths(model, views, aabb_t, BACKGROUND, None, Reporter(quiet=True))
+    n = 65
+    grid = density_grid(model.density, aabb_t, n)
+    level = 0.5 * float(grid.max())
+    lin = np.linspace(AABB[0][0], AABB[1][0], n)
+    x, y, z = np.meshgrid(lin, lin, lin, indexing="ij")
+    r = np.sqrt(x**2 + y**2 + z**2)
+    hollow = r < 0.6 * float(r[grid > level].max())  # well inside the (solid) ball
+    grid[hollow] = 0.5 * level  # a soft inside below the level: marching cubes would find an inner surface
+    c2w0 = views[0].c2w
+    towards_cam = c2w0[:3, 3] / np.linalg.norm(c2w0[:3, 3])
+    floater = np.linalg.norm(np.stack([x, y, z], -1) - 0.8 * towards_cam, axis=-1) < 0.08
+    grid[floater] = 2 * level  # a blob between the first camera and the sphere
+    cell = float(grid_spacing(AABB, n).max())
+    carve = mesh_stage.carve_with_views(views, maps, np.asarray(AABB), 2 * cell)
+    out, info = carve(grid.copy(), level)
+    assert (out[floater] == 0).all() and info["emptied"] > 0
+    assert (out[hollow] >= 2 * level).mean() > 0.9 and info["filled"] > 0

@@ -30,6 +30,7 @@ from recon.geometry.clean import clean_mesh
 from recon.geometry.color import colors_from_field, colors_from_photos
 from recon.geometry.export import export_mesh
 from recon.geometry.extract import (
+    carve_by_views,
     auto_iso_level,
     density_grid,
     density_grid_sparse,
@@ -51,6 +52,9 @@ CPU_DEPTH_SIDE = {"fast": 200, "classic": 64}
 """On the CPU depth maps for baking are rendered at most this many pixels on the longest side."""
 DENSITY_CHUNK = 2**16
 """Points per model.density call (the models are not chunked themselves)."""
+CARVE_TOL_CELLS = 2.0
+"""Carving tolerance in mesh cells: nodes this far in front of / behind a view's rendered depth are seen
+through / hidden (rendered depth of a sharp surface is accurate to about a cell)."""
 
 
 # ---------------------------------------------------------------------------------------- resolution
@@ -114,14 +118,16 @@ def _counting(density_fn: Callable[[torch.Tensor], torch.Tensor], bar: Any) -> C
 
 
 def extract_mesh(
-    model: torch.nn.Module, aabb: torch.Tensor, shape: tuple[int, int, int], cfg: MeshConfig, report: Any
+    model: torch.nn.Module, aabb: torch.Tensor, shape: tuple[int, int, int], cfg: MeshConfig, report: Any,
+    carve: Callable[[np.ndarray, float], tuple[np.ndarray, dict]] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, dict]:
     """Density grid over aabb (2, 3) (on aabb's device) → iso-level → marching cubes.
 
     ``model.density(x (M, 3)) -> (M,)`` in 1/scene unit. Coarse-to-fine (``cfg.coarse_to_fine``) needs
     the level before the fine grid: it is estimated with `auto_iso_level` on a 64³ preview grid (same
     rule, the fine cell size) unless ``cfg.iso > 0`` gives it; grids under 127 nodes a side are
-    evaluated densely (a coarse block would be one cell, so refinement saves nothing). Returns vertices (V, 3) float32 and
+    evaluated densely (a coarse block would be one cell, so refinement saves nothing). ``carve(grid, level)``, when
+    given, cleans the grid with what the photos saw before marching cubes. Returns vertices (V, 3) float32 and
     faces (F, 3) int64 in the scene frame, and info (grid, iso and its reason, counts, timings).
     """
     cell = float(grid_spacing(aabb, shape).max())
@@ -156,6 +162,14 @@ def extract_mesh(
         info["time_grid_s"] = round(time.perf_counter() - t0, 3)
         info["iso"], info["iso_reason"] = float(level), why
         report.info(f"density grid: {info['evaluated']:,} of {dense:,} nodes evaluated in {info['time_grid_s']:.1f} s; {why}")
+        if carve is not None:
+            t1 = time.perf_counter()
+            with report.task("carving with the photos' depth", total=None):
+                grid, info["carve"] = carve(grid, level)
+            info["carve"]["time_s"] = round(time.perf_counter() - t1, 3)
+            c = info["carve"]
+            report.info(f"carving: {c['emptied']:,} nodes seen through emptied, {c['filled']:,} hidden inside filled "
+                        f"({c['views']} views, tolerance {c['tol']:.3g} units)")
         t1 = time.perf_counter()
         vertices, faces = marching_cubes(grid, level, aabb)
         info["time_marching_cubes_s"] = round(time.perf_counter() - t1, 3)
@@ -181,49 +195,62 @@ def spread_evenly(items: Sequence[Any], k: int) -> list[Any]:
 
 def render_depth(
     model: torch.nn.Module, view: View, aabb: torch.Tensor | None, background: np.ndarray, max_side: int | None = None
-) -> np.ndarray:
-    """Expected ray distance (H, W) of the view at its own size, rendered at most ``max_side`` pixels
-    on the longest side and upsampled nearest (each full-size pixel takes the low-res pixel it lies in)."""
+) -> tuple[np.ndarray, np.ndarray]:
+    """Expected ray distance and opacity (H, W) of the view at its own size, rendered at most ``max_side``
+    pixels on the longest side and upsampled nearest (each full-size pixel takes the low-res pixel it lies in)."""
     h, w = view.hw
     scale = min(1.0, max_side / max(h, w)) if max_side else 1.0
     if scale >= 1.0:
-        return render_view(model, view, aabb, background)["depth"]
+        out = render_view(model, view, aabb, background)
+        return out["depth"], out["opacity"]
     h2, w2 = max(1, round(h * scale)), max(1, round(w * scale))
     sx, sy = w2 / w, h2 / h
     fx, fy, cx, cy = view.intrinsics
     small = View(view.name, np.zeros((h2, w2, 3), np.uint8), view.c2w, (fx * sx, fy * sy, cx * sx, cy * sy), view.near, view.far)
-    depth = render_view(model, small, aabb, background)["depth"]
+    out = render_view(model, small, aabb, background)
     rows = np.minimum(((np.arange(h) + 0.5) * sy).astype(np.int64), h2 - 1)
     cols = np.minimum(((np.arange(w) + 0.5) * sx).astype(np.int64), w2 - 1)
-    return depth[rows[:, None], cols[None, :]]
+    return out["depth"][rows[:, None], cols[None, :]], out["opacity"][rows[:, None], cols[None, :]]
+
+
+def render_depths(
+    model: torch.nn.Module, views: Sequence[View], aabb: torch.Tensor | None, background: np.ndarray,
+    max_side: int | None, report: Any,
+) -> list[tuple[np.ndarray, np.ndarray]]:
+    """(depth, opacity) maps of every view (`render_depth`), with a progress bar: shared by carving and baking."""
+    maps = []
+    with report.task("rendering depth of the photos' views", total=len(views), unit="views") as bar:
+        for v in views:
+            maps.append(render_depth(model, v, aabb, background, max_side))
+            bar.advance()
+    return maps
+
+
+def carve_with_views(views: Sequence[View], maps: Sequence[tuple[np.ndarray, np.ndarray]], aabb: np.ndarray,
+                     tol: float) -> Callable[[np.ndarray, float], tuple[np.ndarray, dict]]:
+    """The ``carve`` step of `extract_mesh`: `carve_by_views` with these views' rendered maps."""
+    def carve(grid: np.ndarray, level: float) -> tuple[np.ndarray, dict]:
+        return carve_by_views(
+            grid, aabb, level, [m[0] for m in maps], [m[1] for m in maps],
+            np.stack([v.c2w for v in views]), np.asarray([v.intrinsics for v in views], np.float64), tol,
+        )
+    return carve
 
 
 def bake_colors(
     model: torch.nn.Module,
     views: Sequence[View],
+    depths: Sequence[np.ndarray],
     vertices: np.ndarray,
     normals: np.ndarray,
-    aabb: torch.Tensor | None,
-    background: np.ndarray,
-    depth_max_side: int | None = None,
-    report: Any = None,
 ) -> tuple[np.ndarray, dict]:
     """Vertex colors (V, 3) float32 sRGB from the photos, occlusion-tested against the field's depth.
 
-    Each view's depth (distance along the unit ray, scene units) is rendered from the field
-    (`render_depth`); `colors_from_photos` keeps the samples whose vertex distance matches it.
-    Vertices no view sees take the field's color. vertices, normals: (V, 3) scene frame, normals
-    outward; views: photos at training size (uint8 images, OpenGL c2w). ``aabb`` None: unbounded
-    scene, rendered between each view's near/far.
+    ``depths``: each view's rendered ray distance (`render_depths`); `colors_from_photos` keeps the
+    samples whose vertex distance matches it. Vertices no view sees take the field's color.
+    vertices, normals: (V, 3) scene frame, normals outward; views: photos at training size (uint8
+    images, OpenGL c2w).
     """
-    depths = []
-    if report is not None:
-        with report.task("rendering depth for color baking", total=len(views), unit="views") as bar:
-            for v in views:
-                depths.append(render_depth(model, v, aabb, background, depth_max_side))
-                bar.advance()
-    else:
-        depths = [render_depth(model, v, aabb, background, depth_max_side) for v in views]
     colors, seen = colors_from_photos(
         vertices,
         normals,
@@ -369,8 +396,29 @@ def run(ctx: StageContext) -> dict:
     shape, res_why = choose_resolution(aabb, cfg, footprint, fp_why)
     ctx.report.info(f"resolution: {res_why}")
 
+    kind = "classic" if meta.get("kind") == "classic" else "fast"
+    bounded = meta.get("bounded", True)
+    views: list[View] = []
+    maps: list[tuple[np.ndarray, np.ndarray]] = []
+    if cfg.color == "photos" or cfg.carve:
+        t = time.perf_counter()
+        limit = CPU_BAKE_VIEWS[kind] if device.type == "cpu" else 0
+        depth_side = CPU_DEPTH_SIDE[kind] if device.type == "cpu" else None
+        views = load_views(scene, spread_evenly(train_frames, limit), max_side, ctx.report, "photos for carving and colors")
+        maps = render_depths(model, views, aabb_t if bounded else None, background, depth_side, ctx.report)
+        timings["depth_s"] = round(time.perf_counter() - t, 3)
+        view_note = f"{len(views)} of {len(train_frames)} training views"
+        if len(views) < len(train_frames):
+            view_note += f" (spread evenly; at most {limit} on the CPU for the {kind} model, each costs a depth render)"
+        if depth_side:
+            view_note += f", depth rendered at ≤ {depth_side} px"
+
     t = time.perf_counter()
-    vertices, faces, extract = extract_mesh(model, aabb_t, shape, cfg, ctx.report)
+    carve = None
+    if cfg.carve:
+        tol = CARVE_TOL_CELLS * float(grid_spacing(aabb, shape).max())
+        carve = carve_with_views(views, maps, aabb, tol)
+    vertices, faces, extract = extract_mesh(model, aabb_t, shape, cfg, ctx.report, carve=carve)
     timings["extract_s"] = round(time.perf_counter() - t, 3)
 
     t = time.perf_counter()
@@ -389,21 +437,9 @@ def run(ctx: StageContext) -> dict:
     t = time.perf_counter()
     normals = np.asarray(trimesh.Trimesh(vertices, faces, process=False).vertex_normals, np.float32)
     if cfg.color == "photos":
-        kind = "classic" if meta.get("kind") == "classic" else "fast"
-        limit = CPU_BAKE_VIEWS[kind] if device.type == "cpu" else 0
-        depth_side = CPU_DEPTH_SIDE[kind] if device.type == "cpu" else None
-        chosen = spread_evenly(train_frames, limit)
-        views = load_views(scene, chosen, max_side, ctx.report, "photos for color baking")
-        colors, color_info = bake_colors(
-            model, views, vertices, normals, aabb_t if meta.get("bounded", True) else None, background, depth_side, ctx.report
-        )
+        colors, color_info = bake_colors(model, views, [m[0] for m in maps], vertices, normals)
         color_info["source"] = "photos"
-        note = f"baked from {len(views)} of {len(train_frames)} training photos"
-        if len(views) < len(train_frames):
-            note += f" (spread evenly; at most {limit} on the CPU for the {kind} model, each costs a depth render)"
-        if depth_side:
-            note += f", depth rendered at ≤ {depth_side} px"
-        note += f"; {color_info['unseen_from_field']:,} unseen vertices colored by the field"
+        note = f"baked from {view_note}; {color_info['unseen_from_field']:,} unseen vertices colored by the field"
         color_info["note"] = note
     else:
         colors = colors_from_field(model.radiance, vertices, normals, device=device)
