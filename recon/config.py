@@ -91,9 +91,10 @@ class TrainConfig:
     eval_every: int = 500
     """Evaluate held-out views every N steps (0: only at the end)."""
     eval_views: int = 3
-    """Held-out views rendered at each interval evaluation."""
+    """Held-out views rendered at each interval evaluation (spread evenly over the split; 0: all)."""
     final_eval_views: int = 8
-    """Test views rendered for the final metrics and preview renders (`recon eval` renders all)."""
+    """Test views rendered for the final metrics and preview renders, spread evenly over the split (0: all;
+    `recon eval` renders all)."""
     checkpoint_every: int = 250
     """Save a resumable checkpoint every N steps (and on Ctrl-C)."""
     seed: int = 0

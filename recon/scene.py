@@ -18,6 +18,7 @@ import os
 import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
+from collections.abc import Sequence
 from typing import Any, Literal
 
 import numpy as np
@@ -502,3 +503,11 @@ def import_npz(path: Path, image_dir: Path) -> Scene:
         save_image(out, np.clip(imgs[i], 0, 1))
         frames.append(Frame(str(out), check_pose(c2w, path, f"poses[{i}]"), focal, focal, w / 2, h / 2, w, h))
     return Scene(frames=frames, has_alpha=images.shape[-1] == 4, source_kind="npz")
+
+
+def spread_evenly(items: Sequence[Any], k: int) -> list[Any]:
+    """At most k of items, evenly spaced over the sequence (first and last included)."""
+    if k <= 0 or len(items) <= k:
+        return list(items)
+    idx = np.unique(np.round(np.linspace(0, len(items) - 1, k)).astype(int))
+    return [items[i] for i in idx]

@@ -24,7 +24,7 @@ from recon.nerf.sampling import stratified
 from recon.normalization import similarity, transform_c2w
 from recon.pipeline import StageContext
 from recon.progress import Reporter
-from recon.scene import Frame, Scene
+from recon.scene import Frame, Scene, spread_evenly
 from recon.stages import mesh as mesh_stage
 from recon.stages.train import View, render_view
 from tests.test_scene import look_at
@@ -180,8 +180,8 @@ def test_depth_is_rendered_small_and_upsampled_to_the_view() -> None:
 
 
 def test_spread_evenly_keeps_first_and_last() -> None:
-    assert mesh_stage.spread_evenly(list(range(100)), 5) == [0, 25, 50, 74, 99]
-    assert mesh_stage.spread_evenly([1, 2], 24) == [1, 2]
+    assert spread_evenly(list(range(100)), 5) == [0, 25, 50, 74, 99]
+    assert spread_evenly([1, 2], 24) == [1, 2]
 
 
 # ---------------------------------------------------------------------------------------- export / previews

@@ -38,7 +38,7 @@ from recon.geometry.extract import (
     marching_cubes,
 )
 from recon.pipeline import Stage, StageContext, write_json_atomic
-from recon.scene import Frame, Scene, load_scene, look_at
+from recon.scene import Frame, Scene, load_scene, look_at, spread_evenly
 from recon.stages.train import View, load_views, pixel_footprint, render_view
 
 REPORT_FILE = "mesh_report.json"
@@ -185,14 +185,6 @@ def extract_mesh(
 
 
 # ---------------------------------------------------------------------------------------- colors
-def spread_evenly(items: Sequence[Any], k: int) -> list[Any]:
-    """At most k of items, evenly spaced over the sequence (first and last included)."""
-    if k <= 0 or len(items) <= k:
-        return list(items)
-    idx = np.unique(np.round(np.linspace(0, len(items) - 1, k)).astype(int))
-    return [items[i] for i in idx]
-
-
 def render_depth(
     model: torch.nn.Module, view: View, aabb: torch.Tensor | None, background: np.ndarray, max_side: int | None = None
 ) -> tuple[np.ndarray, np.ndarray]:

@@ -26,7 +26,7 @@ from recon.errors import ReconError
 from recon.field import FIELD_FILE, build_model, save_field
 from recon.images import read_image, undistort
 from recon.pipeline import Stage, StageContext, fault_point, sha256_file, write_json_atomic
-from recon.scene import Frame, Scene, load_scene
+from recon.scene import Frame, Scene, load_scene, spread_evenly
 
 CHECKPOINT = "checkpoint.pt"
 
@@ -298,7 +298,7 @@ def run(ctx: StageContext) -> dict:
         aabb=aabb, near_far=None if bounded else near_far,
         background=torch.tensor(background), random_background=random_bg, seed=cfg.seed, device=device,
     )
-    eval_views = load_views(scene, held_out[: cfg.eval_views], cfg.max_side)
+    eval_views = load_views(scene, spread_evenly(held_out, cfg.eval_views), cfg.max_side)
 
     ckpt_path = ctx.work / CHECKPOINT
     checkpoint = _load_checkpoint(ckpt_path, ctx.report)
@@ -355,7 +355,7 @@ def run(ctx: StageContext) -> dict:
             ) from None
     total_train_time = train_time()
 
-    test_views = load_views(scene, test_frames[: cfg.final_eval_views], cfg.max_side)
+    test_views = load_views(scene, spread_evenly(test_frames, cfg.final_eval_views), cfg.max_side)  # a spiral's first N would be one viewpoint
     with ctx.report.task("evaluating test views", total=None):
         final = evaluate(model, test_views, aabb, background, keep=True, autocast=autocast)
     write_previews(final.pop("renders"), ctx.out / "renders")
