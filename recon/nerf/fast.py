@@ -42,7 +42,8 @@ Then (idle 2-core CPU, same data, density 128^3 / features 96^3, view-independen
 Per-voxel density was the big one: Adam moves a raw value by about lr per step, so an opaque voxel
 (σ of hundreds per world unit) took thousands of steps and 4-minute fields stayed soft. Through the
 train stage (`recon train`, fast preset, random backgrounds): Lego at 200x200, 2.5 min of training:
-27.61 dB on 25 test views (21.70 dB before); at 400x400, 4 min: 26.50 dB.
+27.61 dB on test views r_0-r_24 (21.70 dB before); at 400x400, 4 min: 26.50 dB on the same views and
+27.89 dB on 25 views spread over the whole test spiral (`recon bench` + `recon eval --limit 25`).
 """
 from __future__ import annotations
 
