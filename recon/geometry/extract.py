@@ -69,6 +69,12 @@ def _evaluate_indices(
     return _evaluate(density_fn, lo_t + idx.float() * step_t)
 
 
+def node_indices(flat: np.ndarray, res: tuple[int, int, int]) -> np.ndarray:
+    """Flat node indices (M,) of a C-ordered (Rx, Ry, Rz) grid → integer node coordinates (M, 3)."""
+    yz = res[1] * res[2]
+    return np.stack([flat // yz, (flat // res[2]) % res[1], flat % res[2]], axis=-1)
+
+
 def density_grid(
     density_fn: DensityFn,
     aabb: np.ndarray | torch.Tensor,
@@ -88,10 +94,10 @@ def density_grid(
     dev, step = _device_of(aabb, device), grid_spacing(box, res)
     out = np.empty(res, np.float32)
     flat = out.reshape(-1)
-    n, yz = flat.size, res[1] * res[2]
+    n = flat.size
     for start in range(0, n, chunk):
         idx = np.arange(start, min(start + chunk, n), dtype=np.int64)
-        ijk = np.stack([idx // yz, (idx // res[2]) % res[1], idx % res[2]], axis=-1)
+        ijk = node_indices(idx, res)
         flat[start : start + idx.size] = _evaluate_indices(density_fn, ijk, box[0], step, dev)
     return out
 
@@ -323,12 +329,11 @@ def carve_by_views(
     box, res = _as_aabb(aabb), grid.shape
     step = grid_spacing(box, res)
     flat = grid.reshape(-1)
-    yz = res[1] * res[2]
     freed = filled = 0
     candidates = np.flatnonzero(flat >= 0.25 * level)  # the rest is empty already and is never filled
     for start in range(0, candidates.size, chunk):
         idx = candidates[start : start + chunk]
-        pts = box[0] + np.stack([idx // yz, (idx // res[2]) % res[1], idx % res[2]], axis=-1) * step
+        pts = box[0] + node_indices(idx, res) * step
         free = np.zeros(idx.size, bool)
         behind_all = np.ones(idx.size, bool)
         votes = np.zeros(idx.size, np.int32)
