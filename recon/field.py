@@ -12,6 +12,7 @@ from typing import Any
 import torch
 
 from recon.errors import ReconError
+from recon.pipeline import interrupts_deferred
 
 FIELD_FILE = "field.pt"
 FIELD_FORMAT = 1
@@ -37,13 +38,14 @@ def save_field(path: Path, kind: str, kwargs: dict[str, Any], model: torch.nn.Mo
     """Atomically write the model (weights on CPU) with what is needed to rebuild it."""
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     state = {k: v.detach().cpu() for k, v in model.state_dict().items()}
-    try:
-        with open(tmp, "wb") as f:  # a Python file object: a full disk raises OSError(ENOSPC), not RuntimeError
-            torch.save({"format": FIELD_FORMAT, "kind": kind, "kwargs": kwargs, "state_dict": state, "meta": meta}, f)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    os.replace(tmp, path)
+    with interrupts_deferred():
+        try:
+            with open(tmp, "wb") as f:  # a Python file object: a full disk raises OSError(ENOSPC), not RuntimeError
+                torch.save({"format": FIELD_FORMAT, "kind": kind, "kwargs": kwargs, "state_dict": state, "meta": meta}, f)
+        except BaseException:
+            tmp.unlink(missing_ok=True)
+            raise
+        os.replace(tmp, path)
 
 
 def load_field(folder: Path, device: torch.device | str = "cpu") -> tuple[torch.nn.Module, dict[str, Any]]:

@@ -483,6 +483,30 @@ def _remove_leftovers(scene_dir: Path) -> None:
             path.unlink(missing_ok=True)
 
 
+@contextlib.contextmanager
+def interrupts_deferred() -> Iterator[None]:
+    """Hold Ctrl-C/SIGTERM until the block ends, then raise KeyboardInterrupt.
+
+    torch.save turns an exception raised inside its writer into a RuntimeError ("unexpected pos"), so a
+    signal landing mid-save would read as a crash instead of a clean stop. Outside the main thread
+    (where handlers cannot be set) the block just runs.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    pending: list[int] = []
+    previous = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+    for sig in previous:
+        signal.signal(sig, lambda signum, frame: pending.append(signum))
+    try:
+        yield
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+    if pending:
+        raise KeyboardInterrupt
+
+
 def install_sigterm_as_interrupt() -> None:
     """Treat SIGTERM like Ctrl-C so a stopped run cleans its temporary folder and checkpoints."""
     def handler(signum: int, frame: Any) -> None:

@@ -258,6 +258,40 @@ def test_real_enospc_from_the_kernel_in_checkpoint_and_field_writes(tmp_path: Pa
     assert info.value.errno == errno.ENOSPC and not (tmp_path / "field.pt").exists()
 
 
+def test_ctrl_c_inside_torch_save_waits_for_a_whole_checkpoint(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """CI once caught SIGINT mid-write: torch.save turned it into RuntimeError("unexpected pos"), a crash report
+    instead of exit 130. The signal must now wait until the checkpoint and its sidecar are whole."""
+    import os
+
+    import recon.stages.train as train_mod
+
+    class SignalOnFirstWrite:
+        def __init__(self, path, mode="r", *a, **k):
+            self.f, self.sent = builtins.open(path, mode, *a, **k), False
+
+        def write(self, data):
+            if not self.sent:
+                self.sent = True
+                os.kill(os.getpid(), signal.SIGINT)  # delivered between bytecodes, i.e. inside torch's writer
+            return self.f.write(data)
+
+        def __getattr__(self, name):
+            return getattr(self.f, name)
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            self.f.close()
+
+    monkeypatch.setattr(train_mod, "open", SignalOnFirstWrite, raising=False)
+    ckpt = tmp_path / "checkpoint.pt"
+    with pytest.raises(KeyboardInterrupt):
+        train_mod._save_checkpoint(ckpt, {"step": 3, "w": torch.arange(100_000.0)})
+    assert not list(tmp_path.glob(".*.tmp"))
+    assert train_mod._load_checkpoint(ckpt, None)["step"] == 3  # whole, and its sha256 sidecar matches
+
+
 def _rewrite_frames(capture: Path, keep) -> None:
     doc = json.loads((capture / "transforms.json").read_text())
     doc["frames"] = [f for f in doc["frames"] if keep(f)]

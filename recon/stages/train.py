@@ -25,7 +25,7 @@ from recon.config import TrainConfig, parse_duration
 from recon.errors import ReconError
 from recon.field import FIELD_FILE, build_model, save_field
 from recon.images import read_image, undistort
-from recon.pipeline import Stage, StageContext, fault_point, sha256_file, write_json_atomic
+from recon.pipeline import Stage, StageContext, fault_point, interrupts_deferred, sha256_file, write_json_atomic
 from recon.scene import Frame, Scene, load_scene, spread_evenly
 
 CHECKPOINT = "checkpoint.pt"
@@ -224,17 +224,18 @@ def _save_checkpoint(path: Path, state: dict[str, Any]) -> None:
     Written through a Python file object so a full disk raises OSError(ENOSPC), not torch's RuntimeError.
     """
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        with open(tmp, "wb") as f:
-            torch.save(state, f)
-            f.flush()
-            os.fsync(f.fileno())
-        digest = sha256_file(tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    write_json_atomic(_checksum_path(path), {"sha256": digest, "size": path.stat().st_size})
+    with interrupts_deferred():  # a Ctrl-C mid-save stops after the checkpoint and its sidecar are whole
+        try:
+            with open(tmp, "wb") as f:
+                torch.save(state, f)
+                f.flush()
+                os.fsync(f.fileno())
+            digest = sha256_file(tmp)
+            os.replace(tmp, path)
+        except BaseException:
+            tmp.unlink(missing_ok=True)
+            raise
+        write_json_atomic(_checksum_path(path), {"sha256": digest, "size": path.stat().st_size})
     fault_point("train/checkpoint")
 
 
