@@ -17,7 +17,8 @@ from torch import Tensor, nn
 from recon.config import MeshConfig
 from recon.geometry.compare import chamfer_fscore
 from recon.geometry.export import Z_UP_TO_Y_UP
-from recon.geometry.extract import density_grid, grid_spacing
+from recon.geometry.clean import clean_mesh
+from recon.geometry.extract import density_grid, grid_spacing, marching_cubes
 from recon.mesh_eval import compare_to_gt, format_comparison
 from recon.nerf.render import RadianceModel, render_dense
 from recon.nerf.sampling import stratified
@@ -315,9 +316,10 @@ def test_stage_field_colors_and_normalized_frame(tmp_path: Path, monkeypatch: py
     np.testing.assert_allclose(rgb, sphere_color(ply.vertices / scale), atol=3 / 255)
 
 
-def test_carving_empties_floaters_in_front_and_fills_a_hollow_inside() -> None:
-    """A sphere shell with a floater in front of it: carving with the ring views' depth removes the floater
-    and makes the hollow inside solid, so marching cubes gives one outer surface."""
+def test_hidden_walls_inside_a_soft_field_are_removed_and_the_visible_surface_kept() -> None:
+    """A field that is a shell with a soft inside, plus an island of material in it: marching cubes finds the
+    outer sphere, an inner wall and the island. Removing what the ring views do not see keeps only the outer
+    sphere, whole."""
     model = SoftSphere(amplitude=3000.0, width=0.004, samples=384)
     views = ring_views(model)
     aabb_t = torch.tensor(AABB, dtype=torch.float32)
@@ -327,15 +329,17 @@ def test_carving_empties_floaters_in_front_and_fills_a_hollow_inside() -> None:
     level = 0.5 * float(grid.max())
     lin = np.linspace(AABB[0][0], AABB[1][0], n)
     x, y, z = np.meshgrid(lin, lin, lin, indexing="ij")
-    r = np.sqrt(x**2 + y**2 + z**2)
-    hollow = r < 0.6 * float(r[grid > level].max())  # well inside the (solid) ball
-    grid[hollow] = 0.5 * level  # a soft inside below the level: marching cubes would find an inner surface
-    c2w0 = views[0].c2w
-    towards_cam = c2w0[:3, 3] / np.linalg.norm(c2w0[:3, 3])
-    floater = np.linalg.norm(np.stack([x, y, z], -1) - 0.8 * towards_cam, axis=-1) < 0.08
-    grid[floater] = 2 * level  # a blob between the first camera and the sphere
+    r = np.linalg.norm(np.stack([x, y, z], -1) - CENTRE, axis=-1)
+    grid[r < 0.4] = 0.5 * level  # a soft inside below the level: an inner wall at r = 0.4
+    grid[r < 0.15] = 2 * level  # an island in the middle, big enough to survive the floater rule
+    vertices, faces = marching_cubes(grid, level, AABB)
     cell = float(grid_spacing(AABB, n).max())
-    carve = mesh_stage.carve_with_views(views, maps, np.asarray(AABB), 2 * cell)
-    out, info = carve(grid.copy(), level)
-    assert (out[floater] == 0).all() and info["emptied"] > 0
-    assert (out[hollow] >= 2 * level).mean() > 0.9 and info["filled"] > 0
+    kept_all = clean_mesh(vertices, faces, AABB)[0]
+    outer = np.linalg.norm(kept_all - CENTRE, axis=1) > 0.5
+    assert (~outer).mean() > 0.2  # without the visibility test the inner wall and the island stay
+    seen_fn = mesh_stage.see_with_views(views, maps, 2 * cell)
+    kept, _, report = clean_mesh(vertices, faces, AABB, seen_fn=seen_fn)
+    radius = np.linalg.norm(kept - CENTRE, axis=1)
+    assert np.abs(radius - model.radius_at(level)).max() < cell
+    assert report["hidden"]["removed_faces"] > 0
+    assert len(kept) >= 0.95 * outer.sum()  # the visible sphere is kept (nearly) whole

@@ -1,13 +1,18 @@
-"""Mesh clean-up after marching cubes: crop, drop floaters, smooth, decimate — with a report of each step.
+"""Mesh clean-up after marching cubes: crop, drop floaters and hidden walls, smooth, decimate — with a report of each step.
 
 All arrays are in the normalized scene frame (+Z up); nothing here reads or writes files.
 """
 from __future__ import annotations
 
+from typing import Callable
+
 import fast_simplification
 import numpy as np
 import trimesh
 from trimesh import graph, smoothing
+
+SeenFn = Callable[[np.ndarray, np.ndarray], np.ndarray]
+"""``seen_fn(vertices (V, 3), outward normals (V, 3)) -> (V,)`` how many photos see each vertex (0: none)."""
 
 
 def _mesh(vertices: np.ndarray, faces: np.ndarray) -> trimesh.Trimesh:
@@ -56,6 +61,23 @@ def remove_small_components(mesh: trimesh.Trimesh, min_fraction: float) -> tuple
                  "removed_area": float(areas[~keep].sum())}
 
 
+def remove_hidden_faces(mesh: trimesh.Trimesh, seen_fn: SeenFn) -> tuple[trimesh.Trimesh, dict]:
+    """Drop faces none of whose vertices any photo sees (``seen_fn(vertices, normals)``).
+
+    Why: a radiance field only has to be opaque where the photos look. Inside the object it is
+    unconstrained: a fast field is typically a shell a few voxels thick with a soft, noisy inside, and
+    marching cubes turns that inside into walls and islands behind the visible surface. Depth-tested
+    visibility removes them whatever the iso-level, so the level can be low enough to close the shell.
+    """
+    seen = np.asarray(seen_fn(mesh.vertices, mesh.vertex_normals)) > 0
+    keep = seen[mesh.faces].any(axis=1)
+    out = mesh.copy()
+    out.update_faces(keep)
+    out.remove_unreferenced_vertices()
+    return out, {"removed_faces": int((~keep).sum()), "removed_area": float(mesh.area_faces[~keep].sum()),
+                 "rule": "drop faces with no vertex that any photo sees (facing it, at the field's rendered depth)"}
+
+
 def remove_duplicate_faces(faces: np.ndarray) -> tuple[np.ndarray, int]:
     """Faces (F, 3) on the same three vertices: opposite windings cancel in pairs (a zero-volume fin,
     which edge collapse occasionally leaves and which makes the edges non-manifold); of several with
@@ -100,8 +122,10 @@ def clean_mesh(
     min_component_fraction: float = 0.05,
     smooth_iters: int = 0,
     target_faces: int | None = None,
+    seen_fn: SeenFn | None = None,
 ) -> tuple[np.ndarray, np.ndarray, dict]:
-    """Crop to the scene box, remove floaters, optionally Taubin-smooth and decimate.
+    """Crop to the scene box, remove floaters and (with ``seen_fn``) hidden faces, optionally
+    Taubin-smooth and decimate.
 
     vertices: (V, 3) scene units; faces: (F, 3) vertex indices; aabb: (2, 3) scene box.
     Floater rule: a face-connected component is kept when its area is at least
@@ -121,6 +145,9 @@ def clean_mesh(
     report["cropped"] = _counts(mesh)
     mesh, report["components"] = remove_small_components(mesh, min_component_fraction)
     report["floaters_removed"] = _counts(mesh)
+    if seen_fn is not None and len(mesh.faces):
+        mesh, report["hidden"] = remove_hidden_faces(mesh, seen_fn)
+        report["hidden_removed"] = _counts(mesh)
     if smooth_iters > 0 and len(mesh.faces):
         smoothing.filter_taubin(mesh, lamb=0.5, nu=0.53, iterations=smooth_iters)
         report["smoothed"] = {"iterations": int(smooth_iters)}

@@ -11,6 +11,7 @@ from typing import Callable, Literal, Sequence
 
 import numpy as np
 import torch
+from scipy.ndimage import maximum_filter, minimum_filter
 from scipy.spatial import cKDTree
 
 RadianceFn = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
@@ -85,6 +86,58 @@ def _weighted_median(values: np.ndarray, weights: np.ndarray) -> np.ndarray:
     return np.take_along_axis(v, first[None], axis=0)[0]
 
 
+def _visible_in_view(
+    x: np.ndarray, n: np.ndarray, hw: tuple[int, int], c2w: np.ndarray, intrinsics: np.ndarray,
+    depth: np.ndarray | tuple[np.ndarray, np.ndarray] | None, depth_tol: float, depth_kind: Literal["ray", "z"],
+    min_cos: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Which points x (N, 3) one camera sees: in the image, in front, facing it (n · to-camera > min_cos)
+    and, with a depth map, within depth_tol of the depth at their pixel (nearest
+    pixel, so silhouettes do not blend depths). ``depth`` may be a (lowest, highest) pair of maps: then
+    any depth in [lowest - tol, highest + tol] matches. Returns ok (N,) bool, uv (N, 2) and cos θ (N,)."""
+    h, w = hw
+    uv, z = project(x, c2w, intrinsics)
+    to_cam = c2w[:3, 3] - x
+    dist = np.linalg.norm(to_cam, axis=1)
+    cos = np.einsum("ij,ij->i", n, to_cam) / np.maximum(dist, 1e-12)
+    ok = (z > 0) & (cos > min_cos) & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
+    if depth is not None and ok.any():
+        lo, hi = (np.asarray(depth[0]), np.asarray(depth[1])) if isinstance(depth, tuple) else (np.asarray(depth),) * 2
+        px = np.clip(uv[ok].astype(np.int64), 0, [w - 1, h - 1])
+        mine = dist[ok] if depth_kind == "ray" else z[ok]
+        ok[np.flatnonzero(ok)] = (mine > lo[px[:, 1], px[:, 0]] - depth_tol) & (mine < hi[px[:, 1], px[:, 0]] + depth_tol)
+    return ok, uv, cos
+
+
+def seen_by_views(
+    vertices: np.ndarray,
+    normals: np.ndarray,
+    depths: Sequence[np.ndarray],
+    c2ws: np.ndarray,
+    intrinsics: np.ndarray,
+    depth_tol: float,
+    depth_kind: Literal["ray", "z"] = "ray",
+    min_cos: float = 0.0,
+    chunk: int = 2**16,
+) -> np.ndarray:
+    """How many views see each vertex (V,) int: it projects into the view, faces the camera
+    (cos θ > min_cos, normals outward) and its distance matches the view's depth map (H, W) within
+    depth_tol (scene units) of the depths in the 3×3 pixels around it (so grazing faces and silhouettes,
+    where depth jumps between neighbouring pixels, still match). The inner walls of a hollow or soft
+    field fail both tests: they lie behind the surface the photos show and face away from the cameras."""
+    verts, nrm = np.asarray(vertices, np.float64), np.asarray(normals, np.float64)
+    c2ws, intr = np.asarray(c2ws, np.float64), np.asarray(intrinsics, np.float64)
+    ranges = [(minimum_filter(np.asarray(d), size=3, mode="nearest"), maximum_filter(np.asarray(d), size=3, mode="nearest"))
+              for d in depths]
+    counts = np.zeros(len(verts), np.int32)
+    for s in range(0, len(verts), chunk):
+        x, n = verts[s : s + chunk], nrm[s : s + chunk]
+        for rng, c2w, k in zip(ranges, c2ws, intr):
+            ok, _, _ = _visible_in_view(x, n, rng[0].shape[:2], c2w, k, rng, depth_tol, depth_kind, min_cos)
+            counts[s : s + chunk] += ok
+    return counts
+
+
 def colors_from_photos(
     vertices: np.ndarray,
     normals: np.ndarray,
@@ -142,18 +195,8 @@ def colors_from_photos(
         samples = np.zeros((k, len(x), 3), np.float32)
         weights = np.zeros((k, len(x)), np.float32)
         for view in range(k):
-            h, w = imgs[view].shape[:2]
-            uv, z = project(x, c2ws[view], intr[view])
-            to_cam = c2ws[view, :3, 3] - x
-            dist = np.linalg.norm(to_cam, axis=1)
-            cos = np.einsum("ij,ij->i", n, to_cam) / np.maximum(dist, 1e-12)
-            ok = (z > 0) & (cos > min_cos) & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
-            if depths is not None and depths[view] is not None and ok.any():
-                dmap = np.asarray(depths[view])
-                px = np.clip(uv[ok].astype(np.int64), 0, [w - 1, h - 1])
-                expected = dmap[px[:, 1], px[:, 0]]
-                mine = dist[ok] if depth_kind == "ray" else z[ok]
-                ok[np.flatnonzero(ok)] = np.abs(mine - expected) < depth_tol
+            dmap = depths[view] if depths is not None else None
+            ok, uv, cos = _visible_in_view(x, n, imgs[view].shape[:2], c2ws[view], intr[view], dmap, depth_tol, depth_kind, min_cos)
             if ok.any():
                 samples[view, ok] = sample_bilinear(imgs[view], uv[ok])[:, :3] * scales[view]
                 weights[view, ok] = cos[ok]

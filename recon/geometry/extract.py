@@ -10,7 +10,6 @@ Densities are volume densities σ (1 / scene unit), high inside the object.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
 from typing import Any, Callable
 
 import numpy as np
@@ -299,61 +298,3 @@ def marching_cubes(
     verts = (verts + box[0]).astype(np.float32)
     # skimage's 'descent' winding yields inward normals for σ high inside; swap two indices to face out.
     return verts, faces[:, [0, 2, 1]].astype(np.int64)
-
-
-def carve_by_views(
-    grid: np.ndarray,
-    aabb: np.ndarray | torch.Tensor,
-    level: float,
-    depths: Sequence[np.ndarray],
-    opacities: Sequence[np.ndarray],
-    c2ws: np.ndarray,
-    intrinsics: np.ndarray,
-    tol: float,
-    chunk: int = 2**21,
-) -> tuple[np.ndarray, dict[str, Any]]:
-    """Use what the photos saw to clean σ before marching cubes (in place; returns the grid and counts).
-
-    Per view, each node is compared with the field's rendered ray distance D at its pixel:
-    * seen through: a pixel that rendered empty (opacity < 0.05), or a node more than ``tol`` in front of
-      D → σ = 0 there (floaters in front of surfaces, fog);
-    * hidden: a node with some material (σ ≥ level / 4) more than ``tol`` behind D in *every* view whose
-      opaque pixel (opacity > 0.95) it falls in → σ raised to 2 × ``level``: soft or hollow interiors
-      leave no inner surfaces. Untrained space that no view reaches (e.g. under an object) stays empty.
-    Only nodes with σ ≥ level / 4 are looked at: the others are empty already.
-    Pixels in between (silhouette edges, semi-transparent) say nothing. Nodes no view sees keep σ.
-    ``depths``/``opacities``: K maps (H, W) at the photos' size; c2ws (K, 4, 4) OpenGL; intrinsics (K, 4).
-    """
-    from recon.geometry.color import project
-
-    box, res = _as_aabb(aabb), grid.shape
-    step = grid_spacing(box, res)
-    flat = grid.reshape(-1)
-    freed = filled = 0
-    candidates = np.flatnonzero(flat >= 0.25 * level)  # the rest is empty already and is never filled
-    for start in range(0, candidates.size, chunk):
-        idx = candidates[start : start + chunk]
-        pts = box[0] + node_indices(idx, res) * step
-        free = np.zeros(idx.size, bool)
-        behind_all = np.ones(idx.size, bool)
-        votes = np.zeros(idx.size, np.int32)
-        for dmap, omap, c2w, k in zip(depths, opacities, c2ws, intrinsics):
-            h, w = dmap.shape
-            uv, z = project(pts, c2w, k)
-            ok = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
-            sel = np.flatnonzero(ok)
-            px = np.clip(uv[sel].astype(np.int64), 0, [w - 1, h - 1])
-            d, o = dmap[px[:, 1], px[:, 0]], omap[px[:, 1], px[:, 0]]
-            dist = np.linalg.norm(pts[sel] - c2w[:3, 3], axis=1)
-            free[sel[(o < 0.05) | ((o > 0.95) & (dist < d - tol))]] = True
-            solid = o > 0.95
-            behind_all[sel[solid & (dist <= d + tol)]] = False
-            votes[sel[solid]] += 1
-        hidden = behind_all & (votes > 0) & ~free
-        block = flat[idx]
-        freed += int(np.count_nonzero(free))
-        filled += int(np.count_nonzero(hidden & (block < 2 * level)))
-        block[free] = 0.0
-        block[hidden] = np.maximum(block[hidden], 2 * level)
-        flat[idx] = block
-    return grid, {"views": len(depths), "tol": float(tol), "emptied": freed, "filled": filled}

@@ -265,6 +265,12 @@ class FastModel(RadianceModel):
         self.register_buffer("shrunk", torch.zeros((), dtype=torch.bool))
         self.register_buffer("step", torch.zeros((), dtype=torch.long))
 
+    @property
+    def voxel_size(self) -> float:
+        """Edge of the finest density voxel (scene units; contracted units when unbounded): the thinnest
+        layer this field can make opaque. Shrinking the grids onto the object makes it smaller."""
+        return float((self.grid_box[1] - self.grid_box[0]).max()) / (self.config.density_res - 1)
+
     # ------------------------------------------------------------------ fields
     def _unit(self, x: Tensor) -> Tensor:
         """World points (M, 3) -> grid unit cube coordinates (M, 3) (unclamped)."""
