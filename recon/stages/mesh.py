@@ -48,8 +48,7 @@ DENSITY_CHUNK = 2**16
 HIDDEN_TOL_CELLS = 1.0
 """Depth tolerance of the hidden-face test in `surface_cell` units (the field's voxel for grid models). On the
 shipped sample (voxel ≈ 0.015 units, single-pixel depth match) 0.01, 0.015 and 0.02 units gave F@1% 0.923, 0.921
-and 0.917; the inner
-walls lie several voxels behind the visible surface."""
+and 0.917; the inner walls lie several voxels behind the visible surface."""
 
 
 # ---------------------------------------------------------------------------------------- resolution
