@@ -158,8 +158,7 @@ def test_colors_baked_from_rendered_photos_match_the_analytic_color() -> None:
         model, torch.tensor(AABB, dtype=torch.float32), (97, 97, 97), MeshConfig(), Reporter(quiet=True)
     )
     normals = trimesh.Trimesh(v, f, process=False).vertex_normals
-    maps = mesh_stage.render_depths(model, views, torch.tensor(AABB, dtype=torch.float32), BACKGROUND, None, Reporter(quiet=True))
-    depths = [m[0] for m in maps]
+    depths = mesh_stage.render_depths(model, views, torch.tensor(AABB, dtype=torch.float32), BACKGROUND, None, Reporter(quiet=True))
     colors, bake = mesh_stage.bake_colors(model, views, depths, v, normals)
     err = np.abs(colors - sphere_color(v.astype(np.float64))).max(axis=1)
     assert bake["views"] == 8 and bake["seen"] > 0.9 * len(v)  # the depth test keeps the visible surface
@@ -175,8 +174,8 @@ def test_depth_is_rendered_small_and_upsampled_to_the_view() -> None:
     model = SoftSphere(amplitude=3000.0, width=0.004, samples=128)
     view = ring_views(model, n=1, size=40)[0]
     full = render_view(model, view, torch.tensor(AABB, dtype=torch.float32), BACKGROUND)["depth"]
-    small, opacity = mesh_stage.render_depth(model, view, torch.tensor(AABB, dtype=torch.float32), BACKGROUND, max_side=20)
-    assert small.shape == full.shape == opacity.shape
+    small = mesh_stage.render_depth(model, view, torch.tensor(AABB, dtype=torch.float32), BACKGROUND, max_side=20)
+    assert small.shape == full.shape
     assert np.median(np.abs(small - full)) < 0.02  # equal away from the silhouette
 
 
@@ -323,7 +322,7 @@ def test_hidden_walls_inside_a_soft_field_are_removed_and_the_visible_surface_ke
     model = SoftSphere(amplitude=3000.0, width=0.004, samples=384)
     views = ring_views(model)
     aabb_t = torch.tensor(AABB, dtype=torch.float32)
-    maps = mesh_stage.render_depths(model, views, aabb_t, BACKGROUND, None, Reporter(quiet=True))
+    depths = mesh_stage.render_depths(model, views, aabb_t, BACKGROUND, None, Reporter(quiet=True))
     n = 65
     grid = density_grid(model.density, aabb_t, n)
     level = 0.5 * float(grid.max())
@@ -337,7 +336,7 @@ def test_hidden_walls_inside_a_soft_field_are_removed_and_the_visible_surface_ke
     kept_all = clean_mesh(vertices, faces, AABB)[0]
     outer = np.linalg.norm(kept_all - CENTRE, axis=1) > 0.5
     assert (~outer).mean() > 0.2  # without the visibility test the inner wall and the island stay
-    seen_fn = mesh_stage.see_with_views(views, maps, 2 * cell)
+    seen_fn = mesh_stage.see_with_views(views, depths, 2 * cell)
     kept, _, report = clean_mesh(vertices, faces, AABB, seen_fn=seen_fn)
     radius = np.linalg.norm(kept - CENTRE, axis=1)
     assert np.abs(radius - model.radius_at(level)).max() < cell

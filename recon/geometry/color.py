@@ -88,13 +88,11 @@ def _weighted_median(values: np.ndarray, weights: np.ndarray) -> np.ndarray:
 
 def _visible_in_view(
     x: np.ndarray, n: np.ndarray, hw: tuple[int, int], c2w: np.ndarray, intrinsics: np.ndarray,
-    depth: np.ndarray | tuple[np.ndarray, np.ndarray] | None, depth_tol: float, depth_kind: Literal["ray", "z"],
-    min_cos: float,
+    depth: tuple[np.ndarray, np.ndarray] | None, depth_tol: float, depth_kind: Literal["ray", "z"], min_cos: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Which points x (N, 3) one camera sees: in the image, in front, facing it (n · to-camera > min_cos)
-    and, with a depth map, within depth_tol of the depth at their pixel (nearest
-    pixel, so silhouettes do not blend depths). ``depth`` may be a (lowest, highest) pair of maps: then
-    any depth in [lowest - tol, highest + tol] matches. Returns ok (N,) bool, uv (N, 2) and cos θ (N,)."""
+    and, with ``depth`` = (lowest, highest) maps (H, W), at a distance in [lowest - tol, highest + tol] read at
+    their pixel (nearest, so silhouettes do not blend depths). Returns ok (N,) bool, uv (N, 2) and cos θ (N,)."""
     h, w = hw
     uv, z = project(x, c2w, intrinsics)
     to_cam = c2w[:3, 3] - x
@@ -102,7 +100,7 @@ def _visible_in_view(
     cos = np.einsum("ij,ij->i", n, to_cam) / np.maximum(dist, 1e-12)
     ok = (z > 0) & (cos > min_cos) & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
     if depth is not None and ok.any():
-        lo, hi = (np.asarray(depth[0]), np.asarray(depth[1])) if isinstance(depth, tuple) else (np.asarray(depth),) * 2
+        lo, hi = np.asarray(depth[0]), np.asarray(depth[1])
         px = np.clip(uv[ok].astype(np.int64), 0, [w - 1, h - 1])
         mine = dist[ok] if depth_kind == "ray" else z[ok]
         ok[np.flatnonzero(ok)] = (mine > lo[px[:, 1], px[:, 0]] - depth_tol) & (mine < hi[px[:, 1], px[:, 0]] + depth_tol)
@@ -195,8 +193,9 @@ def colors_from_photos(
         samples = np.zeros((k, len(x), 3), np.float32)
         weights = np.zeros((k, len(x)), np.float32)
         for view in range(k):
-            dmap = depths[view] if depths is not None else None
-            ok, uv, cos = _visible_in_view(x, n, imgs[view].shape[:2], c2ws[view], intr[view], dmap, depth_tol, depth_kind, min_cos)
+            d = depths[view] if depths is not None else None
+            bounds = (d, d) if d is not None else None
+            ok, uv, cos = _visible_in_view(x, n, imgs[view].shape[:2], c2ws[view], intr[view], bounds, depth_tol, depth_kind, min_cos)
             if ok.any():
                 samples[view, ok] = sample_bilinear(imgs[view], uv[ok])[:, :3] * scales[view]
                 weights[view, ok] = cos[ok]

@@ -10,7 +10,7 @@ Densities are volume densities σ (1 / scene unit), high inside the object.
 from __future__ import annotations
 
 import math
-from typing import Any, Callable
+from typing import Callable
 
 import numpy as np
 import torch
@@ -68,12 +68,6 @@ def _evaluate_indices(
     return _evaluate(density_fn, lo_t + idx.float() * step_t)
 
 
-def node_indices(flat: np.ndarray, res: tuple[int, int, int]) -> np.ndarray:
-    """Flat node indices (M,) of a C-ordered (Rx, Ry, Rz) grid → integer node coordinates (M, 3)."""
-    yz = res[1] * res[2]
-    return np.stack([flat // yz, (flat // res[2]) % res[1], flat % res[2]], axis=-1)
-
-
 def density_grid(
     density_fn: DensityFn,
     aabb: np.ndarray | torch.Tensor,
@@ -93,10 +87,10 @@ def density_grid(
     dev, step = _device_of(aabb, device), grid_spacing(box, res)
     out = np.empty(res, np.float32)
     flat = out.reshape(-1)
-    n = flat.size
+    n, yz = flat.size, res[1] * res[2]
     for start in range(0, n, chunk):
         idx = np.arange(start, min(start + chunk, n), dtype=np.int64)
-        ijk = node_indices(idx, res)
+        ijk = np.stack([idx // yz, (idx // res[2]) % res[1], idx % res[2]], axis=-1)
         flat[start : start + idx.size] = _evaluate_indices(density_fn, ijk, box[0], step, dev)
     return out
 

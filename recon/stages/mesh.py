@@ -123,7 +123,7 @@ def surface_cell(model: torch.nn.Module, aabb: np.ndarray | torch.Tensor, shape:
 
 
 def extract_mesh(
-    model: torch.nn.Module, aabb: torch.Tensor, shape: tuple[int, int, int], cfg: MeshConfig, report: Any,
+    model: torch.nn.Module, aabb: torch.Tensor, shape: tuple[int, int, int], cfg: MeshConfig, report: Any
 ) -> tuple[np.ndarray, np.ndarray, dict]:
     """Density grid over aabb (2, 3) (on aabb's device) → iso-level → marching cubes.
 
@@ -185,41 +185,40 @@ def extract_mesh(
 # ---------------------------------------------------------------------------------------- colors
 def render_depth(
     model: torch.nn.Module, view: View, aabb: torch.Tensor | None, background: np.ndarray, max_side: int | None = None
-) -> tuple[np.ndarray, np.ndarray]:
-    """Expected ray distance and opacity (H, W) of the view at its own size, rendered at most ``max_side``
-    pixels on the longest side and upsampled nearest (each full-size pixel takes the low-res pixel it lies in)."""
+) -> np.ndarray:
+    """Expected ray distance (H, W) of the view at its own size, rendered at most ``max_side`` pixels
+    on the longest side and upsampled nearest (each full-size pixel takes the low-res pixel it lies in)."""
     h, w = view.hw
     scale = min(1.0, max_side / max(h, w)) if max_side else 1.0
     if scale >= 1.0:
-        out = render_view(model, view, aabb, background)
-        return out["depth"], out["opacity"]
+        return render_view(model, view, aabb, background)["depth"]
     h2, w2 = max(1, round(h * scale)), max(1, round(w * scale))
     sx, sy = w2 / w, h2 / h
     fx, fy, cx, cy = view.intrinsics
     small = View(view.name, np.zeros((h2, w2, 3), np.uint8), view.c2w, (fx * sx, fy * sy, cx * sx, cy * sy), view.near, view.far)
-    out = render_view(model, small, aabb, background)
+    depth = render_view(model, small, aabb, background)["depth"]
     rows = np.minimum(((np.arange(h) + 0.5) * sy).astype(np.int64), h2 - 1)
     cols = np.minimum(((np.arange(w) + 0.5) * sx).astype(np.int64), w2 - 1)
-    return out["depth"][rows[:, None], cols[None, :]], out["opacity"][rows[:, None], cols[None, :]]
+    return depth[rows[:, None], cols[None, :]]
 
 
 def render_depths(
     model: torch.nn.Module, views: Sequence[View], aabb: torch.Tensor | None, background: np.ndarray,
     max_side: int | None, report: Any,
-) -> list[tuple[np.ndarray, np.ndarray]]:
-    """(depth, opacity) maps of every view (`render_depth`), with a progress bar: shared by carving and baking."""
-    maps = []
+) -> list[np.ndarray]:
+    """Depth map of every view (`render_depth`), with a progress bar: shared by the hidden-face test and baking."""
+    depths = []
     with report.task("rendering depth of the photos' views", total=len(views), unit="views") as bar:
         for v in views:
-            maps.append(render_depth(model, v, aabb, background, max_side))
+            depths.append(render_depth(model, v, aabb, background, max_side))
             bar.advance()
-    return maps
+    return depths
 
 
-def see_with_views(views: Sequence[View], maps: Sequence[tuple[np.ndarray, np.ndarray]], tol: float) -> SeenFn:
+def see_with_views(views: Sequence[View], depths: Sequence[np.ndarray], tol: float) -> SeenFn:
     """``seen_fn`` of `clean_mesh`: how many of these views see each vertex (`seen_by_views` on their rendered depth)."""
     def seen(vertices: np.ndarray, normals: np.ndarray) -> np.ndarray:
-        return seen_by_views(vertices, normals, [m[0] for m in maps], np.stack([v.c2w for v in views]),
+        return seen_by_views(vertices, normals, depths, np.stack([v.c2w for v in views]),
                              np.asarray([v.intrinsics for v in views], np.float64), tol)
     return seen
 
@@ -386,13 +385,13 @@ def run(ctx: StageContext) -> dict:
     kind = "classic" if meta.get("kind") == "classic" else "fast"
     bounded = meta.get("bounded", True)
     views: list[View] = []
-    maps: list[tuple[np.ndarray, np.ndarray]] = []
+    depths: list[np.ndarray] = []
     if cfg.color == "photos" or cfg.drop_hidden:
         t = time.perf_counter()
         limit = CPU_BAKE_VIEWS[kind] if device.type == "cpu" else 0
         depth_side = CPU_DEPTH_SIDE[kind] if device.type == "cpu" else None
         views = load_views(scene, spread_evenly(train_frames, limit), max_side, ctx.report, "photos for visibility and colors")
-        maps = render_depths(model, views, aabb_t if bounded else None, background, depth_side, ctx.report)
+        depths = render_depths(model, views, aabb_t if bounded else None, background, depth_side, ctx.report)
         timings["depth_s"] = round(time.perf_counter() - t, 3)
         view_note = f"{len(views)} of {len(train_frames)} training views"
         if len(views) < len(train_frames):
@@ -408,7 +407,7 @@ def run(ctx: StageContext) -> dict:
     seen_fn = None
     if cfg.drop_hidden:
         hidden_tol = HIDDEN_TOL_CELLS * surface_cell(model, aabb, shape)[0]
-        seen_fn = see_with_views(views, maps, hidden_tol)
+        seen_fn = see_with_views(views, depths, hidden_tol)
     vertices, faces, clean = clean_mesh(
         vertices, faces, aabb,
         min_component_fraction=cfg.min_component_fraction,
@@ -429,7 +428,7 @@ def run(ctx: StageContext) -> dict:
     t = time.perf_counter()
     normals = np.asarray(trimesh.Trimesh(vertices, faces, process=False).vertex_normals, np.float32)
     if cfg.color == "photos":
-        colors, color_info = bake_colors(model, views, [m[0] for m in maps], vertices, normals)
+        colors, color_info = bake_colors(model, views, depths, vertices, normals)
         color_info["source"] = "photos"
         note = f"baked from {view_note}; {color_info['unseen_from_field']:,} unseen vertices colored by the field"
         color_info["note"] = note
