@@ -16,11 +16,12 @@ from __future__ import annotations
 import json
 import os
 import struct
-import uuid
 from pathlib import Path
 
 import numpy as np
 import trimesh
+
+from recon.atomic import write_bytes_atomic
 
 # Rotation −90° about X: (x, y, z) → (x, z, −y); scene +Z up becomes +Y up.
 Z_UP_TO_Y_UP = np.array([[1, 0, 0, 0], [0, 0, 1, 0], [0, -1, 0, 0], [0, 0, 0, 1]], np.float64)
@@ -42,20 +43,6 @@ def apply_transform(
         raise ValueError(f"transform must be a 4x4 affine matrix with last row [0, 0, 0, 1], got {t.tolist()}")
     out = np.asarray(vertices, np.float64) @ t[:3, :3].T + t[:3, 3]
     return out, (faces[:, ::-1] if np.linalg.det(t[:3, :3]) < 0 else faces)
-
-
-def _write_atomic(path: Path, data: bytes | str) -> Path:
-    """Write to a temporary file in the same folder, then os.replace: readers never see half a file."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.{uuid.uuid4().hex[:8]}.tmp")  # open() honours umask
-    try:
-        with open(tmp, "xb") as f:
-            f.write(data.encode() if isinstance(data, str) else data)
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    return path
 
 
 def glb_bytes(vertices: np.ndarray, faces: np.ndarray, colors_linear: np.ndarray, normals: np.ndarray) -> bytes:
@@ -138,12 +125,13 @@ def export_mesh(
     up = apply_transform(vertices, faces, Z_UP_TO_Y_UP)[0] if y_up else vertices
     mesh_up = trimesh.Trimesh(up, faces, process=False)
     out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
     paths = {
-        "glb": _write_atomic(out / f"{stem}.glb",
+        "glb": write_bytes_atomic(out / f"{stem}.glb",
                              glb_bytes(up, faces, srgb_to_linear(colors), mesh_up.vertex_normals)),
-        "obj": _write_atomic(out / f"{stem}.obj", obj_text(up, faces, colors)),
+        "obj": write_bytes_atomic(out / f"{stem}.obj", obj_text(up, faces, colors)),
     }
     rgba = np.hstack([np.round(colors * 255), np.full((len(colors), 1), 255)]).astype(np.uint8)
     ply = trimesh.Trimesh(vertices, faces, vertex_colors=rgba, process=False)
-    paths["ply"] = _write_atomic(out / f"{stem}.ply", ply.export(file_type="ply", encoding="binary"))
+    paths["ply"] = write_bytes_atomic(out / f"{stem}.ply", ply.export(file_type="ply", encoding="binary"))
     return paths
