@@ -84,7 +84,7 @@ def run(ctx: StageContext) -> dict:
             scene = import_colmap(ctx.source, log_dir=ctx.scene_dir / LOG_DIR)
         else:
             scene = import_transforms(ctx.source)
-        check_cameras(scene, ctx.source)  # here, naming the input: not later, blaming recon's own scene.json
+        check_cameras(scene, _poses_file(ctx.source, kind))  # here, naming the input, not later blaming recon's own files
         splits = {s: sum(f.split == s for f in scene.frames) for s in ("train", "val", "test") if any(f.split == s for f in scene.frames)}
         summary = {
             "headline": f"imported {len(scene.frames)} cameras from {kind}" + (f" (splits {splits})" if splits else ""),
@@ -93,6 +93,17 @@ def run(ctx: StageContext) -> dict:
         }
     scene.save(ctx.out)
     return summary
+
+
+def _poses_file(source: Path, kind: str) -> Path:
+    """The file (or COLMAP model folder) the imported cameras were read from, for messages."""
+    if kind == "colmap":
+        return find_colmap_model(source) or source
+    if kind == "nerf_synthetic":
+        return source / "transforms_{train,val,test}.json"
+    if kind == "transforms" and source.is_dir():
+        return source / "transforms.json"
+    return source
 
 
 def _structure_from_motion(ctx: StageContext) -> tuple[Scene, dict]:
