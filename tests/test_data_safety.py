@@ -403,3 +403,38 @@ def test_library_modules_import_no_runner_and_config_no_torch() -> None:
         imported = {n.module for n in ast.walk(tree) if isinstance(n, ast.ImportFrom) and n.module}
         imported |= {a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names}
         assert not {m for m in imported if m.startswith(("recon.pipeline", "recon.cli", "recon.stages"))}, name
+
+
+def test_bench_reruns_poses_and_normalize_only_when_a_preset_changes_them(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """bench ran every preset `--from train`: a preset that changes normalize kept the shared normalize output."""
+    import recon.config
+    import recon.stages
+    from recon.bench import run_bench
+    from recon.pipeline import Pipeline, Stage
+    from recon.progress import Reporter
+
+    ran: list[tuple[str, str]] = []
+    metrics = {"model": "fast", "steps": 1, "train_time_s": 1.0, "rays_per_s": 1.0, "evals": [],
+               "test": {"psnr": 20.0, "ssim": 0.5, "views": []}}
+
+    def stage(name: str, folder: str, inputs: tuple[str, ...]) -> Stage:
+        def run(ctx) -> dict:
+            ran.append((ctx.scene_dir.name, name))
+            (ctx.out / "metrics.json").write_text(json.dumps(metrics))
+            return {}
+        return Stage(name, folder, inputs, 1, run, needs_source=name == "poses",
+                     source_digest=(lambda s, c: "photos") if name == "poses" else None)
+
+    pipe = Pipeline([stage("poses", "01_poses", ()), stage("normalize", "02_scene", ("poses",)),
+                     stage("train", "03_field", ("normalize",)), stage("mesh", "04_mesh", ("normalize", "train"))])
+    monkeypatch.setattr(recon.stages, "default_pipeline", lambda: pipe)
+    presets = tmp_path / "presets"
+    presets.mkdir()
+    (presets / "plain.toml").write_text('description = "defaults"\n')
+    (presets / "wide.toml").write_text('description = "a wider box"\n[normalize]\nbox_margin = 0.3\n')
+    monkeypatch.setattr(recon.config, "PIPELINES_DIR", presets)
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    run_bench(str(photos), ["plain", "wide"], tmp_path / "bench", [], Reporter(quiet=True), until="train")
+    assert ran == [("photos-poses", "poses"), ("photos-poses", "normalize"),
+                   ("photos-plain", "train"), ("photos-wide", "normalize"), ("photos-wide", "train")]
