@@ -217,6 +217,11 @@ def status(
             raise ReconError(f"{scene} is not a recon scene folder (no manifest.json). Create one with `recon run PHOTOS --out {scene}`.")
         # without options, "stale" means an upstream stage changed; with them, also "differs from these options"
         config = _config(preset, set_) if (preset or set_) else None
+        from recon.pipeline import Manifest
+
+        warning = Manifest(scene).warning
+        if warning:
+            console.print(f"[yellow]warning:[/] {escape(warning)}")
         rows = _pipeline().state(scene, config)
         table = Table(title=f"recon status — {escape(str(scene))}")
         for col in ("stage", "state", "time", "finished", "result"):

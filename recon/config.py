@@ -435,7 +435,7 @@ def _coerce(raw: Any, ftype: Any, dotted: str, source: str) -> Any:
                 continue
         raise ConfigError(f"Option '{dotted}' ({source}) got '{raw}', which is not a valid {ftype}.")
     if origin in (list, tuple):
-        value = json.loads(raw) if isinstance(raw, str) else raw
+        value = _parse_scalar(raw) if isinstance(raw, str) else raw
         if not isinstance(value, (list, tuple)):
             raise ConfigError(f"Option '{dotted}' ({source}) expects a list like [1, 2]; got '{raw}'.")
         inner = args[0] if args else Any
@@ -466,7 +466,7 @@ def _coerce(raw: Any, ftype: Any, dotted: str, source: str) -> Any:
 def _parse_scalar(raw: str) -> Any:
     try:
         return json.loads(raw)
-    except json.JSONDecodeError:
+    except (ValueError, RecursionError):  # not JSON, a number over Python's 4300 digits, nested too deeply
         return raw
 
 

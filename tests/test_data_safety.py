@@ -251,7 +251,7 @@ def test_manifest_with_wrong_types_is_not_an_internal_error(capture: Path, tmp_p
     doc["preset"] = ["fast"]
     (scene / "manifest.json").write_text(json.dumps(doc))
     code, output = recon("status", scene)
-    assert code == 0 and "poses" in output, output
+    assert code == 0 and "poses" in output and "manifest.json was unreadable" in " ".join(output.split()), output
     code, output = recon("run", capture, "--out", scene, *QUICK)
     assert code == 0 and "manifest.json was unreadable" in " ".join(output.split()), output
     assert json.loads((scene / "manifest.json").read_text())["stages"]["poses"]["status"] == "done"
@@ -262,6 +262,8 @@ def test_manifest_with_wrong_types_is_not_an_internal_error(capture: Path, tmp_p
     (["--budget", "-5m"], "must be positive"),
     (["--set", "train.device=tpu"], "'train.device' must be auto, cpu, cuda or cuda:K"),
     (["--set", "train.device=cuda:99"], "train.device"),
+    (["--set", "train.steps=" + "9" * 5000], "expects a number"),
+    (["--set", "train.fast.aabb=" + "[" * 100_000], "expects a list"),
 ])
 def test_bad_training_options_fail_before_any_stage_runs(capture: Path, tmp_path: Path, args: list[str], needle: str) -> None:
     scene = tmp_path / "scene"
