@@ -164,4 +164,6 @@ def read_json(path: Path) -> Any:
     except RecursionError:
         raise ValueError("it is nested too deeply to be a recon or poses file") from None
     except ValueError as exc:  # JSONDecodeError, and int() refusing a number of more than 4300 digits
+        if "digits" in str(exc) and "limit" in str(exc):
+            raise ValueError("a number in it has more than 4300 digits") from None
         raise ValueError(f"it is not valid JSON ({str(exc).splitlines()[0][:200]})") from None
