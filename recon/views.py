@@ -123,6 +123,7 @@ def evaluate(model: torch.nn.Module, views: list[View], aabb: torch.Tensor | Non
 
 
 def write_previews(renders: list, folder: Path, near: float | None = None, far: float | None = None) -> None:
+    """One PNG per rendered view, `folder/NAME.png`: photo | render | colored depth (renders from `evaluate(keep=True)`)."""
     from recon.plots import comparison_panel, depth_to_color
 
     folder.mkdir(parents=True, exist_ok=True)

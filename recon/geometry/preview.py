@@ -73,7 +73,7 @@ def render_preview(
     return np.round(image * 255).astype(np.uint8)
 
 
-def write_previews(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray, folder: Path) -> list[str]:
+def write_mesh_previews(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray, folder: Path) -> list[str]:
     """preview_front.png (from -Y, 20° above) and preview_side.png (from +X) of the mesh, scene frame."""
     from PIL import Image
 

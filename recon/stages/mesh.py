@@ -37,7 +37,7 @@ from recon.geometry.extract import (
     grid_spacing,
     marching_cubes,
 )
-from recon.geometry.preview import write_previews
+from recon.geometry.preview import write_mesh_previews
 from recon.pipeline import Stage, StageContext
 from recon.scene import Frame, Scene, load_scene, spread_evenly
 from recon.views import View, load_views, pixel_footprint, render_view
@@ -339,7 +339,7 @@ def run(ctx: StageContext) -> dict:
     t = time.perf_counter()
     transform, frame_why = export_transform(vertices, cfg.frame, scene.source_from_world, cfg.real_size)
     paths = export_mesh(vertices, faces, colors, ctx.out, stem=MESH_STEM, transform=transform)
-    previews = write_previews(vertices, faces, colors, ctx.out)
+    previews = write_mesh_previews(vertices, faces, colors, ctx.out)
     timings["export_s"] = round(time.perf_counter() - t, 3)
     timings["total_s"] = round(time.perf_counter() - t_all, 3)
 

@@ -11,10 +11,10 @@ from pathlib import Path
 
 import numpy as np
 
+from recon.atomic import sha256_file
 from recon.config import PosesConfig
 from recon.errors import InputError
 from recon.images import list_photos, oriented_size, read_image, save_image
-from recon.atomic import sha256_file
 from recon.pipeline import Stage, StageContext
 from recon.scene import (
     Scene,
@@ -38,6 +38,7 @@ def source_digest(source: Path, cfg: PosesConfig | None) -> str:
 
     Exactly the files recon reads: the photos directly in a photos folder (never other files or subfolders), or a
     poses file with every image it refers to (an edited image re-runs poses too), or a COLMAP model with its images.
+    Paths are hashed as given (absolute): the poses refer to the photos by path, so moved photos re-run poses.
     """
     h = hashlib.sha256()
     kind = detect_source(source)
