@@ -14,7 +14,7 @@ import trimesh
 from PIL import Image
 from torch import Tensor, nn
 
-from recon.config import MeshConfig
+from recon.config import MeshConfig, RunConfig
 from recon.geometry.compare import chamfer_fscore
 from recon.geometry.export import Z_UP_TO_Y_UP
 from recon.geometry.clean import clean_mesh
@@ -238,7 +238,7 @@ def _run_stage(scene_dir: Path, model: SoftSphere, cfg: MeshConfig, monkeypatch:
     out.mkdir()
     ctx = StageContext(
         name="mesh", folder="04_mesh", out=out, work=scene_dir / ".work", inputs={"normalize": scene_dir / "02_scene", "train": scene_dir / "03_field"},
-        config=cfg, run_config=None, source=None, scene_dir=scene_dir, report=Reporter(quiet=True),
+        config=cfg, run_config=RunConfig(mesh=cfg), source=None, scene_dir=scene_dir, report=Reporter(quiet=True),
     )
     return mesh_stage.run(ctx), out
 
