@@ -150,15 +150,13 @@ def test_texture_baked_from_photos_matches_held_out_photos_and_fills_what_no_pho
     textured = mesh_stage.texture_mesh(model, cfg, train, depths, vertices, faces, quiet)
     assert textured.info["faces"] <= 1500 and textured.info["unseen_from_field"] > 0
     # vertex colors on the same 1500-face mesh: what the texture replaces
-    low_v, low_f = textured.vertices, textured.faces
-    low_colors, _ = mesh_stage.bake_colors(model, train, depths, low_v, textured.normals)
+    low_colors, _ = mesh_stage.bake_colors(model, train, depths, textured.vertices, textured.normals)
 
-    dense, _ = mesh_stage.compare_in_views(held_out, BACKGROUND, (vertices, faces, colors), textured, quiet)
-    coarse, _ = mesh_stage.compare_in_views(held_out, BACKGROUND, (low_v, low_f, low_colors), textured, quiet)
-    tex_db, dense_db, coarse_db = dense["psnr_textured_covered"], dense["psnr_vertex_colors_covered"], coarse["psnr_vertex_colors_covered"]
+    dense, strips = mesh_stage.compare_in_views(held_out, BACKGROUND, (vertices, faces, colors), textured, quiet, low_colors)
+    tex_db, dense_db, coarse_db = dense["psnr_textured_covered"], dense["psnr_vertex_colors_covered"], dense["psnr_light_vertex_colors_covered"]
     assert tex_db > dense_db - 1.0  # 1.5k faces + 256² texels ≈ the colors of the 33k-face mesh
     assert tex_db > coarse_db + 3.0  # and far better than vertex colors on the same light mesh
-    assert len(dense["views"]) == 2
+    assert len(dense["views"]) == 2 and strips[0].shape == (64, 3 * 64 + 8, 3)
 
     # texels: every island texel has a color (photo or the field's fill), never the black of an unbaked texel
     tex = textured.texture.astype(np.float64) / 255

@@ -299,11 +299,13 @@ def texture_mesh(
 
 def compare_in_views(
     views: Sequence[View], background: np.ndarray, vertex_mesh: tuple[np.ndarray, np.ndarray, np.ndarray],
-    textured: TexturedMesh, report: Any,
+    textured: TexturedMesh, report: Any, light_colors: np.ndarray | None = None,
 ) -> tuple[dict, list[np.ndarray]]:
     """PSNR against the photos of the vertex-colored mesh (vertices, faces, colors) and of the textured mesh,
     each rendered unlit (`raster.render_mesh`) into every view on the field's background: over the whole
-    photo, and over the pixels both meshes cover (the colors alone, without the silhouettes).
+    photo, and over the pixels both meshes cover (the colors alone, without the silhouettes). With
+    ``light_colors`` (V, 3) for the textured mesh's vertices, also that light mesh with vertex colors instead
+    of the texture ("light_vertex_colors": what the texture buys at the same face count).
     Returns the metrics and, per view, a strip photo | vertex colors | texture (H, 3W + 8, 3) in [0, 1]."""
     from recon.metrics import mse_to_psnr
 
@@ -314,20 +316,24 @@ def compare_in_views(
     with report.task("rendering the meshes into the held-out views", total=len(views), unit="views") as bar:
         for view in views:
             gt = target_rgb(view, background)[..., :3]
-            vc, vc_mask = render_mesh(*vertex_mesh[:2], view.c2w, view.intrinsics, view.hw, colors=vertex_mesh[2], background=background)
-            tx, tx_mask = render_mesh(textured.vertices, textured.faces, view.c2w, view.intrinsics, view.hw,
-                                      uv=textured.uv, texture=textured.texture, background=background)
+            cam = (view.c2w, view.intrinsics, view.hw)
+            vc, vc_mask = render_mesh(*vertex_mesh[:2], *cam, colors=vertex_mesh[2], background=background)
+            tx, tx_mask = render_mesh(textured.vertices, textured.faces, *cam, uv=textured.uv, texture=textured.texture,
+                                      background=background)
             both = vc_mask & tx_mask
-            per_view.append({
-                "view": view.name,
-                "psnr_vertex_colors": db((vc - gt) ** 2), "psnr_textured": db((tx - gt) ** 2),
-                "psnr_vertex_colors_covered": db((vc - gt)[both] ** 2), "psnr_textured_covered": db((tx - gt)[both] ** 2),
-                "covered_fraction": round(float(both.mean()), 4),
-            })
+            row = {"view": view.name,
+                   "psnr_vertex_colors": db((vc - gt) ** 2), "psnr_textured": db((tx - gt) ** 2),
+                   "psnr_vertex_colors_covered": db((vc - gt)[both] ** 2), "psnr_textured_covered": db((tx - gt)[both] ** 2),
+                   "covered_fraction": round(float(both.mean()), 4)}
+            if light_colors is not None:
+                lv, _ = render_mesh(textured.vertices, textured.faces, *cam, colors=light_colors, background=background)
+                row["psnr_light_vertex_colors"] = db((lv - gt) ** 2)
+                row["psnr_light_vertex_colors_covered"] = db((lv - gt)[both] ** 2)
+            per_view.append(row)
             gap = np.ones((gt.shape[0], 4, 3))
             strips.append(np.concatenate([gt, gap, vc, gap, tx], axis=1))
             bar.advance()
-    keys = ("psnr_vertex_colors", "psnr_textured", "psnr_vertex_colors_covered", "psnr_textured_covered")
+    keys = [k for k in per_view[0] if k.startswith("psnr")] if per_view else []
     metrics = {k: round(float(np.mean([v[k] for v in per_view])), 3) for k in keys}
     return {**metrics, "views": per_view}, strips
 
@@ -617,7 +623,11 @@ def _textured(
     t = time.perf_counter()
     chosen = spread_evenly(held_out, HELD_OUT_VIEWS)
     test_views = load_views(scene, chosen, max_side, ctx.report, "held-out photos")
-    info["held_out"], strips = compare_in_views(test_views, background, (vertices, faces, colors), textured, ctx.report)
+    light_colors = None
+    if cfg.color == "photos":  # the same light mesh with vertex colors: what the texture adds at its face count
+        light_colors = bake_colors(model, views, depths, textured.vertices, textured.normals)[0]
+    info["held_out"], strips = compare_in_views(test_views, background, (vertices, faces, colors), textured, ctx.report,
+                                                light_colors)
     Image.fromarray(np.round(np.clip(strips[0], 0, 1) * 255).astype(np.uint8)).save(ctx.out / "texture_compare.png")
     previews.append("texture_compare.png")
     timings["held_out_s"] = round(time.perf_counter() - t, 3)
@@ -626,6 +636,8 @@ def _textured(
         f"held-out photos ({len(test_views)} of {len(held_out)}{', spread evenly' if len(chosen) < len(held_out) else ''}): "
         f"PSNR vertex colors {h['psnr_vertex_colors']:.2f} dB, textured {h['psnr_textured']:.2f} dB "
         f"(where both cover: {h['psnr_vertex_colors_covered']:.2f} / {h['psnr_textured_covered']:.2f} dB)"
+        + (f"; the light mesh with vertex colors instead: {h['psnr_light_vertex_colors']:.2f} dB "
+           f"({h['psnr_light_vertex_colors_covered']:.2f} dB where both cover)" if "psnr_light_vertex_colors" in h else "")
     )
     return info, previews
 
