@@ -3,7 +3,9 @@ forms and an analytic color; then baking from photos of an analytic field (rende
 renderer from known cameras), measured in held-out views against the vertex-colored mesh."""
 from __future__ import annotations
 
+import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -19,7 +21,7 @@ from recon.progress import Reporter
 from recon.scene import look_at
 from recon.stages import mesh as mesh_stage
 from recon.stages.train import View, render_view
-from tests.test_mesh_stage import AABB, BACKGROUND, CENTRE, SoftSphere
+from tests.test_mesh_stage import AABB, BACKGROUND, CENTRE, SoftSphere, _run_stage, _scene_dir
 
 
 def smooth_color(p: np.ndarray, n: np.ndarray | None = None) -> np.ndarray:
@@ -170,3 +172,29 @@ def test_texture_baked_from_photos_matches_held_out_photos_and_fills_what_no_pho
     ring = ~textured.mask & (np.pad(textured.mask, 1)[2:, 1:-1] | np.pad(textured.mask, 1)[:-2, 1:-1]
                              | np.pad(textured.mask, 1)[1:-1, 2:] | np.pad(textured.mask, 1)[1:-1, :-2])
     assert ring.sum() > 100 and np.all(tex[ring].max(axis=1) > 0.05)
+
+
+def test_mesh_stage_writes_the_textured_mesh_and_compares_it_in_the_held_out_views(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    model = SoftSphere(amplitude=3000.0, width=0.004, samples=192)
+    scene_dir = _scene_dir(tmp_path, model, np.eye(4), kind="transforms")
+    scene_json = scene_dir / "02_scene" / "scene.json"
+    doc = json.loads(scene_json.read_text())
+    for frame in doc["frames"][::3]:
+        frame["split"] = "test"  # 2 of the 6 photos held out
+    scene_json.write_text(json.dumps(doc))
+    cfg = MeshConfig(resolution=49, target_faces=4000, texture_faces=800, texture_size=128)
+    summary, out = _run_stage(scene_dir, model, cfg, monkeypatch)
+    textured = json.loads((out / "mesh_report.json").read_text())["textured"]
+    assert textured["faces"] <= 800 and textured["texture_size"] == 128
+    assert sorted(textured["files"].values()) == ["mesh_textured.glb", "mesh_textured.mtl", "mesh_textured.obj", "mesh_textured.png"]
+    held = textured["held_out"]
+    assert [v["view"] for v in held["views"]] == ["v00", "v03"]
+    # the sphere's color is smooth: 800 faces with a texture render it as well as the dense vertex colors
+    assert abs(held["psnr_textured_covered"] - held["psnr_vertex_colors_covered"]) < 1.0
+    assert "held-out PSNR" in summary["textured"]
+    glb = trimesh.load(out / "mesh_textured.glb", force="mesh", process=False)
+    assert glb.visual.material.baseColorTexture.size == (128, 128) and len(glb.faces) == textured["faces"]
+    for name in ("preview_textured.png", "texture_compare.png"):
+        assert (out / name).stat().st_size > 0
