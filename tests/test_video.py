@@ -202,3 +202,30 @@ def test_rerun_decodes_nothing_and_a_changed_video_is_stale(posed: tuple[Path, P
         f.write(b"\0" * 16)
     state = {r["stage"]: r["state"] for r in default_pipeline().state(scene_dir, config, source)}
     assert state["poses"] == "stale"
+
+
+ACCEPT = dict(size=(400, 300), fps=15.0, seconds=20.0, pause_s=2.0, supersample=1)
+"""The acceptance clip: `python fixtures/gen_video.py --supersample 1 --out DIR` (330 frames, 2 MB)."""
+
+
+@pytest.mark.slow
+def test_video_to_mesh_matches_the_true_surface(pytestconfig: pytest.Config, tmp_path: Path) -> None:
+    """`recon run clip.mp4 --preset fast` (1000 training steps: independent of the machine's load) gives a mesh
+    with F-score@1% >= 0.85 against the true surface, cameras aligned by the frames' true poses."""
+    from recon.mesh_eval import compare_to_gt
+
+    folder = Path(pytestconfig.cache.mkdir(f"recon-video-accept-v{gen_video.FORMAT_VERSION}"))
+    if not (folder / "video_info.json").is_file():
+        gen_video.generate_video(folder, **ACCEPT)
+    info = _info(folder / "clip.mp4")
+    scene_dir = tmp_path / "scene"
+    code, out = _recon("run", str(folder / "clip.mp4"), "--out", str(scene_dir), "--preset", "fast", "--quiet",
+                       "--set", "train.budget=", "--set", "train.steps=1000")
+    assert code == 0, out
+    summary = json.loads((scene_dir / "manifest.json").read_text())["stages"]["poses"]["summary"]
+    assert summary["registered"] == summary["total"] == summary["video"][0]["kept"]
+    kept = {int(f.stem.rsplit("_f", 1)[1]) for f in load_scene(scene_dir / "01_poses").frames}
+    assert not kept & set(info["blurred"]) and len(kept & {info["still_frame"], *info["pause"]}) <= 1
+    result = compare_to_gt(scene_dir, folder / "gt_mesh.ply")
+    assert result["alignment"]["residual_rms_rel"] < 0.01, result["alignment"]
+    assert result["fscore@0.01"] >= 0.85, result
