@@ -122,6 +122,12 @@ def list_videos(folder: Path) -> list[Path]:
     return sorted(p for p in folder.iterdir() if p.is_file() and not p.name.startswith(".") and is_video(p))
 
 
+def share_frames(target: int, frame_counts: list[int]) -> list[int]:
+    """Split a frame budget among clips by length (each clip gets at least one window)."""
+    total = max(sum(frame_counts), 1)
+    return [max(1, round(target * n / total)) for n in frame_counts]
+
+
 def _unreadable(path: Path, what: str) -> InputError:
     return InputError(
         f"Cannot read the video {path}: {what}. It is damaged, truncated (an interrupted copy or recording), not "

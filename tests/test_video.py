@@ -144,6 +144,14 @@ def test_detect_source_video_kinds(tmp_path: Path) -> None:
         detect_source(tmp_path)
 
 
+def test_clips_of_a_folder_share_the_frame_budget_by_length(tmp_path: Path, clip: Path) -> None:
+    assert video.share_frames(150, [300, 600, 0]) == [50, 100, 1]
+    for name in ("b.mp4", "a.m4v", ".hidden.mp4"):
+        shutil.copy(clip, tmp_path / name)
+    (tmp_path / "notes.txt").write_text("x")
+    assert [p.name for p in video.list_videos(tmp_path)] == ["a.m4v", "b.mp4"]
+
+
 def test_loop_pairs_close_the_loop_without_repeating_sequential_pairs() -> None:
     names = [f"c_f{i:06d}.jpg" for i in range(100)]
     pairs = loop_pairs(list(reversed(names)), keyframes=10, overlap=10)

@@ -71,7 +71,7 @@ def run(ctx: StageContext) -> dict:
 
 def _video(ctx: StageContext) -> tuple[Scene, dict]:
     """Decode the clip(s) into the kept frames (01_poses/frames/, with time stamps), then SfM on them in order."""
-    from recon.video import SelectOptions, frame_name, list_videos, probe, select_frames
+    from recon.video import SelectOptions, frame_name, list_videos, probe, select_frames, share_frames
 
     cfg: PosesConfig = ctx.config
     videos = [ctx.source] if ctx.source.is_file() else list_videos(ctx.source)
@@ -83,9 +83,8 @@ def _video(ctx: StageContext) -> tuple[Scene, dict]:
     selections = []
     with ctx.report.task("decoding video", total=total, unit="frames") as bar:
         done = 0
-        for video, info in zip(videos, infos):
-            # the clips share the frame budget by length
-            options = SelectOptions(max(1, round(cfg.video_frames * info.frame_count / total)), cfg.video_min_change)
+        for video, info, target in zip(videos, infos, share_frames(cfg.video_frames, [i.frame_count for i in infos])):
+            options = SelectOptions(target, cfg.video_min_change)
 
             def keep(frame, image: np.ndarray, stem: str = video.stem) -> None:
                 path = frames_dir / frame_name(stem, frame.index)
