@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from recon.errors import ReconError
+from recon.exports import OPENGL_TO_OPENCV as _FLIP
 
 if TYPE_CHECKING:
     import viser
@@ -25,7 +26,7 @@ if TYPE_CHECKING:
     from recon.api import Field
     from recon.scene import Scene
 
-OPENGL_TO_OPENCV = np.diag([1.0, -1.0, -1.0])
+OPENGL_TO_OPENCV = _FLIP[:3, :3]
 """Camera axes: OpenGL (recon: looks down -Z, +Y up) ↔ OpenCV (viser: looks down +Z, +Y down)."""
 LEVELS = (64, 160)
 """Long sides of the progressive renders before the final one (pixels)."""
@@ -50,6 +51,10 @@ def wxyz(rotation: np.ndarray) -> np.ndarray:
 
     x, y, z, w = Rotation.from_matrix(rotation).as_quat()
     return np.array([w, x, y, z])
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    return v / np.linalg.norm(v)
 
 
 def viewer_c2w(wxyz_: np.ndarray, position: np.ndarray) -> np.ndarray:
@@ -229,7 +234,11 @@ class SceneViewer:
         frame = self.scene.frames[0]
         target = np.asarray(self.scene.aabb).mean(axis=0) if self.scene.aabb is not None else np.zeros(3)
         client.camera.fov = float(2 * np.arctan(0.5 * frame.h / frame.fl_y))
-        client.camera.position = target + 1.6 * (frame.center - target)  # behind the first photo's camera, which stays in view
+        # start between the first photo and its nearest neighbour, a little farther out: no frustum in the way
+        offsets = np.stack([f.center for f in self.scene.frames]) - target
+        nearest = np.argsort(np.linalg.norm(offsets - offsets[0], axis=1))[1] if len(offsets) > 1 else 0
+        radius = float(np.linalg.norm(offsets[0]))
+        client.camera.position = target + 1.15 * radius * _unit(_unit(offsets[0]) + _unit(offsets[nearest]))
         client.camera.look_at = target
         client.camera.up_direction = (0.0, 0.0, 1.0)
         if self.field is None:

@@ -97,3 +97,25 @@ def test_headless_screenshot_is_not_blank(viewer: SceneViewer, tmp_path: Path) -
     image = np.asarray(Image.open(shot).convert("RGB")).astype(np.float32)
     assert image.std() > 10
     assert len(np.unique(image.reshape(-1, 3) // 16, axis=0)) > 20
+
+
+def test_training_view_shows_progress_and_the_current_render(viewer: SceneViewer) -> None:
+    """The `recon run --view` observer: the step/loss/PSNR text, the cameras, and photo | render of a held-out view."""
+    from recon.nerf.trainer import TrainProgress
+    from recon.stages.train import load_views
+    from recon.viewer import TrainingView
+
+    live = TrainingView(viewer.scene_dir, port=free_port(), interval_s=0.0, side=32)
+    try:
+        field = viewer.field
+        view = load_views(field.scene, field.scene.frames[:1], 64)[0]
+        progress = TrainProgress(step=10, steps=30, loss=0.0123, psnr=19.5, lr=1e-2, elapsed_s=1.0, rays_per_s=1000.0)
+        data = {"progress": progress, "model": field.model, "view": view, "aabb": field.aabb, "background": field.background}
+        live("train_step", data)
+        assert "step 10 / 30" in live.text.content and "loss 0.0123" in live.text.content and live.cameras_shown
+        image = live._render(data)
+        assert image.shape == (32, 64, 3)
+        photo, render = image[:, :32].astype(float), image[:, 32:].astype(float)
+        assert render.std() > 5 and np.abs(photo - render).mean() < 60  # the object, roughly where the photo has it
+    finally:
+        live.server.stop()
