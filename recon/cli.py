@@ -175,6 +175,8 @@ def run(
         live = TrainingView(out, port=port)
     console.print(f"[bold]viewer:[/] {live.url} (training shows there live)")
     _run(out, photos, preset, overrides, quiet, from_stage, until_stage, force, observers=[live])
+    if live.render_s:
+        console.print(f"viewer: {len(live.render_s)} live renders during training, {sum(live.render_s) / len(live.render_s):.2f} s each")
     _serve(lambda: SceneViewer(out, server=live.server, log=lambda m: console.print(f"viewer: {m}")), out)
 
 
