@@ -98,8 +98,8 @@ def depth_image(depth: np.ndarray) -> np.ndarray:
 class LiveRender:
     """One browser's live field render: a background thread, restarted (cancelling the current one) on each camera move."""
 
-    def __init__(self, client: Any, field: Field, settings: Callable[[], dict[str, Any]]):
-        self.client, self.field, self.settings = client, field, settings
+    def __init__(self, client: Any, field: Field, settings: Callable[[], dict[str, Any]], log: Callable[[str], None] = print):
+        self.client, self.field, self.settings, self.log = client, field, settings, log
         self.version = 0
         self.stopped = False
         self.cond = threading.Condition()
@@ -133,7 +133,7 @@ class LiveRender:
                 self._render(version)
             except Exception as exc:  # a client that left mid-render: nothing to show it any more
                 if not self.stopped:
-                    print(f"recon view: live render stopped ({type(exc).__name__}: {exc})")
+                    self.log(f"live render stopped ({type(exc).__name__}: {exc})")
                 return
 
     def _render(self, version: int) -> None:
@@ -173,12 +173,14 @@ class SceneViewer:
         self.server.scene.set_up_direction("+z")
         self.frustums = add_cameras(self.server, self.scene)
         self.points = add_points(self.server, self.scene)
-        self.mesh = self._add_mesh()
         self.field = self._load_field(device)
+        self.mesh = self._add_mesh()
         self.renders: dict[int, LiveRender] = {}
         gui = self.server.gui
         modes = ("field", "depth", "mesh") if self.field is not None else ("mesh",)
-        self.mode = gui.add_dropdown("Show", modes, initial_value=modes[0] if self.mesh is None or self.field is not None else "mesh")
+        self.mode = gui.add_dropdown("Show", modes, initial_value=modes[0])
+        if self.mesh is not None:
+            self.mesh.visible = self.mode.value == "mesh"
         side = int(self.field.meta.get("max_side", 400)) if self.field is not None else 400
         self.max_side = gui.add_slider("Render size", min=64, max=1024, step=16, initial_value=min(side, 512))
         self.show_cameras = gui.add_checkbox("Cameras", initial_value=True)
@@ -205,9 +207,7 @@ class SceneViewer:
         mesh = trimesh.load(mesh_dir / "mesh.ply", process=False)
         report = json.loads((mesh_dir / "mesh_report.json").read_text())
         mesh.apply_transform(np.linalg.inv(np.asarray(report["export"]["transform"], np.float64)))
-        handle = self.server.scene.add_mesh_trimesh("/mesh", mesh)
-        handle.visible = False  # the field is shown first; "Show: mesh" swaps them
-        return handle
+        return self.server.scene.add_mesh_trimesh("/mesh", mesh)  # shown when "Show" is "mesh"
 
     def _load_field(self, device: str) -> Field | None:
         if not (self.scene_dir / "03_field" / "field.pt").is_file():
@@ -243,7 +243,7 @@ class SceneViewer:
         client.camera.up_direction = (0.0, 0.0, 1.0)
         if self.field is None:
             return
-        live = LiveRender(client, self.field, self._settings)
+        live = LiveRender(client, self.field, self._settings, self.log)
         self.renders[client.client_id] = live
         client.camera.on_update(lambda _: live.request())
         live.request()
