@@ -315,6 +315,7 @@ def run_batch(
     A capture's ReconError is recorded and the others go on; a worker that dies is retried by Ray up to
     `retries` times (each retry resumes from the capture's cache).
     """
+    require_ray()
     config = load_config(preset, overrides)  # a bad option fails here, before Ray starts
     captures = expand_inputs(inputs)
     prepare_scene_dir(out)

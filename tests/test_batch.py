@@ -80,6 +80,17 @@ def test_torch_threads_follow_omp_num_threads(monkeypatch: pytest.MonkeyPatch) -
     assert cpu_threads() == physical_cores()
 
 
+def test_without_ray_batch_says_how_to_install_it(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    from typer.testing import CliRunner
+
+    from recon.cli import app
+
+    monkeypatch.setitem(sys.modules, "ray", None)  # `import ray` now raises ImportError
+    res = CliRunner().invoke(app, ["batch", str(tmp_path), "--out", str(tmp_path / "out")])
+    assert res.exit_code == 2 and 'pip install -c constraints.txt -e ".[ray]"' in res.output, res.output
+    assert not (tmp_path / "out").exists()
+
+
 # --- on a local Ray ----------------------------------------------------------------------------------------
 
 
