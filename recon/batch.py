@@ -122,7 +122,7 @@ def capture_name(path: Path) -> str:
     """Folder-safe name of a capture: `shoe/images` → shoe, `vase.mp4` → vase, `lego/transforms.json` → lego."""
     path = Path(os.path.normpath(path.absolute()))
     stem = path.stem if path.suffix else path.name
-    if stem.lower() in GENERIC_NAMES or path.suffix.lower() in (".json", ".bin", ".txt") and path.parent.name:
+    if stem.lower() in GENERIC_NAMES or (path.suffix.lower() in (".json", ".bin", ".txt") and path.parent.name):
         stem = path.parent.name
     return re.sub(r"[^A-Za-z0-9._-]+", "_", stem).strip("._") or "capture"
 
@@ -327,6 +327,9 @@ def run_batch(
         f"[bold]recon batch[/]: {len(captures)} captures, preset {preset}, {len(nodes)} node(s) "
         f"({', '.join(_node_text(n) for n in nodes)})"
     )
+    for c in captures:
+        if c.name != capture_name(c.source):
+            report.info(f"{c.source} → {out / c.name}: an earlier capture is also named {capture_name(c.source)}")
     report.info(f"each capture asks for: {'; '.join(resources.reasons)}")
     report.info(f"so Ray runs up to {sum(per_node)} captures at once ({' + '.join(map(str, per_node))} per node)")
     if sum(per_node) == 0:
@@ -359,6 +362,7 @@ def run_batch(
                     records[c.name] = {"name": c.name, "source": str(c.source), "folder": str(out / c.name), "stages": {},
                                        "error": f"Ray gave up after {retries} retries: {type(exc).__name__}: {_first_line(exc)}"}
                     records[c.name].update(capture_facts(out / c.name, {}))
+                    board.update.remote(c.name, None)  # its worker died before saying it stopped
                 if records[c.name].get("error"):
                     report.warn(f"{c.name}: {records[c.name]['error']}")
                 bar.advance()
