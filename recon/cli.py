@@ -373,6 +373,33 @@ def view(
 
 
 @app.command()
+def batch(
+    inputs: Annotated[list[Path], typer.Argument(help="Capture folders (photos or poses), videos, or one text file listing them (one per line, # comments).")],
+    out: Annotated[Path, typer.Option("--out", "-o", help="Folder for every capture's scene (OUT/<capture name>/), batch.md and batch.json.")],
+    address: Annotated[Optional[str], typer.Option("--address", help="Ray cluster to join: auto or HOST:PORT (default: start Ray on this machine).")] = None,
+    preset: PresetOpt = None,
+    set_: SetOpt = None,
+    cpus_per_capture: Annotated[Optional[float], typer.Option("--cpus-per-capture", help="CPUs each capture asks Ray for (default: from the config).")] = None,
+    retries: Annotated[int, typer.Option("--retries", help="Times Ray re-runs a capture whose worker died (it resumes from its cache).")] = 2,
+    quiet: QuietOpt = False,
+) -> None:
+    """Run many captures as Ray tasks (one per capture), locally or on a cluster; exit 1 if any failed."""
+    from recon.batch import run_batch
+
+    install_sigterm_as_interrupt()
+    with _guard():
+        if retries < 0 or (cpus_per_capture is not None and cpus_per_capture <= 0):
+            raise ReconError("--retries must be ≥ 0 and --cpus-per-capture > 0.")
+        result = run_batch(inputs, out, preset or DEFAULT_PRESET, list(set_ or []), Reporter(console, quiet=quiet),
+                           address=address, retries=retries, cpus_per_capture=cpus_per_capture)
+        out_console.print((out / "batch.md").read_text())
+    if result["failed"]:
+        console.print(f"[bold red]{result['failed']} of {len(result['captures'])} captures failed[/] (errors above and in {out / 'batch.md'}); "
+                      f"fix them and run the same command again: finished captures are reused.")
+        raise typer.Exit(1)
+
+
+@app.command()
 def presets() -> None:
     """List the presets in pipelines/ and what each trades."""
     with _guard():
