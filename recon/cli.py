@@ -126,12 +126,14 @@ def _run(
     from_stage: str | None = None,
     until_stage: str | None = None,
     force: bool = False,
+    observers: list[Callable[[str, dict], None]] | None = None,
 ) -> None:
     install_sigterm_as_interrupt()
     with _guard(scene_dir):
         preset = preset or _recorded_preset(scene_dir)
         config = _config(preset, overrides)
         report = Reporter(console, quiet=quiet)
+        report.observers = list(observers or [])
         if not quiet:
             report.info(f"preset [bold]{preset or DEFAULT_PRESET}[/]: {preset_description(preset or DEFAULT_PRESET)}")
         outcomes = _pipeline().run(
@@ -159,10 +161,23 @@ def run(
     force: Annotated[bool, typer.Option("--force", help="Re-run every selected stage even if cached.")] = False,
     budget: Annotated[Optional[str], typer.Option("--budget", help="Training time budget, e.g. 5m (same as --set train.budget=5m).")] = None,
     quiet: QuietOpt = False,
+    view: Annotated[bool, typer.Option("--view", help="Show training live in a web viewer (loss, PSNR, current render), then the result.")] = False,
+    port: Annotated[int, typer.Option("--port", help="Viewer port (with --view).")] = 8080,
 ) -> None:
     """Run every stage in order, reusing what is already done."""
     overrides = list(set_ or []) + ([f"train.budget={budget}"] if budget else [])
-    _run(out, photos, preset, overrides, quiet, from_stage, until_stage, force)
+    if not view:
+        _run(out, photos, preset, overrides, quiet, from_stage, until_stage, force)
+        return
+    from recon.viewer import SceneViewer, TrainingView
+
+    with _guard(out):
+        live = TrainingView(out, port=port)
+    console.print(f"[bold]viewer:[/] {live.url} (training shows there live)")
+    _run(out, photos, preset, overrides, quiet, from_stage, until_stage, force, observers=[live])
+    if live.render_s:
+        console.print(f"viewer: {len(live.render_s)} live renders during training, {sum(live.render_s) / len(live.render_s):.2f} s each")
+    _serve(lambda: SceneViewer(out, server=live.server, log=lambda m: console.print(f"viewer: {m}")), out)
 
 
 def _single_stage(name: str) -> Callable[..., None]:
@@ -311,6 +326,50 @@ def bench(
         rows = run_bench(data, names, out, list(set_ or []), Reporter(console), until=until)
         out_console.print((out / "bench.md").read_text())
         out_console.print(f"{len(rows)} presets measured — {out / 'bench.md'}, {out / 'bench.png'}")
+
+
+@app.command()
+def export(
+    scene: Annotated[Path, typer.Argument(help="Scene folder (made by `recon run`).")],
+    out: Annotated[Path, typer.Option("--out", "-o", help="Folder for the export (new, empty, or an earlier recon export).")],
+    format_: Annotated[str, typer.Option("--format", "-f", help="nerfstudio (transforms.json + images) | colmap (text model + images) | points (PLY).")] = "nerfstudio",
+    frame: Annotated[str, typer.Option("--frame", help="normalized (recon's box, +Z up, like the mesh) | source (the SfM / imported poses).")] = "normalized",
+) -> None:
+    """Export cameras, undistorted images and sparse points for other tools (nerfstudio, instant-ngp, Gaussian splatting)."""
+    from recon.exports import export_scene
+
+    with _guard():
+        written = export_scene(scene, format_, out, frame, report=Reporter(console))  # type: ignore[arg-type]
+        out_console.print(f"{format_} export ({frame} frame): " + ", ".join(str(p) for p in written))
+
+
+def _serve(make: Callable[[], Any], scene: Path) -> None:
+    """Build a viewer and keep serving until Ctrl-C (which here simply closes it)."""
+    import time
+
+    with _guard(scene):
+        viewer = make()
+        console.print(f"[bold]viewer:[/] {viewer.url} — Ctrl-C to stop")
+    try:
+        while True:
+            time.sleep(1.0)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        viewer.stop()
+
+
+@app.command()
+def view(
+    scene: Annotated[Path, typer.Argument(help="Scene folder (made by `recon run`).")],
+    port: Annotated[int, typer.Option("--port", help="Port to serve on (the next free one if taken).")] = 8080,
+    host: Annotated[str, typer.Option("--host", help="Address to bind; 0.0.0.0 shares the viewer on your network.")] = "127.0.0.1",
+    device: Annotated[str, typer.Option("--device", help="auto | cpu | cuda (for the live field render)")] = "auto",
+) -> None:
+    """A local web viewer: cameras with their photos, sparse points, the mesh, and the field rendered live."""
+    from recon.viewer import SceneViewer
+
+    _serve(lambda: SceneViewer(scene, host=host, port=port, device=device, log=lambda m: console.print(f"viewer: {m}")), scene)
 
 
 @app.command()
