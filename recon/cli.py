@@ -152,7 +152,7 @@ def _run(
 
 @app.command()
 def run(
-    photos: Annotated[Path, typer.Argument(help="Folder of photos, or poses you have: transforms.json folder, NeRF-synthetic folder, COLMAP model, .npz.")],
+    photos: Annotated[Path, typer.Argument(help="Folder of photos, a video (MP4/MOV/M4V) or folder of videos, or poses you have: transforms.json folder, NeRF-synthetic folder, COLMAP model, .npz.")],
     out: Annotated[Path, typer.Option("--out", "-o", help="Scene folder for every stage's output.")],
     preset: PresetOpt = None,
     set_: SetOpt = None,
