@@ -146,6 +146,11 @@ class MeshConfig:
     """Export in our normalized frame (+Z up, box ≈ [-1, 1]³) or back in the source (COLMAP/import) frame."""
     real_size: float = 0.0
     """> 0: scale the mesh so its largest bounding-box side is this many units (e.g. meters)."""
+    texture_faces: int = 50000
+    """Also write mesh_textured.glb/.obj: the mesh decimated to this many faces, UV-unwrapped, its color
+    baked into a texture (0: no textured mesh)."""
+    texture_size: int = 2048
+    """Side of the square texture image of the textured mesh, in texels."""
 
 
 @dataclass
@@ -258,6 +263,8 @@ BOUNDS: dict[str, tuple[Any, str]] = {
     "mesh.smooth_iters": _at_least(0),
     "mesh.target_faces": _at_least(0),
     "mesh.real_size": _at_least(0),
+    "mesh.texture_faces": ((lambda v: v == 0 or v >= 4), "0 (no textured mesh) or at least 4"),
+    "mesh.texture_size": _at_least(16),
 }
 """Allowed range of each numeric option: checked once the preset and every --set are applied."""
 
