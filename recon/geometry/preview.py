@@ -14,7 +14,7 @@ import trimesh
 from recon.scene import look_at
 
 
-def _look_rotation(azimuth_deg: float, elevation_deg: float) -> np.ndarray:
+def look_rotation(azimuth_deg: float, elevation_deg: float) -> np.ndarray:
     """(3, 3) world→camera rotation rows (right, up, back) of a camera at (azimuth, elevation) around +Z,
     looking at the origin; azimuth 0 looks along +Y (the camera sits on -Y)."""
     az, el = math.radians(azimuth_deg), math.radians(elevation_deg)
@@ -44,7 +44,7 @@ def render_preview(
     mesh = trimesh.Trimesh(np.asarray(vertices, np.float64), np.asarray(faces, np.int64), process=False)
     if len(mesh.faces) == 0 or mesh.area <= 0:
         return np.round(image * 255).astype(np.uint8)
-    rot = _look_rotation(azimuth_deg, elevation_deg)
+    rot = look_rotation(azimuth_deg, elevation_deg)
     centre = 0.5 * (mesh.vertices.min(axis=0) + mesh.vertices.max(axis=0))
     cam_v = (mesh.vertices - centre) @ rot.T
     half = 1.1 * float(np.abs(cam_v[:, :2]).max())  # half the image width: 10 % margin
