@@ -189,7 +189,9 @@ def scene_lock(scene_dir: Path) -> Iterator[None]:
         os.close(fd)
 
 
-RECON_NAMES = frozenset({MANIFEST, LOCK, ".work", "logs", "recon-error.log"})
+LOG_NAMES = frozenset({"logs", "recon-error.log", "batch.log"})
+"""recon's own logs in a scene folder (COLMAP's, a crash's, `recon batch`'s), which may precede its manifest."""
+RECON_NAMES = frozenset({MANIFEST, LOCK, ".work"}) | LOG_NAMES
 """Names recon itself creates directly in a scene folder (besides the stage folders and temporary names)."""
 
 
@@ -238,8 +240,8 @@ def check_scene_dir(scene_dir: Path, source: Path | None, stage_folders: list[st
         entries = {p.name for p in scene_dir.iterdir()}
     except OSError as exc:
         raise ReconError(f"Cannot read the output folder {scene_dir}: {exc.strerror}. Choose another --out.") from None
-    if not entries - {LOCK}:
-        return  # empty (or only the lock of a run stopped before it wrote anything)
+    if not entries - {LOCK} - LOG_NAMES:
+        return  # empty, or only the lock and logs of a run stopped before it wrote anything
     has_manifest = (scene_dir / MANIFEST).is_file()
     if has_manifest and Manifest(scene_dir).warning is None:
         return

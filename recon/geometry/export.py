@@ -188,14 +188,15 @@ def export_textured_mesh(
     mesh.visual = trimesh.visual.TextureVisuals(uv=uv, material=PBRMaterial(
         name=stem, baseColorTexture=image, metallicFactor=0.0, roughnessFactor=1.0))
     out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
     png = io.BytesIO()
     image.save(png, format="PNG")
     obj, _ = export_obj(mesh, include_normals=True, include_color=False, include_texture=True, return_texture=True,
                         write_texture=False, mtl_name=f"{stem}.mtl")
     paths = {
-        "glb": _write_atomic(out / f"{stem}.glb", mesh.export(file_type="glb", include_normals=True)),
-        "png": _write_atomic(out / f"{stem}.png", png.getvalue()),
-        "mtl": _write_atomic(out / f"{stem}.mtl", mtl_text(stem, f"{stem}.png")),
+        "glb": write_bytes_atomic(out / f"{stem}.glb", mesh.export(file_type="glb", include_normals=True)),
+        "png": write_bytes_atomic(out / f"{stem}.png", png.getvalue()),
+        "mtl": write_bytes_atomic(out / f"{stem}.mtl", mtl_text(stem, f"{stem}.png")),
     }
-    paths["obj"] = _write_atomic(out / f"{stem}.obj", obj)
+    paths["obj"] = write_bytes_atomic(out / f"{stem}.obj", obj)
     return paths
