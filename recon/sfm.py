@@ -26,12 +26,12 @@ import pycolmap
 from PIL import Image
 
 from recon.errors import ReconError
+from recon.images import device_of
 
 ProgressFn = Callable[[str, float], None]
 
 CAMERA_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV")
 EXHAUSTIVE_MAX_IMAGES = 150  # "auto" matcher: exhaustive up to here (quadratic cost), sequential above
-_EXIF_MODEL_TAG = 0x0110  # EXIF/TIFF "Model"
 
 
 @dataclass
@@ -86,6 +86,8 @@ class SfmResult:
     num_points: int
     timings: dict[str, float] = field(default_factory=dict)
     """Seconds spent in "extract", "match" and "map"."""
+    num_cameras: int = 1
+    """Distinct intrinsics estimated (one per device and size, or one per image)."""
 
 
 def opencv_w2c_to_opengl_c2w(cam_from_world: np.ndarray) -> np.ndarray:
@@ -140,9 +142,9 @@ def choose_camera(
 ) -> tuple[str, bool, str]:
     """Pick the COLMAP camera model and whether all images share one camera; say why in a sentence.
 
-    sizes: (width, height) in pixels per image; exif_models: EXIF camera "Model" per image or None.
+    sizes: (width, height) in pixels per image; exif_models: EXIF device ("Make Model") per image or None.
     Sharing one camera is right when one device took every photo: then all sizes match. A mix of
-    sizes (or of EXIF models) means several cameras or crops, so each image gets its own.
+    sizes (or of EXIF devices) means several cameras or crops: see `camera_groups` for who shares.
     """
     if not sizes:
         raise ValueError("no images")
@@ -183,26 +185,66 @@ def choose_camera(
         "OPENCV": "two focal lengths, radial and tangential distortion, estimated",
     }[model]
     model_src = "the default" if camera_model == "auto" else "as configured"
-    sharing = "One shared" if shared else "One per-image"
+    groups = camera_groups(sizes, exif_models, shared, shared_intrinsics)
+    if shared:
+        sharing = "One shared"
+    elif len(groups) < len(sizes):
+        sharing = f"{len(groups)} (one per device and image size)"
+    else:
+        sharing = "One per-image"
     reason = f"{sharing} {model} camera ({model_why}; {model_src}): {why}."
     return model, shared, reason
 
 
+def camera_groups(
+    sizes: list[tuple[int, int]], devices: list[str | None], shared: bool, shared_intrinsics: str = "auto"
+) -> list[list[int]]:
+    """Indices of the images that share one set of intrinsics, in input order.
+
+    All images when `shared`; else, under "auto", the images of one EXIF device and one size share a camera
+    (two phones with the same resolution still get two), and an image without EXIF device gets its own
+    (a crop or an edited copy cannot be told from another lens).
+    """
+    if shared:
+        return [list(range(len(sizes)))]
+    groups: dict[object, list[int]] = {}
+    for i, (size, device) in enumerate(zip(sizes, devices, strict=True)):
+        key = (size, device) if device and shared_intrinsics == "auto" else ("image", i)
+        groups.setdefault(key, []).append(i)
+    return list(groups.values())
+
+
 def _image_info(image_dir: Path, names: list[str]) -> tuple[list[tuple[int, int]], list[str | None]]:
-    """(width, height) in stored pixels and EXIF camera model (or None) per image, reading headers only."""
+    """(width, height) in stored pixels and EXIF device ("Make Model", or None) per image, reading headers only."""
     sizes: list[tuple[int, int]] = []
-    models: list[str | None] = []
     for name in names:
         path = image_dir / name
         try:
             with Image.open(path) as im:
                 sizes.append((int(im.width), int(im.height)))
-                model = im.getexif().get(_EXIF_MODEL_TAG)
         except (OSError, ValueError) as exc:
             raise ReconError(f"cannot read image {path}: {exc}. Remove it or replace it with a JPEG or PNG.") from exc
-        text = str(model).strip("\x00 ") if model else ""
-        models.append(text or None)
-    return sizes, models
+    return sizes, [device_of(image_dir / name) for name in names]
+
+
+def extract(
+    database: Path, image_dir: Path, names: list[str], groups: list[list[int]], model: str, options: SfmOptions
+) -> None:
+    """SIFT features into `database`, one COLMAP camera per group of `camera_groups` (EXIF focal priors read)."""
+    extraction = pycolmap.FeatureExtractionOptions()
+    extraction.num_threads = options.num_threads
+    extraction.use_gpu = False
+    extraction.sift.max_num_features = options.max_features
+    reader = pycolmap.ImageReaderOptions(camera_model=model)
+    if all(len(g) == 1 for g in groups):
+        calls = [(names, pycolmap.CameraMode.PER_IMAGE)]
+    else:  # each call with SINGLE opens one new camera for its images
+        calls = [([names[i] for i in g], pycolmap.CameraMode.SINGLE) for g in groups]
+    for group_names, mode in calls:
+        pycolmap.extract_features(
+            database, image_dir, image_names=group_names, camera_mode=mode, reader_options=reader,
+            extraction_options=extraction, device=pycolmap.Device.cpu,
+        )
 
 
 def _pick_matcher(matcher: str, num_images: int) -> str:
@@ -321,19 +363,8 @@ def run_sfm(
 
     report("extract", 0.0)
     start = time.perf_counter()
-    extraction = pycolmap.FeatureExtractionOptions()
-    extraction.num_threads = options.num_threads
-    extraction.use_gpu = False
-    extraction.sift.max_num_features = options.max_features
-    pycolmap.extract_features(
-        database,
-        image_dir,
-        image_names=names,
-        camera_mode=pycolmap.CameraMode.SINGLE if shared else pycolmap.CameraMode.PER_IMAGE,
-        reader_options=pycolmap.ImageReaderOptions(camera_model=model),
-        extraction_options=extraction,
-        device=device,
-    )
+    groups = camera_groups(sizes, exif_models, shared, options.shared_intrinsics)
+    extract(database, image_dir, names, groups, model, options)
     timings["extract"] = time.perf_counter() - start
     report("extract", 1.0)
 
@@ -391,4 +422,5 @@ def run_sfm(
         mean_reprojection_error=float(best.compute_mean_reprojection_error()),
         num_points=int(xyz.shape[0]),
         timings=timings,
+        num_cameras=len(groups),
     )

@@ -13,7 +13,7 @@ import numpy as np
 
 from recon.config import PosesConfig
 from recon.errors import InputError
-from recon.images import list_photos, oriented_size, read_image, save_image
+from recon.images import camera_exif, list_photos, oriented_size, read_image, save_image
 from recon.pipeline import Stage, StageContext, sha256_file
 from recon.scene import (
     Scene,
@@ -67,6 +67,16 @@ def run(ctx: StageContext) -> dict:
     return summary
 
 
+def prepare_photo(path: Path, image_dir: Path, max_side: int) -> tuple[str, tuple[int, int], tuple[int, int]]:
+    """The copy of one photo COLMAP reads: upright, downscaled to max_side, 8-bit, with the photo's device and
+    focal-length EXIF (Orientation 1). Returns its file name, the photo's and the copy's (width, height)."""
+    original = oriented_size(path)
+    small = read_image(path, max_side=max_side)
+    name = path.stem + (".png" if small.shape[-1] == 4 or path.suffix.lower() == ".png" else ".jpg")
+    save_image(image_dir / name, small[..., :3], exif=camera_exif(path))
+    return name, original, (small.shape[1], small.shape[0])
+
+
 def _structure_from_motion(ctx: StageContext) -> tuple[Scene, dict]:
     from recon.sfm import SfmOptions, run_sfm
 
@@ -91,12 +101,7 @@ def _structure_from_motion(ctx: StageContext) -> tuple[Scene, dict]:
     names = []
     with ctx.report.task("reading photos", total=len(photos)) as bar:
         for path in photos:
-            # read once: EXIF orientation applied, downscaled for SfM, saved as 8-bit for COLMAP
-            original_size[path.name] = oriented_size(path)
-            small = read_image(path, max_side=cfg.max_side)
-            sfm_size[path.name] = (small.shape[1], small.shape[0])
-            name = path.stem + (".png" if small.shape[-1] == 4 or path.suffix.lower() == ".png" else ".jpg")
-            save_image(image_dir / name, small[..., :3])
+            name, original_size[path.name], sfm_size[path.name] = prepare_photo(path, image_dir, cfg.max_side)
             names.append((path, name))
             bar.advance()
     by_sfm_name = {name: path for path, name in names}
@@ -143,9 +148,10 @@ def _structure_from_motion(ctx: StageContext) -> tuple[Scene, dict]:
         "reprojection_error_px": round(result.mean_reprojection_error, 4),
         "camera_model": result.camera_model,
         "shared_intrinsics": result.shared_intrinsics,
+        "cameras": result.num_cameras,
         "timings_s": {k: round(v, 2) for k, v in result.timings.items()},
     }
     return scene, summary
 
 
-STAGE = Stage(name="poses", folder="01_poses", inputs=(), version=1, run=run, needs_source=True, source_digest=source_digest)
+STAGE = Stage(name="poses", folder="01_poses", inputs=(), version=2, run=run, needs_source=True, source_digest=source_digest)
