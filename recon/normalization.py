@@ -156,21 +156,25 @@ def _box_from_cameras(c2ws: np.ndarray, frames: list[Frame], focus: np.ndarray) 
     return np.stack([focus - half, focus + half])
 
 
-def _depth_range(c2w: np.ndarray, points: np.ndarray, percentile: float) -> tuple[float, float] | None:
+def _distance_range(c2w: np.ndarray, points: np.ndarray, percentile: float) -> tuple[float, float] | None:
+    """near/far (`recon.scene.RAY_DISTANCE`) that the camera's rays travel to the points in front of it (percentiles)."""
     if len(points) < 10:
         return None
-    depth = (points - c2w[:3, 3]) @ (-c2w[:3, 2])
-    depth = depth[depth > 0]
-    if len(depth) < 10:
+    offset = points - c2w[:3, 3]
+    in_front = offset @ (-c2w[:3, 2]) > 0
+    dist = np.linalg.norm(offset[in_front], axis=1)
+    if len(dist) < 10:
         return None
-    return float(np.percentile(depth, percentile)), float(np.percentile(depth, 100 - percentile))
+    return float(np.percentile(dist, percentile)), float(np.percentile(dist, 100 - percentile))
 
 
-def _box_depth_range(c2w: np.ndarray, aabb: np.ndarray) -> tuple[float, float]:
+def _box_distance_range(c2w: np.ndarray, aabb: np.ndarray) -> tuple[float, float]:
+    """near/far (`recon.scene.RAY_DISTANCE`) bounding every ray's segment inside the box: the distance from the camera
+    centre to the box (0 inside it) and to its farthest corner (a box's farthest point is a corner)."""
+    origin = c2w[:3, 3]
     corners = np.array([[aabb[i, 0], aabb[j, 1], aabb[k, 2]] for i in (0, 1) for j in (0, 1) for k in (0, 1)])
-    depth = (corners - c2w[:3, 3]) @ (-c2w[:3, 2])
-    inside = np.all((c2w[:3, 3] >= aabb[0]) & (c2w[:3, 3] <= aabb[1]))
-    return (0.0 if inside else float(depth.min())), float(depth.max())
+    near = float(np.linalg.norm(origin - np.clip(origin, aabb[0], aabb[1])))
+    return near, float(np.linalg.norm(corners - origin, axis=1).max())
 
 
 def assign_split(frames: list[Frame], test_every: int, val_every: int) -> str:
@@ -266,11 +270,11 @@ def normalize(scene: Scene, cfg: NormalizeConfig) -> Scene:
     new_frames = [replace(f, c2w=transform_c2w(T, f.c2w)) for f in scene.frames]
     new_points = (points - center) @ R.T * scale
     for f, old in zip(new_frames, scene.frames, strict=True):
-        near, far = _box_depth_range(f.c2w, aabb)
+        near, far = _box_distance_range(f.c2w, aabb)
         if capture != "object":
             visible = scene.point_visibility.get(old.name)
             pts = new_points[visible] if visible is not None and len(visible) else new_points[finite]
-            rng = _depth_range(f.c2w, pts, cfg.depth_percentile)
+            rng = _distance_range(f.c2w, pts, cfg.depth_percentile)
             if rng is not None:
                 near, far = rng[0] * 0.8, max(rng[1] * 1.2, far)
         f.near = float(max(near, 1e-3 * float(np.linalg.norm(f.c2w[:3, 3]) + 1e-3), 1e-4))

@@ -32,6 +32,12 @@ SCENE_VERSION = 1
 Split = Literal["train", "val", "test"]
 SPLITS: tuple[str, ...] = ("train", "val", "test")
 
+RAY_DISTANCE = "distance along the unit-length ray"
+"""What a frame's `near` and `far` measure, everywhere in recon: the distance t along a ray with a unit-length
+direction (the rays of `recon.nerf.rays`), so `o + t·d` at t = far is as far from the camera for a corner
+pixel as for the centre one. Not the depth along the optical axis: a corner ray reaching depth z has
+travelled z / cos(angle off-axis). `recon.normalization` computes them as Euclidean distances from the camera centre."""
+
 
 @dataclass
 class Frame:
@@ -53,6 +59,7 @@ class Frame:
     split: str | None = None
     near: float | None = None
     far: float | None = None
+    """near/far: the ray segment to model, as a distance along unit-length rays (`RAY_DISTANCE`)."""
 
     @property
     def name(self) -> str:
