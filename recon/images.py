@@ -196,14 +196,29 @@ def save_image(path: Path, image: np.ndarray, quality: int = 95, exif: Image.Exi
         img.save(path, **extra)
 
 
-def undistort(image: np.ndarray, fl_x: float, fl_y: float, cx: float, cy: float, dist: tuple[float, ...]) -> np.ndarray:
-    """Remove OpenCV radial-tangential distortion (k1, k2, p1, p2) keeping the same pinhole intrinsics."""
-    if not any(abs(d) > 0 for d in dist):
+def undistort(
+    image: np.ndarray, fl_x: float, fl_y: float, cx: float, cy: float, dist: tuple[float, ...], model: str = "OPENCV"
+) -> np.ndarray:
+    """The pinhole image with the same intrinsics: lens distortion removed.
+
+    model OPENCV: radial-tangential `dist` = (k1, k2, p1, p2[, k3]); OPENCV_FISHEYE: equidistant `dist` =
+    (k1, k2, k3, k4) (cv2.fisheye). Keeping fl, cx, cy keeps the image centre's resolution; a fisheye's
+    periphery beyond the pinhole's field of view is cut.
+    """
+    if not any(abs(d) > 0 for d in dist) and model != "OPENCV_FISHEYE":
         return image
     import cv2
 
     K = np.array([[fl_x, 0, cx], [0, fl_y, cy], [0, 0, 1]], dtype=np.float64)
     h, w = image.shape[:2]
-    map_x, map_y = cv2.initUndistortRectifyMap(K, np.asarray(dist, dtype=np.float64), None, K, (w, h), cv2.CV_32FC1)
+    coeffs = np.asarray(dist, dtype=np.float64)
+    if model == "OPENCV_FISHEYE":
+        if coeffs.shape != (4,):
+            raise ValueError(f"a fisheye lens takes 4 coefficients (k1..k4), got {len(coeffs)}")
+        map_x, map_y = cv2.fisheye.initUndistortRectifyMap(K, coeffs, np.eye(3), K, (w, h), cv2.CV_32FC1)
+    elif model == "OPENCV":
+        map_x, map_y = cv2.initUndistortRectifyMap(K, coeffs, None, K, (w, h), cv2.CV_32FC1)
+    else:
+        raise ValueError(f"unknown lens model {model!r}; expected OPENCV or OPENCV_FISHEYE")
     # replicate edge pixels where the corrected image reaches outside the photo (never black borders to learn)
     return cv2.remap(image, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)

@@ -31,6 +31,13 @@ SCENE_FORMAT = "recon-scene"
 SCENE_VERSION = 1
 Split = Literal["train", "val", "test"]
 SPLITS: tuple[str, ...] = ("train", "val", "test")
+LENS_MODELS = {
+    "SIMPLE_PINHOLE": "OPENCV", "PINHOLE": "OPENCV", "SIMPLE_RADIAL": "OPENCV", "RADIAL": "OPENCV",
+    "OPENCV": "OPENCV", "OPENCV_FISHEYE": "OPENCV_FISHEYE",
+}
+"""transforms.json / COLMAP camera_model -> the lens recon undistorts it as. Pinhole and radial models are
+radial-tangential with some terms zero; a fisheye is OpenCV's equidistant model (k1..k4)."""
+INTRINSIC_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h", "k1", "k2", "p1", "p2", "k3", "k4", "camera_model")
 
 RAY_DISTANCE = "distance along the unit-length ray"
 """What a frame's `near` and `far` measure, everywhere in recon: the distance t along a ray with a unit-length
@@ -56,6 +63,11 @@ class Frame:
     k2: float = 0.0
     p1: float = 0.0
     p2: float = 0.0
+    k3: float = 0.0
+    k4: float = 0.0
+    camera_model: str = "OPENCV"
+    """The lens: OPENCV (radial-tangential k1 k2 p1 p2 k3; holds PINHOLE and the radial models) or
+    OPENCV_FISHEYE (equidistant k1 k2 k3 k4). See `LENS_MODELS`."""
     split: str | None = None
     near: float | None = None
     far: float | None = None
@@ -70,8 +82,11 @@ class Frame:
         return Path(self.file_path).stem
 
     @property
-    def distortion(self) -> tuple[float, float, float, float]:
-        return (self.k1, self.k2, self.p1, self.p2)
+    def distortion(self) -> tuple[float, ...]:
+        """OpenCV's coefficient vector for this lens: (k1, k2, p1, p2, k3) or, for a fisheye, (k1, k2, k3, k4)."""
+        if self.camera_model == "OPENCV_FISHEYE":
+            return (self.k1, self.k2, self.k3, self.k4)
+        return (self.k1, self.k2, self.p1, self.p2, self.k3)
 
     @property
     def center(self) -> np.ndarray:
@@ -118,7 +133,6 @@ class Scene:
         doc: dict[str, Any] = {
             "format": SCENE_FORMAT,
             "version": SCENE_VERSION,
-            "camera_model": "OPENCV",
             "capture": self.capture,
             "source_kind": self.source_kind,
             "has_alpha": self.has_alpha,
@@ -132,7 +146,7 @@ class Scene:
         doc.update(shared)
         for f in self.frames:
             entry: dict[str, Any] = {"file_path": f.file_path, "transform_matrix": np.asarray(f.c2w).tolist()}
-            for key in ("fl_x", "fl_y", "cx", "cy", "w", "h", "k1", "k2", "p1", "p2"):
+            for key in INTRINSIC_KEYS:
                 if key not in shared:
                     entry[key] = getattr(f, key)
             for key in ("split", "near", "far"):
@@ -169,7 +183,7 @@ def look_at(eye: np.ndarray, target: np.ndarray, up: tuple[float, float, float] 
 
 
 def _shared_intrinsics(frames: list[Frame]) -> dict[str, Any]:
-    keys = ("fl_x", "fl_y", "cx", "cy", "w", "h", "k1", "k2", "p1", "p2")
+    keys = INTRINSIC_KEYS
     if not frames:
         return {}
     first = {k: getattr(frames[0], k) for k in keys}
@@ -328,6 +342,15 @@ def parse_frames(
                 fl_y = 0.5 * h / math.tan(0.5 * _number(merged["camera_angle_y"], source, "camera_angle_y", True))
         else:
             raise InputError(f"{source}: no focal length: give 'fl_x' (pixels) or 'camera_angle_x' (radians).")
+        model = merged.get("camera_model", "OPENCV")
+        if model not in LENS_MODELS:
+            raise InputError(
+                f"{source}: {what} has camera_model '{model}', which recon cannot undistort. Supported: "
+                f"{', '.join(LENS_MODELS)}. Undistort the images to PINHOLE first (e.g. COLMAP's image_undistorter) "
+                f"and set camera_model to PINHOLE."
+            )
+        lens = LENS_MODELS[model]
+        coefficients = ("k1", "k2", "k3", "k4") if lens == "OPENCV_FISHEYE" else ("k1", "k2", "p1", "p2", "k3")
         frame = Frame(
             file_path=str(path),
             c2w=c2w,
@@ -337,7 +360,8 @@ def parse_frames(
             cy=_number(merged.get("cy", h / 2), source, "cy"),
             w=w,
             h=h,
-            **{k: _number(merged.get(k, 0.0), source, k) for k in ("k1", "k2", "p1", "p2")},
+            **{k: _number(merged.get(k, 0.0), source, k) for k in coefficients},
+            camera_model=lens,
             split=fd.get("split", split),
             near=_number(fd["near"], source, "near", True) if "near" in fd else None,
             far=_number(fd["far"], source, "far", True) if "far" in fd else None,
@@ -439,6 +463,9 @@ def frame_from_sfm(file_path: str, fd: dict, sx: float = 1.0, sy: float = 1.0) -
         k2=fd["k2"],
         p1=fd["p1"],
         p2=fd["p2"],
+        k3=fd.get("k3", 0.0),
+        k4=fd.get("k4", 0.0),
+        camera_model=fd.get("camera_model", "OPENCV"),
     )
 
 
@@ -462,7 +489,8 @@ def import_colmap(folder: Path) -> Scene:
                 fds, xyz, rgb, _, visible = reconstruction_frames(rec, names)
                 frames = [frame_from_sfm(str(resolve_image(root, n, model)), fd) for n, fd in fds.items()]
             except ValueError as exc:
-                raise InputError(f"COLMAP model {model}: {exc}.") from None
+                cameras = next((p for p in (model / "cameras.bin", model / "cameras.txt") if p.is_file()), model)
+                raise InputError(f"COLMAP model {cameras}: {exc}.") from None
             return Scene(
                 frames=frames,
                 points=xyz,

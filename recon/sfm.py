@@ -72,7 +72,7 @@ class SfmResult:
     """Names of the images left out of the model, in input order."""
     frames: dict[str, dict]
     """name -> {"c2w": 4x4 nested list (OpenGL camera-to-world), "fl_x", "fl_y", "cx", "cy" (pixels),
-    "w", "h" (pixels), "k1", "k2", "p1", "p2"} for each registered image."""
+    "w", "h" (pixels), "k1", "k2", "p1", "p2", "k3", "k4", "camera_model"} for each registered image."""
     points_xyz: np.ndarray
     """(P, 3) float64 sparse points, world frame."""
     points_rgb: np.ndarray
@@ -106,12 +106,23 @@ def opencv_w2c_to_opengl_c2w(cam_from_world: np.ndarray) -> np.ndarray:
     return c2w @ np.diag([1.0, -1.0, -1.0, 1.0])
 
 
+IMPORTABLE_CAMERA_MODELS = CAMERA_MODELS + ("OPENCV_FISHEYE",)
+"""COLMAP camera models whose lens recon can undistort (the transforms.json OPENCV / OPENCV_FISHEYE conventions)."""
+
+
+def lens_model(model_name: str) -> str:
+    """The transforms.json lens of a COLMAP camera model: OPENCV_FISHEYE (equidistant, k1..k4) or OPENCV
+    (radial-tangential, which holds every pinhole and radial model)."""
+    return "OPENCV_FISHEYE" if model_name == "OPENCV_FISHEYE" else "OPENCV"
+
+
 def camera_params_to_intrinsics(model_name: str, params: np.ndarray) -> dict[str, float]:
-    """COLMAP camera params -> {"fl_x", "fl_y", "cx", "cy", "k1", "k2", "p1", "p2"} (pixels; unitless k, p).
+    """COLMAP camera params -> {"fl_x", "fl_y", "cx", "cy", "k1", "k2", "p1", "p2", "k3", "k4"} (pixels; unitless k, p).
 
     Supports the models whose distortion the transforms.json convention can hold:
     SIMPLE_PINHOLE (f, cx, cy), PINHOLE (fx, fy, cx, cy), SIMPLE_RADIAL (f, cx, cy, k),
-    RADIAL (f, cx, cy, k1, k2), OPENCV (fx, fy, cx, cy, k1, k2, p1, p2).
+    RADIAL (f, cx, cy, k1, k2), OPENCV (fx, fy, cx, cy, k1, k2, p1, p2) and
+    OPENCV_FISHEYE (fx, fy, cx, cy, k1, k2, k3, k4; see `lens_model`).
     """
     p = [float(v) for v in params]
     layouts: dict[str, tuple[str, ...]] = {
@@ -120,18 +131,22 @@ def camera_params_to_intrinsics(model_name: str, params: np.ndarray) -> dict[str
         "SIMPLE_RADIAL": ("f", "cx", "cy", "k1"),
         "RADIAL": ("f", "cx", "cy", "k1", "k2"),
         "OPENCV": ("fl_x", "fl_y", "cx", "cy", "k1", "k2", "p1", "p2"),
+        "OPENCV_FISHEYE": ("fl_x", "fl_y", "cx", "cy", "k1", "k2", "k3", "k4"),
     }
     if model_name not in layouts:
-        raise ValueError(f"camera model {model_name} is not supported; use one of {', '.join(CAMERA_MODELS)}")
+        raise ValueError(
+            f"camera model {model_name} is not supported; use one of {', '.join(IMPORTABLE_CAMERA_MODELS)} "
+            "(or undistort the images to PINHOLE with COLMAP's image_undistorter first)"
+        )
     names = layouts[model_name]
     if len(p) != len(names):
         raise ValueError(f"{model_name} takes {len(names)} params, got {len(p)}")
     values = dict(zip(names, p))
     if "f" in values:
         values["fl_x"] = values["fl_y"] = values.pop("f")
-    out = {"k1": 0.0, "k2": 0.0, "p1": 0.0, "p2": 0.0}
+    out = {"k1": 0.0, "k2": 0.0, "p1": 0.0, "p2": 0.0, "k3": 0.0, "k4": 0.0}
     out.update(values)
-    return {k: out[k] for k in ("fl_x", "fl_y", "cx", "cy", "k1", "k2", "p1", "p2")}
+    return {k: out[k] for k in ("fl_x", "fl_y", "cx", "cy", "k1", "k2", "p1", "p2", "k3", "k4")}
 
 
 def choose_camera(
@@ -279,6 +294,7 @@ def reconstruction_frames(
         c2w = opencv_w2c_to_opengl_c2w(image.cam_from_world().matrix())
         frame: dict = {"c2w": c2w.tolist()}
         frame.update(camera_params_to_intrinsics(camera.model_name, camera.params))
+        frame["camera_model"] = lens_model(camera.model_name)
         frame["w"], frame["h"] = int(camera.width), int(camera.height)
         frames[image.name] = frame
         image_name_by_id[image_id] = image.name

@@ -154,4 +154,4 @@ def _structure_from_motion(ctx: StageContext) -> tuple[Scene, dict]:
     return scene, summary
 
 
-STAGE = Stage(name="poses", folder="01_poses", inputs=(), version=2, run=run, needs_source=True, source_digest=source_digest)
+STAGE = Stage(name="poses", folder="01_poses", inputs=(), version=3, run=run, needs_source=True, source_digest=source_digest)

@@ -53,7 +53,7 @@ def load_view(scene: Scene, frame: Frame, max_side: int, keep_alpha: bool) -> Vi
     h, w = image.shape[:2]
     sx, sy = w / frame.w, h / frame.h
     fl_x, fl_y, cx, cy = frame.fl_x * sx, frame.fl_y * sy, frame.cx * sx, frame.cy * sy
-    image = undistort(image, fl_x, fl_y, cx, cy, frame.distortion)
+    image = undistort(image, fl_x, fl_y, cx, cy, frame.distortion, frame.camera_model)
     if not keep_alpha:
         image = image[..., :3]
     elif image.shape[-1] == 3:
