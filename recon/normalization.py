@@ -11,9 +11,13 @@ import numpy as np
 
 from recon.config import NormalizeConfig
 from recon.errors import InputError
+from recon.region import object_region
 from recon.scene import Frame, Scene
 
 OBJECT_MAX_MEAN_VIEW = 0.9
+BACKGROUND_FRACTION = 0.3
+"""An object capture whose sparse points lie outside the object region more than this is an object on a
+background (table, room): the field contracts and models the space around the box too."""
 """Cameras count as 'around the object' when the mean of their unit view directions is shorter than this."""
 
 
@@ -240,13 +244,36 @@ def normalize(scene: Scene, cfg: NormalizeConfig) -> Scene:
     points = np.asarray(scene.points, dtype=np.float64).reshape(-1, 3)
     finite = np.all(np.isfinite(points), axis=1)
     centers = c2ws[:, :3, 3]
+    region = ground = None
     if capture == "object":
         center = focus
-        # points of the object: those nearer to the focus than the cameras are (drops walls/background)
-        radius = np.median(np.linalg.norm(centers - focus, axis=1))
-        near_obj = finite & (np.linalg.norm(points - focus, axis=1) < radius)
-        box = _box_from_points((points[near_obj] - center) @ R.T, cfg.point_percentile)
-        notes["box"] = "sparse points around the focus (percentiles)" if box is not None else ""
+        found = object_region(
+            points, c2ws, np.array([[f.fl_x, f.fl_y, f.cx, f.cy] for f in scene.frames]),
+            np.array([[f.w, f.h] for f in scene.frames]), focus, up,
+        )
+        if found is not None:
+            # the object the cameras look at (and, below it, down to the ground it stands on)
+            box = _box_from_points((points[found.points] - center) @ R.T, cfg.point_percentile)
+            notes["region"] = found.reason
+            if box is not None and found.ground is not None:
+                n = R @ found.ground.normal
+                ground = np.array([*n, found.ground.offset - found.ground.normal @ center])  # centred, rotated frame
+                foot = (ground[3] - n[:2] @ box.mean(axis=0)[:2]) / n[2]  # ground height under the box centre
+                box[0, 2] = min(box[0, 2], foot)
+            if box is not None and found.background_fraction > BACKGROUND_FRACTION and not scene.has_alpha:
+                capture = "unbounded"
+                notes["capture"] += (
+                    f"; {found.background_fraction:.0%} of the sparse points are background (table, room): the box holds "
+                    f"the object and the space around it is contracted and modelled too"
+                )
+            region = box
+        else:
+            # points of the object: those nearer to the focus than the cameras are (drops walls/background)
+            radius = np.median(np.linalg.norm(centers - focus, axis=1))
+            near_obj = finite & (np.linalg.norm(points - focus, axis=1) < radius)
+            box = _box_from_points((points[near_obj] - center) @ R.T, cfg.point_percentile)
+        notes["box"] = ("the object region's sparse points (percentiles)" if region is not None else
+                        "sparse points around the focus (percentiles)") if box is not None else ""
     else:
         center = np.median(points[finite], axis=0) if finite.sum() >= 20 else focus
         box = _box_from_points((points[finite] - center) @ R.T, cfg.point_percentile)
@@ -254,7 +281,7 @@ def normalize(scene: Scene, cfg: NormalizeConfig) -> Scene:
     if box is None:
         box = _box_from_cameras(c2ws, scene.frames, focus) - focus
         notes["box"] = "no sparse points: box from the cameras' field of view at their distance"
-    if capture != "object":
+    if capture != "object" and region is None:
         # keep the cameras inside the modelled region of a forward/unbounded capture
         cam_box = np.stack([((centers - center) @ R.T).min(0), ((centers - center) @ R.T).max(0)])
         box = np.stack([np.minimum(box[0], cam_box[0]), np.maximum(box[1], cam_box[1])])
@@ -267,6 +294,10 @@ def normalize(scene: Scene, cfg: NormalizeConfig) -> Scene:
     T = similarity(scale, R, center)
     aabb = box * scale
 
+    if region is not None:
+        region = region * scale
+    if ground is not None:
+        ground = np.array([*ground[:3], ground[3] * scale])
     new_frames = [replace(f, c2w=transform_c2w(T, f.c2w)) for f in scene.frames]
     new_points = (points - center) @ R.T * scale
     for f, old in zip(new_frames, scene.frames, strict=True):
@@ -287,6 +318,8 @@ def normalize(scene: Scene, cfg: NormalizeConfig) -> Scene:
         point_colors=scene.point_colors,
         point_visibility=scene.point_visibility,
         aabb=aabb,
+        region=region,
+        ground=ground,
         capture=capture,
         world_from_source=T @ scene.world_from_source,
         has_alpha=scene.has_alpha,

@@ -109,6 +109,10 @@ class Scene:
     """'object' (cameras around, looking in) or 'unbounded' (forward-facing / wide scene)."""
     world_from_source: np.ndarray = field(default_factory=lambda: np.eye(4))
     """(4, 4) similarity mapping the source (SfM or import) frame into this scene's frame."""
+    region: np.ndarray | None = None
+    """(2, 3) box of the object of interest (what the cameras look at; `recon.region`), scene frame; None: all."""
+    ground: np.ndarray | None = None
+    """(4,) plane (nx, ny, nz, d), n·x = d with unit n pointing up, of the ground the object stands on; None: none."""
     has_alpha: bool = False
     """Photos carry an alpha channel (known background, e.g. NeRF-synthetic RGBA)."""
     source_kind: str = "photos"
@@ -137,6 +141,8 @@ class Scene:
             "source_kind": self.source_kind,
             "has_alpha": self.has_alpha,
             "aabb": None if self.aabb is None else np.asarray(self.aabb).tolist(),
+            "region": None if self.region is None else np.asarray(self.region).tolist(),
+            "ground": None if self.ground is None else np.asarray(self.ground).tolist(),
             "world_from_source": np.asarray(self.world_from_source).tolist(),
             "source_from_world": self.source_from_world.tolist(),
             "notes": self.notes,
@@ -209,6 +215,8 @@ def load_scene(folder: Path) -> Scene:
     scene = Scene(
         frames=frames,
         aabb=None if doc.get("aabb") is None else _matrix(doc["aabb"], (2, 3), path, "aabb"),
+        region=None if doc.get("region") is None else _matrix(doc["region"], (2, 3), path, "region"),
+        ground=None if doc.get("ground") is None else _matrix(doc["ground"], (4,), path, "ground"),
         capture=doc.get("capture") if doc.get("capture") in (None, "object", "unbounded") else _bad(path, "capture"),
         world_from_source=_matrix(doc.get("world_from_source", np.eye(4).tolist()), (4, 4), path, "world_from_source"),
         has_alpha=bool(doc.get("has_alpha", False)),
