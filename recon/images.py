@@ -167,6 +167,15 @@ def read_image(path: Path, max_side: int | None = None) -> np.ndarray:
     return to_array(img)
 
 
+def read_mask(path: Path, size: tuple[int, int]) -> np.ndarray:
+    """A mask (white = object) as float32 (H, W) in [0, 1] at `size` (width, height), EXIF-oriented."""
+    mask = read_image(path, max_side=max(size))
+    gray = mask[..., :3].mean(axis=-1) * (mask[..., 3] if mask.shape[-1] == 4 else 1.0)
+    if gray.shape[::-1] != tuple(size):
+        gray = resize(gray, size)
+    return np.clip(gray, 0.0, 1.0).astype(np.float32)
+
+
 def resize(arr: np.ndarray, size: tuple[int, int]) -> np.ndarray:
     """Area-resize a float image to (width, height)."""
     import cv2

@@ -69,6 +69,8 @@ class Frame:
     """The lens: OPENCV (radial-tangential k1 k2 p1 p2 k3; holds PINHOLE and the radial models) or
     OPENCV_FISHEYE (equidistant k1 k2 k3 k4). See `LENS_MODELS`."""
     split: str | None = None
+    mask_path: str | None = None
+    """Mask image of the photo (white = object; nerfstudio's `mask_path`): pixels outside are background."""
     near: float | None = None
     far: float | None = None
     """near/far: the ray segment to model, as a distance along unit-length rays (`RAY_DISTANCE`)."""
@@ -155,7 +157,7 @@ class Scene:
             for key in INTRINSIC_KEYS:
                 if key not in shared:
                     entry[key] = getattr(f, key)
-            for key in ("split", "near", "far"):
+            for key in ("split", "mask_path", "near", "far"):
                 if getattr(f, key) is not None:
                     entry[key] = getattr(f, key)
             doc["frames"].append(entry)
@@ -371,6 +373,7 @@ def parse_frames(
             **{k: _number(merged.get(k, 0.0), source, k) for k in coefficients},
             camera_model=lens,
             split=fd.get("split", split),
+            mask_path=_mask_path(base, fd, source, check_files),
             near=_number(fd["near"], source, "near", True) if "near" in fd else None,
             far=_number(fd["far"], source, "far", True) if "far" in fd else None,
         )
@@ -378,6 +381,39 @@ def parse_frames(
             raise InputError(f"{source}: {what} has split '{frame.split}'; expected one of {', '.join(SPLITS)}.")
         frames.append(frame)
     return frames
+
+
+def _mask_path(base: Path, fd: dict, source: Path | str, check_files: bool) -> str | None:
+    if fd.get("mask_path") is None:
+        return None
+    if not check_files:
+        return str(fd["mask_path"])
+    return str(resolve_image(base, fd["mask_path"], source))
+
+
+MASK_FOLDER = "masks"
+
+
+def find_masks(photos: Sequence[Path]) -> tuple[Path | None, dict[str, Path]]:
+    """The masks folder beside the photos (`masks/` inside their folder or next to it) and each photo's mask
+    (same stem, any image suffix; white = object). Raises InputError naming the photos a present folder lacks."""
+    if not photos:
+        return None, {}
+    folder = photos[0].parent
+    found = next((c for c in (folder / MASK_FOLDER, folder.parent / MASK_FOLDER) if c.is_dir()), None)
+    if found is None:
+        return None, {}
+    by_stem = {p.stem: p for p in sorted(found.iterdir()) if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES}
+    if not by_stem:  # an empty folder: nothing to use
+        return None, {}
+    missing = [p.name for p in photos if p.stem not in by_stem]
+    if missing:
+        raise InputError(
+            f"The masks folder {found} has no mask for {len(missing)} photo(s): {', '.join(missing[:5])}"
+            f"{'…' if len(missing) > 5 else ''}. Give every photo a mask with the same name (white = object), "
+            f"or move the masks folder away to run without masks."
+        )
+    return found, {p.name: by_stem[p.stem] for p in photos}
 
 
 # --------------------------------------------------------------------------------------------- imports
@@ -427,7 +463,8 @@ def import_transforms(path: Path) -> Scene:
     json_path = path / "transforms.json" if path.is_dir() else path
     doc = _load_json(json_path)
     frames = parse_frames(doc, base=json_path.parent, source=json_path)
-    return Scene(frames=frames, has_alpha=_has_alpha(frames[0]), source_kind="transforms")
+    masked = all(f.mask_path for f in frames)
+    return Scene(frames=frames, has_alpha=masked or _has_alpha(frames[0]), source_kind="transforms")
 
 
 def import_nerf_synthetic(folder: Path) -> Scene:

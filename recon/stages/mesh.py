@@ -144,6 +144,33 @@ def mesh_region(scene: Scene, aabb: np.ndarray, cfg: MeshConfig) -> tuple[np.nda
     return box, ground, why + ground_why
 
 
+MASK_KEEP_FRACTION = 0.5
+"""A vertex stays when it falls inside the object mask in at least this fraction of the photos that have it in frame."""
+
+
+def inside_masks(views: Sequence[View]) -> Callable[[np.ndarray], np.ndarray]:
+    """``keep_fn`` of `clean_mesh`: True for vertices (V, 3) that the masks (the views' alpha) call object.
+
+    A point of the object projects inside the object's silhouette in every photo, occluded or not, so no depth
+    test is needed; MASK_KEEP_FRACTION of the photos that frame it leaves room for a pixel of mask edge."""
+    def keep(vertices: np.ndarray) -> np.ndarray:
+        inside = np.zeros(len(vertices))
+        framed = np.zeros(len(vertices))
+        for v in views:
+            h, w = v.hw
+            fx, fy, cx, cy = v.intrinsics
+            local = (np.asarray(vertices, np.float64) - v.c2w[:3, 3]) @ v.c2w[:3, :3]
+            z = -local[:, 2]
+            ok = z > 1e-9
+            u = np.floor(cx + fx * local[:, 0] / np.where(ok, z, 1.0)).astype(np.int64)
+            r = np.floor(cy - fy * local[:, 1] / np.where(ok, z, 1.0)).astype(np.int64)
+            ok &= (u >= 0) & (u < w) & (r >= 0) & (r < h)
+            framed += ok
+            inside[ok] += v.image[r[ok], u[ok], 3] >= 128
+        return (framed == 0) | (inside >= MASK_KEEP_FRACTION * framed)
+    return keep
+
+
 # ---------------------------------------------------------------------------------------- extraction
 def _counting(density_fn: Callable[[torch.Tensor], torch.Tensor], bar: Any) -> Callable[[torch.Tensor], torch.Tensor]:
     """density_fn that advances a progress bar by the number of points it evaluated."""
@@ -433,7 +460,8 @@ def run(ctx: StageContext) -> dict:
     bounded = meta.get("bounded", True)
     views: list[View] = []
     depths: list[np.ndarray] = []
-    if cfg.color == "photos" or cfg.drop_hidden:
+    masked = bool(train_frames) and all(f.mask_path for f in train_frames)
+    if cfg.color == "photos" or cfg.drop_hidden or masked:
         t = time.perf_counter()
         limit = CPU_BAKE_VIEWS[kind] if device.type == "cpu" else 0
         depth_side = CPU_DEPTH_SIDE[kind] if device.type == "cpu" else None
@@ -463,12 +491,15 @@ def run(ctx: StageContext) -> dict:
         seen_fn=seen_fn,
         ground=ground,
         ground_margin=GROUND_MARGIN_CELLS * surface_cell(model, region, shape)[0],
+        keep_fn=inside_masks(views) if masked else None,
     )
     timings["clean_s"] = round(time.perf_counter() - t, 3)
     if len(faces) == 0:
         raise ReconError("Every piece of the extracted surface was removed while cleaning; lower mesh.min_component_fraction.")
     removed = clean["components"]["removed"]
     ctx.report.info(f"cleaning: {clean['components']['rule']}: {removed} of {clean['components']['components']} pieces removed")
+    if "masked" in clean:
+        ctx.report.info(f"masks: {clean['masked']['faces_removed']:,} faces outside the object masks removed ({len(views)} photos)")
     if "ground_cut" in clean:
         ctx.report.info(f"ground: {clean['ground_cut']['faces_removed']:,} faces on or below the ground plane cut away")
     if "hidden" in clean:

@@ -18,6 +18,7 @@ from recon.pipeline import Stage, StageContext, sha256_file
 from recon.scene import (
     Scene,
     detect_source,
+    find_masks,
     frame_from_sfm,
     import_colmap,
     import_nerf_synthetic,
@@ -37,6 +38,10 @@ def source_digest(source: Path, cfg: PosesConfig | None) -> str:
     for path in files:
         h.update(str(path.relative_to(source) if source.is_dir() else path.name).encode())
         h.update(sha256_file(path).encode())
+    if kind == "photos" and (source.parent / "masks").is_dir():  # masks beside the photos folder are inputs too
+        for path in sorted(p for p in (source.parent / "masks").iterdir() if p.is_file()):
+            h.update(f"masks/{path.name}".encode())
+            h.update(sha256_file(path).encode())
     return h.hexdigest()
 
 
@@ -93,6 +98,12 @@ def _structure_from_motion(ctx: StageContext) -> tuple[Scene, dict]:
             f"Only {len(photos)} photo(s) in {ctx.source}; structure from motion needs at least {MIN_PHOTOS}, and a "
             f"good reconstruction 20 or more taken all around the subject with about 60% overlap between neighbours."
         )
+    mask_dir, masks = find_masks(photos)
+    if mask_dir is not None:
+        ctx.report.info(
+            f"masks: {len(masks)} masks in {mask_dir} (white = object): masked-out pixels train as background and "
+            f"the mesh keeps only what the masks call object"
+        )
     sfm_dir = ctx.out / "colmap"
     image_dir = sfm_dir / "images"
     image_dir.mkdir(parents=True)
@@ -126,7 +137,9 @@ def _structure_from_motion(ctx: StageContext) -> tuple[Scene, dict]:
     for sfm_name, fd in result.frames.items():
         path = by_sfm_name[sfm_name]
         (ow, oh), (sw, sh) = original_size[path.name], sfm_size[path.name]
-        frames.append(frame_from_sfm(str(path.resolve()), fd, ow / sw, oh / sh))
+        frame = frame_from_sfm(str(path.resolve()), fd, ow / sw, oh / sh)
+        frame.mask_path = str(masks[path.name].resolve()) if path.name in masks else None
+        frames.append(frame)
     visibility = {by_sfm_name[n].name: np.asarray(v, dtype=np.int64) for n, v in result.points_visible.items()}
     scene = Scene(
         frames=frames,
@@ -134,7 +147,9 @@ def _structure_from_motion(ctx: StageContext) -> tuple[Scene, dict]:
         point_colors=result.points_rgb,
         point_visibility=visibility,
         source_kind="photos",
-        notes={"camera_model": result.camera_model, "camera_choice": result.choice_reason},
+        has_alpha=mask_dir is not None,
+        notes={"camera_model": result.camera_model, "camera_choice": result.choice_reason,
+               **({"masks": str(mask_dir)} if mask_dir is not None else {})},
     )
     summary = {
         "headline": (

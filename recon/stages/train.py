@@ -24,7 +24,7 @@ import torch
 from recon.config import TrainConfig, parse_duration
 from recon.errors import ReconError
 from recon.field import FIELD_FILE, build_model, save_field
-from recon.images import read_image, undistort
+from recon.images import read_image, read_mask, undistort
 from recon.pipeline import Stage, StageContext, fault_point, interrupts_deferred, sha256_file, write_json_atomic
 from recon.scene import Frame, Scene, load_scene, spread_evenly
 
@@ -51,6 +51,8 @@ def load_view(scene: Scene, frame: Frame, max_side: int, keep_alpha: bool) -> Vi
     """Read, downscale and undistort one photo; intrinsics scaled to the new size."""
     image = read_image(scene.image_path(frame), max_side=max_side)
     h, w = image.shape[:2]
+    if frame.mask_path:  # the mask becomes the alpha channel: what it calls background trains as background
+        image = np.concatenate([image[..., :3], read_mask(Path(frame.mask_path), (w, h))[..., None]], axis=-1)
     sx, sy = w / frame.w, h / frame.h
     fl_x, fl_y, cx, cy = frame.fl_x * sx, frame.fl_y * sy, frame.cx * sx, frame.cy * sy
     image = undistort(image, fl_x, fl_y, cx, cy, frame.distortion, frame.camera_model)
