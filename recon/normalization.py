@@ -181,6 +181,11 @@ def _box_distance_range(c2w: np.ndarray, aabb: np.ndarray) -> tuple[float, float
     return near, float(np.linalg.norm(corners - origin, axis=1).max())
 
 
+FEW_PHOTOS = 20
+"""Below this many photos every photo trains the field: a casual capture cannot spare views, and the mesh needs
+them all. Its PSNR is then measured on training photos (said in the reasons), never called held-out."""
+
+
 def assign_split(frames: list[Frame], test_every: int, val_every: int) -> str:
     """Keep a split the source gave; otherwise hold out every Nth photo by name (deterministic)."""
     if any(f.split for f in frames):
@@ -188,10 +193,11 @@ def assign_split(frames: list[Frame], test_every: int, val_every: int) -> str:
             f.split = f.split or "train"
         return "split given by the source"
     order = sorted(range(len(frames)), key=lambda i: frames[i].name)
-    if len(frames) < 10:
+    if len(frames) < FEW_PHOTOS:
         for f in frames:
             f.split = "train"
-        return f"only {len(frames)} photos: all are used for training (evaluation uses training views)"
+        return (f"only {len(frames)} photos (< {FEW_PHOTOS}): all train the field that makes the mesh; PSNR is measured "
+                f"on training photos, not held-out ones")
     for rank, i in enumerate(order):
         if test_every and rank % test_every == 0:
             frames[i].split = "test"

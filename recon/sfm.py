@@ -88,6 +88,8 @@ class SfmResult:
     """Seconds spent in "extract", "match" and "map"."""
     num_cameras: int = 1
     """Distinct intrinsics estimated (one per device and size, or one per image)."""
+    attempts: list[dict] = field(default_factory=list)
+    """Each registration attempt: {"name", "settings", "registered"}; a retry runs only when photos were dropped."""
 
 
 def opencv_w2c_to_opengl_c2w(cam_from_world: np.ndarray) -> np.ndarray:
@@ -242,14 +244,67 @@ def _image_info(image_dir: Path, names: list[str]) -> tuple[list[tuple[int, int]
     return sizes, [device_of(image_dir / name) for name in names]
 
 
+@dataclass(frozen=True)
+class Attempt:
+    """One way to extract and match features. The retry finds more, and more reliable, correspondences
+    on photos SfM dropped: twice the features, SIFT on the image upsampled 2× (first octave -1: extraction at
+    a higher resolution, small detail), a lower peak threshold (low-contrast texture), a looser ratio test,
+    and guided matching (more inliers once the two-view geometry is known)."""
+
+    name: str
+    feature_factor: int = 1
+    first_octave: int = 0
+    peak_threshold: float | None = None
+    max_ratio: float | None = None
+    guided: bool = False
+
+    def settings(self, options: SfmOptions) -> str:
+        parts = [f"{options.max_features * self.feature_factor} features"]
+        if self.first_octave < 0:
+            parts.append("extraction at 2× resolution (first octave -1)")
+        if self.peak_threshold is not None:
+            parts.append(f"SIFT peak threshold {self.peak_threshold:g}")
+        if self.max_ratio is not None:
+            parts.append(f"ratio test {self.max_ratio:g}")
+        if self.guided:
+            parts.append("guided matching")
+        return ", ".join(parts)
+
+
+ATTEMPTS = (
+    Attempt("default"),
+    Attempt("more features", feature_factor=2, first_octave=-1, peak_threshold=0.004, max_ratio=0.85, guided=True),
+)
+
+
+def register_best(run_attempt: Callable[[Attempt], pycolmap.Reconstruction | None], total: int, options: SfmOptions,
+                  attempts: tuple[Attempt, ...] = ATTEMPTS) -> tuple[pycolmap.Reconstruction | None, list[dict]]:
+    """Run the attempts in order until one registers all `total` photos; the model registering most wins
+    (ties: the later, whose features are the ones left in the database). Returns it and a log entry per attempt."""
+    best, log = None, []
+    for attempt in attempts:
+        model = run_attempt(attempt)
+        registered = model.num_reg_images() if model is not None else 0
+        log.append({"name": attempt.name, "settings": attempt.settings(options), "registered": registered})
+        if model is not None and (best is None or registered >= best.num_reg_images()):
+            best = model
+        if registered >= total:
+            break
+    return best, log
+
+
 def extract(
-    database: Path, image_dir: Path, names: list[str], groups: list[list[int]], model: str, options: SfmOptions
+    database: Path, image_dir: Path, names: list[str], groups: list[list[int]], model: str, options: SfmOptions,
+    attempt: Attempt = ATTEMPTS[0],
 ) -> None:
     """SIFT features into `database`, one COLMAP camera per group of `camera_groups` (EXIF focal priors read)."""
     extraction = pycolmap.FeatureExtractionOptions()
     extraction.num_threads = options.num_threads
     extraction.use_gpu = False
-    extraction.sift.max_num_features = options.max_features
+    extraction.sift.max_num_features = options.max_features * attempt.feature_factor
+    extraction.sift.first_octave = attempt.first_octave
+    if attempt.peak_threshold is not None:
+        extraction.sift.peak_threshold = attempt.peak_threshold
     reader = pycolmap.ImageReaderOptions(camera_model=model)
     if all(len(g) == 1 for g in groups):
         calls = [(names, pycolmap.CameraMode.PER_IMAGE)]
@@ -373,47 +428,54 @@ def run_sfm(
     pycolmap.set_random_seed(options.seed)
     work_dir.mkdir(parents=True, exist_ok=True)
     database = work_dir / "database.db"
-    database.unlink(missing_ok=True)  # a stale database would keep old images and features
     device = pycolmap.Device.cpu
-    timings: dict[str, float] = {}
-
-    report("extract", 0.0)
-    start = time.perf_counter()
+    timings: dict[str, float] = {"extract": 0.0, "match": 0.0, "map": 0.0}
     groups = camera_groups(sizes, exif_models, shared, options.shared_intrinsics)
-    extract(database, image_dir, names, groups, model, options)
-    timings["extract"] = time.perf_counter() - start
-    report("extract", 1.0)
-
-    report("match", 0.0)
-    start = time.perf_counter()
-    matching = pycolmap.FeatureMatchingOptions()
-    matching.num_threads = options.num_threads
-    matching.use_gpu = False
-    if matcher == "exhaustive":
-        pycolmap.match_exhaustive(database, matching_options=matching, device=device)
-    else:
-        pairing = pycolmap.SequentialPairingOptions()
-        pairing.overlap = options.sequential_overlap
-        pycolmap.match_sequential(database, matching_options=matching, pairing_options=pairing, device=device)
-    timings["match"] = time.perf_counter() - start
-    report("match", 1.0)
-
-    report("map", 0.0)
-    start = time.perf_counter()
     needed = max(options.min_registered, int(np.ceil(options.min_registered_fraction * len(names))))
     models_dir = work_dir / "models"
-    best = _map(database, image_dir, models_dir, options, needed, relaxed=False)
-    if best is None or best.num_reg_images() < len(names):
-        # COLMAP's inlier thresholds suit thousands of features per image; small or plain photos
-        # give hundreds, so retry with lower ones and keep whichever model registers more images.
-        report("map", 0.5)
-        retry = _map(database, image_dir, models_dir, options, needed, relaxed=True)
-        if retry is not None and (best is None or retry.num_reg_images() > best.num_reg_images()):
-            best = retry
-    shutil.rmtree(models_dir, ignore_errors=True)
-    timings["map"] = time.perf_counter() - start
-    report("map", 1.0)
 
+    def run_attempt(attempt: Attempt) -> pycolmap.Reconstruction | None:
+        retry = attempt is not ATTEMPTS[0]
+        database.unlink(missing_ok=True)  # a stale database would keep old images and features
+        report("extract", 0.0)
+        start = time.perf_counter()
+        extract(database, image_dir, names, groups, model, options, attempt)
+        timings["extract"] += time.perf_counter() - start
+        report("extract", 1.0)
+
+        report("match", 0.0)
+        start = time.perf_counter()
+        matching = pycolmap.FeatureMatchingOptions()
+        matching.num_threads = options.num_threads
+        matching.use_gpu = False
+        matching.guided_matching = attempt.guided
+        if attempt.max_ratio is not None:
+            matching.sift.max_ratio = attempt.max_ratio
+        if matcher == "exhaustive":
+            pycolmap.match_exhaustive(database, matching_options=matching, device=device)
+        else:
+            pairing = pycolmap.SequentialPairingOptions()
+            pairing.overlap = options.sequential_overlap
+            pycolmap.match_sequential(database, matching_options=matching, pairing_options=pairing, device=device)
+        timings["match"] += time.perf_counter() - start
+        report("match", 1.0)
+
+        report("map", 0.5 if retry else 0.0)
+        start = time.perf_counter()
+        best = _map(database, image_dir, models_dir, options, needed, relaxed=False)
+        if best is None or best.num_reg_images() < len(names):
+            # COLMAP's inlier thresholds suit thousands of features per image; small or plain photos
+            # give hundreds, so retry with lower ones and keep whichever model registers more images.
+            report("map", 0.5)
+            relaxed = _map(database, image_dir, models_dir, options, needed, relaxed=True)
+            if relaxed is not None and (best is None or relaxed.num_reg_images() > best.num_reg_images()):
+                best = relaxed
+        shutil.rmtree(models_dir, ignore_errors=True)
+        timings["map"] += time.perf_counter() - start
+        report("map", 1.0)
+        return best
+
+    best, attempts = register_best(run_attempt, len(names), options)
     num_registered = best.num_reg_images() if best is not None else 0
     if best is None or num_registered < needed:
         raise ReconError(_too_few_message(num_registered, len(names), needed))
@@ -439,4 +501,5 @@ def run_sfm(
         num_points=int(xyz.shape[0]),
         timings=timings,
         num_cameras=len(groups),
+        attempts=attempts,
     )

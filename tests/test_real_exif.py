@@ -80,3 +80,49 @@ def test_photos_without_exif_keep_the_old_grouping() -> None:
     assert camera_groups(sizes, ["A"] * 4, shared=False) == [[0, 1, 2], [3]]
     assert camera_groups(sizes, ["A"] * 4, shared=False, shared_intrinsics="no") == [[0], [1], [2], [3]]
     assert camera_groups(sizes, [None] * 4, shared=True) == [[0, 1, 2, 3]]
+
+
+# ---------------------------------------------------------------------------------------------- few photos
+class FakeModel:
+    def __init__(self, n: int) -> None:
+        self.n = n
+
+    def num_reg_images(self) -> int:
+        return self.n
+
+
+def test_dropped_photos_trigger_the_retry_and_the_better_model_wins() -> None:
+    from recon.sfm import ATTEMPTS, register_best
+
+    tried = []
+
+    def run(attempt):
+        tried.append(attempt.name)
+        return FakeModel({"default": 10, "more features": 14}[attempt.name])
+
+    best, log = register_best(run, total=14, options=SfmOptions())
+    assert tried == ["default", "more features"] and best.n == 14
+    assert [e["registered"] for e in log] == [10, 14]
+    assert "16384 features" in log[1]["settings"] and "guided matching" in log[1]["settings"]
+    assert "2× resolution" in log[1]["settings"]
+    # all registered at once: no retry; a worse retry never replaces the better model
+    tried.clear()
+    best, log = register_best(lambda a: (tried.append(a.name), FakeModel(14))[1], total=14, options=SfmOptions())
+    assert tried == ["default"] and len(log) == 1
+    best, log = register_best(lambda a: FakeModel(12 if a is ATTEMPTS[0] else 9), total=14, options=SfmOptions())
+    assert best.n == 12 and len(log) == 2
+
+
+def test_few_photos_all_train_and_say_how_psnr_is_measured() -> None:
+    from recon.normalization import FEW_PHOTOS, assign_split
+    from recon.scene import Frame
+
+    def frames(n: int) -> list:
+        return [Frame(f"/p/{i:02d}.jpg", np.eye(4), 100.0, 100.0, 50.0, 50.0, 100, 100) for i in range(n)]
+
+    few = frames(15)
+    why = assign_split(few, test_every=8, val_every=8)
+    assert all(f.split == "train" for f in few) and "training photos" in why and "15" in why
+    many = frames(FEW_PHOTOS)
+    assign_split(many, test_every=8, val_every=8)
+    assert sum(f.split == "test" for f in many) == 3 and sum(f.split == "train" for f in many) < FEW_PHOTOS

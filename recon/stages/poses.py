@@ -128,6 +128,13 @@ def _structure_from_motion(ctx: StageContext) -> tuple[Scene, dict]:
 
         result = run_sfm(image_dir, [n for _, n in names], sfm_dir, options, progress=progress)
     ctx.report.info(f"Camera model: {result.camera_model} — {result.choice_reason}")
+    if len(result.attempts) > 1:
+        first, last = result.attempts[0], result.attempts[-1]
+        helped = "helped" if last["registered"] > first["registered"] else "did not help"
+        ctx.report.info(
+            f"registration retry: the default settings registered {first['registered']}/{len(names)} photos; "
+            f"retried with {last['settings']}: {last['registered']}/{len(names)} ({helped})"
+        )
     if result.dropped:
         ctx.report.warn(
             f"{len(result.dropped)} of {len(names)} photos could not be registered and are left out: "
@@ -164,6 +171,7 @@ def _structure_from_motion(ctx: StageContext) -> tuple[Scene, dict]:
         "camera_model": result.camera_model,
         "shared_intrinsics": result.shared_intrinsics,
         "cameras": result.num_cameras,
+        "attempts": result.attempts,
         "timings_s": {k: round(v, 2) for k, v in result.timings.items()},
     }
     return scene, summary
