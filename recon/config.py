@@ -31,6 +31,12 @@ class PosesConfig(SfmOptions):
 
     max_side: int = 1600
     """Photos are downscaled to this longest side for feature extraction (intrinsics are scaled back)."""
+    video_frames: int = 150
+    """A video is split into this many windows (shared among the clips of a folder by length) and the sharpest
+    frame of each is kept."""
+    video_min_change: float = 1.0
+    """A video frame whose mean absolute gray difference to the last kept frame (0-255 levels, on a 128-px copy)
+    is below this is a near-duplicate and skipped: the camera stood still."""
 
 
 @dataclass
@@ -146,6 +152,11 @@ class MeshConfig:
     all: the whole scene box; or an explicit box "xmin,ymin,zmin,xmax,ymax,zmax" in the source frame."""
     keep_ground: bool = False
     """Keep the ground plane the object stands on (normalize finds it by RANSAC); by default it is cut away."""
+    texture_faces: int = 50000
+    """Also write mesh_textured.glb/.obj: the mesh decimated to this many faces, UV-unwrapped, its color
+    baked into a texture (0: no textured mesh)."""
+    texture_size: int = 2048
+    """Side of the square texture image of the textured mesh, in texels."""
 
 
 @dataclass
@@ -213,6 +224,9 @@ BOUNDS: dict[str, tuple[Any, str]] = {
     "poses.max_side": _at_least(16),
     "poses.max_features": _at_least(64),
     "poses.sequential_overlap": _at_least(1),
+    "poses.loop_keyframes": _at_least(0),
+    "poses.video_frames": _at_least(3),
+    "poses.video_min_change": _at_least(0),
     "poses.num_threads": _at_least(-1),
     "poses.min_registered": _at_least(2),
     "poses.min_registered_fraction": _between(0, 1),
@@ -255,6 +269,8 @@ BOUNDS: dict[str, tuple[Any, str]] = {
     "mesh.smooth_iters": _at_least(0),
     "mesh.target_faces": _at_least(0),
     "mesh.real_size": _at_least(0),
+    "mesh.texture_faces": ((lambda v: v == 0 or v >= 4), "0 (no textured mesh) or at least 4"),
+    "mesh.texture_size": _at_least(16),
 }
 """Allowed range of each numeric option: checked once the preset and every --set are applied."""
 
