@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from recon.images import read_image, undistort
+from recon.images import read_image, read_mask, undistort
 from recon.scene import Frame, Scene
 
 
@@ -38,9 +38,11 @@ def load_view(scene: Scene, frame: Frame, max_side: int, keep_alpha: bool) -> Vi
     """Read, downscale and undistort one photo; intrinsics scaled to the new size."""
     image = read_image(scene.image_path(frame), max_side=max_side)
     h, w = image.shape[:2]
+    if frame.mask_path:  # the mask becomes the alpha channel: what it calls background trains as background
+        image = np.concatenate([image[..., :3], read_mask(Path(frame.mask_path), (w, h))[..., None]], axis=-1)
     sx, sy = w / frame.w, h / frame.h
     fl_x, fl_y, cx, cy = frame.fl_x * sx, frame.fl_y * sy, frame.cx * sx, frame.cy * sy
-    image = undistort(image, fl_x, fl_y, cx, cy, frame.distortion)
+    image = undistort(image, fl_x, fl_y, cx, cy, frame.distortion, frame.camera_model)
     if not keep_alpha:
         image = image[..., :3]
     elif image.shape[-1] == 3:

@@ -26,7 +26,7 @@ import torch
 import trimesh
 
 from recon.atomic import write_json_atomic
-from recon.config import MeshConfig
+from recon.config import MeshConfig, parse_region
 from recon.errors import ReconError
 from recon.field import load_field
 from recon.geometry.clean import SeenFn, clean_mesh
@@ -75,6 +75,77 @@ def training_focal(frame: Frame, max_side: int) -> float:
     """Horizontal focal length (pixels) of a frame at the training resolution (photos downscaled to max_side)."""
     scale = min(1.0, max_side / max(frame.w, frame.h)) if max_side else 1.0
     return float(frame.fl_x * scale)
+
+
+# ---------------------------------------------------------------------------------------- region
+REGION_MARGIN = 0.1
+"""The object region (sparse-point percentiles) is enlarged by this fraction of its size on each side."""
+GROUND_MARGIN_CELLS = 2.0
+"""Faces within this many surface cells (`surface_cell`) above the ground plane are cut with it: the field
+makes a table top a layer about a voxel thick."""
+
+
+def mesh_region(scene: Scene, aabb: np.ndarray, cfg: MeshConfig) -> tuple[np.ndarray, np.ndarray | None, str]:
+    """The box to mesh (scene frame, inside aabb), the ground plane to cut (or None) and why.
+
+    mesh.region auto: normalize's object region (what the cameras look at) grown by REGION_MARGIN, down to the
+    ground; all: the whole scene box, nothing cut; a source-frame box: its bounding box in the scene frame.
+    """
+    choice = parse_region(cfg.region)
+    aabb = np.asarray(aabb, np.float64)
+    if choice == "all":
+        return aabb, None, "the whole scene box (mesh.region=all)"
+    ground = None if cfg.keep_ground or scene.ground is None else np.asarray(scene.ground, np.float64)
+    ground_why = ("; the ground plane is cut away (--set mesh.keep_ground=true keeps it)" if ground is not None
+                  else "; the ground is kept (mesh.keep_ground)" if scene.ground is not None else "")
+    if choice == "auto":
+        if scene.region is None:
+            return aabb, ground, "the whole scene box (no object region was found)" + ground_why
+        region = np.asarray(scene.region, np.float64)
+        size = region[1] - region[0]
+        box = region + np.stack([-size, size]) * REGION_MARGIN
+        why = "the object the cameras look at (normalize's object region, +10%; --set mesh.region=all meshes everything)"
+    else:
+        lo, hi = np.asarray(choice, np.float64)
+        corners = np.array([[(lo, hi)[i][0], (lo, hi)[j][1], (lo, hi)[k][2]] for i in (0, 1) for j in (0, 1) for k in (0, 1)])
+        T = scene.world_from_source
+        mapped = corners @ T[:3, :3].T + T[:3, 3]
+        box = np.stack([mapped.min(axis=0), mapped.max(axis=0)])
+        why = f"the box {cfg.region} given in the source frame (mesh.region)"
+    box = np.stack([np.maximum(box[0], aabb[0]), np.minimum(box[1], aabb[1])])
+    if np.any(box[1] <= box[0]):
+        raise ReconError(
+            f"The mesh region ({cfg.region}) does not overlap the scene box {np.round(aabb, 3).tolist()}; give a box "
+            f"inside the scene, or --set mesh.region=all."
+        )
+    return box, ground, why + ground_why
+
+
+MASK_KEEP_FRACTION = 0.5
+"""A vertex stays when it falls inside the object mask in at least this fraction of the photos that have it in frame."""
+
+
+def inside_masks(views: Sequence[View]) -> Callable[[np.ndarray], np.ndarray]:
+    """``keep_fn`` of `clean_mesh`: True for vertices (V, 3) that the masks (the views' alpha) call object.
+
+    A point of the object projects inside the object's silhouette in every photo, occluded or not, so no depth
+    test is needed; MASK_KEEP_FRACTION of the photos that frame it leaves room for a pixel of mask edge."""
+    def keep(vertices: np.ndarray) -> np.ndarray:
+        inside = np.zeros(len(vertices))
+        framed = np.zeros(len(vertices))
+        for v in views:
+            h, w = v.hw
+            fx, fy, cx, cy = v.intrinsics
+            local = (np.asarray(vertices, np.float64) - v.c2w[:3, 3]) @ v.c2w[:3, :3]
+            z = -local[:, 2]
+            ok = z > 1e-9
+            u = np.floor(cx + fx * local[:, 0] / np.where(ok, z, 1.0)).astype(np.int64)
+            r = np.floor(cy - fy * local[:, 1] / np.where(ok, z, 1.0)).astype(np.int64)
+            ok &= (u >= 0) & (u < w) & (r >= 0) & (r < h)
+            framed += ok
+            inside[ok] += v.image[r[ok], u[ok], 3] >= 128
+        return (framed == 0) | (inside >= MASK_KEEP_FRACTION * framed)
+    return keep
 
 
 # ---------------------------------------------------------------------------------------- extraction
@@ -374,15 +445,19 @@ def run(ctx: StageContext) -> dict:
     if not meta.get("bounded", True):
         ctx.report.info("unbounded scene: the mesh covers the scene box only (the background is not meshed)")
 
+    region, ground, region_why = mesh_region(scene, aabb, cfg)
+    ctx.report.info(f"mesh region: {region_why}")
+    region_t = torch.tensor(region, dtype=torch.float32, device=device)
     footprint, fp_why = (None, "") if cfg.resolution > 0 else _scene_footprint(scene, train_frames, aabb, max_side)
-    shape, res_why = choose_resolution(aabb, cfg, footprint, fp_why)
+    shape, res_why = choose_resolution(region, cfg, footprint, fp_why)
     ctx.report.info(f"resolution: {res_why}")
 
     kind = "classic" if meta.get("kind") == "classic" else "fast"
     bounded = meta.get("bounded", True)
     views: list[View] = []
     depths: list[np.ndarray] = []
-    if cfg.color == "photos" or cfg.drop_hidden:
+    masked = bool(train_frames) and all(f.mask_path for f in train_frames)
+    if cfg.color == "photos" or cfg.drop_hidden or masked:
         t = time.perf_counter()
         limit = CPU_BAKE_VIEWS[kind] if device.type == "cpu" else 0
         depth_side = CPU_DEPTH_SIDE[kind] if device.type == "cpu" else None
@@ -396,26 +471,33 @@ def run(ctx: StageContext) -> dict:
             view_note += f", depth rendered at ≤ {depth_side} px"
 
     t = time.perf_counter()
-    vertices, faces, extract = extract_mesh(model, aabb_t, shape, cfg, ctx.report)
+    vertices, faces, extract = extract_mesh(model, region_t, shape, cfg, ctx.report)
     timings["extract_s"] = round(time.perf_counter() - t, 3)
 
     t = time.perf_counter()
     seen_fn = None
     if cfg.drop_hidden:
-        hidden_tol = HIDDEN_TOL_CELLS * surface_cell(model, aabb, shape)[0]
+        hidden_tol = HIDDEN_TOL_CELLS * surface_cell(model, region, shape)[0]
         seen_fn = see_with_views(views, depths, hidden_tol)
     vertices, faces, clean = clean_mesh(
-        vertices, faces, aabb,
+        vertices, faces, region,
         min_component_fraction=cfg.min_component_fraction,
         smooth_iters=cfg.smooth_iters,
         target_faces=cfg.target_faces or None,
         seen_fn=seen_fn,
+        ground=ground,
+        ground_margin=GROUND_MARGIN_CELLS * surface_cell(model, region, shape)[0],
+        keep_fn=inside_masks(views) if masked else None,
     )
     timings["clean_s"] = round(time.perf_counter() - t, 3)
     if len(faces) == 0:
         raise ReconError("Every piece of the extracted surface was removed while cleaning; lower mesh.min_component_fraction.")
     removed = clean["components"]["removed"]
     ctx.report.info(f"cleaning: {clean['components']['rule']}: {removed} of {clean['components']['components']} pieces removed")
+    if "masked" in clean:
+        ctx.report.info(f"masks: {clean['masked']['faces_removed']:,} faces outside the object masks removed ({len(views)} photos)")
+    if "ground_cut" in clean:
+        ctx.report.info(f"ground: {clean['ground_cut']['faces_removed']:,} faces on or below the ground plane cut away")
     if "hidden" in clean:
         h = clean["hidden"]
         ctx.report.info(f"hidden faces: {h['removed_faces']:,} faces that no photo sees removed (inner walls of the field; "
@@ -456,6 +538,7 @@ def run(ctx: StageContext) -> dict:
         "component_rule": clean["components"]["rule"],
         "bbox_scene": out["bbox"],
         "resolution": {"grid": list(shape), "reason": res_why, "pixel_footprint": footprint},
+        "region": {"box": region.tolist(), "reason": region_why, "ground": None if ground is None else ground.tolist()},
         "extraction": extract,
         "iso": extract["iso"],
         "iso_reason": extract["iso_reason"],
@@ -548,4 +631,4 @@ def _textured_summary(info: dict) -> str:
     return text
 
 
-STAGE = Stage(name="mesh", folder="04_mesh", inputs=("normalize", "train"), version=2, run=run)
+STAGE = Stage(name="mesh", folder="04_mesh", inputs=("normalize", "train"), version=3, run=run)

@@ -14,13 +14,14 @@ import numpy as np
 from recon.atomic import sha256_file
 from recon.config import PosesConfig
 from recon.errors import InputError
-from recon.images import list_photos, oriented_size, read_image, save_image
+from recon.images import camera_exif, list_photos, oriented_size, read_image, save_image
 from recon.pipeline import Stage, StageContext
 from recon.scene import (
     Scene,
     check_cameras,
     detect_source,
     find_colmap_model,
+    find_masks,
     frame_from_sfm,
     import_colmap,
     import_nerf_synthetic,
@@ -46,13 +47,18 @@ def source_digest(source: Path, cfg: PosesConfig | None) -> str:
     for path in sorted(set(input_files(source, kind))):
         h.update(str(path).encode())
         h.update(sha256_file(path).encode())
+    if kind == "photos" and (source.parent / "masks").is_dir():  # masks beside the photos folder are inputs too
+        for path in sorted(p for p in (source.parent / "masks").iterdir() if p.is_file()):
+            h.update(f"masks/{path.name}".encode())
+            h.update(sha256_file(path).encode())
     return h.hexdigest()
 
 
 def input_files(source: Path, kind: str) -> list[Path]:
     """The files a source of this kind consists of, as `run` reads them."""
     if kind == "photos":
-        return list_photos(source)[0]
+        photos = list_photos(source)[0]
+        return photos + sorted(find_masks(photos)[1].values())  # their masks are inputs too
     if kind == "npz":
         return [source]
     if kind == "video":
@@ -111,6 +117,16 @@ def _poses_file(source: Path, kind: str) -> Path:
     if kind == "transforms" and source.is_dir():
         return source / "transforms.json"
     return source
+
+
+def prepare_photo(path: Path, image_dir: Path, max_side: int) -> tuple[str, tuple[int, int], tuple[int, int]]:
+    """The copy of one photo COLMAP reads: upright, downscaled to max_side, 8-bit, with the photo's device and
+    focal-length EXIF (Orientation 1). Returns its file name, the photo's and the copy's (width, height)."""
+    original = oriented_size(path)
+    small = read_image(path, max_side=max_side)
+    name = path.stem + (".png" if small.shape[-1] == 4 or path.suffix.lower() == ".png" else ".jpg")
+    save_image(image_dir / name, small[..., :3], exif=camera_exif(path))
+    return name, original, (small.shape[1], small.shape[0])
 
 
 def _video(ctx: StageContext) -> tuple[Scene, dict]:
@@ -186,6 +202,12 @@ def _structure_from_motion(ctx: StageContext, photos: list[Path] | None = None) 
             f"Photos in {ctx.source} share a name apart from the extension ({'; '.join(' and '.join(c) for c in clashes[:5])}); "
             f"recon names views, renders and COLMAP's images by the name without extension. Rename or remove one of each."
         )
+    mask_dir, masks = find_masks(photos)
+    if mask_dir is not None:
+        ctx.report.info(
+            f"masks: {len(masks)} masks in {mask_dir} (white = object): masked-out pixels train as background and "
+            f"the mesh keeps only what the masks call object"
+        )
     sfm_dir = ctx.out / "colmap"
     image_dir = sfm_dir / "images"
     image_dir.mkdir(parents=True)
@@ -194,12 +216,7 @@ def _structure_from_motion(ctx: StageContext, photos: list[Path] | None = None) 
     names = []
     with ctx.report.task("reading photos", total=len(photos)) as bar:
         for path in photos:
-            # read once: EXIF orientation applied, downscaled for SfM, saved as 8-bit for COLMAP
-            original_size[path.name] = oriented_size(path)
-            small = read_image(path, max_side=cfg.max_side)
-            sfm_size[path.name] = (small.shape[1], small.shape[0])
-            name = path.stem + (".png" if small.shape[-1] == 4 or path.suffix.lower() == ".png" else ".jpg")
-            save_image(image_dir / name, small[..., :3])
+            name, original_size[path.name], sfm_size[path.name] = prepare_photo(path, image_dir, cfg.max_side)
             names.append((path, name))
             bar.advance()
     by_sfm_name = {name: path for path, name in names}
@@ -222,6 +239,13 @@ def _structure_from_motion(ctx: StageContext, photos: list[Path] | None = None) 
 
         result = run_sfm(image_dir, [n for _, n in names], sfm_dir, options, progress=progress, log_dir=ctx.scene_dir / LOG_DIR)
     ctx.report.info(f"Camera model: {result.camera_model} — {result.choice_reason}")
+    if len(result.attempts) > 1:
+        first, last = result.attempts[0], result.attempts[-1]
+        helped = "helped" if last["registered"] > first["registered"] else "did not help"
+        ctx.report.info(
+            f"registration retry: the default settings registered {first['registered']}/{len(names)} photos; "
+            f"retried with {last['settings']}: {last['registered']}/{len(names)} ({helped})"
+        )
     if result.dropped:
         ctx.report.warn(
             f"{len(result.dropped)} of {len(names)} photos could not be registered and are left out: "
@@ -234,7 +258,9 @@ def _structure_from_motion(ctx: StageContext, photos: list[Path] | None = None) 
         # frames recon wrote live in the scene folder: stored relative to it, like the .npz import's images
         inside = path.is_relative_to(ctx.out)
         file_path = str(Path(ctx.folder) / path.relative_to(ctx.out)) if inside else str(path.resolve())
-        frames.append(frame_from_sfm(file_path, fd, ow / sw, oh / sh))
+        frame = frame_from_sfm(file_path, fd, ow / sw, oh / sh)
+        frame.mask_path = str(masks[path.name].resolve()) if path.name in masks else None
+        frames.append(frame)
     visibility = {by_sfm_name[n].name: np.asarray(v, dtype=np.int64) for n, v in result.points_visible.items()}
     scene = Scene(
         frames=frames,
@@ -242,7 +268,9 @@ def _structure_from_motion(ctx: StageContext, photos: list[Path] | None = None) 
         point_colors=result.points_rgb,
         point_visibility=visibility,
         source_kind="photos",
-        notes={"camera_model": result.camera_model, "camera_choice": result.choice_reason},
+        has_alpha=mask_dir is not None,
+        notes={"camera_model": result.camera_model, "camera_choice": result.choice_reason,
+               **({"masks": str(mask_dir)} if mask_dir is not None else {})},
     )
     summary = {
         "headline": (
@@ -256,9 +284,11 @@ def _structure_from_motion(ctx: StageContext, photos: list[Path] | None = None) 
         "reprojection_error_px": round(result.mean_reprojection_error, 4),
         "camera_model": result.camera_model,
         "shared_intrinsics": result.shared_intrinsics,
+        "cameras": result.num_cameras,
+        "attempts": result.attempts,
         "timings_s": {k: round(v, 2) for k, v in result.timings.items()},
     }
     return scene, summary
 
 
-STAGE = Stage(name="poses", folder="01_poses", inputs=(), version=1, run=run, needs_source=True, source_digest=source_digest)
+STAGE = Stage(name="poses", folder="01_poses", inputs=(), version=3, run=run, needs_source=True, source_digest=source_digest)

@@ -248,7 +248,9 @@ def run(ctx: StageContext) -> dict:
     # the checkpoint stays until the pipeline has recorded this stage as done (it then removes ctx.work):
     # a crash between here and the manifest resumes from it instead of training again from step 0
     return {
-        "headline": f"{kind} model, {result['step']} steps in {total_train_time:.0f} s: test PSNR {final['psnr']:.2f} dB, SSIM {final['ssim']:.3f} ({len(test_views)} views)",
+        "headline": (f"{kind} model, {result['step']} steps in {total_train_time:.0f} s: "
+                     f"{'test' if scene.split('test') else 'training-photo (none held out)'} PSNR {final['psnr']:.2f} dB, "
+                     f"SSIM {final['ssim']:.3f} ({len(test_views)} views)"),
         "psnr": round(final["psnr"], 3),
         "ssim": round(final["ssim"], 4),
         "train_time_s": round(total_train_time, 1),
