@@ -305,6 +305,8 @@ def extract(
     attempt: Attempt = ATTEMPTS[0],
 ) -> None:
     """SIFT features into `database`, one COLMAP camera per group of `camera_groups` (EXIF focal priors read)."""
+    import pycolmap
+
     extraction = pycolmap.FeatureExtractionOptions()
     extraction.num_threads = options.num_threads
     extraction.use_gpu = False
