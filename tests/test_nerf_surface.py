@@ -213,3 +213,13 @@ def test_tiny_training_run_moves_the_surface_to_the_rendered_sphere() -> None:
     rebuilt.load_state_dict(model.state_dict())
     x = torch.rand(100, 3) * 2 - 1
     assert torch.allclose(rebuilt.sdf(x), model.sdf(x))
+
+
+def test_normal_agreement_is_one_for_the_same_surface_and_lower_for_a_different_shape() -> None:
+    from recon.geometry.compare import chamfer_fscore
+
+    ball = trimesh.creation.icosphere(subdivisions=4, radius=0.5)
+    same = chamfer_fscore(ball, ball, n_samples=20_000)["normal_consistency"]
+    cube = chamfer_fscore(trimesh.creation.box(extents=(0.9, 0.9, 0.9)), ball, n_samples=20_000)["normal_consistency"]
+    assert same > 0.99 and cube < 0.95
+    assert "normal_consistency" not in chamfer_fscore(np.asarray(ball.vertices), ball, n_samples=2000)  # points: no normals

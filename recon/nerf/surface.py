@@ -62,9 +62,9 @@ class SurfaceConfig:
     """Hidden width of the SDF MLP on the levels' values (0: the SDF is the prior plus the levels' sum)."""
     level_every: int = 150
     """Coarse to fine: level k (0 = coarsest) joins the SDF after k * level_every steps (0: all from the start)."""
-    init_radius: float = 0.5
+    init_radius: float = 0.8
     """Radius of the initial sphere, as a fraction of half the box's shortest side."""
-    init_sharpness: float = 20.0
+    init_sharpness: float = 40.0
     """Initial NeuS sharpness s (1/world unit): the opacity ramp is ~1/s wide at the start."""
     feature_res: int = 96
     """Vertices per side of the color feature grid."""
@@ -78,7 +78,7 @@ class SurfaceConfig:
     """Hidden width of the color MLP."""
     mlp_layers: int = 2
     """Hidden layers of the color MLP."""
-    step_ratio: float = 0.5
+    step_ratio: float = 1.0
     """Ray-march step in finest SDF voxels."""
     max_samples: int = 1024
     """Cap on candidate samples per ray."""
@@ -90,7 +90,7 @@ class SurfaceConfig:
     """Refresh the occupancy grid every this many steps."""
     warmup_step_scale: float = 4.0
     """Ray-march step multiplier during the occupancy warm-up (nothing is skipped yet)."""
-    band_width: float = 6.0
+    band_width: float = 4.0
     """Occupied shell: |f| < 2 occupancy-cell diagonals + band_width / s (NeuS weights there are below
     e^-band_width of their peak)."""
     early_stop_transmittance: float = 1e-3
