@@ -126,12 +126,14 @@ def _run(
     from_stage: str | None = None,
     until_stage: str | None = None,
     force: bool = False,
+    observers: list[Callable[[str, dict], None]] | None = None,
 ) -> None:
     install_sigterm_as_interrupt()
     with _guard(scene_dir):
         preset = preset or _recorded_preset(scene_dir)
         config = _config(preset, overrides)
         report = Reporter(console, quiet=quiet)
+        report.observers = list(observers or [])
         if not quiet:
             report.info(f"preset [bold]{preset or DEFAULT_PRESET}[/]: {preset_description(preset or DEFAULT_PRESET)}")
         outcomes = _pipeline().run(
@@ -150,7 +152,7 @@ def _run(
 
 @app.command()
 def run(
-    photos: Annotated[Path, typer.Argument(help="Folder of photos, or poses you have: transforms.json folder, NeRF-synthetic folder, COLMAP model, .npz.")],
+    photos: Annotated[Path, typer.Argument(help="Folder of photos, a video (MP4/MOV/M4V) or folder of videos, or poses you have: transforms.json folder, NeRF-synthetic folder, COLMAP model, .npz.")],
     out: Annotated[Path, typer.Option("--out", "-o", help="Scene folder for every stage's output.")],
     preset: PresetOpt = None,
     set_: SetOpt = None,
@@ -159,10 +161,23 @@ def run(
     force: Annotated[bool, typer.Option("--force", help="Re-run every selected stage even if cached.")] = False,
     budget: Annotated[Optional[str], typer.Option("--budget", help="Training time budget, e.g. 5m (same as --set train.budget=5m).")] = None,
     quiet: QuietOpt = False,
+    view: Annotated[bool, typer.Option("--view", help="Show training live in a web viewer (loss, PSNR, current render), then the result.")] = False,
+    port: Annotated[int, typer.Option("--port", help="Viewer port (with --view).")] = 8080,
 ) -> None:
     """Run every stage in order, reusing what is already done."""
     overrides = list(set_ or []) + ([f"train.budget={budget}"] if budget else [])
-    _run(out, photos, preset, overrides, quiet, from_stage, until_stage, force)
+    if not view:
+        _run(out, photos, preset, overrides, quiet, from_stage, until_stage, force)
+        return
+    from recon.viewer import SceneViewer, TrainingView
+
+    with _guard(out):
+        live = TrainingView(out, port=port)
+    console.print(f"[bold]viewer:[/] {live.url} (training shows there live)")
+    _run(out, photos, preset, overrides, quiet, from_stage, until_stage, force, observers=[live])
+    if live.render_s:
+        console.print(f"viewer: {len(live.render_s)} live renders during training, {sum(live.render_s) / len(live.render_s):.2f} s each")
+    _serve(lambda: SceneViewer(out, server=live.server, log=lambda m: console.print(f"viewer: {m}")), out)
 
 
 def _single_stage(name: str) -> Callable[..., None]:
@@ -311,6 +326,77 @@ def bench(
         rows = run_bench(data, names, out, list(set_ or []), Reporter(console), until=until)
         out_console.print((out / "bench.md").read_text())
         out_console.print(f"{len(rows)} presets measured — {out / 'bench.md'}, {out / 'bench.png'}")
+
+
+@app.command()
+def export(
+    scene: Annotated[Path, typer.Argument(help="Scene folder (made by `recon run`).")],
+    out: Annotated[Path, typer.Option("--out", "-o", help="Folder for the export (new, empty, or an earlier recon export).")],
+    format_: Annotated[str, typer.Option("--format", "-f", help="nerfstudio (transforms.json + images) | colmap (text model + images) | points (PLY).")] = "nerfstudio",
+    frame: Annotated[str, typer.Option("--frame", help="normalized (recon's box, +Z up, like the mesh) | source (the SfM / imported poses).")] = "normalized",
+) -> None:
+    """Export cameras, undistorted images and sparse points for other tools (nerfstudio, instant-ngp, Gaussian splatting)."""
+    from recon.exports import export_scene
+
+    with _guard():
+        written = export_scene(scene, format_, out, frame, report=Reporter(console))  # type: ignore[arg-type]
+        out_console.print(f"{format_} export ({frame} frame): " + ", ".join(str(p) for p in written))
+
+
+def _serve(make: Callable[[], Any], scene: Path) -> None:
+    """Build a viewer and keep serving until Ctrl-C (which here simply closes it)."""
+    import time
+
+    with _guard(scene):
+        viewer = make()
+        console.print(f"[bold]viewer:[/] {viewer.url} — Ctrl-C to stop")
+    try:
+        while True:
+            time.sleep(1.0)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        viewer.stop()
+
+
+@app.command()
+def view(
+    scene: Annotated[Path, typer.Argument(help="Scene folder (made by `recon run`).")],
+    port: Annotated[int, typer.Option("--port", help="Port to serve on (the next free one if taken).")] = 8080,
+    host: Annotated[str, typer.Option("--host", help="Address to bind; 0.0.0.0 shares the viewer on your network.")] = "127.0.0.1",
+    device: Annotated[str, typer.Option("--device", help="auto | cpu | cuda (for the live field render)")] = "auto",
+) -> None:
+    """A local web viewer: cameras with their photos, sparse points, the mesh, and the field rendered live."""
+    from recon.viewer import SceneViewer
+
+    _serve(lambda: SceneViewer(scene, host=host, port=port, device=device, log=lambda m: console.print(f"viewer: {m}")), scene)
+
+
+@app.command()
+def batch(
+    inputs: Annotated[list[Path], typer.Argument(help="Capture folders (photos or poses), videos, or one text file listing them (one per line, # comments).")],
+    out: Annotated[Path, typer.Option("--out", "-o", help="Folder for every capture's scene (OUT/<capture name>/), batch.md and batch.json.")],
+    address: Annotated[Optional[str], typer.Option("--address", help="Ray cluster to join: auto or HOST:PORT (default: start Ray on this machine).")] = None,
+    preset: PresetOpt = None,
+    set_: SetOpt = None,
+    cpus_per_capture: Annotated[Optional[float], typer.Option("--cpus-per-capture", help="CPUs each capture asks Ray for (default: from the config).")] = None,
+    retries: Annotated[int, typer.Option("--retries", help="Times Ray re-runs a capture whose worker died (it resumes from its cache).")] = 2,
+    quiet: QuietOpt = False,
+) -> None:
+    """Run many captures as Ray tasks (one per capture), locally or on a cluster; exit 1 if any failed."""
+    from recon.batch import run_batch
+
+    install_sigterm_as_interrupt()
+    with _guard():
+        if retries < 0 or (cpus_per_capture is not None and cpus_per_capture <= 0):
+            raise ReconError("--retries must be ≥ 0 and --cpus-per-capture > 0.")
+        result = run_batch(inputs, out, preset or DEFAULT_PRESET, list(set_ or []), Reporter(console, quiet=quiet),
+                           address=address, retries=retries, cpus_per_capture=cpus_per_capture)
+        out_console.print((out / "batch.md").read_text())
+    if result["failed"]:
+        console.print(f"[bold red]{result['failed']} of {len(result['captures'])} captures failed[/] (errors above and in {out / 'batch.md'}); "
+                      f"fix them and run the same command again: finished captures are reused.")
+        raise typer.Exit(1)
 
 
 @app.command()

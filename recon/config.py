@@ -31,6 +31,12 @@ class PosesConfig(SfmOptions):
 
     max_side: int = 1600
     """Photos are downscaled to this longest side for feature extraction (intrinsics are scaled back)."""
+    video_frames: int = 150
+    """A video is split into this many windows (shared among the clips of a folder by length) and the sharpest
+    frame of each is kept."""
+    video_min_change: float = 1.0
+    """A video frame whose mean absolute gray difference to the last kept frame (0-255 levels, on a 128-px copy)
+    is below this is a near-duplicate and skipped: the camera stood still."""
 
 
 @dataclass
@@ -211,6 +217,9 @@ BOUNDS: dict[str, tuple[Any, str]] = {
     "poses.max_side": _at_least(16),
     "poses.max_features": _at_least(64),
     "poses.sequential_overlap": _at_least(1),
+    "poses.loop_keyframes": _at_least(0),
+    "poses.video_frames": _at_least(3),
+    "poses.video_min_change": _at_least(0),
     "poses.num_threads": _at_least(-1),
     "poses.min_registered": _at_least(2),
     "poses.min_registered_fraction": _between(0, 1),

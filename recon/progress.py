@@ -6,7 +6,7 @@ choose how much is shown.
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from typing import Any
 
 from rich.console import Console
@@ -53,6 +53,8 @@ class Reporter:
         self.quiet = quiet
         self.current_stage: str | None = None
         self.warnings: list[str] = []
+        self.observers: list[Callable[[str, dict], None]] = []
+        """Live observers (the viewer): `observe(event, data)` calls each, on the stage's thread."""
 
     def stage_start(self, name: str) -> None:
         self.current_stage = name
@@ -70,6 +72,10 @@ class Reporter:
     def info(self, message: str) -> None:
         if not self.quiet:
             self.console.print(message)
+
+    def observe(self, event: str, data: dict) -> None:
+        for fn in self.observers:
+            fn(event, data)
 
     def warn(self, message: str) -> None:
         self.warnings.append(message)

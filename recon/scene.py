@@ -53,6 +53,8 @@ class Frame:
     split: str | None = None
     near: float | None = None
     far: float | None = None
+    time_s: float | None = None
+    """For a video frame: its time stamp in the clip, seconds (the clip is in the file name)."""
 
     @property
     def name(self) -> str:
@@ -128,7 +130,7 @@ class Scene:
             for key in ("fl_x", "fl_y", "cx", "cy", "w", "h", "k1", "k2", "p1", "p2"):
                 if key not in shared:
                     entry[key] = getattr(f, key)
-            for key in ("split", "near", "far"):
+            for key in ("split", "near", "far", "time_s"):
                 if getattr(f, key) is not None:
                     entry[key] = getattr(f, key)
             doc["frames"].append(entry)
@@ -334,6 +336,7 @@ def parse_frames(
             split=fd.get("split", split),
             near=_number(fd["near"], source, "near", True) if "near" in fd else None,
             far=_number(fd["far"], source, "far", True) if "far" in fd else None,
+            time_s=_number(fd["time_s"], source, "time_s") if "time_s" in fd else None,
         )
         if frame.split is not None and frame.split not in SPLITS:
             raise InputError(f"{source}: {what} has split '{frame.split}'; expected one of {', '.join(SPLITS)}.")
@@ -345,9 +348,13 @@ def parse_frames(
 
 
 def detect_source(path: Path) -> str:
-    """What the user handed us: 'photos', 'transforms', 'nerf_synthetic', 'colmap' or 'npz'."""
+    """What the user handed us: 'photos', 'video', 'transforms', 'nerf_synthetic', 'colmap' or 'npz'."""
+    from recon.video import is_video, list_videos
+
     if path.is_file() and path.suffix.lower() == ".npz":
         return "npz"
+    if path.is_file() and is_video(path):
+        return "video"
     if path.is_file() and path.name.endswith(".json"):
         return "transforms"
     if path.is_dir():
@@ -357,12 +364,19 @@ def detect_source(path: Path) -> str:
             return "transforms"
         if find_colmap_model(path) is not None:
             return "colmap"
+        if list_videos(path):
+            if any(p.suffix.lower() in IMAGE_SUFFIXES for p in path.iterdir() if p.is_file()):
+                raise InputError(
+                    f"{path} holds both photos and videos. Put the videos in a folder of their own (recon takes "
+                    f"frames from every video in a folder), or the photos, and pass that folder."
+                )
+            return "video"
         return "photos"
     if not path.exists():
         raise InputError(f"The input {path} does not exist. Pass a folder of photos (or a poses file).")
     raise InputError(
-        f"The input {path} is a file recon cannot use. Pass a folder of photos, a folder with transforms.json, "
-        f"a COLMAP project/model folder, or a NeRF .npz file."
+        f"The input {path} is a file recon cannot use. Pass a folder of photos, a video (MP4/MOV/M4V), a folder "
+        f"with transforms.json, a COLMAP project/model folder, or a NeRF .npz file."
     )
 
 

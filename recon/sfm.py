@@ -39,9 +39,14 @@ class SfmOptions:
     """How to run structure from motion; the defaults suit an object captured by a phone."""
 
     matcher: Literal["auto", "exhaustive", "sequential"] = "auto"
-    """Pairs to match. auto: exhaustive up to 150 images, else sequential (photos ordered by name)."""
+    """Pairs to match. auto: exhaustive up to 150 images, else sequential (photos ordered by name); always
+    sequential for the frames of a video (they are in order)."""
     sequential_overlap: int = 10
     """Sequential matcher: each image is matched with this many following images (by name)."""
+    loop_keyframes: int = 30
+    """Sequential matcher's loop closure: this many images spread over the sequence are also matched with each
+    other (where the end of a walk around the object meets its start); 0: off. COLMAP's own loop detection
+    needs a vocabulary-tree file that cannot be downloaded offline."""
     max_features: int = 8192
     """Most SIFT features kept per image."""
     camera_model: Literal["auto", "SIMPLE_RADIAL", "OPENCV", "PINHOLE", "SIMPLE_PINHOLE", "RADIAL"] = "auto"
@@ -213,6 +218,19 @@ def _pick_matcher(matcher: str, num_images: int) -> str:
     return matcher
 
 
+def loop_pairs(names: list[str], keyframes: int, overlap: int) -> list[tuple[str, str]]:
+    """Loop-closure pairs for sequential matching: every two of `keyframes` images spread over the sequence
+    (in name order, as COLMAP's sequential matcher orders them) that it would not pair already (more than
+    `overlap` apart)."""
+    from recon.scene import spread_evenly
+
+    ordered = sorted(names)
+    if keyframes < 2:
+        return []
+    keys = spread_evenly(list(range(len(ordered))), keyframes)
+    return [(ordered[a], ordered[b]) for i, a in enumerate(keys) for b in keys[i + 1 :] if b - a > overlap]
+
+
 def _too_few_message(num_registered: int, num_images: int, need: int) -> str:
     return (
         f"Structure from motion registered only {num_registered} of {num_images} photos "
@@ -348,6 +366,13 @@ def run_sfm(
         pairing = pycolmap.SequentialPairingOptions()
         pairing.overlap = options.sequential_overlap
         pycolmap.match_sequential(database, matching_options=matching, pairing_options=pairing, device=device)
+        pairs = loop_pairs(names, options.loop_keyframes, options.sequential_overlap)
+        if pairs:
+            pair_file = work_dir / "loop_pairs.txt"
+            pair_file.write_text("".join(f"{a} {b}\n" for a, b in pairs))
+            imported = pycolmap.ImportedPairingOptions()
+            imported.match_list_path = str(pair_file)
+            pycolmap.match_image_pairs(database, matching_options=matching, pairing_options=imported, device=device)
     timings["match"] = time.perf_counter() - start
     report("match", 1.0)
 

@@ -196,10 +196,10 @@ def test_bf16_autocast_trains_with_float32_rendering() -> None:
 
 
 def test_select_device() -> None:
-    from recon.nerf.device import physical_cores, select_device
+    from recon.nerf.device import cpu_threads, select_device
 
     assert select_device("cpu") == torch.device("cpu")
-    assert torch.get_num_threads() == physical_cores() >= 1
+    assert torch.get_num_threads() == cpu_threads() >= 1
     assert select_device("auto").type == ("cuda" if torch.cuda.is_available() else "cpu")
     with pytest.raises(ValueError, match="unknown device"):
         select_device("tpu")

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import torch
 
-__all__ = ["physical_cores", "select_device"]
+__all__ = ["cpu_threads", "physical_cores", "select_device"]
 
 
 def physical_cores() -> int:
@@ -28,11 +28,25 @@ def physical_cores() -> int:
     return max(1, len(cores))
 
 
+def cpu_threads() -> int:
+    """Threads for torch on the CPU: the physical cores, or fewer when OMP_NUM_THREADS asks for fewer.
+
+    A scheduler that gives a process N CPUs says so through OMP_NUM_THREADS (Ray sets it to a task's CPUs), so
+    several captures on one machine do not each spread over every core.
+    """
+    cores = physical_cores()
+    try:
+        limit = int(os.environ.get("OMP_NUM_THREADS", ""))
+    except ValueError:
+        return cores
+    return max(1, min(cores, limit)) if limit > 0 else cores
+
+
 def select_device(preference: str = "auto") -> torch.device:
     """The torch device to train and render on.
 
     preference: "auto" (CUDA when available, else CPU), "cpu", "cuda" or "cuda:K".
-    On the CPU this also sets torch's intra-op threads to the number of physical cores: extra
+    On the CPU this also sets torch's intra-op threads to `cpu_threads()` (the physical cores): extra
     hyper-threads slow dense float math down, and OpenMP spin-waiting on a shared machine
     wastes them (set OMP_WAIT_POLICY=PASSIVE in the environment too).
     Raises ValueError for an unknown preference or when CUDA is requested but absent.
@@ -48,6 +62,6 @@ def select_device(preference: str = "auto") -> torch.device:
             raise ValueError(f"device {preference!r}: only {torch.cuda.device_count()} CUDA device(s) present")
         return dev
     if pref == "cpu":
-        torch.set_num_threads(physical_cores())
+        torch.set_num_threads(cpu_threads())
         return torch.device("cpu")
     raise ValueError(f"unknown device {preference!r}: use 'auto', 'cpu', 'cuda' or 'cuda:K'")

@@ -45,6 +45,8 @@ def run(ctx: StageContext) -> dict:
     kind = detect_source(ctx.source)
     if kind == "photos":
         scene, summary = _structure_from_motion(ctx)
+    elif kind == "video":
+        scene, summary = _video(ctx)
     else:
         ctx.report.info(f"Poses given ({kind}): importing {ctx.source}, structure from motion is skipped.")
         if kind == "npz":
@@ -67,13 +69,61 @@ def run(ctx: StageContext) -> dict:
     return summary
 
 
-def _structure_from_motion(ctx: StageContext) -> tuple[Scene, dict]:
+def _video(ctx: StageContext) -> tuple[Scene, dict]:
+    """Decode the clip(s) into the kept frames (01_poses/frames/, with time stamps), then SfM on them in order."""
+    from recon.video import SelectOptions, frame_name, list_videos, probe, select_frames, share_frames
+
+    cfg: PosesConfig = ctx.config
+    videos = [ctx.source] if ctx.source.is_file() else list_videos(ctx.source)
+    infos = [probe(v) for v in videos]
+    total = sum(info.frame_count for info in infos)
+    frames_dir = ctx.out / "frames"
+    frames_dir.mkdir()
+    kept: list[tuple[Path, float]] = []
+    selections = []
+    with ctx.report.task("decoding video", total=total, unit="frames") as bar:
+        done = 0
+        for video, info, target in zip(videos, infos, share_frames(cfg.video_frames, [i.frame_count for i in infos])):
+            options = SelectOptions(target, cfg.video_min_change)
+
+            def keep(frame, image: np.ndarray, stem: str = video.stem) -> None:
+                path = frames_dir / frame_name(stem, frame.index)
+                save_image(path, image.astype(np.float32) / 255.0)
+                kept.append((path, frame.time_s))
+
+            selection = select_frames(video, options, keep, lambda n, base=done: bar.update(completed=base + n), info)
+            done += info.frame_count
+            selections.append(selection)
+            ctx.report.info(selection.describe())
+    if len(kept) < MIN_PHOTOS:
+        raise InputError(
+            f"Only {len(kept)} distinct frame(s) came out of {ctx.source}: the camera barely moved. Film a slow walk "
+            f"all around the object (or lower poses.video_min_change, now {cfg.video_min_change})."
+        )
+    scene, summary = _structure_from_motion(ctx, photos=[p for p, _ in kept])
+    times = {p.name: t for p, t in kept}
+    for frame in scene.frames:
+        frame.time_s = round(times[frame.name], 6)
+    scene.source_kind = "video"
+    scene.notes["video"] = [s.describe() for s in selections]
+    summary["headline"] = f"{len(kept)} of {sum(s.read for s in selections)} video frames kept; " + summary["headline"]
+    summary["video"] = [
+        {"file": s.info.path.name, "read": s.read, "kept": len(s.kept), "dropped": s.dropped, "seconds": round(s.seconds, 2)}
+        for s in selections
+    ]
+    return scene, summary
+
+
+def _structure_from_motion(ctx: StageContext, photos: list[Path] | None = None) -> tuple[Scene, dict]:
+    """SfM on the photos of ctx.source, or on `photos` given in order (video frames: matched sequentially)."""
     from recon.sfm import SfmOptions, run_sfm
 
     cfg: PosesConfig = ctx.config
-    photos, skipped = list_photos(ctx.source)
-    for path in skipped:
-        ctx.report.warn(f"Skipping {path.name}: not an image file recon reads ({', '.join(['jpg', 'png', 'tif'])}…).")
+    ordered = photos is not None
+    if photos is None:
+        photos, skipped = list_photos(ctx.source)
+        for path in skipped:
+            ctx.report.warn(f"Skipping {path.name}: not an image file recon reads ({', '.join(['jpg', 'png', 'tif'])}…).")
     if not photos:
         raise InputError(
             f"No photos found in {ctx.source}. Put the photos (JPEG/PNG/TIFF) directly in that folder and run again."
@@ -101,6 +151,13 @@ def _structure_from_motion(ctx: StageContext) -> tuple[Scene, dict]:
             bar.advance()
     by_sfm_name = {name: path for path, name in names}
     options = SfmOptions(**{f.name: getattr(cfg, f.name) for f in dataclasses.fields(SfmOptions)})
+    if ordered and options.matcher == "auto":
+        options.matcher = "sequential"
+        loop = f", loop closure over {options.loop_keyframes} keyframes" if options.loop_keyframes > 1 else ""
+        ctx.report.info(
+            f"Matching: sequential (each frame with the next {options.sequential_overlap}{loop}): video frames come "
+            f"in order, so exhaustive matching would mostly pair views that cannot overlap."
+        )
     with ctx.report.task("structure from motion", total=3) as bar:
         phases = {"extract": "extracting SIFT features", "match": "matching", "map": "incremental mapping"}
 
@@ -121,7 +178,10 @@ def _structure_from_motion(ctx: StageContext) -> tuple[Scene, dict]:
     for sfm_name, fd in result.frames.items():
         path = by_sfm_name[sfm_name]
         (ow, oh), (sw, sh) = original_size[path.name], sfm_size[path.name]
-        frames.append(frame_from_sfm(str(path.resolve()), fd, ow / sw, oh / sh))
+        # frames recon wrote live in the scene folder: stored relative to it, like the .npz import's images
+        inside = path.is_relative_to(ctx.out)
+        file_path = str(Path(ctx.folder) / path.relative_to(ctx.out)) if inside else str(path.resolve())
+        frames.append(frame_from_sfm(file_path, fd, ow / sw, oh / sh))
     visibility = {by_sfm_name[n].name: np.asarray(v, dtype=np.int64) for n, v in result.points_visible.items()}
     scene = Scene(
         frames=frames,

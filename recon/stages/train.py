@@ -358,6 +358,8 @@ def run(ctx: StageContext) -> dict:
             if p.metrics is not None:
                 evals.append({"step": p.step, "time_s": round(train_time(), 3), **p.metrics})
                 ctx.report.info(f"step {p.step}: held-out PSNR {p.metrics['psnr']:.2f} dB, SSIM {p.metrics['ssim']:.3f}")
+            if ctx.report.observers:  # a live viewer (recon run --view): it renders the model on this thread
+                ctx.report.observe("train_step", {"progress": p, "model": model, "view": eval_views[0], "aabb": aabb, "background": background})
             if cfg.checkpoint_every and p.step % cfg.checkpoint_every == 0 and p.step < p.steps:
                 _save_checkpoint(ckpt_path, {"state": p.state_dict(), "evals": evals, "history": history, "train_time_s": train_time()})
 

@@ -1,0 +1,82 @@
+"""A headless Chromium screenshot of a live page, over the DevTools protocol (the page's websocket needs real time).
+
+`chromium --screenshot` returns before a viewer's scene has arrived; here the page loads, `ready()` is polled
+until the server says it has shown something, and only then is the screenshot taken.
+"""
+from __future__ import annotations
+
+import base64
+import json
+import shutil
+import socket
+import subprocess
+import tempfile
+import time
+import urllib.request
+from collections.abc import Callable
+from pathlib import Path
+
+FLAGS = ("--headless=new", "--no-sandbox", "--use-gl=angle", "--use-angle=swiftshader", "--enable-unsafe-swiftshader",
+         "--hide-scrollbars", "--no-first-run", "--mute-audio")
+
+
+def find_chromium() -> str | None:
+    return next((shutil.which(n) for n in ("chromium", "chromium-browser", "google-chrome") if shutil.which(n)), None)
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def screenshot(url: str, out: Path, ready: Callable[[], bool], size: tuple[int, int] = (1000, 700), timeout_s: float = 120.0,
+               settle_s: float = 1.0) -> Path:
+    """Open `url` in headless Chromium, wait until `ready()` (then `settle_s` more), write a PNG to `out`."""
+    from websockets.sync.client import connect
+
+    browser = find_chromium()
+    if browser is None:
+        raise FileNotFoundError("no Chromium")
+    port = _free_port()
+    with tempfile.TemporaryDirectory() as profile:
+        proc = subprocess.Popen([browser, *FLAGS, f"--window-size={size[0]},{size[1]}", f"--remote-debugging-port={port}",
+                                 f"--user-data-dir={profile}", "about:blank"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        try:
+            deadline = time.monotonic() + timeout_s
+            targets = None
+            while targets is None:
+                try:
+                    with urllib.request.urlopen(f"http://127.0.0.1:{port}/json/list", timeout=5) as r:
+                        targets = [t for t in json.load(r) if t.get("type") == "page"] or None
+                except OSError:
+                    pass
+                if time.monotonic() > deadline:
+                    raise TimeoutError("Chromium's DevTools endpoint did not come up")
+                time.sleep(0.3)
+            with connect(targets[0]["webSocketDebuggerUrl"], max_size=None, open_timeout=30) as ws:
+                ids = iter(range(1, 1_000_000))
+
+                def call(method: str, **params: object) -> dict:
+                    i = next(ids)
+                    ws.send(json.dumps({"id": i, "method": method, "params": params}))
+                    while True:
+                        msg = json.loads(ws.recv(timeout=max(1.0, deadline - time.monotonic())))
+                        if msg.get("id") == i:
+                            return msg.get("result", {})
+
+                call("Page.navigate", url=url)
+                while not ready():
+                    if time.monotonic() > deadline:
+                        raise TimeoutError(f"the page at {url} did not become ready in {timeout_s:.0f} s")
+                    time.sleep(0.5)
+                time.sleep(settle_s)
+                data = call("Page.captureScreenshot", format="png")["data"]
+            out.write_bytes(base64.b64decode(data))
+            return out
+        finally:
+            proc.terminate()
+            try:
+                proc.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                proc.kill()

@@ -1,0 +1,139 @@
+"""`recon export`: each format re-imports (recon's own importers) to the same cameras, in both frames.
+
+The scene is the sample through real SfM (a SIMPLE_RADIAL camera, so the undistortion path runs).
+COLMAP's conventions are also checked by hand against images.txt (quaternion → rotation, centre).
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+from typer.testing import CliRunner
+
+from recon.cli import app
+from recon.exports import scene_in_frame
+from recon.images import read_image, undistort
+from recon.scene import Frame, detect_source, import_colmap, import_transforms, load_scene
+from tests.assets_scene import tiny_scene
+
+runner = CliRunner()
+
+
+@pytest.fixture(scope="module")
+def scene_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return tiny_scene(tmp_path_factory)[1]
+
+
+def export(scene: Path, fmt: str, out: Path, frame: str = "normalized") -> str:
+    result = runner.invoke(app, ["export", str(scene), "--format", fmt, "--frame", frame, "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    return result.output
+
+
+def rel(a: np.ndarray, b: np.ndarray) -> float:
+    return float(np.abs(np.asarray(a) - np.asarray(b)).max() / max(np.abs(b).max(), 1e-12))
+
+
+def assert_same_cameras(got: list[Frame], want: list[Frame]) -> None:
+    assert [Path(f.file_path).name for f in got] == [Path(f.file_path).name for f in want]
+    for g, w in zip(got, want, strict=True):
+        assert rel([g.fl_x, g.fl_y, g.cx, g.cy, g.w, g.h], [w.fl_x, w.fl_y, w.cx, w.cy, w.w, w.h]) <= 1e-6
+        assert rel(g.c2w[:3, :3], w.c2w[:3, :3]) <= 1e-6
+        assert rel(g.c2w[:3, 3], w.c2w[:3, 3]) <= 1e-6
+        assert g.distortion == (0.0, 0.0, 0.0, 0.0)  # the exported images are undistorted
+
+
+@pytest.mark.parametrize("frame", ["normalized", "source"])
+def test_nerfstudio_export_reimports_to_the_same_cameras(scene_dir: Path, tmp_path: Path, frame: str) -> None:
+    out = tmp_path / "ns"
+    export(scene_dir, "nerfstudio", out, frame)
+    assert detect_source(out) == "transforms"
+    want = scene_in_frame(scene_dir, frame).frames
+    got = import_transforms(out).frames
+    assert_same_cameras(got, want)
+    truth = load_scene(scene_dir / ("02_scene" if frame == "normalized" else "01_poses"))
+    assert rel(np.stack([f.c2w for f in want]), np.stack([f.c2w for f in truth.frames])) <= 1e-12
+    assert [f.split for f in got] == [f.split for f in load_scene(scene_dir / "02_scene").frames]
+    assert (out / "points.ply").is_file()
+
+
+def test_exported_images_are_the_undistorted_photos(scene_dir: Path, tmp_path: Path) -> None:
+    out = tmp_path / "ns"
+    export(scene_dir, "nerfstudio", out)
+    scene = load_scene(scene_dir / "02_scene")
+    frame = scene.frames[0]
+    assert abs(frame.k1) > 1e-4, "SfM gave no distortion: this test would not exercise undistortion"
+    original = read_image(Path(frame.file_path))
+    expected = undistort(original, frame.fl_x, frame.fl_y, frame.cx, frame.cy, frame.distortion)
+    exported = read_image(out / "images" / frame.name)
+    assert np.abs(exported - expected).mean() < 1.5 / 255  # only the JPEG re-encoding differs
+    moved = np.abs(expected - original).max(axis=-1) > 0.1  # where undistortion visibly moved the picture
+    assert moved.sum() > 100
+    assert np.abs(exported - original)[moved].mean() > 3 * np.abs(exported - expected)[moved].mean()
+
+
+@pytest.mark.parametrize("frame", ["normalized", "source"])
+def test_colmap_export_reimports_to_the_same_cameras_and_points(scene_dir: Path, tmp_path: Path, frame: str) -> None:
+    out = tmp_path / "colmap"
+    export(scene_dir, "colmap", out, frame)
+    assert detect_source(out) == "colmap"
+    want = scene_in_frame(scene_dir, frame)
+    got = import_colmap(out)
+    assert_same_cameras(got.frames, want.frames)
+    assert len(got.points) == len(want.points) > 100
+    assert rel(got.points, want.points) <= 1e-6
+    assert np.array_equal(got.point_colors, want.point_colors)
+
+
+def test_colmap_images_txt_follows_colmap_conventions(scene_dir: Path, tmp_path: Path) -> None:
+    """World-to-camera qw qx qy qz tx ty tz, OpenCV axes: centre = -Rᵀt, the camera's +Z is the viewing direction."""
+    out = tmp_path / "colmap"
+    export(scene_dir, "colmap", out)
+    lines = [ln for ln in (out / "sparse" / "0" / "images.txt").read_text().splitlines() if ln and not ln.startswith("#")]
+    records = {ln.split()[9]: [float(x) for x in ln.split()[1:8]] for ln in lines if len(ln.split()) >= 10}
+    scene = load_scene(scene_dir / "02_scene")
+    assert len(records) == len(scene.frames)
+    for f in scene.frames:
+        qw, qx, qy, qz, *t = records[f.name]
+        R = Rotation.from_quat([qx, qy, qz, qw]).as_matrix()
+        assert np.allclose(-R.T @ np.asarray(t), f.center, atol=1e-9)
+        assert np.allclose(R[2], -f.c2w[:3, 2], atol=1e-9)  # OpenCV +Z forward = OpenGL -Z
+        assert np.allclose(R[1], -f.c2w[:3, 1], atol=1e-9)  # OpenCV +Y down = OpenGL -Y
+    cams = [ln for ln in (out / "sparse" / "0" / "cameras.txt").read_text().splitlines() if ln and not ln.startswith("#")]
+    assert cams[0].split()[1] == "PINHOLE"
+
+
+def test_points_export_is_the_sparse_cloud(scene_dir: Path, tmp_path: Path) -> None:
+    import trimesh
+
+    out = tmp_path / "pts"
+    export(scene_dir, "points", out)
+    cloud = trimesh.load(out / "points.ply")
+    scene = load_scene(scene_dir / "02_scene")
+    assert rel(cloud.vertices, scene.points) <= 1e-6
+    assert np.array_equal(np.asarray(cloud.colors)[:, :3], scene.point_colors)
+
+
+def test_export_refuses_a_folder_it_did_not_make_and_replaces_its_own(scene_dir: Path, tmp_path: Path) -> None:
+    foreign = tmp_path / "mine"
+    foreign.mkdir()
+    (foreign / "notes.txt").write_text("keep me")
+    result = runner.invoke(app, ["export", str(scene_dir), "--format", "points", "--out", str(foreign)])
+    assert result.exit_code == 2
+    assert "did not export" in result.output and (foreign / "notes.txt").read_text() == "keep me"
+    assert sorted(p.name for p in foreign.iterdir()) == ["notes.txt"]
+
+    ours = tmp_path / "ours"
+    export(scene_dir, "points", ours)
+    export(scene_dir, "colmap", ours)  # an earlier recon export is replaced whole
+    assert not (ours / "points.ply").exists() and detect_source(ours) == "colmap"
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".tmp-export")]
+
+
+def test_export_of_a_folder_that_is_no_scene_is_a_clear_error(tmp_path: Path) -> None:
+    result = runner.invoke(app, ["export", str(tmp_path), "--format", "colmap", "--out", str(tmp_path / "x")])
+    assert result.exit_code == 2 and "not a recon scene folder" in result.output
+    result = runner.invoke(app, ["export", str(tmp_path), "--format", "ply", "--out", str(tmp_path / "x")])
+    assert result.exit_code == 2 and "--format must be one of" in result.output
