@@ -96,7 +96,7 @@ def test_eikonal_term_is_zero_for_exact_sdfs_and_not_for_scaled_ones() -> None:
 
 
 def test_initial_field_is_the_exact_sphere_sdf() -> None:
-    model = SurfaceModel(SurfaceConfig(aabb=BOX, sdf_res=33, sdf_levels=2, feature_res=8, feature_dim=4))
+    model = SurfaceModel(SurfaceConfig(aabb=BOX, sdf_res=33, sdf_levels=2, feature_res=8, feature_dim=4, init_radius=0.5))
     x = torch.rand(2000, 3) * 2 - 1
     assert torch.allclose(model.sdf(x), x.norm(dim=-1) - 0.5, atol=1e-6)
     grad, _ = sdf_fd_terms(model.sdf, x[x.norm(dim=-1) > 0.4], model.fd_step)
@@ -199,7 +199,7 @@ def test_tiny_training_run_moves_the_surface_to_the_rendered_sphere() -> None:
     torch.manual_seed(0)
     radius = 0.7
     images, c2w, intr = _sphere_views(radius)
-    cfg = SurfaceConfig(aabb=BOX, sdf_res=33, sdf_levels=2, level_every=20, feature_res=16, feature_dim=8,
+    cfg = SurfaceConfig(aabb=BOX, sdf_res=33, sdf_levels=2, level_every=20, feature_res=16, feature_dim=8, init_radius=0.5,
                         occupancy_res=16, eikonal_samples=1024, eikonal_points=512)
     model = SurfaceModel(cfg)
     before = _zero_radius(model)
