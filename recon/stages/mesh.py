@@ -434,7 +434,7 @@ def run(ctx: StageContext) -> dict:
         timings["depth_s"] = round(time.perf_counter() - t, 3)
         view_note = f"{len(views)} of {len(train_frames)} training views"
         if len(views) < len(train_frames):
-            view_note += f" (spread evenly; at most {limit} on the CPU for the {kind} model, each costs a depth render)"
+            view_note += f" (spread evenly; at most {limit} on the CPU for the {meta.get('kind', kind)} model, each costs a depth render)"
         if depth_side:
             view_note += f", depth rendered at ≤ {depth_side} px"
 
