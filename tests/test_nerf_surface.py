@@ -223,3 +223,17 @@ def test_normal_agreement_is_one_for_the_same_surface_and_lower_for_a_different_
     cube = chamfer_fscore(trimesh.creation.box(extents=(0.9, 0.9, 0.9)), ball, n_samples=20_000)["normal_consistency"]
     assert same > 0.99 and cube < 0.95
     assert "normal_consistency" not in chamfer_fscore(np.asarray(ball.vertices), ball, n_samples=2000)  # points: no normals
+
+
+def test_model_choice_names_the_surface_model_and_refuses_it_for_unbounded_scenes() -> None:
+    from recon.config import TrainConfig
+    from recon.errors import ReconError
+    from recon.scene import Scene
+    from recon.stages.train import model_spec
+
+    box = np.array(BOX)
+    kind, kwargs, _, reasons = model_spec(TrainConfig(model="surface"), Scene(frames=[], aabb=box, capture="object"), [])
+    assert kind == "surface" and tuple(map(tuple, kwargs["config"]["aabb"])) == BOX and "zero level set" in reasons[0]
+    with pytest.raises(ReconError, match="object capture"):
+        model_spec(TrainConfig(model="surface"), Scene(frames=[], aabb=box, capture="unbounded"), [])
+    assert build_model(kind, kwargs).config.aabb == BOX
