@@ -41,7 +41,8 @@ times an idle machine's):
   24.38 dB; zero set at 256³: watertight, Chamfer-L1 0.47 % of the diagonal, F@1 % 0.85, F@0.5 % 0.74,
   normal agreement 0.924 (0.945 with 20 Taubin iterations). Under that load 277 steps is what 10 minutes
   buys; the shape is right (handle and hole open, closed underside) but the surface still carries
-  grid-scale bumps that more steps remove.
+  grid-scale bumps. With a 96³ SDF and 64³ color grid at load 2-6: 1,405 steps, 30.50 dB, Chamfer 0.42 %,
+  F@1 % 0.89, F@0.5 % 0.82, normal agreement 0.992, watertight (the preset's values).
 """
 from __future__ import annotations
 
