@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import tomllib
 import typing
 from dataclasses import dataclass, field
@@ -150,6 +151,16 @@ class MeshConfig:
     """Export in our normalized frame (+Z up, box ≈ [-1, 1]³) or back in the source (COLMAP/import) frame."""
     real_size: float = 0.0
     """> 0: scale the mesh so its largest bounding-box side is this many units (e.g. meters)."""
+    region: str = "auto"
+    """What to mesh. auto: the object the cameras look at (normalize's object region, when it found one);
+    all: the whole scene box; or an explicit box "xmin,ymin,zmin,xmax,ymax,zmax" in the source frame."""
+    keep_ground: bool = False
+    """Keep the ground plane the object stands on (normalize finds it by RANSAC); by default it is cut away."""
+    texture_faces: int = 50000
+    """Also write mesh_textured.glb/.obj: the mesh decimated to this many faces, UV-unwrapped, its color
+    baked into a texture (0: no textured mesh)."""
+    texture_size: int = 2048
+    """Side of the square texture image of the textured mesh, in texels."""
 
 
 @dataclass
@@ -272,6 +283,8 @@ BOUNDS: dict[str, tuple[Any, str]] = {
     "mesh.smooth_iters": _at_least(0),
     "mesh.target_faces": _at_least(0),
     "mesh.real_size": _at_least(0),
+    "mesh.texture_faces": ((lambda v: v == 0 or v >= 4), "0 (no textured mesh) or at least 4"),
+    "mesh.texture_size": _at_least(16),
 }
 """Allowed range of each numeric option: checked once the preset and every --set are applied."""
 
@@ -286,6 +299,26 @@ def validate(config: RunConfig) -> None:
             raise ConfigError(
                 f"Option '{dotted}' must be {allowed}; got {value}. Fix it in the preset or the --set override."
             )
+    parse_region(config.mesh.region)
+
+
+def parse_region(text: str) -> str | tuple[tuple[float, float, float], tuple[float, float, float]]:
+    """mesh.region: "auto", "all", or "xmin,ymin,zmin,xmax,ymax,zmax" → ((xmin, ymin, zmin), (xmax, ymax, zmax))."""
+    value = str(text).strip().lower()
+    if value in ("auto", "all"):
+        return value
+    try:
+        numbers = [float(v) for v in value.strip("[]()").split(",")]
+    except ValueError:
+        numbers = []
+    if len(numbers) != 6 or not all(math.isfinite(v) for v in numbers) or not all(
+        numbers[i] < numbers[i + 3] for i in range(3)
+    ):
+        raise ConfigError(
+            f"Option 'mesh.region' must be auto, all, or a box xmin,ymin,zmin,xmax,ymax,zmax (source frame, each min "
+            f"below its max); got '{text}'."
+        )
+    return (numbers[0], numbers[1], numbers[2]), (numbers[3], numbers[4], numbers[5])
 
 
 def preset_description(name: str) -> str:

@@ -144,16 +144,17 @@ def write_undistorted_images(scene: Scene, folder: Path, names: list[str], repor
                     rotated = img.getexif().get(0x0112, 1) != 1
             except OSError as exc:
                 raise ReconError(f"Cannot read the photo {src} ({exc}); it was readable when the scene was made. Restore it and export again.") from None
-            if not any(frame.distortion) and not rotated:
+            if not any(frame.distortion) and frame.camera_model != "OPENCV_FISHEYE" and not rotated:
                 shutil.copyfile(src, dst)
             else:
                 image = read_image(src)
                 if image.shape[:2] != (frame.h, frame.w):
                     raise ReconError(f"The photo {src} is {image.shape[1]}×{image.shape[0]} but its camera says {frame.w}×{frame.h}: "
                                      f"it changed since the scene was made. Re-run `recon run` first.")
-                image = undistort(image, frame.fl_x, frame.fl_y, frame.cx, frame.cy, frame.distortion)
+                image = undistort(image, frame.fl_x, frame.fl_y, frame.cx, frame.cy, frame.distortion, frame.camera_model)
                 save_image(dst, image if dst.suffix.lower() == ".png" else image[..., :3])
-            out_frames.append(dataclasses.replace(frame, file_path=str(dst), k1=0.0, k2=0.0, p1=0.0, p2=0.0))
+            out_frames.append(dataclasses.replace(frame, file_path=str(dst), k1=0.0, k2=0.0, p1=0.0, p2=0.0, k3=0.0, k4=0.0,
+                                                  camera_model="OPENCV"))
             if bar:
                 bar.advance()
     return out_frames

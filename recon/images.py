@@ -76,6 +76,53 @@ def oriented_size(path: Path) -> tuple[int, int]:
     return (h, w) if orientation in (5, 6, 7, 8) else (w, h)
 
 
+CAMERA_EXIF_TAGS = {0x010F: "Make", 0x0110: "Model"}
+"""IFD0 tags that say which device took a photo."""
+CAMERA_EXIF_SUBTAGS = {0x920A: "FocalLength", 0xA405: "FocalLengthIn35mmFilm"}
+"""Exif sub-IFD tags COLMAP turns into a focal-length prior; both are independent of the pixel count, so
+they stay true for a downscaled copy (sensor-resolution tags such as FocalPlaneXResolution would not)."""
+_EXIF_IFD = 0x8769
+_ORIENTATION = 0x0112
+
+
+def camera_exif(path: Path) -> Image.Exif | None:
+    """The photo's device and focal-length EXIF (make, model, focal length, 35 mm equivalent), Orientation 1.
+
+    The copy COLMAP reads is re-saved with its pixels already turned upright, so its EXIF must say
+    Orientation 1; without these tags COLMAP guesses the focal length and cannot tell two phones apart.
+    None when the photo carries none of them.
+    """
+    try:
+        with Image.open(path) as img:
+            source = img.getexif()
+    except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as exc:
+        raise unreadable(path, exc) from None
+    out = Image.Exif()
+    for tag in CAMERA_EXIF_TAGS:
+        if source.get(tag):
+            out[tag] = source[tag]
+    sub_in = source.get_ifd(_EXIF_IFD)
+    sub = {tag: sub_in[tag] for tag in CAMERA_EXIF_SUBTAGS if sub_in.get(tag)}
+    if not out and not sub:
+        return None
+    if sub:
+        out.get_ifd(_EXIF_IFD).update(sub)
+    out[_ORIENTATION] = 1
+    return out
+
+
+def device_of(path: Path) -> str | None:
+    """'Make Model' from a photo's EXIF (None without either): which device took it."""
+    try:
+        with Image.open(path) as img:
+            exif = img.getexif()
+    except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as exc:
+        raise unreadable(path, exc) from None
+    parts = [str(exif.get(tag, "")).strip("\x00 ") for tag in CAMERA_EXIF_TAGS]
+    text = " ".join(p for p in parts if p)
+    return text or None
+
+
 def to_array(img: Image.Image) -> np.ndarray:
     """PIL image of any mode → float32 (H, W, 3|4) in [0, 1]."""
     if img.mode in ("I;16", "I;16B", "I;16L", "I"):
@@ -120,6 +167,15 @@ def read_image(path: Path, max_side: int | None = None) -> np.ndarray:
     return to_array(img)
 
 
+def read_mask(path: Path, size: tuple[int, int]) -> np.ndarray:
+    """A mask (white = object) as float32 (H, W) in [0, 1] at `size` (width, height), EXIF-oriented."""
+    mask = read_image(path, max_side=max(size))
+    gray = mask[..., :3].mean(axis=-1) * (mask[..., 3] if mask.shape[-1] == 4 else 1.0)
+    if gray.shape[::-1] != tuple(size):
+        gray = resize(gray, size)
+    return np.clip(gray, 0.0, 1.0).astype(np.float32)
+
+
 def resize(arr: np.ndarray, size: tuple[int, int]) -> np.ndarray:
     """Area-resize a float image to (width, height)."""
     import cv2
@@ -136,26 +192,42 @@ def composite(image: np.ndarray, background: np.ndarray | tuple[float, float, fl
     return image[..., :3] * alpha + np.asarray(background, dtype=np.float32) * (1.0 - alpha)
 
 
-def save_image(path: Path, image: np.ndarray, quality: int = 95) -> None:
-    """Save a float [0, 1] image (RGB/RGBA/gray) as 8-bit PNG or JPEG, by suffix."""
+def save_image(path: Path, image: np.ndarray, quality: int = 95, exif: Image.Exif | None = None) -> None:
+    """Save a float [0, 1] image (RGB/RGBA/gray) as 8-bit PNG or JPEG, by suffix (with `exif` if given)."""
     arr = np.clip(np.asarray(image) * 255.0 + 0.5, 0, 255).astype(np.uint8)
     if arr.ndim == 3 and arr.shape[-1] == 1:
         arr = arr[..., 0]
     img = Image.fromarray(arr)
+    extra = {"exif": exif} if exif is not None else {}
     if path.suffix.lower() in (".jpg", ".jpeg"):
-        img.convert("RGB").save(path, quality=quality)
+        img.convert("RGB").save(path, quality=quality, **extra)
     else:
-        img.save(path)
+        img.save(path, **extra)
 
 
-def undistort(image: np.ndarray, fl_x: float, fl_y: float, cx: float, cy: float, dist: tuple[float, ...]) -> np.ndarray:
-    """Remove OpenCV radial-tangential distortion (k1, k2, p1, p2) keeping the same pinhole intrinsics."""
-    if not any(abs(d) > 0 for d in dist):
+def undistort(
+    image: np.ndarray, fl_x: float, fl_y: float, cx: float, cy: float, dist: tuple[float, ...], model: str = "OPENCV"
+) -> np.ndarray:
+    """The pinhole image with the same intrinsics: lens distortion removed.
+
+    model OPENCV: radial-tangential `dist` = (k1, k2, p1, p2[, k3]); OPENCV_FISHEYE: equidistant `dist` =
+    (k1, k2, k3, k4) (cv2.fisheye). Keeping fl, cx, cy keeps the image centre's resolution; a fisheye's
+    periphery beyond the pinhole's field of view is cut.
+    """
+    if not any(abs(d) > 0 for d in dist) and model != "OPENCV_FISHEYE":
         return image
     import cv2
 
     K = np.array([[fl_x, 0, cx], [0, fl_y, cy], [0, 0, 1]], dtype=np.float64)
     h, w = image.shape[:2]
-    map_x, map_y = cv2.initUndistortRectifyMap(K, np.asarray(dist, dtype=np.float64), None, K, (w, h), cv2.CV_32FC1)
+    coeffs = np.asarray(dist, dtype=np.float64)
+    if model == "OPENCV_FISHEYE":
+        if coeffs.shape != (4,):
+            raise ValueError(f"a fisheye lens takes 4 coefficients (k1..k4), got {len(coeffs)}")
+        map_x, map_y = cv2.fisheye.initUndistortRectifyMap(K, coeffs, np.eye(3), K, (w, h), cv2.CV_32FC1)
+    elif model == "OPENCV":
+        map_x, map_y = cv2.initUndistortRectifyMap(K, coeffs, None, K, (w, h), cv2.CV_32FC1)
+    else:
+        raise ValueError(f"unknown lens model {model!r}; expected OPENCV or OPENCV_FISHEYE")
     # replicate edge pixels where the corrected image reaches outside the photo (never black borders to learn)
     return cv2.remap(image, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)

@@ -11,9 +11,13 @@ import numpy as np
 
 from recon.config import NormalizeConfig
 from recon.errors import InputError
+from recon.region import object_region
 from recon.scene import Frame, Scene
 
 OBJECT_MAX_MEAN_VIEW = 0.9
+BACKGROUND_FRACTION = 0.3
+"""An object capture whose sparse points lie outside the object region more than this is an object on a
+background (table, room): the field contracts and models the space around the box too."""
 """Cameras count as 'around the object' when the mean of their unit view directions is shorter than this."""
 
 
@@ -156,21 +160,30 @@ def _box_from_cameras(c2ws: np.ndarray, frames: list[Frame], focus: np.ndarray) 
     return np.stack([focus - half, focus + half])
 
 
-def _depth_range(c2w: np.ndarray, points: np.ndarray, percentile: float) -> tuple[float, float] | None:
+def _distance_range(c2w: np.ndarray, points: np.ndarray, percentile: float) -> tuple[float, float] | None:
+    """near/far (`recon.scene.RAY_DISTANCE`) that the camera's rays travel to the points in front of it (percentiles)."""
     if len(points) < 10:
         return None
-    depth = (points - c2w[:3, 3]) @ (-c2w[:3, 2])
-    depth = depth[depth > 0]
-    if len(depth) < 10:
+    offset = points - c2w[:3, 3]
+    in_front = offset @ (-c2w[:3, 2]) > 0
+    dist = np.linalg.norm(offset[in_front], axis=1)
+    if len(dist) < 10:
         return None
-    return float(np.percentile(depth, percentile)), float(np.percentile(depth, 100 - percentile))
+    return float(np.percentile(dist, percentile)), float(np.percentile(dist, 100 - percentile))
 
 
-def _box_depth_range(c2w: np.ndarray, aabb: np.ndarray) -> tuple[float, float]:
+def _box_distance_range(c2w: np.ndarray, aabb: np.ndarray) -> tuple[float, float]:
+    """near/far (`recon.scene.RAY_DISTANCE`) bounding every ray's segment inside the box: the distance from the camera
+    centre to the box (0 inside it) and to its farthest corner (a box's farthest point is a corner)."""
+    origin = c2w[:3, 3]
     corners = np.array([[aabb[i, 0], aabb[j, 1], aabb[k, 2]] for i in (0, 1) for j in (0, 1) for k in (0, 1)])
-    depth = (corners - c2w[:3, 3]) @ (-c2w[:3, 2])
-    inside = np.all((c2w[:3, 3] >= aabb[0]) & (c2w[:3, 3] <= aabb[1]))
-    return (0.0 if inside else float(depth.min())), float(depth.max())
+    near = float(np.linalg.norm(origin - np.clip(origin, aabb[0], aabb[1])))
+    return near, float(np.linalg.norm(corners - origin, axis=1).max())
+
+
+FEW_PHOTOS = 20
+"""Below this many photos every photo trains the field: a casual capture cannot spare views, and the mesh needs
+them all. Its PSNR is then measured on training photos (said in the reasons), never called held-out."""
 
 
 def assign_split(frames: list[Frame], test_every: int, val_every: int) -> str:
@@ -180,10 +193,11 @@ def assign_split(frames: list[Frame], test_every: int, val_every: int) -> str:
             f.split = f.split or "train"
         return "split given by the source"
     order = sorted(range(len(frames)), key=lambda i: frames[i].name)
-    if len(frames) < 10:
+    if len(frames) < FEW_PHOTOS:
         for f in frames:
             f.split = "train"
-        return f"only {len(frames)} photos: all are used for training (evaluation uses training views)"
+        return (f"only {len(frames)} photos (< {FEW_PHOTOS}): all train the field that makes the mesh; PSNR is measured "
+                f"on training photos, not held-out ones")
     for rank, i in enumerate(order):
         if test_every and rank % test_every == 0:
             frames[i].split = "test"
@@ -236,13 +250,36 @@ def normalize(scene: Scene, cfg: NormalizeConfig) -> Scene:
     points = np.asarray(scene.points, dtype=np.float64).reshape(-1, 3)
     finite = np.all(np.isfinite(points), axis=1)
     centers = c2ws[:, :3, 3]
+    region = ground = None
     if capture == "object":
         center = focus
-        # points of the object: those nearer to the focus than the cameras are (drops walls/background)
-        radius = np.median(np.linalg.norm(centers - focus, axis=1))
-        near_obj = finite & (np.linalg.norm(points - focus, axis=1) < radius)
-        box = _box_from_points((points[near_obj] - center) @ R.T, cfg.point_percentile)
-        notes["box"] = "sparse points around the focus (percentiles)" if box is not None else ""
+        found = object_region(
+            points, c2ws, np.array([[f.fl_x, f.fl_y, f.cx, f.cy] for f in scene.frames]),
+            np.array([[f.w, f.h] for f in scene.frames]), focus, up,
+        )
+        if found is not None:
+            # the object the cameras look at (and, below it, down to the ground it stands on)
+            box = _box_from_points((points[found.points] - center) @ R.T, cfg.point_percentile)
+            notes["region"] = found.reason
+            if box is not None and found.ground is not None:
+                n = R @ found.ground.normal
+                ground = np.array([*n, found.ground.offset - found.ground.normal @ center])  # centred, rotated frame
+                foot = (ground[3] - n[:2] @ box.mean(axis=0)[:2]) / n[2]  # ground height under the box centre
+                box[0, 2] = min(box[0, 2], foot)
+            if box is not None and found.background_fraction > BACKGROUND_FRACTION and not scene.has_alpha:
+                capture = "unbounded"
+                notes["capture"] += (
+                    f"; {found.background_fraction:.0%} of the sparse points are background (table, room): the box holds "
+                    f"the object and the space around it is contracted and modelled too"
+                )
+            region = box
+        else:
+            # points of the object: those nearer to the focus than the cameras are (drops walls/background)
+            radius = np.median(np.linalg.norm(centers - focus, axis=1))
+            near_obj = finite & (np.linalg.norm(points - focus, axis=1) < radius)
+            box = _box_from_points((points[near_obj] - center) @ R.T, cfg.point_percentile)
+        notes["box"] = ("the object region's sparse points (percentiles)" if region is not None else
+                        "sparse points around the focus (percentiles)") if box is not None else ""
     else:
         center = np.median(points[finite], axis=0) if finite.sum() >= 20 else focus
         box = _box_from_points((points[finite] - center) @ R.T, cfg.point_percentile)
@@ -250,7 +287,7 @@ def normalize(scene: Scene, cfg: NormalizeConfig) -> Scene:
     if box is None:
         box = _box_from_cameras(c2ws, scene.frames, focus) - focus
         notes["box"] = "no sparse points: box from the cameras' field of view at their distance"
-    if capture != "object":
+    if capture != "object" and region is None:
         # keep the cameras inside the modelled region of a forward/unbounded capture
         cam_box = np.stack([((centers - center) @ R.T).min(0), ((centers - center) @ R.T).max(0)])
         box = np.stack([np.minimum(box[0], cam_box[0]), np.maximum(box[1], cam_box[1])])
@@ -263,14 +300,18 @@ def normalize(scene: Scene, cfg: NormalizeConfig) -> Scene:
     T = similarity(scale, R, center)
     aabb = box * scale
 
+    if region is not None:
+        region = region * scale
+    if ground is not None:
+        ground = np.array([*ground[:3], ground[3] * scale])
     new_frames = [replace(f, c2w=transform_c2w(T, f.c2w)) for f in scene.frames]
     new_points = (points - center) @ R.T * scale
     for f, old in zip(new_frames, scene.frames, strict=True):
-        near, far = _box_depth_range(f.c2w, aabb)
+        near, far = _box_distance_range(f.c2w, aabb)
         if capture != "object":
             visible = scene.point_visibility.get(old.name)
             pts = new_points[visible] if visible is not None and len(visible) else new_points[finite]
-            rng = _depth_range(f.c2w, pts, cfg.depth_percentile)
+            rng = _distance_range(f.c2w, pts, cfg.depth_percentile)
             if rng is not None:
                 near, far = rng[0] * 0.8, max(rng[1] * 1.2, far)
         f.near = float(max(near, 1e-3 * float(np.linalg.norm(f.c2w[:3, 3]) + 1e-3), 1e-4))
@@ -283,6 +324,8 @@ def normalize(scene: Scene, cfg: NormalizeConfig) -> Scene:
         point_colors=scene.point_colors,
         point_visibility=scene.point_visibility,
         aabb=aabb,
+        region=region,
+        ground=ground,
         capture=capture,
         world_from_source=T @ scene.world_from_source,
         has_alpha=scene.has_alpha,

@@ -31,6 +31,19 @@ SCENE_FORMAT = "recon-scene"
 SCENE_VERSION = 1
 Split = Literal["train", "val", "test"]
 SPLITS: tuple[str, ...] = ("train", "val", "test")
+LENS_MODELS = {
+    "SIMPLE_PINHOLE": "OPENCV", "PINHOLE": "OPENCV", "SIMPLE_RADIAL": "OPENCV", "RADIAL": "OPENCV",
+    "OPENCV": "OPENCV", "OPENCV_FISHEYE": "OPENCV_FISHEYE",
+}
+"""transforms.json / COLMAP camera_model -> the lens recon undistorts it as. Pinhole and radial models are
+radial-tangential with some terms zero; a fisheye is OpenCV's equidistant model (k1..k4)."""
+INTRINSIC_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h", "k1", "k2", "p1", "p2", "k3", "k4", "camera_model")
+
+RAY_DISTANCE = "distance along the unit-length ray"
+"""What a frame's `near` and `far` measure, everywhere in recon: the distance t along a ray with a unit-length
+direction (the rays of `recon.nerf.rays`), so `o + t·d` at t = far is as far from the camera for a corner
+pixel as for the centre one. Not the depth along the optical axis: a corner ray reaching depth z has
+travelled z / cos(angle off-axis). `recon.normalization` computes them as Euclidean distances from the camera centre."""
 
 
 @dataclass
@@ -50,9 +63,17 @@ class Frame:
     k2: float = 0.0
     p1: float = 0.0
     p2: float = 0.0
+    k3: float = 0.0
+    k4: float = 0.0
+    camera_model: str = "OPENCV"
+    """The lens: OPENCV (radial-tangential k1 k2 p1 p2 k3; holds PINHOLE and the radial models) or
+    OPENCV_FISHEYE (equidistant k1 k2 k3 k4). See `LENS_MODELS`."""
     split: str | None = None
+    mask_path: str | None = None
+    """Mask image of the photo (white = object; nerfstudio's `mask_path`): pixels outside are background."""
     near: float | None = None
     far: float | None = None
+    """near/far: the ray segment to model, as a distance along unit-length rays (`RAY_DISTANCE`)."""
     time_s: float | None = None
     """For a video frame: its time stamp in the clip, seconds (the clip is in the file name)."""
 
@@ -65,8 +86,11 @@ class Frame:
         return Path(self.file_path).stem
 
     @property
-    def distortion(self) -> tuple[float, float, float, float]:
-        return (self.k1, self.k2, self.p1, self.p2)
+    def distortion(self) -> tuple[float, ...]:
+        """OpenCV's coefficient vector for this lens: (k1, k2, p1, p2, k3) or, for a fisheye, (k1, k2, k3, k4)."""
+        if self.camera_model == "OPENCV_FISHEYE":
+            return (self.k1, self.k2, self.k3, self.k4)
+        return (self.k1, self.k2, self.p1, self.p2, self.k3)
 
     @property
     def center(self) -> np.ndarray:
@@ -89,6 +113,10 @@ class Scene:
     """'object' (cameras around, looking in) or 'unbounded' (forward-facing / wide scene)."""
     world_from_source: np.ndarray = field(default_factory=lambda: np.eye(4))
     """(4, 4) similarity mapping the source (SfM or import) frame into this scene's frame."""
+    region: np.ndarray | None = None
+    """(2, 3) box of the object of interest (what the cameras look at; `recon.region`), scene frame; None: all."""
+    ground: np.ndarray | None = None
+    """(4,) plane (nx, ny, nz, d), n·x = d with unit n pointing up, of the ground the object stands on; None: none."""
     has_alpha: bool = False
     """Photos carry an alpha channel (known background, e.g. NeRF-synthetic RGBA)."""
     source_kind: str = "photos"
@@ -113,11 +141,12 @@ class Scene:
         doc: dict[str, Any] = {
             "format": SCENE_FORMAT,
             "version": SCENE_VERSION,
-            "camera_model": "OPENCV",
             "capture": self.capture,
             "source_kind": self.source_kind,
             "has_alpha": self.has_alpha,
             "aabb": None if self.aabb is None else np.asarray(self.aabb).tolist(),
+            "region": None if self.region is None else np.asarray(self.region).tolist(),
+            "ground": None if self.ground is None else np.asarray(self.ground).tolist(),
             "world_from_source": np.asarray(self.world_from_source).tolist(),
             "source_from_world": self.source_from_world.tolist(),
             "notes": self.notes,
@@ -127,10 +156,10 @@ class Scene:
         doc.update(shared)
         for f in self.frames:
             entry: dict[str, Any] = {"file_path": f.file_path, "transform_matrix": np.asarray(f.c2w).tolist()}
-            for key in ("fl_x", "fl_y", "cx", "cy", "w", "h", "k1", "k2", "p1", "p2"):
+            for key in INTRINSIC_KEYS:
                 if key not in shared:
                     entry[key] = getattr(f, key)
-            for key in ("split", "near", "far", "time_s"):
+            for key in ("split", "mask_path", "near", "far", "time_s"):
                 if getattr(f, key) is not None:
                     entry[key] = getattr(f, key)
             doc["frames"].append(entry)
@@ -164,7 +193,7 @@ def look_at(eye: np.ndarray, target: np.ndarray, up: tuple[float, float, float] 
 
 
 def _shared_intrinsics(frames: list[Frame]) -> dict[str, Any]:
-    keys = ("fl_x", "fl_y", "cx", "cy", "w", "h", "k1", "k2", "p1", "p2")
+    keys = INTRINSIC_KEYS
     if not frames:
         return {}
     first = {k: getattr(frames[0], k) for k in keys}
@@ -190,6 +219,8 @@ def load_scene(folder: Path) -> Scene:
     scene = Scene(
         frames=frames,
         aabb=None if doc.get("aabb") is None else _matrix(doc["aabb"], (2, 3), path, "aabb"),
+        region=None if doc.get("region") is None else _matrix(doc["region"], (2, 3), path, "region"),
+        ground=None if doc.get("ground") is None else _matrix(doc["ground"], (4,), path, "ground"),
         capture=doc.get("capture") if doc.get("capture") in (None, "object", "unbounded") else _bad(path, "capture"),
         world_from_source=_matrix(doc.get("world_from_source", np.eye(4).tolist()), (4, 4), path, "world_from_source"),
         has_alpha=bool(doc.get("has_alpha", False)),
@@ -323,6 +354,15 @@ def parse_frames(
                 fl_y = 0.5 * h / math.tan(0.5 * _number(merged["camera_angle_y"], source, "camera_angle_y", True))
         else:
             raise InputError(f"{source}: no focal length: give 'fl_x' (pixels) or 'camera_angle_x' (radians).")
+        model = merged.get("camera_model", "OPENCV")
+        if model not in LENS_MODELS:
+            raise InputError(
+                f"{source}: {what} has camera_model '{model}', which recon cannot undistort. Supported: "
+                f"{', '.join(LENS_MODELS)}. Undistort the images to PINHOLE first (e.g. COLMAP's image_undistorter) "
+                f"and set camera_model to PINHOLE."
+            )
+        lens = LENS_MODELS[model]
+        coefficients = ("k1", "k2", "k3", "k4") if lens == "OPENCV_FISHEYE" else ("k1", "k2", "p1", "p2", "k3")
         frame = Frame(
             file_path=str(path),
             c2w=c2w,
@@ -332,8 +372,10 @@ def parse_frames(
             cy=_number(merged.get("cy", h / 2), source, "cy"),
             w=w,
             h=h,
-            **{k: _number(merged.get(k, 0.0), source, k) for k in ("k1", "k2", "p1", "p2")},
+            **{k: _number(merged.get(k, 0.0), source, k) for k in coefficients},
+            camera_model=lens,
             split=fd.get("split", split),
+            mask_path=_mask_path(base, fd, source, check_files),
             near=_number(fd["near"], source, "near", True) if "near" in fd else None,
             far=_number(fd["far"], source, "far", True) if "far" in fd else None,
             time_s=_number(fd["time_s"], source, "time_s") if "time_s" in fd else None,
@@ -342,6 +384,39 @@ def parse_frames(
             raise InputError(f"{source}: {what} has split '{frame.split}'; expected one of {', '.join(SPLITS)}.")
         frames.append(frame)
     return frames
+
+
+def _mask_path(base: Path, fd: dict, source: Path | str, check_files: bool) -> str | None:
+    if fd.get("mask_path") is None:
+        return None
+    if not check_files:
+        return str(fd["mask_path"])
+    return str(resolve_image(base, fd["mask_path"], source))
+
+
+MASK_FOLDER = "masks"
+
+
+def find_masks(photos: Sequence[Path]) -> tuple[Path | None, dict[str, Path]]:
+    """The masks folder beside the photos (`masks/` inside their folder or next to it) and each photo's mask
+    (same stem, any image suffix; white = object). Raises InputError naming the photos a present folder lacks."""
+    if not photos:
+        return None, {}
+    folder = photos[0].parent
+    found = next((c for c in (folder / MASK_FOLDER, folder.parent / MASK_FOLDER) if c.is_dir()), None)
+    if found is None:
+        return None, {}
+    by_stem = {p.stem: p for p in sorted(found.iterdir()) if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES}
+    if not by_stem:  # an empty folder: nothing to use
+        return None, {}
+    missing = [p.name for p in photos if p.stem not in by_stem]
+    if missing:
+        raise InputError(
+            f"The masks folder {found} has no mask for {len(missing)} photo(s): {', '.join(missing[:5])}"
+            f"{'…' if len(missing) > 5 else ''}. Give every photo a mask with the same name (white = object), "
+            f"or move the masks folder away to run without masks."
+        )
+    return found, {p.name: by_stem[p.stem] for p in photos}
 
 
 # --------------------------------------------------------------------------------------------- imports
@@ -402,7 +477,8 @@ def import_transforms(path: Path) -> Scene:
     json_path = path / "transforms.json" if path.is_dir() else path
     doc = _load_json(json_path)
     frames = parse_frames(doc, base=json_path.parent, source=json_path)
-    return Scene(frames=frames, has_alpha=_has_alpha(frames[0]), source_kind="transforms")
+    masked = all(f.mask_path for f in frames)
+    return Scene(frames=frames, has_alpha=masked or _has_alpha(frames[0]), source_kind="transforms")
 
 
 def import_nerf_synthetic(folder: Path) -> Scene:
@@ -446,6 +522,9 @@ def frame_from_sfm(file_path: str, fd: dict, sx: float = 1.0, sy: float = 1.0) -
         k2=fd["k2"],
         p1=fd["p1"],
         p2=fd["p2"],
+        k3=fd.get("k3", 0.0),
+        k4=fd.get("k4", 0.0),
+        camera_model=fd.get("camera_model", "OPENCV"),
     )
 
 
@@ -469,7 +548,8 @@ def import_colmap(folder: Path) -> Scene:
                 fds, xyz, rgb, _, visible = reconstruction_frames(rec, names)
                 frames = [frame_from_sfm(str(resolve_image(root, n, model)), fd) for n, fd in fds.items()]
             except ValueError as exc:
-                raise InputError(f"COLMAP model {model}: {exc}.") from None
+                cameras = next((p for p in (model / "cameras.bin", model / "cameras.txt") if p.is_file()), model)
+                raise InputError(f"COLMAP model {cameras}: {exc}.") from None
             return Scene(
                 frames=frames,
                 points=xyz,

@@ -26,12 +26,12 @@ import pycolmap
 from PIL import Image
 
 from recon.errors import ReconError
+from recon.images import device_of
 
 ProgressFn = Callable[[str, float], None]
 
 CAMERA_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV")
 EXHAUSTIVE_MAX_IMAGES = 150  # "auto" matcher: exhaustive up to here (quadratic cost), sequential above
-_EXIF_MODEL_TAG = 0x0110  # EXIF/TIFF "Model"
 
 
 @dataclass
@@ -77,7 +77,7 @@ class SfmResult:
     """Names of the images left out of the model, in input order."""
     frames: dict[str, dict]
     """name -> {"c2w": 4x4 nested list (OpenGL camera-to-world), "fl_x", "fl_y", "cx", "cy" (pixels),
-    "w", "h" (pixels), "k1", "k2", "p1", "p2"} for each registered image."""
+    "w", "h" (pixels), "k1", "k2", "p1", "p2", "k3", "k4", "camera_model"} for each registered image."""
     points_xyz: np.ndarray
     """(P, 3) float64 sparse points, world frame."""
     points_rgb: np.ndarray
@@ -91,6 +91,10 @@ class SfmResult:
     num_points: int
     timings: dict[str, float] = field(default_factory=dict)
     """Seconds spent in "extract", "match" and "map"."""
+    num_cameras: int = 1
+    """Distinct intrinsics estimated (one per device and size, or one per image)."""
+    attempts: list[dict] = field(default_factory=list)
+    """Each registration attempt: {"name", "settings", "registered"}; a retry runs only when photos were dropped."""
 
 
 def opencv_w2c_to_opengl_c2w(cam_from_world: np.ndarray) -> np.ndarray:
@@ -109,12 +113,23 @@ def opencv_w2c_to_opengl_c2w(cam_from_world: np.ndarray) -> np.ndarray:
     return c2w @ np.diag([1.0, -1.0, -1.0, 1.0])
 
 
+IMPORTABLE_CAMERA_MODELS = CAMERA_MODELS + ("OPENCV_FISHEYE",)
+"""COLMAP camera models whose lens recon can undistort (the transforms.json OPENCV / OPENCV_FISHEYE conventions)."""
+
+
+def lens_model(model_name: str) -> str:
+    """The transforms.json lens of a COLMAP camera model: OPENCV_FISHEYE (equidistant, k1..k4) or OPENCV
+    (radial-tangential, which holds every pinhole and radial model)."""
+    return "OPENCV_FISHEYE" if model_name == "OPENCV_FISHEYE" else "OPENCV"
+
+
 def camera_params_to_intrinsics(model_name: str, params: np.ndarray) -> dict[str, float]:
-    """COLMAP camera params -> {"fl_x", "fl_y", "cx", "cy", "k1", "k2", "p1", "p2"} (pixels; unitless k, p).
+    """COLMAP camera params -> {"fl_x", "fl_y", "cx", "cy", "k1", "k2", "p1", "p2", "k3", "k4"} (pixels; unitless k, p).
 
     Supports the models whose distortion the transforms.json convention can hold:
     SIMPLE_PINHOLE (f, cx, cy), PINHOLE (fx, fy, cx, cy), SIMPLE_RADIAL (f, cx, cy, k),
-    RADIAL (f, cx, cy, k1, k2), OPENCV (fx, fy, cx, cy, k1, k2, p1, p2).
+    RADIAL (f, cx, cy, k1, k2), OPENCV (fx, fy, cx, cy, k1, k2, p1, p2) and
+    OPENCV_FISHEYE (fx, fy, cx, cy, k1, k2, k3, k4; see `lens_model`).
     """
     p = [float(v) for v in params]
     layouts: dict[str, tuple[str, ...]] = {
@@ -123,18 +138,22 @@ def camera_params_to_intrinsics(model_name: str, params: np.ndarray) -> dict[str
         "SIMPLE_RADIAL": ("f", "cx", "cy", "k1"),
         "RADIAL": ("f", "cx", "cy", "k1", "k2"),
         "OPENCV": ("fl_x", "fl_y", "cx", "cy", "k1", "k2", "p1", "p2"),
+        "OPENCV_FISHEYE": ("fl_x", "fl_y", "cx", "cy", "k1", "k2", "k3", "k4"),
     }
     if model_name not in layouts:
-        raise ValueError(f"camera model {model_name} is not supported; use one of {', '.join(CAMERA_MODELS)}")
+        raise ValueError(
+            f"camera model {model_name} is not supported; use one of {', '.join(IMPORTABLE_CAMERA_MODELS)} "
+            "(or undistort the images to PINHOLE with COLMAP's image_undistorter first)"
+        )
     names = layouts[model_name]
     if len(p) != len(names):
         raise ValueError(f"{model_name} takes {len(names)} params, got {len(p)}")
     values = dict(zip(names, p))
     if "f" in values:
         values["fl_x"] = values["fl_y"] = values.pop("f")
-    out = {"k1": 0.0, "k2": 0.0, "p1": 0.0, "p2": 0.0}
+    out = {"k1": 0.0, "k2": 0.0, "p1": 0.0, "p2": 0.0, "k3": 0.0, "k4": 0.0}
     out.update(values)
-    return {k: out[k] for k in ("fl_x", "fl_y", "cx", "cy", "k1", "k2", "p1", "p2")}
+    return {k: out[k] for k in ("fl_x", "fl_y", "cx", "cy", "k1", "k2", "p1", "p2", "k3", "k4")}
 
 
 def choose_camera(
@@ -145,9 +164,9 @@ def choose_camera(
 ) -> tuple[str, bool, str]:
     """Pick the COLMAP camera model and whether all images share one camera; say why in a sentence.
 
-    sizes: (width, height) in pixels per image; exif_models: EXIF camera "Model" per image or None.
+    sizes: (width, height) in pixels per image; exif_models: EXIF device ("Make Model") per image or None.
     Sharing one camera is right when one device took every photo: then all sizes match. A mix of
-    sizes (or of EXIF models) means several cameras or crops, so each image gets its own.
+    sizes (or of EXIF devices) means several cameras or crops: see `camera_groups` for who shares.
     """
     if not sizes:
         raise ValueError("no images")
@@ -188,26 +207,119 @@ def choose_camera(
         "OPENCV": "two focal lengths, radial and tangential distortion, estimated",
     }[model]
     model_src = "the default" if camera_model == "auto" else "as configured"
-    sharing = "One shared" if shared else "One per-image"
+    groups = camera_groups(sizes, exif_models, shared, shared_intrinsics)
+    if shared:
+        sharing = "One shared"
+    elif len(groups) < len(sizes):
+        sharing = f"{len(groups)} (one per device and image size)"
+    else:
+        sharing = "One per-image"
     reason = f"{sharing} {model} camera ({model_why}; {model_src}): {why}."
     return model, shared, reason
 
 
+def camera_groups(
+    sizes: list[tuple[int, int]], devices: list[str | None], shared: bool, shared_intrinsics: str = "auto"
+) -> list[list[int]]:
+    """Indices of the images that share one set of intrinsics, in input order.
+
+    All images when `shared`; else, under "auto", the images of one EXIF device and one size share a camera
+    (two phones with the same resolution still get two), and an image without EXIF device gets its own
+    (a crop or an edited copy cannot be told from another lens).
+    """
+    if shared:
+        return [list(range(len(sizes)))]
+    groups: dict[object, list[int]] = {}
+    for i, (size, device) in enumerate(zip(sizes, devices, strict=True)):
+        key = (size, device) if device and shared_intrinsics == "auto" else ("image", i)
+        groups.setdefault(key, []).append(i)
+    return list(groups.values())
+
+
 def _image_info(image_dir: Path, names: list[str]) -> tuple[list[tuple[int, int]], list[str | None]]:
-    """(width, height) in stored pixels and EXIF camera model (or None) per image, reading headers only."""
+    """(width, height) in stored pixels and EXIF device ("Make Model", or None) per image, reading headers only."""
     sizes: list[tuple[int, int]] = []
-    models: list[str | None] = []
     for name in names:
         path = image_dir / name
         try:
             with Image.open(path) as im:
                 sizes.append((int(im.width), int(im.height)))
-                model = im.getexif().get(_EXIF_MODEL_TAG)
         except (OSError, ValueError) as exc:
             raise ReconError(f"cannot read image {path}: {exc}. Remove it or replace it with a JPEG or PNG.") from exc
-        text = str(model).strip("\x00 ") if model else ""
-        models.append(text or None)
-    return sizes, models
+    return sizes, [device_of(image_dir / name) for name in names]
+
+
+@dataclass(frozen=True)
+class Attempt:
+    """One way to extract and match features. The retry finds more, and more reliable, correspondences
+    on photos SfM dropped: twice the features, SIFT on the image upsampled 2× (first octave -1: extraction at
+    a higher resolution, small detail), a lower peak threshold (low-contrast texture), a looser ratio test,
+    and guided matching (more inliers once the two-view geometry is known)."""
+
+    name: str
+    feature_factor: int = 1
+    first_octave: int = 0
+    peak_threshold: float | None = None
+    max_ratio: float | None = None
+    guided: bool = False
+
+    def settings(self, options: SfmOptions) -> str:
+        parts = [f"{options.max_features * self.feature_factor} features"]
+        if self.first_octave < 0:
+            parts.append("extraction at 2× resolution (first octave -1)")
+        if self.peak_threshold is not None:
+            parts.append(f"SIFT peak threshold {self.peak_threshold:g}")
+        if self.max_ratio is not None:
+            parts.append(f"ratio test {self.max_ratio:g}")
+        if self.guided:
+            parts.append("guided matching")
+        return ", ".join(parts)
+
+
+ATTEMPTS = (
+    Attempt("default"),
+    Attempt("more features", feature_factor=2, first_octave=-1, peak_threshold=0.004, max_ratio=0.85, guided=True),
+)
+
+
+def register_best(run_attempt: Callable[[Attempt], pycolmap.Reconstruction | None], total: int, options: SfmOptions,
+                  attempts: tuple[Attempt, ...] = ATTEMPTS) -> tuple[pycolmap.Reconstruction | None, list[dict]]:
+    """Run the attempts in order until one registers all `total` photos; the model registering most wins
+    (ties: the later, whose features are the ones left in the database). Returns it and a log entry per attempt."""
+    best, log = None, []
+    for attempt in attempts:
+        model = run_attempt(attempt)
+        registered = model.num_reg_images() if model is not None else 0
+        log.append({"name": attempt.name, "settings": attempt.settings(options), "registered": registered})
+        if model is not None and (best is None or registered >= best.num_reg_images()):
+            best = model
+        if registered >= total:
+            break
+    return best, log
+
+
+def extract(
+    database: Path, image_dir: Path, names: list[str], groups: list[list[int]], model: str, options: SfmOptions,
+    attempt: Attempt = ATTEMPTS[0],
+) -> None:
+    """SIFT features into `database`, one COLMAP camera per group of `camera_groups` (EXIF focal priors read)."""
+    extraction = pycolmap.FeatureExtractionOptions()
+    extraction.num_threads = options.num_threads
+    extraction.use_gpu = False
+    extraction.sift.max_num_features = options.max_features * attempt.feature_factor
+    extraction.sift.first_octave = attempt.first_octave
+    if attempt.peak_threshold is not None:
+        extraction.sift.peak_threshold = attempt.peak_threshold
+    reader = pycolmap.ImageReaderOptions(camera_model=model)
+    if all(len(g) == 1 for g in groups):
+        calls = [(names, pycolmap.CameraMode.PER_IMAGE)]
+    else:  # each call with SINGLE opens one new camera for its images
+        calls = [([names[i] for i in g], pycolmap.CameraMode.SINGLE) for g in groups]
+    for group_names, mode in calls:
+        pycolmap.extract_features(
+            database, image_dir, image_names=group_names, camera_mode=mode, reader_options=reader,
+            extraction_options=extraction, device=pycolmap.Device.cpu,
+        )
 
 
 def _pick_matcher(matcher: str, num_images: int) -> str:
@@ -255,6 +367,7 @@ def reconstruction_frames(
         c2w = opencv_w2c_to_opengl_c2w(image.cam_from_world().matrix())
         frame: dict = {"c2w": c2w.tolist()}
         frame.update(camera_params_to_intrinsics(camera.model_name, camera.params))
+        frame["camera_model"] = lens_model(camera.model_name)
         frame["w"], frame["h"] = int(camera.width), int(camera.height)
         frames[image.name] = frame
         image_name_by_id[image_id] = image.name
@@ -333,65 +446,61 @@ def run_sfm(
     pycolmap.set_random_seed(options.seed)
     work_dir.mkdir(parents=True, exist_ok=True)
     database = work_dir / "database.db"
-    database.unlink(missing_ok=True)  # a stale database would keep old images and features
     device = pycolmap.Device.cpu
-    timings: dict[str, float] = {}
-
-    report("extract", 0.0)
-    start = time.perf_counter()
-    extraction = pycolmap.FeatureExtractionOptions()
-    extraction.num_threads = options.num_threads
-    extraction.use_gpu = False
-    extraction.sift.max_num_features = options.max_features
-    pycolmap.extract_features(
-        database,
-        image_dir,
-        image_names=names,
-        camera_mode=pycolmap.CameraMode.SINGLE if shared else pycolmap.CameraMode.PER_IMAGE,
-        reader_options=pycolmap.ImageReaderOptions(camera_model=model),
-        extraction_options=extraction,
-        device=device,
-    )
-    timings["extract"] = time.perf_counter() - start
-    report("extract", 1.0)
-
-    report("match", 0.0)
-    start = time.perf_counter()
-    matching = pycolmap.FeatureMatchingOptions()
-    matching.num_threads = options.num_threads
-    matching.use_gpu = False
-    if matcher == "exhaustive":
-        pycolmap.match_exhaustive(database, matching_options=matching, device=device)
-    else:
-        pairing = pycolmap.SequentialPairingOptions()
-        pairing.overlap = options.sequential_overlap
-        pycolmap.match_sequential(database, matching_options=matching, pairing_options=pairing, device=device)
-        pairs = loop_pairs(names, options.loop_keyframes, options.sequential_overlap)
-        if pairs:
-            pair_file = work_dir / "loop_pairs.txt"
-            pair_file.write_text("".join(f"{a} {b}\n" for a, b in pairs))
-            imported = pycolmap.ImportedPairingOptions()
-            imported.match_list_path = str(pair_file)
-            pycolmap.match_image_pairs(database, matching_options=matching, pairing_options=imported, device=device)
-    timings["match"] = time.perf_counter() - start
-    report("match", 1.0)
-
-    report("map", 0.0)
-    start = time.perf_counter()
+    timings: dict[str, float] = {"extract": 0.0, "match": 0.0, "map": 0.0}
+    groups = camera_groups(sizes, exif_models, shared, options.shared_intrinsics)
     needed = max(options.min_registered, int(np.ceil(options.min_registered_fraction * len(names))))
     models_dir = work_dir / "models"
-    best = _map(database, image_dir, models_dir, options, needed, relaxed=False)
-    if best is None or best.num_reg_images() < len(names):
-        # COLMAP's inlier thresholds suit thousands of features per image; small or plain photos
-        # give hundreds, so retry with lower ones and keep whichever model registers more images.
-        report("map", 0.5)
-        retry = _map(database, image_dir, models_dir, options, needed, relaxed=True)
-        if retry is not None and (best is None or retry.num_reg_images() > best.num_reg_images()):
-            best = retry
-    shutil.rmtree(models_dir, ignore_errors=True)
-    timings["map"] = time.perf_counter() - start
-    report("map", 1.0)
 
+    def run_attempt(attempt: Attempt) -> pycolmap.Reconstruction | None:
+        retry = attempt is not ATTEMPTS[0]
+        database.unlink(missing_ok=True)  # a stale database would keep old images and features
+        report("extract", 0.0)
+        start = time.perf_counter()
+        extract(database, image_dir, names, groups, model, options, attempt)
+        timings["extract"] += time.perf_counter() - start
+        report("extract", 1.0)
+
+        report("match", 0.0)
+        start = time.perf_counter()
+        matching = pycolmap.FeatureMatchingOptions()
+        matching.num_threads = options.num_threads
+        matching.use_gpu = False
+        matching.guided_matching = attempt.guided
+        if attempt.max_ratio is not None:
+            matching.sift.max_ratio = attempt.max_ratio
+        if matcher == "exhaustive":
+            pycolmap.match_exhaustive(database, matching_options=matching, device=device)
+        else:
+            pairing = pycolmap.SequentialPairingOptions()
+            pairing.overlap = options.sequential_overlap
+            pycolmap.match_sequential(database, matching_options=matching, pairing_options=pairing, device=device)
+            pairs = loop_pairs(names, options.loop_keyframes, options.sequential_overlap)
+            if pairs:
+                pair_file = work_dir / "loop_pairs.txt"
+                pair_file.write_text("".join(f"{a} {b}\n" for a, b in pairs))
+                imported = pycolmap.ImportedPairingOptions()
+                imported.match_list_path = str(pair_file)
+                pycolmap.match_image_pairs(database, matching_options=matching, pairing_options=imported, device=device)
+        timings["match"] += time.perf_counter() - start
+        report("match", 1.0)
+
+        report("map", 0.5 if retry else 0.0)
+        start = time.perf_counter()
+        best = _map(database, image_dir, models_dir, options, needed, relaxed=False)
+        if best is None or best.num_reg_images() < len(names):
+            # COLMAP's inlier thresholds suit thousands of features per image; small or plain photos
+            # give hundreds, so retry with lower ones and keep whichever model registers more images.
+            report("map", 0.5)
+            relaxed = _map(database, image_dir, models_dir, options, needed, relaxed=True)
+            if relaxed is not None and (best is None or relaxed.num_reg_images() > best.num_reg_images()):
+                best = relaxed
+        shutil.rmtree(models_dir, ignore_errors=True)
+        timings["map"] += time.perf_counter() - start
+        report("map", 1.0)
+        return best
+
+    best, attempts = register_best(run_attempt, len(names), options)
     num_registered = best.num_reg_images() if best is not None else 0
     if best is None or num_registered < needed:
         raise ReconError(_too_few_message(num_registered, len(names), needed))
@@ -416,4 +525,6 @@ def run_sfm(
         mean_reprojection_error=float(best.compute_mean_reprojection_error()),
         num_points=int(xyz.shape[0]),
         timings=timings,
+        num_cameras=len(groups),
+        attempts=attempts,
     )

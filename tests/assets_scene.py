@@ -15,6 +15,7 @@ SAMPLE = Path(__file__).resolve().parents[1] / "fixtures" / "sample"
 TINY = {
     "train.steps": 30, "train.batch_rays": 1024, "train.budget": "", "train.eval_every": 0, "train.final_eval_views": 1,
     "train.max_side": 100, "train.checkpoint_every": 0, "mesh.resolution": 48, "mesh.target_faces": 0, "mesh.drop_hidden": False,
+    "mesh.texture_size": 64,
 }
 _BUILT: dict[str, object] = {}
 

@@ -15,7 +15,7 @@ REPO = Path(__file__).resolve().parents[1]
 STAGE_FOLDERS = {"poses": "01_poses", "normalize": "02_scene", "train": "03_field", "mesh": "04_mesh"}
 TINY = [
     "train.steps=40", "train.max_side=32", "train.batch_rays=256", "train.eval_every=20", "train.checkpoint_every=10",
-    "train.final_eval_views=1", "train.eval_views=1", "mesh.resolution=24", "mesh.color=field",
+    "train.final_eval_views=1", "train.eval_views=1", "mesh.resolution=24", "mesh.color=field", "mesh.texture_size=64",
 ]
 """Tiny settings: the whole pipeline in ~20 s on one CPU core."""
 

@@ -248,7 +248,7 @@ def test_stage_writes_reloadable_meshes_report_and_previews_and_gt_comparison_is
     model = SoftSphere(amplitude=3000.0, width=0.004, samples=384)
     w2s = similarity(0.5, trimesh.transformations.rotation_matrix(0.7, [0.3, 0.2, 1.0])[:3, :3], np.array([0.2, -0.4, 1.0]))
     scene_dir = _scene_dir(tmp_path, model, w2s, kind="transforms")
-    cfg = MeshConfig(resolution=97, target_faces=6000, frame="source", color="photos")
+    cfg = MeshConfig(resolution=97, target_faces=6000, frame="source", color="photos", texture_size=128)
     summary, out = _run_stage(scene_dir, model, cfg, monkeypatch)
 
     report = json.loads((out / "mesh_report.json").read_text())
@@ -304,7 +304,7 @@ def test_stage_writes_reloadable_meshes_report_and_previews_and_gt_comparison_is
 def test_stage_field_colors_and_normalized_frame(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     model = SoftSphere(amplitude=400.0, width=0.05, samples=64)
     scene_dir = _scene_dir(tmp_path, model, np.eye(4), kind="transforms")
-    cfg = MeshConfig(resolution=33, target_faces=0, color="field", coarse_to_fine=False, real_size=3.0)
+    cfg = MeshConfig(resolution=33, target_faces=0, color="field", coarse_to_fine=False, real_size=3.0, texture_size=128)
     summary, out = _run_stage(scene_dir, model, cfg, monkeypatch)
     ply = trimesh.load(out / "mesh.ply", process=False)
     assert np.ptp(ply.vertices, axis=0).max() == pytest.approx(3.0, rel=1e-5)

@@ -160,7 +160,7 @@ def test_w2c_conversion_point_in_front_projects_forward() -> None:
     ],
 )
 def test_camera_params_to_intrinsics(model: str, params: list[float], expected: dict[str, float]) -> None:
-    full = {"k1": 0.0, "k2": 0.0, "p1": 0.0, "p2": 0.0, **expected}
+    full = {"k1": 0.0, "k2": 0.0, "p1": 0.0, "p2": 0.0, "k3": 0.0, "k4": 0.0, **expected}
     assert camera_params_to_intrinsics(model, np.asarray(params, float)) == pytest.approx(full)
 
 

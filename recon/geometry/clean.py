@@ -37,6 +37,27 @@ def crop_to_aabb(mesh: trimesh.Trimesh, aabb: np.ndarray, eps: float = 1e-6) -> 
     return out
 
 
+def cut_below_plane(mesh: trimesh.Trimesh, plane: np.ndarray, margin: float) -> tuple[trimesh.Trimesh, int]:
+    """Drop faces with a vertex less than ``margin`` above the plane (nx, ny, nz, d), n·x = d, n unit and
+    pointing up: the ground an object stands on. Returns the mesh and how many faces went."""
+    plane = np.asarray(plane, np.float64)
+    above = mesh.vertices @ plane[:3] - plane[3] >= margin
+    keep = above[mesh.faces].all(axis=1)
+    out = mesh.copy()
+    out.update_faces(keep)
+    out.remove_unreferenced_vertices()
+    return out, int((~keep).sum())
+
+
+def keep_vertices(mesh: trimesh.Trimesh, keep_fn: Callable[[np.ndarray], np.ndarray]) -> tuple[trimesh.Trimesh, int]:
+    """Drop faces with a vertex for which ``keep_fn(vertices (V, 3)) -> (V,) bool`` is False."""
+    keep = np.asarray(keep_fn(np.asarray(mesh.vertices)), bool)[mesh.faces].all(axis=1)
+    out = mesh.copy()
+    out.update_faces(keep)
+    out.remove_unreferenced_vertices()
+    return out, int((~keep).sum())
+
+
 def component_areas(mesh: trimesh.Trimesh) -> tuple[np.ndarray, np.ndarray]:
     """Face-connected components: labels (F,) and surface area of each component (C,) in scene units²."""
     labels = graph.connected_component_labels(mesh.face_adjacency, node_count=len(mesh.faces))
@@ -123,6 +144,9 @@ def clean_mesh(
     smooth_iters: int = 0,
     target_faces: int | None = None,
     seen_fn: SeenFn | None = None,
+    ground: np.ndarray | None = None,
+    ground_margin: float = 0.0,
+    keep_fn: Callable[[np.ndarray], np.ndarray] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, dict]:
     """Crop to the scene box, remove floaters and (with ``seen_fn``) hidden faces, optionally
     Taubin-smooth and decimate.
@@ -135,7 +159,9 @@ def clean_mesh(
 
     Returns ``(vertices (V', 3) float32, faces (F', 3) int64, report)``; the report holds counts
     before/after every step, the component rule and how many were removed, watertightness,
-    surface area and bounding box.
+    surface area and bounding box. ``ground`` (nx, ny, nz, d): faces within ``ground_margin`` of that plane or
+    below it are cut (`cut_below_plane`) before floaters are counted; ``keep_fn`` (e.g. the photos' masks) drops
+    the faces of vertices it rejects, also before.
     """
     if target_faces is not None and target_faces < 4:
         raise ValueError(f"target_faces must be >= 4 (a tetrahedron), got {target_faces}")
@@ -143,6 +169,12 @@ def clean_mesh(
     report: dict = {"input": {"vertices": int(len(vertices)), "faces": int(len(faces))}, "merged": _counts(mesh)}
     mesh = crop_to_aabb(mesh, aabb)
     report["cropped"] = _counts(mesh)
+    if ground is not None:
+        mesh, cut = cut_below_plane(mesh, ground, ground_margin)
+        report["ground_cut"] = {**_counts(mesh), "faces_removed": cut, "margin": float(ground_margin)}
+    if keep_fn is not None and len(mesh.faces):
+        mesh, cut = keep_vertices(mesh, keep_fn)
+        report["masked"] = {**_counts(mesh), "faces_removed": cut}
     mesh, report["components"] = remove_small_components(mesh, min_component_fraction)
     report["floaters_removed"] = _counts(mesh)
     if seen_fn is not None and len(mesh.faces):

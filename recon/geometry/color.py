@@ -137,7 +137,7 @@ def seen_by_views(
 
 
 def colors_from_photos(
-    vertices: np.ndarray,
+    points: np.ndarray,
     normals: np.ndarray,
     images: Sequence[np.ndarray],
     c2ws: np.ndarray,
@@ -150,30 +150,35 @@ def colors_from_photos(
     reduce: Literal["median", "mean"] = "median",
     chunk: int = 2**15,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Bake vertex colors from the photos that see each vertex; robust to occluders and highlights.
+    """Colors of surface points from the photos that see each point; robust to occluders and highlights.
 
-    A view contributes to a vertex when the vertex projects inside the image, lies in front of the
+    One function for every kind of surface sample: mesh vertices (vertex colors) and the surface points
+    under texel centres (`texture.bake_texture`), so both get the same visibility test and average.
+
+    A view contributes to a point when the point projects inside the image, lies in front of the
     camera, faces it (cos θ = n · (cam − x)/|cam − x| > ``min_cos``), and — when a depth map is given
-    for that view — is not occluded: ``|depth(vertex) − depth_map(pixel)| < depth_tol``. The depth map
+    for that view — is not occluded: ``|depth(point) − depth_map(pixel)| < depth_tol``. The depth map
     is read at the pixel that contains the projection (nearest, so silhouettes do not blend depths).
     ``depth_kind`` says what the maps hold: "ray" = distance from the camera centre along the pixel's
     ray (what NeRF renderers output as expected t with unit directions), "z" = depth along the optical
-    axis. ``depth_tol`` is in scene units; by default 1 % of the vertices' bounding-box diagonal
+    axis. ``depth_tol`` is in scene units; by default 1 % of the points' bounding-box diagonal
     (≈ 0.03 for an object filling the normalized [-1, 1]³ box, ~8 cells of a 512³ grid), loose enough
     for the blur of rendered depth, tight enough to reject a surface behind another. Without depth
-    maps only back-facing is culled, so concave objects can pick up occluders' colors.
+    maps only back-facing is culled, so concave objects can pick up occluders' colors. Pass ``depth_tol``
+    explicitly when baking a surface in several calls (chunks, or vertices and texels alike) so every call
+    uses the same one.
 
     The contributing samples are combined per channel with a weighted median (``reduce="median"``,
     weights cos θ: robust to a minority of wrong samples such as highlights and missed occlusions) or
-    a weighted mean. Vertices that no view sees take ``fallback`` (e.g. field colors, (V, 3)) when
-    given, otherwise the color of the nearest seen vertex.
+    a weighted mean. Points that no view sees take ``fallback`` (e.g. field colors, (V, 3)) when
+    given, otherwise the color of the nearest seen point.
 
-    vertices, normals: (V, 3) scene frame, normals outward unit; images: K arrays (H, W, 3) float in
+    points, normals: (V, 3) scene frame, normals outward unit; images: K arrays (H, W, 3) float in
     [0, 1] (uint8 is rescaled); c2ws: (K, 4, 4) OpenGL; intrinsics: (K, 4) fx, fy, cx, cy; depths: K
     maps (H, W) or None entries; extra image channels (alpha) are ignored.
     Returns ``colors (V, 3) float32`` and ``seen (V,) bool``.
     """
-    verts = np.asarray(vertices, np.float64)
+    verts = np.asarray(points, np.float64)
     nrm = np.asarray(normals, np.float64)
     c2ws, intr = np.asarray(c2ws, np.float64), np.asarray(intrinsics, np.float64)
     k = len(images)

@@ -10,9 +10,11 @@ then, with ``y_up=True``:
   apply no axis change, so it opens upright in Z-up tools.
 Colors: OBJ and PLY carry the input colors (sRGB, as photos are); glTF defines COLOR_0 as *linear*,
 so the glb gets sRGB→linear converted colors, stored as float32 to keep dark tones from banding.
+Textures (`export_textured_mesh`) are sRGB PNGs, as glTF's baseColorTexture and OBJ's map_Kd expect.
 """
 from __future__ import annotations
 
+import io
 import json
 import os
 import struct
@@ -21,6 +23,9 @@ from pathlib import Path
 
 import numpy as np
 import trimesh
+from PIL import Image
+from trimesh.exchange.obj import export_obj
+from trimesh.visual.material import PBRMaterial
 
 # Rotation −90° about X: (x, y, z) → (x, z, −y); scene +Z up becomes +Y up.
 Z_UP_TO_Y_UP = np.array([[1, 0, 0, 0], [0, 0, 1, 0], [0, -1, 0, 0], [0, 0, 0, 1]], np.float64)
@@ -146,4 +151,63 @@ def export_mesh(
     rgba = np.hstack([np.round(colors * 255), np.full((len(colors), 1), 255)]).astype(np.uint8)
     ply = trimesh.Trimesh(vertices, faces, vertex_colors=rgba, process=False)
     paths["ply"] = _write_atomic(out / f"{stem}.ply", ply.export(file_type="ply", encoding="binary"))
+    return paths
+
+
+def mtl_text(name: str, texture_file: str) -> str:
+    """An OBJ material whose diffuse color is the texture alone (Kd 1, no specular), so importers show
+    the image as it is."""
+    return (f"# recon textured mesh\nnewmtl {name}\nKa 0 0 0\nKd 1 1 1\nKs 0 0 0\nNs 0\nillum 1\n"
+            f"map_Kd {texture_file}\n")
+
+
+def export_textured_mesh(
+    vertices: np.ndarray,
+    faces: np.ndarray,
+    uv: np.ndarray,
+    texture: np.ndarray,
+    out_dir: str | os.PathLike,
+    stem: str = "mesh_textured",
+    normals: np.ndarray | None = None,
+    transform: np.ndarray | None = None,
+    y_up: bool = True,
+) -> dict[str, Path]:
+    """Write ``{stem}.glb`` (baseColorTexture embedded) and ``{stem}.obj`` + ``.mtl`` + ``.png``; returns
+    their paths by format.
+
+    vertices: (V, 3) scene frame (+Z up); faces (F, 3) counter-clockwise from outside; uv: (V, 2) in
+    [0, 1], v up (OBJ/OpenGL; trimesh flips it for glTF); texture: (H, W, 3) uint8 sRGB, top row first;
+    normals: optional (V, 3) outward (e.g. of the mesh before its seams were split, so shading does not
+    break at them), else computed from the faces; transform and y_up as in `export_mesh`. The material is
+    metallic 0, roughness 1, so Blender's glTF importer shows the texture through an Image Texture node
+    with no node work. The OBJ is written last: a reader never finds it before its material and image.
+    """
+    vertices, faces = np.asarray(vertices, np.float64), np.asarray(faces, np.int64)
+    uv, texture = np.asarray(uv, np.float64), np.asarray(texture)
+    if vertices.ndim != 2 or vertices.shape[1] != 3 or uv.shape != (len(vertices), 2):
+        raise ValueError(f"need vertices (V, 3) and uv (V, 2); got {vertices.shape}, {uv.shape}")
+    if texture.dtype != np.uint8 or texture.ndim != 3 or texture.shape[2] != 3:
+        raise ValueError(f"texture must be (H, W, 3) uint8, got {texture.shape} {texture.dtype}")
+    linear = np.eye(3)
+    for t in ([transform] if transform is not None else []) + ([Z_UP_TO_Y_UP] if y_up else []):
+        vertices, faces = apply_transform(vertices, faces, t)
+        linear = np.asarray(t, np.float64)[:3, :3] @ linear
+    mesh = trimesh.Trimesh(vertices, faces, process=False)
+    if normals is not None:  # normals map by the inverse transpose of the linear part
+        n = np.asarray(normals, np.float64) @ np.linalg.inv(linear)
+        mesh.vertex_normals = n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+    image = Image.fromarray(texture)
+    mesh.visual = trimesh.visual.TextureVisuals(uv=uv, material=PBRMaterial(
+        name=stem, baseColorTexture=image, metallicFactor=0.0, roughnessFactor=1.0))
+    out = Path(out_dir)
+    png = io.BytesIO()
+    image.save(png, format="PNG")
+    obj, _ = export_obj(mesh, include_normals=True, include_color=False, include_texture=True, return_texture=True,
+                        write_texture=False, mtl_name=f"{stem}.mtl")
+    paths = {
+        "glb": _write_atomic(out / f"{stem}.glb", mesh.export(file_type="glb", include_normals=True)),
+        "png": _write_atomic(out / f"{stem}.png", png.getvalue()),
+        "mtl": _write_atomic(out / f"{stem}.mtl", mtl_text(stem, f"{stem}.png")),
+    }
+    paths["obj"] = _write_atomic(out / f"{stem}.obj", obj)
     return paths

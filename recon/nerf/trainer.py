@@ -71,7 +71,8 @@ class RayBatcher:
         c2w: (n, 4, 4) or (n, 3, 4) camera-to-world, OpenGL convention, scene frame.
         intrinsics: (n, 4) ``fl_x, fl_y, cx, cy`` in pixels of these images.
         aabb: (2, 3) scene box; rays get near/far from it. Either this or ``near_far``.
-        near_far: (n, 2) or (2,) per-image (or global) near and far distances (world units).
+        near_far: (n, 2) or (2,) per-image (or global) near and far distances along the unit-length rays
+            (world units; not depths along the optical axis).
         background: (3,) color behind the scene: RGBA pixels are composited onto it, and the
             model renders leftover transmittance with it.
         random_background: RGBA only: composite each ray onto a fresh random color (given to the

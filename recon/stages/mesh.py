@@ -9,6 +9,9 @@ Steps (each a function below, `run` only glues them and does the I/O):
 5. `export_mesh` (library) in the normalized or the source frame, optionally scaled to a real size;
    `mesh_report.json`; two previews (`preview_front.png`, `preview_side.png`) from `render_preview`,
    a z-buffered point splat of the colored mesh with Lambert shading (no OpenGL needed).
+6. `texture_mesh` (with mesh.texture_faces > 0): a decimated, UV-unwrapped copy with its colors baked into a
+   texture the same way (`mesh_textured.glb`, `.obj` + `.mtl` + `.png`); `compare_in_views` renders it and
+   the vertex-colored mesh into the held-out photos' views (PSNR of each).
 """
 from __future__ import annotations
 
@@ -23,19 +26,25 @@ import numpy as np
 import torch
 import trimesh
 
-from recon.config import MeshConfig
+from recon.config import MeshConfig, parse_region
 from recon.errors import ReconError
 from recon.field import load_field
 from recon.geometry.clean import SeenFn, clean_mesh
 from recon.geometry.color import colors_from_field, colors_from_photos, seen_by_views
-from recon.geometry.export import export_mesh
+from recon.geometry.export import export_mesh, export_textured_mesh
 from recon.geometry.extract import auto_iso_level, density_grid, density_grid_sparse, grid_spacing, marching_cubes
+from recon.geometry.raster import render_mesh
+from recon.geometry.texture import TexturedMesh, make_textured_mesh
 from recon.pipeline import Stage, StageContext, write_json_atomic
 from recon.scene import Frame, Scene, load_scene, look_at, spread_evenly
-from recon.stages.train import View, load_views, pixel_footprint, render_view
+from recon.stages.train import View, load_views, pixel_footprint, render_view, target_rgb
 
 REPORT_FILE = "mesh_report.json"
 MESH_STEM = "mesh"
+TEXTURED_STEM = "mesh_textured"
+BAKE_TOL_FRACTION = 0.01
+"""Depth tolerance of photo baking as a fraction of the mesh's bounding-box diagonal (`colors_from_photos`'
+default), fixed once per mesh so vertices and texels are tested alike."""
 COARSE_NODES = 64
 """Coarse grid nodes per axis: for coarse-to-fine refinement and for estimating the iso-level first."""
 CPU_BAKE_VIEWS = {"fast": 24, "classic": 6}
@@ -45,6 +54,8 @@ CPU_DEPTH_SIDE = {"fast": 200, "classic": 64}
 """On the CPU depth maps for baking are rendered at most this many pixels on the longest side."""
 DENSITY_CHUNK = 2**16
 """Points per model.density call (the models are not chunked themselves)."""
+HELD_OUT_VIEWS = 8
+"""The textured and vertex-colored meshes are compared in at most this many held-out views (spread evenly)."""
 HIDDEN_TOL_CELLS = 1.0
 """Depth tolerance of the hidden-face test in `surface_cell` units (the field's voxel for grid models). On the
 shipped sample (voxel ≈ 0.015 units, single-pixel depth match) 0.01, 0.015 and 0.02 units gave F@1% 0.923, 0.921
@@ -98,6 +109,77 @@ def choose_resolution(
         why += f"; lowered from {before} to {res} to fit the float32 grid in mesh.memory_budget_mb={cfg.memory_budget_mb}"
     mb = 4 * math.prod(shape) / 2**20
     return shape, f"grid {shape[0]}×{shape[1]}×{shape[2]} ({mb:.0f} MB float32): {why}"
+
+
+# ---------------------------------------------------------------------------------------- region
+REGION_MARGIN = 0.1
+"""The object region (sparse-point percentiles) is enlarged by this fraction of its size on each side."""
+GROUND_MARGIN_CELLS = 2.0
+"""Faces within this many surface cells (`surface_cell`) above the ground plane are cut with it: the field
+makes a table top a layer about a voxel thick."""
+
+
+def mesh_region(scene: Scene, aabb: np.ndarray, cfg: MeshConfig) -> tuple[np.ndarray, np.ndarray | None, str]:
+    """The box to mesh (scene frame, inside aabb), the ground plane to cut (or None) and why.
+
+    mesh.region auto: normalize's object region (what the cameras look at) grown by REGION_MARGIN, down to the
+    ground; all: the whole scene box, nothing cut; a source-frame box: its bounding box in the scene frame.
+    """
+    choice = parse_region(cfg.region)
+    aabb = np.asarray(aabb, np.float64)
+    if choice == "all":
+        return aabb, None, "the whole scene box (mesh.region=all)"
+    ground = None if cfg.keep_ground or scene.ground is None else np.asarray(scene.ground, np.float64)
+    ground_why = ("; the ground plane is cut away (--set mesh.keep_ground=true keeps it)" if ground is not None
+                  else "; the ground is kept (mesh.keep_ground)" if scene.ground is not None else "")
+    if choice == "auto":
+        if scene.region is None:
+            return aabb, ground, "the whole scene box (no object region was found)" + ground_why
+        region = np.asarray(scene.region, np.float64)
+        size = region[1] - region[0]
+        box = region + np.stack([-size, size]) * REGION_MARGIN
+        why = "the object the cameras look at (normalize's object region, +10%; --set mesh.region=all meshes everything)"
+    else:
+        lo, hi = np.asarray(choice, np.float64)
+        corners = np.array([[(lo, hi)[i][0], (lo, hi)[j][1], (lo, hi)[k][2]] for i in (0, 1) for j in (0, 1) for k in (0, 1)])
+        T = scene.world_from_source
+        mapped = corners @ T[:3, :3].T + T[:3, 3]
+        box = np.stack([mapped.min(axis=0), mapped.max(axis=0)])
+        why = f"the box {cfg.region} given in the source frame (mesh.region)"
+    box = np.stack([np.maximum(box[0], aabb[0]), np.minimum(box[1], aabb[1])])
+    if np.any(box[1] <= box[0]):
+        raise ReconError(
+            f"The mesh region ({cfg.region}) does not overlap the scene box {np.round(aabb, 3).tolist()}; give a box "
+            f"inside the scene, or --set mesh.region=all."
+        )
+    return box, ground, why + ground_why
+
+
+MASK_KEEP_FRACTION = 0.5
+"""A vertex stays when it falls inside the object mask in at least this fraction of the photos that have it in frame."""
+
+
+def inside_masks(views: Sequence[View]) -> Callable[[np.ndarray], np.ndarray]:
+    """``keep_fn`` of `clean_mesh`: True for vertices (V, 3) that the masks (the views' alpha) call object.
+
+    A point of the object projects inside the object's silhouette in every photo, occluded or not, so no depth
+    test is needed; MASK_KEEP_FRACTION of the photos that frame it leaves room for a pixel of mask edge."""
+    def keep(vertices: np.ndarray) -> np.ndarray:
+        inside = np.zeros(len(vertices))
+        framed = np.zeros(len(vertices))
+        for v in views:
+            h, w = v.hw
+            fx, fy, cx, cy = v.intrinsics
+            local = (np.asarray(vertices, np.float64) - v.c2w[:3, 3]) @ v.c2w[:3, :3]
+            z = -local[:, 2]
+            ok = z > 1e-9
+            u = np.floor(cx + fx * local[:, 0] / np.where(ok, z, 1.0)).astype(np.int64)
+            r = np.floor(cy - fy * local[:, 1] / np.where(ok, z, 1.0)).astype(np.int64)
+            ok &= (u >= 0) & (u < w) & (r >= 0) & (r < h)
+            framed += ok
+            inside[ok] += v.image[r[ok], u[ok], 3] >= 128
+        return (framed == 0) | (inside >= MASK_KEEP_FRACTION * framed)
+    return keep
 
 
 # ---------------------------------------------------------------------------------------- extraction
@@ -266,14 +348,18 @@ def bake_colors(
     depths: Sequence[np.ndarray],
     vertices: np.ndarray,
     normals: np.ndarray,
+    depth_tol: float | None = None,
 ) -> tuple[np.ndarray, dict]:
     """Vertex colors (V, 3) float32 sRGB from the photos, occlusion-tested against the field's depth.
 
     ``depths``: each view's rendered ray distance (`render_depths`); `colors_from_photos` keeps the
-    samples whose vertex distance matches it. Vertices no view sees take the field's color.
-    vertices, normals: (V, 3) scene frame, normals outward; views: photos at training size (uint8
-    images, OpenGL c2w).
+    samples whose vertex distance matches it within depth_tol (default: `BAKE_TOL_FRACTION` of the
+    vertices' bounding-box diagonal). Vertices no view sees take the field's color.
+    vertices, normals: (V, 3) scene frame (or texel points, `texture_mesh`), normals outward; views:
+    photos at training size (uint8 images, OpenGL c2w).
     """
+    if depth_tol is None:
+        depth_tol = BAKE_TOL_FRACTION * float(np.linalg.norm(np.ptp(vertices, axis=0))) if len(vertices) else 0.0
     colors, seen = colors_from_photos(
         vertices,
         normals,
@@ -281,12 +367,95 @@ def bake_colors(
         np.stack([v.c2w for v in views]),
         np.asarray([v.intrinsics for v in views], np.float64),
         depths=depths,
+        depth_tol=depth_tol,
         depth_kind="ray",
     )
     device = next(model.parameters(), torch.empty(0)).device
     if not seen.all():
         colors[~seen] = colors_from_field(model.radiance, vertices[~seen], normals[~seen], device=device)
     return colors, {"views": len(views), "seen": int(seen.sum()), "unseen_from_field": int((~seen).sum())}
+
+
+# ---------------------------------------------------------------------------------------- textured mesh
+def texture_mesh(
+    model: torch.nn.Module, cfg: MeshConfig, views: Sequence[View], depths: Sequence[np.ndarray],
+    vertices: np.ndarray, faces: np.ndarray, report: Any,
+) -> TexturedMesh:
+    """The mesh decimated to ``cfg.texture_faces``, unwrapped, with a ``cfg.texture_size``² texture baked the
+    way the vertex colors are (`bake_colors` on the surface point under each texel: the same depth test,
+    median and field fallback; or the field's color with mesh.color=field). vertices, faces: the full mesh."""
+    device = next(model.parameters(), torch.empty(0)).device
+    unseen = [0]
+    if cfg.color == "photos":
+        tol = BAKE_TOL_FRACTION * float(np.linalg.norm(np.ptp(vertices, axis=0)))
+
+        def color_fn(points: np.ndarray, normals: np.ndarray) -> np.ndarray:
+            colors, info = bake_colors(model, views, depths, points, normals, depth_tol=tol)
+            unseen[0] += info["unseen_from_field"]
+            return colors
+    else:
+        def color_fn(points: np.ndarray, normals: np.ndarray) -> np.ndarray:
+            return colors_from_field(model.radiance, points, normals, device=device)
+
+    with report.task(f"texture: decimate, unwrap, bake {cfg.texture_size}²", total=None, unit="texels") as bar:
+        textured = make_textured_mesh(vertices, faces, cfg.texture_faces, cfg.texture_size, color_fn, progress=bar.advance)
+    textured.info["source"] = cfg.color
+    if cfg.color == "photos":
+        textured.info["unseen_from_field"] = unseen[0]
+    return textured
+
+
+def compare_in_views(
+    views: Sequence[View], background: np.ndarray, vertex_mesh: tuple[np.ndarray, np.ndarray, np.ndarray],
+    textured: TexturedMesh, report: Any, light_colors: np.ndarray | None = None,
+) -> tuple[dict, list[np.ndarray]]:
+    """PSNR against the photos of the vertex-colored mesh (vertices, faces, colors) and of the textured mesh,
+    each rendered unlit (`raster.render_mesh`) into every view on the field's background: over the whole
+    photo, and over the pixels both meshes cover (the colors alone, without the silhouettes). With
+    ``light_colors`` (V, 3) for the textured mesh's vertices, also that light mesh with vertex colors instead
+    of the texture ("light_vertex_colors": what the texture buys at the same face count).
+    Returns the metrics and, per view, a strip photo | vertex colors | texture (H, 3W + 8, 3) in [0, 1]."""
+    from recon.metrics import mse_to_psnr
+
+    def db(err: np.ndarray) -> float:
+        return round(float(mse_to_psnr(float(np.mean(err)))), 3) if err.size else math.nan
+
+    per_view, strips = [], []
+    with report.task("rendering the meshes into the held-out views", total=len(views), unit="views") as bar:
+        for view in views:
+            gt = target_rgb(view, background)[..., :3]
+            cam = (view.c2w, view.intrinsics, view.hw)
+            vc, vc_mask = render_mesh(*vertex_mesh[:2], *cam, colors=vertex_mesh[2], background=background)
+            tx, tx_mask = render_mesh(textured.vertices, textured.faces, *cam, uv=textured.uv, texture=textured.texture,
+                                      background=background)
+            both = vc_mask & tx_mask
+            row = {"view": view.name,
+                   "psnr_vertex_colors": db((vc - gt) ** 2), "psnr_textured": db((tx - gt) ** 2),
+                   "psnr_vertex_colors_covered": db((vc - gt)[both] ** 2), "psnr_textured_covered": db((tx - gt)[both] ** 2),
+                   "covered_fraction": round(float(both.mean()), 4)}
+            if light_colors is not None:
+                lv, _ = render_mesh(textured.vertices, textured.faces, *cam, colors=light_colors, background=background)
+                row["psnr_light_vertex_colors"] = db((lv - gt) ** 2)
+                row["psnr_light_vertex_colors_covered"] = db((lv - gt)[both] ** 2)
+            per_view.append(row)
+            gap = np.ones((gt.shape[0], 4, 3))
+            strips.append(np.concatenate([gt, gap, vc, gap, tx], axis=1))
+            bar.advance()
+    keys = [k for k in per_view[0] if k.startswith("psnr")] if per_view else []
+    metrics = {k: round(float(np.mean([v[k] for v in per_view])), 3) for k in keys}
+    return {**metrics, "views": per_view}, strips
+
+
+def preview_textured(textured: TexturedMesh, size: int = 512, azimuth_deg: float = 0.0, elevation_deg: float = 20.0) -> np.ndarray:
+    """Unlit perspective render (size, size, 3) in [0, 1] of the textured mesh on white, from the side
+    `render_preview` uses (azimuth 0: from -Y, 20° up), the whole mesh in view."""
+    lo, hi = textured.vertices.min(axis=0), textured.vertices.max(axis=0)
+    centre, radius = 0.5 * (lo + hi), 0.5 * float(np.linalg.norm(hi - lo))
+    eye = centre + 3.0 * radius * np.linalg.inv(_look_rotation(azimuth_deg, elevation_deg))[:, 2]  # the camera's back axis
+    focal = 0.5 * size * math.sqrt(8.0) / 1.05  # the bounding sphere (half-angle asin(1/3)) fills the frame, 5 % margin
+    rgb, _ = render_mesh(textured.vertices, textured.faces, look_at(eye, centre), (focal, focal, size / 2, size / 2), (size, size),
+                         uv=textured.uv, texture=textured.texture)
+    return rgb
 
 
 # ---------------------------------------------------------------------------------------- export frame
@@ -415,8 +584,11 @@ def run(ctx: StageContext) -> dict:
     if not meta.get("bounded", True):
         ctx.report.info("unbounded scene: the mesh covers the scene box only (the background is not meshed)")
 
+    region, ground, region_why = mesh_region(scene, aabb, cfg)
+    ctx.report.info(f"mesh region: {region_why}")
+    region_t = torch.tensor(region, dtype=torch.float32, device=device)
     footprint, fp_why = (None, "") if cfg.resolution > 0 else _scene_footprint(scene, train_frames, aabb, max_side)
-    shape, res_why = choose_resolution(aabb, cfg, footprint, fp_why)
+    shape, res_why = choose_resolution(region, cfg, footprint, fp_why)
     ctx.report.info(f"resolution: {res_why}")
 
     surface = meta.get("kind") == "surface"  # an SDF: its zero level set is closed, no hidden faces to drop
@@ -425,7 +597,8 @@ def run(ctx: StageContext) -> dict:
     bounded = meta.get("bounded", True)
     views: list[View] = []
     depths: list[np.ndarray] = []
-    if cfg.color == "photos" or drop_hidden:
+    masked = bool(train_frames) and all(f.mask_path for f in train_frames)
+    if cfg.color == "photos" or drop_hidden or masked:
         t = time.perf_counter()
         limit = CPU_BAKE_VIEWS[kind] if device.type == "cpu" else 0
         depth_side = CPU_DEPTH_SIDE[kind] if device.type == "cpu" else None
@@ -439,26 +612,33 @@ def run(ctx: StageContext) -> dict:
             view_note += f", depth rendered at ≤ {depth_side} px"
 
     t = time.perf_counter()
-    vertices, faces, extract = (extract_zero_set if surface else extract_mesh)(model, aabb_t, shape, cfg, ctx.report)
+    vertices, faces, extract = (extract_zero_set if surface else extract_mesh)(model, region_t, shape, cfg, ctx.report)
     timings["extract_s"] = round(time.perf_counter() - t, 3)
 
     t = time.perf_counter()
     seen_fn = None
     if drop_hidden:
-        hidden_tol = HIDDEN_TOL_CELLS * surface_cell(model, aabb, shape)[0]
+        hidden_tol = HIDDEN_TOL_CELLS * surface_cell(model, region, shape)[0]
         seen_fn = see_with_views(views, depths, hidden_tol)
     vertices, faces, clean = clean_mesh(
-        vertices, faces, aabb,
+        vertices, faces, region,
         min_component_fraction=cfg.min_component_fraction,
         smooth_iters=cfg.smooth_iters,
         target_faces=cfg.target_faces or None,
         seen_fn=seen_fn,
+        ground=ground,
+        ground_margin=GROUND_MARGIN_CELLS * surface_cell(model, region, shape)[0],
+        keep_fn=inside_masks(views) if masked else None,
     )
     timings["clean_s"] = round(time.perf_counter() - t, 3)
     if len(faces) == 0:
         raise ReconError("Every piece of the extracted surface was removed while cleaning; lower mesh.min_component_fraction.")
     removed = clean["components"]["removed"]
     ctx.report.info(f"cleaning: {clean['components']['rule']}: {removed} of {clean['components']['components']} pieces removed")
+    if "masked" in clean:
+        ctx.report.info(f"masks: {clean['masked']['faces_removed']:,} faces outside the object masks removed ({len(views)} photos)")
+    if "ground_cut" in clean:
+        ctx.report.info(f"ground: {clean['ground_cut']['faces_removed']:,} faces on or below the ground plane cut away")
     if "hidden" in clean:
         h = clean["hidden"]
         ctx.report.info(f"hidden faces: {h['removed_faces']:,} faces that no photo sees removed (inner walls of the field; "
@@ -482,6 +662,12 @@ def run(ctx: StageContext) -> dict:
     paths = export_mesh(vertices, faces, colors, ctx.out, stem=MESH_STEM, transform=transform)
     previews = write_previews(vertices, faces, colors, ctx.out)
     timings["export_s"] = round(time.perf_counter() - t, 3)
+
+    textured_info: dict[str, Any] | None = None
+    if cfg.texture_faces:
+        textured_info, texture_previews = _textured(ctx, cfg, scene, model, views, depths, vertices, faces, colors,
+                                                    transform, max_side, background, timings)
+        previews += texture_previews
     timings["total_s"] = round(time.perf_counter() - t_all, 3)
 
     out = clean["output"]
@@ -493,6 +679,7 @@ def run(ctx: StageContext) -> dict:
         "component_rule": clean["components"]["rule"],
         "bbox_scene": out["bbox"],
         "resolution": {"grid": list(shape), "reason": res_why, "pixel_footprint": footprint},
+        "region": {"box": region.tolist(), "reason": region_why, "ground": None if ground is None else ground.tolist()},
         "extraction": extract,
         "iso": extract["iso"],
         "iso_reason": extract["iso_reason"],
@@ -506,6 +693,7 @@ def run(ctx: StageContext) -> dict:
             "files": {k: p.name for k, p in paths.items()},
             "axes": {"glb": "+Y up (scene +Z rotated -90° about X)", "obj": "+Y up", "ply": "+Z up (the exported frame itself)"},
         },
+        "textured": textured_info,
         "previews": previews,
         "device": str(device),
         "timings_s": timings,
@@ -524,7 +712,64 @@ def run(ctx: StageContext) -> dict:
         "grid": list(shape),
         "iso": round(extract["iso"], 4),
         "colors": color_info["note"],
+        **({"textured": _textured_summary(textured_info)} if textured_info else {}),
     }
 
 
-STAGE = Stage(name="mesh", folder="04_mesh", inputs=("normalize", "train"), version=2, run=run)
+def _textured(
+    ctx: StageContext, cfg: MeshConfig, scene: Scene, model: torch.nn.Module, views: list[View], depths: list[np.ndarray],
+    vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray, transform: np.ndarray | None, max_side: int,
+    background: np.ndarray, timings: dict[str, float],
+) -> tuple[dict, list[str]]:
+    """`texture_mesh`, its files, preview, and `compare_in_views` in the held-out views: the report's "textured"."""
+    from PIL import Image
+
+    t = time.perf_counter()
+    textured = texture_mesh(model, cfg, views, depths, vertices, faces, ctx.report)
+    paths = export_textured_mesh(textured.vertices, textured.faces, textured.uv, textured.texture, ctx.out,
+                                 stem=TEXTURED_STEM, normals=textured.normals, transform=transform)
+    Image.fromarray(np.round(preview_textured(textured) * 255).astype(np.uint8)).save(ctx.out / "preview_textured.png")
+    timings["texture_s"] = round(time.perf_counter() - t, 3)
+    info: dict[str, Any] = {**textured.info, "files": {k: p.name for k, p in paths.items()}}
+    previews = ["preview_textured.png"]
+    ctx.report.info(
+        f"textured mesh: {info['faces']:,} faces (decimated from {info['faces_in']:,}), {cfg.texture_size}² texture, "
+        f"{info['coverage']:.0%} of its texels on the surface, baked like the vertex colors"
+        + (f" ({info['unseen_from_field']:,} texels no photo sees colored by the field)" if "unseen_from_field" in info else "")
+    )
+    held_out = scene.split("test")
+    if not held_out:
+        info["held_out"] = None
+        ctx.report.info("textured mesh: no held-out photos in the scene's split, so no PSNR against photos")
+        return info, previews
+    t = time.perf_counter()
+    chosen = spread_evenly(held_out, HELD_OUT_VIEWS)
+    test_views = load_views(scene, chosen, max_side, ctx.report, "held-out photos")
+    light_colors = None
+    if cfg.color == "photos":  # the same light mesh with vertex colors: what the texture adds at its face count
+        light_colors = bake_colors(model, views, depths, textured.vertices, textured.normals)[0]
+    info["held_out"], strips = compare_in_views(test_views, background, (vertices, faces, colors), textured, ctx.report,
+                                                light_colors)
+    Image.fromarray(np.round(np.clip(strips[0], 0, 1) * 255).astype(np.uint8)).save(ctx.out / "texture_compare.png")
+    previews.append("texture_compare.png")
+    timings["held_out_s"] = round(time.perf_counter() - t, 3)
+    h = info["held_out"]
+    ctx.report.info(
+        f"held-out photos ({len(test_views)} of {len(held_out)}{', spread evenly' if len(chosen) < len(held_out) else ''}): "
+        f"PSNR vertex colors {h['psnr_vertex_colors']:.2f} dB, textured {h['psnr_textured']:.2f} dB "
+        f"(where both cover: {h['psnr_vertex_colors_covered']:.2f} / {h['psnr_textured_covered']:.2f} dB)"
+        + (f"; the light mesh with vertex colors instead: {h['psnr_light_vertex_colors']:.2f} dB "
+           f"({h['psnr_light_vertex_colors_covered']:.2f} dB where both cover)" if "psnr_light_vertex_colors" in h else "")
+    )
+    return info, previews
+
+
+def _textured_summary(info: dict) -> str:
+    text = f"{info['faces']:,} faces, {info['texture_size']}² texture"
+    if info.get("held_out"):
+        h = info["held_out"]
+        text += f"; held-out PSNR {h['psnr_textured']:.2f} dB (vertex colors {h['psnr_vertex_colors']:.2f} dB)"
+    return text
+
+
+STAGE = Stage(name="mesh", folder="04_mesh", inputs=("normalize", "train"), version=3, run=run)

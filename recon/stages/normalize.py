@@ -25,4 +25,4 @@ def run(ctx: StageContext) -> dict:
     }
 
 
-STAGE = Stage(name="normalize", folder="02_scene", inputs=("poses",), version=1, run=run)
+STAGE = Stage(name="normalize", folder="02_scene", inputs=("poses",), version=2, run=run)

@@ -13,11 +13,12 @@ import numpy as np
 
 from recon.config import PosesConfig
 from recon.errors import InputError
-from recon.images import list_photos, oriented_size, read_image, save_image
+from recon.images import camera_exif, list_photos, oriented_size, read_image, save_image
 from recon.pipeline import Stage, StageContext, sha256_file
 from recon.scene import (
     Scene,
     detect_source,
+    find_masks,
     frame_from_sfm,
     import_colmap,
     import_nerf_synthetic,
@@ -37,6 +38,10 @@ def source_digest(source: Path, cfg: PosesConfig | None) -> str:
     for path in files:
         h.update(str(path.relative_to(source) if source.is_dir() else path.name).encode())
         h.update(sha256_file(path).encode())
+    if kind == "photos" and (source.parent / "masks").is_dir():  # masks beside the photos folder are inputs too
+        for path in sorted(p for p in (source.parent / "masks").iterdir() if p.is_file()):
+            h.update(f"masks/{path.name}".encode())
+            h.update(sha256_file(path).encode())
     return h.hexdigest()
 
 
@@ -67,6 +72,16 @@ def run(ctx: StageContext) -> dict:
         }
     scene.save(ctx.out)
     return summary
+
+
+def prepare_photo(path: Path, image_dir: Path, max_side: int) -> tuple[str, tuple[int, int], tuple[int, int]]:
+    """The copy of one photo COLMAP reads: upright, downscaled to max_side, 8-bit, with the photo's device and
+    focal-length EXIF (Orientation 1). Returns its file name, the photo's and the copy's (width, height)."""
+    original = oriented_size(path)
+    small = read_image(path, max_side=max_side)
+    name = path.stem + (".png" if small.shape[-1] == 4 or path.suffix.lower() == ".png" else ".jpg")
+    save_image(image_dir / name, small[..., :3], exif=camera_exif(path))
+    return name, original, (small.shape[1], small.shape[0])
 
 
 def _video(ctx: StageContext) -> tuple[Scene, dict]:
@@ -133,6 +148,12 @@ def _structure_from_motion(ctx: StageContext, photos: list[Path] | None = None) 
             f"Only {len(photos)} photo(s) in {ctx.source}; structure from motion needs at least {MIN_PHOTOS}, and a "
             f"good reconstruction 20 or more taken all around the subject with about 60% overlap between neighbours."
         )
+    mask_dir, masks = find_masks(photos)
+    if mask_dir is not None:
+        ctx.report.info(
+            f"masks: {len(masks)} masks in {mask_dir} (white = object): masked-out pixels train as background and "
+            f"the mesh keeps only what the masks call object"
+        )
     sfm_dir = ctx.out / "colmap"
     image_dir = sfm_dir / "images"
     image_dir.mkdir(parents=True)
@@ -141,12 +162,7 @@ def _structure_from_motion(ctx: StageContext, photos: list[Path] | None = None) 
     names = []
     with ctx.report.task("reading photos", total=len(photos)) as bar:
         for path in photos:
-            # read once: EXIF orientation applied, downscaled for SfM, saved as 8-bit for COLMAP
-            original_size[path.name] = oriented_size(path)
-            small = read_image(path, max_side=cfg.max_side)
-            sfm_size[path.name] = (small.shape[1], small.shape[0])
-            name = path.stem + (".png" if small.shape[-1] == 4 or path.suffix.lower() == ".png" else ".jpg")
-            save_image(image_dir / name, small[..., :3])
+            name, original_size[path.name], sfm_size[path.name] = prepare_photo(path, image_dir, cfg.max_side)
             names.append((path, name))
             bar.advance()
     by_sfm_name = {name: path for path, name in names}
@@ -169,6 +185,13 @@ def _structure_from_motion(ctx: StageContext, photos: list[Path] | None = None) 
 
         result = run_sfm(image_dir, [n for _, n in names], sfm_dir, options, progress=progress)
     ctx.report.info(f"Camera model: {result.camera_model} — {result.choice_reason}")
+    if len(result.attempts) > 1:
+        first, last = result.attempts[0], result.attempts[-1]
+        helped = "helped" if last["registered"] > first["registered"] else "did not help"
+        ctx.report.info(
+            f"registration retry: the default settings registered {first['registered']}/{len(names)} photos; "
+            f"retried with {last['settings']}: {last['registered']}/{len(names)} ({helped})"
+        )
     if result.dropped:
         ctx.report.warn(
             f"{len(result.dropped)} of {len(names)} photos could not be registered and are left out: "
@@ -181,7 +204,9 @@ def _structure_from_motion(ctx: StageContext, photos: list[Path] | None = None) 
         # frames recon wrote live in the scene folder: stored relative to it, like the .npz import's images
         inside = path.is_relative_to(ctx.out)
         file_path = str(Path(ctx.folder) / path.relative_to(ctx.out)) if inside else str(path.resolve())
-        frames.append(frame_from_sfm(file_path, fd, ow / sw, oh / sh))
+        frame = frame_from_sfm(file_path, fd, ow / sw, oh / sh)
+        frame.mask_path = str(masks[path.name].resolve()) if path.name in masks else None
+        frames.append(frame)
     visibility = {by_sfm_name[n].name: np.asarray(v, dtype=np.int64) for n, v in result.points_visible.items()}
     scene = Scene(
         frames=frames,
@@ -189,7 +214,9 @@ def _structure_from_motion(ctx: StageContext, photos: list[Path] | None = None) 
         point_colors=result.points_rgb,
         point_visibility=visibility,
         source_kind="photos",
-        notes={"camera_model": result.camera_model, "camera_choice": result.choice_reason},
+        has_alpha=mask_dir is not None,
+        notes={"camera_model": result.camera_model, "camera_choice": result.choice_reason,
+               **({"masks": str(mask_dir)} if mask_dir is not None else {})},
     )
     summary = {
         "headline": (
@@ -203,9 +230,11 @@ def _structure_from_motion(ctx: StageContext, photos: list[Path] | None = None) 
         "reprojection_error_px": round(result.mean_reprojection_error, 4),
         "camera_model": result.camera_model,
         "shared_intrinsics": result.shared_intrinsics,
+        "cameras": result.num_cameras,
+        "attempts": result.attempts,
         "timings_s": {k: round(v, 2) for k, v in result.timings.items()},
     }
     return scene, summary
 
 
-STAGE = Stage(name="poses", folder="01_poses", inputs=(), version=1, run=run, needs_source=True, source_digest=source_digest)
+STAGE = Stage(name="poses", folder="01_poses", inputs=(), version=3, run=run, needs_source=True, source_digest=source_digest)

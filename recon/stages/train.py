@@ -24,7 +24,7 @@ import torch
 from recon.config import TrainConfig, parse_duration
 from recon.errors import ReconError
 from recon.field import FIELD_FILE, build_model, save_field
-from recon.images import read_image, undistort
+from recon.images import read_image, read_mask, undistort
 from recon.pipeline import Stage, StageContext, fault_point, interrupts_deferred, sha256_file, write_json_atomic
 from recon.scene import Frame, Scene, load_scene, spread_evenly
 
@@ -51,9 +51,11 @@ def load_view(scene: Scene, frame: Frame, max_side: int, keep_alpha: bool) -> Vi
     """Read, downscale and undistort one photo; intrinsics scaled to the new size."""
     image = read_image(scene.image_path(frame), max_side=max_side)
     h, w = image.shape[:2]
+    if frame.mask_path:  # the mask becomes the alpha channel: what it calls background trains as background
+        image = np.concatenate([image[..., :3], read_mask(Path(frame.mask_path), (w, h))[..., None]], axis=-1)
     sx, sy = w / frame.w, h / frame.h
     fl_x, fl_y, cx, cy = frame.fl_x * sx, frame.fl_y * sy, frame.cx * sx, frame.cy * sy
-    image = undistort(image, fl_x, fl_y, cx, cy, frame.distortion)
+    image = undistort(image, fl_x, fl_y, cx, cy, frame.distortion, frame.camera_model)
     if not keep_alpha:
         image = image[..., :3]
     elif image.shape[-1] == 3:
@@ -416,7 +418,9 @@ def run(ctx: StageContext) -> dict:
     # the checkpoint stays until the pipeline has recorded this stage as done (it then removes ctx.work):
     # a crash between here and the manifest resumes from it instead of training again from step 0
     return {
-        "headline": f"{kind} model, {result['step']} steps in {total_train_time:.0f} s: test PSNR {final['psnr']:.2f} dB, SSIM {final['ssim']:.3f} ({len(test_views)} views)",
+        "headline": (f"{kind} model, {result['step']} steps in {total_train_time:.0f} s: "
+                     f"{'test' if scene.split('test') else 'training-photo (none held out)'} PSNR {final['psnr']:.2f} dB, "
+                     f"SSIM {final['ssim']:.3f} ({len(test_views)} views)"),
         "psnr": round(final["psnr"], 3),
         "ssim": round(final["ssim"], 4),
         "train_time_s": round(total_train_time, 1),

@@ -1,0 +1,128 @@
+"""Phone EXIF reaches COLMAP: focal-length priors, and one camera per device (issue 11, defect 1).
+
+Synthetic JPEGs carry EXIF written with PIL; the copies the poses stage writes for COLMAP must keep
+make, model and focal length (with Orientation 1: their pixels are already upright), and feature
+extraction must give two phones of one resolution two cameras, each with the EXIF focal prior.
+"""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+from PIL import Image
+
+from recon.sfm import SfmOptions, _image_info, camera_groups, choose_camera, extract
+from recon.stages.poses import prepare_photo
+
+EXIF_IFD = 0x8769
+
+
+def phone_photo(path: Path, make: str, model: str, fl35: int, size=(320, 240), orientation: int = 1, seed: int = 0) -> None:
+    rng = np.random.default_rng(seed)
+    img = Image.fromarray((rng.random((size[1], size[0], 3)) * 255).astype(np.uint8))
+    exif = Image.Exif()
+    exif[0x010F], exif[0x0110], exif[0x0112] = make, model, orientation
+    exif.get_ifd(EXIF_IFD).update({0x920A: 4.2, 0xA405: fl35})
+    img.save(path, exif=exif, quality=95)
+
+
+def test_copy_for_colmap_keeps_device_and_focal_exif_upright(tmp_path: Path) -> None:
+    src = tmp_path / "IMG_1.jpg"
+    phone_photo(src, "Apple", "iPhone 12", 26, size=(320, 240), orientation=6)  # stored sideways
+    out = tmp_path / "sfm"
+    out.mkdir()
+    name, original, small = prepare_photo(src, out, max_side=200)
+    assert original == (240, 320) and small == (150, 200)  # turned upright, then downscaled
+    with Image.open(out / name) as im:
+        assert im.size == (150, 200)
+        exif = im.getexif()
+        assert exif.get(0x0112) == 1  # pixels are upright already: a reader must not turn them again
+        assert (exif.get(0x010F), exif.get(0x0110)) == ("Apple", "iPhone 12")
+        sub = exif.get_ifd(EXIF_IFD)
+        assert sub.get(0xA405) == 26 and abs(float(sub.get(0x920A)) - 4.2) < 1e-6
+
+
+def test_two_phones_of_one_resolution_get_two_cameras_with_focal_priors(tmp_path: Path) -> None:
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    specs = [("Apple", "iPhone 12", 26), ("Apple", "iPhone 12", 26), ("Samsung", "SM-G991B", 24)]
+    for i, (make, model, fl35) in enumerate(specs):
+        phone_photo(photos / f"p{i}.jpg", make, model, fl35, seed=i)
+    image_dir = tmp_path / "sfm"
+    image_dir.mkdir()
+    names = [prepare_photo(photos / f"p{i}.jpg", image_dir, max_side=320)[0] for i in range(3)]
+    sizes, devices = _image_info(image_dir, names)
+    assert devices == ["Apple iPhone 12", "Apple iPhone 12", "Samsung SM-G991B"]
+    model, shared, reason = choose_camera(sizes, devices)
+    assert not shared and "2 cameras" in reason
+    groups = camera_groups(sizes, devices, shared)
+    assert groups == [[0, 1], [2]]
+    database = tmp_path / "db.db"
+    extract(database, image_dir, names, groups, model, SfmOptions(num_threads=1))
+    with pycolmap.Database.open(database) as db:
+        cameras = {c.camera_id: c for c in db.read_all_cameras()}
+        camera_of = {im.name: im.camera_id for im in db.read_all_images()}
+    assert len(cameras) == 2
+    assert camera_of["p0.jpg"] == camera_of["p1.jpg"] != camera_of["p2.jpg"]
+    diag = math.hypot(320, 240)
+    for name, fl35 in (("p0.jpg", 26), ("p2.jpg", 24)):
+        cam = cameras[camera_of[name]]
+        assert cam.has_prior_focal_length
+        # COLMAP's 35 mm rule: focal over the 43.27 mm film diagonal, times the image diagonal in pixels
+        assert abs(cam.params[0] - fl35 / math.hypot(36, 24) * diag) < 0.5
+
+
+def test_photos_without_exif_keep_the_old_grouping() -> None:
+    sizes = [(320, 240)] * 3 + [(640, 480)]
+    assert camera_groups(sizes, [None] * 4, shared=False) == [[0], [1], [2], [3]]
+    assert camera_groups(sizes, ["A"] * 4, shared=False) == [[0, 1, 2], [3]]
+    assert camera_groups(sizes, ["A"] * 4, shared=False, shared_intrinsics="no") == [[0], [1], [2], [3]]
+    assert camera_groups(sizes, [None] * 4, shared=True) == [[0, 1, 2, 3]]
+
+
+# ---------------------------------------------------------------------------------------------- few photos
+class FakeModel:
+    def __init__(self, n: int) -> None:
+        self.n = n
+
+    def num_reg_images(self) -> int:
+        return self.n
+
+
+def test_dropped_photos_trigger_the_retry_and_the_better_model_wins() -> None:
+    from recon.sfm import ATTEMPTS, register_best
+
+    tried = []
+
+    def run(attempt):
+        tried.append(attempt.name)
+        return FakeModel({"default": 10, "more features": 14}[attempt.name])
+
+    best, log = register_best(run, total=14, options=SfmOptions())
+    assert tried == ["default", "more features"] and best.n == 14
+    assert [e["registered"] for e in log] == [10, 14]
+    assert "16384 features" in log[1]["settings"] and "guided matching" in log[1]["settings"]
+    assert "2× resolution" in log[1]["settings"]
+    # all registered at once: no retry; a worse retry never replaces the better model
+    tried.clear()
+    best, log = register_best(lambda a: (tried.append(a.name), FakeModel(14))[1], total=14, options=SfmOptions())
+    assert tried == ["default"] and len(log) == 1
+    best, log = register_best(lambda a: FakeModel(12 if a is ATTEMPTS[0] else 9), total=14, options=SfmOptions())
+    assert best.n == 12 and len(log) == 2
+
+
+def test_few_photos_all_train_and_say_how_psnr_is_measured() -> None:
+    from recon.normalization import FEW_PHOTOS, assign_split
+    from recon.scene import Frame
+
+    def frames(n: int) -> list:
+        return [Frame(f"/p/{i:02d}.jpg", np.eye(4), 100.0, 100.0, 50.0, 50.0, 100, 100) for i in range(n)]
+
+    few = frames(15)
+    why = assign_split(few, test_every=8, val_every=8)
+    assert all(f.split == "train" for f in few) and "training photos" in why and "15" in why
+    many = frames(FEW_PHOTOS)
+    assign_split(many, test_every=8, val_every=8)
+    assert sum(f.split == "test" for f in many) == 3 and sum(f.split == "train" for f in many) < FEW_PHOTOS

@@ -1,0 +1,130 @@
+"""The object of interest: what every camera keeps in frame, above the ground plane found by RANSAC
+(issue 11, "the object of interest"), and the mesh stage's region / ground cut and their overrides."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+
+from recon.config import MeshConfig, parse_region
+from recon.errors import ConfigError
+from recon.geometry.clean import clean_mesh, cut_below_plane
+from recon.normalization import normalize
+from recon.config import NormalizeConfig
+from recon.region import fit_ground_plane, object_region
+from recon.scene import Frame, Scene, look_at
+from recon.stages.mesh import mesh_region
+
+W, H, FL = 320, 240, 300.0
+TABLE_Z = -0.3
+
+
+def cameras(n: int = 16, radius: float = 2.5) -> list[Frame]:
+    frames = []
+    for i in range(n):
+        az = 2 * np.pi * i / n
+        el = np.radians(25 + 10 * np.sin(2 * az))
+        eye = radius * np.array([np.cos(az) * np.cos(el), np.sin(az) * np.cos(el), np.sin(el)])
+        frames.append(Frame(f"/p/{i:02d}.jpg", look_at(eye, np.zeros(3)), FL, FL, W / 2, H / 2, W, H))
+    return frames
+
+
+def tabletop_points(rng: np.random.Generator, table: bool = True, room: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """Object (a ball standing on the table), table top (z = TABLE_Z, ±3 units), room (sphere of radius 8); labels."""
+    d = rng.normal(size=(600, 3))
+    obj = 0.3 * d / np.linalg.norm(d, axis=1, keepdims=True)
+    obj = obj[obj[:, 2] > TABLE_Z]  # the part above the table top
+    parts, labels = [obj], [np.zeros(len(obj), int)]
+    if table:
+        t = np.column_stack([rng.uniform(-3, 3, (3000, 2)), np.full(3000, TABLE_Z) + rng.normal(0, 0.003, 3000)])
+        t = t[np.linalg.norm(t[:, :2], axis=1) > 0.3]  # the ball hides the table under it
+        parts.append(t)
+        labels.append(np.ones(len(t), int))
+    if room:
+        r = rng.normal(size=(1500, 3))
+        r = 8 * r / np.linalg.norm(r, axis=1, keepdims=True)
+        r = r[r[:, 2] > TABLE_Z]
+        parts.append(r)
+        labels.append(np.full(len(r), 2))
+    return np.concatenate(parts), np.concatenate(labels)
+
+
+def region_of(points: np.ndarray, frames: list[Frame]):
+    c2ws = np.stack([f.c2w for f in frames])
+    return object_region(points, c2ws, np.array([[f.fl_x, f.fl_y, f.cx, f.cy] for f in frames]),
+                         np.array([[f.w, f.h] for f in frames]), np.zeros(3), np.array([0.0, 0.0, 1.0]))
+
+
+def test_object_on_a_table_in_a_room_is_told_from_table_and_room() -> None:
+    points, labels = tabletop_points(np.random.default_rng(0))
+    region = region_of(points, cameras())
+    assert region is not None and region.ground is not None
+    np.testing.assert_allclose(region.ground.normal, [0, 0, 1], atol=0.01)
+    assert abs(region.ground.offset - TABLE_Z) < 0.01
+    kept = labels[region.points]
+    assert (kept == 0).mean() > 0.97  # the region is the object...
+    assert region.points[labels == 0].mean() > 0.8  # ...and most of it (its bottom rim is cut with the ground)
+    assert region.background_fraction > 0.8
+    assert "RANSAC" in region.reason and "ground" in region.reason
+
+
+def test_floating_object_or_flat_faced_object_has_no_ground() -> None:
+    rng = np.random.default_rng(1)
+    points, _ = tabletop_points(rng, table=False, room=False)
+    region = region_of(points, cameras())
+    assert region is not None and region.ground is None and region.background_fraction < 0.05
+    # a box-shaped object: its flat top and bottom are planes near "up", but they extend nowhere beyond it
+    cube = rng.uniform(-0.3, 0.3, size=(2000, 3))
+    axis = rng.integers(0, 3, 2000)
+    cube[np.arange(2000), axis] = np.sign(rng.normal(size=2000)) * 0.3
+    assert fit_ground_plane(cube, np.array([0, 0, 1.0]), np.zeros(3), 0.01, background=np.zeros(2000, bool)) is None
+    region = region_of(cube, cameras())
+    assert region is not None and region.ground is None and region.points.mean() > 0.99
+
+
+def test_normalize_keeps_the_object_in_the_box_and_contracts_the_rest() -> None:
+    points, labels = tabletop_points(np.random.default_rng(2))
+    frames = cameras()
+    scene = normalize(Scene(frames=frames, points=points, point_colors=np.zeros((len(points), 3), np.uint8)), NormalizeConfig())
+    assert scene.capture == "unbounded" and "background" in scene.notes["capture"]
+    obj = scene.points[labels == 0]
+    region = np.asarray(scene.region)
+    inside = np.all((obj >= region[0] - 1e-9) & (obj <= region[1] + 1e-9), axis=1)
+    assert inside.mean() > 0.9
+    size = region[1] - region[0]
+    assert np.all(size < 1.3 * np.ptp(obj, axis=0))  # no table or room in it
+    # the ground plane, carried into the normalized frame, still holds the table points
+    table = scene.points[labels == 1]
+    heights = table @ scene.ground[:3] - scene.ground[3]
+    assert np.median(np.abs(heights)) < 0.01 * np.ptp(obj[:, 2])
+    # known background (alpha or masks): the object box alone, as before
+    masked = normalize(Scene(frames=cameras(), points=points, point_colors=np.zeros((len(points), 3), np.uint8),
+                             has_alpha=True), NormalizeConfig())
+    assert masked.capture == "object"
+
+
+def test_ground_cut_and_region_overrides() -> None:
+    scene = Scene(frames=cameras(), region=np.array([[-0.3, -0.3, -0.3], [0.3, 0.3, 0.3]]),
+                  ground=np.array([0.0, 0.0, 1.0, -0.3]))
+    scene.world_from_source = np.diag([2.0, 2.0, 2.0, 1.0])  # source = scene / 2
+    aabb = np.array([[-1.0] * 3, [1.0] * 3])
+    box, ground, why = mesh_region(scene, aabb, MeshConfig())
+    np.testing.assert_allclose(box, [[-0.36, -0.36, -0.36], [0.36, 0.36, 0.36]])
+    assert ground is not None and "ground plane is cut" in why
+    box, ground, why = mesh_region(scene, aabb, MeshConfig(region="all"))
+    np.testing.assert_allclose(box, aabb)
+    assert ground is None
+    box, ground, _ = mesh_region(scene, aabb, MeshConfig(region="-0.1,-0.1,-0.1,0.1,0.1,0.2", keep_ground=True))
+    np.testing.assert_allclose(box, [[-0.2, -0.2, -0.2], [0.2, 0.2, 0.4]])
+    assert ground is None
+    with pytest.raises(ConfigError, match="mesh.region"):
+        parse_region("1,2,3")
+    # a ball on a table top: cutting the plane leaves the ball alone
+    ball = trimesh.creation.icosphere(subdivisions=3, radius=0.3)
+    table = trimesh.creation.box(extents=(2, 2, 0.05))
+    table.apply_translation((0, 0, -0.3 - 0.025 + 0.02))
+    both = trimesh.util.concatenate([ball, table])
+    cut, removed = cut_below_plane(both, np.array([0, 0, 1.0, -0.3 + 0.02]), 0.01)
+    assert removed >= len(table.faces) and cut.vertices[:, 2].min() >= -0.3 + 0.03 - 1e-9
+    v, f, report = clean_mesh(both.vertices, both.faces, aabb, ground=np.array([0, 0, 1.0, -0.28]), ground_margin=0.01)
+    assert report["ground_cut"]["faces_removed"] >= len(table.faces) and np.ptp(v[:, 0]) < 0.61
