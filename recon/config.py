@@ -17,6 +17,7 @@ from typing import Any, Literal
 
 from recon.errors import ConfigError
 from recon.nerf.fast import FastConfig
+from recon.nerf.surface import SurfaceConfig
 from recon.sfm import SfmOptions
 
 PIPELINES_DIR = Path(__file__).resolve().parent.parent / "pipelines"
@@ -79,8 +80,9 @@ class ClassicConfig:
 class TrainConfig:
     """Fitting the radiance field to the training photos."""
 
-    model: Literal["auto", "fast", "classic"] = "auto"
-    """auto: the fast grid model (practical on a CPU); classic: the original NeRF MLP."""
+    model: Literal["auto", "fast", "classic", "surface"] = "auto"
+    """auto: the fast grid model (practical on a CPU); classic: the original NeRF MLP; surface: a signed
+    distance field (NeuS) whose mesh is closed and smooth (object captures)."""
     steps: int = 2000
     """Optimizer steps (an upper bound when a time budget is set)."""
     budget: str = ""
@@ -114,6 +116,8 @@ class TrainConfig:
     classic: ClassicConfig = field(default_factory=ClassicConfig)
     fast: FastConfig = field(default_factory=FastConfig)
     """The fast grid model's options (its box and boundedness are set from the scene)."""
+    surface: SurfaceConfig = field(default_factory=SurfaceConfig)
+    """The surface (SDF) model's options (its box is set from the scene)."""
 
 
 @dataclass
@@ -261,6 +265,16 @@ BOUNDS: dict[str, tuple[Any, str]] = {
     "train.fast.max_samples": _at_least(1),
     "train.fast.cone_angle": _at_least(0),
     "train.fast.grid_lr_scale": _positive(),
+    "train.surface.sdf_res": _at_least(17),
+    "train.surface.sdf_levels": _at_least(1),
+    "train.surface.feature_res": _at_least(2),
+    "train.surface.feature_dim": _at_least(1),
+    "train.surface.init_radius": _between(0.01, 1),
+    "train.surface.init_sharpness": _positive(),
+    "train.surface.step_ratio": _positive(),
+    "train.surface.occupancy_res": _at_least(2),
+    "train.surface.eikonal_weight": _at_least(0),
+    "train.surface.curvature_weight": _at_least(0),
     "mesh.resolution": ((lambda v: v == 0 or v >= 8), "0 (automatic) or at least 8"),
     "mesh.max_resolution": _at_least(8),
     "mesh.memory_budget_mb": _at_least(1),
