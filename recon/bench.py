@@ -89,6 +89,8 @@ def run_bench(
             acc = compare_to_gt(scene, gt)
             row["fscore_1pct"] = acc.get("fscore@0.01")
             row["chamfer_rel"] = acc.get("chamfer_l1_rel")
+            row["fscore_05pct"] = acc.get("fscore@0.005")
+            row["normal_consistency"] = acc.get("normal_consistency")
         rows.append(row)
         write_results(rows, out_dir, data)
     return rows

@@ -340,7 +340,7 @@ def fit_image_cmd(
 @app.command()
 def bench(
     data: Annotated[str, typer.Option("--data", help="sample | lego-half | fox | a path to photos or poses.")] = "sample",
-    presets_: Annotated[str, typer.Option("--presets", help="Comma-separated presets to compare.")] = "fast,balanced,quality",
+    presets_: Annotated[str, typer.Option("--presets", help="Comma-separated presets to compare.")] = "fast,balanced,quality,surface",
     out: Annotated[Path, typer.Option("--out", "-o", help="Folder for the scenes, bench.md, bench.json, bench.png.")] = Path("bench"),
     set_: SetOpt = None,
     until: Annotated[str, typer.Option("--until", help="train (PSNR only) or mesh (also mesh accuracy when a GT mesh exists).")] = "mesh",

@@ -135,6 +135,73 @@ class FastConfig:
 
 
 @dataclass
+class SurfaceConfig:
+    """Options of :class:`SurfaceModel` (pipelines/surface.toml names the preset's values)."""
+
+    aabb: tuple[tuple[float, float, float], tuple[float, float, float]] = ((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0))
+    """Scene box [min_xyz, max_xyz] (world units); the grids span it."""
+    sdf_res: int = 128
+    """Vertices per side of the finest SDF grid level."""
+    sdf_levels: int = 4
+    """SDF grid levels, each half the resolution of the next finer one (at least 16 vertices)."""
+    sdf_mlp_width: int = 32
+    """Hidden width of the SDF MLP on the levels' values (0: the SDF is the prior plus the levels' sum)."""
+    level_every: int = 150
+    """Coarse to fine: level k (0 = coarsest) joins the SDF after k * level_every steps (0: all from the start)."""
+    init_radius: float = 0.8
+    """Radius of the initial sphere, as a fraction of half the box's shortest side."""
+    init_sharpness: float = 40.0
+    """Initial NeuS sharpness s (1/world unit): the opacity ramp is ~1/s wide at the start."""
+    feature_res: int = 96
+    """Vertices per side of the color feature grid."""
+    feature_dim: int = 12
+    """Color feature channels."""
+    color_model: Literal["mlp_view", "mlp", "direct"] = "mlp"
+    """As FastConfig.color_model."""
+    sh_degree: int = 2
+    """Spherical-harmonics degree of the view direction (color_model "mlp_view")."""
+    mlp_width: int = 64
+    """Hidden width of the color MLP."""
+    mlp_layers: int = 2
+    """Hidden layers of the color MLP."""
+    step_ratio: float = 1.0
+    """Ray-march step in finest SDF voxels."""
+    max_samples: int = 1024
+    """Cap on candidate samples per ray."""
+    occupancy_res: int = 64
+    """Occupancy grid cells per side."""
+    occupancy_warmup: int = 32
+    """Steps during which every cell counts as occupied."""
+    occupancy_every: int = 8
+    """Refresh the occupancy grid every this many steps."""
+    warmup_step_scale: float = 4.0
+    """Ray-march step multiplier during the occupancy warm-up (nothing is skipped yet)."""
+    band_width: float = 4.0
+    """Occupied shell: |f| < 2 occupancy-cell diagonals + band_width / s (NeuS weights there are below
+    e^-band_width of their peak)."""
+    early_stop_transmittance: float = 1e-3
+    """Drop samples behind this transmittance (no-grad pre-pass); 0 disables it."""
+    color_min_weight: float = 1e-4
+    """Evaluate color only on samples with at least this weight."""
+    eikonal_weight: float = 0.1
+    """Weight of the Eikonal loss mean (|∇f| - 1)²."""
+    curvature_weight: float = 5e-4
+    """Weight of the curvature loss mean |Δf| (world units; 0: off)."""
+    eikonal_samples: int = 4096
+    """Ray samples (a random subset) the regularizers are evaluated on per step."""
+    eikonal_points: int = 2048
+    """Uniform random points in the box the regularizers are evaluated on per step."""
+    background: Literal["white", "black", "learned", "random"] = "white"
+    """Background used when render_rays gets none."""
+    sdf_lr_scale: float = 1.0
+    """SDF grids train at lr * sdf_lr_scale (world units per Adam step)."""
+    grid_lr_scale: float = 10.0
+    """The color grid trains at lr * grid_lr_scale."""
+    sharpness_lr_scale: float = 1.0
+    """log s trains at lr * sharpness_lr_scale."""
+
+
+@dataclass
 class ClassicConfig:
     """The classic NeRF (Mildenhall et al. 2020): 8×256 MLP, skip at layer 5, coarse + fine networks."""
 
@@ -156,8 +223,9 @@ class ClassicConfig:
 class TrainConfig:
     """Fitting the radiance field to the training photos."""
 
-    model: Literal["auto", "fast", "classic"] = "auto"
-    """auto: the fast grid model (practical on a CPU); classic: the original NeRF MLP."""
+    model: Literal["auto", "fast", "classic", "surface"] = "auto"
+    """auto: the fast grid model (practical on a CPU); classic: the original NeRF MLP; surface: a signed
+    distance field (NeuS) whose mesh is closed and smooth (object captures)."""
     steps: int = 2000
     """Optimizer steps (an upper bound when a time budget is set)."""
     budget: str = ""
@@ -191,6 +259,8 @@ class TrainConfig:
     classic: ClassicConfig = field(default_factory=ClassicConfig)
     fast: FastConfig = field(default_factory=FastConfig)
     """The fast grid model's options (its box and boundedness are set from the scene)."""
+    surface: SurfaceConfig = field(default_factory=SurfaceConfig)
+    """The surface (SDF) model's options (its box is set from the scene)."""
 
 
 @dataclass
@@ -338,6 +408,16 @@ BOUNDS: dict[str, tuple[Any, str]] = {
     "train.fast.max_samples": _at_least(1),
     "train.fast.cone_angle": _at_least(0),
     "train.fast.grid_lr_scale": _positive(),
+    "train.surface.sdf_res": _at_least(17),
+    "train.surface.sdf_levels": _at_least(1),
+    "train.surface.feature_res": _at_least(2),
+    "train.surface.feature_dim": _at_least(1),
+    "train.surface.init_radius": _between(0.01, 1),
+    "train.surface.init_sharpness": _positive(),
+    "train.surface.step_ratio": _positive(),
+    "train.surface.occupancy_res": _at_least(2),
+    "train.surface.eikonal_weight": _at_least(0),
+    "train.surface.curvature_weight": _at_least(0),
     "mesh.resolution": ((lambda v: v == 0 or v >= 8), "0 (automatic) or at least 8"),
     "mesh.max_resolution": _at_least(8),
     "mesh.memory_budget_mb": _at_least(1),

@@ -30,6 +30,12 @@ def build_model(kind: str, kwargs: dict[str, Any]) -> torch.nn.Module:
         cfg = dict(args.pop("config", {}))
         cfg["aabb"] = tuple(tuple(row) for row in cfg.get("aabb", FastConfig.aabb))
         return FastModel(FastConfig(**cfg), **args)
+    if kind == "surface":
+        from recon.nerf.surface import SurfaceConfig, SurfaceModel
+
+        cfg = dict(args.pop("config", {}))
+        cfg["aabb"] = tuple(tuple(row) for row in cfg.get("aabb", SurfaceConfig.aabb))
+        return SurfaceModel(SurfaceConfig(**cfg), **args)
     raise ReconError(f"Unknown model kind '{kind}' in a field file; it was written by a newer recon?")
 
 

@@ -170,6 +170,8 @@ def format_comparison(result: dict[str, Any]) -> str:
         f"Chamfer-L1 {result['chamfer_l1']:.4g} ({result['chamfer_l1_rel']:.3%} of the GT diagonal {result['gt_diagonal']:.4g}); "
         f"accuracy {result['accuracy']:.4g}, completeness {result['completeness']:.4g}"
     )
+    if "normal_consistency" in result:
+        lines.append(f"normal agreement (mean |cos| at nearest points, both ways): {result['normal_consistency']:.3f}")
     for tau in result["thresholds"]:
         lines.append(
             f"@{tau:.1%} of diagonal: precision {result[f'precision@{tau:g}']:.3f}  recall {result[f'recall@{tau:g}']:.3f}  "

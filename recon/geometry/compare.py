@@ -13,15 +13,20 @@ Surface = Union[np.ndarray, tuple[np.ndarray, np.ndarray], trimesh.Trimesh]
 
 def sample_surface(surface: Surface, n: int, seed: int = 0) -> np.ndarray:
     """n points uniformly by area on a mesh (trimesh.sample); point clouds are used as given."""
+    return _sample_with_normals(surface, n, seed)[0]
+
+
+def _sample_with_normals(surface: Surface, n: int, seed: int) -> tuple[np.ndarray, np.ndarray | None]:
+    """`sample_surface` plus each point's unit face normal (None for a point cloud)."""
     if isinstance(surface, np.ndarray):
         if surface.ndim != 2 or surface.shape[1] != 3 or len(surface) == 0:
             raise ValueError(f"a point cloud must be a non-empty (N, 3) array, got {surface.shape}")
-        return surface.astype(np.float64)
+        return surface.astype(np.float64), None
     mesh = surface if isinstance(surface, trimesh.Trimesh) else trimesh.Trimesh(*surface, process=False)
     if len(mesh.faces) == 0 or mesh.area <= 0:
         raise ValueError("cannot sample a mesh with no area (empty or degenerate faces)")
-    points, _ = trimesh.sample.sample_surface(mesh, n, seed=seed)
-    return np.asarray(points, np.float64)
+    points, face = trimesh.sample.sample_surface(mesh, n, seed=seed)
+    return np.asarray(points, np.float64), np.asarray(mesh.face_normals[face], np.float64)
 
 
 def _diagonal(points: np.ndarray) -> float:
@@ -42,18 +47,24 @@ def chamfer_fscore(
     gt→pred distance, ``chamfer_l1`` = their mean (units of the input), ``chamfer_l1_rel`` = that
     divided by the GT bounding-box diagonal. For each threshold τ (a fraction of the GT diagonal):
     precision = share of pred samples within τ of gt, recall = share of gt samples within τ of pred,
-    F = 2PR / (P + R), under keys ``precision@τ``, ``recall@τ``, ``fscore@τ``.
+    F = 2PR / (P + R), under keys ``precision@τ``, ``recall@τ``, ``fscore@τ``. When both are meshes,
+    ``normal_consistency`` = mean |cos| between each sample's face normal and that of its nearest sample on
+    the other surface, averaged over both directions (1 = normals agree everywhere; orientation-free).
     Note the sampling floor: with n samples the nearest-sample distance on a perfect match is about
     the sample spacing, ~ sqrt(area / n).
     """
-    p = sample_surface(pred, n_samples, seed)
-    g = sample_surface(gt, n_samples, seed + 1)
-    d_pg, _ = cKDTree(g).query(p)
-    d_gp, _ = cKDTree(p).query(g)
+    p, p_n = _sample_with_normals(pred, n_samples, seed)
+    g, g_n = _sample_with_normals(gt, n_samples, seed + 1)
+    d_pg, i_pg = cKDTree(g).query(p)
+    d_gp, i_gp = cKDTree(p).query(g)
     diag = _diagonal(g)
     acc, comp = float(d_pg.mean()), float(d_gp.mean())
     out = {"accuracy": acc, "completeness": comp, "chamfer_l1": 0.5 * (acc + comp),
            "chamfer_l1_rel": 0.5 * (acc + comp) / diag, "gt_diagonal": diag}
+    if p_n is not None and g_n is not None:  # |cos| between each sample's normal and its nearest sample's, both ways
+        cos_p = np.abs(np.einsum("ij,ij->i", p_n, g_n[i_pg]))
+        cos_g = np.abs(np.einsum("ij,ij->i", g_n, p_n[i_gp]))
+        out["normal_consistency"] = 0.5 * float(np.nanmean(cos_p) + np.nanmean(cos_g))
     for frac in thresholds:
         tau = frac * diag
         prec, rec = float((d_pg < tau).mean()), float((d_gp < tau).mean())

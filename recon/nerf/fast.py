@@ -61,7 +61,7 @@ from recon.nerf.occupancy import OccupancyGrid, density_threshold, march
 from recon.nerf.rays import ray_aabb
 from recon.nerf.render import RadianceModel, accumulate_packed, render_weights_packed
 
-__all__ = ["FastConfig", "FastModel", "sh_encode", "distortion_loss_packed", "trunc_exp"]
+__all__ = ["FastConfig", "FastModel", "sh_encode", "distortion_loss_packed", "ray_background", "trunc_exp"]
 
 def trunc_exp(x: Tensor, max_input: float = 15.0) -> Tensor:
     """exp of x clamped at ``max_input`` (gradient 0 above it): overflow-free density activation."""
@@ -124,6 +124,46 @@ def distortion_loss_packed(weights: Tensor, t_mid: Tensor, delta: Tensor, ray_in
     return accumulate_packed(per_sample, None, ray_indices, n_rays).mean() if n_rays else per_sample.sum()
 
 
+def make_color_mlp(feat: int, color_model: str, sh_degree: int, width: int, layers: int) -> nn.Sequential | None:
+    """The color head on ``feat`` grid channels (None for "direct": sigmoid of the first 3 channels)."""
+    if color_model == "direct":
+        if feat < 3:
+            raise ValueError("color_model='direct' needs at least 3 feature channels")
+        return None
+    in_dim = feat + ((sh_degree + 1) ** 2 if color_model == "mlp_view" else 0)
+    mods: list[nn.Module] = []
+    for _ in range(layers):
+        mods += [nn.Linear(in_dim, width), nn.ReLU(inplace=True)]
+        in_dim = width
+    mods.append(nn.Linear(in_dim, 3))
+    return nn.Sequential(*mods)
+
+
+def color_from_features(f: Tensor, d: Tensor, mlp: nn.Module | None, color_model: str, sh_degree: int) -> Tensor:
+    """RGB (M, 3) in [0, 1] from grid features f (M, C) and unit view directions d (M, 3)."""
+    if mlp is None:
+        return torch.sigmoid(f[:, :3])
+    if color_model == "mlp_view":
+        f = torch.cat([f, sh_encode(d, sh_degree).to(f)], dim=-1)
+    return torch.sigmoid(mlp(f).float())
+
+
+def ray_background(
+    mode: str, bg_logit: Tensor | None, background: Tensor | None, n: int, like: Tensor, training: bool
+) -> Tensor:
+    """Background (n, 3) behind n rays: the learned color (mode "learned"), else the caller's (3,) or (n, 3),
+    else random colors while training in mode "random", else black or white."""
+    if mode == "learned" and bg_logit is not None:
+        return torch.sigmoid(bg_logit).to(like).expand(n, 3)
+    if background is not None:
+        bg = torch.as_tensor(background).to(like)
+        return bg.expand(n, 3) if bg.dim() == 1 else bg
+    if mode == "random" and training:
+        return torch.rand(n, 3, device=like.device, dtype=like.dtype)
+    value = 0.0 if mode == "black" else 1.0
+    return torch.full((n, 3), value, device=like.device, dtype=like.dtype)
+
+
 def _make_grid(kind: GridKind, res: int, dim: int, *, density: bool, levels: int = 1) -> nn.Module:
     """A grid encoder of the given kind; ``dim`` as documented on FastConfig.feature_dim."""
     if kind == "dense":
@@ -162,19 +202,7 @@ class FastModel(RadianceModel):
         self.density_bias = math.log(math.expm1(s0)) if cfg.density_activation == "softplus" else math.log(s0)
 
         self.color_grid = _make_grid(cfg.grid, cfg.feature_res, cfg.feature_dim, density=False, levels=cfg.feature_levels)
-        feat = self.color_grid.out_dim
-        if cfg.color_model == "direct":
-            if feat < 3:
-                raise ValueError("color_model='direct' needs at least 3 feature channels")
-            self.color_mlp = None
-        else:
-            in_dim = feat + ((cfg.sh_degree + 1) ** 2 if cfg.color_model == "mlp_view" else 0)
-            layers: list[nn.Module] = []
-            for _ in range(cfg.mlp_layers):
-                layers += [nn.Linear(in_dim, cfg.mlp_width), nn.ReLU(inplace=True)]
-                in_dim = cfg.mlp_width
-            layers.append(nn.Linear(in_dim, 3))
-            self.color_mlp = nn.Sequential(*layers)
+        self.color_mlp = make_color_mlp(self.color_grid.out_dim, cfg.color_model, cfg.sh_degree, cfg.mlp_width, cfg.mlp_layers)
         self.bg_logit = nn.Parameter(torch.zeros(3)) if cfg.background == "learned" else None
 
         self.occupancy = OccupancyGrid(
@@ -209,12 +237,7 @@ class FastModel(RadianceModel):
         return trunc_exp(raw) * self.density_scale
 
     def _rgb_unit(self, u: Tensor, d: Tensor) -> Tensor:
-        f = self.color_grid(u)
-        if self.color_mlp is None:
-            return torch.sigmoid(f[:, :3])
-        if self.config.color_model == "mlp_view":
-            f = torch.cat([f, sh_encode(d, self.config.sh_degree).to(f)], dim=-1)
-        return torch.sigmoid(self.color_mlp(f).float())
+        return color_from_features(self.color_grid(u), d, self.color_mlp, self.config.color_model, self.config.sh_degree)
 
     def density(self, x: Tensor) -> Tensor:
         """World-space density sigma (M,) at x (M, 3), 1/world unit; 0 outside the scene box (bounded)."""
@@ -231,16 +254,7 @@ class FastModel(RadianceModel):
 
     # ------------------------------------------------------------------ rendering
     def _background(self, background: Tensor | None, n: int, like: Tensor, training: bool) -> Tensor:
-        mode = self.config.background
-        if mode == "learned":
-            return torch.sigmoid(self.bg_logit).to(like).expand(n, 3)
-        if background is not None:
-            bg = torch.as_tensor(background).to(like)
-            return bg.expand(n, 3) if bg.dim() == 1 else bg
-        if mode == "random" and training:
-            return torch.rand(n, 3, device=like.device, dtype=like.dtype)
-        value = 0.0 if mode == "black" else 1.0
-        return torch.full((n, 3), value, device=like.device, dtype=like.dtype)
+        return ray_background(self.config.background, self.bg_logit, background, n, like, training)
 
     def render_rays(
         self,

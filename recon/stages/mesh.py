@@ -230,6 +230,43 @@ def extract_mesh(
     return vertices, faces, info
 
 
+def extract_zero_set(
+    model: torch.nn.Module, aabb: torch.Tensor, shape: tuple[int, int, int], cfg: MeshConfig, report: Any
+) -> tuple[np.ndarray, np.ndarray, dict]:
+    """A surface field's zero level set: -f (positive inside) on the grid over aabb (2, 3), coarse to fine
+    as `extract_mesh`, marching cubes at 0. The grid's outer node layer is set outside (f > 0), so the mesh
+    is closed even where the object meets the box. Returns vertices (V, 3), faces (F, 3), info."""
+    cell = float(grid_spacing(aabb, shape).max())
+    sparse_ok = cfg.coarse_to_fine and max(shape) - 1 >= 2 * (COARSE_NODES - 1)
+    info: dict[str, Any] = {"grid": list(shape), "cell": cell, "mode": "coarse-to-fine" if sparse_ok else "dense"}
+
+    def inside(x: torch.Tensor) -> torch.Tensor:
+        return -model.sdf(x)
+
+    t0 = time.perf_counter()
+    with report.task("signed distance grid", total=None if sparse_ok else math.prod(shape), unit="points") as bar:
+        if sparse_ok:
+            grid, info["sparse"] = density_grid_sparse(_counting(inside, bar), aabb, shape, 0.0, coarse=COARSE_NODES, chunk=DENSITY_CHUNK)
+            info["evaluated"] = info["sparse"]["evaluated"]
+        else:
+            grid = density_grid(_counting(inside, bar), aabb, shape, chunk=DENSITY_CHUNK)
+            info["evaluated"] = math.prod(shape)
+    for axis in range(3):  # close the surface at the box: its faces count as outside
+        idx: list[Any] = [slice(None)] * 3
+        for end in (0, -1):
+            idx[axis] = end
+            np.minimum(grid[tuple(idx)], -0.5 * cell, out=grid[tuple(idx)])
+    info["time_grid_s"] = round(time.perf_counter() - t0, 3)
+    info["iso"], info["iso_reason"] = 0.0, "the signed distance's zero level set (surface field)"
+    report.info(f"signed distance grid: {info['evaluated']:,} of {math.prod(shape):,} nodes evaluated in {info['time_grid_s']:.1f} s")
+    if not grid.max() > 0:
+        raise ReconError("The surface field has no inside (its signed distance is positive everywhere in the box); re-train it.")
+    t1 = time.perf_counter()
+    vertices, faces = marching_cubes(grid, 0.0, aabb)
+    info["time_marching_cubes_s"] = round(time.perf_counter() - t1, 3)
+    return vertices, faces, info
+
+
 # ---------------------------------------------------------------------------------------- colors
 def render_depth(
     model: torch.nn.Module, view: View, aabb: torch.Tensor | None, background: np.ndarray, max_side: int | None = None
@@ -452,12 +489,14 @@ def run(ctx: StageContext) -> dict:
     shape, res_why = choose_resolution(region, cfg, footprint, fp_why)
     ctx.report.info(f"resolution: {res_why}")
 
+    surface = meta.get("kind") == "surface"  # an SDF: its zero level set is closed, no hidden faces to drop
     kind = "classic" if meta.get("kind") == "classic" else "fast"
+    drop_hidden = cfg.drop_hidden and not surface
     bounded = meta.get("bounded", True)
     views: list[View] = []
     depths: list[np.ndarray] = []
     masked = bool(train_frames) and all(f.mask_path for f in train_frames)
-    if cfg.color == "photos" or cfg.drop_hidden or masked:
+    if cfg.color == "photos" or drop_hidden or masked:
         t = time.perf_counter()
         limit = CPU_BAKE_VIEWS[kind] if device.type == "cpu" else 0
         depth_side = CPU_DEPTH_SIDE[kind] if device.type == "cpu" else None
@@ -466,17 +505,17 @@ def run(ctx: StageContext) -> dict:
         timings["depth_s"] = round(time.perf_counter() - t, 3)
         view_note = f"{len(views)} of {len(train_frames)} training views"
         if len(views) < len(train_frames):
-            view_note += f" (spread evenly; at most {limit} on the CPU for the {kind} model, each costs a depth render)"
+            view_note += f" (spread evenly; at most {limit} on the CPU for the {meta.get('kind', kind)} model, each costs a depth render)"
         if depth_side:
             view_note += f", depth rendered at ≤ {depth_side} px"
 
     t = time.perf_counter()
-    vertices, faces, extract = extract_mesh(model, region_t, shape, cfg, ctx.report)
+    vertices, faces, extract = (extract_zero_set if surface else extract_mesh)(model, region_t, shape, cfg, ctx.report)
     timings["extract_s"] = round(time.perf_counter() - t, 3)
 
     t = time.perf_counter()
     seen_fn = None
-    if cfg.drop_hidden:
+    if drop_hidden:
         hidden_tol = HIDDEN_TOL_CELLS * surface_cell(model, region, shape)[0]
         seen_fn = see_with_views(views, depths, hidden_tol)
     vertices, faces, clean = clean_mesh(

@@ -47,6 +47,8 @@ def model_spec(cfg: TrainConfig, scene: Scene, views: list[View]) -> tuple[str, 
     """(model kind, constructor kwargs, learning rate, reasons) — the simplest model the scene needs."""
     aabb = np.asarray(scene.aabb, dtype=np.float64)
     reasons = []
+    if cfg.model == "surface":
+        return surface_spec(cfg, scene)
     kind = "fast" if cfg.model in ("auto", "fast") else "classic"
     if kind == "classic":
         c = cfg.classic
@@ -57,7 +59,32 @@ def model_spec(cfg: TrainConfig, scene: Scene, views: list[View]) -> tuple[str, 
     fast_cfg, why = auto_fast_config(cfg.fast, scene, footprint)
     reasons.append("fast grid model" + (" (train.model=auto: the practical choice on a CPU)" if cfg.model == "auto" else ""))
     reasons += why
+    if cfg.model == "auto":
+        reasons.append(
+            "surface model not chosen: it renders a little less sharply; for a closed, smooth mesh of this object "
+            "capture use --preset surface (train.model=surface)" if scene.capture == "object"
+            else "surface model not offered: it needs an object capture (this scene is unbounded)"
+        )
     return kind, {"config": asdict(fast_cfg)}, cfg.lr or FAST_LR, reasons
+
+
+def surface_spec(cfg: TrainConfig, scene: Scene) -> tuple[str, dict[str, Any], float, list[str]]:
+    """The surface (SDF) model for an object capture; refused, with what to do, for an unbounded scene."""
+    from dataclasses import replace
+
+    if scene.capture != "object":
+        raise ReconError(
+            f"train.model=surface needs an object capture (a bounded box around one object); this scene is "
+            f"'{scene.capture}'. Use --preset balanced (or train.model=fast) for unbounded scenes."
+        )
+    aabb = np.asarray(scene.aabb, dtype=np.float64)
+    surf = replace(cfg.surface, aabb=tuple(tuple(float(x) for x in row) for row in aabb))
+    reasons = [
+        "surface model (train.model=surface): signed distance on "
+        f"{surf.sdf_levels} dense levels up to {surf.sdf_res}³, NeuS opacity with learned sharpness, Eikonal "
+        "and curvature terms; its mesh is the closed zero level set"
+    ]
+    return "surface", {"config": asdict(surf)}, cfg.lr or FAST_LR, reasons
 
 
 FAST_LR = 1e-2
