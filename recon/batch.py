@@ -19,7 +19,8 @@ from typing import Any
 
 from recon.config import RunConfig, load_config
 from recon.errors import InputError, ReconError
-from recon.pipeline import MANIFEST, prepare_scene_dir, write_json_atomic
+from recon.atomic import write_bytes_atomic, write_json_atomic
+from recon.pipeline import MANIFEST, prepare_scene_dir
 from recon.progress import Reporter, format_seconds
 
 INSTALL_HINT = 'pip install -c constraints.txt -e ".[ray]"'
@@ -210,7 +211,7 @@ def run_capture(source: Path, scene_dir: Path, preset: str, overrides: list[str]
         prepare_scene_dir(scene_dir)
         with open(scene_dir / "batch.log", "a") as log:
             reporter = _CaptureReporter(Console(file=log, width=160, highlight=False), board, name)
-            reporter.info(f"[bold]recon batch[/]: {source} → {scene_dir} (preset {preset}, pid {os.getpid()})")
+            reporter.info(f"recon batch: {source} → {scene_dir} (preset {preset}, pid {os.getpid()})")
             try:
                 default_pipeline().run(scene_dir, load_config(preset, overrides), reporter, source=source, preset=preset)
             except ReconError as exc:
@@ -324,7 +325,7 @@ def run_batch(
     nodes = [n["Resources"] for n in ray.nodes() if n.get("Alive")]
     per_node = [resources.per_node(n) for n in nodes]
     report.info(
-        f"[bold]recon batch[/]: {len(captures)} captures, preset {preset}, {len(nodes)} node(s) "
+        f"recon batch: {len(captures)} captures, preset {preset}, {len(nodes)} node(s) "
         f"({', '.join(_node_text(n) for n in nodes)})"
     )
     for c in captures:
@@ -412,6 +413,4 @@ def write_batch_reports(out: Path, result: dict[str, Any]) -> None:
         mesh = f"{r['faces']:,} faces" if "faces" in r else "—"
         error = (r.get("error") or "").replace("|", "\\|").replace("\n", " ")
         lines.append(f"| {r['name']} | {stages} | {format_seconds(r.get('wall_s'))} | {r.get('photos', '—')} | {psnr} | {mesh} | {error} |")
-    tmp = out / f".batch.md.{os.getpid()}.tmp"
-    tmp.write_text("\n".join(lines) + "\n")
-    os.replace(tmp, out / "batch.md")
+    write_bytes_atomic(out / "batch.md", "\n".join(lines) + "\n")

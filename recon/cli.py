@@ -9,7 +9,6 @@ from __future__ import annotations
 import contextlib
 import os
 import sys
-import tempfile
 import traceback
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -21,7 +20,7 @@ from rich.markup import escape
 from rich.table import Table
 
 from recon.config import RunConfig, available_presets, load_config, preset_description
-from recon.errors import ReconError
+from recon.errors import ConfigError, ReconError
 from recon.pipeline import install_sigterm_as_interrupt, is_disk_full
 from recon.progress import Reporter, format_seconds, format_summary
 
@@ -70,14 +69,28 @@ def _guard(scene_dir: Path | None = None) -> Iterator[None]:
         _report_bug(exc, scene_dir)
 
 
+def _crash_log_path(scene_dir: Path | None) -> Path:
+    """Where a crash's traceback goes: the scene folder when it is a recon scene, else the per-user cache folder
+    (never a fixed name in a shared /tmp, where anyone could plant a link)."""
+    if scene_dir is not None and (scene_dir / "manifest.json").is_file():
+        return scene_dir / "recon-error.log"
+    cache = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "recon"
+    cache.mkdir(mode=0o700, parents=True, exist_ok=True)
+    return cache / "recon-error.log"
+
+
 def _report_bug(exc: BaseException, scene_dir: Path | None) -> None:
-    log_dir = scene_dir if scene_dir is not None and scene_dir.is_dir() else Path(tempfile.gettempdir())
-    log = log_dir / "recon-error.log"
+    from recon.atomic import write_bytes_atomic
+
+    log: Path | None = None
     with contextlib.suppress(OSError):
-        log.write_text("".join(traceback.format_exception(exc)))
+        # written exclusively next to it and renamed over it: a link planted at the log's name is replaced, not followed
+        log = write_bytes_atomic(_crash_log_path(scene_dir), "".join(traceback.format_exception(exc)))
+    where = f"The details are in {escape(str(log))}; please include that file in a report." if log else (
+        "The details could not be saved (the log folder is not writable).")
     console.print(
         f"[bold red]internal error:[/] {type(exc).__name__}: {escape(str(exc))}\n"
-        f"This is a bug in recon, not in your input. The details are in {log}; please include that file in a report."
+        f"This is a bug in recon, not in your input. {where}"
     )
     raise typer.Exit(1) from None
 
@@ -90,14 +103,22 @@ def _config(preset: str | None, overrides: list[str] | None) -> RunConfig:
     return load_config(preset or DEFAULT_PRESET, overrides)
 
 
+def _check_device(config: RunConfig) -> None:
+    """A CUDA device that is not there is refused before any stage runs (not after structure from motion)."""
+    if config.train.device.strip().lower().startswith("cuda"):
+        from recon.nerf.device import select_device
+
+        try:
+            select_device(config.train.device)
+        except ValueError as exc:
+            raise ConfigError(f"Option 'train.device': {exc}.") from None
+
+
 def _recorded_preset(scene_dir: Path) -> str | None:
     """The preset the scene was last run with (so `recon mesh SCENE` keeps the run's settings)."""
-    import json
+    from recon.pipeline import Manifest
 
-    try:
-        return json.loads((scene_dir / "manifest.json").read_text()).get("preset")
-    except (OSError, ValueError, AttributeError):
-        return None
+    return Manifest(scene_dir).data.get("preset")  # a damaged manifest records none (the runner warns)
 
 
 def _pipeline():
@@ -107,13 +128,13 @@ def _pipeline():
 
 
 def _summary_table(outcomes: list[Any], scene_dir: Path) -> None:
-    table = Table(title=f"recon — {scene_dir}", show_lines=False)
+    table = Table(title=f"recon — {escape(str(scene_dir))}", show_lines=False)
     table.add_column("stage")
     table.add_column("")
     table.add_column("time", justify="right")
     table.add_column("result")
     for o in outcomes:
-        table.add_row(o.name, "ran" if o.action == "ran" else "cached", format_seconds(o.wall_s) if o.action == "ran" else "—", format_summary(o.summary))
+        table.add_row(o.name, "ran" if o.action == "ran" else "cached", format_seconds(o.wall_s) if o.action == "ran" else "—", escape(format_summary(o.summary)))
     out_console.print(table)
 
 
@@ -132,10 +153,11 @@ def _run(
     with _guard(scene_dir):
         preset = preset or _recorded_preset(scene_dir)
         config = _config(preset, overrides)
+        _check_device(config)
         report = Reporter(console, quiet=quiet)
         report.observers = list(observers or [])
         if not quiet:
-            report.info(f"preset [bold]{preset or DEFAULT_PRESET}[/]: {preset_description(preset or DEFAULT_PRESET)}")
+            report.info(f"preset [bold]{escape(preset or DEFAULT_PRESET)}[/]: {escape(preset_description(preset or DEFAULT_PRESET))}", markup=True)
         outcomes = _pipeline().run(
             scene_dir,
             config,
@@ -210,15 +232,20 @@ def status(
             raise ReconError(f"{scene} is not a recon scene folder (no manifest.json). Create one with `recon run PHOTOS --out {scene}`.")
         # without options, "stale" means an upstream stage changed; with them, also "differs from these options"
         config = _config(preset, set_) if (preset or set_) else None
+        from recon.pipeline import Manifest
+
+        warning = Manifest(scene).warning
+        if warning:
+            console.print(f"[yellow]warning:[/] {escape(warning)}")
         rows = _pipeline().state(scene, config)
-        table = Table(title=f"recon status — {scene}")
+        table = Table(title=f"recon status — {escape(str(scene))}")
         for col in ("stage", "state", "time", "finished", "result"):
             table.add_column(col)
         colors = {"done": "green", "stale": "yellow", "missing": "dim", "failed": "red", "corrupt": "red"}
         for row in rows:
             state = row["state"]
             result = format_summary(row["summary"]) if state != "failed" else row.get("error", "")
-            table.add_row(row["stage"], f"[{colors[state]}]{state}[/]", format_seconds(row["wall_s"]), str(row.get("finished") or ""), result)
+            table.add_row(row["stage"], f"[{colors[state]}]{state}[/]", format_seconds(row["wall_s"]), str(row.get("finished") or ""), escape(str(result)))
         out_console.print(table)
 
 
@@ -241,7 +268,7 @@ def render(
         if frames < 1:
             raise ReconError(f"--frames must be at least 1; got {frames}.")
         written = render_path(scene, path, out, frames=frames, max_side=max_side, depth=depth, device=device, report=Reporter(console))  # type: ignore[arg-type]
-        out_console.print("wrote " + ", ".join(str(p) for p in written) + f" and the frames in {out}")
+        out_console.print("wrote " + ", ".join(str(p) for p in written) + f" and the frames in {out}", markup=False)
 
 
 @app.command(name="eval")
@@ -261,19 +288,20 @@ def eval_(
         target = out or scene / "eval"
         if gt_mesh is not None:
             from recon.mesh_eval import compare_to_gt, format_comparison
-            from recon.pipeline import write_json_atomic
+            from recon.atomic import write_json_atomic
 
             if not gt_mesh.is_file():
                 raise ReconError(f"The ground-truth mesh {gt_mesh} does not exist.")
             comparison = compare_to_gt(scene, gt_mesh)
             target.mkdir(parents=True, exist_ok=True)
             write_json_atomic(target / "mesh_accuracy.json", comparison)
-            out_console.print(format_comparison(comparison))
+            out_console.print(format_comparison(comparison), markup=False)
             return
         result = evaluate_scene(scene, target, split=split, max_side=max_side, device=device, report=Reporter(console), limit=limit)
         out_console.print(
             f"{split}: mean PSNR {result['psnr']:.2f} dB, SSIM {result['ssim']:.3f} over {len(result['views'])} views "
-            f"— {target / 'metrics.json'}, {target / 'grid.png'}"
+            f"— {target / 'metrics.json'}, {target / 'grid.png'}",
+            markup=False,
         )
 
 
@@ -306,7 +334,7 @@ def fit_image_cmd(
         from recon.plots import training_curves
 
         training_curves([], curve, out / "curve.png", title=f"2D field, L={freqs}")
-        out_console.print(f"PSNR {curve[-1]['psnr']:.2f} dB after {steps} steps — {out / 'fitted.png'}, {out / 'curve.png'}")
+        out_console.print(f"PSNR {curve[-1]['psnr']:.2f} dB after {steps} steps — {out / 'fitted.png'}, {out / 'curve.png'}", markup=False)
 
 
 @app.command()
@@ -324,8 +352,8 @@ def bench(
     with _guard():
         names = [p.strip() for p in presets_.split(",") if p.strip()]
         rows = run_bench(data, names, out, list(set_ or []), Reporter(console), until=until)
-        out_console.print((out / "bench.md").read_text())
-        out_console.print(f"{len(rows)} presets measured — {out / 'bench.md'}, {out / 'bench.png'}")
+        out_console.print((out / "bench.md").read_text(), markup=False)
+        out_console.print(f"{len(rows)} presets measured — {out / 'bench.md'}, {out / 'bench.png'}", markup=False)
 
 
 @app.command()
@@ -404,7 +432,7 @@ def presets() -> None:
     """List the presets in pipelines/ and what each trades."""
     with _guard():
         for name in available_presets():
-            out_console.print(f"[bold]{name}[/]: {preset_description(name)}")
+            out_console.print(f"[bold]{escape(name)}[/]: {escape(preset_description(name))}")
 
 
 def main() -> None:

@@ -20,8 +20,9 @@ from typing import Any, Literal
 
 import numpy as np
 
+from recon.atomic import write_json_atomic
 from recon.errors import ReconError
-from recon.pipeline import _swap_into_place, write_json_atomic
+from recon.pipeline import _swap_into_place
 from recon.scene import Frame, Scene, load_scene
 
 ExportFormat = Literal["nerfstudio", "colmap", "points"]

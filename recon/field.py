@@ -5,14 +5,13 @@ mesh rebuild exactly the model train fitted without knowing the training config.
 """
 from __future__ import annotations
 
-import os
 from pathlib import Path
 from typing import Any
 
 import torch
 
 from recon.errors import ReconError
-from recon.pipeline import interrupts_deferred
+from recon.atomic import atomic_open, interrupts_deferred
 
 FIELD_FILE = "field.pt"
 FIELD_FORMAT = 1
@@ -42,16 +41,10 @@ def build_model(kind: str, kwargs: dict[str, Any]) -> torch.nn.Module:
 
 def save_field(path: Path, kind: str, kwargs: dict[str, Any], model: torch.nn.Module, meta: dict[str, Any]) -> None:
     """Atomically write the model (weights on CPU) with what is needed to rebuild it."""
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     state = {k: v.detach().cpu() for k, v in model.state_dict().items()}
-    with interrupts_deferred():
-        try:
-            with open(tmp, "wb") as f:  # a Python file object: a full disk raises OSError(ENOSPC), not RuntimeError
-                torch.save({"format": FIELD_FORMAT, "kind": kind, "kwargs": kwargs, "state_dict": state, "meta": meta}, f)
-        except BaseException:
-            tmp.unlink(missing_ok=True)
-            raise
-        os.replace(tmp, path)
+    # a Python file object: a full disk raises OSError(ENOSPC), not torch's RuntimeError
+    with interrupts_deferred(), atomic_open(path, "wb") as f:
+        torch.save({"format": FIELD_FORMAT, "kind": kind, "kwargs": kwargs, "state_dict": state, "meta": meta}, f)
 
 
 def load_field(folder: Path, device: torch.device | str = "cpu") -> tuple[torch.nn.Module, dict[str, Any]]:

@@ -10,13 +10,13 @@ frame) to the true ones, frames matched by file name, and its residual reported.
 """
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
 import trimesh
 
+from recon.atomic import read_json
 from recon.errors import ReconError
 from recon.geometry.compare import chamfer_fscore, fit_sim3
 from recon.scene import Scene, load_scene, parse_frames
@@ -45,7 +45,7 @@ def our_mesh_in_scene_frame(scene_dir: Path) -> tuple[np.ndarray, np.ndarray, di
     """
     folder = scene_dir / MESH_FOLDER
     try:
-        report = json.loads((folder / "mesh_report.json").read_text())
+        report = read_json(folder / "mesh_report.json")
     except (OSError, ValueError) as exc:
         raise ReconError(f"No readable mesh report in {folder} ({exc}). Run the mesh stage first: recon mesh {scene_dir}.") from None
     mesh = _load_mesh(folder / report.get("export", {}).get("files", {}).get("ply", "mesh.ply"))
@@ -64,7 +64,7 @@ def _true_poses(candidates: Sequence[Path]) -> tuple[Path, dict[str, np.ndarray]
         path = folder / "transforms.json" if folder.is_dir() else folder
         if path.name == "transforms.json" and path.is_file():
             try:
-                doc = json.loads(path.read_text())
+                doc = read_json(path)
                 frames = parse_frames(doc, base=path.parent, source=path, check_files=False)
             except (ValueError, ReconError) as exc:
                 raise ReconError(f"The true poses {path} are unreadable ({exc}).") from None
@@ -129,9 +129,10 @@ def compare_to_gt(
     else:
         candidates = [gt_mesh.parent]
         try:
-            source = json.loads((scene_dir / "manifest.json").read_text()).get("source")
-        except (OSError, ValueError):
+            source = read_json(scene_dir / "manifest.json").get("source")
+        except (OSError, ValueError, AttributeError):
             source = None
+        source = source if isinstance(source, str) else None
         if source:
             candidates = [Path(source), Path(source).parent, gt_mesh.parent]
         found = _true_poses(candidates)

@@ -14,9 +14,9 @@ import torch
 from recon.errors import ReconError
 from recon.field import load_field
 from recon.images import save_image
-from recon.pipeline import write_json_atomic
-from recon.scene import Scene, load_scene, look_at
-from recon.stages.train import View, evaluate, load_views, render_view
+from recon.atomic import write_json_atomic
+from recon.scene import Scene, load_scene, look_at, spread_evenly
+from recon.views import View, evaluate, load_views, render_view, write_previews
 
 PathKind = Literal["orbit", "spiral", "train", "test"]
 
@@ -112,12 +112,9 @@ def render_path(scene_dir: Path, kind: PathKind, out_dir: Path, frames: int = 60
 
 def evaluate_scene(scene_dir: Path, out_dir: Path, split: str = "test", max_side: int | None = None, device: str = "auto", report: Any = None, limit: int = 0) -> dict[str, Any]:
     """Render every view of a split: per-view and mean PSNR/SSIM (metrics.json) and an image grid PNG."""
-    from recon.stages.train import write_previews
-
     scene, model, meta, aabb = _trained(scene_dir, device)
     frames = scene.split(split)
-    if limit > 0:
-        frames = frames[:: max(1, len(frames) // limit)][:limit]
+    frames = spread_evenly(frames, limit)  # the same views training's final evaluation picks (limit 0: all)
     if not frames:
         raise ReconError(f"The scene has no '{split}' views to evaluate. Try --split val or --split train.")
     background = np.asarray(meta["background"], dtype=np.float32)

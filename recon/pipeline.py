@@ -19,7 +19,6 @@ import os
 import shutil
 import signal
 import sys
-import threading
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
@@ -27,6 +26,7 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
+from recon.atomic import fault_point, is_temp_name, read_json, sha256_file, write_json_atomic
 from recon.config import RunConfig, config_slice
 from recon.errors import ReconError
 from recon.progress import Reporter
@@ -84,14 +84,6 @@ def _now() -> str:
     return datetime.now(timezone.utc).isoformat(timespec="seconds")
 
 
-def sha256_file(path: Path, block: int = 1 << 20) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        while chunk := f.read(block):
-            h.update(chunk)
-    return h.hexdigest()
-
-
 def folder_files(folder: Path) -> dict[str, dict]:
     """Per-file checksums of a stage folder: recorded at write time, checked before a cached stage is reused."""
     files = {}
@@ -116,69 +108,55 @@ def package_versions() -> dict[str, str]:
     return versions
 
 
-_FAULT_HITS: dict[str, int] = {}
+MANIFEST_FORMAT = "recon-scene-manifest"
+
+_ENTRY_TYPES: dict[str, tuple[type, ...]] = {
+    "status": (str,), "fingerprint": (str,), "output_digest": (str,), "input_digests": (dict,), "files": (dict,),
+    "summary": (dict,), "config": (dict, type(None)), "versions": (dict,), "wall_s": (int, float, type(None)),
+    "started": (str,), "finished": (str,), "last_error": (str,), "last_attempt": (str,),
+}
+"""The type of each key a stage's manifest entry may have: anything else means the file was damaged or edited."""
 
 
-def fault_point(point: str) -> None:
-    """Fault injection for the reliability tests; a no-op unless RECON_FAULT is set.
-
-    RECON_FAULT="POINT[*N][:ACTION]" acts at the N-th (default first) pass through the named point.
-    Points: "STAGE/start", "STAGE/after-output", "STAGE/mid-swap", "STAGE/after-swap",
-    "STAGE/after-manifest", "train/checkpoint" (after each checkpoint is complete), and "write/FILENAME"
-    (inside `write_json_atomic`, before its rename).
-    ACTION: "kill" (default: SIGKILL now), "kill-after-S" (SIGKILL S seconds later, wherever the process
-    then is), "enospc" (raise OSError(ENOSPC) as a full disk would).
-    """
-    spec = os.environ.get("RECON_FAULT")
-    if not spec:
-        return
-    target, _, action = spec.partition(":")
-    name, _, nth = target.partition("*")
-    if name != point:
-        return
-    _FAULT_HITS[point] = _FAULT_HITS.get(point, 0) + 1
-    if _FAULT_HITS[point] != int(nth or 1):
-        return
-    if action == "enospc":
-        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), point)
-    if action.startswith("kill-after-"):
-        timer = threading.Timer(float(action.removeprefix("kill-after-")), os.kill, (os.getpid(), signal.SIGKILL))
-        timer.daemon = True
-        timer.start()
-        return
-    os.kill(os.getpid(), signal.SIGKILL)
-
-
-def write_json_atomic(path: Path, data: Any) -> None:
-    """Write JSON next to its final place, fsync, then rename over it: readers see old or new, never half."""
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        with open(tmp, "w") as f:
-            json.dump(data, f, indent=2, sort_keys=False)
-            f.write("\n")
-            f.flush()
-            os.fsync(f.fileno())
-        fault_point(f"write/{path.name}")
-    except BaseException:
-        tmp.unlink(missing_ok=True)  # a full disk must not also leave half a file behind
-        raise
-    os.replace(tmp, path)
+def manifest_problem(data: Any) -> str | None:
+    """Why `data` is not a manifest recon wrote (None when it is one)."""
+    if not isinstance(data, dict):
+        return f"it holds a {type(data).__name__}, not an object"
+    if data.get("format", MANIFEST_FORMAT) != MANIFEST_FORMAT or not isinstance(data.get("version"), int):
+        return "it has no recon manifest format/version"
+    if not isinstance(data.get("stages"), dict):
+        return "'stages' is missing or not an object"
+    for key in ("source", "preset"):
+        if not isinstance(data.get(key), (str, type(None))):
+            return f"'{key}' is not a string"
+    for name, entry in data["stages"].items():
+        if not isinstance(entry, dict):
+            return f"the entry of stage '{name}' is not an object"
+        for key, value in entry.items():
+            if key in _ENTRY_TYPES and not isinstance(value, _ENTRY_TYPES[key]):
+                return f"stage '{name}': '{key}' has the wrong type ({type(value).__name__})"
+    return None
 
 
 class Manifest:
-    """SCENE/manifest.json: per stage, its fingerprint, status, times, versions, outputs and summary."""
+    """SCENE/manifest.json: per stage, its fingerprint, status, times, versions, outputs and summary.
+
+    A damaged or hand-edited manifest (bad JSON, wrong types) is not trusted: `warning` says so and every
+    stage's cache is ignored, as if the scene were new.
+    """
 
     def __init__(self, scene_dir: Path):
         self.path = scene_dir / MANIFEST
-        self.data: dict[str, Any] = {"version": MANIFEST_VERSION, "source": None, "stages": {}}
+        self.data: dict[str, Any] = {"format": MANIFEST_FORMAT, "version": MANIFEST_VERSION, "source": None, "stages": {}}
         self.warning: str | None = None
         if self.path.exists():
             try:
-                data = json.loads(self.path.read_text())
-                if not isinstance(data, dict) or not isinstance(data.get("stages"), dict):
-                    raise ValueError("missing 'stages'")
+                data = read_json(self.path)
+                problem = manifest_problem(data)
+                if problem:
+                    raise ValueError(problem)
                 self.data = data
-            except (ValueError, UnicodeDecodeError) as exc:
+            except (OSError, ValueError) as exc:
                 self.warning = f"{self.path} was unreadable ({exc}); every stage's cache is ignored and re-checked."
 
     @property
@@ -186,6 +164,7 @@ class Manifest:
         return self.data["stages"]
 
     def save(self) -> None:
+        self.data.setdefault("format", MANIFEST_FORMAT)
         write_json_atomic(self.path, self.data)
 
 
@@ -208,6 +187,76 @@ def scene_lock(scene_dir: Path) -> Iterator[None]:
         yield
     finally:
         os.close(fd)
+
+
+LOG_NAMES = frozenset({"logs", "recon-error.log", "batch.log"})
+"""recon's own logs in a scene folder (COLMAP's, a crash's, `recon batch`'s), which may precede its manifest."""
+RECON_NAMES = frozenset({MANIFEST, LOCK, ".work"}) | LOG_NAMES
+"""Names recon itself creates directly in a scene folder (besides the stage folders and temporary names)."""
+
+
+def _forbidden_out(resolved: Path) -> str | None:
+    """Why a resolved path can never be a scene folder: the root, the home folder or a folder above it."""
+    home = Path.home().resolve()
+    if resolved == Path(resolved.anchor):
+        return "the root of the file system"
+    if resolved == home:
+        return "your home folder"
+    if resolved in home.parents:
+        return "a folder that holds your home folder"
+    return None
+
+
+def check_scene_dir(scene_dir: Path, source: Path | None, stage_folders: list[str]) -> None:
+    """Refuse an output folder recon could damage: recon writes only into a new or empty folder or a scene it made.
+
+    `scene_dir` must not be the root, the home folder (or above it), must not contain, equal or sit inside the
+    photos (`source`), and when it exists and is not empty it must hold a valid recon manifest.json, or recon's
+    lock file and nothing but names recon gives its own files (a scene whose manifest was damaged, or a first run
+    stopped before its first manifest write).
+    """
+    resolved = scene_dir.resolve()
+    why = _forbidden_out(resolved)
+    if why:
+        raise ReconError(
+            f"Refusing to use {scene_dir} as the output folder: it is {why}, and recon would write its scene files "
+            f"there. Give --out a new folder, e.g. --out {Path.home() / 'recon-scene'}."
+        )
+    if source is not None:
+        photos = source.resolve()
+        if photos == resolved or resolved in photos.parents or photos in resolved.parents:
+            relation = ("is the input" if photos == resolved else "contains the input" if resolved in photos.parents
+                        else "is inside the input")
+            raise ReconError(
+                f"The output folder {scene_dir} {relation} {source}. recon must never write among the photos (or the "
+                f"photos among its outputs, which it replaces): choose an --out folder outside {photos.parent if photos.is_file() else photos}, "
+                f"e.g. --out {photos.parent / (photos.stem + '-scene')}."
+            )
+    if scene_dir.exists() and not scene_dir.is_dir():
+        raise ReconError(f"The output path {scene_dir} is a file, not a folder. Choose a folder path for --out.")
+    if not scene_dir.is_dir():
+        return
+    try:
+        entries = {p.name for p in scene_dir.iterdir()}
+    except OSError as exc:
+        raise ReconError(f"Cannot read the output folder {scene_dir}: {exc.strerror}. Choose another --out.") from None
+    if not entries - {LOCK} - LOG_NAMES:
+        return  # empty, or only the lock and logs of a run stopped before it wrote anything
+    has_manifest = (scene_dir / MANIFEST).is_file()
+    if has_manifest and Manifest(scene_dir).warning is None:
+        return
+    ours = RECON_NAMES | set(stage_folders)
+    strays = sorted(n for n in entries if n not in ours and not _is_leftover(n, stage_folders))
+    if LOCK in entries and not strays:
+        return  # recon's own folder whose manifest was damaged, or not yet written when a run was stopped
+    shown = strays or sorted(entries)
+    listing = f"{', '.join(shown[:5])}{'…' if len(shown) > 5 else ''}"
+    what = (f"{scene_dir / MANIFEST} is not a manifest recon can read" if has_manifest
+            else f"{scene_dir} is not empty and is not a recon scene (it has no manifest.json)")
+    raise ReconError(
+        f"{what}, and the folder holds files recon did not make ({listing}). recon writes only into a new or empty "
+        f"folder or a scene it made, so that it never replaces your files: choose another --out folder."
+    )
 
 
 def prepare_scene_dir(scene_dir: Path) -> None:
@@ -322,22 +371,34 @@ class Pipeline:
         `from_stage` forces that stage to re-run (and what follows re-runs if its output changed);
         `force` re-runs every selected stage; `preset` is recorded so later single-stage runs reuse it.
         """
+        folders = [s.folder for s in self.stages]
+        check_scene_dir(scene_dir, source, folders)
         prepare_scene_dir(scene_dir)
         outcomes: list[StageOutcome] = []
         with scene_lock(scene_dir):
+            check_scene_dir(scene_dir, source, folders)  # again under the lock: nothing changed it meanwhile
             manifest = Manifest(scene_dir)
             if manifest.warning:
                 report.warn(manifest.warning)
-            _remove_leftovers(scene_dir)
-            if source is not None:
-                manifest.data["source"] = str(source)
-            if preset is not None:
-                manifest.data["preset"] = preset  # single-stage commands default to it
-            source = source or _manifest_source(manifest)
+            _remove_leftovers(scene_dir, folders)
+            recorded = _manifest_source(manifest)
+            if source is None and recorded is not None:
+                check_scene_dir(scene_dir, recorded, folders)
+            source = source or recorded
             selected = self.select(from_stage, until_stage)
             for stage in selected:
                 forced = force or stage.name == from_stage
-                outcomes.append(self._run_stage(stage, scene_dir, manifest, config, report, source, forced))
+                outcome = self._run_stage(stage, scene_dir, manifest, config, report, source, forced)
+                outcomes.append(outcome)
+                # recorded only once a stage succeeded: a failed run with other photos or another preset leaves
+                # the finished scene's record alone (single-stage commands default to these)
+                changed = False
+                if stage.needs_source and source is not None and manifest.data.get("source") != str(source):
+                    manifest.data["source"], changed = str(source), True
+                if preset is not None and outcome.action == "ran" and manifest.data.get("preset") != preset:
+                    manifest.data["preset"], changed = preset, True
+                if changed:
+                    manifest.save()
         return outcomes
 
     def _run_stage(
@@ -474,37 +535,27 @@ def _fsync_dir(path: Path) -> None:
             os.close(fd)
 
 
-def _remove_leftovers(scene_dir: Path) -> None:
-    """Temporary and superseded folders of interrupted runs (we hold the lock, so none is in use)."""
+def _is_leftover(name: str, stage_folders: list[str]) -> bool:
+    """A temporary name recon makes in a scene folder: `.tmp-FOLDER-PID`, `.old-FOLDER-PID` or `.manifest.json.PID.tmp`."""
+    for prefix in (".tmp-", ".old-"):
+        folder, sep, pid = name.removeprefix(prefix).rpartition("-")
+        if name.startswith(prefix) and sep and pid.isdigit() and folder in stage_folders:
+            return True
+    return is_temp_name(name) and name.startswith(f".{MANIFEST}.")
+
+
+def _remove_leftovers(scene_dir: Path, stage_folders: list[str]) -> None:
+    """Temporary and superseded folders of interrupted runs (we hold the lock, so none is in use).
+
+    Only names recon makes, and only in a scene recon owns (`check_scene_dir` ran first); links are unlinked,
+    never followed."""
     for path in scene_dir.iterdir():
-        if path.name.startswith((".tmp-", ".old-")) and path.is_dir():
+        if not _is_leftover(path.name, stage_folders):
+            continue
+        if path.is_dir() and not path.is_symlink():
             shutil.rmtree(path, ignore_errors=True)
-        elif path.name.startswith(".") and path.name.endswith(".tmp") and path.is_file():
+        else:
             path.unlink(missing_ok=True)
-
-
-@contextlib.contextmanager
-def interrupts_deferred() -> Iterator[None]:
-    """Hold Ctrl-C/SIGTERM until the block ends, then raise KeyboardInterrupt.
-
-    torch.save turns an exception raised inside its writer into a RuntimeError ("unexpected pos"), so a
-    signal landing mid-save would read as a crash instead of a clean stop. Outside the main thread
-    (where handlers cannot be set) the block just runs.
-    """
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    pending: list[int] = []
-    previous = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
-    for sig in previous:
-        signal.signal(sig, lambda signum, frame: pending.append(signum))
-    try:
-        yield
-    finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
-    if pending:
-        raise KeyboardInterrupt
 
 
 def install_sigterm_as_interrupt() -> None:

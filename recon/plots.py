@@ -7,6 +7,8 @@ from typing import Sequence
 
 import numpy as np
 
+from recon.atomic import atomic_open
+
 os.environ.setdefault("MPLBACKEND", "Agg")
 
 
@@ -20,9 +22,8 @@ def _pyplot():
 
 
 def _save(fig, path: Path) -> None:
-    tmp = path.with_name(f".{path.stem}.{os.getpid()}.tmp.png")
-    fig.savefig(tmp, dpi=110, bbox_inches="tight")
-    os.replace(tmp, path)
+    with atomic_open(path, "wb") as f:
+        fig.savefig(f, format="png", dpi=110, bbox_inches="tight")
 
 
 def depth_to_color(depth: np.ndarray, opacity: np.ndarray | None = None, near: float | None = None, far: float | None = None) -> np.ndarray:

@@ -10,6 +10,7 @@ from collections.abc import Callable, Iterator
 from typing import Any
 
 from rich.console import Console
+from rich.markup import escape
 from rich.progress import (
     BarColumn,
     MofNCompleteColumn,
@@ -63,15 +64,16 @@ class Reporter:
 
     def stage_cached(self, name: str, summary: dict) -> None:
         if not self.quiet:
-            self.console.print(f"[green]✓[/] {name}: up to date (cached) — {format_summary(summary)}")
+            self.console.print(f"[green]✓[/] {name}: up to date (cached) — {escape(format_summary(summary))}")
 
     def stage_done(self, name: str, wall_s: float, summary: dict) -> None:
         if not self.quiet:
-            self.console.print(f"[green]✓[/] {name} done in {format_seconds(wall_s)} — {format_summary(summary)}")
+            self.console.print(f"[green]✓[/] {name} done in {format_seconds(wall_s)} — {escape(format_summary(summary))}")
 
-    def info(self, message: str) -> None:
+    def info(self, message: str, markup: bool = False) -> None:
+        """Print a line; plain text unless `markup` (paths may hold '[' and ']', which must print as they are)."""
         if not self.quiet:
-            self.console.print(message)
+            self.console.print(message, markup=markup)
 
     def observe(self, event: str, data: dict) -> None:
         for fn in self.observers:
@@ -79,7 +81,7 @@ class Reporter:
 
     def warn(self, message: str) -> None:
         self.warnings.append(message)
-        self.console.print(f"[yellow]warning:[/] {message}")
+        self.console.print(f"[yellow]warning:[/] {escape(message)}")
 
     @contextlib.contextmanager
     def task(self, description: str, total: float | None = None, unit: str = "") -> Iterator[Task]:
@@ -90,10 +92,10 @@ class Reporter:
         stage = f"[cyan]{self.current_stage}[/] " if self.current_stage else ""
         columns = [
             SpinnerColumn(),
-            TextColumn(f"{stage}{description}"),
+            TextColumn(f"{stage}{escape(description)}"),
             BarColumn(),
             MofNCompleteColumn(),
-            TextColumn(unit),
+            TextColumn(escape(unit)),
             TimeElapsedColumn(),
             TextColumn("ETA"),
             TimeRemainingColumn(),

@@ -12,8 +12,8 @@ up as the same `Scene`, so nothing downstream knows where the poses came from.
 """
 from __future__ import annotations
 
-import json
 import math
+import struct
 import os
 import zipfile
 from collections.abc import Sequence
@@ -24,8 +24,8 @@ from typing import Any, Literal
 import numpy as np
 
 from recon.errors import InputError
-from recon.images import IMAGE_SUFFIXES, oriented_size
-from recon.pipeline import write_json_atomic
+from recon.images import IMAGE_SUFFIXES, MIN_SIDE, oriented_size
+from recon.atomic import read_json, write_json_atomic
 
 SCENE_FORMAT = "recon-scene"
 SCENE_VERSION = 1
@@ -206,7 +206,7 @@ def load_scene(folder: Path) -> Scene:
     """Read scene.json (+ points.npz) written by `Scene.save`."""
     path = folder / "scene.json"
     try:
-        doc = json.loads(path.read_text())
+        doc = read_json(path)
     except (OSError, ValueError) as exc:
         raise InputError(f"Cannot read {path}: {exc}. Re-run the stage that writes it (recon run --from normalize).") from None
     if not isinstance(doc, dict) or doc.get("format") != SCENE_FORMAT:
@@ -351,7 +351,10 @@ def parse_frames(
             fl_x = 0.5 * w / math.tan(0.5 * angle)
             fl_y = fl_x
             if "camera_angle_y" in merged:
-                fl_y = 0.5 * h / math.tan(0.5 * _number(merged["camera_angle_y"], source, "camera_angle_y", True))
+                angle_y = _number(merged["camera_angle_y"], source, "camera_angle_y", True)
+                if angle_y >= math.pi:
+                    raise InputError(f"{source}: camera_angle_y = {angle_y} rad is not a field of view below 180°.")
+                fl_y = 0.5 * h / math.tan(0.5 * angle_y)
         else:
             raise InputError(f"{source}: no focal length: give 'fl_x' (pixels) or 'camera_angle_x' (radians).")
         model = merged.get("camera_model", "OPENCV")
@@ -384,6 +387,62 @@ def parse_frames(
             raise InputError(f"{source}: {what} has split '{frame.split}'; expected one of {', '.join(SPLITS)}.")
         frames.append(frame)
     return frames
+
+
+def check_cameras(scene: Scene, source: Path | str) -> None:
+    """Refuse cameras the later stages could not use, naming the input they came from (not recon's own files).
+
+    Every pose and intrinsic must be finite, focal lengths positive with a field of view in (0°, 180°), the
+    principal point inside the image, the image at least MIN_SIDE px a side, and the size the poses give must be
+    the image's own (or the same picture scaled: equal aspect ratio, since views rescale intrinsics with the photo).
+    """
+    if not scene.frames:
+        raise InputError(f"{source}: no cameras. A poses file (or COLMAP model) needs one camera per photo.")
+    for f in scene.frames:
+        what = f"{source}: the camera of {f.name}"
+        values = np.array([*np.asarray(f.c2w, np.float64).ravel(), f.fl_x, f.fl_y, f.cx, f.cy, f.w, f.h, *f.distortion])
+        if not np.all(np.isfinite(values)):
+            raise InputError(f"{what} has NaN or infinite values (pose, focal, principal point or distortion). Fix the poses.")
+        if not (f.fl_x > 0 and f.fl_y > 0):
+            raise InputError(f"{what} has focal length ({f.fl_x:g}, {f.fl_y:g}) px; it must be positive. Fix the intrinsics.")
+        fov = np.degrees(2 * np.arctan2([0.5 * f.w, 0.5 * f.h], [f.fl_x, f.fl_y]))
+        if not np.all((fov > 0) & (fov < 180)):
+            raise InputError(f"{what} has a field of view of {fov[0]:.4g}° × {fov[1]:.4g}°; it must be between 0° and 180°.")
+        if min(f.w, f.h) < MIN_SIDE:
+            raise InputError(f"{what} gives an image size of {f.w}×{f.h} px; recon needs at least {MIN_SIDE} px a side.")
+        if not (0 <= f.cx <= f.w and 0 <= f.cy <= f.h):
+            raise InputError(f"{what} has its principal point ({f.cx:g}, {f.cy:g}) outside the {f.w}×{f.h} image.")
+        w, h = oriented_size(scene.image_path(f))
+        if (w, h) != (f.w, f.h) and abs(w * f.h - h * f.w) > max(f.w, f.h):
+            raise InputError(
+                f"{what} says the image is {f.w}×{f.h} px but {scene.image_path(f)} is {w}×{h} px (another shape). "
+                f"Fix w/h in the poses or use the images they were made for."
+            )
+
+
+_COLMAP_MIN_RECORD = {"cameras.bin": 24, "images.bin": 73, "points3D.bin": 51, "rigs.bin": 8, "frames.bin": 8}
+"""Fewest bytes one record of each COLMAP binary file takes (its fixed fields; variable parts count as empty)."""
+
+
+def check_colmap_binaries(model: Path) -> None:
+    """Refuse COLMAP .bin files whose header promises more records than the file can hold.
+
+    COLMAP reserves memory for the count in the first 8 bytes: a truncated or foreign file (a 4-byte
+    points3D.bin) made pycolmap allocate without bound. This reads only the headers and sizes."""
+    for name, min_record in _COLMAP_MIN_RECORD.items():
+        path = model / name
+        if not path.is_file():
+            continue
+        size = path.stat().st_size
+        with open(path, "rb") as f:
+            head = f.read(8)
+        count = struct.unpack("<Q", head)[0] if len(head) == 8 else None
+        if count is None or count * min_record > size - 8:
+            found = "shorter than its 8-byte header" if count is None else f"says it holds {count:,} records"
+            raise InputError(
+                f"The COLMAP file {path} is damaged: it is {size:,} bytes and {found}. Re-export the model from "
+                f"COLMAP (File > Export model), or pass the photos folder to run structure from motion again."
+            )
 
 
 def _mask_path(base: Path, fd: dict, source: Path | str, check_files: bool) -> str | None:
@@ -465,11 +524,11 @@ def find_colmap_model(path: Path) -> Path | None:
 
 def _load_json(path: Path) -> Any:
     try:
-        return json.loads(path.read_text())
-    except UnicodeDecodeError:
-        raise InputError(f"{path} is not a UTF-8 text file. Is it really a transforms.json?") from None
-    except json.JSONDecodeError as exc:
-        raise InputError(f"{path} is not valid JSON ({exc}). Fix or regenerate the file.") from None
+        return read_json(path)
+    except OSError as exc:
+        raise InputError(f"Cannot read {path}: {exc.strerror}.") from None
+    except ValueError as exc:
+        raise InputError(f"{path} cannot be used: {exc}. Fix or regenerate the file (is it really a poses file?).") from None
 
 
 def import_transforms(path: Path) -> Scene:
@@ -528,13 +587,20 @@ def frame_from_sfm(file_path: str, fd: dict, sx: float = 1.0, sy: float = 1.0) -
     )
 
 
-def import_colmap(folder: Path) -> Scene:
-    """A COLMAP sparse model (cameras/images/points3D .bin or .txt); images from the project's images/ folder."""
+def import_colmap(folder: Path, log_dir: Path | None = None) -> Scene:
+    """A COLMAP sparse model (cameras/images/points3D .bin or .txt); images from the project's images/ folder.
+
+    COLMAP's own log files go to `log_dir` (not /tmp)."""
     import pycolmap
+
+    from recon.sfm import pycolmap_logging_to
+
+    pycolmap_logging_to(log_dir)
 
     model = find_colmap_model(folder)
     if model is None:
         raise InputError(f"{folder} holds no COLMAP model (cameras.bin / cameras.txt).")
+    check_colmap_binaries(model)
     try:
         rec = pycolmap.Reconstruction(str(model))
     except Exception as exc:  # pycolmap raises plain RuntimeError/ValueError on damaged files
@@ -585,9 +651,14 @@ def import_npz(path: Path, image_dir: Path) -> Scene:
     if poses.shape not in ((n, 4, 4), (n, 3, 4)):
         raise InputError(f"{path}: 'poses' has shape {poses.shape}; expected ({n}, 4, 4) for the {n} images.")
     focal = _number(np.asarray(focal).reshape(-1)[0], path, "focal", True)
-    imgs = images.astype(np.float32) / (255.0 if images.dtype == np.uint8 else 1.0)
+    # integers span their type (uint8 0-255, uint16 0-65535); floats must already be in [0, 1]
+    scale = float(np.iinfo(images.dtype).max) if images.dtype.kind in "iu" else 1.0
+    imgs = images.astype(np.float32) / scale
     if not np.all(np.isfinite(imgs)):
         raise InputError(f"{path}: 'images' contains NaN or infinite values.")
+    if images.dtype.kind == "f" and (imgs.min() < -1e-3 or imgs.max() > 1 + 1e-3):
+        raise InputError(f"{path}: float 'images' must be in [0, 1]; they span [{imgs.min():g}, {imgs.max():g}]. "
+                         f"Divide them by 255 (or store them as uint8).")
     image_dir.mkdir(parents=True, exist_ok=True)
     frames = []
     for i in range(n):

@@ -19,14 +19,16 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
 import numpy as np
-import pycolmap
 from PIL import Image
 
 from recon.errors import ReconError
 from recon.images import device_of
+
+if TYPE_CHECKING:  # pycolmap is imported when SfM runs: loading options (recon.config) must not pay for it
+    import pycolmap
 
 ProgressFn = Callable[[str, float], None]
 
@@ -303,6 +305,8 @@ def extract(
     attempt: Attempt = ATTEMPTS[0],
 ) -> None:
     """SIFT features into `database`, one COLMAP camera per group of `camera_groups` (EXIF focal priors read)."""
+    import pycolmap
+
     extraction = pycolmap.FeatureExtractionOptions()
     extraction.num_threads = options.num_threads
     extraction.use_gpu = False
@@ -399,6 +403,8 @@ def _map(
     relaxed lowers the inliers needed to start a model (100 -> 50) and to register an image
     (30 -> 15): still RANSAC-verified, but reachable with a few hundred features per image.
     """
+    import pycolmap
+
     mapping = pycolmap.IncrementalPipelineOptions()
     mapping.num_threads = options.num_threads
     mapping.random_seed = options.seed
@@ -412,12 +418,24 @@ def _map(
     return max(models.values(), key=lambda r: r.num_reg_images(), default=None)
 
 
+def pycolmap_logging_to(log_dir: Path | None) -> None:
+    """Send COLMAP's own log files (glog: `colmap.ERROR.<date>.<pid>` ...) into `log_dir` instead of /tmp."""
+    import pycolmap
+
+    if log_dir is None:
+        return
+    log_dir.mkdir(parents=True, exist_ok=True)
+    for level in (pycolmap.logging.Level.INFO, pycolmap.logging.Level.WARNING, pycolmap.logging.Level.ERROR):
+        pycolmap.logging.set_log_destination(level, str(log_dir / f"colmap.{level.name}."))
+
+
 def run_sfm(
     image_dir: Path,
     names: list[str],
     work_dir: Path,
     options: SfmOptions,
     progress: ProgressFn | None = None,
+    log_dir: Path | None = None,
 ) -> SfmResult:
     """Recover camera poses, intrinsics and sparse points for `names` (paths relative to image_dir).
 
@@ -425,8 +443,11 @@ def run_sfm(
     model to work_dir/sparse/. Raises ReconError when fewer than options.min_registered images,
     or fewer than options.min_registered_fraction of them, get a pose.
     progress(phase, fraction) is called at the start and end of "extract", "match" and "map"
-    (and with ("map", 0.5) when mapping is retried with relaxed thresholds).
+    (and with ("map", 0.5) when mapping is retried with relaxed thresholds). COLMAP's log files go to
+    `log_dir` (see `pycolmap_logging_to`).
     """
+    import pycolmap
+
     report: ProgressFn = progress if progress is not None else (lambda phase, fraction: None)
     image_dir, work_dir = Path(image_dir), Path(work_dir)
     names = list(names)
@@ -441,6 +462,7 @@ def run_sfm(
     model, shared, reason = choose_camera(sizes, exif_models, options.camera_model, options.shared_intrinsics)
     matcher = _pick_matcher(options.matcher, len(names))
 
+    pycolmap_logging_to(log_dir)
     # glog errors only: COLMAP's INFO and WARNING lines (thread counts, focal priors) are noise to users
     pycolmap.logging.minloglevel = max(int(pycolmap.logging.minloglevel), 2)
     pycolmap.set_random_seed(options.seed)

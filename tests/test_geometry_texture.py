@@ -20,7 +20,7 @@ from recon.geometry.texture import make_textured_mesh, pad_texture, texel_sample
 from recon.progress import Reporter
 from recon.scene import look_at
 from recon.stages import mesh as mesh_stage
-from recon.stages.train import View, render_view
+from recon.views import View, render_view
 from tests.test_mesh_stage import AABB, BACKGROUND, CENTRE, SoftSphere, _run_stage, _scene_dir
 
 

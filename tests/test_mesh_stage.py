@@ -14,11 +14,12 @@ import trimesh
 from PIL import Image
 from torch import Tensor, nn
 
-from recon.config import MeshConfig
+from recon.config import MeshConfig, RunConfig
 from recon.geometry.compare import chamfer_fscore
 from recon.geometry.export import Z_UP_TO_Y_UP
 from recon.geometry.clean import clean_mesh
-from recon.geometry.extract import density_grid, grid_spacing, marching_cubes
+from recon.geometry.extract import choose_resolution, density_grid, grid_spacing, marching_cubes
+from recon.geometry.preview import render_preview
 from recon.mesh_eval import compare_to_gt, format_comparison
 from recon.nerf.render import RadianceModel, render_dense
 from recon.nerf.sampling import stratified
@@ -27,7 +28,7 @@ from recon.pipeline import StageContext
 from recon.progress import Reporter
 from recon.scene import Frame, Scene, spread_evenly
 from recon.stages import mesh as mesh_stage
-from recon.stages.train import View, render_view
+from recon.views import View, pixel_footprint, render_view
 from tests.test_scene import look_at
 
 CENTRE = np.array([0.1, -0.05, 0.05])
@@ -91,7 +92,7 @@ def ring_views(model: SoftSphere, n: int = 8, size: int = 64) -> list[View]:
 # ---------------------------------------------------------------------------------------- resolution
 def test_pixel_footprint_and_training_focal_closed_form() -> None:
     centres = np.array([[4.0, 0, 0], [0, 4.0, 0], [0, 0, -4.0]])
-    fp, dist = mesh_stage.pixel_footprint(AABB, centres, np.array([400.0, 400.0, 400.0]))
+    fp, dist = pixel_footprint(AABB, centres, np.array([400.0, 400.0, 400.0]))
     assert dist == pytest.approx(4.0) and fp == pytest.approx(0.01)
     frame = Frame("a.jpg", np.eye(4), 1000.0, 1000.0, 400.0, 300.0, 800, 600)
     assert mesh_stage.training_focal(frame, 400) == pytest.approx(500.0)  # photo halved to 400 px
@@ -99,16 +100,16 @@ def test_pixel_footprint_and_training_focal_closed_form() -> None:
 
 
 def test_resolution_follows_footprint_and_is_capped_by_max_and_memory() -> None:
-    shape, why = mesh_stage.choose_resolution(AABB, MeshConfig(max_resolution=384), 0.01)
+    shape, why = choose_resolution(AABB, MeshConfig(max_resolution=384), 0.01)
     assert shape == (201, 201, 201) and "footprint" in why  # 2 units / 0.01 = 200 cells
-    shape, why = mesh_stage.choose_resolution(AABB, MeshConfig(max_resolution=128), 0.01)
+    shape, why = choose_resolution(AABB, MeshConfig(max_resolution=128), 0.01)
     assert shape == (128, 128, 128) and "max_resolution" in why
-    shape, why = mesh_stage.choose_resolution(AABB, MeshConfig(max_resolution=384, memory_budget_mb=1), 0.01)
+    shape, why = choose_resolution(AABB, MeshConfig(max_resolution=384, memory_budget_mb=1), 0.01)
     assert 4 * math.prod(shape) <= 2**20 and shape[0] >= 60 and "memory_budget_mb" in why  # 64³ floats = 1 MiB
     flat = np.array([[-1.0, -1.0, -0.5], [1.0, 1.0, 0.5]])
-    shape, _ = mesh_stage.choose_resolution(flat, MeshConfig(resolution=101), None)
+    shape, _ = choose_resolution(flat, MeshConfig(resolution=101), None)
     assert shape == (101, 101, 51)  # cubic cells: half the nodes on the half-height axis
-    shape, why = mesh_stage.choose_resolution(AABB, MeshConfig(resolution=512, memory_budget_mb=8), None)
+    shape, why = choose_resolution(AABB, MeshConfig(resolution=512, memory_budget_mb=8), None)
     assert 4 * math.prod(shape) <= 8 * 2**20 and "lowered from 512" in why
 
 
@@ -201,8 +202,8 @@ def test_export_transform_source_frame_and_real_size() -> None:
 def test_preview_shows_the_colored_shaded_mesh_from_the_right_side() -> None:
     sphere = trimesh.creation.icosphere(subdivisions=3, radius=0.5)
     colors = np.where(sphere.vertices[:, 1:2] < 0, [[0.9, 0.1, 0.1]], [[0.1, 0.1, 0.9]])  # -Y half red
-    front = mesh_stage.render_preview(sphere.vertices, sphere.faces, colors, azimuth_deg=0, elevation_deg=0, size=64)
-    back = mesh_stage.render_preview(sphere.vertices, sphere.faces, colors, azimuth_deg=180, elevation_deg=0, size=64)
+    front = render_preview(sphere.vertices, sphere.faces, colors, azimuth_deg=0, elevation_deg=0, size=64)
+    back = render_preview(sphere.vertices, sphere.faces, colors, azimuth_deg=180, elevation_deg=0, size=64)
     assert front.shape == (64, 64, 3) and front.dtype == np.uint8
     assert (front[0, 0] == 255).all() and (front[32, 32, 0] > 2 * front[32, 32, 2])  # the camera on -Y sees red
     assert back[32, 32, 2] > 2 * back[32, 32, 0]
@@ -237,7 +238,7 @@ def _run_stage(scene_dir: Path, model: SoftSphere, cfg: MeshConfig, monkeypatch:
     out.mkdir()
     ctx = StageContext(
         name="mesh", folder="04_mesh", out=out, work=scene_dir / ".work", inputs={"normalize": scene_dir / "02_scene", "train": scene_dir / "03_field"},
-        config=cfg, run_config=None, source=None, scene_dir=scene_dir, report=Reporter(quiet=True),
+        config=cfg, run_config=RunConfig(mesh=cfg), source=None, scene_dir=scene_dir, report=Reporter(quiet=True),
     )
     return mesh_stage.run(ctx), out
 

@@ -16,7 +16,7 @@ from recon.errors import InputError
 from recon.images import save_image
 from recon.scene import Frame, Scene, find_masks, import_transforms, look_at
 from recon.stages.mesh import inside_masks
-from recon.stages.train import View, load_view
+from recon.views import View, load_view
 
 REPO = Path(__file__).resolve().parents[1]
 

@@ -239,20 +239,20 @@ def test_disk_full_is_a_clear_error_and_keeps_the_complete_state(
 
 def test_real_enospc_from_the_kernel_in_checkpoint_and_field_writes(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """/dev/full returns ENOSPC on write: torch.save must surface it as OSError (not RuntimeError), old file kept."""
+    import recon.atomic as atomic_mod
     import recon.field as field_mod
     import recon.stages.train as train_mod
 
     ckpt = tmp_path / "checkpoint.pt"
     train_mod._save_checkpoint(ckpt, {"step": 1, "w": torch.ones(3)})
     good = ckpt.read_bytes()
-    full = lambda path, mode="r", *a, **k: builtins.open("/dev/full", mode, *a, **k)  # noqa: E731
-    monkeypatch.setattr(train_mod, "open", full, raising=False)
+    full = lambda path, mode="r", *a, **k: builtins.open("/dev/full", mode.replace("x", "w"), *a, **k)  # noqa: E731
+    monkeypatch.setattr(atomic_mod, "open", full, raising=False)
     with pytest.raises(OSError) as info:
         train_mod._save_checkpoint(ckpt, {"step": 2, "w": torch.zeros(3)})
     assert info.value.errno == errno.ENOSPC
     assert ckpt.read_bytes() == good and not list(tmp_path.glob(".*.tmp"))
     assert train_mod._load_checkpoint(ckpt, None)["step"] == 1
-    monkeypatch.setattr(field_mod, "open", full, raising=False)
     with pytest.raises(OSError) as info:
         field_mod.save_field(tmp_path / "field.pt", "fast", {}, torch.nn.Linear(2, 2), {})
     assert info.value.errno == errno.ENOSPC and not (tmp_path / "field.pt").exists()
@@ -263,6 +263,7 @@ def test_ctrl_c_inside_torch_save_waits_for_a_whole_checkpoint(tmp_path: Path, m
     instead of exit 130. The signal must now wait until the checkpoint and its sidecar are whole."""
     import os
 
+    import recon.atomic as atomic_mod
     import recon.stages.train as train_mod
 
     class SignalOnFirstWrite:
@@ -284,7 +285,7 @@ def test_ctrl_c_inside_torch_save_waits_for_a_whole_checkpoint(tmp_path: Path, m
         def __exit__(self, *exc):
             self.f.close()
 
-    monkeypatch.setattr(train_mod, "open", SignalOnFirstWrite, raising=False)
+    monkeypatch.setattr(atomic_mod, "open", SignalOnFirstWrite, raising=False)
     ckpt = tmp_path / "checkpoint.pt"
     with pytest.raises(KeyboardInterrupt):
         train_mod._save_checkpoint(ckpt, {"step": 3, "w": torch.arange(100_000.0)})

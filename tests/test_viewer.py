@@ -98,7 +98,7 @@ def test_headless_screenshot_is_not_blank(viewer: SceneViewer, tmp_path: Path) -
 def test_training_view_shows_progress_and_the_current_render(viewer: SceneViewer) -> None:
     """The `recon run --view` observer: the step/loss/PSNR text, the cameras, and photo | render of a held-out view."""
     from recon.nerf.trainer import TrainProgress
-    from recon.stages.train import load_views
+    from recon.views import load_views
     from recon.viewer import TrainingView
 
     live = TrainingView(viewer.scene_dir, port=free_port(), interval_s=0.0, side=32)

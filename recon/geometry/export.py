@@ -18,7 +18,6 @@ import io
 import json
 import os
 import struct
-import uuid
 from pathlib import Path
 
 import numpy as np
@@ -26,6 +25,8 @@ import trimesh
 from PIL import Image
 from trimesh.exchange.obj import export_obj
 from trimesh.visual.material import PBRMaterial
+
+from recon.atomic import write_bytes_atomic
 
 # Rotation −90° about X: (x, y, z) → (x, z, −y); scene +Z up becomes +Y up.
 Z_UP_TO_Y_UP = np.array([[1, 0, 0, 0], [0, 0, 1, 0], [0, -1, 0, 0], [0, 0, 0, 1]], np.float64)
@@ -47,20 +48,6 @@ def apply_transform(
         raise ValueError(f"transform must be a 4x4 affine matrix with last row [0, 0, 0, 1], got {t.tolist()}")
     out = np.asarray(vertices, np.float64) @ t[:3, :3].T + t[:3, 3]
     return out, (faces[:, ::-1] if np.linalg.det(t[:3, :3]) < 0 else faces)
-
-
-def _write_atomic(path: Path, data: bytes | str) -> Path:
-    """Write to a temporary file in the same folder, then os.replace: readers never see half a file."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.{uuid.uuid4().hex[:8]}.tmp")  # open() honours umask
-    try:
-        with open(tmp, "xb") as f:
-            f.write(data.encode() if isinstance(data, str) else data)
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    return path
 
 
 def glb_bytes(vertices: np.ndarray, faces: np.ndarray, colors_linear: np.ndarray, normals: np.ndarray) -> bytes:
@@ -143,14 +130,15 @@ def export_mesh(
     up = apply_transform(vertices, faces, Z_UP_TO_Y_UP)[0] if y_up else vertices
     mesh_up = trimesh.Trimesh(up, faces, process=False)
     out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
     paths = {
-        "glb": _write_atomic(out / f"{stem}.glb",
+        "glb": write_bytes_atomic(out / f"{stem}.glb",
                              glb_bytes(up, faces, srgb_to_linear(colors), mesh_up.vertex_normals)),
-        "obj": _write_atomic(out / f"{stem}.obj", obj_text(up, faces, colors)),
+        "obj": write_bytes_atomic(out / f"{stem}.obj", obj_text(up, faces, colors)),
     }
     rgba = np.hstack([np.round(colors * 255), np.full((len(colors), 1), 255)]).astype(np.uint8)
     ply = trimesh.Trimesh(vertices, faces, vertex_colors=rgba, process=False)
-    paths["ply"] = _write_atomic(out / f"{stem}.ply", ply.export(file_type="ply", encoding="binary"))
+    paths["ply"] = write_bytes_atomic(out / f"{stem}.ply", ply.export(file_type="ply", encoding="binary"))
     return paths
 
 
@@ -200,14 +188,15 @@ def export_textured_mesh(
     mesh.visual = trimesh.visual.TextureVisuals(uv=uv, material=PBRMaterial(
         name=stem, baseColorTexture=image, metallicFactor=0.0, roughnessFactor=1.0))
     out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
     png = io.BytesIO()
     image.save(png, format="PNG")
     obj, _ = export_obj(mesh, include_normals=True, include_color=False, include_texture=True, return_texture=True,
                         write_texture=False, mtl_name=f"{stem}.mtl")
     paths = {
-        "glb": _write_atomic(out / f"{stem}.glb", mesh.export(file_type="glb", include_normals=True)),
-        "png": _write_atomic(out / f"{stem}.png", png.getvalue()),
-        "mtl": _write_atomic(out / f"{stem}.mtl", mtl_text(stem, f"{stem}.png")),
+        "glb": write_bytes_atomic(out / f"{stem}.glb", mesh.export(file_type="glb", include_normals=True)),
+        "png": write_bytes_atomic(out / f"{stem}.png", png.getvalue()),
+        "mtl": write_bytes_atomic(out / f"{stem}.mtl", mtl_text(stem, f"{stem}.png")),
     }
-    paths["obj"] = _write_atomic(out / f"{stem}.obj", obj)
+    paths["obj"] = write_bytes_atomic(out / f"{stem}.obj", obj)
     return paths

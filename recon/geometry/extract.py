@@ -10,12 +10,15 @@ Densities are volume densities σ (1 / scene unit), high inside the object.
 from __future__ import annotations
 
 import math
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 import torch
 from scipy.ndimage import binary_dilation
 from skimage import measure
+
+if TYPE_CHECKING:
+    from recon.config import MeshConfig
 
 DensityFn = Callable[[torch.Tensor], torch.Tensor]
 """``density_fn(points: (M, 3) float32) -> (M,)`` or ``(M, 1)`` density σ ≥ 0 at scene points."""
@@ -292,3 +295,46 @@ def marching_cubes(
     verts = (verts + box[0]).astype(np.float32)
     # skimage's 'descent' winding yields inward normals for σ high inside; swap two indices to face out.
     return verts, faces[:, [0, 2, 1]].astype(np.int64)
+
+
+# ---------------------------------------------------------------------------------------- resolution
+def grid_shape(aabb: np.ndarray, resolution: int) -> tuple[int, int, int]:
+    """Nodes per axis for cubic cells: ``resolution`` nodes along the box's longest side, the others in
+    proportion (at least 2)."""
+    extent = np.ptp(np.asarray(aabb, np.float64), axis=0)
+    cells = (resolution - 1) * extent / extent.max()
+    return tuple(max(2, int(round(c)) + 1) for c in cells)  # type: ignore[return-value]
+
+
+def choose_resolution(
+    aabb: np.ndarray, cfg: "MeshConfig", footprint: float | None, footprint_why: str = ""
+) -> tuple[tuple[int, int, int], str]:
+    """Grid shape (nodes per axis, cubic cells over aabb (2, 3)) and the reason for it.
+
+    ``cfg.resolution > 0`` is used as given (nodes along the longest side); otherwise one cell per
+    pixel footprint (scene units), capped by ``cfg.max_resolution``. Either way the float32 grid
+    must fit in ``cfg.memory_budget_mb``; the resolution is lowered until it does.
+    """
+    longest = float(np.ptp(np.asarray(aabb, np.float64), axis=0).max())
+    if cfg.resolution > 0:
+        res, why = int(cfg.resolution), f"mesh.resolution={cfg.resolution}"
+    else:
+        if footprint is None or not footprint > 0:
+            raise ValueError("an automatic resolution needs the pixel footprint (> 0 scene units)")
+        res = int(math.ceil(longest / footprint)) + 1
+        why = f"cell ≈ pixel footprint {footprint:.4g} units{footprint_why} → {res} nodes along {longest:.3g} units"
+        if res > cfg.max_resolution:
+            res = int(cfg.max_resolution)
+            why += f", capped at mesh.max_resolution={cfg.max_resolution}"
+    res = max(res, 8)
+    budget = cfg.memory_budget_mb * 2**20
+    shape = grid_shape(aabb, res)
+    if 4 * math.prod(shape) > budget:
+        before = res
+        while res > 8 and 4 * math.prod(grid_shape(aabb, res)) > budget:
+            factor = (budget / (4 * math.prod(grid_shape(aabb, res)))) ** (1 / 3)
+            res = max(8, min(res - 1, int((res - 1) * factor) + 1))
+        shape = grid_shape(aabb, res)
+        why += f"; lowered from {before} to {res} to fit the float32 grid in mesh.memory_budget_mb={cfg.memory_budget_mb}"
+    mb = 4 * math.prod(shape) / 2**20
+    return shape, f"grid {shape[0]}×{shape[1]}×{shape[2]} ({mb:.0f} MB float32): {why}"

@@ -48,13 +48,13 @@ train stage (`recon train`, fast preset, random backgrounds): Lego at 200x200, 2
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
-from typing import Any, Literal
+from typing import Any
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from recon.config import FastConfig, GridKind
 from recon.nerf.contraction import contract
 from recon.nerf.grid import DenseGrid, HashGrid, MultiDenseGrid, VMGrid, resample_dense
 from recon.nerf.occupancy import OccupancyGrid, density_threshold, march
@@ -62,83 +62,6 @@ from recon.nerf.rays import ray_aabb
 from recon.nerf.render import RadianceModel, accumulate_packed, render_weights_packed
 
 __all__ = ["FastConfig", "FastModel", "sh_encode", "distortion_loss_packed", "ray_background", "trunc_exp"]
-
-GridKind = Literal["dense", "vm", "hash"]
-
-
-@dataclass
-class FastConfig:
-    """Options of :class:`FastModel` (one named point per preset in pipelines/*.toml)."""
-
-    aabb: tuple[tuple[float, float, float], tuple[float, float, float]] = ((-1.5, -1.5, -1.5), (1.5, 1.5, 1.5))
-    """Scene box [min_xyz, max_xyz] in the normalized frame (world units); the grids span it when bounded."""
-    unbounded: bool = False
-    """Contract space outside the unit box into [-2, 2]^3 (mip-NeRF 360) instead of using ``aabb``."""
-    density_grid: GridKind = "dense"
-    """Grid holding density: "dense" voxels (default, cheapest per sample), "vm" (TensoRF) or "hash"."""
-    density_res: int = 128
-    """Vertices per side of the density grid (levels' finest resolution for "hash")."""
-    grid: GridKind = "dense"
-    """Grid holding the color features: "dense" (default, fastest per sample here), "vm" (TensoRF) or "hash"."""
-    feature_res: int = 128
-    """Vertices per side of the feature grid (finest resolution for "hash")."""
-    feature_dim: int = 12
-    """Feature channels: dense = channels, vm = components per axis (3x channels out), hash = levels (x2)."""
-    density_levels: int = 3
-    """Dense density grid: sum of this many grids, each half the resolution of the previous (coarse-to-fine)."""
-    feature_levels: int = 1
-    """Dense feature grid: number of resolution levels, as density_levels."""
-    color_model: Literal["mlp_view", "mlp", "direct"] = "mlp_view"
-    """"mlp_view": MLP(features, SH(direction)); "mlp": view-independent MLP; "direct": sigmoid(features[:3])."""
-    sh_degree: int = 2
-    """Spherical-harmonics degree of the view direction encoding (0..3; (degree+1)^2 channels)."""
-    mlp_width: int = 64
-    """Hidden width of the color MLP."""
-    mlp_layers: int = 2
-    """Hidden layers of the color MLP."""
-    occupancy_res: int = 64
-    """Occupancy grid cells per side."""
-    occupancy_alpha: float = 0.02
-    """A vertex is occupied when its density gives at least this opacity over one step. Keep it above
-    ``init_alpha``: space no ray has touched yet then gets culled at the first refresh (at 0.01 = init,
-    44% of Lego's box stayed occupied and steps were 3x slower; at 0.02, 8-10%)."""
-    occupancy_warmup: int = 16
-    """Steps during which every cell counts as occupied."""
-    occupancy_every: int = 8
-    """Refresh the occupancy grid every this many steps (1/4 of the vertices per refresh after warm-up)."""
-    warmup_step_scale: float = 4.0
-    """Ray-march step multiplier during the occupancy warm-up: few, coarse samples while nothing is culled."""
-    step_ratio: float = 0.5
-    """Ray-march step in density-grid voxels (world step = step_ratio * voxel size)."""
-    max_samples: int = 1024
-    """Cap on candidate samples per ray."""
-    cone_angle: float = 0.0
-    """> 0: steps grow like t * cone_angle beyond the base step (unbounded scenes, e.g. 1/256)."""
-    early_stop_transmittance: float = 1e-4
-    """Drop samples behind this transmittance (no-grad pre-pass); 0 disables the pre-pass."""
-    color_min_weight: float = 1e-4
-    """Evaluate color only on samples with at least this weight (0 = everywhere)."""
-    init_alpha: float = 0.01
-    """Opacity of one step of the initial (empty) density field."""
-    density_activation: Literal["softplus", "trunc_exp"] = "softplus"
-    """Density activation; both are overflow-safe."""
-    tv_weight: float = 0.0
-    """Weight of the total-variation loss on the grids (0 = off)."""
-    distortion_weight: float = 0.0
-    """Weight of the mip-NeRF 360 distortion loss (0 = off)."""
-    entropy_weight: float = 0.0
-    """Weight of the binary entropy of ray opacity (pushes opacity to 0 or 1; 0 = off)."""
-    background: Literal["white", "black", "learned", "random"] = "white"
-    """Background used when render_rays gets none; "learned" always uses the model's own color."""
-    grid_lr_scale: float = 10.0
-    """Grids train at lr * grid_lr_scale (the MLP at lr)."""
-    shrink_step: int = 64
-    """Bounded scenes with dense grids: at the first occupancy refresh from this step on, re-sample the grids
-    onto the box around the occupied cells (same parameter count, finer voxels where the object is;
-    CPU_NERF_NOTES lesson 3). 0 = never."""
-    shrink_margin: float = 0.05
-    """Margin added around the occupied box before shrinking, as a fraction of the scene box's extent."""
-
 
 def trunc_exp(x: Tensor, max_input: float = 15.0) -> Tensor:
     """exp of x clamped at ``max_input`` (gradient 0 above it): overflow-free density activation."""

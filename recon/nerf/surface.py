@@ -47,13 +47,13 @@ times an idle machine's):
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
-from typing import Any, Literal
+from typing import Any
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from recon.config import SurfaceConfig
 from recon.nerf.fast import _make_grid, color_from_features, make_color_mlp, ray_background
 from recon.nerf.grid import MultiDenseGrid
 from recon.nerf.occupancy import OccupancyGrid, march
@@ -61,73 +61,6 @@ from recon.nerf.rays import ray_aabb
 from recon.nerf.render import RadianceModel, accumulate_packed, render_weights_packed
 
 __all__ = ["SurfaceConfig", "SurfaceModel", "neus_tau", "sdf_fd_terms", "eikonal_loss"]
-
-
-@dataclass
-class SurfaceConfig:
-    """Options of :class:`SurfaceModel` (pipelines/surface.toml names the preset's values)."""
-
-    aabb: tuple[tuple[float, float, float], tuple[float, float, float]] = ((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0))
-    """Scene box [min_xyz, max_xyz] (world units); the grids span it."""
-    sdf_res: int = 128
-    """Vertices per side of the finest SDF grid level."""
-    sdf_levels: int = 4
-    """SDF grid levels, each half the resolution of the next finer one (at least 16 vertices)."""
-    sdf_mlp_width: int = 32
-    """Hidden width of the SDF MLP on the levels' values (0: the SDF is the prior plus the levels' sum)."""
-    level_every: int = 150
-    """Coarse to fine: level k (0 = coarsest) joins the SDF after k * level_every steps (0: all from the start)."""
-    init_radius: float = 0.8
-    """Radius of the initial sphere, as a fraction of half the box's shortest side."""
-    init_sharpness: float = 40.0
-    """Initial NeuS sharpness s (1/world unit): the opacity ramp is ~1/s wide at the start."""
-    feature_res: int = 96
-    """Vertices per side of the color feature grid."""
-    feature_dim: int = 12
-    """Color feature channels."""
-    color_model: Literal["mlp_view", "mlp", "direct"] = "mlp"
-    """As FastConfig.color_model."""
-    sh_degree: int = 2
-    """Spherical-harmonics degree of the view direction (color_model "mlp_view")."""
-    mlp_width: int = 64
-    """Hidden width of the color MLP."""
-    mlp_layers: int = 2
-    """Hidden layers of the color MLP."""
-    step_ratio: float = 1.0
-    """Ray-march step in finest SDF voxels."""
-    max_samples: int = 1024
-    """Cap on candidate samples per ray."""
-    occupancy_res: int = 64
-    """Occupancy grid cells per side."""
-    occupancy_warmup: int = 32
-    """Steps during which every cell counts as occupied."""
-    occupancy_every: int = 8
-    """Refresh the occupancy grid every this many steps."""
-    warmup_step_scale: float = 4.0
-    """Ray-march step multiplier during the occupancy warm-up (nothing is skipped yet)."""
-    band_width: float = 4.0
-    """Occupied shell: |f| < 2 occupancy-cell diagonals + band_width / s (NeuS weights there are below
-    e^-band_width of their peak)."""
-    early_stop_transmittance: float = 1e-3
-    """Drop samples behind this transmittance (no-grad pre-pass); 0 disables it."""
-    color_min_weight: float = 1e-4
-    """Evaluate color only on samples with at least this weight."""
-    eikonal_weight: float = 0.1
-    """Weight of the Eikonal loss mean (|∇f| - 1)²."""
-    curvature_weight: float = 5e-4
-    """Weight of the curvature loss mean |Δf| (world units; 0: off)."""
-    eikonal_samples: int = 4096
-    """Ray samples (a random subset) the regularizers are evaluated on per step."""
-    eikonal_points: int = 2048
-    """Uniform random points in the box the regularizers are evaluated on per step."""
-    background: Literal["white", "black", "learned", "random"] = "white"
-    """Background used when render_rays gets none."""
-    sdf_lr_scale: float = 1.0
-    """SDF grids train at lr * sdf_lr_scale (world units per Adam step)."""
-    grid_lr_scale: float = 10.0
-    """The color grid trains at lr * grid_lr_scale."""
-    sharpness_lr_scale: float = 1.0
-    """log s trains at lr * sharpness_lr_scale."""
 
 
 def neus_tau(f0: Tensor, f1: Tensor, s: Tensor | float) -> Tensor:

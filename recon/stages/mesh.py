@@ -1,13 +1,13 @@
 """mesh stage: the trained field → a cleaned, colored triangle mesh in glTF/OBJ/PLY, with a report.
 
 Steps (each a function below, `run` only glues them and does the I/O):
-1. `choose_resolution`: grid nodes per axis from the pixel footprint at the cameras' median distance,
+1. `choose_resolution` (geometry.extract): grid nodes per axis from the pixel footprint at the cameras' median distance,
    capped by `mesh.max_resolution` and by `mesh.memory_budget_mb` (the float32 grid).
 2. `extract_mesh`: σ grid over the scene box (coarse-to-fine or dense), iso-level, marching cubes.
 3. `clean_mesh` (library): crop, drop floaters, drop the faces no photo sees (`see_with_views`), smooth, decimate.
 4. `bake_colors` (photos, depth-tested against the field's rendered depth) or the field's colors.
 5. `export_mesh` (library) in the normalized or the source frame, optionally scaled to a real size;
-   `mesh_report.json`; two previews (`preview_front.png`, `preview_side.png`) from `render_preview`,
+   `mesh_report.json`; two previews (`preview_front.png`, `preview_side.png`) from `render_preview` (geometry.preview),
    a z-buffered point splat of the colored mesh with Lambert shading (no OpenGL needed).
 6. `texture_mesh` (with mesh.texture_faces > 0): a decimated, UV-unwrapped copy with its colors baked into a
    texture the same way (`mesh_textured.glb`, `.obj` + `.mtl` + `.png`); `compare_in_views` renders it and
@@ -19,25 +19,33 @@ import math
 import resource
 import sys
 import time
-from pathlib import Path
 from typing import Any, Callable, Sequence
 
 import numpy as np
 import torch
 import trimesh
 
+from recon.atomic import write_json_atomic
 from recon.config import MeshConfig, parse_region
 from recon.errors import ReconError
 from recon.field import load_field
 from recon.geometry.clean import SeenFn, clean_mesh
 from recon.geometry.color import colors_from_field, colors_from_photos, seen_by_views
 from recon.geometry.export import export_mesh, export_textured_mesh
-from recon.geometry.extract import auto_iso_level, density_grid, density_grid_sparse, grid_spacing, marching_cubes
+from recon.geometry.extract import (
+    auto_iso_level,
+    choose_resolution,
+    density_grid,
+    density_grid_sparse,
+    grid_spacing,
+    marching_cubes,
+)
+from recon.geometry.preview import look_rotation, write_mesh_previews
 from recon.geometry.raster import render_mesh
 from recon.geometry.texture import TexturedMesh, make_textured_mesh
-from recon.pipeline import Stage, StageContext, write_json_atomic
+from recon.pipeline import Stage, StageContext
 from recon.scene import Frame, Scene, load_scene, look_at, spread_evenly
-from recon.stages.train import View, load_views, pixel_footprint, render_view, target_rgb
+from recon.views import View, load_views, pixel_footprint, render_view, target_rgb
 
 REPORT_FILE = "mesh_report.json"
 MESH_STEM = "mesh"
@@ -67,48 +75,6 @@ def training_focal(frame: Frame, max_side: int) -> float:
     """Horizontal focal length (pixels) of a frame at the training resolution (photos downscaled to max_side)."""
     scale = min(1.0, max_side / max(frame.w, frame.h)) if max_side else 1.0
     return float(frame.fl_x * scale)
-
-
-def grid_shape(aabb: np.ndarray, resolution: int) -> tuple[int, int, int]:
-    """Nodes per axis for cubic cells: ``resolution`` nodes along the box's longest side, the others in
-    proportion (at least 2)."""
-    extent = np.ptp(np.asarray(aabb, np.float64), axis=0)
-    cells = (resolution - 1) * extent / extent.max()
-    return tuple(max(2, int(round(c)) + 1) for c in cells)  # type: ignore[return-value]
-
-
-def choose_resolution(
-    aabb: np.ndarray, cfg: MeshConfig, footprint: float | None, footprint_why: str = ""
-) -> tuple[tuple[int, int, int], str]:
-    """Grid shape (nodes per axis, cubic cells over aabb (2, 3)) and the reason for it.
-
-    ``cfg.resolution > 0`` is used as given (nodes along the longest side); otherwise one cell per
-    pixel footprint (scene units), capped by ``cfg.max_resolution``. Either way the float32 grid
-    must fit in ``cfg.memory_budget_mb``; the resolution is lowered until it does.
-    """
-    longest = float(np.ptp(np.asarray(aabb, np.float64), axis=0).max())
-    if cfg.resolution > 0:
-        res, why = int(cfg.resolution), f"mesh.resolution={cfg.resolution}"
-    else:
-        if footprint is None or not footprint > 0:
-            raise ValueError("an automatic resolution needs the pixel footprint (> 0 scene units)")
-        res = int(math.ceil(longest / footprint)) + 1
-        why = f"cell ≈ pixel footprint {footprint:.4g} units{footprint_why} → {res} nodes along {longest:.3g} units"
-        if res > cfg.max_resolution:
-            res = int(cfg.max_resolution)
-            why += f", capped at mesh.max_resolution={cfg.max_resolution}"
-    res = max(res, 8)
-    budget = cfg.memory_budget_mb * 2**20
-    shape = grid_shape(aabb, res)
-    if 4 * math.prod(shape) > budget:
-        before = res
-        while res > 8 and 4 * math.prod(grid_shape(aabb, res)) > budget:
-            factor = (budget / (4 * math.prod(grid_shape(aabb, res)))) ** (1 / 3)
-            res = max(8, min(res - 1, int((res - 1) * factor) + 1))
-        shape = grid_shape(aabb, res)
-        why += f"; lowered from {before} to {res} to fit the float32 grid in mesh.memory_budget_mb={cfg.memory_budget_mb}"
-    mb = 4 * math.prod(shape) / 2**20
-    return shape, f"grid {shape[0]}×{shape[1]}×{shape[2]} ({mb:.0f} MB float32): {why}"
 
 
 # ---------------------------------------------------------------------------------------- region
@@ -451,7 +417,7 @@ def preview_textured(textured: TexturedMesh, size: int = 512, azimuth_deg: float
     `render_preview` uses (azimuth 0: from -Y, 20° up), the whole mesh in view."""
     lo, hi = textured.vertices.min(axis=0), textured.vertices.max(axis=0)
     centre, radius = 0.5 * (lo + hi), 0.5 * float(np.linalg.norm(hi - lo))
-    eye = centre + 3.0 * radius * np.linalg.inv(_look_rotation(azimuth_deg, elevation_deg))[:, 2]  # the camera's back axis
+    eye = centre + 3.0 * radius * np.linalg.inv(look_rotation(azimuth_deg, elevation_deg))[:, 2]  # the camera's back axis
     focal = 0.5 * size * math.sqrt(8.0) / 1.05  # the bounding sphere (half-angle asin(1/3)) fills the frame, 5 % margin
     rgb, _ = render_mesh(textured.vertices, textured.faces, look_at(eye, centre), (focal, focal, size / 2, size / 2), (size, size),
                          uv=textured.uv, texture=textured.texture)
@@ -482,77 +448,6 @@ def export_transform(
     return (None if np.allclose(transform, np.eye(4)) else transform), why
 
 
-# ---------------------------------------------------------------------------------------- previews
-def _look_rotation(azimuth_deg: float, elevation_deg: float) -> np.ndarray:
-    """(3, 3) world→camera rotation rows (right, up, back) of a camera at (azimuth, elevation) around +Z,
-    looking at the origin; azimuth 0 looks along +Y (the camera sits on -Y)."""
-    az, el = math.radians(azimuth_deg), math.radians(elevation_deg)
-    eye = np.array([-math.sin(az) * math.cos(el), -math.cos(az) * math.cos(el), math.sin(el)])
-    return look_at(eye, np.zeros(3))[:3, :3].T
-
-
-def render_preview(
-    vertices: np.ndarray,
-    faces: np.ndarray,
-    colors: np.ndarray,
-    azimuth_deg: float = 0.0,
-    elevation_deg: float = 20.0,
-    size: int = 512,
-    background: Sequence[float] = (1.0, 1.0, 1.0),
-    seed: int = 0,
-) -> np.ndarray:
-    """Orthographic image (size, size, 3) uint8 of a vertex-colored mesh, for a quick look without OpenGL.
-
-    Points are sampled on the surface by area (≈ 6 per covered pixel), colored and normal-interpolated
-    barycentrically, shaded Lambert (ambient 0.35 + 0.65·max(n·l, 0), light from the upper left of the
-    viewer) and z-buffered: each pixel shows its nearest point. vertices (V, 3) scene frame (+Z up);
-    faces (F, 3); colors (V, 3) in [0, 1]; the camera looks at the bbox centre from (azimuth, elevation).
-    """
-    bg = np.asarray(background, np.float64)
-    image = np.tile(bg, (size, size, 1))
-    mesh = trimesh.Trimesh(np.asarray(vertices, np.float64), np.asarray(faces, np.int64), process=False)
-    if len(mesh.faces) == 0 or mesh.area <= 0:
-        return np.round(image * 255).astype(np.uint8)
-    rot = _look_rotation(azimuth_deg, elevation_deg)
-    centre = 0.5 * (mesh.vertices.min(axis=0) + mesh.vertices.max(axis=0))
-    cam_v = (mesh.vertices - centre) @ rot.T
-    half = 1.1 * float(np.abs(cam_v[:, :2]).max())  # half the image width: 10 % margin
-    pix = 2 * half / size
-    # ~6 points per pixel of the visible half of the surface: a pixel stays empty with p ≈ e^-6
-    n = int(min(4_000_000, max(20_000, 6 * mesh.area / pix**2 / 2)))
-    rng = np.random.default_rng(seed)
-    face = rng.choice(len(mesh.faces), size=n, p=mesh.area_faces / mesh.area_faces.sum())
-    r1, r2 = np.sqrt(rng.random(n)), rng.random(n)
-    bary = np.stack([1 - r1, r1 * (1 - r2), r1 * r2], axis=1)  # uniform on each triangle
-    tri = mesh.faces[face]
-    pts = np.einsum("nk,nkc->nc", bary, cam_v[tri])
-    col = np.einsum("nk,nkc->nc", bary, np.clip(np.asarray(colors, np.float64), 0, 1)[tri])
-    nrm = np.einsum("nk,nkc->nc", bary, (mesh.vertex_normals @ rot.T)[tri])
-    nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-12)
-    light = np.array([-0.4, 0.5, 0.77])
-    light /= np.linalg.norm(light)
-    shade = 0.35 + 0.65 * np.clip(nrm @ light, 0.0, None)
-    u = ((pts[:, 0] + half) / pix).astype(np.int64)
-    v = ((half - pts[:, 1]) / pix).astype(np.int64)
-    ok = (u >= 0) & (u < size) & (v >= 0) & (v < size)
-    flat, depth = v[ok] * size + u[ok], -pts[ok, 2]  # camera looks down -Z: nearer = larger z
-    order = np.lexsort((depth, flat))  # by pixel, nearest first
-    first = order[np.r_[True, flat[order][1:] != flat[order][:-1]]]
-    image.reshape(-1, 3)[flat[first]] = np.clip(col[ok][first] * shade[ok][first, None], 0, 1)
-    return np.round(image * 255).astype(np.uint8)
-
-
-def write_previews(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray, folder: Path) -> list[str]:
-    """preview_front.png (from -Y, 20° above) and preview_side.png (from +X) of the mesh, scene frame."""
-    from PIL import Image
-
-    names = []
-    for name, az in (("preview_front.png", 0.0), ("preview_side.png", 90.0)):
-        Image.fromarray(render_preview(vertices, faces, colors, azimuth_deg=az)).save(folder / name)
-        names.append(name)
-    return names
-
-
 # ---------------------------------------------------------------------------------------- the stage
 def peak_rss_mb() -> float:
     """Peak resident memory of this process so far, MB (ru_maxrss is KiB on Linux, bytes on macOS)."""
@@ -573,7 +468,10 @@ def run(ctx: StageContext) -> dict:
     cfg: MeshConfig = ctx.config
     timings: dict[str, float] = {}
     t_all = time.perf_counter()
-    device = select_device("auto")
+    try:
+        device = select_device(ctx.run_config.train.device)  # the device training used, as the user chose it
+    except ValueError as exc:
+        raise ReconError(f"train.device={ctx.run_config.train.device}: {exc}") from None
     scene = load_scene(ctx.inputs["normalize"])
     model, meta = load_field(ctx.inputs["train"], device)
     aabb = np.asarray(meta.get("aabb", scene.aabb), np.float64)
@@ -660,7 +558,7 @@ def run(ctx: StageContext) -> dict:
     t = time.perf_counter()
     transform, frame_why = export_transform(vertices, cfg.frame, scene.source_from_world, cfg.real_size)
     paths = export_mesh(vertices, faces, colors, ctx.out, stem=MESH_STEM, transform=transform)
-    previews = write_previews(vertices, faces, colors, ctx.out)
+    previews = write_mesh_previews(vertices, faces, colors, ctx.out)
     timings["export_s"] = round(time.perf_counter() - t, 3)
 
     textured_info: dict[str, Any] | None = None

@@ -11,13 +11,16 @@ from pathlib import Path
 
 import numpy as np
 
+from recon.atomic import sha256_file
 from recon.config import PosesConfig
 from recon.errors import InputError
 from recon.images import camera_exif, list_photos, oriented_size, read_image, save_image
-from recon.pipeline import Stage, StageContext, sha256_file
+from recon.pipeline import Stage, StageContext
 from recon.scene import (
     Scene,
+    check_cameras,
     detect_source,
+    find_colmap_model,
     find_masks,
     frame_from_sfm,
     import_colmap,
@@ -27,22 +30,52 @@ from recon.scene import (
 )
 
 MIN_PHOTOS = 3
+LOG_DIR = "logs"
+"""COLMAP's own log files go to SCENE/logs/ (outside the stage folder: glog may still append after it is sealed)."""
 
 
 def source_digest(source: Path, cfg: PosesConfig | None) -> str:
-    """Digest of every input file (names + bytes): adding, removing or editing a photo re-runs poses."""
+    """Digest of the files the poses come from (names + bytes): adding, removing or editing one re-runs poses.
+
+    Exactly the files recon reads: the photos directly in a photos folder (never other files or subfolders), or a
+    poses file with every image it refers to (an edited image re-runs poses too), or a COLMAP model with its images.
+    Paths are hashed as given (absolute): the poses refer to the photos by path, so moved photos re-run poses.
+    """
     h = hashlib.sha256()
     kind = detect_source(source)
     h.update(kind.encode())
-    files = [source] if source.is_file() else sorted(p for p in source.rglob("*") if p.is_file() and not p.name.startswith("."))
-    for path in files:
-        h.update(str(path.relative_to(source) if source.is_dir() else path.name).encode())
+    for path in sorted(set(input_files(source, kind))):
+        h.update(str(path).encode())
         h.update(sha256_file(path).encode())
     if kind == "photos" and (source.parent / "masks").is_dir():  # masks beside the photos folder are inputs too
         for path in sorted(p for p in (source.parent / "masks").iterdir() if p.is_file()):
             h.update(f"masks/{path.name}".encode())
             h.update(sha256_file(path).encode())
     return h.hexdigest()
+
+
+def input_files(source: Path, kind: str) -> list[Path]:
+    """The files a source of this kind consists of, as `run` reads them."""
+    if kind == "photos":
+        photos = list_photos(source)[0]
+        return photos + sorted(find_masks(photos)[1].values())  # their masks are inputs too
+    if kind == "npz":
+        return [source]
+    if kind == "video":
+        from recon.video import list_videos
+
+        return [source] if source.is_file() else list_videos(source)
+    if kind == "colmap":
+        model = find_colmap_model(source)
+        assert model is not None  # detect_source found it
+        roots = (source / "images", model / "images", model.parent / "images", model.parent.parent / "images")
+        images = [p for root in roots if root.is_dir() for p in list_photos(root)[0]]
+        return [p for p in sorted(model.iterdir()) if p.is_file() and p.suffix in (".bin", ".txt")] + images
+    if kind == "nerf_synthetic":
+        jsons = [source / f"transforms_{s}.json" for s in ("train", "val", "test") if (source / f"transforms_{s}.json").is_file()]
+        return jsons + [Path(f.file_path) for f in import_nerf_synthetic(source).frames]
+    json_path = source / "transforms.json" if source.is_dir() else source
+    return [json_path] + [Path(f.file_path) for f in import_transforms(source).frames]
 
 
 def run(ctx: StageContext) -> dict:
@@ -61,9 +94,10 @@ def run(ctx: StageContext) -> dict:
         elif kind == "nerf_synthetic":
             scene = import_nerf_synthetic(ctx.source)
         elif kind == "colmap":
-            scene = import_colmap(ctx.source)
+            scene = import_colmap(ctx.source, log_dir=ctx.scene_dir / LOG_DIR)
         else:
             scene = import_transforms(ctx.source)
+        check_cameras(scene, _poses_file(ctx.source, kind))  # here, naming the input, not later blaming recon's own files
         splits = {s: sum(f.split == s for f in scene.frames) for s in ("train", "val", "test") if any(f.split == s for f in scene.frames)}
         summary = {
             "headline": f"imported {len(scene.frames)} cameras from {kind}" + (f" (splits {splits})" if splits else ""),
@@ -72,6 +106,17 @@ def run(ctx: StageContext) -> dict:
         }
     scene.save(ctx.out)
     return summary
+
+
+def _poses_file(source: Path, kind: str) -> Path:
+    """The file (or COLMAP model folder) the imported cameras were read from, for messages."""
+    if kind == "colmap":
+        return find_colmap_model(source) or source
+    if kind == "nerf_synthetic":
+        return source / "transforms_{train,val,test}.json"
+    if kind == "transforms" and source.is_dir():
+        return source / "transforms.json"
+    return source
 
 
 def prepare_photo(path: Path, image_dir: Path, max_side: int) -> tuple[str, tuple[int, int], tuple[int, int]]:
@@ -148,6 +193,15 @@ def _structure_from_motion(ctx: StageContext, photos: list[Path] | None = None) 
             f"Only {len(photos)} photo(s) in {ctx.source}; structure from motion needs at least {MIN_PHOTOS}, and a "
             f"good reconstruction 20 or more taken all around the subject with about 60% overlap between neighbours."
         )
+    by_stem: dict[str, list[str]] = {}
+    for path in photos:
+        by_stem.setdefault(path.stem, []).append(path.name)
+    clashes = [names for names in by_stem.values() if len(names) > 1]
+    if clashes:
+        raise InputError(
+            f"Photos in {ctx.source} share a name apart from the extension ({'; '.join(' and '.join(c) for c in clashes[:5])}); "
+            f"recon names views, renders and COLMAP's images by the name without extension. Rename or remove one of each."
+        )
     mask_dir, masks = find_masks(photos)
     if mask_dir is not None:
         ctx.report.info(
@@ -183,7 +237,7 @@ def _structure_from_motion(ctx: StageContext, photos: list[Path] | None = None) 
             elif fraction >= 1.0:
                 bar.advance()
 
-        result = run_sfm(image_dir, [n for _, n in names], sfm_dir, options, progress=progress)
+        result = run_sfm(image_dir, [n for _, n in names], sfm_dir, options, progress=progress, log_dir=ctx.scene_dir / LOG_DIR)
     ctx.report.info(f"Camera model: {result.camera_model} — {result.choice_reason}")
     if len(result.attempts) > 1:
         first, last = result.attempts[0], result.attempts[-1]

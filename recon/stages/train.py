@@ -8,78 +8,24 @@ resumes from it.
 """
 from __future__ import annotations
 
-import contextlib
-import json
-import math
-import os
 import time
 import warnings
-from dataclasses import asdict, dataclass
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
 
+from recon.atomic import checksum_matches, checksum_path, fault_point, write_checksummed, write_json_atomic
 from recon.config import TrainConfig, parse_duration
 from recon.errors import ReconError
 from recon.field import FIELD_FILE, build_model, save_field
-from recon.images import read_image, read_mask, undistort
-from recon.pipeline import Stage, StageContext, fault_point, interrupts_deferred, sha256_file, write_json_atomic
-from recon.scene import Frame, Scene, load_scene, spread_evenly
+from recon.pipeline import Stage, StageContext
+from recon.scene import Scene, load_scene, spread_evenly
+from recon.views import View, border_color, evaluate, load_views, pixel_footprint, write_previews
 
 CHECKPOINT = "checkpoint.pt"
-
-
-@dataclass
-class View:
-    """One photo at training resolution, ready for rays: image (H, W, C) uint8, pose, intrinsics."""
-
-    name: str
-    image: np.ndarray
-    c2w: np.ndarray
-    intrinsics: tuple[float, float, float, float]
-    near: float
-    far: float
-
-    @property
-    def hw(self) -> tuple[int, int]:
-        return self.image.shape[0], self.image.shape[1]
-
-
-def load_view(scene: Scene, frame: Frame, max_side: int, keep_alpha: bool) -> View:
-    """Read, downscale and undistort one photo; intrinsics scaled to the new size."""
-    image = read_image(scene.image_path(frame), max_side=max_side)
-    h, w = image.shape[:2]
-    if frame.mask_path:  # the mask becomes the alpha channel: what it calls background trains as background
-        image = np.concatenate([image[..., :3], read_mask(Path(frame.mask_path), (w, h))[..., None]], axis=-1)
-    sx, sy = w / frame.w, h / frame.h
-    fl_x, fl_y, cx, cy = frame.fl_x * sx, frame.fl_y * sy, frame.cx * sx, frame.cy * sy
-    image = undistort(image, fl_x, fl_y, cx, cy, frame.distortion, frame.camera_model)
-    if not keep_alpha:
-        image = image[..., :3]
-    elif image.shape[-1] == 3:
-        image = np.concatenate([image, np.ones_like(image[..., :1])], axis=-1)
-    return View(frame.stem, np.round(np.clip(image, 0, 1) * 255).astype(np.uint8), frame.c2w, (fl_x, fl_y, cx, cy), frame.near or 0.0, frame.far or 0.0)
-
-
-def load_views(scene: Scene, frames: list[Frame], max_side: int, report: Any = None, what: str = "photos") -> list[View]:
-    """Every frame's photo at training resolution, with a progress bar when a reporter is given."""
-    views = []
-    with report.task(f"loading {what}", total=len(frames)) if report else contextlib.nullcontext() as bar:
-        for f in frames:
-            views.append(load_view(scene, f, max_side, scene.has_alpha))
-            if bar is not None:
-                bar.advance()
-    return views
-
-
-def border_color(views: list[View]) -> np.ndarray:
-    """Median color of the photos' outer pixel rows/columns: the backdrop of a typical object capture."""
-    border = np.concatenate(
-        [np.concatenate([v.image[0], v.image[-1], v.image[:, 0], v.image[:, -1]])[:, :3] for v in views]
-    )
-    return np.median(border.astype(np.float32) / 255.0, axis=0)
 
 
 def choose_background(cfg: TrainConfig, scene: Scene, views: list[View]) -> tuple[np.ndarray, bool, str]:
@@ -171,17 +117,6 @@ def auto_fast_config(base: Any, scene: Scene, footprint: float) -> tuple[Any, li
     return cfg, reasons
 
 
-def pixel_footprint(aabb: np.ndarray, centres: np.ndarray, focals: np.ndarray) -> tuple[float, float]:
-    """World size of one training pixel at the cameras' median distance to the box centre.
-
-    aabb: (2, 3) scene box; centres: (K, 3) camera centres (scene frame); focals: (K,) pixels.
-    Returns ``(footprint, median distance)`` in scene units. Used to size the field's grids and the mesh grid.
-    """
-    box = np.asarray(aabb, np.float64)
-    dist = float(np.median(np.linalg.norm(np.asarray(centres, np.float64) - box.mean(axis=0), axis=1)))
-    return dist / float(np.median(focals)), dist
-
-
 def _tensor(views: list[View], device: torch.device) -> tuple[list[torch.Tensor], torch.Tensor, torch.Tensor, torch.Tensor]:
     images = [torch.from_numpy(v.image).to(device) for v in views]
     c2w = torch.tensor(np.stack([v.c2w for v in views]), dtype=torch.float32, device=device)
@@ -190,81 +125,9 @@ def _tensor(views: list[View], device: torch.device) -> tuple[list[torch.Tensor]
     return images, c2w, intr, near_far
 
 
-def render_view(model: torch.nn.Module, view: View, aabb: torch.Tensor | None, background: np.ndarray, chunk: int = 8192,
-                autocast: torch.dtype | None = None) -> dict[str, np.ndarray]:
-    """Render a view at its resolution → numpy rgb (H, W, 3), depth (H, W), opacity (H, W)."""
-    from recon.nerf.trainer import render_image
-
-    h, w = view.hw
-    device = next(model.parameters()).device
-    kwargs: dict[str, Any] = {"aabb": aabb} if aabb is not None else {"near": view.near, "far": view.far}
-    out = render_image(model, torch.tensor(view.c2w, dtype=torch.float32, device=device), view.intrinsics, h, w, chunk,
-                       background=torch.tensor(background), autocast=autocast, **kwargs)
-    return {k: v.detach().cpu().numpy() for k, v in out.items()}
-
-
-def target_rgb(view: View, background: np.ndarray) -> np.ndarray:
-    img = view.image.astype(np.float32) / 255.0
-    if img.shape[-1] == 4:
-        return img[..., :3] * img[..., 3:] + background * (1 - img[..., 3:])
-    return img
-
-
-def evaluate(model: torch.nn.Module, views: list[View], aabb: torch.Tensor | None, background: np.ndarray, keep: bool = False,
-             autocast: torch.dtype | None = None) -> dict[str, Any]:
-    """PSNR/SSIM of renders against photos; with keep=True also the renders themselves."""
-    from recon.metrics import psnr, ssim
-
-    per_view, renders = [], []
-    for view in views:
-        out = render_view(model, view, aabb, background, autocast=autocast)
-        gt = target_rgb(view, background)
-        p = float(psnr(torch.from_numpy(out["rgb"]), torch.from_numpy(gt)))
-        s = float(ssim(torch.from_numpy(out["rgb"]), torch.from_numpy(gt)))
-        per_view.append({"view": view.name, "psnr": round(p, 3), "ssim": round(s, 4)})
-        if keep:
-            renders.append((view, out, gt))
-    result: dict[str, Any] = {
-        "psnr": float(np.mean([v["psnr"] for v in per_view])) if per_view else math.nan,
-        "ssim": float(np.mean([v["ssim"] for v in per_view])) if per_view else math.nan,
-        "views": per_view,
-    }
-    if keep:
-        result["renders"] = renders
-    return result
-
-
-def write_previews(renders: list, folder: Path, near: float | None = None, far: float | None = None) -> None:
-    from recon.plots import comparison_panel, depth_to_color
-
-    folder.mkdir(parents=True, exist_ok=True)
-    for view, out, gt in renders:
-        depth_rgb = depth_to_color(out["depth"], out["opacity"], near, far)
-        comparison_panel(out["rgb"], gt, depth_rgb, folder / f"{view.name}.png")
-
-
-def _checksum_path(path: Path) -> Path:
-    return path.with_name(path.name + ".sha256")
-
-
 def _save_checkpoint(path: Path, state: dict[str, Any]) -> None:
-    """Atomically write a checkpoint and then its sha256 sidecar (checked before loading).
-
-    Written through a Python file object so a full disk raises OSError(ENOSPC), not torch's RuntimeError.
-    """
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    with interrupts_deferred():  # a Ctrl-C mid-save stops after the checkpoint and its sidecar are whole
-        try:
-            with open(tmp, "wb") as f:
-                torch.save(state, f)
-                f.flush()
-                os.fsync(f.fileno())
-            digest = sha256_file(tmp)
-            os.replace(tmp, path)
-        except BaseException:
-            tmp.unlink(missing_ok=True)
-            raise
-        write_json_atomic(_checksum_path(path), {"sha256": digest, "size": path.stat().st_size})
+    """Atomically write a checkpoint and its sha256 sidecar (checked before loading); Ctrl-C waits until both are whole."""
+    write_checksummed(path, lambda f: torch.save(state, f))
     fault_point("train/checkpoint")
 
 
@@ -272,20 +135,14 @@ def _load_checkpoint(path: Path, report: Any) -> dict[str, Any] | None:
     """The checkpoint if its bytes match the checksum recorded when it was written, else None (start over)."""
     if not path.exists():
         return None
-    sidecar = _checksum_path(path)
     try:
-        recorded = json.loads(sidecar.read_text())["sha256"]
-        intact = sha256_file(path) == recorded
-    except (OSError, ValueError, KeyError, TypeError):
-        intact = False
-    try:
-        if not intact:
+        if not checksum_matches(path):
             raise ValueError("its bytes do not match the checksum recorded when it was written")
         return torch.load(path, map_location="cpu", weights_only=False)
     except Exception as exc:  # truncated or corrupt: start over rather than load garbage
         report.warn(f"The training checkpoint {path} is unusable ({exc}); training starts over.")
         path.unlink(missing_ok=True)
-        sidecar.unlink(missing_ok=True)
+        checksum_path(path).unlink(missing_ok=True)
         return None
 
 

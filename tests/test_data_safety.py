@@ -1,0 +1,442 @@
+"""Issue 17: recon never loses a user's files, refuses hostile input early, and keeps its I/O in one place.
+
+Each test reproduces one case of the issue through the CLI (in-process) or the function at fault.
+"""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import struct
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+from typer.testing import CliRunner
+
+from recon.cli import app
+from tests import faults
+
+runner = CliRunner()
+QUICK = ["--until", "poses"]
+
+
+def recon(*args: str) -> tuple[int, str]:
+    result = runner.invoke(app, [str(a) for a in args])
+    return result.exit_code, result.output
+
+
+def assert_refused(code: int, output: str, *needles: str) -> None:
+    assert code == 2, output
+    assert "Traceback" not in output and "internal error" not in output, output
+    flat = " ".join(output.split())
+    for needle in needles:
+        assert needle in flat, output
+
+
+def snapshot(folder: Path) -> dict[str, bytes | str]:
+    """Every entry below `folder` (links as their target) with its bytes: to show nothing was touched."""
+    out: dict[str, bytes | str] = {}
+    for p in sorted(folder.rglob("*")):
+        key = p.relative_to(folder).as_posix()
+        out[key] = f"link:{os.readlink(p)}" if p.is_symlink() else p.read_bytes() if p.is_file() else "dir"
+    return out
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return faults.make_capture(tmp_path_factory.mktemp("safety") / "capture", views=6, size=64)
+
+
+@pytest.fixture
+def capture(tiny: Path, tmp_path: Path) -> Path:
+    return Path(shutil.copytree(tiny, tmp_path / "capture"))
+
+
+# ---------------------------------------------------------------------------------------- data safety
+def test_capture_named_like_a_stage_folder_inside_out_is_not_replaced(tiny: Path, tmp_path: Path) -> None:
+    """Case 1: `recon run X/01_poses --out X` used to replace the capture folder X/01_poses by its output."""
+    x = tmp_path / "X"
+    shutil.copytree(tiny, x / "01_poses")
+    before = snapshot(x)
+    assert_refused(*recon("run", x / "01_poses", "--out", x, *QUICK), "contains the input")
+    assert snapshot(x) == before
+
+
+def test_non_empty_folder_that_is_not_a_scene_is_refused(capture: Path, tmp_path: Path) -> None:
+    """Case 2: temporary-looking files, files in 01_poses/ and a foreign manifest.json used to be deleted or replaced."""
+    out = tmp_path / "mine"
+    (out / ".tmp-notes").mkdir(parents=True)
+    (out / ".tmp-notes" / "draft.txt").write_text("keep")
+    (out / ".draft.tmp").write_text("keep")
+    (out / "01_poses").mkdir()
+    (out / "01_poses" / "photo.jpg").write_bytes(b"my photo")
+    (out / "manifest.json").write_text('{"shipping": "list"}')
+    before = snapshot(out)
+    assert_refused(*recon("run", capture, "--out", out, *QUICK), "not a manifest recon can read", "choose another --out")
+    assert snapshot(out) == before
+    (out / "manifest.json").unlink()
+    before = snapshot(out)
+    assert_refused(*recon("run", capture, "--out", out, *QUICK), "is not a recon scene")
+    assert snapshot(out) == before
+
+
+def test_leftover_cleanup_removes_only_names_recon_makes(capture: Path, tmp_path: Path) -> None:
+    scene = tmp_path / "scene"
+    assert recon("run", capture, "--out", scene, *QUICK)[0] == 0
+    ours = [scene / f".tmp-01_poses-{os.getpid() + 1}", scene / ".old-02_scene-77"]
+    for p in ours:
+        p.mkdir()
+    (scene / ".manifest.json.123.tmp").write_text("half")
+    theirs = [scene / ".tmp-holiday", scene / ".old-photos", scene / ".notes.tmp", scene / ".tmp-01_poses-abc"]
+    for p in theirs:
+        p.mkdir()
+    code, output = recon("run", capture, "--out", scene, *QUICK)
+    assert code == 0, output
+    assert not any(p.exists() for p in ours) and not (scene / ".manifest.json.123.tmp").exists()
+    assert all(p.is_dir() for p in theirs)
+
+
+@pytest.mark.parametrize("where", ["root", "home", "photos", "inside photos"])
+def test_out_may_not_be_root_home_or_the_photos(capture: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, where: str) -> None:
+    """Case 3: `--out /`, the home folder, the photos folder or a folder inside it used to be accepted."""
+    home = tmp_path / "home"
+    (home / "Documents").mkdir(parents=True)
+    monkeypatch.setenv("HOME", str(home))
+    out = {"root": Path("/"), "home": home, "photos": capture, "inside photos": capture / "images" / "scene"}[where]
+    needle = {"root": "root of the file system", "home": "your home folder", "photos": "is the input",
+              "inside photos": "is inside the input"}[where]
+    before = snapshot(capture)
+    assert_refused(*recon("run", capture, "--out", out, *QUICK), needle)
+    assert snapshot(capture) == before and snapshot(home) == {"Documents": "dir"}
+
+
+def test_crash_log_goes_to_the_scene_or_user_cache_never_through_a_link(
+    capture: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Case 4: the crash log was /tmp/recon-error.log, written through a symlink planted there."""
+    import recon.cli as cli
+
+    def boom() -> None:
+        raise RuntimeError("a bug")
+
+    cache = tmp_path / "cache"
+    (cache / "recon").mkdir(parents=True)
+    victim = tmp_path / "victim.txt"
+    victim.write_text("precious")
+    (cache / "recon" / "recon-error.log").symlink_to(victim)
+    monkeypatch.setenv("XDG_CACHE_HOME", str(cache))
+    monkeypatch.setattr(cli, "_pipeline", boom)
+    code, output = recon("run", capture, "--out", tmp_path / "new")
+    assert code == 1 and "internal error" in output, output
+    log = cache / "recon" / "recon-error.log"
+    assert victim.read_text() == "precious"
+    assert not log.is_symlink() and "RuntimeError: a bug" in log.read_text()
+    monkeypatch.undo()
+    scene = tmp_path / "scene"
+    assert recon("run", capture, "--out", scene, *QUICK)[0] == 0
+    monkeypatch.setattr(cli, "_pipeline", boom)
+    code, output = recon("run", capture, "--out", scene)
+    assert code == 1 and "RuntimeError: a bug" in (scene / "recon-error.log").read_text()
+
+
+def test_failed_run_keeps_the_finished_scenes_source_and_preset(capture: Path, tmp_path: Path) -> None:
+    """Case 5: a failed run with other photos and another preset rewrote the recorded source and preset."""
+    scene = tmp_path / "scene"
+    assert recon("run", capture, "--out", scene, "--preset", "fast", *QUICK)[0] == 0
+    before = json.loads((scene / "manifest.json").read_text())
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    assert_refused(*recon("run", empty, "--out", scene, "--preset", "quality", *QUICK), "No photos found")
+    after = json.loads((scene / "manifest.json").read_text())
+    assert (after["source"], after["preset"]) == (before["source"], before["preset"]) == (str(capture.resolve()), "fast")
+
+
+# ---------------------------------------------------------------------------------------- input checks
+def _edit_transforms(capture: Path, edit) -> None:
+    path = capture / "transforms.json"
+    doc = json.loads(path.read_text())
+    edit(doc)
+    path.write_text(json.dumps(doc))
+
+
+@pytest.mark.parametrize("case, needle", [
+    ("angle_y", "camera_angle_y = 3.5"),
+    ("focal", "field of view of 180°"),
+    ("size_mismatch", "another shape"),
+    ("too_small", "at least 32 px"),
+    ("nan_distortion", "'k1' must be a finite number"),
+    ("principal_point", "principal point"),
+])
+def test_imported_intrinsics_are_checked_before_poses_is_done(capture: Path, tmp_path: Path, case: str, needle: str) -> None:
+    """`camera_angle_y=3.5` and friends passed poses; normalize then blamed recon's own scene.json."""
+    def edit(doc: dict) -> None:
+        for key in ("fl_x", "fl_y", "cx", "cy", "w", "h"):
+            doc.pop(key, None)
+        doc["camera_angle_x"] = 0.8
+        if case == "angle_y":
+            doc["camera_angle_y"] = 3.5
+        elif case == "focal":
+            doc.pop("camera_angle_x")
+            doc["fl_x"] = 1e-320  # positive, but a field of view of 180°
+        elif case == "size_mismatch":
+            doc["w"], doc["h"] = 64, 100
+        elif case == "too_small":
+            doc["w"], doc["h"] = 16, 16
+        elif case == "nan_distortion":
+            doc["k1"] = float("nan")
+        else:
+            doc["cx"] = -40.0
+    _edit_transforms(capture, edit)
+    scene = tmp_path / "scene"
+    assert_refused(*recon("run", capture, "--out", scene, *QUICK), needle, str(capture / "transforms.json"))
+    assert not (scene / "01_poses").exists()  # poses is not done
+
+
+def _colmap_model(folder: Path, camera_params: tuple[float, ...] = (50.0, 32.0, 32.0)) -> Path:
+    """A one-image COLMAP binary model (SIMPLE_PINHOLE camera) with its image, written with struct."""
+    (folder / "images").mkdir(parents=True)
+    Image.fromarray(np.full((64, 64, 3), 128, np.uint8)).save(folder / "images" / "a.png")
+    model = folder / "sparse" / "0"
+    model.mkdir(parents=True)
+    (model / "cameras.bin").write_bytes(struct.pack("<QiiQQ", 1, 1, 0, 64, 64) + struct.pack("<3d", *camera_params))
+    image = struct.pack("<I4d3dI", 1, 1, 0, 0, 0, 0, 0, 4, 1) + b"a.png\x00" + struct.pack("<Q", 0)
+    (model / "images.bin").write_bytes(struct.pack("<Q", 1) + image)
+    (model / "points3D.bin").write_bytes(struct.pack("<Q", 0))
+    return folder
+
+
+def test_colmap_binaries_are_size_checked_before_pycolmap_reads_them(tmp_path: Path) -> None:
+    """A 4-byte points3D.bin made pycolmap's memory grow without bound (> 8 GB in 27 s)."""
+    from recon.scene import check_colmap_binaries
+
+    project = _colmap_model(tmp_path / "project")
+    model = project / "sparse" / "0"
+    check_colmap_binaries(model)  # a sound model passes
+    (model / "points3D.bin").write_bytes(b"\x01\x02\x03\x04")
+    assert_refused(*recon("run", project, "--out", tmp_path / "s", *QUICK), "points3D.bin is damaged", "shorter than")
+    (model / "points3D.bin").write_bytes(struct.pack("<Q", 10**9) + b"\x00" * 100)
+    assert_refused(*recon("run", project, "--out", tmp_path / "s2", *QUICK), "1,000,000,000 records")
+
+
+def test_colmap_camera_with_a_bad_focal_is_refused_naming_the_model(tmp_path: Path) -> None:
+    project = _colmap_model(tmp_path / "project", camera_params=(-50.0, 32.0, 32.0))
+    assert_refused(*recon("run", project, "--out", tmp_path / "s", *QUICK), "focal length", "sparse/0")
+
+
+@pytest.mark.parametrize("content, needle", [
+    ("[" * 100_000 + "]" * 100_000, "nested too deeply"),
+    ('{"fl_x": ' + "9" * 4400 + "}", "more than 4300 digits"),
+])
+def test_hostile_json_is_a_clear_error(capture: Path, tmp_path: Path, content: str, needle: str) -> None:
+    (capture / "transforms.json").write_text(content)
+    assert_refused(*recon("run", capture, "--out", tmp_path / "s", *QUICK), needle, "transforms.json")
+
+
+def test_utf8_bom_is_accepted(capture: Path, tmp_path: Path) -> None:
+    path = capture / "transforms.json"
+    path.write_bytes(b"\xef\xbb\xbf" + path.read_bytes())
+    code, output = recon("run", capture, "--out", tmp_path / "s", *QUICK)
+    assert code == 0, output
+
+
+def test_manifest_with_wrong_types_is_not_an_internal_error(capture: Path, tmp_path: Path) -> None:
+    scene = tmp_path / "scene"
+    assert recon("run", capture, "--out", scene, *QUICK)[0] == 0
+    doc = json.loads((scene / "manifest.json").read_text())
+    doc["stages"]["poses"]["files"] = 5
+    doc["preset"] = ["fast"]
+    (scene / "manifest.json").write_text(json.dumps(doc))
+    code, output = recon("status", scene)
+    assert code == 0 and "poses" in output and "manifest.json was unreadable" in " ".join(output.split()), output
+    code, output = recon("run", capture, "--out", scene, *QUICK)
+    assert code == 0 and "manifest.json was unreadable" in " ".join(output.split()), output
+    assert json.loads((scene / "manifest.json").read_text())["stages"]["poses"]["status"] == "done"
+
+
+@pytest.mark.parametrize("args, needle", [
+    (["--set", "train.budget=abc"], "Cannot read the time budget 'abc'"),
+    (["--budget", "-5m"], "must be positive"),
+    (["--set", "train.device=tpu"], "'train.device' must be auto, cpu, cuda or cuda:K"),
+    (["--set", "train.device=cuda:99"], "train.device"),
+    (["--set", "train.steps=" + "9" * 5000], "expects a number"),
+    (["--set", "train.fast.aabb=" + "[" * 100_000], "expects a list"),
+])
+def test_bad_training_options_fail_before_any_stage_runs(capture: Path, tmp_path: Path, args: list[str], needle: str) -> None:
+    scene = tmp_path / "scene"
+    assert_refused(*recon("run", capture, "--out", scene, *args), needle)
+    assert not scene.exists()
+
+
+def test_uint16_npz_images_keep_their_values(tmp_path: Path) -> None:
+    from recon.images import read_image
+    from recon.scene import import_npz
+
+    images = np.zeros((2, 40, 40, 3), np.uint16)
+    images[..., 0] = 65535
+    images[..., 1] = 32768
+    poses = np.tile(np.eye(4), (2, 1, 1))
+    np.savez(tmp_path / "tiny.npz", images=images, poses=poses, focal=np.array(50.0))
+    scene = import_npz(tmp_path / "tiny.npz", tmp_path / "out")
+    pixels = read_image(Path(scene.frames[0].file_path))
+    assert pixels[..., 0].min() == pytest.approx(1.0) and pixels[..., 1].max() == pytest.approx(128 / 255, abs=1 / 255)
+    assert pixels[..., 2].max() == 0.0
+
+
+def test_paths_with_brackets_print_as_they_are(tiny: Path, tmp_path: Path) -> None:
+    """'[/b]' in a path used to be read as rich markup: a MarkupError (internal error) or a mangled path."""
+    capture = Path(shutil.copytree(tiny, tmp_path / "x[" / "b]" / "cap[red]"))
+    scene = tmp_path / "y[bold]" / "scene"
+    code, output = recon("run", capture, "--out", scene, *QUICK)
+    assert code == 0, output
+    flat = "".join(output.split())
+    assert "".join(str(capture).split()) in flat and "y[bold]" in flat
+
+
+def test_photo_fingerprint_covers_only_the_photos_recon_uses(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """It used to hash everything below PHOTOS, unrelated subfolders and symlinks out of it included."""
+    import recon.stages.poses as poses
+
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    for i in range(3):
+        Image.fromarray(np.full((40, 40, 3), 40 * i, np.uint8)).save(photos / f"p{i}.jpg")
+    (photos / "raw").mkdir()
+    (photos / "raw" / "huge.bin").write_bytes(b"x" * 1000)
+    outside = tmp_path / "elsewhere"
+    outside.mkdir()
+    (outside / "secret.jpg").write_bytes(b"not mine")
+    (photos / "link").symlink_to(outside, target_is_directory=True)
+    read: list[Path] = []
+    real = poses.sha256_file
+    monkeypatch.setattr(poses, "sha256_file", lambda p: read.append(Path(p)) or real(p))
+    first = poses.source_digest(photos, None)
+    assert sorted(p.name for p in read) == ["p0.jpg", "p1.jpg", "p2.jpg"]
+    (photos / "raw" / "huge.bin").write_bytes(b"y")
+    assert poses.source_digest(photos, None) == first
+    Image.fromarray(np.full((40, 40, 3), 200, np.uint8)).save(photos / "p1.jpg")
+    assert poses.source_digest(photos, None) != first
+
+
+def test_transforms_file_fingerprint_covers_its_images(capture: Path) -> None:
+    """Given the transforms.json file itself, an edited image did not re-run poses."""
+    from recon.stages.poses import source_digest
+
+    first = source_digest(capture / "transforms.json", None)
+    image = sorted((capture / "images").iterdir())[2] if (capture / "images").is_dir() else None
+    assert image is not None
+    Image.fromarray(np.zeros((64, 64, 3), np.uint8)).save(image)
+    assert source_digest(capture / "transforms.json", None) != first
+    assert source_digest(capture, None) != first
+
+
+def test_pycolmap_logs_land_in_the_given_folder(tmp_path: Path) -> None:
+    import pycolmap
+
+    from recon.sfm import pycolmap_logging_to
+
+    pycolmap_logging_to(tmp_path / "logs")
+    pycolmap.logging.error("recon test line")
+    logs = list((tmp_path / "logs").glob("colmap.ERROR.*"))
+    assert logs and "recon test line" in logs[0].read_text()
+
+
+# ---------------------------------------------------------------------------------------- also fix
+def test_same_photo_name_with_two_extensions_is_a_clear_error(tmp_path: Path) -> None:
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    for name in ("a.jpg", "a.jpeg", "b.jpg", "c.jpg"):
+        Image.fromarray(np.zeros((40, 40, 3), np.uint8)).save(photos / name, format="JPEG")
+    assert_refused(*recon("run", photos, "--out", tmp_path / "s", *QUICK), "a.jpeg and a.jpg")
+
+
+def test_eval_limit_picks_the_views_training_picks(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import recon.novel_views as nv
+    from recon.scene import Frame, Scene, spread_evenly
+
+    frames = [Frame(f"v{i}.png", np.eye(4), 10, 10, 5, 5, 10, 10, split="test") for i in range(10)]
+    picked: list[str] = []
+
+    class Stop(Exception):
+        pass
+
+    def fake_load(scene, chosen, *a, **k):
+        picked.extend(f.name for f in chosen)
+        raise Stop
+
+    monkeypatch.setattr(nv, "_trained", lambda *a: (Scene(frames=frames), None, {"background": [1, 1, 1], "max_side": 10}, None))
+    monkeypatch.setattr(nv, "load_views", fake_load)
+    with pytest.raises(Stop):
+        nv.evaluate_scene(tmp_path, tmp_path / "eval", limit=4)
+    assert picked == [f.name for f in spread_evenly(frames, 4)] == ["v0.png", "v3.png", "v6.png", "v9.png"]
+
+
+def test_mesh_stage_uses_train_device(tmp_path: Path) -> None:
+    from recon.config import RunConfig
+    from recon.errors import ReconError
+    from recon.pipeline import StageContext
+    from recon.progress import Reporter
+    from recon.stages import mesh
+
+    config = RunConfig()
+    config.train.device = "cuda:99"
+    ctx = StageContext("mesh", "04_mesh", tmp_path, tmp_path, {"normalize": tmp_path, "train": tmp_path},
+                       config.mesh, config, None, tmp_path, Reporter(quiet=True))
+    with pytest.raises(ReconError, match="train.device=cuda:99"):
+        mesh.run(ctx)
+
+
+def test_library_modules_import_no_runner_and_config_no_torch() -> None:
+    """scene.py, field.py and geometry/export.py imported the runner for its atomic writes; config.py loaded torch
+    (through FastConfig) and pycolmap (through SfmOptions), so reading a scene paid for both."""
+    import ast
+
+    code = "import sys, recon.scene, recon.config; print(sorted(m for m in ('torch', 'pycolmap', 'recon.pipeline') if m in sys.modules))"
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=faults.REPO,
+                          env={**os.environ, "PYTHONPATH": str(faults.REPO)}, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.strip() == "[]"
+    library = ["scene.py", "field.py", "views.py", "atomic.py", "geometry/export.py", "geometry/preview.py", "geometry/extract.py"]
+    for name in library:
+        tree = ast.parse((faults.REPO / "recon" / name).read_text())
+        imported = {n.module for n in ast.walk(tree) if isinstance(n, ast.ImportFrom) and n.module}
+        imported |= {a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names}
+        assert not {m for m in imported if m.startswith(("recon.pipeline", "recon.cli", "recon.stages"))}, name
+
+
+def test_bench_reruns_poses_and_normalize_only_when_a_preset_changes_them(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """bench ran every preset `--from train`: a preset that changes normalize kept the shared normalize output."""
+    import recon.config
+    import recon.stages
+    from recon.bench import run_bench
+    from recon.pipeline import Pipeline, Stage
+    from recon.progress import Reporter
+
+    ran: list[tuple[str, str]] = []
+    metrics = {"model": "fast", "steps": 1, "train_time_s": 1.0, "rays_per_s": 1.0, "evals": [],
+               "test": {"psnr": 20.0, "ssim": 0.5, "views": []}}
+
+    def stage(name: str, folder: str, inputs: tuple[str, ...]) -> Stage:
+        def run(ctx) -> dict:
+            ran.append((ctx.scene_dir.name, name))
+            (ctx.out / "metrics.json").write_text(json.dumps(metrics))
+            return {}
+        return Stage(name, folder, inputs, 1, run, needs_source=name == "poses",
+                     source_digest=(lambda s, c: "photos") if name == "poses" else None)
+
+    pipe = Pipeline([stage("poses", "01_poses", ()), stage("normalize", "02_scene", ("poses",)),
+                     stage("train", "03_field", ("normalize",)), stage("mesh", "04_mesh", ("normalize", "train"))])
+    monkeypatch.setattr(recon.stages, "default_pipeline", lambda: pipe)
+    presets = tmp_path / "presets"
+    presets.mkdir()
+    (presets / "plain.toml").write_text('description = "defaults"\n')
+    (presets / "wide.toml").write_text('description = "a wider box"\n[normalize]\nbox_margin = 0.3\n')
+    monkeypatch.setattr(recon.config, "PIPELINES_DIR", presets)
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    run_bench(str(photos), ["plain", "wide"], tmp_path / "bench", [], Reporter(quiet=True), until="train")
+    assert ran == [("photos-poses", "poses"), ("photos-poses", "normalize"),
+                   ("photos-plain", "train"), ("photos-wide", "normalize"), ("photos-wide", "train")]
