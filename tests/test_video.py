@@ -33,9 +33,12 @@ runner = CliRunner()
 
 
 @pytest.fixture(scope="module")
-def clip(pytestconfig: pytest.Config) -> Path:
-    """The small test clip (140 frames, 160x120), rendered once per generator version into pytest's cache."""
-    folder = Path(pytestconfig.cache.mkdir(f"recon-video-small-v{gen_video.FORMAT_VERSION}"))
+def clip(pytestconfig: pytest.Config, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The small test clip (140 frames, 160x120), rendered once per generator version into pytest's cache
+    (or into a temporary folder when pytest runs without its cache, `-p no:cacheprovider`)."""
+    name = f"recon-video-small-v{gen_video.FORMAT_VERSION}"
+    cache = getattr(pytestconfig, "cache", None)
+    folder = Path(cache.mkdir(name)) if cache is not None else tmp_path_factory.mktemp(name)
     if not (folder / "video_info.json").is_file():
         gen_video.generate_video(folder, **SMALL)
     return folder / "clip.mp4"
