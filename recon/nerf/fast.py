@@ -59,7 +59,7 @@ from recon.nerf.contraction import contract
 from recon.nerf.grid import DenseGrid, HashGrid, MultiDenseGrid, VMGrid, resample_dense
 from recon.nerf.occupancy import OccupancyGrid, density_threshold, march
 from recon.nerf.rays import ray_aabb
-from recon.nerf.render import RadianceModel, accumulate_packed, render_weights_packed
+from recon.nerf.render import RadianceModel, accumulate_packed, checked_aabb, render_weights_packed
 
 __all__ = ["FastConfig", "FastModel", "sh_encode", "distortion_loss_packed", "ray_background", "trunc_exp"]
 
@@ -181,9 +181,7 @@ class FastModel(RadianceModel):
     def __init__(self, config: FastConfig | None = None) -> None:
         super().__init__()
         cfg = self.config = config or FastConfig()
-        aabb = torch.tensor(cfg.aabb, dtype=torch.float32)
-        if aabb.shape != (2, 3) or not bool((aabb[1] > aabb[0]).all()):
-            raise ValueError(f"FastConfig.aabb must be [[min x, y, z], [max x, y, z]] with max > min, got {cfg.aabb}")
+        aabb = checked_aabb(cfg.aabb, "FastConfig")
         self.register_buffer("aabb", aabb)
         box = torch.tensor([[-2.0] * 3, [2.0] * 3]) if cfg.unbounded else aabb
         self.register_buffer("grid_box", box.clone())  # shrink_grids moves it; aabb stays the scene box

@@ -305,6 +305,14 @@ def render_packed(
 
 
 # ----------------------------------------------------------------------------- model interface
+def checked_aabb(value: Any, owner: str) -> Tensor:
+    """The scene box ``[[min x, y, z], [max x, y, z]]`` as float32, or a ValueError naming the config that gave it."""
+    aabb = torch.tensor(value, dtype=torch.float32)
+    if aabb.shape != (2, 3) or not bool((aabb[1] > aabb[0]).all()):
+        raise ValueError(f"{owner}.aabb must be [[min x, y, z], [max x, y, z]] with max > min, got {value}")
+    return aabb
+
+
 class RadianceModel(nn.Module, abc.ABC):
     """What the trainer, renderer and mesher need from a radiance field (classic and fast models).
 

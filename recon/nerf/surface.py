@@ -58,7 +58,7 @@ from recon.nerf.fast import _make_grid, color_from_features, make_color_mlp, ray
 from recon.nerf.grid import MultiDenseGrid
 from recon.nerf.occupancy import OccupancyGrid, march
 from recon.nerf.rays import ray_aabb
-from recon.nerf.render import RadianceModel, accumulate_packed, render_weights_packed
+from recon.nerf.render import RadianceModel, accumulate_packed, checked_aabb, render_weights_packed
 
 __all__ = ["SurfaceConfig", "SurfaceModel", "neus_tau", "sdf_fd_terms", "eikonal_loss"]
 
@@ -97,9 +97,7 @@ class SurfaceModel(RadianceModel):
     def __init__(self, config: SurfaceConfig | None = None) -> None:
         super().__init__()
         cfg = self.config = config or SurfaceConfig()
-        aabb = torch.tensor(cfg.aabb, dtype=torch.float32)
-        if aabb.shape != (2, 3) or not bool((aabb[1] > aabb[0]).all()):
-            raise ValueError(f"SurfaceConfig.aabb must be [[min x, y, z], [max x, y, z]] with max > min, got {cfg.aabb}")
+        aabb = checked_aabb(cfg.aabb, "SurfaceConfig")
         self.register_buffer("aabb", aabb)
         extent = float((aabb[1] - aabb[0]).max())
         self.register_buffer("centre", aabb.mean(0))
