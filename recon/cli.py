@@ -379,10 +379,9 @@ def _serve(make: Callable[[], Any], scene: Path) -> None:
         viewer = make()
         console.print(f"[bold]viewer:[/] {viewer.url} — Ctrl-C to stop")
     try:
-        while True:
-            time.sleep(1.0)
-    except KeyboardInterrupt:
-        pass
+        with contextlib.suppress(KeyboardInterrupt):
+            while True:
+                time.sleep(1.0)
     finally:
         viewer.stop()
 

@@ -10,15 +10,21 @@ Densities are volume densities σ (1 / scene unit), high inside the object.
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING, Callable
+from typing import Callable, Protocol
 
 import numpy as np
 import torch
 from scipy.ndimage import binary_dilation
 from skimage import measure
 
-if TYPE_CHECKING:
-    from recon.config import MeshConfig
+
+class GridSettings(Protocol):
+    """What `choose_resolution` reads (recon.config.MeshConfig has these): the library needs no config import."""
+
+    resolution: int
+    max_resolution: int
+    memory_budget_mb: int
+
 
 DensityFn = Callable[[torch.Tensor], torch.Tensor]
 """``density_fn(points: (M, 3) float32) -> (M,)`` or ``(M, 1)`` density σ ≥ 0 at scene points."""
@@ -307,7 +313,7 @@ def grid_shape(aabb: np.ndarray, resolution: int) -> tuple[int, int, int]:
 
 
 def choose_resolution(
-    aabb: np.ndarray, cfg: "MeshConfig", footprint: float | None, footprint_why: str = ""
+    aabb: np.ndarray, cfg: GridSettings, footprint: float | None, footprint_why: str = ""
 ) -> tuple[tuple[int, int, int], str]:
     """Grid shape (nodes per axis, cubic cells over aabb (2, 3)) and the reason for it.
 

@@ -54,7 +54,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from recon.config import FastConfig, GridKind
+from recon.nerf.model_config import FastConfig, GridKind
 from recon.nerf.contraction import contract
 from recon.nerf.grid import DenseGrid, HashGrid, MultiDenseGrid, VMGrid, resample_dense
 from recon.nerf.occupancy import OccupancyGrid, density_threshold, march

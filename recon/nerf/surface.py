@@ -53,7 +53,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from recon.config import SurfaceConfig
+from recon.nerf.model_config import SurfaceConfig
 from recon.nerf.fast import _make_grid, color_from_features, make_color_mlp, ray_background
 from recon.nerf.grid import MultiDenseGrid
 from recon.nerf.occupancy import OccupancyGrid, march

@@ -1,0 +1,151 @@
+"""The grid models' settings (fast density field, SDF surface): plain dataclasses, importable without torch.
+
+They live with the models that read them; `recon.config` gathers them into the run's config with the rest.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+GridKind = Literal["dense", "vm", "hash"]
+
+
+@dataclass
+class FastConfig:
+    """Options of the fast grid model (`recon.nerf.fast.FastModel`) (one named point per preset in pipelines/*.toml)."""
+
+    aabb: tuple[tuple[float, float, float], tuple[float, float, float]] = ((-1.5, -1.5, -1.5), (1.5, 1.5, 1.5))
+    """Scene box [min_xyz, max_xyz] in the normalized frame (world units); the grids span it when bounded."""
+    unbounded: bool = False
+    """Contract space outside the unit box into [-2, 2]^3 (mip-NeRF 360) instead of using ``aabb``."""
+    density_grid: GridKind = "dense"
+    """Grid holding density: "dense" voxels (default, cheapest per sample), "vm" (TensoRF) or "hash"."""
+    density_res: int = 128
+    """Vertices per side of the density grid (levels' finest resolution for "hash")."""
+    grid: GridKind = "dense"
+    """Grid holding the color features: "dense" (default, fastest per sample here), "vm" (TensoRF) or "hash"."""
+    feature_res: int = 128
+    """Vertices per side of the feature grid (finest resolution for "hash")."""
+    feature_dim: int = 12
+    """Feature channels: dense = channels, vm = components per axis (3x channels out), hash = levels (x2)."""
+    density_levels: int = 3
+    """Dense density grid: sum of this many grids, each half the resolution of the previous (coarse-to-fine)."""
+    feature_levels: int = 1
+    """Dense feature grid: number of resolution levels, as density_levels."""
+    color_model: Literal["mlp_view", "mlp", "direct"] = "mlp_view"
+    """"mlp_view": MLP(features, SH(direction)); "mlp": view-independent MLP; "direct": sigmoid(features[:3])."""
+    sh_degree: int = 2
+    """Spherical-harmonics degree of the view direction encoding (0..3; (degree+1)^2 channels)."""
+    mlp_width: int = 64
+    """Hidden width of the color MLP."""
+    mlp_layers: int = 2
+    """Hidden layers of the color MLP."""
+    occupancy_res: int = 64
+    """Occupancy grid cells per side."""
+    occupancy_alpha: float = 0.02
+    """A vertex is occupied when its density gives at least this opacity over one step. Keep it above
+    ``init_alpha``: space no ray has touched yet then gets culled at the first refresh (at 0.01 = init,
+    44% of Lego's box stayed occupied and steps were 3x slower; at 0.02, 8-10%)."""
+    occupancy_warmup: int = 16
+    """Steps during which every cell counts as occupied."""
+    occupancy_every: int = 8
+    """Refresh the occupancy grid every this many steps (1/4 of the vertices per refresh after warm-up)."""
+    warmup_step_scale: float = 4.0
+    """Ray-march step multiplier during the occupancy warm-up: few, coarse samples while nothing is culled."""
+    step_ratio: float = 0.5
+    """Ray-march step in density-grid voxels (world step = step_ratio * voxel size)."""
+    max_samples: int = 1024
+    """Cap on candidate samples per ray."""
+    cone_angle: float = 0.0
+    """> 0: steps grow like t * cone_angle beyond the base step (unbounded scenes, e.g. 1/256)."""
+    early_stop_transmittance: float = 1e-4
+    """Drop samples behind this transmittance (no-grad pre-pass); 0 disables the pre-pass."""
+    color_min_weight: float = 1e-4
+    """Evaluate color only on samples with at least this weight (0 = everywhere)."""
+    init_alpha: float = 0.01
+    """Opacity of one step of the initial (empty) density field."""
+    density_activation: Literal["softplus", "trunc_exp"] = "softplus"
+    """Density activation; both are overflow-safe."""
+    tv_weight: float = 0.0
+    """Weight of the total-variation loss on the grids (0 = off)."""
+    distortion_weight: float = 0.0
+    """Weight of the mip-NeRF 360 distortion loss (0 = off)."""
+    entropy_weight: float = 0.0
+    """Weight of the binary entropy of ray opacity (pushes opacity to 0 or 1; 0 = off)."""
+    background: Literal["white", "black", "learned", "random"] = "white"
+    """Background used when render_rays gets none; "learned" always uses the model's own color."""
+    grid_lr_scale: float = 10.0
+    """Grids train at lr * grid_lr_scale (the MLP at lr)."""
+    shrink_step: int = 64
+    """Bounded scenes with dense grids: at the first occupancy refresh from this step on, re-sample the grids
+    onto the box around the occupied cells (same parameter count, finer voxels where the object is;
+    CPU_NERF_NOTES lesson 3). 0 = never."""
+    shrink_margin: float = 0.05
+    """Margin added around the occupied box before shrinking, as a fraction of the scene box's extent."""
+
+
+@dataclass
+class SurfaceConfig:
+    """Options of :class:`SurfaceModel` (pipelines/surface.toml names the preset's values)."""
+
+    aabb: tuple[tuple[float, float, float], tuple[float, float, float]] = ((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0))
+    """Scene box [min_xyz, max_xyz] (world units); the grids span it."""
+    sdf_res: int = 128
+    """Vertices per side of the finest SDF grid level."""
+    sdf_levels: int = 4
+    """SDF grid levels, each half the resolution of the next finer one (at least 16 vertices)."""
+    sdf_mlp_width: int = 32
+    """Hidden width of the SDF MLP on the levels' values (0: the SDF is the prior plus the levels' sum)."""
+    level_every: int = 150
+    """Coarse to fine: level k (0 = coarsest) joins the SDF after k * level_every steps (0: all from the start)."""
+    init_radius: float = 0.8
+    """Radius of the initial sphere, as a fraction of half the box's shortest side."""
+    init_sharpness: float = 40.0
+    """Initial NeuS sharpness s (1/world unit): the opacity ramp is ~1/s wide at the start."""
+    feature_res: int = 96
+    """Vertices per side of the color feature grid."""
+    feature_dim: int = 12
+    """Color feature channels."""
+    color_model: Literal["mlp_view", "mlp", "direct"] = "mlp"
+    """As FastConfig.color_model."""
+    sh_degree: int = 2
+    """Spherical-harmonics degree of the view direction (color_model "mlp_view")."""
+    mlp_width: int = 64
+    """Hidden width of the color MLP."""
+    mlp_layers: int = 2
+    """Hidden layers of the color MLP."""
+    step_ratio: float = 1.0
+    """Ray-march step in finest SDF voxels."""
+    max_samples: int = 1024
+    """Cap on candidate samples per ray."""
+    occupancy_res: int = 64
+    """Occupancy grid cells per side."""
+    occupancy_warmup: int = 32
+    """Steps during which every cell counts as occupied."""
+    occupancy_every: int = 8
+    """Refresh the occupancy grid every this many steps."""
+    warmup_step_scale: float = 4.0
+    """Ray-march step multiplier during the occupancy warm-up (nothing is skipped yet)."""
+    band_width: float = 4.0
+    """Occupied shell: |f| < 2 occupancy-cell diagonals + band_width / s (NeuS weights there are below
+    e^-band_width of their peak)."""
+    early_stop_transmittance: float = 1e-3
+    """Drop samples behind this transmittance (no-grad pre-pass); 0 disables it."""
+    color_min_weight: float = 1e-4
+    """Evaluate color only on samples with at least this weight."""
+    eikonal_weight: float = 0.1
+    """Weight of the Eikonal loss mean (|∇f| - 1)²."""
+    curvature_weight: float = 5e-4
+    """Weight of the curvature loss mean |Δf| (world units; 0: off)."""
+    eikonal_samples: int = 4096
+    """Ray samples (a random subset) the regularizers are evaluated on per step."""
+    eikonal_points: int = 2048
+    """Uniform random points in the box the regularizers are evaluated on per step."""
+    background: Literal["white", "black", "learned", "random"] = "white"
+    """Background used when render_rays gets none."""
+    sdf_lr_scale: float = 1.0
+    """SDF grids train at lr * sdf_lr_scale (world units per Adam step)."""
+    grid_lr_scale: float = 10.0
+    """The color grid trains at lr * grid_lr_scale."""
+    sharpness_lr_scale: float = 1.0
+    """log s trains at lr * sharpness_lr_scale."""
