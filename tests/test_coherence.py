@@ -72,3 +72,35 @@ def test_object_pixels_from_rendered_depth_match_the_mesh_of_the_object():
     assert out["coverage"] == 1.0 and out["outside"] == 0.0
     far = np.full(hw, np.inf)        # a transparent view: nothing is object
     assert not object_pixels(c2w, intr, far, inside).any()
+
+
+def test_mesh_stage_coherence_uses_masks_or_the_region_above_the_ground():
+    from recon.stages.mesh import coherence
+    from recon.views import View
+
+    c2w, intr, hw = _camera_above(2.0)
+    h, w = hw
+    j, i = np.meshgrid(np.arange(h) + 0.5, np.arange(w) + 0.5, indexing="ij")
+    depth = 2.0 * np.sqrt(1 + ((i - 50) / 100) ** 2 + ((j - 50) / 100) ** 2)  # the table z = 0 everywhere
+    depth[30:50, 30:50] *= 0.75  # a box top at z = 0.5 over x in [-0.3, 0], y in [0, 0.3] (1.5 below the camera)
+    image = np.zeros((h, w, 4), np.uint8)
+    image[30:50, 30:70, 3] = 255  # the mask calls twice the box's footprint object
+    view = View("a", image, c2w, intr, 0.1, 10.0)
+    top, faces = _square(-0.15, 0.15, 0.15, z=0.5)  # the box top: pixel rows and columns 30..49
+    table, _ = _square(0, 0, 0.9, z=0.0)
+    verts = np.concatenate([top, table])
+    both = np.concatenate([faces, faces + 4])
+    region = np.array([[-0.5, -0.5, -0.1], [0.5, 0.5, 1.0]])
+    ground = np.array([0.0, 0.0, 1.0, 0.0])
+    # without masks: the object is what lies in the region above the ground: the box top; the table is not
+    out = coherence(top, faces, [view], [depth], region, ground, 0.05, masked=False)
+    assert out["largest_piece"] == {"pieces": 1, "largest_area_fraction": 1.0}
+    assert out["projected"]["object_pixels"] == 400
+    assert out["projected"]["coverage"] == 1.0 and out["projected"]["outside"] == 0.0
+    with_table = coherence(verts, both, [view], [depth], region, ground, 0.05, masked=False)
+    assert with_table["largest_piece"]["largest_area_fraction"] == pytest.approx(3.24 / (3.24 + 0.09))
+    assert with_table["projected"]["outside"] == pytest.approx(1 - 400 / (90 * 90))  # the table: pixels 5..94
+    # with masks: the masks decide (800 object pixels, the box top covers half)
+    masked = coherence(top, faces, [view], [depth], region, ground, 0.05, masked=True)
+    assert masked["projected"]["coverage"] == pytest.approx(0.5) and masked["projected"]["outside"] == 0.0
+    assert coherence(top, faces, [], [], region, ground, 0.05, masked=False)["projected"] is None
