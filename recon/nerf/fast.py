@@ -291,6 +291,7 @@ class FastModel(RadianceModel):
             ts, te, ri = march(
                 rays_o, rays_d, t_near, t_far, self.occupancy, step_size, cfg.max_samples,
                 cone_angle=cfg.cone_angle, jitter=training,
+                contracted=cfg.unbounded and cfg.unbounded_steps == "contracted",
                 sigma_fn=sigma_fn if cfg.early_stop_transmittance > 0 else None,
                 min_transmittance=cfg.early_stop_transmittance,
             )
