@@ -102,3 +102,57 @@ def test_field_trained_with_the_depth_prior_puts_its_surface_at_the_points() -> 
     with_prior, without = fit(0.01), fit(0.0)
     assert with_prior < 0.05  # the surface sits within a few voxels (0.0625) of the points
     assert with_prior < 0.5 * without
+
+
+def _scene_with_points(n_views: int) -> tuple:
+    """A Scene of n_views cameras around the origin with 40 sparse points near it that every camera observes,
+    and its views (tiny grey images)."""
+    from recon.config import TrainConfig
+    from recon.scene import Frame, Scene
+    from recon.views import View
+
+    frames, views = [], []
+    for i in range(n_views):
+        a = 2 * math.pi * i / n_views
+        c2w = look_at(np.array([3.0 * math.cos(a), 3.0 * math.sin(a), 1.0]), np.zeros(3))
+        frames.append(Frame(f"/p/{i:02d}.jpg", c2w, FL * 2, FL * 2, W, H, 2 * W, 2 * H, split="train"))
+        views.append(View(f"{i:02d}", np.full((H, W, 3), 128, np.uint8), c2w, (FL, FL, W / 2, H / 2), 1.0, 5.0))
+    points = np.random.default_rng(0).uniform(-0.3, 0.3, (40, 3))
+    scene = Scene(frames=frames, points=points, point_visibility={f.name: np.arange(40) for f in frames},
+                  point_errors=np.full(40, 0.8), aabb=np.array([[-1.0] * 3, [1.0] * 3]), capture="object")
+    return TrainConfig(), scene, frames, views
+
+
+@pytest.mark.parametrize("n_views, mode, on", [(15, "auto", True), (24, "auto", False), (24, "on", True), (15, "off", False)])
+def test_depth_prior_is_switched_on_by_few_views_and_says_why(n_views: int, mode: str, on: bool) -> None:
+    from dataclasses import replace
+
+    from recon.stages.train import depth_prior_for
+
+    cfg, scene, frames, views = _scene_with_points(n_views)
+    cfg = replace(cfg, depth_prior=mode)
+    aabb = torch.tensor(scene.aabb, dtype=torch.float32)
+    prior, why = depth_prior_for(cfg, scene, frames, views, {"config": {"density_res": 64}}, aabb,
+                                 torch.tensor([[1.0, 5.0]] * n_views), torch.device("cpu"))
+    assert (prior is not None) == on and why.startswith(f"depth prior: {'on' if on else 'off'}")
+    if mode == "auto":
+        assert f"{n_views} training photos" in why  # the number of views decided it, and the reason says so
+    if on:
+        assert len(prior) == 40 * n_views and "DS-NeRF" in why
+        # errors are in original-photo pixels (2x the training images): 0.8 px there is 0.4 px here, floored at 0.5
+        assert bool((prior.sigma >= 2.0 / 64 - 1e-6).all())  # never finer than the field's voxel
+
+
+def test_point_errors_survive_save_load_and_normalize(tmp_path) -> None:
+    from recon.config import NormalizeConfig
+    from recon.normalization import normalize
+    from recon.scene import load_scene
+
+    _, scene, _, _ = _scene_with_points(12)
+    scene.points[3] = np.nan  # dropped by normalize: the errors must stay aligned with the points
+    scene.point_errors = np.arange(40, dtype=np.float64)
+    out = normalize(scene, NormalizeConfig())
+    assert out.point_errors is not None and len(out.point_errors) == len(out.points) == 39
+    assert out.point_errors[3] == 4.0
+    out.save(tmp_path)
+    np.testing.assert_array_equal(load_scene(tmp_path).point_errors, out.point_errors)
