@@ -255,6 +255,8 @@ BOUNDS: dict[str, tuple[Any, str]] = {
     "train.eval_views": _at_least(0),
     "train.final_eval_views": _at_least(0),
     "train.checkpoint_every": _at_least(0),
+    "train.depth_weight": _at_least(0),
+    "train.depth_rays": _at_least(1),
     "train.classic.n_coarse": _at_least(1),
     "train.classic.n_fine": _at_least(0),
     "train.classic.pos_freqs": _at_least(0),
