@@ -113,6 +113,13 @@ class TrainConfig:
     precision: Literal["fp32", "bf16"] = "fp32"
     """bf16: the networks' matrix math in bfloat16 (autocast; volume rendering stays fp32). Faster on GPUs and
     CPUs with AMX/AVX512-BF16, slower on older CPUs."""
+    depth_prior: Literal["auto", "on", "off"] = "auto"
+    """Sparse-depth supervision from the SfM points (DS-NeRF). auto: on when fewer than 20 photos train the field
+    (few views leave the geometry ambiguous) and the scene has sparse points; on / off force it."""
+    depth_weight: float = 0.002
+    """Weight of the sparse-depth loss (robust, in units of each point's depth uncertainty)."""
+    depth_rays: int = 512
+    """Sparse-point rays rendered per step for the depth loss (on top of batch_rays)."""
     classic: ClassicConfig = field(default_factory=ClassicConfig)
     fast: FastConfig = field(default_factory=FastConfig)
     """The fast grid model's options (its box and boundedness are set from the scene)."""
@@ -248,6 +255,8 @@ BOUNDS: dict[str, tuple[Any, str]] = {
     "train.eval_views": _at_least(0),
     "train.final_eval_views": _at_least(0),
     "train.checkpoint_every": _at_least(0),
+    "train.depth_weight": _at_least(0),
+    "train.depth_rays": _at_least(1),
     "train.classic.n_coarse": _at_least(1),
     "train.classic.n_fine": _at_least(0),
     "train.classic.pos_freqs": _at_least(0),

@@ -339,6 +339,7 @@ def train(
     autocast: torch.dtype | None = None,
     budget_s: float = 0.0,
     spent_s: float = 0.0,
+    extra_loss: Callable[[RadianceModel, int], dict[str, Tensor]] | None = None,
 ) -> dict[str, Any]:
     """Optimize ``model`` on ``batcher``'s rays for ``steps`` steps (or the rest of them after a resume).
 
@@ -361,6 +362,9 @@ def train(
         autocast: e.g. ``torch.bfloat16`` to run the model's matmuls in mixed precision
             (``torch.autocast``); ~2x faster MLPs on CPUs with AMX/AVX512-BF16. Losses, and volume
             rendering in models that cast their network outputs to float32, stay in float32.
+        extra_loss: ``(model, step) -> {name: loss}`` terms added to the loss each step (e.g. the sparse-depth
+            prior of :mod:`recon.nerf.depth_prior`); it renders its own rays. Must be deterministic in the step
+            for resumes to repeat the run.
 
     Returns a summary dict: step, loss, psnr, rays_per_s, elapsed_s, history, metrics (last eval).
 
@@ -417,6 +421,9 @@ def train(
                 terms[f"aux_rgb[{i}]"] = F.mse_loss(aux.float(), batch["rgb"])
             if "reg" in out:
                 terms["reg"] = out["reg"].float()
+            if extra_loss is not None:
+                with torch.autocast(batch["rgb"].device.type, dtype=autocast or torch.bfloat16, enabled=autocast is not None):
+                    terms.update({k: v.float() for k, v in extra_loss(model, step).items()})
             loss = sum(terms.values())
             loss_v = float(loss.detach())
             if not math.isfinite(loss_v):

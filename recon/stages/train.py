@@ -22,7 +22,7 @@ from recon.config import TrainConfig, parse_duration
 from recon.errors import ReconError
 from recon.field import FIELD_FILE, build_model, save_field
 from recon.pipeline import Stage, StageContext
-from recon.scene import Scene, load_scene, spread_evenly
+from recon.scene import Frame, Scene, load_scene, spread_evenly
 from recon.views import View, border_color, evaluate, load_views, pixel_footprint, write_previews
 
 CHECKPOINT = "checkpoint.pt"
@@ -85,6 +85,41 @@ def surface_spec(cfg: TrainConfig, scene: Scene) -> tuple[str, dict[str, Any], f
         "and curvature terms; its mesh is the closed zero level set"
     ]
     return "surface", {"config": asdict(surf)}, cfg.lr or FAST_LR, reasons
+
+
+def depth_prior_for(cfg: TrainConfig, scene: Scene, frames: list[Frame], views: list[View], kwargs: dict[str, Any],
+                    aabb: torch.Tensor | None, near_far: torch.Tensor, device: torch.device) -> tuple[Any, str | None]:
+    """The sparse-depth prior (`recon.nerf.depth_prior.DepthPrior`) or None, and why (printed either way)."""
+    from recon.nerf.depth_prior import DepthPrior, sparse_depth_targets
+    from recon.normalization import FEW_PHOTOS
+
+    if cfg.depth_prior == "off":
+        return None, "depth prior: off (train.depth_prior=off)"
+    visible = [np.asarray(scene.point_visibility.get(f.name, []), np.int64) for f in frames]
+    n_obs = sum(len(v) for v in visible)
+    if cfg.depth_prior == "auto" and len(frames) >= FEW_PHOTOS:
+        return None, (f"depth prior: off ({len(frames)} training photos >= {FEW_PHOTOS}: the photos constrain the "
+                      f"geometry; train.depth_prior=on forces it)")
+    if n_obs == 0:
+        return None, "depth prior: off (the scene has no sparse points seen by the training photos)"
+    scale = float(np.median([v.hw[1] / f.w for f, v in zip(frames, views, strict=True)]))
+    errors = (np.ones(len(scene.points)) if scene.point_errors is None else np.asarray(scene.point_errors)) * scale
+    box = np.asarray(scene.aabb, np.float64)
+    res = int(kwargs.get("config", {}).get("density_res", 128))
+    voxel = float((box[1] - box[0]).max()) / res if scene.capture == "object" else 2.0 / res
+    alpha = [v.image[..., 3] if v.image.shape[-1] == 4 else None for v in views]
+    targets = sparse_depth_targets(
+        scene.points, visible, np.stack([v.c2w for v in views]), np.array([v.intrinsics for v in views]),
+        np.array([[v.hw[1], v.hw[0]] for v in views]), errors, alpha=alpha if scene.has_alpha else None, min_sigma=voxel,
+    )
+    prior = DepthPrior(targets, cfg.depth_weight, cfg.depth_rays, aabb=None if aabb is None else aabb.cpu(),
+                       near_far=None if aabb is not None else near_far.cpu(), seed=cfg.seed).to(device)
+    why = (f"{len(frames)} training photos (< {FEW_PHOTOS}): few views leave the geometry ambiguous" if cfg.depth_prior == "auto"
+           else "train.depth_prior=on")
+    sig = prior.sigma.cpu().numpy() if len(prior) else np.zeros(1)
+    return prior, (f"depth prior: on ({why}): {len(prior):,} depth targets from the SfM points the photos observe "
+                   f"(DS-NeRF; uncertainty from reprojection error and triangulation angle, median {np.median(sig):.3g} "
+                   f"units), {cfg.depth_rays} of them rendered per step, weight {cfg.depth_weight:g}")
 
 
 FAST_LR = 1e-2
@@ -180,6 +215,10 @@ def run(ctx: StageContext) -> dict:
 
     model = build_model(kind, kwargs).to(device)
     images, c2w, intr, near_far = _tensor(views, device)
+    depth_prior, depth_why = depth_prior_for(cfg, scene, train_frames, views, kwargs, aabb, near_far, device)
+    if depth_why:
+        reasons.append(depth_why)
+        ctx.report.info(f"model: {depth_why}")
     batcher = RayBatcher(
         images, c2w, intr,
         aabb=aabb, near_far=None if bounded else near_far,
@@ -229,7 +268,7 @@ def run(ctx: StageContext) -> dict:
                     model, batcher, steps=cfg.steps, lr=lr, lr_final=lr * cfg.lr_decay, batch_rays=cfg.batch_rays,
                     eval_fn=eval_fn, eval_every=cfg.eval_every or cfg.steps, callbacks=[on_step],
                     state=checkpoint["state"] if checkpoint else None,
-                    budget_s=budget_s, spent_s=time_before, autocast=autocast,
+                    budget_s=budget_s, spent_s=time_before, autocast=autocast, extra_loss=depth_prior,
                 )
             for w in caught:
                 if "training is not improving" in str(w.message):
