@@ -113,6 +113,9 @@ class TrainConfig:
     precision: Literal["fp32", "bf16"] = "fp32"
     """bf16: the networks' matrix math in bfloat16 (autocast; volume rendering stays fp32). Faster on GPUs and
     CPUs with AMX/AVX512-BF16, slower on older CPUs."""
+    appearance: Literal["auto", "on", "off"] = "auto"
+    """Per-photo colour transforms for exposure / white-balance changes (grid models). auto: on when the colours
+    of matched points differ between neighbouring photos (recon/nerf/appearance.py); the mesh uses the neutral one."""
     classic: ClassicConfig = field(default_factory=ClassicConfig)
     fast: FastConfig = field(default_factory=FastConfig)
     """The fast grid model's options (its box and boundedness are set from the scene)."""
