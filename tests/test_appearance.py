@@ -20,6 +20,7 @@ from recon.nerf.appearance import (
     fit_affine,
     held_out_right_half,
     left_right_split,
+    to_neutral,
 )
 from recon.nerf.fast import FastConfig, FastModel
 from recon.nerf.render import RadianceModel, render_dense
@@ -213,3 +214,17 @@ def test_closed_form_fit_with_alpha_leaves_the_background_alone() -> None:
     np.testing.assert_allclose(a, a_true, atol=1e-6)
     np.testing.assert_allclose(b, b_true, atol=1e-6)
     np.testing.assert_allclose(apply_affine(pred, a, b, opacity=op, background=bg), np.clip(target, 0, 1), atol=1e-5)
+
+
+def test_photos_baked_onto_the_mesh_are_brought_to_the_neutral_appearance() -> None:
+    app = PhotoAppearance(1)
+    with torch.no_grad():
+        app.delta[0] = torch.tensor([[-0.3, 0.05, 0.0], [0.0, -0.25, 0.0], [0.0, 0.02, -0.2]])
+        app.bias[0] = torch.tensor([0.02, 0.0, -0.01])
+    rng = np.random.default_rng(2)
+    neutral = rng.uniform(0.1, 0.9, (6, 5, 3))
+    photo_f = neutral @ app.matrices()[0].detach().double().numpy().T + app.bias[0].detach().double().numpy()
+    photo = np.concatenate([np.round(photo_f * 255).astype(np.uint8), np.full((6, 5, 1), 200, np.uint8)], axis=-1)
+    back = to_neutral(photo, app.summary(["p"])["p"])
+    assert np.abs(back[..., :3].astype(float) - neutral * 255).max() <= 1.5  # 8-bit rounding, twice
+    assert np.array_equal(back[..., 3], photo[..., 3]) and to_neutral(photo, None) is photo

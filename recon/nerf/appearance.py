@@ -35,6 +35,7 @@ __all__ = [
     "apply_affine",
     "left_right_split",
     "held_out_right_half",
+    "to_neutral",
     "HELD_OUT_PROTOCOL",
     "exposure_spread",
     "decide",
@@ -104,12 +105,31 @@ class PhotoAppearance(nn.Module):
         """reg_weight × mean squared distance of the parameters from the identity transform."""
         return self.reg_weight * (self.delta.square().sum() + self.bias.square().sum()) / self.n_images
 
-    def summary(self, names: Sequence[str]) -> dict[str, dict[str, list[float]]]:
-        """Per photo: the diagonal gains and the bias (rounded), for metrics files."""
+    def summary(self, names: Sequence[str]) -> dict[str, dict[str, Any]]:
+        """Per photo: its diagonal gains, matrix and bias (rounded), for metrics and field files."""
         with torch.no_grad():
-            a, b = self.matrices().cpu(), self.bias.cpu()
-        return {n: {"gain": [round(float(v), 4) for v in torch.diagonal(a[i])], "bias": [round(float(v), 4) for v in b[i]]}
+            a, b = self.matrices().cpu().double(), self.bias.cpu().double()
+        return {n: {"gain": [round(float(v), 4) for v in torch.diagonal(a[i])],
+                    "matrix": [[round(float(v), 5) for v in row] for row in a[i]],
+                    "bias": [round(float(v), 5) for v in b[i]]}
                 for i, n in enumerate(names)}
+
+
+def to_neutral(image: np.ndarray, transform: dict[str, Any] | None) -> np.ndarray:
+    """A photo (H, W, 3|4) uint8 as the neutral appearance would show it: A^-1 (pixel - b) (alpha kept).
+
+    ``transform``: the photo's entry of :meth:`PhotoAppearance.summary` (None: returned as is). Colours baked
+    from photos onto a mesh then agree with each other and with the field's own (neutral) colours.
+    """
+    if transform is None:
+        return image
+    a = np.asarray(transform["matrix"], np.float64)
+    b = np.asarray(transform["bias"], np.float64)
+    rgb = image[..., :3].astype(np.float64) / 255.0
+    neutral = (rgb - b) @ np.linalg.inv(a).T
+    out = image.copy()
+    out[..., :3] = np.round(np.clip(neutral, 0.0, 1.0) * 255.0).astype(np.uint8)
+    return out
 
 
 # ----------------------------------------------------------------------------- closed-form fit
@@ -124,7 +144,7 @@ def _design(rgb: np.ndarray, opacity: np.ndarray | None, background: np.ndarray 
 
 
 def fit_affine(pred: np.ndarray, target: np.ndarray, *, opacity: np.ndarray | None = None,
-               background: np.ndarray | None = None, ridge: float = 1e-2) -> tuple[np.ndarray, np.ndarray]:
+               background: np.ndarray | None = None, ridge: float = 1e-3) -> tuple[np.ndarray, np.ndarray]:
     """The affine colour transform (A (3, 3), b (3,)) that best maps rendered ``pred`` onto ``target``.
 
     Ridge least squares towards the identity (``ridge`` × number of pixels), so a flat or tiny region cannot
