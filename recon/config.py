@@ -120,6 +120,9 @@ class TrainConfig:
     """Weight of the sparse-depth loss (robust, in units of each point's depth uncertainty)."""
     depth_rays: int = 512
     """Sparse-point rays rendered per step for the depth loss (on top of batch_rays)."""
+    appearance: Literal["auto", "on", "off"] = "auto"
+    """Per-photo colour transforms for exposure / white-balance changes (grid models). auto: on when the colours
+    of matched points differ between neighbouring photos (recon/nerf/appearance.py); the mesh uses the neutral one."""
     classic: ClassicConfig = field(default_factory=ClassicConfig)
     fast: FastConfig = field(default_factory=FastConfig)
     """The fast grid model's options (its box and boundedness are set from the scene)."""

@@ -534,6 +534,12 @@ def run(ctx: StageContext) -> dict:
         limit = CPU_BAKE_VIEWS[kind] if device.type == "cpu" else 0
         depth_side = CPU_DEPTH_SIDE[kind] if device.type == "cpu" else None
         views = load_views(scene, spread_evenly(train_frames, limit), max_side, ctx.report, "photos for visibility and colors")
+        if meta.get("appearance"):  # trained with per-photo appearance: bake every photo at the neutral one
+            from dataclasses import replace
+
+            from recon.nerf.appearance import to_neutral
+
+            views = [replace(v, image=to_neutral(v.image, meta["appearance"].get(v.name))) for v in views]
         depths = render_depths(model, views, aabb_t if bounded else None, background, depth_side, ctx.report)
         timings["depth_s"] = round(time.perf_counter() - t, 3)
         view_note = f"{len(views)} of {len(train_frames)} training views"
