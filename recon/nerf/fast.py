@@ -57,7 +57,7 @@ from torch import Tensor, nn
 from recon.nerf.model_config import FastConfig, GridKind
 from recon.nerf.contraction import contract
 from recon.nerf.grid import DenseGrid, HashGrid, MultiDenseGrid, VMGrid, resample_dense
-from recon.nerf.occupancy import OccupancyGrid, density_threshold, march
+from recon.nerf.occupancy import OccupancyGrid, density_threshold, march, march_front_to_back
 from recon.nerf.rays import ray_aabb
 from recon.nerf.render import RadianceModel, accumulate_packed, checked_aabb, render_weights_packed
 
@@ -280,24 +280,38 @@ class FastModel(RadianceModel):
             t_near = torch.maximum(near, tn)
             t_far = torch.where(hit, torch.minimum(far, tf), t_near)
 
+        evaluated = [0]  # density evaluations, for tests and profiles
+
         def sigma_fn(ts: Tensor, te: Tensor, ri: Tensor) -> Tensor:
+            evaluated[0] += int(ts.shape[0])
             x = rays_o[ri] + rays_d[ri] * (0.5 * (ts + te))[:, None]
             return self._sigma_unit(self._unit(x).clamp(0.0, 1.0))
 
         step_size = self.step_size
         if training and int(self.step) < cfg.occupancy_warmup:
             step_size *= cfg.warmup_step_scale
+        # rendering without gradients (evaluation, recon render, the viewer): march front to back and keep
+        # the densities the marcher evaluated, instead of evaluating every candidate and then the kept ones again
+        infer = not training and not torch.is_grad_enabled() and cfg.early_stop_transmittance > 0
         with torch.no_grad():
-            ts, te, ri = march(
-                rays_o, rays_d, t_near, t_far, self.occupancy, step_size, cfg.max_samples,
-                cone_angle=cfg.cone_angle, jitter=training,
-                sigma_fn=sigma_fn if cfg.early_stop_transmittance > 0 else None,
-                min_transmittance=cfg.early_stop_transmittance,
-            )
+            if infer:
+                ts, te, ri, sigma = march_front_to_back(
+                    rays_o, rays_d, t_near, t_far, self.occupancy, step_size, cfg.max_samples, sigma_fn,
+                    cone_angle=cfg.cone_angle, min_transmittance=cfg.early_stop_transmittance,
+                )
+            else:
+                ts, te, ri = march(
+                    rays_o, rays_d, t_near, t_far, self.occupancy, step_size, cfg.max_samples,
+                    cone_angle=cfg.cone_angle, jitter=training,
+                    sigma_fn=sigma_fn if cfg.early_stop_transmittance > 0 else None,
+                    min_transmittance=cfg.early_stop_transmittance,
+                )
         mid = 0.5 * (ts + te)
         delta = te - ts
         u = self._unit(rays_o[ri] + rays_d[ri] * mid[:, None]).clamp(0.0, 1.0)
-        sigma = self._sigma_unit(u)
+        if not infer:
+            evaluated[0] += int(ri.shape[0])
+            sigma = self._sigma_unit(u)
         weights, _ = render_weights_packed(sigma, delta, ri, n)
         opacity = accumulate_packed(weights, None, ri, n)
         if cfg.color_min_weight > 0:
@@ -311,7 +325,7 @@ class FastModel(RadianceModel):
         rgb = accumulate_packed(w_c, rgb_s, ri_c, n) + remainder[:, None] * bg
         depth = accumulate_packed(weights, mid, ri, n) + remainder * far
         out: dict[str, Any] = {"rgb": rgb, "depth": depth, "opacity": opacity, "background": bg,
-                               "num_samples": int(ri.shape[0])}
+                               "num_samples": int(ri.shape[0]), "density_evals": evaluated[0]}
         reg = self._regularizers(weights, mid, delta, ri, n, opacity)
         if reg is not None:
             out["reg"] = reg
