@@ -170,6 +170,8 @@ def run(ctx: StageContext) -> dict:
     views = load_views(scene, train_frames, cfg.max_side, ctx.report, "training photos")
     background, random_bg, bg_why = choose_background(cfg, scene, views)
     kind, kwargs, lr, reasons = model_spec(cfg, scene, views)
+    if cfg.adjusted:
+        reasons.insert(0, cfg.adjusted)
     if budget_s:
         reasons.append(f"time budget {cfg.budget}: at most {cfg.steps} steps, stopping when the budget is spent")
     ctx.report.info(f"device: {device}; background: {bg_why}")
