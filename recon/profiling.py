@@ -84,6 +84,28 @@ def _labelled(targets: list[tuple[Any, str, str]]) -> Iterator[dict[str, list[in
             setattr(owner, name, fn)
 
 
+@contextlib.contextmanager
+def reference_marching() -> Iterator[None]:
+    """The fast model marches as before front-to-back marching (for A/B runs and tests): :func:`march` evaluates
+    every occupied candidate's density, and the kept samples' densities are evaluated again."""
+    import recon.nerf.fast as fast
+    from recon.nerf.occupancy import march
+
+    def reference(rays_o: Any, rays_d: Any, t_near: Any, t_far: Any, occupancy: Any, step_size: float, max_samples: int,
+                  sigma_fn: Callable, *, cone_angle: float = 0.0, jitter: bool = False,
+                  min_transmittance: float = 1e-4) -> tuple:
+        ts, te, ri = march(rays_o, rays_d, t_near, t_far, occupancy, step_size, max_samples, cone_angle=cone_angle,
+                           jitter=jitter, sigma_fn=sigma_fn, min_transmittance=min_transmittance)
+        return ts, te, ri, sigma_fn(ts, te, ri)
+
+    saved = fast.march_front_to_back
+    fast.march_front_to_back = reference
+    try:
+        yield
+    finally:
+        fast.march_front_to_back = saved
+
+
 def _part(event: Any) -> str:
     """The part of the step a top-level profiler event belongs to."""
     name = event.name
@@ -114,6 +136,7 @@ def _labels(model: Any, batcher: Any) -> list[tuple[Any, str, str]]:
 
     return [
         (fast, "march", "recon:marcher (occupancy skip + no-grad density pre-pass)"),
+        (fast, "march_front_to_back", "recon:marcher (occupancy skip + no-grad density pre-pass)"),
         (type(model), "_sigma_unit", "recon:density grid fwd"),
         (type(model), "_rgb_unit", "recon:feature grid + color MLP fwd"),
         (fast, "render_weights_packed", "recon:compositing fwd"),

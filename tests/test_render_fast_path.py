@@ -1,5 +1,5 @@
-"""The fast model's inference path (front-to-back marching, densities reused) renders what the training path
-renders, with fewer density evaluations."""
+"""The fast model's front-to-back marching (densities reused when rendering without gradients) renders what
+the previous marching rendered, with fewer density evaluations."""
 from __future__ import annotations
 
 import pytest
@@ -8,6 +8,7 @@ import torch
 from recon.nerf.fast import FastConfig, FastModel
 from recon.nerf.occupancy import march, march_front_to_back
 from recon.nerf.rays import camera_rays
+from recon.profiling import reference_marching
 
 
 def _blob_model(unbounded: bool = False, cone_angle: float = 0.0) -> FastModel:
@@ -40,15 +41,19 @@ def _rays(n_side: int = 48) -> tuple[torch.Tensor, ...]:
 def test_inference_render_matches_reference_with_fewer_density_evaluations(unbounded: bool, cone: float) -> None:
     model = _blob_model(unbounded, cone)
     o, d, near, far = _rays()
-    with torch.enable_grad():  # the training path (march, then densities again), without jitter
+    with torch.no_grad(), reference_marching():  # every occupied candidate's density, then the kept ones' again
         ref = model.render_rays(o, d, near, far, training=False, background=torch.ones(3))
     with torch.no_grad():
         fast = model.render_rays(o, d, near, far, training=False, background=torch.ones(3))
-    assert float(ref["opacity"].detach().max()) > 0.99  # some rays end on the ball: early termination matters
+    with torch.enable_grad():  # with gradients: the same samples, densities evaluated again (differentiably)
+        grad = model.render_rays(o, d, near, far, training=False, background=torch.ones(3))
+    assert float(ref["opacity"].max()) > 0.99  # some rays end on the ball: early termination matters
     for key in ("rgb", "depth", "opacity"):
-        torch.testing.assert_close(fast[key], ref[key].detach(), atol=1e-5, rtol=1e-5)
-    assert fast["num_samples"] == ref["num_samples"]
+        torch.testing.assert_close(fast[key], ref[key], atol=1e-5, rtol=1e-5)
+        torch.testing.assert_close(grad[key].detach(), ref[key], atol=1e-5, rtol=1e-5)
+    assert fast["num_samples"] == ref["num_samples"] == grad["num_samples"]
     assert fast["density_evals"] < 0.75 * ref["density_evals"]
+    assert grad["density_evals"] == fast["density_evals"] + fast["num_samples"]
 
 
 def test_front_to_back_keeps_the_samples_march_keeps() -> None:
@@ -65,3 +70,19 @@ def test_front_to_back_keeps_the_samples_march_keeps() -> None:
     torch.testing.assert_close(ts2, ts)
     torch.testing.assert_close(te2, te)
     torch.testing.assert_close(sigma2, sigma_fn(ts, te, ri))
+
+
+def test_training_marches_the_same_samples_with_the_same_jitter() -> None:
+    model = _blob_model()
+    model.train()
+    o, d, near, far = _rays(24)
+    torch.manual_seed(5)
+    with reference_marching():
+        ref = model.render_rays(o, d, near, far, training=True, background=torch.ones(3))
+    torch.manual_seed(5)
+    new = model.render_rays(o, d, near, far, training=True, background=torch.ones(3))
+    assert new["num_samples"] == ref["num_samples"]
+    assert new["density_evals"] < ref["density_evals"]
+    torch.testing.assert_close(new["rgb"], ref["rgb"], atol=1e-5, rtol=1e-5)
+    new["rgb"].sum().backward()  # the kept samples' densities are differentiable
+    assert model.density_grid.table.grad is not None and bool(model.density_grid.table.grad.abs().sum() > 0)

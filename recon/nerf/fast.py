@@ -178,6 +178,10 @@ def _make_grid(kind: GridKind, res: int, dim: int, *, density: bool, levels: int
 class FastModel(RadianceModel):
     """Grid radiance field with occupancy-guided packed marching (see the module docstring)."""
 
+    render_chunk = 65536
+    """Rays per chunk when rendering an image (:func:`recon.nerf.trainer.render_image`): inference marches in
+    windows, so memory stays ~100 MB, and fewer, larger chunks spend less time between ops."""
+
     def __init__(self, config: FastConfig | None = None) -> None:
         super().__init__()
         cfg = self.config = config or FastConfig()
@@ -290,35 +294,35 @@ class FastModel(RadianceModel):
         step_size = self.step_size
         if training and int(self.step) < cfg.occupancy_warmup:
             step_size *= cfg.warmup_step_scale
-        # rendering without gradients (evaluation, recon render, the viewer): march front to back and keep
-        # the densities the marcher evaluated, instead of evaluating every candidate and then the kept ones again
-        infer = not training and not torch.is_grad_enabled() and cfg.early_stop_transmittance > 0
+        # march front to back (densities behind opaque surfaces are never evaluated); without gradients
+        # (evaluation, recon render, the viewer) the marcher's densities are the ones rendered, not evaluated again
+        early_stop = cfg.early_stop_transmittance > 0
+        infer = not training and not torch.is_grad_enabled() and early_stop
         with torch.no_grad():
-            if infer:
+            if early_stop:
                 ts, te, ri, sigma = march_front_to_back(
                     rays_o, rays_d, t_near, t_far, self.occupancy, step_size, cfg.max_samples, sigma_fn,
-                    cone_angle=cfg.cone_angle, min_transmittance=cfg.early_stop_transmittance,
+                    cone_angle=cfg.cone_angle, jitter=training, min_transmittance=cfg.early_stop_transmittance,
                 )
             else:
-                ts, te, ri = march(
-                    rays_o, rays_d, t_near, t_far, self.occupancy, step_size, cfg.max_samples,
-                    cone_angle=cfg.cone_angle, jitter=training,
-                    sigma_fn=sigma_fn if cfg.early_stop_transmittance > 0 else None,
-                    min_transmittance=cfg.early_stop_transmittance,
-                )
+                ts, te, ri = march(rays_o, rays_d, t_near, t_far, self.occupancy, step_size, cfg.max_samples,
+                                   cone_angle=cfg.cone_angle, jitter=training)
         mid = 0.5 * (ts + te)
         delta = te - ts
-        u = self._unit(rays_o[ri] + rays_d[ri] * mid[:, None]).clamp(0.0, 1.0)
+        u = None
         if not infer:
+            u = self._unit(rays_o[ri] + rays_d[ri] * mid[:, None]).clamp(0.0, 1.0)
             evaluated[0] += int(ri.shape[0])
             sigma = self._sigma_unit(u)
         weights, _ = render_weights_packed(sigma, delta, ri, n)
         opacity = accumulate_packed(weights, None, ri, n)
         if cfg.color_min_weight > 0:
             sel = (weights.detach() > cfg.color_min_weight).nonzero().squeeze(-1)
-            u_c, ri_c, w_c = u[sel], ri[sel], weights[sel]
+            ri_c, w_c = ri[sel], weights[sel]
+            u_c = u[sel] if u is not None else self._unit(rays_o[ri_c] + rays_d[ri_c] * mid[sel, None]).clamp(0.0, 1.0)
         else:
-            u_c, ri_c, w_c = u, ri, weights
+            ri_c, w_c = ri, weights
+            u_c = u if u is not None else self._unit(rays_o[ri] + rays_d[ri] * mid[:, None]).clamp(0.0, 1.0)
         rgb_s = self._rgb_unit(u_c, rays_d[ri_c])
         bg = self._background(background, n, rays_o, training)
         remainder = (1.0 - opacity).clamp_min(0.0)

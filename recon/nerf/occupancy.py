@@ -109,6 +109,21 @@ class OccupancyGrid(nn.Module):
         occ = self.occupied[ijk[:, 0], ijk[:, 1], ijk[:, 2]]
         return occ & inside
 
+    def query_rays(self, rays_o: Tensor, rays_d: Tensor, ray_idx: Tensor, t: Tensor) -> Tensor:
+        """:meth:`query` at the points ``rays_o[ray_idx] + t * rays_d[ray_idx]`` (M,), for a marcher's candidates.
+
+        A bounded grid maps the rays into cell units once per call, so each candidate costs one multiply-add and
+        one flat lookup instead of a world point, its box mapping and a 3-D index.
+        """
+        if self.contraction:
+            return self.query(rays_o[ray_idx] + rays_d[ray_idx] * t[:, None])
+        scale = self.res / (self.box[1] - self.box[0])
+        p = torch.addcmul(((rays_o - self.box[0]) * scale)[ray_idx], (rays_d * scale)[ray_idx], t[:, None])
+        inside = ((p >= 0) & (p <= self.res)).all(dim=-1)
+        ijk = p.floor_().long().clamp_(0, self.res - 1)
+        flat = (ijk[:, 0] * self.res + ijk[:, 1]) * self.res + ijk[:, 2]
+        return self.occupied.view(-1)[flat] & inside
+
     # ------------------------------------------------------------------ updates
     @torch.no_grad()
     def update(
@@ -249,9 +264,7 @@ def _candidates(
     t_ends = torch.minimum(t_ends, tf)
     keep = t_starts < tf
     if occupancy is not None:
-        mid = 0.5 * (t_starts + t_ends)
-        pts = rays_o[ray_idx] + rays_d[ray_idx] * mid[:, None]
-        keep &= occupancy.query(pts)
+        keep &= occupancy.query_rays(rays_o, rays_d, ray_idx, 0.5 * (t_starts + t_ends))
     return t_starts[keep], t_ends[keep], ray_idx[keep]
 
 
@@ -319,17 +332,18 @@ def march_front_to_back(
     sigma_fn: Callable[[Tensor, Tensor, Tensor], Tensor],
     *,
     cone_angle: float = 0.0,
+    jitter: bool = False,
     min_transmittance: float = 1e-4,
     first_window: int = 16,
     max_window: int = 256,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """Inference marching: :func:`march` with ``sigma_fn`` and no jitter, in windows of steps along the rays.
+    """:func:`march` with ``sigma_fn`` (early termination), in windows of steps along the rays.
 
     Each round takes the next window of steps (``first_window``, doubling up to ``max_window``) of the rays
     still open, evaluates the density of its occupied candidates and carries each ray's optical depth on; a
     ray closes once its transmittance falls below ``min_transmittance``. So densities behind an opaque
     surface are never evaluated, where :func:`march` evaluates every occupied candidate up to the ray's end.
-    The samples kept are those :func:`march` keeps (same intervals, same transmittance rule).
+    The samples kept are those :func:`march` keeps (same intervals, same jitter draw, same transmittance rule).
 
     Returns t_starts, t_ends, ray_indices (M,) (packed, sorted by ray, ordered along each ray), their
     densities sigma (M,).
@@ -340,6 +354,7 @@ def march_front_to_back(
     device, dtype = rays_o.device, rays_o.dtype
     info = _sample_counts(t_near, t_far, step_size, cone_angle, max_samples)
     counts = info[2]
+    u = torch.rand(n_rays, device=device, dtype=dtype) if jitter else None
     depth = torch.zeros(n_rays, device=device, dtype=torch.float64)  # optical depth so far per ray
     open_rays = (counts > 0).nonzero().squeeze(-1)
     parts: list[tuple[Tensor, Tensor, Tensor, Tensor]] = []
@@ -348,7 +363,7 @@ def march_front_to_back(
     while open_rays.numel() > 0 and k_lo < max_samples:
         k_hi = min(k_lo + window, max_samples)
         ts, te, ri = _candidates(rays_o, rays_d, t_near, t_far, info, open_rays, k_lo, k_hi, step_size, cone_angle,
-                                 None, occupancy)
+                                 u, occupancy)
         if ri.numel():
             sigma = sigma_fn(ts, te, ri).reshape(-1)
             tau = optical_thickness(sigma, te - ts).double()
