@@ -80,7 +80,7 @@ def pixel_footprint(aabb: np.ndarray, centres: np.ndarray, focals: np.ndarray) -
     return dist / float(np.median(focals)), dist
 
 
-def render_view(model: torch.nn.Module, view: View, aabb: torch.Tensor | None, background: np.ndarray, chunk: int = 8192,
+def render_view(model: torch.nn.Module, view: View, aabb: torch.Tensor | None, background: np.ndarray, chunk: int | None = None,
                 autocast: torch.dtype | None = None) -> dict[str, np.ndarray]:
     """Render a view at its resolution → numpy rgb (H, W, 3), depth (H, W), opacity (H, W)."""
     from recon.nerf.trainer import render_image

@@ -490,7 +490,7 @@ def render_image(
     intrinsics: Tensor | Sequence[float],
     h: int,
     w: int,
-    chunk: int = 8192,
+    chunk: int | None = None,
     *,
     aabb: Tensor | None = None,
     near: float | None = None,
@@ -498,7 +498,8 @@ def render_image(
     background: Tensor | Sequence[float] = (1.0, 1.0, 1.0),
     autocast: torch.dtype | None = None,
 ) -> dict[str, Tensor]:
-    """Render one camera, ``chunk`` rays at a time, under ``no_grad`` in eval mode.
+    """Render one camera, ``chunk`` rays at a time (default: the model's ``render_chunk``, else 8192), under
+    ``inference_mode`` in eval mode.
 
     Args:
         c2w: (4, 4) or (3, 4) camera-to-world (OpenGL); intrinsics: fl_x, fl_y, cx, cy (pixels).
@@ -525,10 +526,11 @@ def render_image(
     depth = torch.zeros(h * w, device=device)
     opacity = torch.zeros(h * w, device=device)
     idx = hit.nonzero().squeeze(-1)
+    chunk = chunk or int(getattr(model, "render_chunk", 8192))
     was_training = model.training
     model.eval()
     try:
-        with torch.no_grad(), torch.autocast(device.type, dtype=autocast or torch.bfloat16, enabled=autocast is not None):
+        with torch.inference_mode(), torch.autocast(device.type, dtype=autocast or torch.bfloat16, enabled=autocast is not None):
             for s in range(0, idx.numel(), chunk):
                 i = idx[s : s + chunk]
                 out = model.render_rays(o[i], d[i], t0[i], t1[i], training=False, background=bg)

@@ -226,6 +226,8 @@ def run(ctx: StageContext) -> dict:
     views = load_views(scene, train_frames, cfg.max_side, ctx.report, "training photos")
     background, random_bg, bg_why = choose_background(cfg, scene, views)
     kind, kwargs, lr, reasons = model_spec(cfg, scene, views)
+    if cfg.adjusted:
+        reasons.insert(0, cfg.adjusted)
     use_appearance, appearance_why = choose_appearance(cfg, kind, views)
     reasons.append(appearance_why)
     if budget_s:
