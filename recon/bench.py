@@ -39,6 +39,17 @@ def resolve_dataset(name: str) -> tuple[Path, Path | None]:
     return source, gt if gt is not None and gt.exists() else None
 
 
+def prepare_scene(data: str, out_dir: Path, config: Any, report: Reporter) -> Path:
+    """Poses and normalize of `data` in `out_dir/<name>-poses` (cached): the scene every preset starts from."""
+    from recon.stages import default_pipeline
+
+    source, _ = resolve_dataset(data)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    base = out_dir / f"{Path(data).name}-poses"
+    default_pipeline().run(base, config, report, source=source.resolve(), until_stage="normalize")
+    return base
+
+
 def run_bench(
     data: str,
     presets: list[str],
@@ -51,10 +62,8 @@ def run_bench(
     from recon.stages import default_pipeline
 
     source, gt = resolve_dataset(data)
-    out_dir.mkdir(parents=True, exist_ok=True)
     pipeline = default_pipeline()
-    base = out_dir / f"{Path(data).name}-poses"
-    pipeline.run(base, load_config(None, overrides), report, source=source.resolve(), until_stage="normalize")
+    base = prepare_scene(data, out_dir, load_config(None, overrides), report)
     rows = []
     for preset in presets:
         scene = out_dir / f"{Path(data).name}-{preset}"

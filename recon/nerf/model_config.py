@@ -18,6 +18,10 @@ class FastConfig:
     """Scene box [min_xyz, max_xyz] in the normalized frame (world units); the grids span it when bounded."""
     unbounded: bool = False
     """Contract space outside the unit box into [-2, 2]^3 (mip-NeRF 360) instead of using ``aabb``."""
+    unbounded_steps: Literal["contracted", "world"] = "contracted"
+    """Unbounded scenes: "contracted" marches ``step_ratio`` voxels of the contracted grid (world steps grow like
+    r² outside the unit box; docs/profile_unbounded.md), "world" uniform world steps from near to far (the old,
+    ~5-10x more samples per ray)."""
     density_grid: GridKind = "dense"
     """Grid holding density: "dense" voxels (default, cheapest per sample), "vm" (TensoRF) or "hash"."""
     density_res: int = 128
