@@ -116,6 +116,16 @@ class TrainConfig:
     precision: Literal["fp32", "bf16"] = "fp32"
     """bf16: the networks' matrix math in bfloat16 (autocast; volume rendering stays fp32). Faster on GPUs and
     CPUs with AMX/AVX512-BF16, slower on older CPUs."""
+    depth_prior: Literal["auto", "on", "off"] = "auto"
+    """Sparse-depth supervision from the SfM points (DS-NeRF). auto: on when fewer than 20 photos train the field
+    (few views leave the geometry ambiguous) and the scene has sparse points; on / off force it."""
+    depth_weight: float = 0.002
+    """Weight of the sparse-depth loss (robust, in units of each point's depth uncertainty)."""
+    depth_rays: int = 512
+    """Sparse-point rays rendered per step for the depth loss (on top of batch_rays)."""
+    appearance: Literal["auto", "on", "off"] = "auto"
+    """Per-photo colour transforms for exposure / white-balance changes (grid models). auto: on when the colours
+    of matched points differ between neighbouring photos (recon/nerf/appearance.py); the mesh uses the neutral one."""
     classic: ClassicConfig = field(default_factory=ClassicConfig)
     fast: FastConfig = field(default_factory=FastConfig)
     """The fast grid model's options (its box and boundedness are set from the scene)."""
@@ -290,6 +300,8 @@ BOUNDS: dict[str, tuple[Any, str]] = {
     "train.eval_views": _at_least(0),
     "train.final_eval_views": _at_least(0),
     "train.checkpoint_every": _at_least(0),
+    "train.depth_weight": _at_least(0),
+    "train.depth_rays": _at_least(1),
     "train.classic.n_coarse": _at_least(1),
     "train.classic.n_fine": _at_least(0),
     "train.classic.pos_freqs": _at_least(0),
@@ -317,6 +329,9 @@ BOUNDS: dict[str, tuple[Any, str]] = {
     "train.surface.occupancy_res": _at_least(2),
     "train.surface.eikonal_weight": _at_least(0),
     "train.surface.curvature_weight": _at_least(0),
+    "train.surface.boundary_weight": _at_least(0),
+    "train.surface.boundary_margin_cells": _at_least(0),
+    "train.surface.boundary_points": _at_least(0),
     "mesh.resolution": ((lambda v: v == 0 or v >= 8), "0 (automatic) or at least 8"),
     "mesh.max_resolution": _at_least(8),
     "mesh.memory_budget_mb": _at_least(1),

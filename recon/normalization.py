@@ -220,9 +220,10 @@ def _drop_nonfinite_points(scene: Scene) -> Scene:
     visibility = {
         name: new_index[idx[keep[idx]]] for name, idx in ((n, np.asarray(v, dtype=np.int64)) for n, v in scene.point_visibility.items())
     }
+    errors = scene.point_errors
     return replace(
         scene, points=points[keep], point_colors=colors[keep] if len(colors) == len(points) else colors,
-        point_visibility=visibility,
+        point_visibility=visibility, point_errors=errors[keep] if errors is not None and len(errors) == len(points) else None,
     )
 
 
@@ -323,6 +324,7 @@ def normalize(scene: Scene, cfg: NormalizeConfig) -> Scene:
         points=new_points,
         point_colors=scene.point_colors,
         point_visibility=scene.point_visibility,
+        point_errors=scene.point_errors,
         aabb=aabb,
         region=region,
         ground=ground,

@@ -107,6 +107,8 @@ class Scene:
     point_colors: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), dtype=np.uint8))
     point_visibility: dict[str, np.ndarray] = field(default_factory=dict)
     """frame name → indices of the points that frame sees (for near/far)."""
+    point_errors: np.ndarray | None = None
+    """(P,) mean reprojection error of each point in pixels of the original photos (SfM); None: unknown."""
     aabb: np.ndarray | None = None
     """(2, 3) scene box [min, max] in the scene frame."""
     capture: str | None = None
@@ -175,6 +177,7 @@ class Scene:
             rgb=np.asarray(self.point_colors, dtype=np.uint8).reshape(-1, 3),
             vis_names=np.array(vis_names, dtype=str),
             **{f"vis_{i}": np.asarray(self.point_visibility[n], dtype=np.int64) for i, n in enumerate(vis_names)},
+            **({} if self.point_errors is None else {"error": np.asarray(self.point_errors, dtype=np.float64).reshape(-1)}),
         )
 
 
@@ -236,6 +239,8 @@ def load_scene(folder: Path) -> Scene:
                 scene.point_colors = data["rgb"]
                 names = [str(n) for n in data["vis_names"]]
                 scene.point_visibility = {n: data[f"vis_{i}"] for i, n in enumerate(names)}
+                if "error" in data.files and len(data["error"]) == len(scene.points):
+                    scene.point_errors = data["error"]
         except (OSError, ValueError, KeyError, zipfile.BadZipFile) as exc:
             raise InputError(f"Cannot read {points_path}: {exc}. Re-run the stage that writes it (recon run --from poses).") from None
     return scene

@@ -297,16 +297,21 @@ class FastModel(RadianceModel):
         # march front to back (densities behind opaque surfaces are never evaluated); without gradients
         # (evaluation, recon render, the viewer) the marcher's densities are the ones rendered, not evaluated again
         early_stop = cfg.early_stop_transmittance > 0
-        infer = not training and not torch.is_grad_enabled() and early_stop
+        contracted = cfg.unbounded and cfg.unbounded_steps == "contracted"
+        # the contracted marcher has no front-to-back variant: it returns no densities to reuse
+        infer = not training and not torch.is_grad_enabled() and early_stop and not contracted
         with torch.no_grad():
-            if early_stop:
+            if early_stop and not contracted:
                 ts, te, ri, sigma = march_front_to_back(
                     rays_o, rays_d, t_near, t_far, self.occupancy, step_size, cfg.max_samples, sigma_fn,
                     cone_angle=cfg.cone_angle, jitter=training, min_transmittance=cfg.early_stop_transmittance,
                 )
             else:
-                ts, te, ri = march(rays_o, rays_d, t_near, t_far, self.occupancy, step_size, cfg.max_samples,
-                                   cone_angle=cfg.cone_angle, jitter=training)
+                ts, te, ri = march(
+                    rays_o, rays_d, t_near, t_far, self.occupancy, step_size, cfg.max_samples,
+                    cone_angle=cfg.cone_angle, jitter=training, contracted=contracted,
+                    sigma_fn=sigma_fn if early_stop else None, min_transmittance=cfg.early_stop_transmittance,
+                )
         mid = 0.5 * (ts + te)
         delta = te - ts
         u = None

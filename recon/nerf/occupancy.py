@@ -30,7 +30,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from recon.nerf.contraction import contract, uncontract
+from recon.nerf.contraction import contract, contracted_intervals, uncontract
 from recon.nerf.render import render_weights_packed
 
 __all__ = ["OccupancyGrid", "density_threshold", "march", "march_front_to_back"]
@@ -282,6 +282,7 @@ def march(
     sigma_fn: Callable[[Tensor, Tensor, Tensor], Tensor] | None = None,
     min_transmittance: float = 1e-4,
     alpha_threshold: float = 0.0,
+    contracted: bool = False,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Packed samples along rays, only in occupied cells.
 
@@ -296,11 +297,16 @@ def march(
             (called under no_grad; see the module docstring).
         min_transmittance: drop samples whose transmittance at their start is below this.
         alpha_threshold: drop samples with opacity below this (0 keeps all).
+        contracted: unbounded scene: steps of ``step_size`` in contracted space
+            (:func:`recon.nerf.contraction.contracted_intervals`; ``cone_angle`` is then unused).
 
     Returns:
         t_starts, t_ends: (M,) interval bounds; ray_indices: (M,) long, sorted ascending; samples of
         a ray are contiguous and ordered by t.
     """
+    if contracted:
+        return _march_contracted(rays_o, rays_d, t_near, t_far, occupancy, step_size, max_samples, jitter, sigma_fn,
+                                 min_transmittance, alpha_threshold)
     n_rays = rays_o.shape[0]
     device, dtype = rays_o.device, rays_o.dtype
     n_u, t1, counts = _sample_counts(t_near, t_far, step_size, cone_angle, max_samples)
@@ -318,6 +324,27 @@ def march(
                 keep &= -torch.expm1(-sigma * (t_ends - t_starts)) >= alpha_threshold
         t_starts, t_ends, ray_idx = t_starts[keep], t_ends[keep], ray_idx[keep]
     return t_starts, t_ends, ray_idx
+
+
+def _march_contracted(
+    rays_o: Tensor, rays_d: Tensor, t_near: Tensor, t_far: Tensor, occupancy: OccupancyGrid | None, step_size: float,
+    max_samples: int, jitter: bool, sigma_fn: Callable[[Tensor, Tensor, Tensor], Tensor] | None,
+    min_transmittance: float, alpha_threshold: float,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """:func:`march` with steps of ``step_size`` in contracted space (unbounded scenes), same filters."""
+    ts, te, ri = contracted_intervals(rays_o, rays_d, t_near, t_far, step_size, max_samples, jitter)
+    if occupancy is not None and ts.shape[0] > 0:
+        keep = occupancy.query(rays_o[ri] + rays_d[ri] * (0.5 * (ts + te))[:, None])
+        ts, te, ri = ts[keep], te[keep], ri[keep]
+    if sigma_fn is not None and ts.shape[0] > 0:
+        with torch.no_grad():
+            sigma = sigma_fn(ts, te, ri).reshape(-1)
+            _, trans = render_weights_packed(sigma, te - ts, ri, rays_o.shape[0])
+            keep = trans > min_transmittance
+            if alpha_threshold > 0:
+                keep &= -torch.expm1(-sigma * (te - ts)) >= alpha_threshold
+        ts, te, ri = ts[keep], te[keep], ri[keep]
+    return ts, te, ri
 
 
 @torch.no_grad()

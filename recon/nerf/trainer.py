@@ -83,7 +83,8 @@ class RayBatcher:
         device: where batches are produced (default: the images' device).
 
     Batches (:meth:`next_batch`) are dicts of ``rays_o, rays_d (B, 3)``, ``near, far (B,)``,
-    ``rgb (B, 3)`` target and ``background (B, 3)``; every pixel is used once per epoch.
+    ``rgb (B, 3)`` target, ``background (B, 3)`` and ``image (B,)`` (long: which image each ray comes
+    from, for per-photo appearance); every pixel is used once per epoch.
     """
 
     def __init__(
@@ -152,9 +153,13 @@ class RayBatcher:
         self._new_epoch()
 
     # -- pixel bookkeeping
+    def image_index(self, flat: Tensor) -> Tensor:
+        """Flat pixel indices (B,) -> the index (B,) long of the image each pixel belongs to."""
+        return torch.searchsorted(self.offsets, flat, right=True) - 1
+
     def _rays(self, flat: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
         """Flat pixel indices (B,) -> rays_o, rays_d (B, 3), near, far (B,), hit (B,) bool."""
-        img = torch.searchsorted(self.offsets, flat, right=True) - 1
+        img = self.image_index(flat)
         local = flat - self.offsets[img]
         w = self.sizes[img, 0]
         px = (local % w).float() + 0.5
@@ -199,7 +204,8 @@ class RayBatcher:
         if self.has_alpha:
             a = px[:, 3:4]
             rgb = rgb * a + bg * (1.0 - a)
-        return {"rays_o": o, "rays_d": d, "near": near, "far": far, "rgb": rgb, "background": bg}
+        return {"rays_o": o, "rays_d": d, "near": near, "far": far, "rgb": rgb, "background": bg,
+                "image": self.image_index(flat)}
 
     def state_dict(self) -> dict[str, Any]:
         """Position in the shuffled stream (small: the permutation is regenerated from its seed state)."""
@@ -339,6 +345,8 @@ def train(
     autocast: torch.dtype | None = None,
     budget_s: float = 0.0,
     spent_s: float = 0.0,
+    extra_loss: Callable[[RadianceModel, int], dict[str, Tensor]] | None = None,
+    appearance: torch.nn.Module | None = None,
 ) -> dict[str, Any]:
     """Optimize ``model`` on ``batcher``'s rays for ``steps`` steps (or the rest of them after a resume).
 
@@ -361,6 +369,12 @@ def train(
         autocast: e.g. ``torch.bfloat16`` to run the model's matmuls in mixed precision
             (``torch.autocast``); ~2x faster MLPs on CPUs with AMX/AVX512-BF16. Losses, and volume
             rendering in models that cast their network outputs to float32, stay in float32.
+        extra_loss: ``(model, step) -> {name: loss}`` terms added to the loss each step (e.g. the sparse-depth
+            prior of :mod:`recon.nerf.depth_prior`); it renders its own rays. Must be deterministic in the step
+            for resumes to repeat the run.
+        appearance: per-photo colour transforms (:class:`recon.nerf.appearance.PhotoAppearance`):
+            ``appearance(out, batch["image"])`` replaces the rendered rgb before the loss, its
+            ``regularizer()`` joins the loss and its parameters are optimized at ``lr``.
 
     Returns a summary dict: step, loss, psnr, rays_per_s, elapsed_s, history, metrics (last eval).
 
@@ -369,9 +383,13 @@ def train(
         TrainingInterrupted: on Ctrl-C, carrying a resumable state of the finished steps.
     """
     opt = make_optimizer(model, lr)
+    if appearance is not None:
+        opt.add_param_group({"params": list(appearance.parameters()), "lr": lr, "initial_lr": lr})
     start = 0
     if state is not None:
         model.load_state_dict(state["model"])
+        if appearance is not None:
+            appearance.load_state_dict(state["appearance"])
         opt.load_state_dict(state["optimizer"])
         batcher.load_state_dict(state["batcher"])
         _set_rng_state(state["rng"])
@@ -385,6 +403,7 @@ def train(
             "optimizer": copy.deepcopy(opt.state_dict()),
             "batcher": batcher.state_dict(),
             "rng": _rng_state(),
+            **({"appearance": {k: v.detach().clone() for k, v in appearance.state_dict().items()}} if appearance is not None else {}),
         }
 
     history: list[tuple[int, float, float]] = []
@@ -412,11 +431,18 @@ def train(
             with torch.autocast(batch["rgb"].device.type, dtype=autocast or torch.bfloat16, enabled=autocast is not None):
                 out = model.render_rays(batch["rays_o"], batch["rays_d"], batch["near"], batch["far"],
                                         training=True, background=batch["background"])
+            if appearance is not None:
+                out = {**out, "rgb": appearance(out, batch["image"])}
             terms = {"rgb": F.mse_loss(out["rgb"].float(), batch["rgb"])}
             for i, aux in enumerate(out.get("aux_rgb", [])):
                 terms[f"aux_rgb[{i}]"] = F.mse_loss(aux.float(), batch["rgb"])
             if "reg" in out:
                 terms["reg"] = out["reg"].float()
+            if extra_loss is not None:
+                with torch.autocast(batch["rgb"].device.type, dtype=autocast or torch.bfloat16, enabled=autocast is not None):
+                    terms.update({k: v.float() for k, v in extra_loss(model, step).items()})
+            if appearance is not None:
+                terms["appearance"] = appearance.regularizer()
             loss = sum(terms.values())
             loss_v = float(loss.detach())
             if not math.isfinite(loss_v):

@@ -262,11 +262,13 @@ def _structure_from_motion(ctx: StageContext, photos: list[Path] | None = None) 
         frame.mask_path = str(masks[path.name].resolve()) if path.name in masks else None
         frames.append(frame)
     visibility = {by_sfm_name[n].name: np.asarray(v, dtype=np.int64) for n, v in result.points_visible.items()}
+    sfm_scale = float(np.median([original_size[by_sfm_name[n].name][0] / sfm_size[by_sfm_name[n].name][0] for n in result.frames]))
     scene = Scene(
         frames=frames,
         points=result.points_xyz,
         point_colors=result.points_rgb,
         point_visibility=visibility,
+        point_errors=np.asarray(result.points_error, np.float64) * sfm_scale,  # SfM pixels -> original photo pixels
         source_kind="photos",
         has_alpha=mask_dir is not None,
         notes={"camera_model": result.camera_model, "camera_choice": result.choice_reason,

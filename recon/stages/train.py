@@ -22,7 +22,7 @@ from recon.config import TrainConfig, parse_duration
 from recon.errors import ReconError
 from recon.field import FIELD_FILE, build_model, save_field
 from recon.pipeline import Stage, StageContext
-from recon.scene import Scene, load_scene, spread_evenly
+from recon.scene import Frame, Scene, load_scene, spread_evenly
 from recon.views import View, border_color, evaluate, load_views, pixel_footprint, write_previews
 
 CHECKPOINT = "checkpoint.pt"
@@ -87,6 +87,41 @@ def surface_spec(cfg: TrainConfig, scene: Scene) -> tuple[str, dict[str, Any], f
     return "surface", {"config": asdict(surf)}, cfg.lr or FAST_LR, reasons
 
 
+def depth_prior_for(cfg: TrainConfig, scene: Scene, frames: list[Frame], views: list[View], kwargs: dict[str, Any],
+                    aabb: torch.Tensor | None, near_far: torch.Tensor, device: torch.device) -> tuple[Any, str | None]:
+    """The sparse-depth prior (`recon.nerf.depth_prior.DepthPrior`) or None, and why (printed either way)."""
+    from recon.nerf.depth_prior import DepthPrior, sparse_depth_targets
+    from recon.normalization import FEW_PHOTOS
+
+    if cfg.depth_prior == "off":
+        return None, "depth prior: off (train.depth_prior=off)"
+    visible = [np.asarray(scene.point_visibility.get(f.name, []), np.int64) for f in frames]
+    n_obs = sum(len(v) for v in visible)
+    if cfg.depth_prior == "auto" and len(frames) >= FEW_PHOTOS:
+        return None, (f"depth prior: off ({len(frames)} training photos >= {FEW_PHOTOS}: the photos constrain the "
+                      f"geometry; train.depth_prior=on forces it)")
+    if n_obs == 0:
+        return None, "depth prior: off (the scene has no sparse points seen by the training photos)"
+    scale = float(np.median([v.hw[1] / f.w for f, v in zip(frames, views, strict=True)]))
+    errors = (np.ones(len(scene.points)) if scene.point_errors is None else np.asarray(scene.point_errors)) * scale
+    box = np.asarray(scene.aabb, np.float64)
+    res = int(kwargs.get("config", {}).get("density_res", 128))
+    voxel = float((box[1] - box[0]).max()) / res if scene.capture == "object" else 2.0 / res
+    alpha = [v.image[..., 3] if v.image.shape[-1] == 4 else None for v in views]
+    targets = sparse_depth_targets(
+        scene.points, visible, np.stack([v.c2w for v in views]), np.array([v.intrinsics for v in views]),
+        np.array([[v.hw[1], v.hw[0]] for v in views]), errors, alpha=alpha if scene.has_alpha else None, min_sigma=voxel,
+    )
+    prior = DepthPrior(targets, cfg.depth_weight, cfg.depth_rays, aabb=None if aabb is None else aabb.cpu(),
+                       near_far=None if aabb is not None else near_far.cpu(), seed=cfg.seed).to(device)
+    why = (f"{len(frames)} training photos (< {FEW_PHOTOS}): few views leave the geometry ambiguous" if cfg.depth_prior == "auto"
+           else "train.depth_prior=on")
+    sig = prior.sigma.cpu().numpy() if len(prior) else np.zeros(1)
+    return prior, (f"depth prior: on ({why}): {len(prior):,} depth targets from the SfM points the photos observe "
+                   f"(DS-NeRF; uncertainty from reprojection error and triangulation angle, median {np.median(sig):.3g} "
+                   f"units), {cfg.depth_rays} of them rendered per step, weight {cfg.depth_weight:g}")
+
+
 FAST_LR = 1e-2
 """Default learning rate of the fast model's MLP (its grids use lr × grid_lr_scale)."""
 
@@ -115,6 +150,27 @@ def auto_fast_config(base: Any, scene: Scene, footprint: float) -> tuple[Any, li
     cfg = replace(base, aabb=tuple(tuple(float(x) for x in row) for row in aabb), unbounded=unbounded,
                   density_res=density_res, feature_res=feature_res)
     return cfg, reasons
+
+
+def choose_appearance(cfg: TrainConfig, kind: str, views: list[View]) -> tuple[bool, str]:
+    """(model the photos' exposure / white balance per photo?, why) — see recon.nerf.appearance."""
+    from recon.nerf.appearance import decide, exposure_spread
+
+    if kind == "classic" and cfg.appearance != "off":
+        return False, "per-photo appearance off: it is built for the grid models (fast, surface), not the classic MLP"
+    if cfg.appearance == "off":
+        return False, "per-photo appearance off (train.appearance=off)"
+    return decide(cfg.appearance, exposure_spread([v.image for v in views], np.stack([v.c2w for v in views])))
+
+
+def _appearance_metrics(appearance: Any, why: str, views: list[View]) -> dict[str, Any]:
+    """metrics.json's record of the appearance choice, the held-out protocol and the photos' fitted gains."""
+    from recon.nerf.appearance import HELD_OUT_PROTOCOL
+
+    if appearance is None:
+        return {"on": False, "reason": why, "held_out": "plain: the neutral render against the whole photo"}
+    return {"on": True, "reason": why, "held_out": HELD_OUT_PROTOCOL, "kind": appearance.kind,
+            "per_photo": appearance.summary([v.name for v in views])}
 
 
 def _tensor(views: list[View], device: torch.device) -> tuple[list[torch.Tensor], torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -172,21 +228,36 @@ def run(ctx: StageContext) -> dict:
     kind, kwargs, lr, reasons = model_spec(cfg, scene, views)
     if cfg.adjusted:
         reasons.insert(0, cfg.adjusted)
+    use_appearance, appearance_why = choose_appearance(cfg, kind, views)
+    reasons.append(appearance_why)
     if budget_s:
         reasons.append(f"time budget {cfg.budget}: at most {cfg.steps} steps, stopping when the budget is spent")
     ctx.report.info(f"device: {device}; background: {bg_why}")
     for r in reasons:
         ctx.report.info(f"model: {r}")
+    if use_appearance:
+        from recon.nerf.appearance import HELD_OUT_PROTOCOL
+
+        ctx.report.info(f"held-out evaluation: {HELD_OUT_PROTOCOL}")
     bounded = scene.capture == "object"
     aabb = torch.tensor(np.asarray(scene.aabb), dtype=torch.float32, device=device) if bounded else None
 
     model = build_model(kind, kwargs).to(device)
     images, c2w, intr, near_far = _tensor(views, device)
+    depth_prior, depth_why = depth_prior_for(cfg, scene, train_frames, views, kwargs, aabb, near_far, device)
+    if depth_why:
+        reasons.append(depth_why)
+        ctx.report.info(f"model: {depth_why}")
     batcher = RayBatcher(
         images, c2w, intr,
         aabb=aabb, near_far=None if bounded else near_far,
         background=torch.tensor(background), random_background=random_bg, seed=cfg.seed, device=device,
     )
+    appearance = None
+    if use_appearance:
+        from recon.nerf.appearance import PhotoAppearance
+
+        appearance = PhotoAppearance(len(views), include_background=not batcher.has_alpha).to(device)
     eval_views = load_views(scene, spread_evenly(held_out, cfg.eval_views), cfg.max_side)
 
     ckpt_path = ctx.work / CHECKPOINT
@@ -200,7 +271,7 @@ def run(ctx: StageContext) -> dict:
 
     def eval_fn(m: torch.nn.Module, step: int) -> dict[str, float]:
         t = time.perf_counter()
-        r = evaluate(m, eval_views, aabb, background, autocast=autocast)
+        r = evaluate(m, eval_views, aabb, background, autocast=autocast, appearance=use_appearance)
         eval_time[0] += time.perf_counter() - t
         return {"psnr": r["psnr"], "ssim": r["ssim"]}
 
@@ -231,7 +302,8 @@ def run(ctx: StageContext) -> dict:
                     model, batcher, steps=cfg.steps, lr=lr, lr_final=lr * cfg.lr_decay, batch_rays=cfg.batch_rays,
                     eval_fn=eval_fn, eval_every=cfg.eval_every or cfg.steps, callbacks=[on_step],
                     state=checkpoint["state"] if checkpoint else None,
-                    budget_s=budget_s, spent_s=time_before, autocast=autocast,
+                    budget_s=budget_s, spent_s=time_before, autocast=autocast, extra_loss=depth_prior,
+                    appearance=appearance,
                 )
             for w in caught:
                 if "training is not improving" in str(w.message):
@@ -248,7 +320,7 @@ def run(ctx: StageContext) -> dict:
 
     test_views = load_views(scene, spread_evenly(test_frames, cfg.final_eval_views), cfg.max_side)  # a spiral's first N would be one viewpoint
     with ctx.report.task("evaluating test views", total=None):
-        final = evaluate(model, test_views, aabb, background, keep=True, autocast=autocast)
+        final = evaluate(model, test_views, aabb, background, keep=True, autocast=autocast, appearance=use_appearance)
     write_previews(final.pop("renders"), ctx.out / "renders")
     meta = {
         "aabb": np.asarray(scene.aabb).tolist(),
@@ -257,6 +329,8 @@ def run(ctx: StageContext) -> dict:
         "max_side": cfg.max_side,
         "capture": scene.capture,
     }
+    if appearance is not None:  # the field stays neutral; the photos' transforms are kept for whoever needs them
+        meta["appearance"] = appearance.summary([v.name for v in views])
     save_field(ctx.out / FIELD_FILE, kind, kwargs, model.cpu(), meta)
     metrics = {
         "model": kind,
@@ -271,6 +345,7 @@ def run(ctx: StageContext) -> dict:
         "history": history,
         "n_train_views": len(views),
         "n_rays_dropped_missing_box": int(batcher.n_dropped),
+        "appearance": _appearance_metrics(appearance, appearance_why, views),
     }
     write_json_atomic(ctx.out / "metrics.json", metrics)
     training_curves(history, evals, ctx.out / "curves.png", title=f"{kind} model — test PSNR {final['psnr']:.2f} dB")
@@ -279,7 +354,8 @@ def run(ctx: StageContext) -> dict:
     return {
         "headline": (f"{kind} model, {result['step']} steps in {total_train_time:.0f} s: "
                      f"{'test' if scene.split('test') else 'training-photo (none held out)'} PSNR {final['psnr']:.2f} dB, "
-                     f"SSIM {final['ssim']:.3f} ({len(test_views)} views)"),
+                     f"SSIM {final['ssim']:.3f} ({len(test_views)} views"
+                     f"{'; right halves, each photo’s appearance fitted on its left half' if use_appearance else ''})"),
         "psnr": round(final["psnr"], 3),
         "ssim": round(final["ssim"], 4),
         "train_time_s": round(total_train_time, 1),
