@@ -140,7 +140,11 @@ class MeshConfig:
     coarse_to_fine: bool = True
     """Evaluate a coarse grid first and refine only blocks the surface crosses."""
     iso: float = 0.0
-    """Density iso-level; 0: automatic (one cell of thickness is half opaque)."""
+    """Density iso-level; 0: automatic (one cell of thickness is `iso_opacity` opaque)."""
+    iso_opacity: float = 0.0
+    """Opacity of one cell of material at the automatic iso-level; 0: 0.5, or 0.25 when masks trained the
+    background empty (the masks already carve the object, so the level can be lower and close the holes an
+    undertrained field leaves: on the 15-photo tabletop at 500 steps F@1% 0.80 -> 0.88)."""
     min_component_fraction: float = 0.05
     """Drop disconnected pieces with less than this fraction of the largest piece's area (floaters)."""
     smooth_iters: int = 0
@@ -243,6 +247,7 @@ BOUNDS: dict[str, tuple[Any, str]] = {
     "poses.min_registered_fraction": _between(0, 1),
     "normalize.point_percentile": _between(0, 49),
     "normalize.box_margin": _between(0, 10),
+    "mesh.iso_opacity": _between(0, 0.99),
     "normalize.depth_percentile": _between(0, 49),
     "normalize.test_every": _at_least(0),
     "normalize.val_every": _at_least(0),
