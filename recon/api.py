@@ -148,7 +148,7 @@ class Field:
         return self.scene.frames
 
     def render(self, c2w: np.ndarray, fl_x: float, width: int, height: int, fl_y: float | None = None,
-               cx: float | None = None, cy: float | None = None, chunk: int = 8192) -> Render:
+               cx: float | None = None, cy: float | None = None, chunk: int | None = None) -> Render:
         """Render a pinhole camera: c2w (4, 4) OpenGL camera-to-world; focal and centre in pixels (centre default: the middle)."""
         import numpy as np
         import torch

@@ -39,6 +39,17 @@ def resolve_dataset(name: str) -> tuple[Path, Path | None]:
     return source, gt if gt is not None and gt.exists() else None
 
 
+def prepare_scene(data: str, out_dir: Path, config: Any, report: Reporter) -> Path:
+    """Poses and normalize of `data` in `out_dir/<name>-poses` (cached): the scene every preset starts from."""
+    from recon.stages import default_pipeline
+
+    source, _ = resolve_dataset(data)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    base = out_dir / f"{Path(data).name}-poses"
+    default_pipeline().run(base, config, report, source=source.resolve(), until_stage="normalize")
+    return base
+
+
 def run_bench(
     data: str,
     presets: list[str],
@@ -51,10 +62,8 @@ def run_bench(
     from recon.stages import default_pipeline
 
     source, gt = resolve_dataset(data)
-    out_dir.mkdir(parents=True, exist_ok=True)
     pipeline = default_pipeline()
-    base = out_dir / f"{Path(data).name}-poses"
-    pipeline.run(base, load_config(None, overrides), report, source=source.resolve(), until_stage="normalize")
+    base = prepare_scene(data, out_dir, load_config(None, overrides), report)
     rows = []
     for preset in presets:
         scene = out_dir / f"{Path(data).name}-{preset}"
@@ -97,7 +106,7 @@ def run_bench(
 
 
 def write_results(rows: list[dict[str, Any]], out_dir: Path, data: str) -> None:
-    from recon.plots import tradeoff_plot
+    from recon.plots import accuracy_plot, tradeoff_plot
 
     write_json_atomic(out_dir / "bench.json", rows)
     has_mesh = any("fscore_1pct" in r for r in rows)
@@ -105,8 +114,8 @@ def write_results(rows: list[dict[str, Any]], out_dir: Path, data: str) -> None:
         f"# recon bench — {data}",
         "",
         "| preset | model | steps | train time | wall (train+mesh) | test PSNR | SSIM | views | rays/s |"
-        + (" F-score@1% | Chamfer-L1 / diag |" if has_mesh else ""),
-        "|---|---|---|---|---|---|---|---|---|" + ("---|---|" if has_mesh else ""),
+        + (" F-score@1% | Chamfer-L1 / diag | F-score@0.5% | normal agreement |" if has_mesh else ""),
+        "|---|---|---|---|---|---|---|---|---|" + ("---|---|---|---|" if has_mesh else ""),
     ]
     for r in rows:
         line = (
@@ -117,7 +126,13 @@ def write_results(rows: list[dict[str, Any]], out_dir: Path, data: str) -> None:
             f1, ch = r.get("fscore_1pct"), r.get("chamfer_rel")
             line += f" {f1:.3f} |" if f1 is not None else " — |"
             line += f" {100 * ch:.2f}% |" if ch is not None else " — |"
+            f05, nc = r.get("fscore_05pct"), r.get("normal_consistency")
+            line += f" {f05:.3f} |" if f05 is not None else " — |"
+            line += f" {nc:.3f} |" if nc is not None else " — |"
         lines.append(line)
     lines += ["", "![PSNR vs time](bench.png)", ""]
+    if has_mesh:  # one point per preset: the mesh's accuracy against its training time
+        lines += ["![mesh accuracy vs time](bench_accuracy.png)", ""]
+        accuracy_plot(rows, out_dir / "bench_accuracy.png", title=f"mesh F-score vs training time — {data}")
     (out_dir / "bench.md").write_text("\n".join(lines))
     tradeoff_plot(rows, out_dir / "bench.png", title=f"held-out PSNR vs training time — {data}")

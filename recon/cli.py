@@ -344,6 +344,9 @@ def bench(
     out: Annotated[Path, typer.Option("--out", "-o", help="Folder for the scenes, bench.md, bench.json, bench.png.")] = Path("bench"),
     set_: SetOpt = None,
     until: Annotated[str, typer.Option("--until", help="train (PSNR only) or mesh (also mesh accuracy when a GT mesh exists).")] = "mesh",
+    profile: Annotated[bool, typer.Option("--profile", help="Instead: profile training steps and a test render of each preset (profile.md).")] = False,
+    profile_warmup: Annotated[int, typer.Option("--profile-warmup", help="Steps trained before the profiled ones.")] = 200,
+    profile_steps: Annotated[int, typer.Option("--profile-steps", help="Training steps profiled.")] = 8,
 ) -> None:
     """Measure the speed/accuracy trade: each preset's time, held-out PSNR and mesh error, as a table and a plot."""
     from recon.bench import run_bench
@@ -351,6 +354,12 @@ def bench(
     install_sigterm_as_interrupt()
     with _guard():
         names = [p.strip() for p in presets_.split(",") if p.strip()]
+        if profile:
+            from recon.profiling import run_profile
+
+            path = run_profile(data, names, out, list(set_ or []), Reporter(console), warmup=profile_warmup, steps=profile_steps)
+            out_console.print(path.read_text(), markup=False)
+            return
         rows = run_bench(data, names, out, list(set_ or []), Reporter(console), until=until)
         out_console.print((out / "bench.md").read_text(), markup=False)
         out_console.print(f"{len(rows)} presets measured — {out / 'bench.md'}, {out / 'bench.png'}", markup=False)

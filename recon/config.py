@@ -110,6 +110,9 @@ class TrainConfig:
     """Seed for initialization, ray shuffling and sampling jitter."""
     device: str = "auto"
     """auto (CUDA when present), cpu, cuda or cuda:K."""
+    adjusted: str = ""
+    """Set by a preset's [no_gpu] table when no GPU is found: what it changed and why (printed with the train
+    stage's reasons)."""
     precision: Literal["fp32", "bf16"] = "fp32"
     """bf16: the networks' matrix math in bfloat16 (autocast; volume rendering stays fp32). Faster on GPUs and
     CPUs with AMX/AVX512-BF16, slower on older CPUs."""
@@ -120,6 +123,9 @@ class TrainConfig:
     """Weight of the sparse-depth loss (robust, in units of each point's depth uncertainty)."""
     depth_rays: int = 512
     """Sparse-point rays rendered per step for the depth loss (on top of batch_rays)."""
+    appearance: Literal["auto", "on", "off"] = "auto"
+    """Per-photo colour transforms for exposure / white-balance changes (grid models). auto: on when the colours
+    of matched points differ between neighbouring photos (recon/nerf/appearance.py); the mesh uses the neutral one."""
     classic: ClassicConfig = field(default_factory=ClassicConfig)
     fast: FastConfig = field(default_factory=FastConfig)
     """The fast grid model's options (its box and boundedness are set from the scene)."""
@@ -206,6 +212,8 @@ def preset_path(name: str) -> Path:
 def load_config(preset: str | None = None, overrides: list[str] | None = None) -> RunConfig:
     """Defaults, then the preset's TOML, then each `section.key=value` override, all type-checked."""
     config = RunConfig()
+    data: dict[str, Any] = {}
+    no_gpu = None
     if preset:
         path = preset_path(preset)
         try:
@@ -213,14 +221,51 @@ def load_config(preset: str | None = None, overrides: list[str] | None = None) -
         except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
             raise ConfigError(f"Preset file {path} is not valid TOML: {exc}. Fix the file.") from None
         data.pop("description", None)
+        no_gpu = data.pop("no_gpu", None)
         _apply_table(config, data, prefix="", source=str(path))
+    _apply_overrides(config, overrides)
+    if no_gpu is not None and not _gpu_training(config.train.device):
+        # the preset's [no_gpu] table: what it does on a CPU; --set still wins
+        no_gpu = dict(no_gpu)
+        why = str(no_gpu.pop("why", ""))
+        device = config.train.device
+        config = RunConfig()
+        _apply_table(config, data, prefix="", source=str(path))
+        _apply_table(config, no_gpu, prefix="", source=f"{path} [no_gpu]")
+        changes = ", ".join(f"{k}={v}" for k, v in _flatten(no_gpu))
+        config.train.adjusted = (
+            f"no GPU (train.device={device}): preset {path.stem} uses its CPU settings {changes} "
+            f"({path.name} [no_gpu]{'; ' + why if why else ''}); --set any of them to change it"
+        )
+        _apply_overrides(config, overrides)
+    validate(config)
+    return config
+
+
+def _apply_overrides(config: RunConfig, overrides: list[str] | None) -> None:
     for item in overrides or []:
         key, sep, raw = item.partition("=")
         if not sep or not key.strip():
             raise ConfigError(f"--set expects KEY=VALUE (e.g. --set train.steps=2000), got '{item}'.")
         set_value(config, key.strip(), raw.strip(), source="--set")
-    validate(config)
-    return config
+
+
+def _flatten(table: dict[str, Any], prefix: str = "") -> list[tuple[str, Any]]:
+    """A TOML table as (dotted key, value) pairs."""
+    out: list[tuple[str, Any]] = []
+    for key, value in table.items():
+        out += _flatten(value, f"{prefix}{key}.") if isinstance(value, dict) else [(f"{prefix}{key}", value)]
+    return out
+
+
+def _gpu_training(device: str) -> bool:
+    """Will training run on a GPU? cuda[:K]: yes; cpu: no; auto: when torch sees CUDA (torch imported only here)."""
+    pref = device.strip().lower()
+    if pref != "auto":
+        return pref.startswith("cuda")
+    import torch
+
+    return bool(torch.cuda.is_available())
 
 
 def _at_least(low: float) -> tuple[Any, str]:
@@ -289,6 +334,9 @@ BOUNDS: dict[str, tuple[Any, str]] = {
     "train.surface.occupancy_res": _at_least(2),
     "train.surface.eikonal_weight": _at_least(0),
     "train.surface.curvature_weight": _at_least(0),
+    "train.surface.boundary_weight": _at_least(0),
+    "train.surface.boundary_margin_cells": _at_least(0),
+    "train.surface.boundary_points": _at_least(0),
     "mesh.resolution": ((lambda v: v == 0 or v >= 8), "0 (automatic) or at least 8"),
     "mesh.max_resolution": _at_least(8),
     "mesh.memory_budget_mb": _at_least(1),

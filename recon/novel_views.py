@@ -119,11 +119,12 @@ def evaluate_scene(scene_dir: Path, out_dir: Path, split: str = "test", max_side
         raise ReconError(f"The scene has no '{split}' views to evaluate. Try --split val or --split train.")
     background = np.asarray(meta["background"], dtype=np.float32)
     views = load_views(scene, frames, max_side or meta["max_side"], report, f"{split} photos")
+    appearance = bool(meta.get("appearance"))  # trained with per-photo appearance: the left-half / right-half protocol
     if report:
         with report.task(f"rendering {len(views)} {split} views", total=None):
-            result = evaluate(model, views, aabb, background, keep=True)
+            result = evaluate(model, views, aabb, background, keep=True, appearance=appearance)
     else:
-        result = evaluate(model, views, aabb, background, keep=True)
+        result = evaluate(model, views, aabb, background, keep=True, appearance=appearance)
     renders = result.pop("renders")
     out_dir.mkdir(parents=True, exist_ok=True)
     write_previews(renders, out_dir / "views")

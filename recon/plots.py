@@ -98,3 +98,21 @@ def tradeoff_plot(runs: Sequence[dict], path: Path, title: str = "PSNR vs wall t
     ax.legend()
     _save(fig, path)
     plt.close(fig)
+
+
+def accuracy_plot(runs: Sequence[dict], path: Path, title: str = "mesh accuracy vs training time") -> None:
+    """One point per preset: mesh F-score (at 1 % and 0.5 % of the diagonal) against training time, so a
+    preset that trains longer for a better mesh (the surface model) sits beside the density presets."""
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(7, 5))
+    for marker, key, label in (("o", "fscore_1pct", "F@1%"), ("s", "fscore_05pct", "F@0.5%")):
+        pts = [(r["train_time_s"], r[key], r["name"]) for r in runs if r.get(key) is not None]
+        if pts:
+            ax.scatter([p[0] for p in pts], [p[1] for p in pts], marker=marker, label=label)
+            for x, y, name in pts:
+                ax.annotate(name, (x, y), textcoords="offset points", xytext=(5, 3), fontsize=8)
+    ax.set(xlabel="training wall time (s)", ylabel="F-score against the true surface", title=title)
+    ax.grid(alpha=0.3)
+    ax.legend()
+    _save(fig, path)
+    plt.close(fig)

@@ -80,7 +80,7 @@ def pixel_footprint(aabb: np.ndarray, centres: np.ndarray, focals: np.ndarray) -
     return dist / float(np.median(focals)), dist
 
 
-def render_view(model: torch.nn.Module, view: View, aabb: torch.Tensor | None, background: np.ndarray, chunk: int = 8192,
+def render_view(model: torch.nn.Module, view: View, aabb: torch.Tensor | None, background: np.ndarray, chunk: int | None = None,
                 autocast: torch.dtype | None = None) -> dict[str, np.ndarray]:
     """Render a view at its resolution → numpy rgb (H, W, 3), depth (H, W), opacity (H, W)."""
     from recon.nerf.trainer import render_image
@@ -101,17 +101,28 @@ def target_rgb(view: View, background: np.ndarray) -> np.ndarray:
 
 
 def evaluate(model: torch.nn.Module, views: list[View], aabb: torch.Tensor | None, background: np.ndarray, keep: bool = False,
-             autocast: torch.dtype | None = None) -> dict[str, Any]:
-    """PSNR/SSIM of renders against photos; with keep=True also the renders themselves."""
+             autocast: torch.dtype | None = None, appearance: bool = False) -> dict[str, Any]:
+    """PSNR/SSIM of renders against photos; with keep=True also the renders themselves.
+
+    appearance=True (a field trained with per-photo appearance): each photo's colour transform is fitted on
+    its left half and the right half is scored (recon.nerf.appearance.HELD_OUT_PROTOCOL); the full-image
+    PSNR of the neutral render is kept as ``psnr_neutral``.
+    """
     from recon.metrics import psnr, ssim
+    from recon.nerf.appearance import held_out_right_half
 
     per_view, renders = [], []
     for view in views:
         out = render_view(model, view, aabb, background, autocast=autocast)
         gt = target_rgb(view, background)
-        p = float(psnr(torch.from_numpy(out["rgb"]), torch.from_numpy(gt)))
-        s = float(ssim(torch.from_numpy(out["rgb"]), torch.from_numpy(gt)))
-        per_view.append({"view": view.name, "psnr": round(p, 3), "ssim": round(s, 4)})
+        pred, ref, extra = out["rgb"], gt, {}
+        if appearance:
+            extra["psnr_neutral"] = round(float(psnr(torch.from_numpy(pred), torch.from_numpy(gt))), 3)
+            alpha = view.image.shape[-1] == 4
+            pred, ref = held_out_right_half(pred, gt, out["opacity"] if alpha else None, background if alpha else None)
+        p = float(psnr(torch.from_numpy(pred), torch.from_numpy(ref)))
+        s = float(ssim(torch.from_numpy(pred), torch.from_numpy(ref)))
+        per_view.append({"view": view.name, "psnr": round(p, 3), "ssim": round(s, 4), **extra})
         if keep:
             renders.append((view, out, gt))
     result: dict[str, Any] = {
@@ -119,6 +130,8 @@ def evaluate(model: torch.nn.Module, views: list[View], aabb: torch.Tensor | Non
         "ssim": float(np.mean([v["ssim"] for v in per_view])) if per_view else math.nan,
         "views": per_view,
     }
+    if appearance and per_view:
+        result["psnr_neutral"] = float(np.mean([v["psnr_neutral"] for v in per_view]))
     if keep:
         result["renders"] = renders
     return result

@@ -57,7 +57,7 @@ from torch import Tensor, nn
 from recon.nerf.model_config import FastConfig, GridKind
 from recon.nerf.contraction import contract
 from recon.nerf.grid import DenseGrid, HashGrid, MultiDenseGrid, VMGrid, resample_dense
-from recon.nerf.occupancy import OccupancyGrid, density_threshold, march
+from recon.nerf.occupancy import OccupancyGrid, density_threshold, march, march_front_to_back
 from recon.nerf.rays import ray_aabb
 from recon.nerf.render import RadianceModel, accumulate_packed, checked_aabb, render_weights_packed
 
@@ -178,6 +178,10 @@ def _make_grid(kind: GridKind, res: int, dim: int, *, density: bool, levels: int
 class FastModel(RadianceModel):
     """Grid radiance field with occupancy-guided packed marching (see the module docstring)."""
 
+    render_chunk = 65536
+    """Rays per chunk when rendering an image (:func:`recon.nerf.trainer.render_image`): inference marches in
+    windows, so memory stays ~100 MB, and fewer, larger chunks spend less time between ops."""
+
     def __init__(self, config: FastConfig | None = None) -> None:
         super().__init__()
         cfg = self.config = config or FastConfig()
@@ -280,38 +284,57 @@ class FastModel(RadianceModel):
             t_near = torch.maximum(near, tn)
             t_far = torch.where(hit, torch.minimum(far, tf), t_near)
 
+        evaluated = [0]  # density evaluations, for tests and profiles
+
         def sigma_fn(ts: Tensor, te: Tensor, ri: Tensor) -> Tensor:
+            evaluated[0] += int(ts.shape[0])
             x = rays_o[ri] + rays_d[ri] * (0.5 * (ts + te))[:, None]
             return self._sigma_unit(self._unit(x).clamp(0.0, 1.0))
 
         step_size = self.step_size
         if training and int(self.step) < cfg.occupancy_warmup:
             step_size *= cfg.warmup_step_scale
+        # march front to back (densities behind opaque surfaces are never evaluated); without gradients
+        # (evaluation, recon render, the viewer) the marcher's densities are the ones rendered, not evaluated again
+        early_stop = cfg.early_stop_transmittance > 0
+        contracted = cfg.unbounded and cfg.unbounded_steps == "contracted"
+        # the contracted marcher has no front-to-back variant: it returns no densities to reuse
+        infer = not training and not torch.is_grad_enabled() and early_stop and not contracted
         with torch.no_grad():
-            ts, te, ri = march(
-                rays_o, rays_d, t_near, t_far, self.occupancy, step_size, cfg.max_samples,
-                cone_angle=cfg.cone_angle, jitter=training,
-                sigma_fn=sigma_fn if cfg.early_stop_transmittance > 0 else None,
-                min_transmittance=cfg.early_stop_transmittance,
-            )
+            if early_stop and not contracted:
+                ts, te, ri, sigma = march_front_to_back(
+                    rays_o, rays_d, t_near, t_far, self.occupancy, step_size, cfg.max_samples, sigma_fn,
+                    cone_angle=cfg.cone_angle, jitter=training, min_transmittance=cfg.early_stop_transmittance,
+                )
+            else:
+                ts, te, ri = march(
+                    rays_o, rays_d, t_near, t_far, self.occupancy, step_size, cfg.max_samples,
+                    cone_angle=cfg.cone_angle, jitter=training, contracted=contracted,
+                    sigma_fn=sigma_fn if early_stop else None, min_transmittance=cfg.early_stop_transmittance,
+                )
         mid = 0.5 * (ts + te)
         delta = te - ts
-        u = self._unit(rays_o[ri] + rays_d[ri] * mid[:, None]).clamp(0.0, 1.0)
-        sigma = self._sigma_unit(u)
+        u = None
+        if not infer:
+            u = self._unit(rays_o[ri] + rays_d[ri] * mid[:, None]).clamp(0.0, 1.0)
+            evaluated[0] += int(ri.shape[0])
+            sigma = self._sigma_unit(u)
         weights, _ = render_weights_packed(sigma, delta, ri, n)
         opacity = accumulate_packed(weights, None, ri, n)
         if cfg.color_min_weight > 0:
             sel = (weights.detach() > cfg.color_min_weight).nonzero().squeeze(-1)
-            u_c, ri_c, w_c = u[sel], ri[sel], weights[sel]
+            ri_c, w_c = ri[sel], weights[sel]
+            u_c = u[sel] if u is not None else self._unit(rays_o[ri_c] + rays_d[ri_c] * mid[sel, None]).clamp(0.0, 1.0)
         else:
-            u_c, ri_c, w_c = u, ri, weights
+            ri_c, w_c = ri, weights
+            u_c = u if u is not None else self._unit(rays_o[ri] + rays_d[ri] * mid[:, None]).clamp(0.0, 1.0)
         rgb_s = self._rgb_unit(u_c, rays_d[ri_c])
         bg = self._background(background, n, rays_o, training)
         remainder = (1.0 - opacity).clamp_min(0.0)
         rgb = accumulate_packed(w_c, rgb_s, ri_c, n) + remainder[:, None] * bg
         depth = accumulate_packed(weights, mid, ri, n) + remainder * far
         out: dict[str, Any] = {"rgb": rgb, "depth": depth, "opacity": opacity, "background": bg,
-                               "num_samples": int(ri.shape[0])}
+                               "num_samples": int(ri.shape[0]), "density_evals": evaluated[0]}
         reg = self._regularizers(weights, mid, delta, ri, n, opacity)
         if reg is not None:
             out["reg"] = reg

@@ -18,6 +18,10 @@ class FastConfig:
     """Scene box [min_xyz, max_xyz] in the normalized frame (world units); the grids span it when bounded."""
     unbounded: bool = False
     """Contract space outside the unit box into [-2, 2]^3 (mip-NeRF 360) instead of using ``aabb``."""
+    unbounded_steps: Literal["contracted", "world"] = "contracted"
+    """Unbounded scenes: "contracted" marches ``step_ratio`` voxels of the contracted grid (world steps grow like
+    r² outside the unit box; docs/profile_unbounded.md), "world" uniform world steps from near to far (the old,
+    ~5-10x more samples per ray)."""
     density_grid: GridKind = "dense"
     """Grid holding density: "dense" voxels (default, cheapest per sample), "vm" (TensoRF) or "hash"."""
     density_res: int = 128
@@ -137,6 +141,15 @@ class SurfaceConfig:
     """Weight of the Eikonal loss mean (|∇f| - 1)²."""
     curvature_weight: float = 5e-4
     """Weight of the curvature loss mean |Δf| (world units; 0: off)."""
+    boundary_weight: float = 0.1
+    """Weight of the box-boundary term mean relu(boundary_margin - f) on random points of the box's faces:
+    the object must close inside its box. Without it the SDF of the shipped sample ran through the box floor
+    under the object (f = -0.14 there): NeuS gives no opacity where a ray enters already inside, so nothing
+    held the bottom up, and the mesh's underside was the box floor, 1 % of the diagonal too low. 0: off."""
+    boundary_margin_cells: float = 2.0
+    """The SDF at the box's faces is pushed to at least this many finest SDF cells (outside)."""
+    boundary_points: int = 1024
+    """Random points on the box's faces the boundary term is evaluated on per step."""
     eikonal_samples: int = 4096
     """Ray samples (a random subset) the regularizers are evaluated on per step."""
     eikonal_points: int = 2048

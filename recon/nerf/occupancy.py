@@ -30,10 +30,10 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from recon.nerf.contraction import contract, uncontract
+from recon.nerf.contraction import contract, contracted_intervals, uncontract
 from recon.nerf.render import render_weights_packed
 
-__all__ = ["OccupancyGrid", "density_threshold", "march"]
+__all__ = ["OccupancyGrid", "density_threshold", "march", "march_front_to_back"]
 
 
 def density_threshold(alpha: float, step_size: float) -> float:
@@ -108,6 +108,21 @@ class OccupancyGrid(nn.Module):
         ijk = (u * self.res).floor().long().clamp_(0, self.res - 1)
         occ = self.occupied[ijk[:, 0], ijk[:, 1], ijk[:, 2]]
         return occ & inside
+
+    def query_rays(self, rays_o: Tensor, rays_d: Tensor, ray_idx: Tensor, t: Tensor) -> Tensor:
+        """:meth:`query` at the points ``rays_o[ray_idx] + t * rays_d[ray_idx]`` (M,), for a marcher's candidates.
+
+        A bounded grid maps the rays into cell units once per call, so each candidate costs one multiply-add and
+        one flat lookup instead of a world point, its box mapping and a 3-D index.
+        """
+        if self.contraction:
+            return self.query(rays_o[ray_idx] + rays_d[ray_idx] * t[:, None])
+        scale = self.res / (self.box[1] - self.box[0])
+        p = torch.addcmul(((rays_o - self.box[0]) * scale)[ray_idx], (rays_d * scale)[ray_idx], t[:, None])
+        inside = ((p >= 0) & (p <= self.res)).all(dim=-1)
+        ijk = p.floor_().long().clamp_(0, self.res - 1)
+        flat = (ijk[:, 0] * self.res + ijk[:, 1]) * self.res + ijk[:, 2]
+        return self.occupied.view(-1)[flat] & inside
 
     # ------------------------------------------------------------------ updates
     @torch.no_grad()
@@ -206,51 +221,34 @@ def _sample_counts(t_near: Tensor, t_far: Tensor, step: float, cone: float, max_
     return n_u, t1, total.long()
 
 
-def march(
+def _candidates(
     rays_o: Tensor,
     rays_d: Tensor,
     t_near: Tensor,
     t_far: Tensor,
-    occupancy: OccupancyGrid | None,
+    counts_info: tuple[Tensor, Tensor, Tensor],
+    rays: Tensor,
+    k_lo: int,
+    k_hi: int,
     step_size: float,
-    max_samples: int,
-    *,
-    cone_angle: float = 0.0,
-    jitter: bool = False,
-    sigma_fn: Callable[[Tensor, Tensor, Tensor], Tensor] | None = None,
-    min_transmittance: float = 1e-4,
-    alpha_threshold: float = 0.0,
+    cone_angle: float,
+    u: Tensor | None,
+    occupancy: OccupancyGrid | None,
 ) -> tuple[Tensor, Tensor, Tensor]:
-    """Packed samples along rays, only in occupied cells.
-
-    Args:
-        rays_o, rays_d: (N, 3) world origins and unit directions.
-        t_near, t_far: (N,) ray segment to march (world units); empty when t_far <= t_near.
-        occupancy: grid to skip empty cells with (None: keep every candidate).
-        step_size: base step (world units); max_samples: cap on candidates per ray.
-        cone_angle: > 0 makes steps grow like t * cone_angle (unbounded scenes); 0 = uniform.
-        jitter: shift each ray's samples by one random fraction of a step (training).
-        sigma_fn: optional (t_starts, t_ends, ray_indices) -> sigma (M,) for early termination
-            (called under no_grad; see the module docstring).
-        min_transmittance: drop samples whose transmittance at their start is below this.
-        alpha_threshold: drop samples with opacity below this (0 keeps all).
-
-    Returns:
-        t_starts, t_ends: (M,) interval bounds; ray_indices: (M,) long, sorted ascending; samples of
-        a ray are contiguous and ordered by t.
-    """
-    n_rays = rays_o.shape[0]
+    """Steps ``k_lo <= k < k_hi`` of the given rays (R,) that lie in occupied cells: packed t_starts, t_ends and
+    ray indices, ray-major in the order of ``rays``. ``counts_info`` is :func:`_sample_counts`' result for all
+    rays; ``u`` (N,) the per-ray jitter or None. Step k is the same interval whichever window asks for it."""
     device, dtype = rays_o.device, rays_o.dtype
-    n_u, t1, counts = _sample_counts(t_near, t_far, step_size, cone_angle, max_samples)
-    total = int(counts.sum())
+    n_u, t1, counts = counts_info
+    c = (counts[rays].clamp(max=k_hi) - k_lo).clamp_min(0)
+    total = int(c.sum())
     if total == 0:
         empty = torch.zeros(0, device=device, dtype=dtype)
         return empty, empty.clone(), torch.zeros(0, device=device, dtype=torch.long)
-    ray_idx = torch.repeat_interleave(torch.arange(n_rays, device=device), counts, output_size=total)
-    first = torch.cumsum(counts, 0) - counts
-    k = (torch.arange(total, device=device) - first[ray_idx]).to(dtype)
-    u = torch.rand(n_rays, device=device, dtype=dtype) if jitter else torch.zeros(n_rays, device=device, dtype=dtype)
-    s0 = k + u[ray_idx]
+    ray_idx = torch.repeat_interleave(rays, c, output_size=total)
+    first = torch.repeat_interleave(torch.cumsum(c, 0) - c, c, output_size=total)
+    k = (torch.arange(total, device=device) - first + k_lo).to(dtype)
+    s0 = k + u[ray_idx] if u is not None else k
     t0 = t_near[ray_idx]
     if cone_angle <= 0.0:
         t_starts = t0 + s0 * step_size
@@ -266,10 +264,57 @@ def march(
     t_ends = torch.minimum(t_ends, tf)
     keep = t_starts < tf
     if occupancy is not None:
-        mid = 0.5 * (t_starts + t_ends)
-        pts = rays_o[ray_idx] + rays_d[ray_idx] * mid[:, None]
-        keep &= occupancy.query(pts)
-    t_starts, t_ends, ray_idx = t_starts[keep], t_ends[keep], ray_idx[keep]
+        keep &= occupancy.query_rays(rays_o, rays_d, ray_idx, 0.5 * (t_starts + t_ends))
+    return t_starts[keep], t_ends[keep], ray_idx[keep]
+
+
+def march(
+    rays_o: Tensor,
+    rays_d: Tensor,
+    t_near: Tensor,
+    t_far: Tensor,
+    occupancy: OccupancyGrid | None,
+    step_size: float,
+    max_samples: int,
+    *,
+    cone_angle: float = 0.0,
+    jitter: bool = False,
+    sigma_fn: Callable[[Tensor, Tensor, Tensor], Tensor] | None = None,
+    min_transmittance: float = 1e-4,
+    alpha_threshold: float = 0.0,
+    contracted: bool = False,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Packed samples along rays, only in occupied cells.
+
+    Args:
+        rays_o, rays_d: (N, 3) world origins and unit directions.
+        t_near, t_far: (N,) ray segment to march (world units); empty when t_far <= t_near.
+        occupancy: grid to skip empty cells with (None: keep every candidate).
+        step_size: base step (world units); max_samples: cap on candidates per ray.
+        cone_angle: > 0 makes steps grow like t * cone_angle (unbounded scenes); 0 = uniform.
+        jitter: shift each ray's samples by one random fraction of a step (training).
+        sigma_fn: optional (t_starts, t_ends, ray_indices) -> sigma (M,) for early termination
+            (called under no_grad; see the module docstring).
+        min_transmittance: drop samples whose transmittance at their start is below this.
+        alpha_threshold: drop samples with opacity below this (0 keeps all).
+        contracted: unbounded scene: steps of ``step_size`` in contracted space
+            (:func:`recon.nerf.contraction.contracted_intervals`; ``cone_angle`` is then unused).
+
+    Returns:
+        t_starts, t_ends: (M,) interval bounds; ray_indices: (M,) long, sorted ascending; samples of
+        a ray are contiguous and ordered by t.
+    """
+    if contracted:
+        return _march_contracted(rays_o, rays_d, t_near, t_far, occupancy, step_size, max_samples, jitter, sigma_fn,
+                                 min_transmittance, alpha_threshold)
+    n_rays = rays_o.shape[0]
+    device, dtype = rays_o.device, rays_o.dtype
+    n_u, t1, counts = _sample_counts(t_near, t_far, step_size, cone_angle, max_samples)
+    u = torch.rand(n_rays, device=device, dtype=dtype) if jitter else None
+    t_starts, t_ends, ray_idx = _candidates(
+        rays_o, rays_d, t_near, t_far, (n_u, t1, counts), torch.arange(n_rays, device=device), 0, max_samples,
+        step_size, cone_angle, u, occupancy,
+    )
     if sigma_fn is not None and t_starts.shape[0] > 0:
         with torch.no_grad():
             sigma = sigma_fn(t_starts, t_ends, ray_idx).reshape(-1)
@@ -279,3 +324,91 @@ def march(
                 keep &= -torch.expm1(-sigma * (t_ends - t_starts)) >= alpha_threshold
         t_starts, t_ends, ray_idx = t_starts[keep], t_ends[keep], ray_idx[keep]
     return t_starts, t_ends, ray_idx
+
+
+def _march_contracted(
+    rays_o: Tensor, rays_d: Tensor, t_near: Tensor, t_far: Tensor, occupancy: OccupancyGrid | None, step_size: float,
+    max_samples: int, jitter: bool, sigma_fn: Callable[[Tensor, Tensor, Tensor], Tensor] | None,
+    min_transmittance: float, alpha_threshold: float,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """:func:`march` with steps of ``step_size`` in contracted space (unbounded scenes), same filters."""
+    ts, te, ri = contracted_intervals(rays_o, rays_d, t_near, t_far, step_size, max_samples, jitter)
+    if occupancy is not None and ts.shape[0] > 0:
+        keep = occupancy.query(rays_o[ri] + rays_d[ri] * (0.5 * (ts + te))[:, None])
+        ts, te, ri = ts[keep], te[keep], ri[keep]
+    if sigma_fn is not None and ts.shape[0] > 0:
+        with torch.no_grad():
+            sigma = sigma_fn(ts, te, ri).reshape(-1)
+            _, trans = render_weights_packed(sigma, te - ts, ri, rays_o.shape[0])
+            keep = trans > min_transmittance
+            if alpha_threshold > 0:
+                keep &= -torch.expm1(-sigma * (te - ts)) >= alpha_threshold
+        ts, te, ri = ts[keep], te[keep], ri[keep]
+    return ts, te, ri
+
+
+@torch.no_grad()
+def march_front_to_back(
+    rays_o: Tensor,
+    rays_d: Tensor,
+    t_near: Tensor,
+    t_far: Tensor,
+    occupancy: OccupancyGrid | None,
+    step_size: float,
+    max_samples: int,
+    sigma_fn: Callable[[Tensor, Tensor, Tensor], Tensor],
+    *,
+    cone_angle: float = 0.0,
+    jitter: bool = False,
+    min_transmittance: float = 1e-4,
+    first_window: int = 16,
+    max_window: int = 256,
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """:func:`march` with ``sigma_fn`` (early termination), in windows of steps along the rays.
+
+    Each round takes the next window of steps (``first_window``, doubling up to ``max_window``) of the rays
+    still open, evaluates the density of its occupied candidates and carries each ray's optical depth on; a
+    ray closes once its transmittance falls below ``min_transmittance``. So densities behind an opaque
+    surface are never evaluated, where :func:`march` evaluates every occupied candidate up to the ray's end.
+    The samples kept are those :func:`march` keeps (same intervals, same jitter draw, same transmittance rule).
+
+    Returns t_starts, t_ends, ray_indices (M,) (packed, sorted by ray, ordered along each ray), their
+    densities sigma (M,).
+    """
+    from recon.nerf.render import optical_thickness
+
+    n_rays = rays_o.shape[0]
+    device, dtype = rays_o.device, rays_o.dtype
+    info = _sample_counts(t_near, t_far, step_size, cone_angle, max_samples)
+    counts = info[2]
+    u = torch.rand(n_rays, device=device, dtype=dtype) if jitter else None
+    depth = torch.zeros(n_rays, device=device, dtype=torch.float64)  # optical depth so far per ray
+    open_rays = (counts > 0).nonzero().squeeze(-1)
+    parts: list[tuple[Tensor, Tensor, Tensor, Tensor]] = []
+    k_lo, window = 0, first_window
+    log_min_t = -math.log(min_transmittance)
+    while open_rays.numel() > 0 and k_lo < max_samples:
+        k_hi = min(k_lo + window, max_samples)
+        ts, te, ri = _candidates(rays_o, rays_d, t_near, t_far, info, open_rays, k_lo, k_hi, step_size, cone_angle,
+                                 u, occupancy)
+        if ri.numel():
+            sigma = sigma_fn(ts, te, ri).reshape(-1)
+            tau = optical_thickness(sigma, te - ts).double()
+            first = torch.ones_like(ri, dtype=torch.bool)
+            first[1:] = ri[1:] != ri[:-1]
+            incl = torch.cumsum(tau, 0)
+            excl = incl - tau
+            seg = torch.cumsum(first.long(), 0) - 1
+            before = depth[ri] + (excl - excl[first][seg])  # optical depth at each sample's start
+            keep = before < log_min_t
+            parts.append((ts[keep], te[keep], ri[keep], sigma[keep]))
+            depth.index_add_(0, ri, tau)
+        k_lo, window = k_hi, min(2 * window, max_window)
+        still = (counts[open_rays] > k_lo) & (depth[open_rays] < log_min_t)
+        open_rays = open_rays[still]
+    if not parts:
+        empty = torch.zeros(0, device=device, dtype=dtype)
+        return empty, empty.clone(), torch.zeros(0, device=device, dtype=torch.long), empty.clone()
+    ts, te, ri, sigma = (torch.cat(x) for x in zip(*parts))
+    order = torch.sort(ri, stable=True).indices  # windows come in order along the rays: a stable sort keeps it
+    return ts[order], te[order], ri[order], sigma[order]

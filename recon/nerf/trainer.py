@@ -83,7 +83,8 @@ class RayBatcher:
         device: where batches are produced (default: the images' device).
 
     Batches (:meth:`next_batch`) are dicts of ``rays_o, rays_d (B, 3)``, ``near, far (B,)``,
-    ``rgb (B, 3)`` target and ``background (B, 3)``; every pixel is used once per epoch.
+    ``rgb (B, 3)`` target, ``background (B, 3)`` and ``image (B,)`` (long: which image each ray comes
+    from, for per-photo appearance); every pixel is used once per epoch.
     """
 
     def __init__(
@@ -152,9 +153,13 @@ class RayBatcher:
         self._new_epoch()
 
     # -- pixel bookkeeping
+    def image_index(self, flat: Tensor) -> Tensor:
+        """Flat pixel indices (B,) -> the index (B,) long of the image each pixel belongs to."""
+        return torch.searchsorted(self.offsets, flat, right=True) - 1
+
     def _rays(self, flat: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
         """Flat pixel indices (B,) -> rays_o, rays_d (B, 3), near, far (B,), hit (B,) bool."""
-        img = torch.searchsorted(self.offsets, flat, right=True) - 1
+        img = self.image_index(flat)
         local = flat - self.offsets[img]
         w = self.sizes[img, 0]
         px = (local % w).float() + 0.5
@@ -199,7 +204,8 @@ class RayBatcher:
         if self.has_alpha:
             a = px[:, 3:4]
             rgb = rgb * a + bg * (1.0 - a)
-        return {"rays_o": o, "rays_d": d, "near": near, "far": far, "rgb": rgb, "background": bg}
+        return {"rays_o": o, "rays_d": d, "near": near, "far": far, "rgb": rgb, "background": bg,
+                "image": self.image_index(flat)}
 
     def state_dict(self) -> dict[str, Any]:
         """Position in the shuffled stream (small: the permutation is regenerated from its seed state)."""
@@ -340,6 +346,7 @@ def train(
     budget_s: float = 0.0,
     spent_s: float = 0.0,
     extra_loss: Callable[[RadianceModel, int], dict[str, Tensor]] | None = None,
+    appearance: torch.nn.Module | None = None,
 ) -> dict[str, Any]:
     """Optimize ``model`` on ``batcher``'s rays for ``steps`` steps (or the rest of them after a resume).
 
@@ -365,6 +372,9 @@ def train(
         extra_loss: ``(model, step) -> {name: loss}`` terms added to the loss each step (e.g. the sparse-depth
             prior of :mod:`recon.nerf.depth_prior`); it renders its own rays. Must be deterministic in the step
             for resumes to repeat the run.
+        appearance: per-photo colour transforms (:class:`recon.nerf.appearance.PhotoAppearance`):
+            ``appearance(out, batch["image"])`` replaces the rendered rgb before the loss, its
+            ``regularizer()`` joins the loss and its parameters are optimized at ``lr``.
 
     Returns a summary dict: step, loss, psnr, rays_per_s, elapsed_s, history, metrics (last eval).
 
@@ -373,9 +383,13 @@ def train(
         TrainingInterrupted: on Ctrl-C, carrying a resumable state of the finished steps.
     """
     opt = make_optimizer(model, lr)
+    if appearance is not None:
+        opt.add_param_group({"params": list(appearance.parameters()), "lr": lr, "initial_lr": lr})
     start = 0
     if state is not None:
         model.load_state_dict(state["model"])
+        if appearance is not None:
+            appearance.load_state_dict(state["appearance"])
         opt.load_state_dict(state["optimizer"])
         batcher.load_state_dict(state["batcher"])
         _set_rng_state(state["rng"])
@@ -389,6 +403,7 @@ def train(
             "optimizer": copy.deepcopy(opt.state_dict()),
             "batcher": batcher.state_dict(),
             "rng": _rng_state(),
+            **({"appearance": {k: v.detach().clone() for k, v in appearance.state_dict().items()}} if appearance is not None else {}),
         }
 
     history: list[tuple[int, float, float]] = []
@@ -416,6 +431,8 @@ def train(
             with torch.autocast(batch["rgb"].device.type, dtype=autocast or torch.bfloat16, enabled=autocast is not None):
                 out = model.render_rays(batch["rays_o"], batch["rays_d"], batch["near"], batch["far"],
                                         training=True, background=batch["background"])
+            if appearance is not None:
+                out = {**out, "rgb": appearance(out, batch["image"])}
             terms = {"rgb": F.mse_loss(out["rgb"].float(), batch["rgb"])}
             for i, aux in enumerate(out.get("aux_rgb", [])):
                 terms[f"aux_rgb[{i}]"] = F.mse_loss(aux.float(), batch["rgb"])
@@ -424,6 +441,8 @@ def train(
             if extra_loss is not None:
                 with torch.autocast(batch["rgb"].device.type, dtype=autocast or torch.bfloat16, enabled=autocast is not None):
                     terms.update({k: v.float() for k, v in extra_loss(model, step).items()})
+            if appearance is not None:
+                terms["appearance"] = appearance.regularizer()
             loss = sum(terms.values())
             loss_v = float(loss.detach())
             if not math.isfinite(loss_v):
@@ -471,7 +490,7 @@ def render_image(
     intrinsics: Tensor | Sequence[float],
     h: int,
     w: int,
-    chunk: int = 8192,
+    chunk: int | None = None,
     *,
     aabb: Tensor | None = None,
     near: float | None = None,
@@ -479,7 +498,8 @@ def render_image(
     background: Tensor | Sequence[float] = (1.0, 1.0, 1.0),
     autocast: torch.dtype | None = None,
 ) -> dict[str, Tensor]:
-    """Render one camera, ``chunk`` rays at a time, under ``no_grad`` in eval mode.
+    """Render one camera, ``chunk`` rays at a time (default: the model's ``render_chunk``, else 8192), under
+    ``inference_mode`` in eval mode.
 
     Args:
         c2w: (4, 4) or (3, 4) camera-to-world (OpenGL); intrinsics: fl_x, fl_y, cx, cy (pixels).
@@ -506,10 +526,11 @@ def render_image(
     depth = torch.zeros(h * w, device=device)
     opacity = torch.zeros(h * w, device=device)
     idx = hit.nonzero().squeeze(-1)
+    chunk = chunk or int(getattr(model, "render_chunk", 8192))
     was_training = model.training
     model.eval()
     try:
-        with torch.no_grad(), torch.autocast(device.type, dtype=autocast or torch.bfloat16, enabled=autocast is not None):
+        with torch.inference_mode(), torch.autocast(device.type, dtype=autocast or torch.bfloat16, enabled=autocast is not None):
             for s in range(0, idx.numel(), chunk):
                 i = idx[s : s + chunk]
                 out = model.render_rays(o[i], d[i], t0[i], t1[i], training=False, background=bg)

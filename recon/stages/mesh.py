@@ -31,6 +31,7 @@ from recon.config import MeshConfig, parse_region
 from recon.errors import ReconError
 from recon.field import load_field
 from recon.geometry.clean import SeenFn, clean_mesh
+from recon.geometry.coherence import largest_piece, object_pixels, projected_coverage
 from recon.geometry.color import colors_from_field, colors_from_photos, seen_by_views
 from recon.geometry.export import export_mesh, export_textured_mesh
 from recon.geometry.extract import (
@@ -274,6 +275,38 @@ def extract_zero_set(
     return vertices, faces, info
 
 
+# ---------------------------------------------------------------------------------------- coherence
+COHERENCE_VIEWS = 8
+"""Photos (spread evenly over those rendered for visibility) the mesh is rasterized into for its projected coverage."""
+
+
+def coherence(
+    vertices: np.ndarray, faces: np.ndarray, views: Sequence[View], depths: Sequence[np.ndarray], region: np.ndarray,
+    ground: np.ndarray | None, ground_margin: float, masked: bool,
+) -> dict:
+    """Is the mesh one surface covering what the photos show of the object (`geometry.coherence`)? The object's
+    pixels are the masks' (``masked``), else those whose rendered depth lands in the mesh region above the cut ground."""
+    out: dict[str, Any] = {"largest_piece": largest_piece(vertices, faces)}
+    if not views:
+        out["projected"] = None
+        return out
+    lo, hi = np.asarray(region, np.float64)
+
+    def inside(p: np.ndarray) -> np.ndarray:
+        ok = np.all((p >= lo) & (p <= hi), axis=1)
+        return ok if ground is None else ok & (p @ ground[:3] - ground[3] >= ground_margin)
+
+    pick = spread_evenly(list(range(len(views))), COHERENCE_VIEWS)
+    cams = [(views[i].c2w, views[i].intrinsics, views[i].hw) for i in pick]
+    objects = [views[i].image[..., 3] >= 128 if masked else object_pixels(views[i].c2w, views[i].intrinsics, depths[i], inside)
+               for i in pick]
+    proj = projected_coverage(vertices, faces, cams, objects)
+    proj["object"] = "the photos' masks" if masked else "pixels whose rendered depth lies in the mesh region (above the cut ground)"
+    proj["photos"] = [views[i].name for i in pick]
+    out["projected"] = proj
+    return out
+
+
 # ---------------------------------------------------------------------------------------- colors
 def render_depth(
     model: torch.nn.Module, view: View, aabb: torch.Tensor | None, background: np.ndarray, max_side: int | None = None
@@ -508,6 +541,12 @@ def run(ctx: StageContext) -> dict:
         limit = CPU_BAKE_VIEWS[kind] if device.type == "cpu" else 0
         depth_side = CPU_DEPTH_SIDE[kind] if device.type == "cpu" else None
         views = load_views(scene, spread_evenly(train_frames, limit), max_side, ctx.report, "photos for visibility and colors")
+        if meta.get("appearance"):  # trained with per-photo appearance: bake every photo at the neutral one
+            from dataclasses import replace
+
+            from recon.nerf.appearance import to_neutral
+
+            views = [replace(v, image=to_neutral(v.image, meta["appearance"].get(v.name))) for v in views]
         depths = render_depths(model, views, aabb_t if bounded else None, background, depth_side, ctx.report)
         timings["depth_s"] = round(time.perf_counter() - t, 3)
         view_note = f"{len(views)} of {len(train_frames)} training views"
@@ -554,6 +593,17 @@ def run(ctx: StageContext) -> dict:
                         f"{len(views)} views, depth tolerance {hidden_tol:.3g} units)")
 
     t = time.perf_counter()
+    coherent = coherence(vertices, faces, views, depths, region, ground,
+                         GROUND_MARGIN_CELLS * surface_cell(model, region, shape)[0], masked)
+    timings["coherence_s"] = round(time.perf_counter() - t, 3)
+    piece, proj = coherent["largest_piece"], coherent["projected"]
+    ctx.report.info(
+        f"coherence: the largest of {piece['pieces']} piece(s) holds {piece['largest_area_fraction']:.1%} of the area"
+        + (f"; in {len(proj['photos'])} photos the mesh covers {proj['coverage']:.1%} of the object's pixels "
+           f"({proj['object']}), {proj['outside']:.1%} of its pixels lie outside them" if proj else "")
+    )
+
+    t = time.perf_counter()
     normals = np.asarray(trimesh.Trimesh(vertices, faces, process=False).vertex_normals, np.float32)
     if cfg.color == "photos":
         colors, color_info = bake_colors(model, views, depths, vertices, normals)
@@ -593,6 +643,7 @@ def run(ctx: StageContext) -> dict:
         "iso": extract["iso"],
         "iso_reason": extract["iso_reason"],
         "clean": clean,
+        "coherence": coherent,
         "colors": color_info,
         "export": {
             "frame": cfg.frame,

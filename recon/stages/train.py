@@ -156,6 +156,27 @@ def auto_fast_config(base: Any, scene: Scene, footprint: float) -> tuple[Any, li
     return cfg, reasons
 
 
+def choose_appearance(cfg: TrainConfig, kind: str, views: list[View]) -> tuple[bool, str]:
+    """(model the photos' exposure / white balance per photo?, why) — see recon.nerf.appearance."""
+    from recon.nerf.appearance import decide, exposure_spread
+
+    if kind == "classic" and cfg.appearance != "off":
+        return False, "per-photo appearance off: it is built for the grid models (fast, surface), not the classic MLP"
+    if cfg.appearance == "off":
+        return False, "per-photo appearance off (train.appearance=off)"
+    return decide(cfg.appearance, exposure_spread([v.image for v in views], np.stack([v.c2w for v in views])))
+
+
+def _appearance_metrics(appearance: Any, why: str, views: list[View]) -> dict[str, Any]:
+    """metrics.json's record of the appearance choice, the held-out protocol and the photos' fitted gains."""
+    from recon.nerf.appearance import HELD_OUT_PROTOCOL
+
+    if appearance is None:
+        return {"on": False, "reason": why, "held_out": "plain: the neutral render against the whole photo"}
+    return {"on": True, "reason": why, "held_out": HELD_OUT_PROTOCOL, "kind": appearance.kind,
+            "per_photo": appearance.summary([v.name for v in views])}
+
+
 def _tensor(views: list[View], device: torch.device) -> tuple[list[torch.Tensor], torch.Tensor, torch.Tensor, torch.Tensor]:
     images = [torch.from_numpy(v.image).to(device) for v in views]
     c2w = torch.tensor(np.stack([v.c2w for v in views]), dtype=torch.float32, device=device)
@@ -209,11 +230,19 @@ def run(ctx: StageContext) -> dict:
     views = load_views(scene, train_frames, cfg.max_side, ctx.report, "training photos")
     background, random_bg, bg_why = choose_background(cfg, scene, views)
     kind, kwargs, lr, reasons = model_spec(cfg, scene, views)
+    if cfg.adjusted:
+        reasons.insert(0, cfg.adjusted)
+    use_appearance, appearance_why = choose_appearance(cfg, kind, views)
+    reasons.append(appearance_why)
     if budget_s:
         reasons.append(f"time budget {cfg.budget}: at most {cfg.steps} steps, stopping when the budget is spent")
     ctx.report.info(f"device: {device}; background: {bg_why}")
     for r in reasons:
         ctx.report.info(f"model: {r}")
+    if use_appearance:
+        from recon.nerf.appearance import HELD_OUT_PROTOCOL
+
+        ctx.report.info(f"held-out evaluation: {HELD_OUT_PROTOCOL}")
     bounded = scene.capture == "object"
     aabb = torch.tensor(np.asarray(scene.aabb), dtype=torch.float32, device=device) if bounded else None
 
@@ -228,6 +257,11 @@ def run(ctx: StageContext) -> dict:
         aabb=aabb, near_far=None if bounded else near_far,
         background=torch.tensor(background), random_background=random_bg, seed=cfg.seed, device=device,
     )
+    appearance = None
+    if use_appearance:
+        from recon.nerf.appearance import PhotoAppearance
+
+        appearance = PhotoAppearance(len(views), include_background=not batcher.has_alpha).to(device)
     eval_views = load_views(scene, spread_evenly(held_out, cfg.eval_views), cfg.max_side)
 
     ckpt_path = ctx.work / CHECKPOINT
@@ -241,7 +275,7 @@ def run(ctx: StageContext) -> dict:
 
     def eval_fn(m: torch.nn.Module, step: int) -> dict[str, float]:
         t = time.perf_counter()
-        r = evaluate(m, eval_views, aabb, background, autocast=autocast)
+        r = evaluate(m, eval_views, aabb, background, autocast=autocast, appearance=use_appearance)
         eval_time[0] += time.perf_counter() - t
         return {"psnr": r["psnr"], "ssim": r["ssim"]}
 
@@ -273,6 +307,7 @@ def run(ctx: StageContext) -> dict:
                     eval_fn=eval_fn, eval_every=cfg.eval_every or cfg.steps, callbacks=[on_step],
                     state=checkpoint["state"] if checkpoint else None,
                     budget_s=budget_s, spent_s=time_before, autocast=autocast, extra_loss=depth_prior,
+                    appearance=appearance,
                 )
             for w in caught:
                 if "training is not improving" in str(w.message):
@@ -289,7 +324,7 @@ def run(ctx: StageContext) -> dict:
 
     test_views = load_views(scene, spread_evenly(test_frames, cfg.final_eval_views), cfg.max_side)  # a spiral's first N would be one viewpoint
     with ctx.report.task("evaluating test views", total=None):
-        final = evaluate(model, test_views, aabb, background, keep=True, autocast=autocast)
+        final = evaluate(model, test_views, aabb, background, keep=True, autocast=autocast, appearance=use_appearance)
     write_previews(final.pop("renders"), ctx.out / "renders")
     meta = {
         "aabb": np.asarray(scene.aabb).tolist(),
@@ -298,6 +333,8 @@ def run(ctx: StageContext) -> dict:
         "max_side": cfg.max_side,
         "capture": scene.capture,
     }
+    if appearance is not None:  # the field stays neutral; the photos' transforms are kept for whoever needs them
+        meta["appearance"] = appearance.summary([v.name for v in views])
     save_field(ctx.out / FIELD_FILE, kind, kwargs, model.cpu(), meta)
     metrics = {
         "model": kind,
@@ -312,6 +349,7 @@ def run(ctx: StageContext) -> dict:
         "history": history,
         "n_train_views": len(views),
         "n_rays_dropped_missing_box": int(batcher.n_dropped),
+        "appearance": _appearance_metrics(appearance, appearance_why, views),
     }
     write_json_atomic(ctx.out / "metrics.json", metrics)
     training_curves(history, evals, ctx.out / "curves.png", title=f"{kind} model — test PSNR {final['psnr']:.2f} dB")
@@ -320,7 +358,8 @@ def run(ctx: StageContext) -> dict:
     return {
         "headline": (f"{kind} model, {result['step']} steps in {total_train_time:.0f} s: "
                      f"{'test' if scene.split('test') else 'training-photo (none held out)'} PSNR {final['psnr']:.2f} dB, "
-                     f"SSIM {final['ssim']:.3f} ({len(test_views)} views)"),
+                     f"SSIM {final['ssim']:.3f} ({len(test_views)} views"
+                     f"{'; right halves, each photo’s appearance fitted on its left half' if use_appearance else ''})"),
         "psnr": round(final["psnr"], 3),
         "ssim": round(final["ssim"], 4),
         "train_time_s": round(total_train_time, 1),

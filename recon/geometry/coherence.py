@@ -1,0 +1,101 @@
+"""Is a mesh of a real capture one coherent surface that covers what the photos show? Two numbers say it.
+
+* **largest piece**: the share of the mesh's surface area held by its largest face-connected piece. A mesh of
+  one object is near 1; scattered fragments of a room (or a torn object) are far below.
+* **projected coverage**: the mesh rasterized into the photos' cameras (`geometry.raster`) against the object
+  pixels of each photo: the fraction of object pixels the mesh covers (what the photos see that the mesh has),
+  and the fraction of mesh pixels outside the object (what the mesh has that is not the object).
+  The object pixels come from the masks when the capture has them; without masks from the field: the pixels
+  whose rendered depth puts their surface point inside the object region (the box the mesh was cut to, above
+  the ground plane it was cut at), i.e. what the photos show of the object.
+
+There is no ground truth on a real capture; these are the checks that still can fail there.
+"""
+from __future__ import annotations
+
+from typing import Callable, Sequence
+
+import numpy as np
+import trimesh
+
+from recon.geometry.clean import component_areas
+from recon.geometry.color import project
+from recon.geometry.raster import rasterize
+
+__all__ = ["largest_piece", "depth_points", "object_pixels", "projected_coverage"]
+
+
+def largest_piece(vertices: np.ndarray, faces: np.ndarray) -> dict:
+    """Face-connected pieces of the mesh: how many, and the largest one's share of the total area (0 for an empty mesh)."""
+    mesh = trimesh.Trimesh(np.asarray(vertices, np.float64), np.asarray(faces, np.int64), process=False)
+    if len(mesh.faces) == 0 or mesh.area <= 0:
+        return {"pieces": 0, "largest_area_fraction": 0.0}
+    _, areas = component_areas(mesh)
+    return {"pieces": int(len(areas)), "largest_area_fraction": float(areas.max() / areas.sum())}
+
+
+def depth_points(c2w: np.ndarray, intrinsics: Sequence[float], depth: np.ndarray) -> np.ndarray:
+    """World points (H, W, 3) at distance ``depth`` (H, W) along the unit rays through the pixel centres of an
+    OpenGL camera (the convention of `recon.nerf.rays.camera_rays` and of the fields' rendered depth)."""
+    h, w = depth.shape
+    fx, fy, cx, cy = (float(v) for v in intrinsics)
+    j, i = np.meshgrid(np.arange(h) + 0.5, np.arange(w) + 0.5, indexing="ij")
+    d_cam = np.stack([(i - cx) / fx, -(j - cy) / fy, -np.ones_like(i)], axis=-1)
+    d = d_cam @ np.asarray(c2w, np.float64)[:3, :3].T
+    d /= np.linalg.norm(d, axis=-1, keepdims=True)
+    return np.asarray(c2w, np.float64)[:3, 3] + d * np.asarray(depth, np.float64)[..., None]
+
+
+def object_pixels(
+    c2w: np.ndarray, intrinsics: Sequence[float], depth: np.ndarray, inside: Callable[[np.ndarray], np.ndarray]
+) -> np.ndarray:
+    """Bool (H, W): pixels whose surface point (rendered ray distance ``depth``) ``inside(points (N, 3)) -> (N,)``
+    calls object. Pixels the field leaves transparent read the far distance and fall outside any object region."""
+    pts = depth_points(c2w, intrinsics, depth).reshape(-1, 3)
+    ok = np.isfinite(pts).all(axis=1)
+    out = np.zeros(len(pts), bool)
+    out[ok] = np.asarray(inside(pts[ok]), bool)
+    return out.reshape(depth.shape)
+
+
+def projected_coverage(
+    vertices: np.ndarray,
+    faces: np.ndarray,
+    cameras: Sequence[tuple[np.ndarray, Sequence[float], tuple[int, int]]],
+    objects: Sequence[np.ndarray],
+) -> dict:
+    """The mesh rasterized into each camera (c2w (4, 4) OpenGL, (fx, fy, cx, cy), (H, W)) against that view's
+    object pixels ``objects[k]`` (H, W) bool.
+
+    Returns ``coverage``: covered object pixels / object pixels over all views; ``outside``: mesh pixels that are
+    not object / mesh pixels; both per view too, and the pixel counts. A view without object pixels counts in
+    ``outside`` only.
+    """
+    if len(cameras) != len(objects):
+        raise ValueError(f"one object mask per camera: {len(cameras)} cameras, {len(objects)} masks")
+    verts = np.asarray(vertices, np.float64)
+    tri = np.asarray(faces, np.int64).reshape(-1, 3)
+    per_view = []
+    obj_total = covered_total = mesh_total = outside_total = 0
+    for (c2w, intr, hw), obj in zip(cameras, objects):
+        obj = np.asarray(obj, bool)
+        if obj.shape != tuple(hw):
+            raise ValueError(f"object mask {obj.shape} does not match the camera's size {tuple(hw)}")
+        xy, z = project(verts, np.asarray(c2w, np.float64), np.asarray(intr, np.float64))
+        face_id, _, _ = rasterize(xy, z, tri, tuple(hw))
+        mesh_px = face_id >= 0
+        n_obj, n_cov = int(obj.sum()), int((mesh_px & obj).sum())
+        n_mesh, n_out = int(mesh_px.sum()), int((mesh_px & ~obj).sum())
+        obj_total += n_obj
+        covered_total += n_cov
+        mesh_total += n_mesh
+        outside_total += n_out
+        per_view.append({"object_pixels": n_obj, "coverage": n_cov / n_obj if n_obj else None,
+                         "outside": n_out / n_mesh if n_mesh else None})
+    return {
+        "coverage": covered_total / obj_total if obj_total else 0.0,
+        "outside": outside_total / mesh_total if mesh_total else 0.0,
+        "object_pixels": obj_total,
+        "mesh_pixels": mesh_total,
+        "views": per_view,
+    }

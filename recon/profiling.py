@@ -1,0 +1,293 @@
+"""`recon bench --profile`: where one training step and one test render of the grid model spend their time.
+
+Builds the model and ray batcher exactly as the train stage does (same preset, same scene), trains
+``warmup`` steps so the occupancy grid and the grid shrink are in their steady state, then records
+``steps`` steps and one full-size test render with ``torch.profiler``. Time is attributed to the parts of a
+step (ray batch, occupancy refresh, marcher, density and color grids, compositing, backward per kind,
+Adam) by labels wrapped around the model's functions from here, so the library carries no profiling code.
+Each part is compared with what this CPU does at best: a large matmul's GFLOP/s and a memory copy's GB/s,
+measured in the same process. A benchmark measures; it asserts nothing.
+"""
+from __future__ import annotations
+
+import contextlib
+import os
+import time
+from collections import defaultdict
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+BACKWARD_KINDS = (
+    ("GridSampler", "density grid bwd"),
+    ("GatherInterp", "feature grid bwd"),
+    ("Addmm", "MLP bwd"), ("Mm", "MLP bwd"), ("Relu", "MLP bwd"), ("Threshold", "MLP bwd"), ("TBackward", "MLP bwd"),
+    ("Sigmoid", "MLP bwd"),
+)
+"""Autograd node name fragments -> part of the step (everything else in backward is 'compositing bwd')."""
+
+
+def machine_limits(seconds: float = 1.0) -> dict[str, float]:
+    """This CPU's plain throughput, measured now: fp32 (and bf16) matmul GFLOP/s, memory copy GB/s
+    (bytes read + written), random row gather GB/s (the access pattern of a grid lookup), on torch's threads."""
+
+    def rate(fn: Callable[[], Any]) -> float:
+        fn()
+        n, t0 = 0, time.perf_counter()
+        while time.perf_counter() - t0 < seconds:
+            fn()
+            n += 1
+        return n / (time.perf_counter() - t0)
+
+    out: dict[str, float] = {"threads": float(torch.get_num_threads())}
+    a = torch.randn(2048, 2048)
+    out["matmul_fp32_gflops"] = 2 * 2048**3 * rate(lambda: a @ a) / 1e9
+    ab = a.bfloat16()
+    out["matmul_bf16_gflops"] = 2 * 2048**3 * rate(lambda: ab @ ab) / 1e9
+    x, w = torch.randn(65536, 64), torch.randn(64, 64)
+    out["matmul_mlp_shape_gflops"] = 2 * 65536 * 64 * 64 * rate(lambda: x @ w) / 1e9
+    src = torch.empty(64 << 20, dtype=torch.float32).fill_(1.0)  # 256 MB
+    dst = torch.empty_like(src)
+    out["copy_gbs"] = 2 * src.numel() * 4 * rate(lambda: dst.copy_(src)) / 1e9
+    table = torch.randn(96**3, 12)
+    idx = torch.randint(0, table.shape[0], (1 << 20,))
+    out["gather_gbs"] = idx.numel() * 12 * 4 * rate(lambda: table.index_select(0, idx)) / 1e9
+    return out
+
+
+@contextlib.contextmanager
+def _labelled(targets: list[tuple[Any, str, str]]) -> Iterator[dict[str, list[int]]]:
+    """Wrap ``owner.name`` in a profiler label for the duration; yields, per function name, the row count
+    (first dimension of the first tensor argument) of every call."""
+    counts: dict[str, list[int]] = defaultdict(list)
+    saved = []
+    for owner, name, label in targets:
+        fn = owner.__dict__[name]
+        saved.append((owner, name, fn))
+
+        def wrapper(*args: Any, _fn: Callable = fn, _label: str = label, _name: str = name, **kwargs: Any) -> Any:
+            with torch.profiler.record_function(_label):
+                result = _fn(*args, **kwargs)
+            first = next((a for a in args if isinstance(a, torch.Tensor)), None)
+            if first is not None:
+                counts[_name].append(int(first.shape[0]))
+            return result
+
+        setattr(owner, name, wrapper)
+    try:
+        yield counts
+    finally:
+        for owner, name, fn in saved:
+            setattr(owner, name, fn)
+
+
+@contextlib.contextmanager
+def reference_marching() -> Iterator[None]:
+    """The fast model marches as before front-to-back marching (for A/B runs and tests): :func:`march` evaluates
+    every occupied candidate's density, and the kept samples' densities are evaluated again."""
+    import recon.nerf.fast as fast
+    from recon.nerf.occupancy import march
+
+    def reference(rays_o: Any, rays_d: Any, t_near: Any, t_far: Any, occupancy: Any, step_size: float, max_samples: int,
+                  sigma_fn: Callable, *, cone_angle: float = 0.0, jitter: bool = False,
+                  min_transmittance: float = 1e-4) -> tuple:
+        ts, te, ri = march(rays_o, rays_d, t_near, t_far, occupancy, step_size, max_samples, cone_angle=cone_angle,
+                           jitter=jitter, sigma_fn=sigma_fn, min_transmittance=min_transmittance)
+        return ts, te, ri, sigma_fn(ts, te, ri)
+
+    saved = fast.march_front_to_back
+    fast.march_front_to_back = reference
+    try:
+        yield
+    finally:
+        fast.march_front_to_back = saved
+
+
+def _part(event: Any) -> str:
+    """The part of the step a top-level profiler event belongs to."""
+    name = event.name
+    if name.startswith("autograd::engine::evaluate_function"):
+        node = name.split(":")[-1]
+        return next((part for frag, part in BACKWARD_KINDS if frag in node), "compositing bwd")
+    if name.startswith("Optimizer.step"):
+        return "Adam step"
+    if name.startswith("Optimizer.zero_grad"):
+        return "zero_grad"
+    if name.startswith("recon:"):
+        return name[len("recon:"):]
+    return "other ops (loss, glue)"
+
+
+def attribute(prof: torch.profiler.profile) -> dict[str, float]:
+    """Seconds per part: each top-level event (no parent) counted once, by its label or autograd node."""
+    parts: dict[str, float] = defaultdict(float)
+    for ev in prof.events():
+        if ev.cpu_parent is None and ev.device_type == torch.autograd.DeviceType.CPU:
+            parts[_part(ev)] += ev.cpu_time_total / 1e6
+    return dict(parts)
+
+
+def _labels(model: Any, batcher: Any) -> list[tuple[Any, str, str]]:
+    import recon.nerf.fast as fast
+    from recon.nerf.trainer import RayBatcher
+
+    return [
+        (fast, "march", "recon:marcher (occupancy skip + no-grad density pre-pass)"),
+        (fast, "march_front_to_back", "recon:marcher (occupancy skip + no-grad density pre-pass)"),
+        (type(model), "_sigma_unit", "recon:density grid fwd"),
+        (type(model), "_rgb_unit", "recon:feature grid + color MLP fwd"),
+        (fast, "render_weights_packed", "recon:compositing fwd"),
+        (fast, "accumulate_packed", "recon:compositing fwd"),
+        (type(model), "step_update", "recon:occupancy refresh"),
+        (RayBatcher, "next_batch", "recon:ray batch"),
+    ]
+
+
+def _table(parts: dict[str, float], per: int, wall: float, unit: str) -> list[str]:
+    lines = [f"| part | ms per {unit} | share of wall |", "|---|---|---|"]
+    for name, s in sorted(parts.items(), key=lambda kv: -kv[1]):
+        lines.append(f"| {name} | {1000 * s / per:.1f} | {100 * s / wall:.0f}% |")
+    untracked = wall - sum(parts.values())
+    lines.append(f"| Python between ops (wall − ops) | {1000 * untracked / per:.1f} | {100 * untracked / wall:.0f}% |")
+    lines.append(f"| **wall** | **{1000 * wall / per:.1f}** | 100% |")
+    return lines
+
+
+def profile_preset(data: str, preset: str, out_dir: Path, overrides: list[str], report: Any, *,
+                   warmup: int = 200, steps: int = 8, render: bool = True) -> dict[str, Any]:
+    """Profile ``steps`` training steps of ``preset`` after ``warmup`` steps, and one test render; return the numbers
+    and write nothing (the caller writes profile.md)."""
+    from recon.bench import prepare_scene
+    from recon.config import load_config
+    from recon.nerf.trainer import RayBatcher, render_image, train
+    from recon.scene import load_scene
+    from recon.field import build_model
+    from recon.stages.train import _tensor, choose_background, model_spec
+    from recon.views import load_views
+
+    config = load_config(preset, overrides)
+    scene_dir = prepare_scene(data, out_dir, load_config(None, overrides), report)
+    cfg = config.train
+    scene = load_scene(scene_dir / "02_scene")
+    views = load_views(scene, scene.split("train"), cfg.max_side, report, "training photos")
+    background, random_bg, _ = choose_background(cfg, scene, views)
+    kind, kwargs, lr, _ = model_spec(cfg, scene, views)
+    if kind != "fast":
+        raise ValueError(f"--profile measures the fast grid model; preset {preset} trains '{kind}'")
+    torch.manual_seed(cfg.seed)
+    model = build_model(kind, kwargs)
+    images, c2w, intr, _ = _tensor(views, torch.device("cpu"))
+    aabb = torch.tensor(np.asarray(scene.aabb), dtype=torch.float32)
+    batcher = RayBatcher(images, c2w, intr, aabb=aabb, background=torch.tensor(background),
+                         random_background=random_bg, seed=cfg.seed)
+    autocast = torch.bfloat16 if cfg.precision == "bf16" else None
+
+    prof = torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CPU])
+    marks: dict[str, float] = {}
+    samples: list[int] = []
+
+    def on_step(p: Any) -> None:
+        if p.step == warmup:
+            marks["t0"] = time.perf_counter()
+            prof.start()
+        elif p.step == warmup + steps:
+            prof.stop()
+            marks["t1"] = time.perf_counter()
+
+    with report.task(f"{preset}: {warmup} warm-up + {steps} profiled steps", total=None):
+        with _labelled(_labels(model, batcher)) as counts:
+            result = train(model, batcher, steps=warmup + steps, lr=lr, lr_final=lr * cfg.lr_decay,
+                           batch_rays=cfg.batch_rays, callbacks=[on_step], autocast=autocast)
+            samples = counts["render_weights_packed"][-steps:]
+            colored = counts["_rgb_unit"][-steps:]
+    wall = marks["t1"] - marks["t0"]
+    step_parts = attribute(prof)
+    res: dict[str, Any] = {
+        "preset": preset, "data": data, "warmup": warmup, "steps": steps, "batch_rays": cfg.batch_rays,
+        "wall_s": wall, "parts": step_parts, "train_psnr": result["psnr"],
+        "samples_per_ray": float(np.mean(samples)) / cfg.batch_rays if samples else float("nan"),
+        "colored_per_ray": float(np.mean(colored)) / cfg.batch_rays if colored else float("nan"),
+        "params": sum(p.numel() for p in model.parameters()),
+        "top_ops": prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=15),
+    }
+    if render:
+        test = scene.split("test") or scene.split("val") or scene.split("train")
+        view = load_views(scene, test[:1], cfg.max_side)[0]
+        h, w = view.hw
+        c2w_t = torch.tensor(view.c2w, dtype=torch.float32)
+        render_image(model, c2w_t, view.intrinsics, 32, 32, aabb=aabb)  # first-call costs out of the timing
+        rprof = torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CPU])
+        with _labelled(_labels(model, batcher)) as rcounts:
+            t0 = time.perf_counter()
+            with rprof:
+                render_image(model, c2w_t, view.intrinsics, h, w, aabb=aabb, background=torch.tensor(background))
+            rwall = time.perf_counter() - t0
+        res["render"] = {"view": view.name, "size": f"{w}×{h}", "wall_s": rwall, "parts": attribute(rprof),
+                         "samples": sum(rcounts["_sigma_unit"]),
+                         "rays": h * w,
+                         "top_ops": rprof.key_averages().table(sort_by="self_cpu_time_total", row_limit=12)}
+    return res
+
+
+def markdown(results: list[dict[str, Any]], limits: dict[str, float], load: tuple[float, float, float]) -> str:
+    """profile.md: the machine's limits, then per preset the step and render tables and the op tables."""
+    lines = [
+        "# recon bench --profile",
+        "",
+        f"Load average at the end: {load[0]:.2f} / {load[1]:.2f} / {load[2]:.2f} (1 / 5 / 15 min), "
+        f"{int(limits['threads'])} torch threads, {os.cpu_count()} CPUs.",
+        "",
+        "| this CPU, measured in the same process | |",
+        "|---|---|",
+        f"| matmul 2048² fp32 | {limits['matmul_fp32_gflops']:.0f} GFLOP/s |",
+        f"| matmul 2048² bf16 | {limits['matmul_bf16_gflops']:.0f} GFLOP/s |",
+        f"| matmul 65536×64 · 64×64 fp32 (the color MLP's shape) | {limits['matmul_mlp_shape_gflops']:.0f} GFLOP/s |",
+        f"| memory copy 256 MB (read + write) | {limits['copy_gbs']:.1f} GB/s |",
+        f"| random row gather, 96³×12 fp32 table | {limits['gather_gbs']:.1f} GB/s |",
+        "",
+    ]
+    for r in results:
+        lines += [
+            f"## {r['preset']} on {r['data']}: {r['steps']} steps after {r['warmup']}",
+            "",
+            f"{r['batch_rays']} rays/step, {r['samples_per_ray']:.1f} samples/ray after the marcher, "
+            f"{r['colored_per_ray']:.1f} colored/ray, {r['params'] / 1e6:.1f} M parameters, "
+            f"{r['steps'] * r['batch_rays'] / r['wall_s']:,.0f} rays/s while profiled.",
+            "",
+            *_table(r["parts"], r["steps"], r["wall_s"], "step"),
+            "",
+        ]
+        if "render" in r:
+            rr = r["render"]
+            lines += [
+                f"Test render {rr['view']} ({rr['size']}): {rr['wall_s']:.2f} s, "
+                f"{rr['samples'] / rr['rays']:.1f} density evaluations/ray.",
+                "",
+                *_table(rr["parts"], 1, rr["wall_s"], "render"),
+                "",
+            ]
+        lines += ["<details><summary>top ops (step)</summary>", "", "```", r["top_ops"], "```", "", "</details>", ""]
+        if "render" in r:
+            lines += ["<details><summary>top ops (render)</summary>", "", "```", r["render"]["top_ops"], "```", "",
+                      "</details>", ""]
+    return "\n".join(lines)
+
+
+def run_profile(data: str, presets: list[str], out_dir: Path, overrides: list[str], report: Any, *,
+                warmup: int = 200, steps: int = 8) -> Path:
+    """Profile each preset on ``data``; write ``out_dir/profile.md`` (and profile.json) and return its path."""
+    from recon.atomic import write_json_atomic
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    limits = machine_limits()
+    results = [profile_preset(data, p, out_dir, overrides, report, warmup=warmup, steps=steps) for p in presets]
+    path = out_dir / "profile.md"
+    path.write_text(markdown(results, limits, os.getloadavg()))
+    write_json_atomic(out_dir / "profile.json", {"limits": limits, "results": [
+        {k: v for k, v in r.items() if k != "top_ops"} | ({"render": {k: v for k, v in r["render"].items() if k != "top_ops"}}
+                                                          if "render" in r else {})
+        for r in results]})
+    return path

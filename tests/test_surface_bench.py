@@ -1,0 +1,39 @@
+"""`recon bench` reports the surface preset beside the density ones: mesh columns and the accuracy plot."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from recon.bench import write_results
+from recon.images import read_image
+
+
+def _row(name: str, model: str, t: float, f1: float, f05: float, nc: float) -> dict:
+    return {"name": name, "model": model, "steps": 100, "train_time_s": t, "wall_s": t + 5, "psnr": 30.0,
+            "ssim": 0.95, "test_views": 5, "rays_per_s": 1000.0, "evals": [{"time_s": t, "psnr": 30.0}],
+            "fscore_1pct": f1, "chamfer_rel": 0.004, "fscore_05pct": f05, "normal_consistency": nc}
+
+
+def test_bench_table_lists_mesh_accuracy_and_plots_one_point_per_preset(tmp_path: Path) -> None:
+    rows = [_row("fast", "fast", 240.0, 0.891, 0.812, 0.873), _row("surface", "surface", 600.0, 0.962, 0.917, 0.991)]
+    write_results(rows, tmp_path, "sample")
+    table = (tmp_path / "bench.md").read_text().splitlines()
+    surface = next(line for line in table if line.startswith("| surface |"))
+    cells = [c.strip() for c in surface.strip("|").split("|")]
+    header = [c.strip() for c in next(line for line in table if line.startswith("| preset")).strip("|").split("|")]
+    assert cells[header.index("F-score@0.5%")] == "0.917"
+    assert cells[header.index("normal agreement")] == "0.991"
+    assert cells[header.index("F-score@1%")] == "0.962"
+    plot = read_image(tmp_path / "bench_accuracy.png")
+    assert plot.ndim == 3 and plot.shape[0] > 100 and float(np.std(plot)) > 0.01  # a drawn figure, not blank
+    assert "bench_accuracy.png" in "\n".join(table)
+
+
+def test_bench_without_ground_truth_has_no_accuracy_plot(tmp_path: Path) -> None:
+    row = _row("surface", "surface", 600.0, 0.9, 0.9, 0.9)
+    for key in ("fscore_1pct", "chamfer_rel", "fscore_05pct", "normal_consistency"):
+        row.pop(key)
+    write_results([row], tmp_path, "lego-half")
+    assert not (tmp_path / "bench_accuracy.png").exists()
+    assert "F-score" not in (tmp_path / "bench.md").read_text()
