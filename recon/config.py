@@ -118,7 +118,7 @@ class TrainConfig:
     CPUs with AMX/AVX512-BF16, slower on older CPUs."""
     depth_prior: Literal["auto", "on", "off"] = "auto"
     """Sparse-depth supervision from the SfM points (DS-NeRF). auto: on when fewer than 20 photos train the field
-    (few views leave the geometry ambiguous) and the scene has sparse points; on / off force it."""
+    (few views leave the geometry ambiguous), the scene has sparse points and no masks; on / off force it."""
     depth_weight: float = 0.002
     """Weight of the sparse-depth loss (robust, in units of each point's depth uncertainty)."""
     depth_rays: int = 512
@@ -146,7 +146,11 @@ class MeshConfig:
     coarse_to_fine: bool = True
     """Evaluate a coarse grid first and refine only blocks the surface crosses."""
     iso: float = 0.0
-    """Density iso-level; 0: automatic (one cell of thickness is half opaque)."""
+    """Density iso-level; 0: automatic (one cell of thickness is `iso_opacity` opaque)."""
+    iso_opacity: float = 0.0
+    """Opacity of one cell of material at the automatic iso-level; 0: 0.5, or 0.25 when masks trained the
+    background empty (the masks already carve the object, so the level can be lower and close the holes an
+    undertrained field leaves: on the 15-photo tabletop at 500 steps F@1% 0.80 -> 0.88)."""
     min_component_fraction: float = 0.05
     """Drop disconnected pieces with less than this fraction of the largest piece's area (floaters)."""
     smooth_iters: int = 0
@@ -288,6 +292,7 @@ BOUNDS: dict[str, tuple[Any, str]] = {
     "poses.min_registered_fraction": _between(0, 1),
     "normalize.point_percentile": _between(0, 49),
     "normalize.box_margin": _between(0, 10),
+    "mesh.iso_opacity": _between(0, 0.99),
     "normalize.depth_percentile": _between(0, 49),
     "normalize.test_every": _at_least(0),
     "normalize.val_every": _at_least(0),

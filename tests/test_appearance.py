@@ -228,3 +228,18 @@ def test_photos_baked_onto_the_mesh_are_brought_to_the_neutral_appearance() -> N
     back = to_neutral(photo, app.summary(["p"])["p"])
     assert np.abs(back[..., :3].astype(float) - neutral * 255).max() <= 1.5  # 8-bit rounding, twice
     assert np.array_equal(back[..., 3], photo[..., 3]) and to_neutral(photo, None) is photo
+
+
+def test_auto_needs_the_pairs_to_differ_not_only_the_least_squares_gains() -> None:
+    """A few inconsistent pairs (specular highlights, mismatches) that least squares spreads over many photos do
+    not switch the model on; an exposure change that shows in most pairs does (counts measured on the Lego and on
+    the tabletop fixture)."""
+    from recon.nerf.appearance import ExposureSpread, decide
+
+    gains = np.zeros((60, 3))
+    per_photo = np.r_[np.full(16, 0.2), np.zeros(44)]
+    lego_like = ExposureSpread(gains, per_photo, 0.08, changed=16, pairs=124, pairs_changed=9)
+    on, why = decide("auto", lego_like)
+    assert not on and "9 of those pairs" in why
+    tabletop_like = ExposureSpread(gains, per_photo, 0.08, changed=16, pairs=81, pairs_changed=67)
+    assert decide("auto", tabletop_like)[0]

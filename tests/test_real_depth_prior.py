@@ -123,20 +123,28 @@ def _scene_with_points(n_views: int) -> tuple:
     return TrainConfig(), scene, frames, views
 
 
-@pytest.mark.parametrize("n_views, mode, on", [(15, "auto", True), (24, "auto", False), (24, "on", True), (15, "off", False)])
-def test_depth_prior_is_switched_on_by_few_views_and_says_why(n_views: int, mode: str, on: bool) -> None:
+@pytest.mark.parametrize("n_views, mode, masks, on", [
+    (15, "auto", False, True), (24, "auto", False, False), (24, "on", False, True), (15, "off", False, False),
+    (15, "auto", True, False), (15, "on", True, True),
+])
+def test_depth_prior_is_switched_on_by_few_views_and_says_why(n_views: int, mode: str, masks: bool, on: bool) -> None:
     from dataclasses import replace
 
     from recon.stages.train import depth_prior_for
 
     cfg, scene, frames, views = _scene_with_points(n_views)
     cfg = replace(cfg, depth_prior=mode)
+    if masks:  # photos with masks: alpha 255 everywhere (all object), so every point stays a target when forced on
+        scene.has_alpha = True
+        views = [replace(v, image=np.concatenate([v.image, np.full(v.image.shape[:2] + (1,), 255, np.uint8)], -1)) for v in views]
     aabb = torch.tensor(scene.aabb, dtype=torch.float32)
     prior, why = depth_prior_for(cfg, scene, frames, views, {"config": {"density_res": 64}}, aabb,
                                  torch.tensor([[1.0, 5.0]] * n_views), torch.device("cpu"))
     assert (prior is not None) == on and why.startswith(f"depth prior: {'on' if on else 'off'}")
     if mode == "auto":
-        assert f"{n_views} training photos" in why  # the number of views decided it, and the reason says so
+        assert f"{n_views} training photos" in why
+    if masks and mode == "auto":
+        assert "masks" in why  # the number of views decided it, and the reason says so
     if on:
         assert len(prior) == 40 * n_views and "DS-NeRF" in why
         # errors are in original-photo pixels (2x the training images): 0.8 px there is 0.4 px here, floored at 0.5

@@ -15,7 +15,8 @@ def _blob_model(unbounded: bool = False, cone_angle: float = 0.0) -> FastModel:
     """A fast model holding an opaque, noisy ball of radius ~0.6 with random colors; occupancy refreshed."""
     torch.manual_seed(0)
     cfg = FastConfig(aabb=((-1.0,) * 3, (1.0,) * 3), density_res=40, feature_res=24, density_levels=1,
-                     occupancy_res=20, color_model="mlp_view", unbounded=unbounded, cone_angle=cone_angle)
+                     occupancy_res=20, color_model="mlp_view", unbounded=unbounded, cone_angle=cone_angle,
+                     unbounded_steps="world")  # the contracted marcher has no front-to-back variant
     model = FastModel(cfg)
     with torch.no_grad():
         r = model.density_grid.res

@@ -15,6 +15,7 @@ Steps (each a function below, `run` only glues them and does the I/O):
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 import resource
 import sys
@@ -122,6 +123,12 @@ def mesh_region(scene: Scene, aabb: np.ndarray, cfg: MeshConfig) -> tuple[np.nda
     return box, ground, why + ground_why
 
 
+ISO_OPACITY = 0.5
+"""One cell of material this opaque is surface (`auto_iso_level`), unless mesh.iso_opacity says otherwise."""
+MASKED_ISO_OPACITY = 0.25
+"""The same with masks: the masked-out pixels trained the space around the object empty, so a lower level cannot
+grow into the background; it closes the holes a soft, undertrained surface leaves (see MeshConfig.iso_opacity)."""
+
 MASK_KEEP_FRACTION = 0.5
 """A vertex stays when it falls inside the object mask in at least this fraction of the photos that have it in frame."""
 
@@ -198,7 +205,7 @@ def extract_mesh(
             n_preview = min(COARSE_NODES, max(shape))
             with report.task("density preview grid", total=n_preview**3, unit="points") as bar:
                 preview = density_grid(_counting(model.density, bar), aabb, n_preview, chunk=DENSITY_CHUNK)
-            level, why = auto_iso_level(preview, iso_cell, override=override)
+            level, why = auto_iso_level(preview, iso_cell, opacity=cfg.iso_opacity or ISO_OPACITY, override=override)
             if override is None:
                 why += f"; cell: {iso_cell_why}; estimated on a {preview.shape[0]}³ preview grid"
             with report.task("density grid (coarse to fine)", total=None, unit="points") as bar:
@@ -210,7 +217,7 @@ def extract_mesh(
         else:
             with report.task("density grid", total=dense, unit="points") as bar:
                 grid = density_grid(_counting(model.density, bar), aabb, shape, chunk=DENSITY_CHUNK)
-            level, why = auto_iso_level(grid, iso_cell, override=override)
+            level, why = auto_iso_level(grid, iso_cell, opacity=cfg.iso_opacity or ISO_OPACITY, override=override)
             if override is None:
                 why += f"; cell: {iso_cell_why}"
             info["evaluated"] = dense
@@ -548,6 +555,10 @@ def run(ctx: StageContext) -> dict:
         if depth_side:
             view_note += f", depth rendered at ≤ {depth_side} px"
 
+    if masked and not cfg.iso_opacity and not cfg.iso and not surface:
+        cfg = dataclasses.replace(cfg, iso_opacity=MASKED_ISO_OPACITY)
+        ctx.report.info(f"iso-level: one cell {MASKED_ISO_OPACITY:.0%} opaque (not {ISO_OPACITY:.0%}): the masks trained the "
+                        "background empty, so a lower level closes holes without growing into it (mesh.iso_opacity)")
     t = time.perf_counter()
     vertices, faces, extract = (extract_zero_set if surface else extract_mesh)(model, region_t, shape, cfg, ctx.report)
     timings["extract_s"] = round(time.perf_counter() - t, 3)
