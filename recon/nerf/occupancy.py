@@ -268,6 +268,23 @@ def _candidates(
     return t_starts[keep], t_ends[keep], ray_idx[keep]
 
 
+def _cull(
+    ts: Tensor, te: Tensor, ri: Tensor, n_rays: int, sigma_fn: Callable[[Tensor, Tensor, Tensor], Tensor] | None,
+    min_transmittance: float, alpha_threshold: float,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """The packed samples worth rendering: transmittance at their start above ``min_transmittance`` (and
+    opacity at least ``alpha_threshold``), by one no-grad density pass; all of them without ``sigma_fn``."""
+    if sigma_fn is None or ts.shape[0] == 0:
+        return ts, te, ri
+    with torch.no_grad():
+        sigma = sigma_fn(ts, te, ri).reshape(-1)
+        _, trans = render_weights_packed(sigma, te - ts, ri, n_rays)
+        keep = trans > min_transmittance
+        if alpha_threshold > 0:
+            keep &= -torch.expm1(-sigma * (te - ts)) >= alpha_threshold
+    return ts[keep], te[keep], ri[keep]
+
+
 def march(
     rays_o: Tensor,
     rays_d: Tensor,
@@ -315,15 +332,7 @@ def march(
         rays_o, rays_d, t_near, t_far, (n_u, t1, counts), torch.arange(n_rays, device=device), 0, max_samples,
         step_size, cone_angle, u, occupancy,
     )
-    if sigma_fn is not None and t_starts.shape[0] > 0:
-        with torch.no_grad():
-            sigma = sigma_fn(t_starts, t_ends, ray_idx).reshape(-1)
-            _, trans = render_weights_packed(sigma, t_ends - t_starts, ray_idx, n_rays)
-            keep = trans > min_transmittance
-            if alpha_threshold > 0:
-                keep &= -torch.expm1(-sigma * (t_ends - t_starts)) >= alpha_threshold
-        t_starts, t_ends, ray_idx = t_starts[keep], t_ends[keep], ray_idx[keep]
-    return t_starts, t_ends, ray_idx
+    return _cull(t_starts, t_ends, ray_idx, n_rays, sigma_fn, min_transmittance, alpha_threshold)
 
 
 def _march_contracted(
@@ -336,15 +345,7 @@ def _march_contracted(
     if occupancy is not None and ts.shape[0] > 0:
         keep = occupancy.query(rays_o[ri] + rays_d[ri] * (0.5 * (ts + te))[:, None])
         ts, te, ri = ts[keep], te[keep], ri[keep]
-    if sigma_fn is not None and ts.shape[0] > 0:
-        with torch.no_grad():
-            sigma = sigma_fn(ts, te, ri).reshape(-1)
-            _, trans = render_weights_packed(sigma, te - ts, ri, rays_o.shape[0])
-            keep = trans > min_transmittance
-            if alpha_threshold > 0:
-                keep &= -torch.expm1(-sigma * (te - ts)) >= alpha_threshold
-        ts, te, ri = ts[keep], te[keep], ri[keep]
-    return ts, te, ri
+    return _cull(ts, te, ri, rays_o.shape[0], sigma_fn, min_transmittance, alpha_threshold)
 
 
 @torch.no_grad()
