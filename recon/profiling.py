@@ -165,8 +165,8 @@ def profile_preset(data: str, preset: str, out_dir: Path, overrides: list[str], 
     from recon.nerf.trainer import RayBatcher, render_image, train
     from recon.scene import load_scene
     from recon.field import build_model
-    from recon.stages.train import _tensor, choose_background, model_spec
-    from recon.views import load_views
+    from recon.model_choice import choose_background, model_spec
+    from recon.views import load_views, view_tensors
 
     config = load_config(preset, overrides)
     scene_dir = prepare_scene(data, out_dir, load_config(None, overrides), report)
@@ -179,7 +179,7 @@ def profile_preset(data: str, preset: str, out_dir: Path, overrides: list[str], 
         raise ValueError(f"--profile measures the fast grid model; preset {preset} trains '{kind}'")
     torch.manual_seed(cfg.seed)
     model = build_model(kind, kwargs)
-    images, c2w, intr, _ = _tensor(views, torch.device("cpu"))
+    images, c2w, intr, _ = view_tensors(views, torch.device("cpu"))
     aabb = torch.tensor(np.asarray(scene.aabb), dtype=torch.float32)
     batcher = RayBatcher(images, c2w, intr, aabb=aabb, background=torch.tensor(background),
                          random_background=random_bg, seed=cfg.seed)

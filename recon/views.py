@@ -93,6 +93,15 @@ def render_view(model: torch.nn.Module, view: View, aabb: torch.Tensor | None, b
     return {k: v.detach().cpu().numpy() for k, v in out.items()}
 
 
+def view_tensors(views: list[View], device: torch.device) -> tuple[list[torch.Tensor], torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The views as tensors on `device`: images, camera-to-world (N, 4, 4), intrinsics (N, 4), near/far (N, 2)."""
+    images = [torch.from_numpy(v.image).to(device) for v in views]
+    c2w = torch.tensor(np.stack([v.c2w for v in views]), dtype=torch.float32, device=device)
+    intr = torch.tensor([v.intrinsics for v in views], dtype=torch.float32, device=device)
+    near_far = torch.tensor([[v.near, v.far] for v in views], dtype=torch.float32, device=device)
+    return images, c2w, intr, near_far
+
+
 def target_rgb(view: View, background: np.ndarray) -> np.ndarray:
     img = view.image.astype(np.float32) / 255.0
     if img.shape[-1] == 4:

@@ -1,0 +1,102 @@
+"""Which model a scene gets, with what settings and background, and why: the train stage's choices, shared with
+`recon bench --profile`, which must build the very model the stage builds."""
+from __future__ import annotations
+
+from dataclasses import asdict
+from typing import Any
+
+import numpy as np
+
+from recon.config import TrainConfig
+from recon.errors import ReconError
+from recon.scene import Scene
+from recon.views import View, border_color, pixel_footprint
+
+
+def choose_background(cfg: TrainConfig, scene: Scene, views: list[View]) -> tuple[np.ndarray, bool, str]:
+    """(evaluation background color, train on random backgrounds?, why)."""
+    if cfg.background == "white":
+        return np.ones(3, np.float32), False, "white (train.background=white)"
+    if cfg.background == "black":
+        return np.zeros(3, np.float32), False, "black (train.background=black)"
+    if cfg.background == "random" or (cfg.background == "auto" and scene.has_alpha):
+        return np.ones(3, np.float32), scene.has_alpha, (
+            "photos have alpha (known background): trained on random backgrounds so nothing paints the backdrop, shown on white"
+            if scene.has_alpha else "random backgrounds requested but the photos have no alpha: white"
+        )
+    color = border_color(views)
+    return color.astype(np.float32), False, f"the photos' border color {np.round(color, 3).tolist()} (median of edge pixels)"
+
+
+def model_spec(cfg: TrainConfig, scene: Scene, views: list[View]) -> tuple[str, dict[str, Any], float, list[str]]:
+    """(model kind, constructor kwargs, learning rate, reasons) — the simplest model the scene needs."""
+    aabb = np.asarray(scene.aabb, dtype=np.float64)
+    reasons = []
+    if cfg.model == "surface":
+        return surface_spec(cfg, scene)
+    kind = "fast" if cfg.model in ("auto", "fast") else "classic"
+    if kind == "classic":
+        c = cfg.classic
+        reasons.append(f"classic NeRF (train.model={cfg.model}): {c.depth}×{c.width} MLP, L={c.pos_freqs}/{c.dir_freqs}, {c.n_coarse}+{c.n_fine} samples")
+        kwargs = {"aabb": aabb.tolist(), **asdict(c)}
+        return kind, kwargs, cfg.lr or 5e-4, reasons
+    footprint, _ = pixel_footprint(aabb, np.stack([v.c2w[:3, 3] for v in views]), np.array([v.intrinsics[0] for v in views]))
+    fast_cfg, why = auto_fast_config(cfg.fast, scene, footprint)
+    reasons.append("fast grid model" + (" (train.model=auto: the practical choice on a CPU)" if cfg.model == "auto" else ""))
+    reasons += why
+    if cfg.model == "auto":
+        reasons.append(
+            "surface model not chosen: it renders a little less sharply; for a closed, smooth mesh of this object "
+            "capture use --preset surface (train.model=surface)" if scene.capture == "object"
+            else "surface model not offered: it needs an object capture (this scene is unbounded)"
+        )
+    return kind, {"config": asdict(fast_cfg)}, cfg.lr or FAST_LR, reasons
+
+
+def surface_spec(cfg: TrainConfig, scene: Scene) -> tuple[str, dict[str, Any], float, list[str]]:
+    """The surface (SDF) model for an object capture; refused, with what to do, for an unbounded scene."""
+    from dataclasses import replace
+
+    if scene.capture != "object":
+        raise ReconError(
+            f"train.model=surface needs an object capture (a bounded box around one object); this scene is "
+            f"'{scene.capture}'. Use --preset balanced (or train.model=fast) for unbounded scenes."
+        )
+    aabb = np.asarray(scene.aabb, dtype=np.float64)
+    surf = replace(cfg.surface, aabb=tuple(tuple(float(x) for x in row) for row in aabb))
+    reasons = [
+        "surface model (train.model=surface): signed distance on "
+        f"{surf.sdf_levels} dense levels up to {surf.sdf_res}³, NeuS opacity with learned sharpness, Eikonal "
+        "and curvature terms; its mesh is the closed zero level set"
+    ]
+    return "surface", {"config": asdict(surf)}, cfg.lr or FAST_LR, reasons
+
+
+FAST_LR = 1e-2
+"""Default learning rate of the fast model's MLP (its grids use lr × grid_lr_scale)."""
+
+
+def auto_fast_config(base: Any, scene: Scene, footprint: float) -> tuple[Any, list[str]]:
+    """Fit the fast model to the scene: box, bounded or not, and grid resolution no finer than the pixels."""
+    from dataclasses import replace
+
+    aabb = np.asarray(scene.aabb, dtype=np.float64)
+    unbounded = scene.capture != "object"
+    reasons = [
+        "unbounded scene: space outside the box is contracted (mip-NeRF 360, L∞)" if unbounded
+        else "object capture: a plain box around the object, nothing modelled outside it"
+    ]
+    extent = float((aabb[1] - aabb[0]).max()) if not unbounded else 4.0
+    needed = int(np.ceil(extent / max(footprint, 1e-12) / 16.0) * 16)
+    density_res = int(min(base.density_res, max(32, needed)))
+    feature_res = int(min(base.feature_res, max(32, needed)))
+    if density_res < base.density_res or feature_res < base.feature_res:
+        reasons.append(
+            f"grids {density_res}³/{feature_res}³ instead of {base.density_res}³/{base.feature_res}³: one training pixel "
+            f"covers {footprint:.4g} units at the cameras' distance, so finer voxels could not be seen"
+        )
+    else:
+        reasons.append(f"grids {density_res}³ density / {feature_res}³ features (the preset's cap; pixels would allow {needed}³)")
+    cfg = replace(base, aabb=tuple(tuple(float(x) for x in row) for row in aabb), unbounded=unbounded,
+                  density_res=density_res, feature_res=feature_res)
+    return cfg, reasons
