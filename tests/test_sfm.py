@@ -209,11 +209,15 @@ def test_synthetic_capture_recovers_true_poses(tmp_path: Path) -> None:
     pos, rot, count = pose_errors(estimated_poses(result), reference_poses(capture / "transforms.json"))
     assert count == len(result.registered)
     assert pos <= 0.01 and rot <= 1.0, (pos, rot)
-    # the true camera is a pinhole with f = 0.5 w / tan(22.5 deg); SIMPLE_RADIAL trades a few %
-    # of focal length for a small k1 when the object fills only the image centre (seen: -2..-4 %)
+    # the true camera is a pinhole with f = 0.5 w / tan(22.5 deg); SIMPLE_RADIAL trades focal length for a
+    # small k1 when the object fills only the image centre, and squared-error bundle adjustment lets a few
+    # off matches pull it (-1.6 % on this capture); the final Cauchy-loss adjustment brought it to -0.6 %
     truth = json.loads((capture / "transforms.json").read_text())
     focal = np.median([f["fl_x"] for f in result.frames.values()])
-    assert focal == pytest.approx(truth["fl_x"], rel=0.06)
+    assert focal == pytest.approx(truth["fl_x"], rel=0.012)
+    ref = result.refinement
+    assert ref["loss"] == "cauchy" and ref["focal_after"] == pytest.approx(focal)
+    assert ref["error_after_px"] <= ref["error_before_px"]  # the robust fit discounts the off matches
     assert result.mean_reprojection_error < 1.0
     assert result.camera_model == "SIMPLE_RADIAL" and result.shared_intrinsics
     assert {p for p, _ in phases} == {"extract", "match", "map"} and ("map", 1.0) in phases

@@ -246,6 +246,13 @@ def _structure_from_motion(ctx: StageContext, photos: list[Path] | None = None) 
             f"registration retry: the default settings registered {first['registered']}/{len(names)} photos; "
             f"retried with {last['settings']}: {last['registered']}/{len(names)} ({helped})"
         )
+    ref = result.refinement
+    if ref:
+        ctx.report.info(
+            f"final bundle adjustment with a robust (Cauchy, {ref['scale_px']} px) loss, so a few off matches do not "
+            f"pull the focal length: focal {ref['focal_before']:.1f} -> {ref['focal_after']:.1f} px, mean "
+            f"reprojection error {ref['error_before_px']:.3f} -> {ref['error_after_px']:.3f} px"
+        )
     if result.dropped:
         ctx.report.warn(
             f"{len(result.dropped)} of {len(names)} photos could not be registered and are left out: "
@@ -288,9 +295,10 @@ def _structure_from_motion(ctx: StageContext, photos: list[Path] | None = None) 
         "shared_intrinsics": result.shared_intrinsics,
         "cameras": result.num_cameras,
         "attempts": result.attempts,
+        "refinement": result.refinement,
         "timings_s": {k: round(v, 2) for k, v in result.timings.items()},
     }
     return scene, summary
 
 
-STAGE = Stage(name="poses", folder="01_poses", inputs=(), version=3, run=run, needs_source=True, source_digest=source_digest)
+STAGE = Stage(name="poses", folder="01_poses", inputs=(), version=4, run=run, needs_source=True, source_digest=source_digest)
