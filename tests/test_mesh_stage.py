@@ -209,8 +209,11 @@ def test_preview_shows_the_colored_shaded_mesh_from_the_right_side() -> None:
     assert back[32, 32, 2] > 2 * back[32, 32, 0]
     lit, shadow = front[20, 22].astype(int), front[44, 42].astype(int)  # light from the upper left
     assert lit.sum() > shadow.sum()
+    # the camera frames the sphere's silhouette (its projection) with a 5 % margin: a disc of 1/1.1 the width
     covered = (front != 255).any(axis=-1).mean()
-    assert covered == pytest.approx(math.pi * (0.5 / 1.1) ** 2, rel=0.08)  # disc of radius 0.5 in a 1.1-wide view
+    assert covered == pytest.approx(math.pi / 4 / 1.1**2, rel=0.08)
+    inside = np.hypot(*np.mgrid[0:64, 0:64] + 0.5 - 32) < 0.9 * 32 / 1.1  # no gaps inside the silhouette
+    assert (front[inside] != 255).any(axis=-1).all()
 
 
 # ---------------------------------------------------------------------------------------- the stage, end to end

@@ -1,4 +1,4 @@
-"""A quick look at a colored mesh without OpenGL: a z-buffered, Lambert-shaded point splat from two sides.
+"""A quick look at a colored mesh without OpenGL: rasterized, Lambert-shaded, from two sides.
 
 The mesh stage writes `preview_front.png` and `preview_side.png` with it.
 """
@@ -11,6 +11,8 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
+from recon.geometry.color import project
+from recon.geometry.raster import interpolate, rasterize
 from recon.scene import look_at
 
 
@@ -22,6 +24,23 @@ def look_rotation(azimuth_deg: float, elevation_deg: float) -> np.ndarray:
     return look_at(eye, np.zeros(3))[:3, :3].T
 
 
+def preview_camera(vertices: np.ndarray, size: int, azimuth_deg: float = 0.0,
+                   elevation_deg: float = 20.0) -> tuple[np.ndarray, tuple[float, float, float, float]]:
+    """OpenGL c2w (4, 4) and pinhole intrinsics (fx, fy, cx, cy) of a size×size preview: the camera sits at
+    (azimuth, elevation) three bounding-box radii from the bbox centre, looking at it, and the focal length
+    and principal point frame the mesh's projection with a 5 % margin on its longer side."""
+    vertices = np.asarray(vertices, np.float64)
+    lo, hi = vertices.min(axis=0), vertices.max(axis=0)
+    centre, radius = 0.5 * (lo + hi), 0.5 * float(np.linalg.norm(hi - lo))
+    eye = centre + 3.0 * max(radius, 1e-9) * look_rotation(azimuth_deg, elevation_deg)[2]  # the camera's back axis
+    c2w = look_at(eye, centre)
+    xy, _ = project(vertices, c2w, np.array([1.0, 1.0, 0.0, 0.0]))  # tangent-plane coordinates (y down)
+    lo_xy, hi_xy = xy.min(axis=0), xy.max(axis=0)
+    focal = size / (1.1 * max(float((hi_xy - lo_xy).max()), 1e-12))
+    cx, cy = size / 2 - focal * 0.5 * (lo_xy + hi_xy)
+    return c2w, (focal, focal, float(cx), float(cy))
+
+
 def render_preview(
     vertices: np.ndarray,
     faces: np.ndarray,
@@ -30,46 +49,29 @@ def render_preview(
     elevation_deg: float = 20.0,
     size: int = 512,
     background: Sequence[float] = (1.0, 1.0, 1.0),
-    seed: int = 0,
 ) -> np.ndarray:
-    """Orthographic image (size, size, 3) uint8 of a vertex-colored mesh, for a quick look without OpenGL.
+    """Image (size, size, 3) uint8 of a vertex-colored mesh, for a quick look without OpenGL.
 
-    Points are sampled on the surface by area (≈ 6 per covered pixel), colored and normal-interpolated
-    barycentrically, shaded Lambert (ambient 0.35 + 0.65·max(n·l, 0), light from the upper left of the
-    viewer) and z-buffered: each pixel shows its nearest point. vertices (V, 3) scene frame (+Z up);
-    faces (F, 3); colors (V, 3) in [0, 1]; the camera looks at the bbox centre from (azimuth, elevation).
+    Rasterized exactly (`raster.rasterize`: every pixel shows its nearest face, no gaps or back faces
+    showing through, as a point splat left), colors and normals interpolated per pixel, shaded Lambert
+    (ambient 0.35 + 0.65·max(n·l, 0), light from the upper left of the viewer). vertices (V, 3) scene frame
+    (+Z up); faces (F, 3); colors (V, 3) in [0, 1]; the camera is `preview_camera`.
     """
-    bg = np.asarray(background, np.float64)
-    image = np.tile(bg, (size, size, 1))
+    image = np.tile(np.asarray(background, np.float64), (size, size, 1))
     mesh = trimesh.Trimesh(np.asarray(vertices, np.float64), np.asarray(faces, np.int64), process=False)
     if len(mesh.faces) == 0 or mesh.area <= 0:
         return np.round(image * 255).astype(np.uint8)
-    rot = look_rotation(azimuth_deg, elevation_deg)
-    centre = 0.5 * (mesh.vertices.min(axis=0) + mesh.vertices.max(axis=0))
-    cam_v = (mesh.vertices - centre) @ rot.T
-    half = 1.1 * float(np.abs(cam_v[:, :2]).max())  # half the image width: 10 % margin
-    pix = 2 * half / size
-    # ~6 points per pixel of the visible half of the surface: a pixel stays empty with p ≈ e^-6
-    n = int(min(4_000_000, max(20_000, 6 * mesh.area / pix**2 / 2)))
-    rng = np.random.default_rng(seed)
-    face = rng.choice(len(mesh.faces), size=n, p=mesh.area_faces / mesh.area_faces.sum())
-    r1, r2 = np.sqrt(rng.random(n)), rng.random(n)
-    bary = np.stack([1 - r1, r1 * (1 - r2), r1 * r2], axis=1)  # uniform on each triangle
-    tri = mesh.faces[face]
-    pts = np.einsum("nk,nkc->nc", bary, cam_v[tri])
-    col = np.einsum("nk,nkc->nc", bary, np.clip(np.asarray(colors, np.float64), 0, 1)[tri])
-    nrm = np.einsum("nk,nkc->nc", bary, (mesh.vertex_normals @ rot.T)[tri])
+    c2w, intrinsics = preview_camera(mesh.vertices, size, azimuth_deg, elevation_deg)
+    xy, depth = project(mesh.vertices, c2w, np.asarray(intrinsics))
+    face_id, bary, _ = rasterize(xy, depth, mesh.faces, (size, size))
+    hit = face_id >= 0
+    col = interpolate(np.clip(np.asarray(colors, np.float64), 0, 1), mesh.faces, face_id, bary)[hit]
+    nrm = interpolate(mesh.vertex_normals @ c2w[:3, :3], mesh.faces, face_id, bary)[hit]  # camera frame
     nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-12)
     light = np.array([-0.4, 0.5, 0.77])
     light /= np.linalg.norm(light)
     shade = 0.35 + 0.65 * np.clip(nrm @ light, 0.0, None)
-    u = ((pts[:, 0] + half) / pix).astype(np.int64)
-    v = ((half - pts[:, 1]) / pix).astype(np.int64)
-    ok = (u >= 0) & (u < size) & (v >= 0) & (v < size)
-    flat, depth = v[ok] * size + u[ok], -pts[ok, 2]  # camera looks down -Z: nearer = larger z
-    order = np.lexsort((depth, flat))  # by pixel, nearest first
-    first = order[np.r_[True, flat[order][1:] != flat[order][:-1]]]
-    image.reshape(-1, 3)[flat[first]] = np.clip(col[ok][first] * shade[ok][first, None], 0, 1)
+    image[hit] = np.clip(col * shade[:, None], 0, 1)
     return np.round(image * 255).astype(np.uint8)
 
 

@@ -42,7 +42,7 @@ from recon.geometry.extract import (
     grid_spacing,
     marching_cubes,
 )
-from recon.geometry.preview import look_rotation, write_mesh_previews
+from recon.geometry.preview import preview_camera, write_mesh_previews
 from recon.geometry.raster import render_mesh
 from recon.geometry.texture import TexturedMesh, make_textured_mesh
 from recon.pipeline import Stage, StageContext
@@ -453,13 +453,10 @@ def compare_in_views(
 
 
 def preview_textured(textured: TexturedMesh, size: int = 512, azimuth_deg: float = 0.0, elevation_deg: float = 20.0) -> np.ndarray:
-    """Unlit perspective render (size, size, 3) in [0, 1] of the textured mesh on white, from the side
-    `render_preview` uses (azimuth 0: from -Y, 20° up), the whole mesh in view."""
-    lo, hi = textured.vertices.min(axis=0), textured.vertices.max(axis=0)
-    centre, radius = 0.5 * (lo + hi), 0.5 * float(np.linalg.norm(hi - lo))
-    eye = centre + 3.0 * radius * np.linalg.inv(look_rotation(azimuth_deg, elevation_deg))[:, 2]  # the camera's back axis
-    focal = 0.5 * size * math.sqrt(8.0) / 1.05  # the bounding sphere (half-angle asin(1/3)) fills the frame, 5 % margin
-    rgb, _ = render_mesh(textured.vertices, textured.faces, look_at(eye, centre), (focal, focal, size / 2, size / 2), (size, size),
+    """Unlit render (size, size, 3) in [0, 1] of the textured mesh on white, from `render_preview`'s camera
+    (`preview_camera`; azimuth 0: from -Y, 20° up), the whole mesh in view."""
+    c2w, intrinsics = preview_camera(textured.vertices, size, azimuth_deg, elevation_deg)
+    rgb, _ = render_mesh(textured.vertices, textured.faces, c2w, intrinsics, (size, size),
                          uv=textured.uv, texture=textured.texture)
     return rgb
 
