@@ -123,11 +123,13 @@ def _scene_with_points(n_views: int) -> tuple:
     return TrainConfig(), scene, frames, views
 
 
-@pytest.mark.parametrize("n_views, mode, masks, on", [
-    (15, "auto", False, True), (24, "auto", False, False), (24, "on", False, True), (15, "off", False, False),
-    (15, "auto", True, False), (15, "on", True, True),
+@pytest.mark.parametrize("n_views, mode, masks, kind, on", [
+    (15, "auto", False, "fast", True), (24, "auto", False, "fast", False), (24, "on", False, "fast", True),
+    (15, "off", False, "fast", False), (15, "auto", True, "fast", False), (15, "on", True, "fast", True),
+    (24, "auto", False, "surface", True), (24, "auto", True, "surface", False), (24, "off", False, "surface", False),
 ])
-def test_depth_prior_is_switched_on_by_few_views_and_says_why(n_views: int, mode: str, masks: bool, on: bool) -> None:
+def test_depth_prior_is_switched_on_by_few_views_and_says_why(n_views: int, mode: str, masks: bool, kind: str,
+                                                             on: bool) -> None:
     from dataclasses import replace
 
     from recon.stages.train import depth_prior_for
@@ -138,10 +140,13 @@ def test_depth_prior_is_switched_on_by_few_views_and_says_why(n_views: int, mode
         scene.has_alpha = True
         views = [replace(v, image=np.concatenate([v.image, np.full(v.image.shape[:2] + (1,), 255, np.uint8)], -1)) for v in views]
     aabb = torch.tensor(scene.aabb, dtype=torch.float32)
-    prior, why = depth_prior_for(cfg, scene, frames, views, {"config": {"density_res": 64}}, aabb,
+    model_cfg = {"sdf_res": 64} if kind == "surface" else {"density_res": 64}
+    prior, why = depth_prior_for(cfg, kind, scene, frames, views, {"config": model_cfg}, aabb,
                                  torch.tensor([[1.0, 5.0]] * n_views), torch.device("cpu"))
     assert (prior is not None) == on and why.startswith(f"depth prior: {'on' if on else 'off'}")
-    if mode == "auto":
+    if mode == "auto" and kind == "surface" and on:
+        assert "surface model" in why and "concavity" in why  # the model decided it, whatever the photo count
+    elif mode == "auto":
         assert f"{n_views} training photos" in why
     if masks and mode == "auto":
         assert "masks" in why  # the number of views decided it, and the reason says so
