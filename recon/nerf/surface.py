@@ -30,6 +30,10 @@ closed by construction; rendering it as a volume lets photos train it like a rad
   |f| < 2 cell diagonals + ``band_width / s`` (weights are below e^-band_width of the peak beyond); rays march only
   through that shell, and a no-grad pre-pass drops samples behind the surface (early termination).
 * Color as in :mod:`recon.nerf.fast`: a dense feature grid and a small MLP (optionally view dependent).
+* Concavities: NeuS gives opacity wherever f falls along a ray, inside too, so a field that has closed over a
+  concavity keeps a lid there (the generator's bowl: f = -0.10 at the box's top face, 21.9 dB), and colours
+  alone do not open it. The train stage adds the SfM points' depths (`recon.nerf.depth_prior`) for this model,
+  which do: 27.8 dB, Chamfer 0.30 % of the diagonal.
 
 Coordinates: the normalized scene frame of an object capture (bounded; the grids span ``aabb``).
 

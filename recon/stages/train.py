@@ -284,4 +284,5 @@ def run(ctx: StageContext) -> dict:
     }
 
 
-STAGE = Stage(name="train", folder="03_field", inputs=("normalize",), version=1, run=run)
+# version 2: train.depth_prior=auto turns the prior on for the surface model, so a cached surface field is stale
+STAGE = Stage(name="train", folder="03_field", inputs=("normalize",), version=2, run=run)
