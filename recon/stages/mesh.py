@@ -46,7 +46,7 @@ from recon.geometry.preview import preview_camera, write_mesh_previews
 from recon.geometry.raster import render_mesh
 from recon.geometry.texture import TexturedMesh, make_textured_mesh
 from recon.pipeline import Stage, StageContext
-from recon.scene import Frame, Scene, load_scene, look_at, spread_evenly
+from recon.scene import Frame, Scene, load_scene, spread_evenly
 from recon.views import View, load_views, pixel_footprint, render_view, target_rgb
 
 REPORT_FILE = "mesh_report.json"
