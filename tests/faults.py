@@ -39,7 +39,9 @@ def cli_args(source: Path, scene: Path, *extra: str, settings: list[str] | None 
 
 
 def env(fault: str | None = None) -> dict[str, str]:
-    e = {**os.environ, "OMP_WAIT_POLICY": "PASSIVE", "OMP_NUM_THREADS": "1", "COLUMNS": "400", "PYTHONPATH": str(REPO)}
+    # the repo first, then whatever the caller's PYTHONPATH holds (packages installed with pip --target, say)
+    path = os.pathsep.join(p for p in (str(REPO), os.environ.get("PYTHONPATH", "")) if p)
+    e = {**os.environ, "OMP_WAIT_POLICY": "PASSIVE", "OMP_NUM_THREADS": "1", "COLUMNS": "400", "PYTHONPATH": path}
     e.pop("RECON_FAULT", None)
     if fault:
         e["RECON_FAULT"] = fault

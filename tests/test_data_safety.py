@@ -396,7 +396,7 @@ def test_library_modules_import_no_runner_and_config_no_torch() -> None:
 
     code = "import sys, recon.scene, recon.config; print(sorted(m for m in ('torch', 'pycolmap', 'recon.pipeline') if m in sys.modules))"
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=faults.REPO,
-                          env={**os.environ, "PYTHONPATH": str(faults.REPO)}, timeout=120)
+                          env=faults.env(), timeout=120)
     assert proc.returncode == 0, proc.stderr
     assert proc.stdout.strip() == "[]"
     library = ["scene.py", "field.py", "views.py", "atomic.py", "geometry/export.py", "geometry/preview.py", "geometry/extract.py"]
