@@ -46,9 +46,10 @@ class NormalizeConfig:
 
     up: Literal["auto", "z", "y", "none"] = "auto"
     """auto: the mean camera up vector becomes +Z; z/y: the source's own +Z/+Y is up; none: keep rotation."""
-    point_percentile: float = 2.0
-    """The box is fit to sparse points between this percentile and 100 minus it (outliers ignored)."""
-    box_margin: float = 0.1
+    link_spacings: float = 6.0
+    """The box is fit to the sparse points less stray ones: points within this many median point spacings
+    of each other are linked, and linked groups holding under 2 % of the points are dropped."""
+    box_margin: float = 0.05
     """The box is enlarged by this fraction of its size on each side."""
     depth_percentile: float = 1.0
     """Per-camera near/far come from this low/high percentile of the depths of the points it sees."""
@@ -291,7 +292,7 @@ BOUNDS: dict[str, tuple[Any, str]] = {
     "poses.num_threads": _at_least(-1),
     "poses.min_registered": _at_least(2),
     "poses.min_registered_fraction": _between(0, 1),
-    "normalize.point_percentile": _between(0, 49),
+    "normalize.link_spacings": _positive(),
     "normalize.box_margin": _between(0, 10),
     "mesh.iso_opacity": _between(0, 0.99),
     "normalize.depth_percentile": _between(0, 49),

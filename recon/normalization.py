@@ -8,6 +8,9 @@ from __future__ import annotations
 from dataclasses import replace
 
 import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
 
 from recon.config import NormalizeConfig
 from recon.errors import InputError
@@ -15,10 +18,12 @@ from recon.region import object_region
 from recon.scene import Frame, Scene
 
 OBJECT_MAX_MEAN_VIEW = 0.9
+"""Cameras count as 'around the object' when the mean of their unit view directions is shorter than this."""
 BACKGROUND_FRACTION = 0.3
 """An object capture whose sparse points lie outside the object region more than this is an object on a
 background (table, room): the field contracts and models the space around the box too."""
-"""Cameras count as 'around the object' when the mean of their unit view directions is shorter than this."""
+MIN_GROUP_FRACTION = 0.02
+"""The box ignores groups of linked sparse points that hold fewer than this fraction of the points."""
 
 
 def rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -141,12 +146,27 @@ def transform_c2w(T: np.ndarray, c2w: np.ndarray) -> np.ndarray:
     return out
 
 
-def _box_from_points(points: np.ndarray, percentile: float) -> np.ndarray | None:
+def _box_from_points(points: np.ndarray, link_spacings: float) -> np.ndarray | None:
+    """The extent (2, 3) of the sparse points less stray ones, or None below 20 points.
+
+    Points closer than `link_spacings` times the median nearest-neighbour distance are linked; the box
+    holds the linked groups with at least `MIN_GROUP_FRACTION` of the points. A stray triangulation sits
+    alone, while a thin part (a rod, a stem) is a chain of points a few spacings apart. Percentile trimming
+    cut such parts: on the generator's thin scene the 2 %/98 % box, margin included, ended 0.17 below the
+    rod's top (8 of 1,453 points lie above the cut, the last two 5 spacings beyond the others).
+    """
     finite = points[np.all(np.isfinite(points), axis=1)]
     if len(finite) < 20:
         return None
-    lo = np.percentile(finite, percentile, axis=0)
-    hi = np.percentile(finite, 100 - percentile, axis=0)
+    tree = cKDTree(finite)
+    spacing = float(np.median(tree.query(finite, k=2)[0][:, 1]))
+    if spacing > 0:
+        pairs = tree.query_pairs(link_spacings * spacing, output_type="ndarray")
+        graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(finite), len(finite)))
+        _, label = connected_components(graph, directed=False)
+        size = np.bincount(label)
+        finite = finite[size[label] >= MIN_GROUP_FRACTION * len(finite)]
+    lo, hi = finite.min(axis=0), finite.max(axis=0)
     if np.any(hi - lo <= 0):
         return None
     return np.stack([lo, hi])
@@ -260,7 +280,7 @@ def normalize(scene: Scene, cfg: NormalizeConfig) -> Scene:
         )
         if found is not None:
             # the object the cameras look at (and, below it, down to the ground it stands on)
-            box = _box_from_points((points[found.points] - center) @ R.T, cfg.point_percentile)
+            box = _box_from_points((points[found.points] - center) @ R.T, cfg.link_spacings)
             notes["region"] = found.reason
             if box is not None and found.ground is not None:
                 n = R @ found.ground.normal
@@ -278,13 +298,13 @@ def normalize(scene: Scene, cfg: NormalizeConfig) -> Scene:
             # points of the object: those nearer to the focus than the cameras are (drops walls/background)
             radius = np.median(np.linalg.norm(centers - focus, axis=1))
             near_obj = finite & (np.linalg.norm(points - focus, axis=1) < radius)
-            box = _box_from_points((points[near_obj] - center) @ R.T, cfg.point_percentile)
-        notes["box"] = ("the object region's sparse points (percentiles)" if region is not None else
-                        "sparse points around the focus (percentiles)") if box is not None else ""
+            box = _box_from_points((points[near_obj] - center) @ R.T, cfg.link_spacings)
+        notes["box"] = ("the object region's sparse points (stray points dropped)" if region is not None else
+                        "sparse points around the focus (stray points dropped)") if box is not None else ""
     else:
         center = np.median(points[finite], axis=0) if finite.sum() >= 20 else focus
-        box = _box_from_points((points[finite] - center) @ R.T, cfg.point_percentile)
-        notes["box"] = "sparse points (percentiles)" if box is not None else ""
+        box = _box_from_points((points[finite] - center) @ R.T, cfg.link_spacings)
+        notes["box"] = "sparse points (stray points dropped)" if box is not None else ""
     if box is None:
         box = _box_from_cameras(c2ws, scene.frames, focus) - focus
         notes["box"] = "no sparse points: box from the cameras' field of view at their distance"

@@ -205,6 +205,26 @@ def test_one_far_outlier_point_does_not_change_the_box() -> None:
     assert_scene_finite(b)
 
 
+def test_a_thin_part_stays_in_the_box_and_stray_points_do_not() -> None:
+    # the generator's thin scene: a rod of few points stands out of the object (under 2 % of the points, so a
+    # 2 %/98 % percentile box cut it), while stray triangulations float alone further out
+    base = ring()
+    blob = base.points
+    spacing = float(np.median(np.linalg.norm(blob[:, None] - blob[None], axis=-1)[~np.eye(len(blob), dtype=bool)]
+                              .reshape(len(blob), -1).min(axis=1)))
+    top = 0.5 + 2 * spacing * np.arange(6)  # a chain 2 spacings apart, up to well above the blob
+    rod = np.c_[np.full(6, 0.1), np.zeros(6), top]
+    strays = np.array([[1.6, 0.0, 0.0], [0.0, -1.6, 0.3], [-1.2, 1.2, -0.6]])
+    pts = np.concatenate([blob, rod, strays])
+    assert len(rod) / len(pts) < 0.02 and top[-1] > np.percentile(pts[:, 2], 98) + 0.5
+    scene = normalize(Scene(frames=base.frames, points=pts), NormalizeConfig(box_margin=0.0))
+    to_world = np.linalg.inv(scene.source_from_world)
+    inside = lambda p: np.all((p @ to_world[:3, :3].T + to_world[:3, 3] >= scene.aabb[0] - 1e-9)
+                              & (p @ to_world[:3, :3].T + to_world[:3, 3] <= scene.aabb[1] + 1e-9), axis=1)
+    assert inside(rod).all()  # the rod's tip is in the box
+    assert not inside(strays).any()  # no stray point is
+
+
 @pytest.mark.parametrize("seed", range(4))
 def test_top_down_cameras_with_random_roll_come_out_upright(seed: int) -> None:
     # up vectors all horizontal in random directions (their mean can still be long): up is the normal of the
