@@ -128,6 +128,10 @@ class TrainConfig:
     appearance: Literal["auto", "on", "off"] = "auto"
     """Per-photo colour transforms for exposure / white-balance changes (grid models). auto: on when the colours
     of matched points differ between neighbouring photos (recon/nerf/appearance.py); the mesh uses the neutral one."""
+    backdrop_key: Literal["auto", "on", "off"] = "auto"
+    """Photos on a plain backdrop (a light box, a studio sweep): train the pixels of the backdrop's colour as empty
+    space, as masks would (recon.views.key_backdrop). auto: on for the surface model of an object capture without
+    masks whose photos' borders are plain; the density models keep the photos as they are."""
     classic: ClassicConfig = field(default_factory=ClassicConfig)
     fast: FastConfig = field(default_factory=FastConfig)
     """The fast grid model's options (its box and boundedness are set from the scene)."""

@@ -2,19 +2,52 @@
 `recon bench --profile`, which must build the very model the stage builds."""
 from __future__ import annotations
 
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from typing import Any
 
 import numpy as np
 
 from recon.config import TrainConfig
 from recon.errors import ReconError
+from recon.nerf.surface import hull_planes
 from recon.scene import Scene
-from recon.views import View, border_color, pixel_footprint
+from recon.views import (BACKDROP_TOLERANCE, PLAIN_BACKDROP_FRACTION, View, border_color, key_backdrop, pixel_footprint,
+                          plain_backdrop)
 
 
-def choose_background(cfg: TrainConfig, scene: Scene, views: list[View]) -> tuple[np.ndarray, bool, str]:
-    """(evaluation background color, train on random backgrounds?, why)."""
+BACKDROP_KEY_WHY = (
+    "a surface colored like the backdrop is as bright as the backdrop itself, so the photos' colours cannot tell it "
+    "from empty space; keyed, the backdrop's pixels say where the object is not"
+)
+
+
+def key_backdrop_for(cfg: TrainConfig, kind: str, scene: Scene, views: list[View]) -> tuple[list[View], np.ndarray | None, str]:
+    """(the training views, keyed to RGBA when the backdrop key applies; the backdrop colour or None; why).
+
+    auto keys the surface model's photos when their borders are a plain backdrop (`recon.views.plain_backdrop`):
+    its zero set is closed, and without the key it closed over what only the backdrop shows, such as a hole
+    seen through or space under the object that no camera sees against anything else."""
+    if cfg.backdrop_key == "off":
+        return views, None, "backdrop key: off (train.backdrop_key=off)"
+    if scene.has_alpha:
+        return views, None, "backdrop key: not needed (the photos have masks or alpha: their background is known)"
+    if cfg.backdrop_key == "auto" and (kind != "surface" or scene.capture != "object"):
+        return views, None, ("backdrop key: off (auto keys the surface model's photos only; train.backdrop_key=on forces it)")
+    color, plain = plain_backdrop(views)
+    share = f"{plain:.0%} of the photos' border pixels are within {BACKDROP_TOLERANCE} of {np.round(color, 3).tolist()}"
+    if cfg.backdrop_key == "auto" and plain < PLAIN_BACKDROP_FRACTION:
+        return views, None, f"backdrop key: off (no plain backdrop: {share}, fewer than {PLAIN_BACKDROP_FRACTION:.0%})"
+    keyed = [replace(v, image=key_backdrop(v.image, color)) for v in views]
+    why = "train.backdrop_key=on" if cfg.backdrop_key == "on" else BACKDROP_KEY_WHY
+    return keyed, color.astype(np.float32), (f"backdrop key: on ({share}; {why}): pixels of the backdrop's colour train "
+                                             f"as empty space")
+
+
+def choose_background(cfg: TrainConfig, scene: Scene, views: list[View], backdrop: np.ndarray | None = None) -> tuple[np.ndarray, bool, str]:
+    """(evaluation background color, train on random backgrounds?, why); `backdrop`: the keyed backdrop's colour."""
+    if backdrop is not None and cfg.background == "auto":
+        return backdrop, True, ("the backdrop is keyed (known background): trained on random backgrounds so nothing paints "
+                                f"it, shown on its colour {np.round(backdrop, 3).tolist()}")
     if cfg.background == "white":
         return np.ones(3, np.float32), False, "white (train.background=white)"
     if cfg.background == "black":
@@ -56,8 +89,6 @@ def model_spec(cfg: TrainConfig, scene: Scene, views: list[View]) -> tuple[str, 
 
 def surface_spec(cfg: TrainConfig, scene: Scene) -> tuple[str, dict[str, Any], float, list[str]]:
     """The surface (SDF) model for an object capture; refused, with what to do, for an unbounded scene."""
-    from dataclasses import replace
-
     if scene.capture != "object":
         raise ReconError(
             f"train.model=surface needs an object capture (a bounded box around one object); this scene is "
@@ -70,8 +101,22 @@ def surface_spec(cfg: TrainConfig, scene: Scene) -> tuple[str, dict[str, Any], f
         f"{surf.sdf_levels} dense levels up to {surf.sdf_res}³, NeuS opacity with learned sharpness, Eikonal "
         "and curvature terms; its mesh is the closed zero level set"
     ]
+    planes = hull_planes(scene.points, aabb) if surf.init_shape == "hull" else []
+    surf = replace(surf, init_planes=tuple(planes))
+    n_in = int(((scene.points >= aabb[0]) & (scene.points <= aabb[1])).all(axis=1).sum()) if len(scene.points) else 0
+    if planes:
+        reasons.append(f"initial surface: the convex hull of the {n_in:,} sparse points in the box ({len(planes)} faces): {HULL_WHY}")
+    elif surf.init_shape == "hull":
+        reasons.append(f"initial surface: a sphere (only {n_in} sparse points in the box, or they span no volume: no hull)")
+    else:
+        reasons.append("initial surface: a sphere (train.surface.init_shape=sphere)")
     return "surface", {"config": asdict(surf)}, cfg.lr or FAST_LR, reasons
 
+
+HULL_WHY = (
+    "what no photo sees keeps the shape the SDF starts from, and a sphere inside the object left caves there (the thin "
+    "scene's base: its underside carved 0.05 units up); the points' hull is flat under a flat base"
+)
 
 FAST_LR = 1e-2
 """Default learning rate of the fast model's MLP (its grids use lr × grid_lr_scale)."""
@@ -79,8 +124,6 @@ FAST_LR = 1e-2
 
 def auto_fast_config(base: Any, scene: Scene, footprint: float) -> tuple[Any, list[str]]:
     """Fit the fast model to the scene: box, bounded or not, and grid resolution no finer than the pixels."""
-    from dataclasses import replace
-
     aabb = np.asarray(scene.aabb, dtype=np.float64)
     unbounded = scene.capture != "object"
     reasons = [

@@ -165,7 +165,7 @@ def profile_preset(data: str, preset: str, out_dir: Path, overrides: list[str], 
     from recon.nerf.trainer import RayBatcher, render_image, train
     from recon.scene import load_scene
     from recon.field import build_model
-    from recon.model_choice import choose_background, model_spec
+    from recon.model_choice import choose_background, key_backdrop_for, model_spec
     from recon.views import load_views, view_tensors
 
     config = load_config(preset, overrides)
@@ -173,8 +173,9 @@ def profile_preset(data: str, preset: str, out_dir: Path, overrides: list[str], 
     cfg = config.train
     scene = load_scene(scene_dir / "02_scene")
     views = load_views(scene, scene.split("train"), cfg.max_side, report, "training photos")
-    background, random_bg, _ = choose_background(cfg, scene, views)
     kind, kwargs, lr, _ = model_spec(cfg, scene, views)
+    views, backdrop, _ = key_backdrop_for(cfg, kind, scene, views)
+    background, random_bg, _ = choose_background(cfg, scene, views, backdrop)
     if kind != "fast":
         raise ValueError(f"--profile measures the fast grid model; preset {preset} trains '{kind}'")
     torch.manual_seed(cfg.seed)

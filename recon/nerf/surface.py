@@ -4,9 +4,12 @@ Why: a density field's mesh is an iso-surface of a soft, unconstrained volume (o
 inner walls, holes where no photo looked). A signed distance f (negative inside) has one zero set that is
 closed by construction; rendering it as a volume lets photos train it like a radiance field.
 
-* f(x) = |x - c| - r0 + sum of the enabled levels of a multi-level dense grid + a small MLP on the
-  levels' values (last layer zero): at step 0 the field is exactly a sphere's SDF, a closed surface
-  (the geometric initialization of SAL/IDR/NeuS, here exact instead of approximate). The grid levels are
+* f(x) = f0(x) + sum of the enabled levels of a multi-level dense grid + a small MLP on the levels' values
+  (last layer zero): at step 0 the field is exactly f0, a closed surface's SDF (the geometric initialization
+  of SAL/IDR/NeuS, here exact instead of approximate). f0 is the convex hull of the SfM points when the
+  config has its planes (``init_planes``, on a frozen grid), else a sphere |x - c| - r0. Why the hull: what no
+  photo sees keeps the starting shape, and the sphere, inside a tall object, left a cave 0.05 units deep under
+  the thin scene's base and under the hole scene's block; the hull is flat there. The grid levels are
   :class:`recon.nerf.grid.DenseGrid` scalars read through ``grid_sample`` (the fastest read grid.py measured).
 * Coarse to fine (Neuralangelo, Li et al. 2023): level k is added to f after ``k * level_every`` steps,
   and the finite-difference step of the regularizers shrinks with the finest enabled level.
@@ -65,12 +68,38 @@ from torch import Tensor, nn
 
 from recon.nerf.model_config import SurfaceConfig
 from recon.nerf.fast import _make_grid, color_from_features, make_color_mlp, ray_background
-from recon.nerf.grid import MultiDenseGrid
+from recon.nerf.grid import MultiDenseGrid, grid_sample_coords
 from recon.nerf.occupancy import OccupancyGrid, march
 from recon.nerf.rays import ray_aabb
 from recon.nerf.render import RadianceModel, accumulate_packed, checked_aabb, render_weights_packed
 
-__all__ = ["SurfaceConfig", "SurfaceModel", "neus_tau", "sdf_fd_terms", "eikonal_loss", "boundary_loss", "box_face_points"]
+__all__ = ["SurfaceConfig", "SurfaceModel", "neus_tau", "sdf_fd_terms", "eikonal_loss", "boundary_loss", "box_face_points",
+           "hull_planes", "planes_sdf"]
+
+
+def hull_planes(points: Any, box: Any, min_points: int = 20) -> list[tuple[float, float, float, float]]:
+    """The faces (nx, ny, nz, d) of the convex hull of the points (N, 3) inside box (2, 3), n·x <= d inside
+    (coplanar facets merged); [] when fewer than `min_points` lie in the box or they span no volume."""
+    import numpy as np
+    from scipy.spatial import ConvexHull, QhullError
+
+    pts = np.asarray(points, np.float64).reshape(-1, 3)
+    lo, hi = np.asarray(box, np.float64)
+    pts = pts[((pts >= lo) & (pts <= hi)).all(axis=1)]
+    if len(pts) < min_points:
+        return []
+    try:
+        eq = ConvexHull(pts).equations  # n·x + offset <= 0 inside, unit n
+    except QhullError:
+        return []
+    eq = np.unique(np.round(eq, 6), axis=0)
+    return [(float(a), float(b), float(c), float(-o)) for a, b, c, o in eq]
+
+
+def planes_sdf(x: Tensor, planes: Tensor) -> Tensor:
+    """max_k (n_k·x - d_k) at points x (M, 3) for half-spaces planes (K, 4): the signed distance of their
+    intersection inside it and on its faces' sides (a lower bound near edges outside); |gradient| = 1 everywhere."""
+    return (x @ planes[:, :3].T - planes[:, 3]).amax(dim=-1)
 
 
 def neus_tau(f0: Tensor, f1: Tensor, s: Tensor | float) -> Tensor:
@@ -128,6 +157,9 @@ class SurfaceModel(RadianceModel):
         self.register_buffer("centre", aabb.mean(0))
         self.radius0 = cfg.init_radius * 0.5 * float((aabb[1] - aabb[0]).min())
         self.sdf_grid = MultiDenseGrid(cfg.sdf_res, 1, levels=cfg.sdf_levels)
+        # the initial surface when planes are given: their intersection's SDF on a frozen grid of the finest level's
+        # resolution (exact where it is planar), rebuilt from the config rather than saved
+        self.register_buffer("prior_volume", self._planes_volume(cfg, aabb), persistent=False)
         self.level_cells = [extent / (g.res - 1) for g in self.sdf_grid.grids]
         n_lv = len(self.sdf_grid.grids)
         if cfg.sdf_mlp_width > 0:
@@ -147,6 +179,28 @@ class SurfaceModel(RadianceModel):
                                        warmup_steps=cfg.occupancy_warmup)
         self.register_buffer("march_box", aabb.clone())
         self.register_buffer("step", torch.zeros((), dtype=torch.long))
+
+    @staticmethod
+    @torch.no_grad()
+    def _planes_volume(cfg: SurfaceConfig, aabb: Tensor, chunk: int = 1 << 16) -> Tensor | None:
+        """``planes_sdf`` of cfg.init_planes at the vertices of an sdf_res³ grid over aabb, as grid_sample's
+        (1, 1, r, r, r) volume; None without planes."""
+        if not cfg.init_planes:
+            return None
+        planes = torch.tensor(cfg.init_planes, dtype=torch.float32).reshape(-1, 4)
+        r = int(cfg.sdf_res)
+        axes = [torch.linspace(float(aabb[0, i]), float(aabb[1, i]), r) for i in range(3)]
+        pts = torch.stack(torch.meshgrid(*axes, indexing="ij"), dim=-1).reshape(-1, 3)
+        vol = torch.cat([planes_sdf(pts[s:s + chunk], planes) for s in range(0, pts.shape[0], chunk)])
+        return vol.view(1, 1, r, r, r)
+
+    def initial_sdf(self, x: Tensor, u: Tensor) -> Tensor:
+        """The SDF the grids add to (M,) at world points x (M, 3) (u: the same in [0, 1] of the box): the planes'
+        intersection when the config has them, else a sphere at the box centre."""
+        if self.prior_volume is None:
+            return (x - self.centre.to(x)).norm(dim=-1) - self.radius0
+        return F.grid_sample(self.prior_volume.to(x.dtype), grid_sample_coords(u, x.dtype), mode="bilinear",
+                             align_corners=True).view(-1)
 
     # ------------------------------------------------------------------ the field
     @property
@@ -177,7 +231,7 @@ class SurfaceModel(RadianceModel):
         k = self.active_levels
         levels = [g(u) for g in self.sdf_grid.grids[:k]]
         feats = torch.cat(levels, dim=-1)
-        f = (x - self.centre.to(x)).norm(dim=-1) - self.radius0 + feats.sum(-1)
+        f = self.initial_sdf(x, u) + feats.sum(-1)
         if self.sdf_mlp is not None:
             if k < len(self.sdf_grid.grids):
                 feats = F.pad(feats, (0, len(self.sdf_grid.grids) - k))
@@ -277,6 +331,9 @@ class SurfaceModel(RadianceModel):
         reg = cfg.eikonal_weight * eikonal_loss(grad)
         if cfg.curvature_weight > 0:
             reg = reg + cfg.curvature_weight * lap.abs().mean()
+        if cfg.init_prior_weight > 0 and self.prior_volume is not None:
+            u = ((rand - box[0]) / (box[1] - box[0])).clamp(0.0, 1.0)
+            reg = reg + cfg.init_prior_weight * ((self.sdf(rand) - self.initial_sdf(rand, u)) ** 2).mean()
         if cfg.boundary_weight > 0 and cfg.boundary_points > 0:
             on_faces = box_face_points(box, cfg.boundary_points)
             reg = reg + cfg.boundary_weight * boundary_loss(self.sdf(on_faces), cfg.boundary_margin_cells * self.voxel_size)

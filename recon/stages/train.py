@@ -20,7 +20,7 @@ from recon.atomic import checksum_matches, checksum_path, fault_point, write_che
 from recon.config import TrainConfig, parse_duration
 from recon.errors import ReconError
 from recon.field import FIELD_FILE, build_model, save_field
-from recon.model_choice import choose_background, model_spec
+from recon.model_choice import choose_background, key_backdrop_for, model_spec
 from recon.pipeline import Stage, StageContext
 from recon.scene import Frame, Scene, load_scene, spread_evenly
 from recon.views import View, evaluate, load_views, view_tensors, write_previews
@@ -29,7 +29,7 @@ CHECKPOINT = "checkpoint.pt"
 
 
 SURFACE_DEPTH_WHY = (
-    "the surface model starts from a closed sphere, and the photos' colours alone do not open a concavity it has "
+    "the surface model starts from a closed shape, and the photos' colours alone do not open a concavity it has "
     "closed over: on the generator's bowl the SDF kept a lid at the rim (test PSNR 21.9 dB, F@0.5% 0.60); the SfM "
     "points' depths say the rays pass through (27.8 dB, F@0.5% 0.90)"
 )
@@ -146,12 +146,14 @@ def run(ctx: StageContext) -> dict:
     if not train_frames:
         raise ReconError("The scene has no training views. Re-run normalize (recon normalize SCENE).")
     views = load_views(scene, train_frames, cfg.max_side, ctx.report, "training photos")
-    background, random_bg, bg_why = choose_background(cfg, scene, views)
     kind, kwargs, lr, reasons = model_spec(cfg, scene, views)
     if cfg.adjusted:
         reasons.insert(0, cfg.adjusted)
     use_appearance, appearance_why = choose_appearance(cfg, kind, views)
     reasons.append(appearance_why)
+    views, backdrop, key_why = key_backdrop_for(cfg, kind, scene, views)
+    reasons.append(key_why)
+    background, random_bg, bg_why = choose_background(cfg, scene, views, backdrop)
     if budget_s:
         reasons.append(f"time budget {cfg.budget}: at most {cfg.steps} steps, stopping when the budget is spent")
     ctx.report.info(f"device: {device}; background: {bg_why}")
@@ -285,4 +287,5 @@ def run(ctx: StageContext) -> dict:
 
 
 # version 2: train.depth_prior=auto turns the prior on for the surface model, so a cached surface field is stale
-STAGE = Stage(name="train", folder="03_field", inputs=("normalize",), version=2, run=run)
+# version 3: the surface model keys a plain backdrop (train.backdrop_key) and starts from the SfM points' hull
+STAGE = Stage(name="train", folder="03_field", inputs=("normalize",), version=3, run=run)
