@@ -114,8 +114,9 @@ def surface_spec(cfg: TrainConfig, scene: Scene) -> tuple[str, dict[str, Any], f
 
 
 HULL_WHY = (
-    "what no photo sees keeps the shape the SDF starts from, and a sphere inside the object left caves there (the thin "
-    "scene's base: its underside carved 0.05 units up); the points' hull is flat under a flat base"
+    "what no photo sees keeps the shape the SDF starts from, pulled back to it with train.surface.init_prior_weight; "
+    "from a sphere the thin scene's unseen underside came out as a cave 0.05 units deep, from the hull it is flat at "
+    "the truth (F-score@1% 0.912 -> 0.980)"
 )
 
 FAST_LR = 1e-2
