@@ -9,7 +9,6 @@ import sys
 import time
 from pathlib import Path
 
-import torch
 
 REPO = Path(__file__).resolve().parents[1]
 STAGE_FOLDERS = {"poses": "01_poses", "normalize": "02_scene", "train": "03_field", "mesh": "04_mesh"}
@@ -85,13 +84,6 @@ def finished_times(scene: Path) -> dict[str, str]:
 
 def same_bytes(a: Path, b: Path) -> bool:
     return a.read_bytes() == b.read_bytes()
-
-
-def same_field(a: Path, b: Path) -> bool:
-    """Two field.pt files hold bit-identical weights (the zip container may differ)."""
-    x = torch.load(a, map_location="cpu", weights_only=True)["state_dict"]
-    y = torch.load(b, map_location="cpu", weights_only=True)["state_dict"]
-    return x.keys() == y.keys() and all(torch.equal(x[k], y[k]) for k in x)
 
 
 def assert_same_result(scene: Path, reference: Path) -> None:

@@ -161,10 +161,13 @@ def test_batch_matches_recon_run_and_reports_the_broken_capture(
         rec = _record(result, name)
         assert rec.get("error") is None and rec["photos"] == "8 (poses given)"
         assert all(s["action"] == "ran" for s in rec["stages"].values())
-        ours, theirs = faults.manifest(out / name)["stages"], faults.manifest(ref)["stages"]
-        assert faults.same_field(out / name / "03_field" / "field.pt", ref / "03_field" / "field.pt")
-        assert rec["psnr"] == ours["train"]["summary"]["psnr"] == theirs["train"]["summary"]["psnr"]
-        assert rec["faces"] == ours["mesh"]["summary"]["faces"] == theirs["mesh"]["summary"]["faces"] > 0
+        ours = faults.manifest(out / name)["stages"]
+        # the same stages, settings and inputs as `recon run`: its deterministic stages bit for bit, the training within
+        # the float noise of another process (on the 2-core CI machine a Ray worker's field differed from the subprocess's
+        # in the 6th digit in 3 of 4 runs, before and after 2026-11-24's changes)
+        faults.assert_same_result(out / name, ref)
+        assert rec["psnr"] == ours["train"]["summary"]["psnr"]
+        assert rec["faces"] == ours["mesh"]["summary"]["faces"] > 0
         assert f"| {name} | poses:ran normalize:ran train:ran mesh:ran |" in md
 
     # the same batch again: every finished stage is reused, nothing runs
