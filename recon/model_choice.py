@@ -101,9 +101,10 @@ def surface_spec(cfg: TrainConfig, scene: Scene) -> tuple[str, dict[str, Any], f
         f"{surf.sdf_levels} dense levels up to {surf.sdf_res}³, NeuS opacity with learned sharpness, Eikonal "
         "and curvature terms; its mesh is the closed zero level set"
     ]
-    planes = hull_planes(scene.points, aabb) if surf.init_shape == "hull" else []
+    points = np.asarray(scene.points, np.float64).reshape(-1, 3)
+    n_in = int(((points >= aabb[0]) & (points <= aabb[1])).all(axis=1).sum())
+    planes = hull_planes(points, aabb) if surf.init_shape == "hull" else []
     surf = replace(surf, init_planes=tuple(planes))
-    n_in = int(((scene.points >= aabb[0]) & (scene.points <= aabb[1])).all(axis=1).sum()) if len(scene.points) else 0
     if planes:
         reasons.append(f"initial surface: the convex hull of the {n_in:,} sparse points in the box ({len(planes)} faces): {HULL_WHY}")
     elif surf.init_shape == "hull":

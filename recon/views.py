@@ -61,9 +61,15 @@ def load_views(scene: Scene, frames: list[Frame], max_side: int, report: Any = N
     return views
 
 
+def _border_pixels(views: list[View]) -> np.ndarray:
+    """The photos' outer pixel rows/columns (N, 3), as floats in [0, 1]."""
+    border = np.concatenate([np.concatenate([v.image[0], v.image[-1], v.image[:, 0], v.image[:, -1]])[:, :3] for v in views])
+    return border.astype(np.float32) / 255.0
+
+
 def border_color(views: list[View]) -> np.ndarray:
     """Median color of the photos' outer pixel rows/columns: the backdrop of a typical object capture."""
-    return np.median(_border_pixels(views).astype(np.float32) / 255.0, axis=0)
+    return np.median(_border_pixels(views), axis=0)
 
 
 BACKDROP_TOLERANCE = 0.04
@@ -73,14 +79,10 @@ PLAIN_BACKDROP_FRACTION = 0.9
 """The photos stand on a plain backdrop when at least this fraction of their border pixels are backdrop."""
 
 
-def _border_pixels(views: list[View]) -> np.ndarray:
-    return np.concatenate([np.concatenate([v.image[0], v.image[-1], v.image[:, 0], v.image[:, -1]])[:, :3] for v in views])
-
-
 def plain_backdrop(views: list[View], tolerance: float = BACKDROP_TOLERANCE) -> tuple[np.ndarray, float]:
     """(the border colour, the fraction of border pixels within `tolerance` of it in every channel)."""
-    color = border_color(views)
-    border = _border_pixels(views).astype(np.float32) / 255.0
+    border = _border_pixels(views)
+    color = np.median(border, axis=0)  # border_color's, from the pixels in hand
     return color, float((np.abs(border - color).max(axis=-1) <= tolerance).mean())
 
 
