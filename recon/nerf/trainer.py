@@ -30,6 +30,7 @@ from torch import Tensor
 
 from ..metrics import mse_to_psnr
 from .rays import camera_rays, pixel_rays, ray_aabb
+from .pose_refine import PoseRefinement
 from .render import RadianceModel
 
 __all__ = [
@@ -37,6 +38,7 @@ __all__ = [
     "TrainProgress",
     "TrainingDiverged",
     "TrainingInterrupted",
+    "align_pose",
     "lr_at",
     "make_optimizer",
     "render_image",
@@ -347,6 +349,7 @@ def train(
     spent_s: float = 0.0,
     extra_loss: Callable[[RadianceModel, int], dict[str, Tensor]] | None = None,
     appearance: torch.nn.Module | None = None,
+    pose_refine: PoseRefinement | None = None,
 ) -> dict[str, Any]:
     """Optimize ``model`` on ``batcher``'s rays for ``steps`` steps (or the rest of them after a resume).
 
@@ -375,6 +378,10 @@ def train(
         appearance: per-photo colour transforms (:class:`recon.nerf.appearance.PhotoAppearance`):
             ``appearance(out, batch["image"])`` replaces the rendered rgb before the loss, its
             ``regularizer()`` joins the loss and its parameters are optimized at ``lr``.
+        pose_refine: per-photo camera corrections (:class:`recon.nerf.pose_refine.PoseRefinement`): each batch's
+            rays are cast from the corrected cameras, its ``regularizer()`` joins the loss and its parameters are
+            optimized by their own Adam at ``pose_refine.lr`` on the steps ``pose_refine.learns_at``, each update
+            followed by ``pose_refine.hold_frame()``.
 
     Returns a summary dict: step, loss, psnr, rays_per_s, elapsed_s, history, metrics (last eval).
 
@@ -385,11 +392,17 @@ def train(
     opt = make_optimizer(model, lr)
     if appearance is not None:
         opt.add_param_group({"params": list(appearance.parameters()), "lr": lr, "initial_lr": lr})
+    if pose_refine is not None:
+        # its own Adam at a fixed small rate: the field's rate schedule would turn cameras 1,000x too fast
+        pose_opt = torch.optim.Adam(pose_refine.parameters(), lr=pose_refine.lr)
     start = 0
     if state is not None:
         model.load_state_dict(state["model"])
         if appearance is not None:
             appearance.load_state_dict(state["appearance"])
+        if pose_refine is not None:
+            pose_refine.load_state_dict(state["pose_refine"])
+            pose_opt.load_state_dict(state["pose_optimizer"])
         opt.load_state_dict(state["optimizer"])
         batcher.load_state_dict(state["batcher"])
         _set_rng_state(state["rng"])
@@ -404,6 +417,8 @@ def train(
             "batcher": batcher.state_dict(),
             "rng": _rng_state(),
             **({"appearance": {k: v.detach().clone() for k, v in appearance.state_dict().items()}} if appearance is not None else {}),
+            **({"pose_refine": {k: v.detach().clone() for k, v in pose_refine.state_dict().items()},
+                "pose_optimizer": copy.deepcopy(pose_opt.state_dict())} if pose_refine is not None else {}),
         }
 
     history: list[tuple[int, float, float]] = []
@@ -428,6 +443,10 @@ def train(
             if model.step_update(step):
                 opt.state.clear()  # grids were re-sampled: old Adam moments point at other places
             batch = batcher.next_batch(batch_rays)
+            refine_poses = pose_refine is not None and pose_refine.learns_at(step, steps, fraction)
+            if pose_refine is not None:
+                with torch.set_grad_enabled(refine_poses):
+                    batch = pose_refine.correct_batch(batch, batcher.aabb)
             with torch.autocast(batch["rgb"].device.type, dtype=autocast or torch.bfloat16, enabled=autocast is not None):
                 out = model.render_rays(batch["rays_o"], batch["rays_d"], batch["near"], batch["far"],
                                         training=True, background=batch["background"])
@@ -443,6 +462,8 @@ def train(
                     terms.update({k: v.float() for k, v in extra_loss(model, step).items()})
             if appearance is not None:
                 terms["appearance"] = appearance.regularizer()
+            if refine_poses:
+                terms["pose"] = pose_refine.regularizer()
             loss = sum(terms.values())
             loss_v = float(loss.detach())
             if not math.isfinite(loss_v):
@@ -453,8 +474,13 @@ def train(
                     "input images and poses for NaN or extreme values.",
                 )
             opt.zero_grad(set_to_none=True)
+            if refine_poses:
+                pose_opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
+            if refine_poses:
+                pose_opt.step()
+                pose_refine.hold_frame()
             done = step + 1
             psnr_v = float(mse_to_psnr(terms["rgb"].detach()))
             stall.observe(done, psnr_v, cur_lr)
@@ -538,3 +564,61 @@ def render_image(
     finally:
         model.train(was_training)
     return {"rgb": rgb.view(h, w, 3), "depth": depth.view(h, w), "opacity": opacity.view(h, w)}
+
+
+ALIGN_STEPS = 100
+"""Updates that fit a held-out photo's pose to the frozen field (its rate decays from ALIGN_LR to 1/40 of it)."""
+
+ALIGN_LR = 2e-3
+"""Adam's rate for those updates (radians, scene units): up to ~0.1 rad over the fit, far more than SfM is off."""
+
+
+def align_pose(
+    model: RadianceModel,
+    image: Tensor,
+    c2w: Tensor,
+    intrinsics: Sequence[float],
+    *,
+    aabb: Tensor | None = None,
+    near_far: tuple[float, float] | None = None,
+    background: Tensor | Sequence[float] = (1.0, 1.0, 1.0),
+    steps: int = ALIGN_STEPS,
+    batch_rays: int = 1024,
+    lr: float = ALIGN_LR,
+    seed: int = 0,
+) -> Tensor:
+    """A photo's camera (4, 4) fitted to the frozen field on the pixels of ``image`` (H, W, C): for scoring a held-out
+    photo of a field whose training poses were refined (BARF's protocol), since the field's frame then differs from the
+    given poses by the photos' own pose errors. Pass only the columns that will not be scored (a left half, cropped
+    from x = 0, keeps the intrinsics). The model's parameters are left untouched."""
+    device = c2w.device
+    k = torch.tensor([list(intrinsics)], dtype=torch.float32, device=device)
+    batcher = RayBatcher([image.to(device)], c2w[None, :3, :4].float(), k, aabb=aabb,
+                         near_far=None if aabb is not None else torch.tensor(near_far, dtype=torch.float32),
+                         background=background, seed=seed, device=device)
+    refine = PoseRefinement(1).to(device)
+    opt = torch.optim.Adam(refine.parameters(), lr=lr)
+    frozen = [(p, p.requires_grad) for p in model.parameters()]
+    was_training = model.training
+    model.eval()
+    try:
+        for p, _ in frozen:
+            p.requires_grad_(False)
+        with torch.enable_grad():
+            for step in range(steps):
+                for g in opt.param_groups:
+                    g["lr"] = lr_at(step, steps, lr, lr / 40.0)
+                batch = refine.correct_batch(batcher.next_batch(batch_rays), batcher.aabb)
+                out = model.render_rays(batch["rays_o"], batch["rays_d"], batch["near"], batch["far"],
+                                        training=False, background=batch["background"])
+                loss = F.mse_loss(out["rgb"].float(), batch["rgb"])
+                opt.zero_grad(set_to_none=True)
+                loss.backward()
+                opt.step()
+    finally:
+        for p, flag in frozen:
+            p.requires_grad_(flag)
+        model.train(was_training)
+    full = torch.eye(4, dtype=torch.float32, device=device)
+    full[:3, :4] = c2w[:3, :4].float()
+    return refine.corrected_c2w(full[None])[0]

@@ -544,6 +544,10 @@ def run(ctx: StageContext) -> dict:
             from recon.nerf.appearance import to_neutral
 
             views = [replace(v, image=to_neutral(v.image, meta["appearance"].get(v.name))) for v in views]
+        if meta.get("refined_c2w"):  # training refined the photos' poses: project them where the field saw them
+            refined = meta["refined_c2w"]
+            views = [dataclasses.replace(v, c2w=np.asarray(refined[v.name], np.float64)) if v.name in refined else v
+                     for v in views]
         depths = render_depths(model, views, aabb_t if bounded else None, background, depth_side, ctx.report)
         timings["depth_s"] = round(time.perf_counter() - t, 3)
         view_note = f"{len(views)} of {len(train_frames)} training views"
