@@ -104,3 +104,27 @@ def test_mesh_stage_coherence_uses_masks_or_the_region_above_the_ground():
     masked = coherence(top, faces, [view], [depth], region, ground, 0.05, masked=True)
     assert masked["projected"]["coverage"] == pytest.approx(0.5) and masked["projected"]["outside"] == 0.0
     assert coherence(top, faces, [], [], region, ground, 0.05, masked=False)["projected"] is None
+
+
+def test_transparent_pixels_are_not_object_when_the_region_is_the_scene_box():
+    """A transparent ray's rendered depth is its exit from the scene box (the models put the remainder there), which
+    lies on the region's boundary when the region is the box: only the field's opacity tells it from a surface."""
+    from recon.stages.mesh import coherence
+    from recon.views import View
+
+    c2w, intr, hw = _camera_above(2.0)
+    h, w = hw
+    j, i = np.meshgrid(np.arange(h) + 0.5, np.arange(w) + 0.5, indexing="ij")
+    stretch = np.sqrt(1 + ((i - 50) / 100) ** 2 + ((j - 50) / 100) ** 2)
+    region = np.array([[-1.0, -1.0, -0.5], [1.0, 1.0, 1.0]])  # the box: rays leave it through z = -0.5
+    depth = 2.5 * stretch
+    opacity = np.zeros(hw)
+    depth[30:50, 30:50] = 1.5 * stretch[30:50, 30:50]  # an opaque box top at z = 0.5
+    opacity[30:50, 30:50] = 1.0
+    top, faces = _square(-0.15, 0.15, 0.15, z=0.5)
+    view = View("a", np.zeros((h, w, 3), np.uint8), c2w, intr, 0.1, 10.0)
+    exits = object_pixels(c2w, intr, depth, lambda p: np.all((p >= region[0] - 1e-9) & (p <= region[1] + 1e-9), axis=1))
+    assert exits.sum() > 400  # without the opacity the box's far face reads as object
+    out = coherence(top, faces, [view], [depth], region, None, 0.05, masked=False, opacities=[opacity])
+    assert out["projected"]["object_pixels"] == 400
+    assert out["projected"]["coverage"] == 1.0

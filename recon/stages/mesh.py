@@ -280,12 +280,19 @@ COHERENCE_VIEWS = 8
 """Photos (spread evenly over those rendered for visibility) the mesh is rasterized into for its projected coverage."""
 
 
+OBJECT_OPACITY = 0.5
+"""A pixel shows a surface (for the coherence check) when the field renders it at least this opaque."""
+
+
 def coherence(
     vertices: np.ndarray, faces: np.ndarray, views: Sequence[View], depths: Sequence[np.ndarray], region: np.ndarray,
-    ground: np.ndarray | None, ground_margin: float, masked: bool,
+    ground: np.ndarray | None, ground_margin: float, masked: bool, opacities: Sequence[np.ndarray] | None = None,
 ) -> dict:
     """Is the mesh one surface covering what the photos show of the object (`geometry.coherence`)? The object's
-    pixels are the masks' (``masked``), else those whose rendered depth lands in the mesh region above the cut ground."""
+    pixels are the masks' (``masked``), else the pixels at least OBJECT_OPACITY opaque (``opacities``) whose rendered
+    depth lands in the mesh region above the cut ground. Without the opacity a transparent ray's depth is its exit
+    from the scene box, which lies on the region's boundary when the region is the box: the surface model's runs
+    then counted the backdrop around the object as object and read 48-63% coverage."""
     out: dict[str, Any] = {"largest_piece": largest_piece(vertices, faces)}
     if not views:
         out["projected"] = None
@@ -298,7 +305,10 @@ def coherence(
 
     pick = spread_evenly(list(range(len(views))), COHERENCE_VIEWS)
     cams = [(views[i].c2w, views[i].intrinsics, views[i].hw) for i in pick]
-    objects = [views[i].image[..., 3] >= 128 if masked else object_pixels(views[i].c2w, views[i].intrinsics, depths[i], inside)
+    def surface_depth(i: int) -> np.ndarray:
+        return depths[i] if opacities is None else np.where(opacities[i] >= OBJECT_OPACITY, depths[i], np.inf)
+
+    objects = [views[i].image[..., 3] >= 128 if masked else object_pixels(views[i].c2w, views[i].intrinsics, surface_depth(i), inside)
                for i in pick]
     proj = projected_coverage(vertices, faces, cams, objects)
     proj["object"] = "the photos' masks" if masked else "pixels whose rendered depth lies in the mesh region (above the cut ground)"
@@ -309,33 +319,42 @@ def coherence(
 
 # ---------------------------------------------------------------------------------------- colors
 def render_depth(
-    model: torch.nn.Module, view: View, aabb: torch.Tensor | None, background: np.ndarray, max_side: int | None = None
+    model: torch.nn.Module, view: View, aabb: torch.Tensor | None, background: np.ndarray, max_side: int | None = None,
+    opacities: list[np.ndarray] | None = None,
 ) -> np.ndarray:
     """Expected ray distance (H, W) of the view at its own size, rendered at most ``max_side`` pixels
-    on the longest side and upsampled nearest (each full-size pixel takes the low-res pixel it lies in)."""
+    on the longest side and upsampled nearest (each full-size pixel takes the low-res pixel it lies in).
+    A transparent ray reads its far end (the models place the remainder there); pass ``opacities`` to get each
+    pixel's opacity (H, W) appended to it, to tell such rays apart."""
     h, w = view.hw
     scale = min(1.0, max_side / max(h, w)) if max_side else 1.0
     if scale >= 1.0:
-        return render_view(model, view, aabb, background)["depth"]
+        out = render_view(model, view, aabb, background)
+        if opacities is not None:
+            opacities.append(out["opacity"])
+        return out["depth"]
     h2, w2 = max(1, round(h * scale)), max(1, round(w * scale))
     sx, sy = w2 / w, h2 / h
     fx, fy, cx, cy = view.intrinsics
     small = View(view.name, np.zeros((h2, w2, 3), np.uint8), view.c2w, (fx * sx, fy * sy, cx * sx, cy * sy), view.near, view.far)
-    depth = render_view(model, small, aabb, background)["depth"]
+    out = render_view(model, small, aabb, background)
     rows = np.minimum(((np.arange(h) + 0.5) * sy).astype(np.int64), h2 - 1)
     cols = np.minimum(((np.arange(w) + 0.5) * sx).astype(np.int64), w2 - 1)
-    return depth[rows[:, None], cols[None, :]]
+    if opacities is not None:
+        opacities.append(out["opacity"][rows[:, None], cols[None, :]])
+    return out["depth"][rows[:, None], cols[None, :]]
 
 
 def render_depths(
     model: torch.nn.Module, views: Sequence[View], aabb: torch.Tensor | None, background: np.ndarray,
-    max_side: int | None, report: Any,
+    max_side: int | None, report: Any, opacities: list[np.ndarray] | None = None,
 ) -> list[np.ndarray]:
-    """Depth map of every view (`render_depth`), with a progress bar: shared by the hidden-face test and baking."""
+    """Depth map of every view (`render_depth`), with a progress bar: shared by the hidden-face test and baking
+    (and their opacities appended to ``opacities`` when given, for the coherence check)."""
     depths = []
     with report.task("rendering depth of the photos' views", total=len(views), unit="views") as bar:
         for v in views:
-            depths.append(render_depth(model, v, aabb, background, max_side))
+            depths.append(render_depth(model, v, aabb, background, max_side, opacities))
             bar.advance()
     return depths
 
@@ -532,6 +551,7 @@ def run(ctx: StageContext) -> dict:
     bounded = meta.get("bounded", True)
     views: list[View] = []
     depths: list[np.ndarray] = []
+    opacities: list[np.ndarray] = []
     masked = bool(train_frames) and all(f.mask_path for f in train_frames)
     if cfg.color == "photos" or drop_hidden or masked:
         t = time.perf_counter()
@@ -548,7 +568,7 @@ def run(ctx: StageContext) -> dict:
             refined = meta["refined_c2w"]
             views = [dataclasses.replace(v, c2w=np.asarray(refined[v.name], np.float64)) if v.name in refined else v
                      for v in views]
-        depths = render_depths(model, views, aabb_t if bounded else None, background, depth_side, ctx.report)
+        depths = render_depths(model, views, aabb_t if bounded else None, background, depth_side, ctx.report, opacities)
         timings["depth_s"] = round(time.perf_counter() - t, 3)
         view_note = f"{len(views)} of {len(train_frames)} training views"
         if len(views) < len(train_frames):
@@ -595,7 +615,7 @@ def run(ctx: StageContext) -> dict:
 
     t = time.perf_counter()
     coherent = coherence(vertices, faces, views, depths, region, ground,
-                         GROUND_MARGIN_CELLS * surface_cell(model, region, shape)[0], masked)
+                         GROUND_MARGIN_CELLS * surface_cell(model, region, shape)[0], masked, opacities or None)
     timings["coherence_s"] = round(time.perf_counter() - t, 3)
     piece, proj = coherent["largest_piece"], coherent["projected"]
     ctx.report.info(
