@@ -4,17 +4,17 @@ SfM fits each camera to the few hundred features it matched; a photo that sees l
 thin plate seen edge on: 28 points) gets a pose a few pixels off, while the field would need every photo to agree
 to the pixel. Here training photo i gets a small rotation ``exp(r_i)`` about its own centre and a shift ``t_i``
 of that centre, both starting at zero and pulled back towards it (``REG_WEIGHT``): the photos' pixels move the
-cameras where the SfM points left them loose. The held-out photos keep their SfM poses, so the corrections must not
-move the cameras together: after each update the similarity that the corrected camera centres make with the SfM ones
+cameras where the SfM points left them loose. The field's frame must stay the SfM poses' frame (novel views and
+held-out photos are posed in it), so the corrections must not move the cameras together: after each update the similarity that the corrected camera centres make with the SfM ones
 (a shift, turn or scale of the whole rig, which the field could follow) is taken out (:meth:`PoseRefinement.hold_frame`).
-Held-out photos are scored with their own pose fitted to the frozen field (`recon.nerf.trainer.align_pose`, BARF's
-protocol): their SfM poses are as far off as the training photos' were.
+Held-out photos are scored with their own pose fitted to the frozen field on the half of the photo not scored
+(`recon.nerf.trainer.align_pose`, BARF's protocol): their SfM poses are as far off as the training photos' were.
 
 Measured (README, "Pose refinement"): on the generator's thin scene the largest corrections went to the two photos
 SfM misplaced most, but neither F@0.5% nor the held-out PSNR rose, and the fox's poses needed 0.16 px; so it is
 opt-in (``train.pose_refine=on``).
 
-The field never sees the corrections: rendering, meshing and evaluation use the scene's poses.
+The corrected training poses go into the field's metadata (``refined_c2w``), from which the mesh stage bakes colours.
 """
 from __future__ import annotations
 
@@ -41,7 +41,8 @@ and cost 1.9 dB."""
 
 EVERY = 4
 """The corrections learn on every EVERY-th step only: then the rays carry gradients back through every sample's
-position, which cost 25% of a fast step (sample, 181 against 243 steps per minute)."""
+position. On every step that cost 25% of a fast step (sample: 181 against 243 steps per minute), on every 4th 9%
+(221)."""
 
 START = 0.1
 """...and not before this fraction of the training: the first steps' field is too rough to say where a camera is."""
