@@ -232,8 +232,8 @@ def test_photos_baked_onto_the_mesh_are_brought_to_the_neutral_appearance() -> N
 
 def test_auto_needs_the_pairs_to_differ_not_only_the_least_squares_gains() -> None:
     """A few inconsistent pairs (specular highlights, mismatches) that least squares spreads over many photos do
-    not switch the model on; an exposure change that shows in most pairs does (counts measured on the Lego and on
-    the tabletop fixture)."""
+    not switch the model on; an exposure change that shows in most pairs does (counts measured on the Lego, on
+    the tabletop fixture and on the fox)."""
     from recon.nerf.appearance import ExposureSpread, decide
 
     gains = np.zeros((60, 3))
@@ -243,3 +243,6 @@ def test_auto_needs_the_pairs_to_differ_not_only_the_least_squares_gains() -> No
     assert not on and "9 of those pairs" in why
     tabletop_like = ExposureSpread(gains, per_photo, 0.08, changed=16, pairs=81, pairs_changed=67)
     assert decide("auto", tabletop_like)[0]
+    for pairs, changed_pairs in ((118, 17), (146, 22)):  # the fox's phone photos, two SfM runs: on both times
+        fox_like = ExposureSpread(gains, per_photo, 0.08, changed=27, pairs=pairs, pairs_changed=changed_pairs)
+        assert decide("auto", fox_like)[0]
