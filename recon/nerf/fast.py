@@ -48,6 +48,7 @@ train stage (`recon train`, fast preset, random backgrounds): Lego at 200x200, 2
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from typing import Any
 
 import torch
@@ -57,6 +58,7 @@ from torch import Tensor, nn
 from recon.nerf.model_config import FastConfig, GridKind
 from recon.nerf.contraction import contract
 from recon.nerf.grid import DenseGrid, HashGrid, MultiDenseGrid, VMGrid, resample_dense
+from recon.nerf.native import march_dense_native
 from recon.nerf.occupancy import OccupancyGrid, density_threshold, march, march_front_to_back
 from recon.nerf.rays import ray_aabb
 from recon.nerf.render import RadianceModel, accumulate_packed, checked_aabb, render_weights_packed
@@ -146,6 +148,25 @@ def color_from_features(f: Tensor, d: Tensor, mlp: nn.Module | None, color_model
     if color_model == "mlp_view":
         f = torch.cat([f, sh_encode(d, sh_degree).to(f)], dim=-1)
     return torch.sigmoid(mlp(f).float())
+
+
+INFERENCE_SLICE = 8192
+"""Samples per call of the color path when no gradient is recorded. A render's colored samples (~125k per
+16k-ray chunk) in one call push the MLP's 64-wide activations out of the cache: sliced, the same work took
+10.1 instead of 21.8 ms per 125k samples on this CPU (results equal to 6e-8)."""
+
+
+def sliced_without_grad(fn: Callable[[Tensor, Tensor], Tensor], u: Tensor, d: Tensor) -> Tensor:
+    """``fn(u, d)`` row-wise on slices of ``INFERENCE_SLICE`` rows when gradients are off (rendering), else at once."""
+    n = u.shape[0]
+    if torch.is_grad_enabled() or n <= INFERENCE_SLICE:
+        return fn(u, d)
+    first = fn(u[:INFERENCE_SLICE], d[:INFERENCE_SLICE])
+    out = first.new_empty((n, *first.shape[1:]))
+    out[:INFERENCE_SLICE] = first
+    for s in range(INFERENCE_SLICE, n, INFERENCE_SLICE):
+        out[s : s + INFERENCE_SLICE] = fn(u[s : s + INFERENCE_SLICE], d[s : s + INFERENCE_SLICE])
+    return out
 
 
 def ray_background(
@@ -239,6 +260,9 @@ class FastModel(RadianceModel):
         return trunc_exp(raw) * self.density_scale
 
     def _rgb_unit(self, u: Tensor, d: Tensor) -> Tensor:
+        return sliced_without_grad(self._rgb_slice, u, d)
+
+    def _rgb_slice(self, u: Tensor, d: Tensor) -> Tensor:
         return color_from_features(self.color_grid(u), d, self.color_mlp, self.config.color_model, self.config.sh_degree)
 
     def density(self, x: Tensor) -> Tensor:
@@ -301,7 +325,11 @@ class FastModel(RadianceModel):
         # the contracted marcher has no front-to-back variant: it returns no densities to reuse
         infer = not training and not torch.is_grad_enabled() and early_stop and not contracted
         with torch.no_grad():
-            if early_stop and not contracted:
+            native = self._march_native(rays_o, rays_d, t_near, t_far, step_size, training) if early_stop else None
+            if native is not None:
+                ts, te, ri, sigma = native
+                evaluated[0] += int(ts.shape[0])
+            elif early_stop and not contracted:
                 ts, te, ri, sigma = march_front_to_back(
                     rays_o, rays_d, t_near, t_far, self.occupancy, step_size, cfg.max_samples, sigma_fn,
                     cone_angle=cfg.cone_angle, jitter=training, min_transmittance=cfg.early_stop_transmittance,
@@ -339,6 +367,22 @@ class FastModel(RadianceModel):
         if reg is not None:
             out["reg"] = reg
         return out
+
+    def _march_native(
+        self, rays_o: Tensor, rays_d: Tensor, t_near: Tensor, t_far: Tensor, step_size: float, training: bool
+    ) -> tuple[Tensor, Tensor, Tensor, Tensor] | None:
+        """:func:`march_front_to_back` by the native marcher (:mod:`recon.nerf.native`) where it applies: a bounded
+        field on dense scalar density grids, uniform steps, float32 on the CPU. None where it does not."""
+        cfg = self.config
+        grid = self.density_grid
+        levels = [grid] if isinstance(grid, DenseGrid) else list(grid.grids) if isinstance(grid, MultiDenseGrid) else []
+        if cfg.unbounded or cfg.cone_angle > 0 or not levels or any(g.channels != 1 for g in levels):
+            return None
+        return march_dense_native(
+            rays_o, rays_d, t_near, t_far, training, self.occupancy.occupied, self.occupancy.box, step_size, cfg.max_samples,
+            cfg.early_stop_transmittance, [g.table.detach().view(-1) for g in levels], self.grid_box, self.density_bias,
+            self.density_scale, cfg.density_activation != "softplus",
+        )
 
     def _regularizers(self, weights: Tensor, mid: Tensor, delta: Tensor, ri: Tensor, n: int, opacity: Tensor) -> Tensor | None:
         cfg = self.config

@@ -198,6 +198,10 @@ def run(ctx: StageContext) -> dict:
     background, random_bg, bg_why = choose_background(cfg, scene, views, backdrop)
     if budget_s:
         reasons.append(f"time budget {cfg.budget}: at most {cfg.steps} steps, stopping when the budget is spent")
+    if kind == "fast" and device.type == "cpu":
+        from recon.nerf.native import native_status
+
+        reasons.append(f"marcher: {native_status()}")
     ctx.report.info(f"device: {device}; background: {bg_why}")
     for r in reasons:
         ctx.report.info(f"model: {r}")
