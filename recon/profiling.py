@@ -24,8 +24,9 @@ import torch
 BACKWARD_KINDS = (
     ("GridSampler", "density grid bwd"),
     ("GatherInterp", "feature grid bwd"),
+    ("NativeTrilinear", "grid bwd (native: density levels + features)"),
     ("Addmm", "MLP bwd"), ("Mm", "MLP bwd"), ("Relu", "MLP bwd"), ("Threshold", "MLP bwd"), ("TBackward", "MLP bwd"),
-    ("Sigmoid", "MLP bwd"),
+    ("Sigmoid", "MLP bwd"), ("CatBackward", "MLP bwd"), ("SliceBackward", "MLP bwd"),  # the MLP's slices
 )
 """Autograd node name fragments -> part of the step (everything else in backward is 'compositing bwd')."""
 
@@ -72,10 +73,14 @@ def _labelled(targets: list[tuple[Any, str, str]]) -> Iterator[dict[str, list[in
             with torch.profiler.record_function(_label):
                 result = _fn(*args, **kwargs)
             first = next((a for a in args if isinstance(a, torch.Tensor)), None)
-            if _name == "march_dense_native":  # its densities are the samples it returns (None: it did not run)
-                first = result[2] if result is not None else None
-            if first is not None:
-                counts[_name].append(int(first.shape[0]))
+            rows = None if first is None else int(first.shape[0])
+            # the native marchers evaluate the densities of the samples they keep (None: they did not run)
+            if _name == "march_dense_native":
+                rows = None if result is None else int(result[2].shape[0])
+            elif _name == "march_render_native":
+                rows = None if result is None else int(result["samples"].sum())
+            if rows is not None:
+                counts[_name].append(rows)
             return result
 
         setattr(owner, name, wrapper)
@@ -100,13 +105,13 @@ def reference_marching() -> Iterator[None]:
                            jitter=jitter, sigma_fn=sigma_fn, min_transmittance=min_transmittance)
         return ts, te, ri, sigma_fn(ts, te, ri)
 
-    saved, saved_native = fast.march_front_to_back, fast.march_dense_native
+    saved = fast.march_front_to_back, fast.march_dense_native, fast.march_render_native
     fast.march_front_to_back = reference
-    fast.march_dense_native = lambda *args, **kwargs: None  # the torch marcher, not the native one
+    fast.march_dense_native = fast.march_render_native = lambda *args, **kwargs: None  # torch, not the native marcher
     try:
         yield
     finally:
-        fast.march_front_to_back, fast.march_dense_native = saved, saved_native
+        fast.march_front_to_back, fast.march_dense_native, fast.march_render_native = saved
 
 
 def _part(event: Any) -> str:
@@ -141,6 +146,7 @@ def _labels(model: Any, batcher: Any) -> list[tuple[Any, str, str]]:
         (fast, "march", "recon:marcher (occupancy skip + no-grad density pre-pass)"),
         (fast, "march_front_to_back", "recon:marcher (occupancy skip + no-grad density pre-pass)"),
         (fast, "march_dense_native", "recon:marcher (occupancy skip + no-grad density pre-pass)"),
+        (fast, "march_render_native", "recon:marcher (native, with compositing)"),
         (type(model), "_sigma_unit", "recon:density grid fwd"),
         (type(model), "_rgb_unit", "recon:feature grid + color MLP fwd"),
         (fast, "render_weights_packed", "recon:compositing fwd"),
@@ -231,7 +237,8 @@ def profile_preset(data: str, preset: str, out_dir: Path, overrides: list[str], 
                 render_image(model, c2w_t, view.intrinsics, h, w, aabb=aabb, background=torch.tensor(background))
             rwall = time.perf_counter() - t0
         res["render"] = {"view": view.name, "size": f"{w}×{h}", "wall_s": rwall, "parts": attribute(rprof),
-                         "samples": sum(rcounts["_sigma_unit"]) + sum(rcounts["march_dense_native"]),
+                         "samples": sum(rcounts["_sigma_unit"]) + sum(rcounts["march_dense_native"])
+                         + sum(rcounts["march_render_native"]),
                          "rays": h * w,
                          "top_ops": rprof.key_averages().table(sort_by="self_cpu_time_total", row_limit=12)}
     return res

@@ -14,11 +14,12 @@ from recon.nerf.rays import camera_rays, ray_aabb
 needs_native = pytest.mark.skipif(native.native_marcher() is None, reason=f"native marcher {native.native_status()}")
 
 
-def _ball_model(levels: int, activation: str) -> FastModel:
-    """A fast model holding a noisy opaque ball (radius ~0.6) on ``levels`` density grids; occupancy refreshed."""
+def _ball_model(levels: int, activation: str, occupancy_res: int = 24) -> FastModel:
+    """A fast model holding a noisy opaque ball (radius ~0.6) on ``levels`` density grids; occupancy refreshed
+    (24³ cells: rays jump over empty blocks of 8³; 20³ has no blocks)."""
     torch.manual_seed(0)
     cfg = FastConfig(aabb=((-1.0, -1.2, -0.8), (1.1, 1.0, 1.0)), density_res=40, feature_res=24, density_levels=levels,
-                     occupancy_res=20, density_activation=activation)
+                     occupancy_res=occupancy_res, density_activation=activation)
     model = FastModel(cfg)
     with torch.no_grad():
         grids = model.density_grid.grids if levels > 1 else [model.density_grid]
@@ -44,9 +45,14 @@ def _rays(model: FastModel, n_side: int = 40) -> tuple[torch.Tensor, ...]:
 
 
 @needs_native
-@pytest.mark.parametrize("levels,activation,jitter", [(3, "softplus", False), (1, "trunc_exp", False), (3, "softplus", True)])
-def test_native_march_keeps_the_torch_marchers_samples(levels: int, activation: str, jitter: bool) -> None:
-    model = _ball_model(levels, activation)
+@pytest.mark.parametrize("levels,activation,jitter,cells", [(3, "softplus", False, 24), (1, "trunc_exp", False, 24),
+                                                         (3, "softplus", True, 24), (3, "softplus", True, 20)])
+def test_native_march_keeps_the_torch_marchers_samples(levels: int, activation: str, jitter: bool, cells: int) -> None:
+    model = _ball_model(levels, activation, cells)
+    blocks = native._empty_blocks(model.occupancy.occupied)
+    assert (blocks is None) == (cells % native.BLOCK != 0)
+    if blocks is not None:
+        assert 0 < int(blocks.sum()) < blocks.numel()  # some blocks are empty: rays jump over them
     o, d, tn, tf = _rays(model)
 
     def sigma_fn(ts: torch.Tensor, te: torch.Tensor, ri: torch.Tensor) -> torch.Tensor:
@@ -56,11 +62,8 @@ def test_native_march_keeps_the_torch_marchers_samples(levels: int, activation: 
     ref = march_front_to_back(o, d, tn, tf, model.occupancy, model.step_size, 1024, sigma_fn, jitter=jitter,
                               min_transmittance=1e-3)
     torch.manual_seed(3)
-    levels_ = model.density_grid.grids if levels > 1 else [model.density_grid]
     with torch.no_grad():
-        got = native.march_dense_native(o, d, tn, tf, jitter, model.occupancy.occupied, model.occupancy.box, model.step_size,
-                                        1024, 1e-3, [g.table.view(-1) for g in levels_], model.grid_box,
-                                        model.density_bias, model.density_scale, activation == "trunc_exp")
+        got = native.march_dense_native(o, d, tn, tf, jitter, model._dense_density(), model.step_size, 1024, 1e-3)
     assert got is not None
     assert ref[2].numel() > 10 * o.shape[0] // 4  # the ball is hit: many samples, early termination matters
     assert torch.equal(got[2], ref[2])  # the same samples of the same rays, in the same order
@@ -110,8 +113,7 @@ def test_a_failed_build_falls_back_to_torch(monkeypatch: pytest.MonkeyPatch, tmp
         assert native.native_status().startswith("torch: building recon/nerf/march.c failed")
         model = _ball_model(1, "softplus")
         o, d, tn, tf = _rays(model, 16)
-        assert native.march_dense_native(o, d, tn, tf, False, model.occupancy.occupied, model.occupancy.box, 0.01, 64, 1e-3,
-                                         [model.density_grid.table.view(-1)], model.grid_box, 0.0, 1.0, False) is None
+        assert native.march_dense_native(o, d, tn, tf, False, model._dense_density(), 0.01, 64, 1e-3) is None
         with torch.no_grad():  # the model renders through the torch marcher
             out = model.render_rays(o, d, tn, tf, training=False, background=torch.ones(3))
         assert out["num_samples"] > 0
@@ -120,3 +122,51 @@ def test_a_failed_build_falls_back_to_torch(monkeypatch: pytest.MonkeyPatch, tmp
         assert native.native_marcher() is None and native.native_status() == "torch (RECON_NATIVE=0)"
     finally:
         native.native_marcher.cache_clear()
+
+
+@needs_native
+@pytest.mark.parametrize("channels", [1, 12])
+def test_native_grid_reads_train_as_the_torch_paths(channels: int) -> None:
+    """Values and table gradients of the C reads equal torch's (grid_sample for one channel, the gather for more);
+    points that need a gradient themselves (normals, pose refinement) keep the torch path."""
+    from recon.nerf.grid import MultiDenseGrid
+
+    torch.manual_seed(2)
+    for grid in (DenseGrid(9, channels, init_std=1.0), MultiDenseGrid(17, channels, levels=3)):
+        for level in grid.modules():
+            if isinstance(level, DenseGrid):
+                torch.nn.init.normal_(level.table)
+        x = torch.cat([torch.rand(3000, 3), torch.tensor([[0.0, 1.0, 0.5], [1.0, 1.0, 1.0]])])
+        upstream = torch.randn(x.shape[0], channels)
+        native_out = grid(x)  # x needs no gradient: the C path
+        (native_out * upstream).sum().backward()
+        native_grads = [p.grad.clone() for p in grid.parameters()]
+        grid.zero_grad()
+        x_torch = x.clone().requires_grad_(True)  # a point gradient is wanted: the torch path
+        torch_out = grid(x_torch)
+        (torch_out * upstream).sum().backward()
+        torch.testing.assert_close(native_out, torch_out, atol=1e-5, rtol=1e-5)
+        for a, p in zip(native_grads, grid.parameters()):
+            torch.testing.assert_close(a, p.grad, atol=1e-4, rtol=1e-4)
+        assert x_torch.grad is not None and bool(x_torch.grad.abs().sum() > 0)
+        grid.zero_grad()
+
+
+@needs_native
+@pytest.mark.parametrize("set_to_none", [True, False])
+def test_the_reused_gradient_buffer_never_doubles_a_gradient(set_to_none: bool) -> None:
+    torch.manual_seed(4)
+    grid = DenseGrid(6, 12, init_std=1.0)
+    x, upstream = torch.rand(500, 3), torch.randn(500, 12)
+    opt = torch.optim.SGD(grid.parameters(), lr=0.0)
+    grads = []
+    for _ in range(3):
+        opt.zero_grad(set_to_none=set_to_none)
+        (grid(x) * upstream).sum().backward()
+        grads.append(grid.table.grad.clone())
+    torch.testing.assert_close(grads[1], grads[0])
+    torch.testing.assert_close(grads[2], grads[0])
+    if set_to_none:  # the gradient of every step lands in the same memory
+        assert grid.table.grad is grid._grad_buffer
+    (grid(x) * upstream).sum().backward()  # no zero_grad: gradients accumulate, as autograd's do
+    torch.testing.assert_close(grid.table.grad, 2 * grads[0])

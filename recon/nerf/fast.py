@@ -58,7 +58,7 @@ from torch import Tensor, nn
 from recon.nerf.model_config import FastConfig, GridKind
 from recon.nerf.contraction import contract
 from recon.nerf.grid import DenseGrid, HashGrid, MultiDenseGrid, VMGrid, resample_dense
-from recon.nerf.native import march_dense_native
+from recon.nerf.native import DenseDensity, march_dense_native, march_render_native
 from recon.nerf.occupancy import OccupancyGrid, density_threshold, march, march_front_to_back
 from recon.nerf.rays import ray_aabb
 from recon.nerf.render import RadianceModel, accumulate_packed, checked_aabb, render_weights_packed
@@ -150,22 +150,25 @@ def color_from_features(f: Tensor, d: Tensor, mlp: nn.Module | None, color_model
     return torch.sigmoid(mlp(f).float())
 
 
-INFERENCE_SLICE = 8192
-"""Samples per call of the color path when no gradient is recorded. A render's colored samples (~125k per
-16k-ray chunk) in one call push the MLP's 64-wide activations out of the cache: sliced, the same work took
-10.1 instead of 21.8 ms per 125k samples on this CPU (results equal to 6e-8)."""
+MLP_SLICE = 8192
+"""Samples per call of the color MLP. A batch's colored samples (~66k per training step, ~125k per 16k-ray
+render chunk) in one call push the MLP's 64-wide activations out of the cache: in slices the same work took
+10.1 instead of 21.8 ms per 125k samples without gradients, and 25.8 instead of 35.7 ms forward + backward per
+66k samples (this CPU; results equal to 6e-8)."""
 
 
-def sliced_without_grad(fn: Callable[[Tensor, Tensor], Tensor], u: Tensor, d: Tensor) -> Tensor:
-    """``fn(u, d)`` row-wise on slices of ``INFERENCE_SLICE`` rows when gradients are off (rendering), else at once."""
-    n = u.shape[0]
-    if torch.is_grad_enabled() or n <= INFERENCE_SLICE:
-        return fn(u, d)
-    first = fn(u[:INFERENCE_SLICE], d[:INFERENCE_SLICE])
+def in_slices(fn: Callable[[Tensor, Tensor], Tensor], f: Tensor, d: Tensor) -> Tensor:
+    """``fn(f, d)`` of a row-wise ``fn``, computed on slices of ``MLP_SLICE`` rows (differentiably when recording)."""
+    n = f.shape[0]
+    if n <= MLP_SLICE:
+        return fn(f, d)
+    if torch.is_grad_enabled():
+        return torch.cat([fn(f[s : s + MLP_SLICE], d[s : s + MLP_SLICE]) for s in range(0, n, MLP_SLICE)])
+    first = fn(f[:MLP_SLICE], d[:MLP_SLICE])
     out = first.new_empty((n, *first.shape[1:]))
-    out[:INFERENCE_SLICE] = first
-    for s in range(INFERENCE_SLICE, n, INFERENCE_SLICE):
-        out[s : s + INFERENCE_SLICE] = fn(u[s : s + INFERENCE_SLICE], d[s : s + INFERENCE_SLICE])
+    out[:MLP_SLICE] = first
+    for s in range(MLP_SLICE, n, MLP_SLICE):
+        out[s : s + MLP_SLICE] = fn(f[s : s + MLP_SLICE], d[s : s + MLP_SLICE])
     return out
 
 
@@ -260,10 +263,10 @@ class FastModel(RadianceModel):
         return trunc_exp(raw) * self.density_scale
 
     def _rgb_unit(self, u: Tensor, d: Tensor) -> Tensor:
-        return sliced_without_grad(self._rgb_slice, u, d)
+        return in_slices(self._rgb_from_features, self.color_grid(u), d)
 
-    def _rgb_slice(self, u: Tensor, d: Tensor) -> Tensor:
-        return color_from_features(self.color_grid(u), d, self.color_mlp, self.config.color_model, self.config.sh_degree)
+    def _rgb_from_features(self, f: Tensor, d: Tensor) -> Tensor:
+        return color_from_features(f, d, self.color_mlp, self.config.color_model, self.config.sh_degree)
 
     def density(self, x: Tensor) -> Tensor:
         """World-space density sigma (M,) at x (M, 3), 1/world unit; 0 outside the scene box (bounded)."""
@@ -324,8 +327,17 @@ class FastModel(RadianceModel):
         contracted = cfg.unbounded and cfg.unbounded_steps == "contracted"
         # the contracted marcher has no front-to-back variant: it returns no densities to reuse
         infer = not training and not torch.is_grad_enabled() and early_stop and not contracted
+        field = self._dense_density() if early_stop else None
+        if infer and field is not None:  # march and composite natively: only the colored samples come back
+            fused = march_render_native(rays_o, rays_d, t_near, t_far, field, step_size, cfg.max_samples,
+                                        cfg.early_stop_transmittance, cfg.color_min_weight)
+            if fused is not None:
+                return self._composite_native(fused, rays_o, rays_d, far, background)
         with torch.no_grad():
-            native = self._march_native(rays_o, rays_d, t_near, t_far, step_size, training) if early_stop else None
+            native = None
+            if field is not None:
+                native = march_dense_native(rays_o, rays_d, t_near, t_far, training, field, step_size, cfg.max_samples,
+                                            cfg.early_stop_transmittance)
             if native is not None:
                 ts, te, ri, sigma = native
                 evaluated[0] += int(ts.shape[0])
@@ -368,21 +380,31 @@ class FastModel(RadianceModel):
             out["reg"] = reg
         return out
 
-    def _march_native(
-        self, rays_o: Tensor, rays_d: Tensor, t_near: Tensor, t_far: Tensor, step_size: float, training: bool
-    ) -> tuple[Tensor, Tensor, Tensor, Tensor] | None:
-        """:func:`march_front_to_back` by the native marcher (:mod:`recon.nerf.native`) where it applies: a bounded
-        field on dense scalar density grids, uniform steps, float32 on the CPU. None where it does not."""
+    def _dense_density(self) -> DenseDensity | None:
+        """The field as the native marcher (:mod:`recon.nerf.native`) takes it, where it applies: a bounded field on
+        dense scalar density grids with uniform steps. None where it does not (the torch marcher runs)."""
         cfg = self.config
         grid = self.density_grid
         levels = [grid] if isinstance(grid, DenseGrid) else list(grid.grids) if isinstance(grid, MultiDenseGrid) else []
         if cfg.unbounded or cfg.cone_angle > 0 or not levels or any(g.channels != 1 for g in levels):
             return None
-        return march_dense_native(
-            rays_o, rays_d, t_near, t_far, training, self.occupancy.occupied, self.occupancy.box, step_size, cfg.max_samples,
-            cfg.early_stop_transmittance, [g.table.detach().view(-1) for g in levels], self.grid_box, self.density_bias,
-            self.density_scale, cfg.density_activation != "softplus",
-        )
+        return DenseDensity(self.occupancy.occupied, self.occupancy.box, [g.table.detach().view(-1) for g in levels],
+                            self.grid_box, self.density_bias, self.density_scale, cfg.density_activation != "softplus")
+
+    def _composite_native(self, fused: dict[str, Tensor], rays_o: Tensor, rays_d: Tensor, far: Tensor,
+                          background: Tensor | None) -> dict[str, Any]:
+        """render_rays' result from :func:`march_render_native`'s per-ray sums and colored samples."""
+        n = rays_o.shape[0]
+        ri_c, w_c = fused["ray_indices"], fused["weights"]
+        rgb_s = self._rgb_unit(fused["u"], rays_d[ri_c])
+        opacity = fused["opacity"]
+        bg = self._background(background, n, rays_o, False)
+        remainder = (1.0 - opacity).clamp_min(0.0)
+        rgb = accumulate_packed(w_c, rgb_s, ri_c, n) + remainder[:, None] * bg
+        depth = fused["depth_sum"] + remainder * far
+        samples = int(fused["samples"].sum())
+        return {"rgb": rgb, "depth": depth, "opacity": opacity, "background": bg, "num_samples": samples,
+                "density_evals": samples}
 
     def _regularizers(self, weights: Tensor, mid: Tensor, delta: Tensor, ri: Tensor, n: int, opacity: Tensor) -> Tensor | None:
         cfg = self.config

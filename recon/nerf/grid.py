@@ -45,7 +45,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from recon.nerf.native import trilinear_features_native
+from recon.nerf.native import native_grid_ok, trilinear_backward_native, trilinear_features_native
 
 _PRIMES = (1, 2654435761, 805459861)  # instant-ngp spatial hash (Teschner et al. 2003 / Müller et al. 2022)
 
@@ -131,6 +131,39 @@ def grid_sample_coords(x01: Tensor, dtype: torch.dtype) -> Tensor:
     return (x01.clamp(0.0, 1.0) * 2.0 - 1.0).flip(-1).view(1, 1, 1, -1, 3).to(dtype)
 
 
+class _NativeTrilinear(torch.autograd.Function):
+    """A dense grid's trilinear read in C (:mod:`recon.nerf.native`), differentiable in the table only (the torch
+    paths stay for points that need a gradient: normals, pose refinement).
+
+    The backward scatters straight into the table's ``.grad``: into the gradient already there (accumulating, as
+    autograd would), or, when there is none (optimizers drop gradients between steps), into a buffer the grid keeps
+    and hands over as ``.grad``. A fresh zeroed gradient per step (42 MB for the fast preset's feature grid) cost its
+    page faults on every step; autograd would copy a returned buffer that the grid still holds."""
+
+    @staticmethod
+    def forward(ctx, table: Tensor, x01: Tensor, grid: "DenseGrid") -> Tensor:  # type: ignore[override]
+        ctx.save_for_backward(x01)
+        ctx.grid = grid
+        return trilinear_features_native(x01, table, grid.res)
+
+    @staticmethod
+    def backward(ctx, g: Tensor) -> tuple[None, None, None]:  # type: ignore[override]
+        (x01,) = ctx.saved_tensors
+        grid = ctx.grid
+        table = grid.table
+        held = table.grad
+        if held is not None and held.is_contiguous() and held.dtype == torch.float32 and held.shape == table.shape:
+            trilinear_backward_native(x01, g, grid.res, out=held, accumulate=True)
+        else:
+            buffer = grid._grad_buffer
+            if buffer is None or buffer.shape != table.shape or buffer is held:
+                buffer = torch.empty_like(table)
+            grid._grad_buffer = buffer
+            grad = trilinear_backward_native(x01, g, grid.res, out=buffer)
+            table.grad = grad if held is None else held + grad
+        return None, None, None
+
+
 class DenseGrid(nn.Module):
     """Dense voxel grid (DVGO / Plenoxels style) of ``res`` vertices per side, trilinear interpolation.
 
@@ -141,6 +174,7 @@ class DenseGrid(nn.Module):
         super().__init__()
         self.res, self.channels = int(res), int(channels)
         self.table = nn.Parameter(torch.randn(self.res**3, self.channels) * init_std)
+        self._grad_buffer: Tensor | None = None  # see _NativeTrilinear
 
     @property
     def out_dim(self) -> int:
@@ -157,12 +191,12 @@ class DenseGrid(nn.Module):
         3x faster than building corner indices for a scalar grid); more channels use the channels-last
         gather, whose backward was 2.3x faster than grid_sample's at 12 channels.
         """
+        if not x01.requires_grad and native_grid_ok(x01, self.table):  # no gradient to the points needed: in C
+            if torch.is_grad_enabled() and self.table.requires_grad:
+                return _NativeTrilinear.apply(self.table, x01, self)
+            return trilinear_features_native(x01, self.table, self.res)
         if self.channels == 1:
             return self.sample_scalar(grid_sample_coords(x01, self.table.dtype))
-        if not torch.is_grad_enabled():  # rendering: one native pass when the library is there
-            out = trilinear_features_native(x01, self.table, self.res)
-            if out is not None:
-                return out
         i0, frac = axis_cells(x01, self.res)
         return gather_interp(self.table, corner_rows(i0, self.res), corner_weights(frac))
 
@@ -217,7 +251,8 @@ class MultiDenseGrid(nn.Module):
 
     def forward(self, x01: Tensor) -> Tensor:
         """x01: (M, 3) in [0, 1] -> (M, C), the sum over levels."""
-        if self.channels == 1:  # one coordinate transform for every level
+        native = not x01.requires_grad and native_grid_ok(x01, self.grids[0].table)  # then each level reads in C
+        if self.channels == 1 and not native:  # one coordinate transform for every level
             g = grid_sample_coords(x01, self.grids[0].table.dtype)
             out = self.grids[0].sample_scalar(g)
             for grid in self.grids[1:]:
