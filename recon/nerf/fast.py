@@ -10,7 +10,9 @@ Design (DVGO-like, tuned for a small CPU; runs unchanged on CUDA):
   exceeds ``color_min_weight``: the density pass decides where color matters.
 * samples come packed from :func:`recon.nerf.occupancy.march` (occupied cells only, early ray
   termination in a no-grad pre-pass), ordered along each ray (grids read ordered points faster).
-  In a bounded scene rays are clipped to the box around the occupied cells once the grid is warm.
+  In a bounded scene rays are clipped to the box around the occupied cells once the grid is warm. On the CPU
+  a bounded scene marches in C (:mod:`recon.nerf.native`: the same samples, 2.5x faster renders, ~1.8x faster
+  training steps on Lego), and rendering composites there too.
 
 Coordinates: world = normalized scene frame. Bounded scenes map the ``aabb`` onto the grids'
 unit cube; unbounded ones contract (:mod:`recon.nerf.contraction`) into [-2, 2]^3 first.

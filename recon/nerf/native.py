@@ -1,12 +1,14 @@
-"""The native marcher (``march.c``): built with the system's C compiler on first use, the torch marcher otherwise.
+"""The fast model's hot loops in C (``march.c``): built with the system's C compiler on first use, torch otherwise.
 
 Why: the torch marcher costs ~25 tensor passes over every candidate step (8.3 M per 400×400 Lego view, 72% of
-them in empty cells) and three ``grid_sample`` calls per density; in C a candidate is a few flops. The
-library is plain C with no Python or torch headers, so it builds in about a second with ``cc``; it is
-cached under ``~/.cache/recon`` (``$XDG_CACHE_HOME``) keyed by the source's hash, and loaded with ctypes.
-Nothing depends on it: with no compiler, a failed build, a CUDA tensor, or ``RECON_NATIVE=0``, callers use
-the torch path, which marches the same samples (``tests/test_native_march.py`` holds the two together).
-Rays are split over threads (ctypes releases the GIL), one per torch CPU thread.
+them in empty cells) and three ``grid_sample`` calls per density; in C a candidate is a few flops. Here: the
+march (occupancy, empty-block jumps, density levels, early termination; when rendering, compositing too) and
+dense grids' trilinear reads and their table gradient. The library is plain C with no Python or torch headers,
+so it builds in about a second with ``cc``; it is cached under ``~/.cache/recon`` (``$XDG_CACHE_HOME``) keyed by
+the source's hash, and loaded with ctypes. Nothing depends on it: with no compiler, a failed build, a CUDA
+tensor, or ``RECON_NATIVE=0``, callers use the torch paths, which compute the same samples and values
+(``tests/test_native_march.py`` holds the two together). Rays are split over threads (ctypes releases the GIL),
+one per torch CPU thread. Measurements: docs/profile.md.
 """
 from __future__ import annotations
 
@@ -17,9 +19,9 @@ import os
 import shutil
 import subprocess
 import tempfile
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-from collections.abc import Callable
 from functools import lru_cache
 from pathlib import Path
 from typing import TypeVar
