@@ -165,6 +165,11 @@ def test_loop_pairs_close_the_loop_without_repeating_sequential_pairs() -> None:
     assert loop_pairs(names, keyframes=0, overlap=10) == []
 
 
+POSES_OPTIONS = ["poses.video_frames=50", "poses.max_side=400", "poses.num_threads=1"]
+"""The small clip's poses run. One thread: COLMAP is then deterministic under its fixed seed; with threads, one suite
+run in about fifteen registered 5 of 43 frames (2026-11-24), which these tests are not about."""
+
+
 @pytest.fixture(scope="module")
 def posed(clip: Path, tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
     """`recon run clip.mp4 --until poses` once for the module: (scene folder, the clip it read)."""
@@ -172,7 +177,7 @@ def posed(clip: Path, tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, P
     source = folder / "clip.mp4"
     shutil.copy(clip, source)
     code, out = _recon("run", str(source), "--out", str(folder / "scene"), "--until", "poses", "--quiet",
-                       "--set", "poses.video_frames=50", "--set", "poses.max_side=400")
+                       *(a for o in POSES_OPTIONS for a in ("--set", o)))
     assert code == 0, out
     return folder / "scene", source
 
@@ -201,14 +206,13 @@ def test_rerun_decodes_nothing_and_a_changed_video_is_stale(posed: tuple[Path, P
 
     monkeypatch.setattr(video, "select_frames", no_decoding)
     monkeypatch.setattr(video, "probe", no_decoding)
-    args = ("run", str(source), "--out", str(scene_dir), "--until", "poses",
-            "--set", "poses.video_frames=50", "--set", "poses.max_side=400")
+    args = ("run", str(source), "--out", str(scene_dir), "--until", "poses", *(a for o in POSES_OPTIONS for a in ("--set", o)))
     code, out = _recon(*args)
     assert code == 0 and "up to date (cached)" in out, out
-    config = load_config("balanced", ["poses.video_frames=50", "poses.max_side=400"])
+    config = load_config("balanced", POSES_OPTIONS)
     state = {r["stage"]: r["state"] for r in default_pipeline().state(scene_dir, config, source)}
     assert state["poses"] == "done"
-    assert {r["stage"]: r["state"] for r in default_pipeline().state(scene_dir, load_config("balanced", ["poses.video_frames=51", "poses.max_side=400"]), source)}["poses"] == "stale"
+    assert {r["stage"]: r["state"] for r in default_pipeline().state(scene_dir, load_config("balanced", ["poses.video_frames=51", *POSES_OPTIONS[1:]]), source)}["poses"] == "stale"
     with source.open("ab") as f:  # a changed video (bytes appended after the last box still play)
         f.write(b"\0" * 16)
     state = {r["stage"]: r["state"] for r in default_pipeline().state(scene_dir, config, source)}
