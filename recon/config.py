@@ -165,6 +165,10 @@ class MeshConfig:
     """Drop disconnected pieces with less than this fraction of the largest piece's area (floaters)."""
     smooth_iters: int = 0
     """Taubin smoothing iterations (0: none)."""
+    fill_cavities: int = 0
+    """Fill the empty space the density field's material encloses before marching cubes, after closing holes up to
+    about twice this many cells wide (0: off; the density presets: 4). Not on the whole box of an unbounded scene;
+    see `recon.geometry.extract.fill_enclosed` and `recon.stages.mesh.hollow_fill_applies`."""
     target_faces: int = 300000
     """Decimate to this many faces (0: keep all)."""
     drop_hidden: bool = True
@@ -353,6 +357,7 @@ BOUNDS: dict[str, tuple[Any, str]] = {
     "mesh.iso": _at_least(0),
     "mesh.min_component_fraction": _between(0, 1),
     "mesh.smooth_iters": _at_least(0),
+    "mesh.fill_cavities": _at_least(0),
     "mesh.target_faces": _at_least(0),
     "mesh.real_size": _at_least(0),
     "mesh.texture_faces": ((lambda v: v == 0 or v >= 4), "0 (no textured mesh) or at least 4"),

@@ -12,6 +12,7 @@ from recon.geometry.extract import (
     auto_iso_level,
     density_grid,
     density_grid_sparse,
+    fill_enclosed,
     grid_spacing,
     marching_cubes,
 )
@@ -129,3 +130,52 @@ def test_nan_nodes_are_tolerated_as_empty_space():
     level, _ = auto_iso_level(grid, cell_size=2 / 32, clamp=(SIGMA / 2, SIGMA / 2))
     assert level == SIGMA / 2
     assert len(marching_cubes(grid, level, AABB)[1]) == clean_faces
+
+
+def _shell_grid(n: int = 64, inner: float = 0.5, outer: float = 0.6, hole: float = 0.0, opening: float = 0.0) -> np.ndarray:
+    """σ on an n³ grid over AABB: a spherical shell (SIGMA between the radii), with a square hole of half-width
+    ``hole`` through its top, or the whole cap above z = ``opening`` cut off (a bowl) when that is < outer."""
+    lin = np.linspace(-1.0, 1.0, n)
+    x, y, z = np.meshgrid(lin, lin, lin, indexing="ij")
+    r = np.sqrt(x * x + y * y + z * z)
+    grid = np.where((r > inner) & (r < outer), SIGMA, 0.0).astype(np.float32)
+    if hole:
+        grid[(np.abs(x) < hole) & (np.abs(y) < hole) & (z > 0)] = 0.0
+    if opening:
+        grid[z > opening] = 0.0
+    return grid
+
+
+def _inner_wall_vertices(grid: np.ndarray, inner: float = 0.5) -> int:
+    vertices, _ = marching_cubes(grid, SIGMA / 2, AABB)
+    r = np.linalg.norm(vertices, axis=1)
+    return int((r < inner + 0.5 * float(grid_spacing(AABB, grid.shape).max())).sum())
+
+
+def test_fill_enclosed_fills_a_hollow_behind_a_narrow_hole_and_its_inner_wall_goes() -> None:
+    cell = 2.0 / 63
+    grid = _shell_grid(hole=1.2 * cell)  # a hole 2.4 cells wide through the shell's top
+    assert _inner_wall_vertices(grid) > 1000  # marching cubes meshes the inner wall of the hollow
+    unfilled, info0 = fill_enclosed(grid.copy(), SIGMA / 2, 0)
+    assert info0["filled_nodes"] == 0  # without a ball the hole connects the hollow to the outside
+    filled, info = fill_enclosed(grid.copy(), SIGMA / 2, 2)
+    lin = np.linspace(-1.0, 1.0, 64)
+    inside = np.sqrt(sum(c * c for c in np.meshgrid(lin, lin, lin, indexing="ij"))) < 0.5 - 2 * cell
+    assert info["filled_nodes"] >= inside.sum() * 0.95 and (filled[inside] > SIGMA / 2).mean() > 0.99
+    assert _inner_wall_vertices(filled) == 0
+    assert (filled[grid > SIGMA / 2] == SIGMA).all()  # material is left as it was
+
+
+def test_fill_enclosed_keeps_a_bowl_and_a_hole_wider_than_the_ball_open() -> None:
+    bowl = _shell_grid(opening=0.2)  # the cap above z = 0.2 is gone: an opening 0.9 wide, ~28 cells
+    out, info = fill_enclosed(bowl.copy(), SIGMA / 2, 3)
+    assert info["filled_nodes"] == 0 and np.array_equal(out, bowl)
+    wide = _shell_grid(hole=0.2)  # a hole 13 cells wide: a ball of 3 cells passes it
+    _, info = fill_enclosed(wide.copy(), SIGMA / 2, 3)
+    assert info["filled_nodes"] == 0
+
+
+def test_fill_enclosed_fills_a_sealed_void_without_a_ball() -> None:
+    sealed = _shell_grid()
+    out, info = fill_enclosed(sealed.copy(), SIGMA / 2, 0)
+    assert info["filled_nodes"] > 0 and _inner_wall_vertices(out) == 0

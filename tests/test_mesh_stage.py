@@ -144,6 +144,30 @@ def test_explicit_iso_is_used_as_given() -> None:
     assert np.linalg.norm(v - CENTRE, axis=1).mean() == pytest.approx(R0, abs=2e-3)  # σ = A/2 at r = R0
 
 
+
+class HollowSphere(SoftSphere):
+    """The soft sphere with an empty inside (r < 0.4) reached through a pit 2 cells wide at the top: the shell
+    a radiance field trains, which marching cubes meshes twice (outer surface and inner wall)."""
+
+    def density(self, x: Tensor) -> Tensor:
+        d = x - torch.as_tensor(CENTRE, dtype=x.dtype, device=x.device)
+        r = d.norm(dim=-1)
+        pit = (d[:, :2].norm(dim=-1) < 0.03) & (d[:, 2] > 0)
+        return torch.where((r < 0.4) | pit, torch.zeros_like(r), super().density(x))
+
+
+def test_fill_cavities_removes_the_inner_wall_of_a_hollow_field() -> None:
+    model = HollowSphere(amplitude=400.0, width=0.02)
+    aabb = torch.tensor(AABB, dtype=torch.float32)
+    walls = {}
+    for k in (0, 3):
+        v, _, info = mesh_stage.extract_mesh(model, aabb, (81, 81, 81), MeshConfig(iso=200.0, fill_cavities=k),
+                                             Reporter(quiet=True))
+        walls[k] = float((np.linalg.norm(v - CENTRE, axis=1) < 0.5).mean())
+        assert ("fill" in info) == (k > 0)
+    assert walls[0] > 0.2  # the inner wall is meshed
+    assert walls[3] < 0.02  # filled: only the pit's short throat stays below r = 0.5
+    assert info["fill"]["filled_nodes"] > 0.8 * (4 / 3 * math.pi * 0.4**3) / (2.0 / 80) ** 3
 def test_a_field_without_surface_fails_with_advice() -> None:
     model = SoftSphere(amplitude=400.0, width=0.05)
     model.density = lambda x: torch.full((x.shape[0],), 3.0)  # type: ignore[method-assign]
@@ -346,3 +370,17 @@ def test_hidden_walls_inside_a_soft_field_are_removed_and_the_visible_surface_ke
     assert np.abs(radius - model.radius_at(level)).max() < cell
     assert report["hidden"]["removed_faces"] > 0
     assert len(kept) >= 0.95 * outer.sum()  # the visible sphere is kept (nearly) whole
+
+
+def test_hollow_fill_runs_for_objects_and_not_on_a_whole_unbounded_scene() -> None:
+    from types import SimpleNamespace
+
+    found, none = SimpleNamespace(region=[[0, 0, 0], [1, 1, 1]]), SimpleNamespace(region=None)
+    cfg = MeshConfig(fill_cavities=4)
+    assert mesh_stage.hollow_fill_applies(none, cfg, bounded=True)[0]  # an object capture: the box is the object's
+    assert mesh_stage.hollow_fill_applies(found, cfg, bounded=False)[0]  # the object region of a scene
+    assert mesh_stage.hollow_fill_applies(none, MeshConfig(fill_cavities=4, region="-1,-1,-1,1,1,1"), bounded=False)[0]
+    applies, why = mesh_stage.hollow_fill_applies(none, cfg, bounded=False)
+    assert not applies and "whole scene box" in why
+    assert not mesh_stage.hollow_fill_applies(found, MeshConfig(fill_cavities=4, region="all"), bounded=False)[0]
+    assert not mesh_stage.hollow_fill_applies(found, MeshConfig(fill_cavities=0), bounded=True)[0]

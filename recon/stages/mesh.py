@@ -39,6 +39,7 @@ from recon.geometry.extract import (
     choose_resolution,
     density_grid,
     density_grid_sparse,
+    fill_enclosed,
     grid_spacing,
     marching_cubes,
 )
@@ -121,6 +122,20 @@ def mesh_region(scene: Scene, aabb: np.ndarray, cfg: MeshConfig) -> tuple[np.nda
             f"inside the scene, or --set mesh.region=all."
         )
     return box, ground, why + ground_why
+
+
+def hollow_fill_applies(scene: Scene, cfg: MeshConfig, bounded: bool) -> tuple[bool, str]:
+    """Whether mesh.fill_cavities applies, and why: it fills what an object's material encloses, so it runs when
+    the mesh region is an object's (an object capture, normalize's object region, or a box given) and not on the
+    whole box of an unbounded scene, whose walls, sky blobs and gaps enclose no object's inside (sceaux_castle,
+    `balanced`, filled: its largest piece 77% -> 71% of the area, its pixels outside the photos' 0.6% -> 4.0%)."""
+    if not cfg.fill_cavities:
+        return False, "mesh.fill_cavities=0: the field's hollow inside is kept"
+    choice = parse_region(cfg.region)
+    if not bounded and (choice == "all" or (choice == "auto" and scene.region is None)):
+        return False, ("hollow fill off: the mesh region is the whole scene box of an unbounded scene, not an object "
+                       "(give mesh.region a box around the object to fill its hollow)")
+    return True, ""
 
 
 ISO_OPACITY = 0.5
@@ -224,6 +239,11 @@ def extract_mesh(
         info["time_grid_s"] = round(time.perf_counter() - t0, 3)
         info["iso"], info["iso_reason"] = float(level), why
         report.info(f"density grid: {info['evaluated']:,} of {dense:,} nodes evaluated in {info['time_grid_s']:.1f} s; {why}")
+        if cfg.fill_cavities:
+            grid, info["fill"] = fill_enclosed(grid, level, cfg.fill_cavities)
+            report.info(f"hollow filled: {info['fill']['filled_nodes']:,} grid nodes of empty space that the material "
+                        f"encloses (holes up to ~{2 * cfg.fill_cavities} cells closed to tell; mesh.fill_cavities=0 "
+                        "keeps the hollow)")
         t1 = time.perf_counter()
         vertices, faces = marching_cubes(grid, level, aabb)
         info["time_marching_cubes_s"] = round(time.perf_counter() - t1, 3)
@@ -580,6 +600,11 @@ def run(ctx: StageContext) -> dict:
         cfg = dataclasses.replace(cfg, iso_opacity=MASKED_ISO_OPACITY)
         ctx.report.info(f"iso-level: one cell {MASKED_ISO_OPACITY:.0%} opaque (not {ISO_OPACITY:.0%}): the masks trained the "
                         "background empty, so a lower level closes holes without growing into it (mesh.iso_opacity)")
+    if not surface:
+        fill, why = hollow_fill_applies(scene, cfg, bounded)
+        if not fill and cfg.fill_cavities:
+            cfg = dataclasses.replace(cfg, fill_cavities=0)
+            ctx.report.info(why)
     t = time.perf_counter()
     vertices, faces, extract = (extract_zero_set if surface else extract_mesh)(model, region_t, shape, cfg, ctx.report)
     timings["extract_s"] = round(time.perf_counter() - t, 3)
