@@ -384,3 +384,13 @@ def test_hollow_fill_runs_for_objects_and_not_on_a_whole_unbounded_scene() -> No
     assert not applies and "whole scene box" in why
     assert not mesh_stage.hollow_fill_applies(found, MeshConfig(fill_cavities=4, region="all"), bounded=False)[0]
     assert not mesh_stage.hollow_fill_applies(found, MeshConfig(fill_cavities=0), bounded=True)[0]
+
+
+def test_iso_opacity_is_lower_with_masks_and_for_unbounded_captures_unless_set() -> None:
+    choose = mesh_stage.capture_iso_opacity
+    assert choose(MeshConfig(), masked=False, bounded=True)[0] == 0.0  # 0: the stage's ISO_OPACITY
+    assert choose(MeshConfig(), masked=True, bounded=False)[0] == mesh_stage.MASKED_ISO_OPACITY
+    opacity, why = choose(MeshConfig(), masked=False, bounded=False)
+    assert opacity == mesh_stage.UNBOUNDED_ISO_OPACITY < mesh_stage.ISO_OPACITY and "unbounded" in why
+    assert choose(MeshConfig(iso_opacity=0.6), masked=True, bounded=False)[0] == 0.6
+    assert choose(MeshConfig(iso=3.0), masked=False, bounded=False)[0] == 0.0  # an explicit level wins

@@ -124,6 +124,23 @@ def mesh_region(scene: Scene, aabb: np.ndarray, cfg: MeshConfig) -> tuple[np.nda
     return box, ground, why + ground_why
 
 
+def capture_iso_opacity(cfg: MeshConfig, masked: bool, bounded: bool) -> tuple[float, str]:
+    """mesh.iso_opacity for this capture and why: as set, else lower than ISO_OPACITY with masks (they trained the
+    background empty) or for an unbounded capture (its field is soft where few photos agree)."""
+    if cfg.iso_opacity or cfg.iso:
+        return cfg.iso_opacity, "set by mesh.iso_opacity or mesh.iso"
+    if masked:
+        return MASKED_ISO_OPACITY, (f"iso-level: one cell {MASKED_ISO_OPACITY:.0%} opaque (not {ISO_OPACITY:.0%}): the masks "
+                                    "trained the background empty, so a lower level closes holes without growing into it "
+                                    "(mesh.iso_opacity)")
+    if not bounded:
+        return UNBOUNDED_ISO_OPACITY, (f"iso-level: one cell {UNBOUNDED_ISO_OPACITY:.0%} opaque (not {ISO_OPACITY:.0%}): an "
+                                       "unbounded capture's field is soft where few photos agree, and the higher level left "
+                                       "its mesh in pieces (the fox: largest piece 49% -> 88% of the area; mesh.iso_opacity "
+                                       "sets it)")
+    return cfg.iso_opacity, f"iso-level: one cell {ISO_OPACITY:.0%} opaque (an object capture without masks)"
+
+
 def hollow_fill_applies(scene: Scene, cfg: MeshConfig, bounded: bool) -> tuple[bool, str]:
     """Whether mesh.fill_cavities applies, and why: it fills what an object's material encloses, so it runs when
     the mesh region is an object's (an object capture, normalize's object region, or a box given) and not on the
@@ -143,6 +160,13 @@ ISO_OPACITY = 0.5
 MASKED_ISO_OPACITY = 0.25
 """The same with masks: the masked-out pixels trained the space around the object empty, so a lower level cannot
 grow into the background; it closes the holes a soft, undertrained surface leaves (see MeshConfig.iso_opacity)."""
+UNBOUNDED_ISO_OPACITY = 0.35
+"""The same for an unbounded capture (a real object in its surroundings, no masks): its field is soft where few
+photos agree (fur, foliage, a facade seen at a slant), and at 50% the mesh fell into pieces. Measured 2026-11-25 on
+the same fields, 0.5 -> 0.35: fox largest piece 49% -> 88% of the area, covering 54% -> 79% of its pixels (outside
+8.4% -> 10.9%); sceaux_castle 77% -> 90%, 60% -> 83% (0.6% -> 3.3%); the tabletop without masks F@1% 0.919 -> 0.932,
+F@0.5% 0.862 -> 0.860, Chamfer 0.395 -> 0.444% (the surface sits a little outside); 0.25 grew further out (tabletop
+F@0.5% 0.773)."""
 
 MASK_KEEP_FRACTION = 0.5
 """A vertex stays when it falls inside the object mask in at least this fraction of the photos that have it in frame."""
@@ -596,10 +620,11 @@ def run(ctx: StageContext) -> dict:
         if depth_side:
             view_note += f", depth rendered at ≤ {depth_side} px"
 
-    if masked and not cfg.iso_opacity and not cfg.iso and not surface:
-        cfg = dataclasses.replace(cfg, iso_opacity=MASKED_ISO_OPACITY)
-        ctx.report.info(f"iso-level: one cell {MASKED_ISO_OPACITY:.0%} opaque (not {ISO_OPACITY:.0%}): the masks trained the "
-                        "background empty, so a lower level closes holes without growing into it (mesh.iso_opacity)")
+    if not surface:
+        opacity, why = capture_iso_opacity(cfg, masked, bounded)
+        if opacity != cfg.iso_opacity:
+            cfg = dataclasses.replace(cfg, iso_opacity=opacity)
+            ctx.report.info(why)
     if not surface:
         fill, why = hollow_fill_applies(scene, cfg, bounded)
         if not fill and cfg.fill_cavities:
