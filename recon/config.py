@@ -168,7 +168,10 @@ class MeshConfig:
     fill_cavities: int = 0
     """Fill the empty space the density field's material encloses before marching cubes, after closing holes up to
     about twice this many cells wide (0: off; the density presets: 4). Not on the whole box of an unbounded scene;
-    see `recon.geometry.extract.fill_enclosed` and `recon.stages.mesh.hollow_fill_applies`."""
+    see `recon.geometry.extract.fill_enclosed` and `recon.stages.mesh.hollow_fill_applies`. Measured 2026-11-25 on the
+    same fields, 0 -> 4: masked tabletop (balanced, 3,876 steps) F@1% 0.922 -> 0.958, F@0.5% 0.851 -> 0.919, normals
+    0.871 -> 0.930 (2 / 6 cells: 0.948 / 0.963); sample (fast, 892 steps) F@1% 0.897 -> 0.902, F@0.5% 0.813 -> 0.829,
+    Chamfer 0.588 -> 0.552%."""
     target_faces: int = 300000
     """Decimate to this many faces (0: keep all)."""
     drop_hidden: bool = True

@@ -144,7 +144,6 @@ def test_explicit_iso_is_used_as_given() -> None:
     assert np.linalg.norm(v - CENTRE, axis=1).mean() == pytest.approx(R0, abs=2e-3)  # σ = A/2 at r = R0
 
 
-
 class HollowSphere(SoftSphere):
     """The soft sphere with an empty inside (r < 0.4) reached through a pit 2 cells wide at the top: the shell
     a radiance field trains, which marching cubes meshes twice (outer surface and inner wall)."""
@@ -168,6 +167,8 @@ def test_fill_cavities_removes_the_inner_wall_of_a_hollow_field() -> None:
     assert walls[0] > 0.2  # the inner wall is meshed
     assert walls[3] < 0.02  # filled: only the pit's short throat stays below r = 0.5
     assert info["fill"]["filled_nodes"] > 0.8 * (4 / 3 * math.pi * 0.4**3) / (2.0 / 80) ** 3
+
+
 def test_a_field_without_surface_fails_with_advice() -> None:
     model = SoftSphere(amplitude=400.0, width=0.05)
     model.density = lambda x: torch.full((x.shape[0],), 3.0)  # type: ignore[method-assign]

@@ -125,10 +125,11 @@ def mesh_region(scene: Scene, aabb: np.ndarray, cfg: MeshConfig) -> tuple[np.nda
 
 
 def capture_iso_opacity(cfg: MeshConfig, masked: bool, bounded: bool) -> tuple[float, str]:
-    """mesh.iso_opacity for this capture and why: as set, else lower than ISO_OPACITY with masks (they trained the
-    background empty) or for an unbounded capture (its field is soft where few photos agree)."""
+    """mesh.iso_opacity for this capture and why it differs from the setting ("" when it does not): as set, else
+    lower than ISO_OPACITY with masks (they trained the background empty) or for an unbounded capture (its field is
+    soft where few photos agree)."""
     if cfg.iso_opacity or cfg.iso:
-        return cfg.iso_opacity, "set by mesh.iso_opacity or mesh.iso"
+        return cfg.iso_opacity, ""
     if masked:
         return MASKED_ISO_OPACITY, (f"iso-level: one cell {MASKED_ISO_OPACITY:.0%} opaque (not {ISO_OPACITY:.0%}): the masks "
                                     "trained the background empty, so a lower level closes holes without growing into it "
@@ -138,7 +139,7 @@ def capture_iso_opacity(cfg: MeshConfig, masked: bool, bounded: bool) -> tuple[f
                                        "unbounded capture's field is soft where few photos agree, and the higher level left "
                                        "its mesh in pieces (the fox: largest piece 49% -> 88% of the area; mesh.iso_opacity "
                                        "sets it)")
-    return cfg.iso_opacity, f"iso-level: one cell {ISO_OPACITY:.0%} opaque (an object capture without masks)"
+    return cfg.iso_opacity, ""
 
 
 def hollow_fill_applies(scene: Scene, cfg: MeshConfig, bounded: bool) -> tuple[bool, str]:
@@ -147,7 +148,7 @@ def hollow_fill_applies(scene: Scene, cfg: MeshConfig, bounded: bool) -> tuple[b
     whole box of an unbounded scene, whose walls, sky blobs and gaps enclose no object's inside (sceaux_castle,
     `balanced`, filled: its largest piece 77% -> 71% of the area, its pixels outside the photos' 0.6% -> 4.0%)."""
     if not cfg.fill_cavities:
-        return False, "mesh.fill_cavities=0: the field's hollow inside is kept"
+        return False, ""
     choice = parse_region(cfg.region)
     if not bounded and (choice == "all" or (choice == "auto" and scene.region is None)):
         return False, ("hollow fill off: the mesh region is the whole scene box of an unbounded scene, not an object "
@@ -620,12 +621,11 @@ def run(ctx: StageContext) -> dict:
         if depth_side:
             view_note += f", depth rendered at ≤ {depth_side} px"
 
-    if not surface:
+    if not surface:  # the SDF's zero set needs neither choice
         opacity, why = capture_iso_opacity(cfg, masked, bounded)
         if opacity != cfg.iso_opacity:
             cfg = dataclasses.replace(cfg, iso_opacity=opacity)
             ctx.report.info(why)
-    if not surface:
         fill, why = hollow_fill_applies(scene, cfg, bounded)
         if not fill and cfg.fill_cavities:
             cfg = dataclasses.replace(cfg, fill_cavities=0)
