@@ -117,12 +117,13 @@ def test_resolution_follows_footprint_and_is_capped_by_max_and_memory() -> None:
 @pytest.mark.parametrize(("coarse_to_fine", "nodes", "mode"), [(False, 65, "dense"), (True, 65, "dense"), (True, 161, "coarse-to-fine")])
 def test_extracted_surface_is_the_analytic_iso_sphere(coarse_to_fine: bool, nodes: int, mode: str) -> None:
     cell = 2.0 / (nodes - 1)
-    model = SoftSphere(amplitude=2 * math.log(2) / cell, width=0.05)  # the auto iso sits at the profile's inflection
+    iso = -math.log(1 - mesh_stage.ISO_OPACITY) / cell  # one cell of this σ is ISO_OPACITY opaque
+    model = SoftSphere(amplitude=2 * iso, width=0.05)  # the auto iso sits at the profile's inflection
     shape = (nodes,) * 3
     cfg = MeshConfig(coarse_to_fine=coarse_to_fine)
     v, f, info = mesh_stage.extract_mesh(model, torch.tensor(AABB, dtype=torch.float32), shape, cfg, Reporter(quiet=True))
     assert info["mode"] == mode  # 65 nodes: a 64-node coarse grid would refine nothing
-    assert info["iso"] == pytest.approx(math.log(2) / cell, rel=1e-6)  # one cell of it is half opaque
+    assert info["iso"] == pytest.approx(iso, rel=1e-6)
     r_iso = model.radius_at(info["iso"])
     r = np.linalg.norm(v - CENTRE, axis=1)
     assert abs(r.mean() - r_iso) < 0.02 * cell and np.abs(r - r_iso).max() < 0.1 * cell
@@ -184,7 +185,7 @@ def test_colors_baked_from_rendered_photos_match_the_analytic_color() -> None:
         model, torch.tensor(AABB, dtype=torch.float32), (97, 97, 97), MeshConfig(), Reporter(quiet=True)
     )
     normals = trimesh.Trimesh(v, f, process=False).vertex_normals
-    depths = mesh_stage.render_depths(model, views, torch.tensor(AABB, dtype=torch.float32), BACKGROUND, None, Reporter(quiet=True))
+    depths = mesh_stage.mesh_depths(v, f, views)
     colors, bake = mesh_stage.bake_colors(model, views, depths, v, normals)
     err = np.abs(colors - sphere_color(v.astype(np.float64))).max(axis=1)
     assert bake["views"] == 8 and bake["seen"] > 0.9 * len(v)  # the depth test keeps the visible surface
@@ -387,11 +388,10 @@ def test_hollow_fill_runs_for_objects_and_not_on_a_whole_unbounded_scene() -> No
     assert not mesh_stage.hollow_fill_applies(found, MeshConfig(fill_cavities=0), bounded=True)[0]
 
 
-def test_iso_opacity_is_lower_with_masks_and_for_unbounded_captures_unless_set() -> None:
+def test_iso_opacity_is_lower_with_masks_unless_set() -> None:
     choose = mesh_stage.capture_iso_opacity
-    assert choose(MeshConfig(), masked=False, bounded=True)[0] == 0.0  # 0: the stage's ISO_OPACITY
-    assert choose(MeshConfig(), masked=True, bounded=False)[0] == mesh_stage.MASKED_ISO_OPACITY
-    opacity, why = choose(MeshConfig(), masked=False, bounded=False)
-    assert opacity == mesh_stage.UNBOUNDED_ISO_OPACITY < mesh_stage.ISO_OPACITY and "unbounded" in why
-    assert choose(MeshConfig(iso_opacity=0.6), masked=True, bounded=False)[0] == 0.6
-    assert choose(MeshConfig(iso=3.0), masked=False, bounded=False)[0] == 0.0  # an explicit level wins
+    assert choose(MeshConfig(), masked=False)[0] == 0.0  # 0: the stage's ISO_OPACITY
+    opacity, why = choose(MeshConfig(), masked=True)
+    assert opacity == mesh_stage.MASKED_ISO_OPACITY < mesh_stage.ISO_OPACITY and "masks" in why
+    assert choose(MeshConfig(iso_opacity=0.6), masked=True)[0] == 0.6
+    assert choose(MeshConfig(iso=3.0), masked=True)[0] == 0.0  # an explicit level wins

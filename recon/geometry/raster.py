@@ -158,3 +158,14 @@ def render_mesh(
         at = interpolate(uv, faces, face_id, bary)[mask]
         rgb[mask] = sample_bilinear(tex, uv_to_pixels(at, tex.shape[:2]))[:, :3] * scale
     return np.clip(rgb, 0.0, 1.0), mask
+
+
+def mesh_depth(
+    vertices: np.ndarray, faces: np.ndarray, c2w: np.ndarray, intrinsics: Sequence[float], hw: tuple[int, int]
+) -> np.ndarray:
+    """The mesh's own z-buffer (H, W) in a pinhole camera: depth along the optical axis of the nearest face at each
+    pixel centre, inf where no face covers it. Colour baking tests a surface point against it (depth_kind "z"):
+    a point is seen when nothing of the mesh lies in front of it, which a field's rendered depth only approximates
+    (its expected depth sits behind the iso-surface by an amount that depends on the level and the field's softness)."""
+    xy, z = project(np.asarray(vertices, np.float64), np.asarray(c2w, np.float64), np.asarray(intrinsics, np.float64))
+    return rasterize(xy, z, faces, hw)[2]

@@ -20,7 +20,7 @@ import math
 import resource
 import sys
 import time
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Literal, Sequence
 
 import numpy as np
 import torch
@@ -44,7 +44,7 @@ from recon.geometry.extract import (
     marching_cubes,
 )
 from recon.geometry.preview import preview_camera, write_mesh_previews
-from recon.geometry.raster import render_mesh
+from recon.geometry.raster import mesh_depth, render_mesh
 from recon.geometry.texture import TexturedMesh, make_textured_mesh
 from recon.pipeline import Stage, StageContext
 from recon.scene import Frame, Scene, load_scene, spread_evenly
@@ -124,22 +124,14 @@ def mesh_region(scene: Scene, aabb: np.ndarray, cfg: MeshConfig) -> tuple[np.nda
     return box, ground, why + ground_why
 
 
-def capture_iso_opacity(cfg: MeshConfig, masked: bool, bounded: bool) -> tuple[float, str]:
+def capture_iso_opacity(cfg: MeshConfig, masked: bool) -> tuple[float, str]:
     """mesh.iso_opacity for this capture and why it differs from the setting ("" when it does not): as set, else
-    lower than ISO_OPACITY with masks (they trained the background empty) or for an unbounded capture (its field is
-    soft where few photos agree)."""
-    if cfg.iso_opacity or cfg.iso:
+    MASKED_ISO_OPACITY with masks (they trained the background empty), else ISO_OPACITY (left to `auto_iso_level`)."""
+    if cfg.iso_opacity or cfg.iso or not masked:
         return cfg.iso_opacity, ""
-    if masked:
-        return MASKED_ISO_OPACITY, (f"iso-level: one cell {MASKED_ISO_OPACITY:.0%} opaque (not {ISO_OPACITY:.0%}): the masks "
-                                    "trained the background empty, so a lower level closes holes without growing into it "
-                                    "(mesh.iso_opacity)")
-    if not bounded:
-        return UNBOUNDED_ISO_OPACITY, (f"iso-level: one cell {UNBOUNDED_ISO_OPACITY:.0%} opaque (not {ISO_OPACITY:.0%}): an "
-                                       "unbounded capture's field is soft where few photos agree, and the higher level left "
-                                       "its mesh in pieces (the fox: largest piece 49% -> 88% of the area; mesh.iso_opacity "
-                                       "sets it)")
-    return cfg.iso_opacity, ""
+    return MASKED_ISO_OPACITY, (f"iso-level: one cell {MASKED_ISO_OPACITY:.0%} opaque (not {ISO_OPACITY:.0%}): the masks "
+                                "trained the background empty, so a lower level closes holes without growing into it "
+                                "(mesh.iso_opacity)")
 
 
 def hollow_fill_applies(scene: Scene, cfg: MeshConfig, bounded: bool) -> tuple[bool, str]:
@@ -156,18 +148,17 @@ def hollow_fill_applies(scene: Scene, cfg: MeshConfig, bounded: bool) -> tuple[b
     return True, ""
 
 
-ISO_OPACITY = 0.5
-"""One cell of material this opaque is surface (`auto_iso_level`), unless mesh.iso_opacity says otherwise."""
+ISO_OPACITY = 0.35
+"""One cell of material this opaque is surface (`auto_iso_level`), unless mesh.iso_opacity says otherwise. A field
+is soft where few photos agree (fur, foliage, a facade at a slant, an undertrained patch), and at 50% (the level
+until 2026-11-25) its mesh fell into pieces and holes. Same fields, 50% -> 35%: fox largest piece 49% -> 88% of the
+area, covering 54% -> 79% of its pixels (outside 8.4% -> 10.9%); sceaux_castle 77% -> 90%, 60% -> 83% (0.6% ->
+3.3%); the tabletop without masks F@1% 0.919 -> 0.932, F@0.5% 0.862 -> 0.860; the sample (2,217-step `fast` field)
+F@1% 0.929 -> 0.930, F@0.5% 0.876 -> 0.893, normals 0.896 -> 0.918, and (921 steps) its vertex colours in the
+held-out photos 21.61 -> 25.45 dB. 25% grew out of the surface (tabletop F@0.5% 0.773)."""
 MASKED_ISO_OPACITY = 0.25
 """The same with masks: the masked-out pixels trained the space around the object empty, so a lower level cannot
 grow into the background; it closes the holes a soft, undertrained surface leaves (see MeshConfig.iso_opacity)."""
-UNBOUNDED_ISO_OPACITY = 0.35
-"""The same for an unbounded capture (a real object in its surroundings, no masks): its field is soft where few
-photos agree (fur, foliage, a facade seen at a slant), and at 50% the mesh fell into pieces. Measured 2026-11-25 on
-the same fields, 0.5 -> 0.35: fox largest piece 49% -> 88% of the area, covering 54% -> 79% of its pixels (outside
-8.4% -> 10.9%); sceaux_castle 77% -> 90%, 60% -> 83% (0.6% -> 3.3%); the tabletop without masks F@1% 0.919 -> 0.932,
-F@0.5% 0.862 -> 0.860, Chamfer 0.395 -> 0.444% (the surface sits a little outside); 0.25 grew further out (tabletop
-F@0.5% 0.773)."""
 
 MASK_KEEP_FRACTION = 0.5
 """A vertex stays when it falls inside the object mask in at least this fraction of the photos that have it in frame."""
@@ -412,6 +403,19 @@ def see_with_views(views: Sequence[View], depths: Sequence[np.ndarray], tol: flo
     return seen
 
 
+def mesh_depths(vertices: np.ndarray, faces: np.ndarray, views: Sequence[View]) -> list[np.ndarray]:
+    """The mesh's z-buffer in every view at the photo's size (`raster.mesh_depth`), what baking tests occlusion
+    against: a vertex is seen where no other part of the mesh hides it. Pixels next to an empty one are emptied
+    too (inf): at the silhouette the photo's pixel blends the object with what lies behind it."""
+    from scipy.ndimage import maximum_filter
+
+    out = []
+    for v in views:
+        z = mesh_depth(vertices, faces, v.c2w, v.intrinsics, v.hw)
+        out.append(np.where(np.isinf(maximum_filter(z, size=3, mode="nearest")), np.inf, z))
+    return out
+
+
 def bake_colors(
     model: torch.nn.Module,
     views: Sequence[View],
@@ -419,12 +423,14 @@ def bake_colors(
     vertices: np.ndarray,
     normals: np.ndarray,
     depth_tol: float | None = None,
+    depth_kind: Literal["ray", "z"] = "z",
 ) -> tuple[np.ndarray, dict]:
-    """Vertex colors (V, 3) float32 sRGB from the photos, occlusion-tested against the field's depth.
+    """Vertex colors (V, 3) float32 sRGB from the photos, occlusion-tested against a depth map per view.
 
-    ``depths``: each view's rendered ray distance (`render_depths`); `colors_from_photos` keeps the
-    samples whose vertex distance matches it within depth_tol (default: `BAKE_TOL_FRACTION` of the
-    vertices' bounding-box diagonal). Vertices no view sees take the field's color.
+    ``depths``: the mesh's own z-buffer per view (`mesh_depths`, depth_kind "z": what the stage uses) or a field's
+    rendered ray distance (`render_depths`, "ray"); `colors_from_photos` keeps the samples whose vertex depth matches it
+    within depth_tol (default: `BAKE_TOL_FRACTION` of the vertices' bounding-box diagonal). Vertices no view sees
+    take the field's color.
     vertices, normals: (V, 3) scene frame (or texel points, `texture_mesh`), normals outward; views:
     photos at training size (uint8 images, OpenGL c2w).
     """
@@ -438,7 +444,7 @@ def bake_colors(
         np.asarray([v.intrinsics for v in views], np.float64),
         depths=depths,
         depth_tol=depth_tol,
-        depth_kind="ray",
+        depth_kind=depth_kind,
     )
     device = next(model.parameters(), torch.empty(0)).device
     if not seen.all():
@@ -453,7 +459,8 @@ def texture_mesh(
 ) -> TexturedMesh:
     """The mesh decimated to ``cfg.texture_faces``, unwrapped, with a ``cfg.texture_size``² texture baked the
     way the vertex colors are (`bake_colors` on the surface point under each texel: the same depth test,
-    median and field fallback; or the field's color with mesh.color=field). vertices, faces: the full mesh."""
+    median and field fallback; or the field's color with mesh.color=field). vertices, faces: the full mesh; depths:
+    its z-buffer in each view (`mesh_depths`)."""
     device = next(model.parameters(), torch.empty(0)).device
     unseen = [0]
     if cfg.color == "photos":
@@ -622,7 +629,7 @@ def run(ctx: StageContext) -> dict:
             view_note += f", depth rendered at ≤ {depth_side} px"
 
     if not surface:  # the SDF's zero set needs neither choice
-        opacity, why = capture_iso_opacity(cfg, masked, bounded)
+        opacity, why = capture_iso_opacity(cfg, masked)
         if opacity != cfg.iso_opacity:
             cfg = dataclasses.replace(cfg, iso_opacity=opacity)
             ctx.report.info(why)
@@ -676,10 +683,13 @@ def run(ctx: StageContext) -> dict:
 
     t = time.perf_counter()
     normals = np.asarray(trimesh.Trimesh(vertices, faces, process=False).vertex_normals, np.float32)
+    surface_depths: list[np.ndarray] = []
     if cfg.color == "photos":
-        colors, color_info = bake_colors(model, views, depths, vertices, normals)
+        surface_depths = mesh_depths(vertices, faces, views)
+        colors, color_info = bake_colors(model, views, surface_depths, vertices, normals)
         color_info["source"] = "photos"
-        note = f"baked from {view_note}; {color_info['unseen_from_field']:,} unseen vertices colored by the field"
+        note = (f"baked from {view_note}, each photo's pixel taken where no other part of the mesh hides the vertex; "
+                f"{color_info['unseen_from_field']:,} unseen vertices colored by the field")
         color_info["note"] = note
     else:
         colors = colors_from_field(model.radiance, vertices, normals, device=device)
@@ -695,7 +705,7 @@ def run(ctx: StageContext) -> dict:
 
     textured_info: dict[str, Any] | None = None
     if cfg.texture_faces:
-        textured_info, texture_previews = _textured(ctx, cfg, scene, model, views, depths, vertices, faces, colors,
+        textured_info, texture_previews = _textured(ctx, cfg, scene, model, views, surface_depths, vertices, faces, colors,
                                                     transform, max_side, background, timings)
         previews += texture_previews
     timings["total_s"] = round(time.perf_counter() - t_all, 3)
