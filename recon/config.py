@@ -189,7 +189,8 @@ class MeshConfig:
     """What to mesh. auto: the object the cameras look at (normalize's object region, when it found one);
     all: the whole scene box; or an explicit box "xmin,ymin,zmin,xmax,ymax,zmax" in the source frame."""
     keep_ground: bool = False
-    """Keep the ground plane the object stands on (normalize finds it by RANSAC); by default it is cut away."""
+    """Keep the ground plane the object stands on, or the wall it hangs on (normalize finds either by RANSAC); by
+    default it is cut away."""
     texture_faces: int = 50000
     """Also write mesh_textured.glb/.obj: the mesh decimated to this many faces, UV-unwrapped, its color
     baked into a texture (0: no textured mesh)."""

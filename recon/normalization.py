@@ -285,8 +285,9 @@ def normalize(scene: Scene, cfg: NormalizeConfig) -> Scene:
             if box is not None and found.ground is not None:
                 n = R @ found.ground.normal
                 ground = np.array([*n, found.ground.offset - found.ground.normal @ center])  # centred, rotated frame
-                foot = (ground[3] - n[:2] @ box.mean(axis=0)[:2]) / n[2]  # ground height under the box centre
-                box[0, 2] = min(box[0, 2], foot)
+                if found.ground.kind == "ground":
+                    foot = (ground[3] - n[:2] @ box.mean(axis=0)[:2]) / n[2]  # ground height under the box centre
+                    box[0, 2] = min(box[0, 2], foot)
             if box is not None and found.background_fraction > BACKGROUND_FRACTION and not scene.has_alpha:
                 capture = "unbounded"
                 notes["capture"] += (

@@ -128,3 +128,51 @@ def test_ground_cut_and_region_overrides() -> None:
     assert removed >= len(table.faces) and cut.vertices[:, 2].min() >= -0.3 + 0.03 - 1e-9
     v, f, report = clean_mesh(both.vertices, both.faces, aabb, ground=np.array([0, 0, 1.0, -0.28]), ground_margin=0.01)
     assert report["ground_cut"]["faces_removed"] >= len(table.faces) and np.ptp(v[:, 0]) < 0.61
+
+
+def wall_capture(rng: np.random.Generator) -> tuple[list[Frame], np.ndarray, np.ndarray]:
+    """A head mounted on a wall (the fox): a half ball of radius 0.4 standing out of the wall x = -0.3, a picture
+    frame on the wall above it (1 cm proud), cameras on a 100° arc in front. Labels: 0 object, 1 wall, 2 picture."""
+    frames = []
+    for i in range(12):
+        az, el = np.radians(-50 + 100 * i / 11), np.radians(10 * np.sin(i))
+        eye = 2.5 * np.array([np.cos(az) * np.cos(el), np.sin(az) * np.cos(el), np.sin(el)])
+        frames.append(Frame(f"/p/{i:02d}.jpg", look_at(eye, np.zeros(3)), FL, FL, W / 2, H / 2, W, H))
+    d = rng.normal(size=(800, 3))
+    head = np.array([-0.3, 0, 0]) + 0.4 * d / np.linalg.norm(d, axis=1, keepdims=True)
+    head = head[head[:, 0] > -0.3 + 0.04]
+    wall = np.column_stack([np.full(4000, -0.3) + rng.normal(0, 0.003, 4000), rng.uniform(-3, 3, (4000, 2))])
+    wall = wall[np.linalg.norm(wall[:, 1:], axis=1) > 0.4]  # the head hides the wall behind it
+    picture = np.column_stack([np.full(300, -0.29), rng.uniform(-0.3, 0.3, 300), rng.uniform(0.55, 0.85, 300)])
+    points = np.concatenate([head, wall, picture])
+    return frames, points, np.repeat([0, 1, 2], [len(head), len(wall), len(picture)])
+
+
+def test_an_object_on_a_wall_is_told_from_the_wall_and_the_picture_on_it() -> None:
+    frames, points, labels = wall_capture(np.random.default_rng(3))
+    region = region_of(points, frames)
+    assert region is not None and region.ground is not None and region.ground.kind == "wall"
+    np.testing.assert_allclose(region.ground.normal, [1, 0, 0], atol=0.02)  # facing the cameras
+    assert abs(region.ground.offset - (-0.3)) < 0.01
+    kept = labels[region.points]
+    assert (kept == 0).mean() > 0.97 and region.points[labels == 0].mean() > 0.8  # the head, not wall or picture
+    assert "wall" in region.reason
+    # normalize carries the wall into the scene; the mesh stage cuts it and says which plane it is
+    scene = normalize(Scene(frames=frames, points=points, point_colors=np.zeros((len(points), 3), np.uint8)), NormalizeConfig())
+    head = scene.points[labels == 0]
+    box = np.asarray(scene.region)
+    assert np.all(box[1] - box[0] < 1.3 * np.ptp(head, axis=0))  # no wall or picture in the object region
+    box, ground, why = mesh_region(scene, np.asarray(scene.aabb), MeshConfig())
+    assert ground is not None and "wall behind the object is cut away" in why
+    wall = scene.points[labels == 1]
+    assert np.median(np.abs(wall @ ground[:3] - ground[3])) < 0.01 * np.ptp(head[:, 0])
+
+
+def test_cameras_around_an_object_find_no_wall() -> None:
+    # a ball with a large board standing behind it (x = -0.5), photographed from all around: the board holds plenty
+    # of points outside the object, but half the cameras are behind it, so it is no wall the object hangs on
+    rng = np.random.default_rng(4)
+    ball, _ = tabletop_points(rng, table=False, room=False)
+    board = np.column_stack([np.full(3000, -0.5) + rng.normal(0, 0.003, 3000), rng.uniform(-3, 3, (3000, 2))])
+    region = region_of(np.concatenate([ball, board]), cameras())
+    assert region is not None and region.ground is None

@@ -47,6 +47,7 @@ from recon.geometry.preview import preview_camera, write_mesh_previews
 from recon.geometry.raster import mesh_depth, render_mesh
 from recon.geometry.texture import TexturedMesh, make_textured_mesh
 from recon.pipeline import Stage, StageContext
+from recon.region import support_kind
 from recon.scene import Frame, Scene, load_scene, spread_evenly
 from recon.views import View, load_views, pixel_footprint, render_view, target_rgb
 
@@ -99,8 +100,10 @@ def mesh_region(scene: Scene, aabb: np.ndarray, cfg: MeshConfig) -> tuple[np.nda
     if choice == "all":
         return aabb, None, "the whole scene box (mesh.region=all)"
     ground = None if cfg.keep_ground or scene.ground is None else np.asarray(scene.ground, np.float64)
-    ground_why = ("; the ground plane is cut away (--set mesh.keep_ground=true keeps it)" if ground is not None
-                  else "; the ground is kept (mesh.keep_ground)" if scene.ground is not None else "")
+    support = "" if scene.ground is None else support_kind(scene.ground)
+    plane = "ground plane" if support == "ground" else "wall behind the object"
+    ground_why = (f"; the {plane} is cut away (--set mesh.keep_ground=true keeps it)" if ground is not None
+                  else f"; the {plane} is kept (mesh.keep_ground)" if scene.ground is not None else "")
     if choice == "auto":
         if scene.region is None:
             return aabb, ground, "the whole scene box (no object region was found)" + ground_why
@@ -664,7 +667,8 @@ def run(ctx: StageContext) -> dict:
     if "masked" in clean:
         ctx.report.info(f"masks: {clean['masked']['faces_removed']:,} faces outside the object masks removed ({len(views)} photos)")
     if "ground_cut" in clean:
-        ctx.report.info(f"ground: {clean['ground_cut']['faces_removed']:,} faces on or below the ground plane cut away")
+        plane = "on or below the ground plane" if support_kind(ground) == "ground" else "on or behind the wall"
+        ctx.report.info(f"{support_kind(ground)}: {clean['ground_cut']['faces_removed']:,} faces {plane} cut away")
     if "hidden" in clean:
         h = clean["hidden"]
         ctx.report.info(f"hidden faces: {h['removed_faces']:,} faces that no photo sees removed (inner walls of the field; "

@@ -10,7 +10,7 @@ def run(ctx: StageContext) -> dict:
     source = load_scene(ctx.inputs["poses"])
     scene = normalize(source, ctx.config)
     scene.save(ctx.out)
-    for key in ("up", "capture", "box", "scale", "split"):
+    for key in ("up", "capture", "region", "box", "scale", "split"):
         if scene.notes.get(key):
             ctx.report.info(f"{key}: {scene.notes[key]}")
     counts = {s: len(scene.split(s)) for s in ("train", "val", "test")}
@@ -27,4 +27,5 @@ def run(ctx: StageContext) -> dict:
 
 # version 3: the box holds the linked sparse points (stray ones dropped) instead of the 2 %–98 % percentiles, so a
 # thin part is no longer cut off; its margin went from 10 % to 5 % of the size on each side
-STAGE = Stage(name="normalize", folder="02_scene", inputs=("poses",), version=3, run=run)
+# version 4: with no ground under the object, a wall behind it (every camera in front) is found and cut like the ground
+STAGE = Stage(name="normalize", folder="02_scene", inputs=("poses",), version=4, run=run)
