@@ -138,7 +138,7 @@ def fit_wall_plane(
     WALL_MAX_BEHIND of the object region's points (``common`` (N,) bool) behind it, and scored, like the ground,
     by the points outside the region on it (a wall extends beyond the object; a flat face of the object does not).
 
-    On the fox (a mounted head) it finds the wallpapered wall: 58% of the sparse points within 1% of the camera
+    On the fox (a mounted head) it finds the wallpapered wall: 57% of the sparse points within 1% of the camera
     distance, the picture frame above the head on it too. The normal points toward the cameras. None when no plane
     holds GROUND_MIN_FRACTION of the points, or when the cameras surround the object (no plane has them all in front
     and the object's points on its front side).
