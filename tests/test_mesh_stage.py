@@ -20,6 +20,7 @@ from recon.geometry.export import Z_UP_TO_Y_UP
 from recon.geometry.clean import clean_mesh
 from recon.geometry.extract import choose_resolution, density_grid, grid_spacing, marching_cubes
 from recon.geometry.preview import render_preview
+from recon.geometry.raster import mesh_depth
 from recon.mesh_eval import compare_to_gt, format_comparison
 from recon.nerf.render import RadianceModel, render_dense
 from recon.nerf.sampling import stratified
@@ -395,3 +396,23 @@ def test_iso_opacity_is_lower_with_masks_unless_set() -> None:
     assert opacity == mesh_stage.MASKED_ISO_OPACITY < mesh_stage.ISO_OPACITY and "masks" in why
     assert choose(MeshConfig(iso_opacity=0.6), masked=True)[0] == 0.6
     assert choose(MeshConfig(iso=3.0), masked=True)[0] == 0.0  # an explicit level wins
+
+
+def test_bake_depths_are_the_mesh_z_buffer_without_its_silhouette_rim() -> None:
+    # a square x, y in [-1, 1] at z = -4 facing a camera at the origin (f = 50, 64 px): pixel centres i + 0.5 within
+    # 32 ± 12.5 (edges included), i.e. pixels 19..44
+    square = np.array([[-1.0, -1.0, -4.0], [1.0, -1.0, -4.0], [1.0, 1.0, -4.0], [-1.0, 1.0, -4.0]])
+    faces = np.array([[0, 1, 2], [0, 2, 3]])
+    view = View("v", np.zeros((64, 64, 3), np.uint8), np.eye(4), (50.0, 50.0, 32.0, 32.0), 0.1, 10.0)
+    (z,) = mesh_stage.mesh_depths(square, faces, [view])
+    covered = np.zeros((64, 64), bool)
+    covered[19:45, 19:45] = True
+    inner = np.zeros_like(covered)
+    inner[20:44, 20:44] = True  # the rim next to empty pixels is left out
+    full = mesh_depth(square, faces, np.eye(4), view.intrinsics, (64, 64))
+    assert np.allclose(full[covered], 4.0) and np.all(np.isinf(full[~covered]))
+    assert np.all(np.isinf(z[~inner])) and np.allclose(z[inner], 4.0)
+    # a vertex in the middle is seen at its depth; one behind the square (a hidden one) is not
+    colors, info = mesh_stage.bake_colors(SoftSphere(400.0, 0.05), [view], [z], np.array([[0.0, 0.0, -4.0], [0.0, 0.0, -6.0]]),
+                                         np.array([[0.0, 0.0, 1.0], [0.0, 0.0, 1.0]]), depth_tol=0.05)
+    assert info["seen"] == 1 and info["unseen_from_field"] == 1
