@@ -193,3 +193,12 @@ def test_bad_inputs_raise_clear_errors() -> None:
         render_weights_packed(torch.ones(3), torch.ones(3), torch.tensor([0, 1, 2]), 2)
     with pytest.raises(ValueError, match="torch.long"):
         render_weights_packed(torch.ones(2), torch.ones(2), torch.tensor([0, 1], dtype=torch.int32), 2)
+
+
+def test_weights_sum_to_at_most_one_after_an_opaque_sample() -> None:
+    # hypothesis found it: a thin sample, then a nearly opaque one (tau ~ 260); cumsum(tau) - tau rounded the first
+    # tau away in float32 and the weights summed to 1 + 4e-6
+    sigma = torch.tensor([[83.2126, 83.3703, 38.7942]])
+    t = torch.tensor([[2.3715, 2.3862, 5.5098]])
+    w, _ = render_weights(sigma, t, far_delta=torch.tensor([0.5]))
+    assert w.sum().item() <= 1 + 1e-6

@@ -123,8 +123,10 @@ def render_weights(
     _check_shape("far_delta", last, (n,))
     delta = torch.cat([t[:, 1:] - t[:, :-1], last[:, None]], dim=-1)
     tau = optical_thickness(sigma, delta)
-    # exclusive cumulative sum: shift the inclusive sum right by one, T_0 = exp(0) = 1
-    excl = torch.cumsum(tau, dim=-1) - tau
+    # exclusive cumulative sum: the inclusive sum shifted right by one, T_0 = exp(0) = 1. Not cumsum(tau) - tau: after
+    # an opaque sample (tau ~ 1e2) that subtraction loses the earlier taus to float32 rounding (3e-5 at 260), and the
+    # weights then summed to 1 + 4e-6
+    excl = torch.cat([torch.zeros_like(tau[:, :1]), torch.cumsum(tau[:, :-1], dim=-1)], dim=-1)
     transmittance = torch.exp(-excl)
     weights = transmittance * -torch.expm1(-tau)
     return weights, transmittance
