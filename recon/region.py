@@ -125,9 +125,10 @@ def _refit(pts: np.ndarray, normal: np.ndarray, offset: float, threshold: float)
     return refit, float(refit @ centroid)
 
 
-def support_kind(normal: np.ndarray, up: np.ndarray = np.array([0.0, 0.0, 1.0])) -> str:
-    """"ground" for a plane whose normal is within GROUND_MAX_TILT_DEG of up, else "wall"."""
-    cos = float(np.asarray(normal, np.float64)[:3] @ up / (np.linalg.norm(np.asarray(normal)[:3]) * np.linalg.norm(up)))
+def support_kind(normal: np.ndarray, up: tuple[float, float, float] = (0.0, 0.0, 1.0)) -> str:
+    """"ground" for a plane whose normal (its first three values) is within GROUND_MAX_TILT_DEG of up, else "wall"."""
+    n, u = np.asarray(normal, np.float64)[:3], np.asarray(up, np.float64)
+    cos = float(n @ u / (np.linalg.norm(n) * np.linalg.norm(u)))
     return "ground" if cos >= np.cos(np.radians(GROUND_MAX_TILT_DEG)) else "wall"
 
 

@@ -413,6 +413,6 @@ def test_bake_depths_are_the_mesh_z_buffer_without_its_silhouette_rim() -> None:
     assert np.allclose(full[covered], 4.0) and np.all(np.isinf(full[~covered]))
     assert np.all(np.isinf(z[~inner])) and np.allclose(z[inner], 4.0)
     # a vertex in the middle is seen at its depth; one behind the square (a hidden one) is not
-    colors, info = mesh_stage.bake_colors(SoftSphere(400.0, 0.05), [view], [z], np.array([[0.0, 0.0, -4.0], [0.0, 0.0, -6.0]]),
-                                         np.array([[0.0, 0.0, 1.0], [0.0, 0.0, 1.0]]), depth_tol=0.05)
+    _, info = mesh_stage.bake_colors(SoftSphere(400.0, 0.05), [view], [z], np.array([[0.0, 0.0, -4.0], [0.0, 0.0, -6.0]]),
+                                     np.array([[0.0, 0.0, 1.0], [0.0, 0.0, 1.0]]), depth_tol=0.05)
     assert info["seen"] == 1 and info["unseen_from_field"] == 1
