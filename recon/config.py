@@ -158,9 +158,10 @@ class MeshConfig:
     iso: float = 0.0
     """Density iso-level; 0: automatic (one cell of thickness is `iso_opacity` opaque)."""
     iso_opacity: float = 0.0
-    """Opacity of one cell of material at the automatic iso-level; 0: 0.35 (see the mesh stage's ISO_OPACITY), or 0.25 when masks trained the
-    background empty (the masks already carve the object, so the level can be lower and close the holes an
-    undertrained field leaves: on the 15-photo tabletop at 500 steps F@1% 0.80 -> 0.88)."""
+    """Opacity of one cell of material at the automatic iso-level; 0: 0.35 (the mesh stage's ISO_OPACITY, where
+    it is measured), or 0.25 when masks trained the background empty (the masks already carve the object, so the
+    level can be lower and close the holes an undertrained field leaves: on the 15-photo tabletop at 500 steps
+    F@1% 0.80 -> 0.88)."""
     min_component_fraction: float = 0.05
     """Drop disconnected pieces with less than this fraction of the largest piece's area (floaters)."""
     smooth_iters: int = 0

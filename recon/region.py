@@ -4,7 +4,8 @@ Phone captures of an object show the table, the floor and the room too. The obje
 keeps in frame: the sparse points that (nearly) all cameras see inside their image around the cameras'
 common focus. The ground is the largest plane of sparse points roughly normal to "up" below the focus,
 found by RANSAC; an object with no ground under it may hang on a wall (a mounted head, a picture, a relief):
-then the support is the largest plane that every camera faces and the object stands out from. Pure numpy on sparse points and cameras (any frame; lengths in that frame's units).
+then the support is the largest plane that every camera faces and the object stands out from. Pure numpy on
+sparse points and cameras (any frame; lengths in that frame's units).
 """
 from __future__ import annotations
 
@@ -79,20 +80,17 @@ def fit_ground_plane(
         return normal @ up >= cos_tilt and normal @ below - offset > threshold
 
     best = _ransac_plane(pts, up, weight, threshold, under_object, iterations, seed)
-    if best is None:
-        return None
-    normal, offset = best
-    count = int((np.abs(pts @ normal - offset) < threshold).sum())
-    return Plane(normal, offset, count, threshold)
+    return None if best is None else Plane(*best, threshold)
 
 
 def _ransac_plane(
     pts: np.ndarray, toward: np.ndarray, weight: np.ndarray, threshold: float,
     accept: Callable[[np.ndarray, float], bool], iterations: int, seed: int,
-) -> tuple[np.ndarray, float] | None:
+) -> tuple[np.ndarray, float, int] | None:
     """RANSAC: of the planes through three random points (normal turned toward ``toward``) that ``accept(normal,
-    offset)`` allows, the one with the most ``weight`` points within threshold, refit to all its inliers; None when
-    that is fewer than GROUND_MIN_FRACTION of the points."""
+    offset)`` allows, the one with the most ``weight`` points within threshold, refit to all its inliers: (normal,
+    offset, points within threshold of the refit). None when that best count is under GROUND_MIN_FRACTION of the
+    points."""
     rng = np.random.default_rng(seed)
     best, best_count = None, 0
     for _ in range(iterations):
@@ -112,7 +110,8 @@ def _ransac_plane(
             best, best_count = (normal, offset), count
     if best is None or best_count < GROUND_MIN_FRACTION * len(pts):
         return None
-    return _refit(pts, *best, threshold)
+    normal, offset = _refit(pts, *best, threshold)
+    return normal, offset, int((np.abs(pts @ normal - offset) < threshold).sum())
 
 
 def _refit(pts: np.ndarray, normal: np.ndarray, offset: float, threshold: float) -> tuple[np.ndarray, float]:
@@ -159,11 +158,7 @@ def fit_wall_plane(
                     and np.mean(on_region @ normal - offset < -threshold) <= WALL_MAX_BEHIND)
 
     best = _ransac_plane(pts, toward, ~common, threshold, behind_object, iterations, seed)
-    if best is None:
-        return None
-    normal, offset = best
-    count = int((np.abs(pts @ normal - offset) < threshold).sum())
-    return Plane(normal, offset, count, threshold, kind="wall")
+    return None if best is None else Plane(*best, threshold, kind="wall")
 
 
 @dataclass

@@ -20,7 +20,7 @@ import math
 import resource
 import sys
 import time
-from typing import Any, Callable, Literal, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 import torch
@@ -100,10 +100,11 @@ def mesh_region(scene: Scene, aabb: np.ndarray, cfg: MeshConfig) -> tuple[np.nda
     if choice == "all":
         return aabb, None, "the whole scene box (mesh.region=all)"
     ground = None if cfg.keep_ground or scene.ground is None else np.asarray(scene.ground, np.float64)
-    support = "" if scene.ground is None else support_kind(scene.ground)
-    plane = "ground plane" if support == "ground" else "wall behind the object"
-    ground_why = (f"; the {plane} is cut away (--set mesh.keep_ground=true keeps it)" if ground is not None
-                  else f"; the {plane} is kept (mesh.keep_ground)" if scene.ground is not None else "")
+    ground_why = ""
+    if scene.ground is not None:
+        plane = "ground plane" if support_kind(scene.ground) == "ground" else "wall behind the object"
+        ground_why = (f"; the {plane} is cut away (--set mesh.keep_ground=true keeps it)" if ground is not None
+                      else f"; the {plane} is kept (mesh.keep_ground)")
     if choice == "auto":
         if scene.region is None:
             return aabb, ground, "the whole scene box (no object region was found)" + ground_why
@@ -426,14 +427,12 @@ def bake_colors(
     vertices: np.ndarray,
     normals: np.ndarray,
     depth_tol: float | None = None,
-    depth_kind: Literal["ray", "z"] = "z",
 ) -> tuple[np.ndarray, dict]:
-    """Vertex colors (V, 3) float32 sRGB from the photos, occlusion-tested against a depth map per view.
+    """Vertex colors (V, 3) float32 sRGB from the photos, occlusion-tested against the mesh's own z-buffer.
 
-    ``depths``: the mesh's own z-buffer per view (`mesh_depths`, depth_kind "z": what the stage uses) or a field's
-    rendered ray distance (`render_depths`, "ray"); `colors_from_photos` keeps the samples whose vertex depth matches it
-    within depth_tol (default: `BAKE_TOL_FRACTION` of the vertices' bounding-box diagonal). Vertices no view sees
-    take the field's color.
+    ``depths``: the mesh's z-buffer per view (`mesh_depths`); `colors_from_photos` keeps the samples whose vertex
+    depth matches it within depth_tol (default: `BAKE_TOL_FRACTION` of the vertices' bounding-box diagonal).
+    Vertices no view sees take the field's color.
     vertices, normals: (V, 3) scene frame (or texel points, `texture_mesh`), normals outward; views:
     photos at training size (uint8 images, OpenGL c2w).
     """
@@ -447,7 +446,7 @@ def bake_colors(
         np.asarray([v.intrinsics for v in views], np.float64),
         depths=depths,
         depth_tol=depth_tol,
-        depth_kind=depth_kind,
+        depth_kind="z",
     )
     device = next(model.parameters(), torch.empty(0)).device
     if not seen.all():
@@ -667,8 +666,9 @@ def run(ctx: StageContext) -> dict:
     if "masked" in clean:
         ctx.report.info(f"masks: {clean['masked']['faces_removed']:,} faces outside the object masks removed ({len(views)} photos)")
     if "ground_cut" in clean:
-        plane = "on or below the ground plane" if support_kind(ground) == "ground" else "on or behind the wall"
-        ctx.report.info(f"{support_kind(ground)}: {clean['ground_cut']['faces_removed']:,} faces {plane} cut away")
+        kind = support_kind(ground)
+        where = "on or below the ground plane" if kind == "ground" else "on or behind the wall"
+        ctx.report.info(f"{kind}: {clean['ground_cut']['faces_removed']:,} faces {where} cut away")
     if "hidden" in clean:
         h = clean["hidden"]
         ctx.report.info(f"hidden faces: {h['removed_faces']:,} faces that no photo sees removed (inner walls of the field; "
