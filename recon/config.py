@@ -132,6 +132,12 @@ class TrainConfig:
     """Photos on a plain backdrop (a light box, a studio sweep): train the pixels of the backdrop's colour as empty
     space, as masks would (recon.views.key_backdrop). auto: on for the surface model of an object capture without
     masks whose photos' borders are plain; the density models keep the photos as they are."""
+    sky: Literal["auto", "on", "off"] = "auto"
+    """A sky behind an unbounded scene (recon/sky.py): the fast field gets a colour per ray direction behind it,
+    and the photos' clear-sky pixels (smooth, blue, no SfM point near) train as empty space. auto: on when at
+    least 1% of the training pixels are sky, for an unbounded capture without masks."""
+    sky_weight: float = 0.1
+    """Weight of the sky pixels' opacity (L1, averaged over each batch's rays) in the loss."""
     pose_refine: Literal["on", "off"] = "off"
     """on: learn a small rotation and shift per training photo with the field (recon.nerf.pose_refine), for poses SfM
     left a few pixels off; held-out photos are then scored with their pose fitted on their left half. Off by default:

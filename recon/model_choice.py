@@ -9,11 +9,19 @@ import numpy as np
 
 from recon.config import TrainConfig
 from recon.errors import ReconError
+from recon.geometry.color import project
 from recon.nerf.surface import hull_planes
-from recon.scene import Scene
-from recon.views import (BACKDROP_TOLERANCE, PLAIN_BACKDROP_FRACTION, View, border_color, key_backdrop, pixel_footprint,
-                          plain_backdrop)
-
+from recon.scene import Frame, Scene
+from recon.sky import SKY_MIN_FRACTION, sky_mask
+from recon.views import (
+    BACKDROP_TOLERANCE,
+    PLAIN_BACKDROP_FRACTION,
+    View,
+    border_color,
+    key_backdrop,
+    pixel_footprint,
+    plain_backdrop,
+)
 
 BACKDROP_KEY_WHY = (
     "a surface colored like the backdrop is as bright as the backdrop itself, so the photos' colours cannot tell it "
@@ -41,6 +49,47 @@ def key_backdrop_for(cfg: TrainConfig, kind: str, scene: Scene, views: list[View
     why = "train.backdrop_key=on" if cfg.backdrop_key == "on" else BACKDROP_KEY_WHY
     return keyed, color.astype(np.float32), (f"backdrop key: on ({share}; {why}): pixels of the backdrop's colour train "
                                              f"as empty space")
+
+
+SKY_WHY = (
+    "a single background colour cannot show a sky that brightens towards the horizon, so the field paints it into "
+    "its density as blobs above the roofs, and they become mesh"
+)
+
+
+def sky_for(cfg: TrainConfig, kind: str, scene: Scene, frames: list[Frame],
+            views: list[View]) -> tuple[list[np.ndarray] | None, str]:
+    """(per training photo, the (H, W) bool mask of its sky pixels, or None; why) — see `recon.sky`.
+
+    auto: on for the fast model of an unbounded capture without masks when at least `SKY_MIN_FRACTION` of the
+    training pixels are sky; the field then shows a sky colour per ray direction behind everything, and the sky
+    pixels train as empty space (`train.sky_weight`)."""
+    if cfg.sky == "off":
+        return None, "sky: off (train.sky=off)"
+    if kind != "fast":
+        return None, f"sky: off (the {kind} model has no sky colour)"
+    if scene.has_alpha:
+        return None, "sky: off (the photos have masks: their background is known)"
+    if cfg.sky == "auto" and scene.capture == "object":
+        return None, "sky: off (an object capture: nothing is modelled outside its box; train.sky=on forces it)"
+    points = np.asarray(scene.points, np.float64).reshape(-1, 3)
+    if len(points) == 0:
+        return None, "sky: off (no sparse points: nothing tells a clear sky from a smooth blue surface)"
+    masks = []
+    for frame, view in zip(frames, views, strict=True):
+        seen = scene.point_visibility.get(frame.name)
+        pts = points if seen is None else points[np.asarray(seen, np.int64)]
+        uv, z = project(pts, np.asarray(view.c2w, np.float64), np.asarray(view.intrinsics, np.float64))
+        masks.append(sky_mask(view.image, uv[z > 0]))
+    share = float(sum(m.sum() for m in masks)) / max(1, sum(m.size for m in masks))
+    with_sky = sum(bool(m.any()) for m in masks)
+    found = (f"{share:.1%} of the training pixels in {with_sky} of {len(masks)} photos are sky "
+             f"(smooth, blue or pale beside the blue, no SfM point near)")
+    if cfg.sky == "auto" and share < SKY_MIN_FRACTION:
+        return None, f"sky: off ({found}; fewer than {SKY_MIN_FRACTION:.0%})"
+    why = "train.sky=on" if cfg.sky == "on" else SKY_WHY
+    return masks, (f"sky: on ({found}; {why}): a sky colour per ray direction behind the field, and the sky pixels "
+                   f"train as empty space (weight {cfg.sky_weight:g})")
 
 
 def choose_background(cfg: TrainConfig, scene: Scene, views: list[View], backdrop: np.ndarray | None = None) -> tuple[np.ndarray, bool, str]:

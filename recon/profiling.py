@@ -175,7 +175,7 @@ def profile_preset(data: str, preset: str, out_dir: Path, overrides: list[str], 
     from recon.nerf.trainer import RayBatcher, render_image, train
     from recon.scene import load_scene
     from recon.field import build_model
-    from recon.model_choice import choose_background, key_backdrop_for, model_spec
+    from recon.model_choice import choose_background, key_backdrop_for, model_spec, sky_for
     from recon.views import load_views, view_tensors
 
     config = load_config(preset, overrides)
@@ -186,6 +186,9 @@ def profile_preset(data: str, preset: str, out_dir: Path, overrides: list[str], 
     kind, kwargs, lr, _ = model_spec(cfg, scene, views)
     views, backdrop, _ = key_backdrop_for(cfg, kind, scene, views)
     background, random_bg, _ = choose_background(cfg, scene, views, backdrop)
+    sky, _ = sky_for(cfg, kind, scene, scene.split("train"), views)
+    if sky is not None:
+        kwargs = {**kwargs, "config": {**kwargs["config"], "background": "sky"}}
     if kind != "fast":
         raise ValueError(f"--profile measures the fast grid model; preset {preset} trains '{kind}'")
     torch.manual_seed(cfg.seed)
@@ -193,7 +196,8 @@ def profile_preset(data: str, preset: str, out_dir: Path, overrides: list[str], 
     images, c2w, intr, _ = view_tensors(views, torch.device("cpu"))
     aabb = torch.tensor(np.asarray(scene.aabb), dtype=torch.float32)
     batcher = RayBatcher(images, c2w, intr, aabb=aabb, background=torch.tensor(background),
-                         random_background=random_bg, seed=cfg.seed)
+                         random_background=random_bg, seed=cfg.seed,
+                         empty=None if sky is None else [torch.from_numpy(m) for m in sky])
     autocast = torch.bfloat16 if cfg.precision == "bf16" else None
 
     prof = torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CPU])
@@ -211,7 +215,8 @@ def profile_preset(data: str, preset: str, out_dir: Path, overrides: list[str], 
     with report.task(f"{preset}: {warmup} warm-up + {steps} profiled steps", total=None):
         with _labelled(_labels(model, batcher)) as counts:
             result = train(model, batcher, steps=warmup + steps, lr=lr, lr_final=lr * cfg.lr_decay,
-                           batch_rays=cfg.batch_rays, callbacks=[on_step], autocast=autocast)
+                           batch_rays=cfg.batch_rays, callbacks=[on_step], autocast=autocast,
+                           empty_weight=cfg.sky_weight if sky is not None else 0.0)
             samples = counts["render_weights_packed"][-steps:]
             colored = counts["_rgb_unit"][-steps:]
     wall = marks["t1"] - marks["t0"]

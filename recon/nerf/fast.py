@@ -65,7 +65,7 @@ from recon.nerf.occupancy import OccupancyGrid, density_threshold, march, march_
 from recon.nerf.rays import ray_aabb
 from recon.nerf.render import RadianceModel, accumulate_packed, checked_aabb, render_weights_packed
 
-__all__ = ["FastConfig", "FastModel", "sh_encode", "distortion_loss_packed", "ray_background", "trunc_exp"]
+__all__ = ["FastConfig", "FastModel", "sh_encode", "distortion_loss_packed", "ray_background", "SkyColor", "trunc_exp"]
 
 def trunc_exp(x: Tensor, max_input: float = 15.0) -> Tensor:
     """exp of x clamped at ``max_input`` (gradient 0 above it): overflow-free density activation."""
@@ -190,6 +190,24 @@ def ray_background(
     return torch.full((n, 3), value, device=like.device, dtype=like.dtype)
 
 
+class SkyColor(nn.Module):
+    """The colour a ray shows when it meets nothing (FastConfig.background = "sky"): a sigmoid of a linear map of
+    the ray direction's spherical harmonics up to degree 3. A clear sky is smooth in direction; a map this smooth
+    cannot draw a surface's texture, so the field still has to hold every surface."""
+
+    degree = 3
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.linear = nn.Linear((self.degree + 1) ** 2, 3)
+        nn.init.zeros_(self.linear.weight)
+        nn.init.zeros_(self.linear.bias)
+
+    def forward(self, d: Tensor) -> Tensor:
+        """Unit directions d (N, 3) -> RGB (N, 3) in (0, 1)."""
+        return torch.sigmoid(self.linear(sh_encode(F.normalize(d.float(), dim=-1), self.degree)))
+
+
 def _make_grid(kind: GridKind, res: int, dim: int, *, density: bool, levels: int = 1) -> nn.Module:
     """A grid encoder of the given kind; ``dim`` as documented on FastConfig.feature_dim."""
     if kind == "dense":
@@ -232,6 +250,7 @@ class FastModel(RadianceModel):
         self.color_grid = _make_grid(cfg.grid, cfg.feature_res, cfg.feature_dim, density=False, levels=cfg.feature_levels)
         self.color_mlp = make_color_mlp(self.color_grid.out_dim, cfg.color_model, cfg.sh_degree, cfg.mlp_width, cfg.mlp_layers)
         self.bg_logit = nn.Parameter(torch.zeros(3)) if cfg.background == "learned" else None
+        self.sky = SkyColor() if cfg.background == "sky" else None
 
         self.occupancy = OccupancyGrid(
             aabb,
@@ -284,8 +303,10 @@ class FastModel(RadianceModel):
         return self._rgb_unit(self._unit(x).clamp(0.0, 1.0), d)
 
     # ------------------------------------------------------------------ rendering
-    def _background(self, background: Tensor | None, n: int, like: Tensor, training: bool) -> Tensor:
-        return ray_background(self.config.background, self.bg_logit, background, n, like, training)
+    def _background(self, background: Tensor | None, rays_d: Tensor, training: bool) -> Tensor:
+        if self.sky is not None:
+            return self.sky(rays_d).to(rays_d)
+        return ray_background(self.config.background, self.bg_logit, background, rays_d.shape[0], rays_d, training)
 
     def render_rays(
         self,
@@ -371,7 +392,7 @@ class FastModel(RadianceModel):
             ri_c, w_c = ri, weights
             u_c = u if u is not None else self._unit(rays_o[ri] + rays_d[ri] * mid[:, None]).clamp(0.0, 1.0)
         rgb_s = self._rgb_unit(u_c, rays_d[ri_c])
-        bg = self._background(background, n, rays_o, training)
+        bg = self._background(background, rays_d, training)
         remainder = (1.0 - opacity).clamp_min(0.0)
         rgb = accumulate_packed(w_c, rgb_s, ri_c, n) + remainder[:, None] * bg
         depth = accumulate_packed(weights, mid, ri, n) + remainder * far
@@ -400,7 +421,7 @@ class FastModel(RadianceModel):
         ri_c, w_c = fused["ray_indices"], fused["weights"]
         rgb_s = self._rgb_unit(fused["u"], rays_d[ri_c])
         opacity = fused["opacity"]
-        bg = self._background(background, n, rays_o, False)
+        bg = self._background(background, rays_d, False)
         remainder = (1.0 - opacity).clamp_min(0.0)
         rgb = accumulate_packed(w_c, rgb_s, ri_c, n) + remainder[:, None] * bg
         depth = fused["depth_sum"] + remainder * far
@@ -471,11 +492,13 @@ class FastModel(RadianceModel):
         return True
 
     def param_groups(self, lr: float) -> list[dict[str, Any]]:
-        """Grids (and the learned background) at lr * grid_lr_scale, the color MLP at lr."""
+        """Grids (and the learned background) at lr * grid_lr_scale, the color MLP (and the sky) at lr."""
         grids = list(self.density_grid.parameters()) + list(self.color_grid.parameters())
         if self.bg_logit is not None:
             grids.append(self.bg_logit)
         groups = [{"params": grids, "lr": lr * self.config.grid_lr_scale}]
         if self.color_mlp is not None:
             groups.append({"params": list(self.color_mlp.parameters()), "lr": lr})
+        if self.sky is not None:
+            groups.append({"params": list(self.sky.parameters()), "lr": lr})
         return groups

@@ -76,8 +76,9 @@ class FastConfig:
     """Weight of the mip-NeRF 360 distortion loss (0 = off)."""
     entropy_weight: float = 0.0
     """Weight of the binary entropy of ray opacity (pushes opacity to 0 or 1; 0 = off)."""
-    background: Literal["white", "black", "learned", "random"] = "white"
-    """Background used when render_rays gets none; "learned" always uses the model's own color."""
+    background: Literal["white", "black", "learned", "random", "sky"] = "white"
+    """Background used when render_rays gets none; "learned" always uses the model's own color, "sky" its own
+    colour per ray direction (`recon.nerf.fast.SkyColor`; the train stage's sky, `recon.sky`)."""
     grid_lr_scale: float = 10.0
     """Grids train at lr * grid_lr_scale (the MLP at lr)."""
     shrink_step: int = 64

@@ -79,14 +79,16 @@ class RayBatcher:
             model renders leftover transmittance with it.
         random_background: RGBA only: composite each ray onto a fresh random color (given to the
             model too), which stops the model from painting the background into the density.
+        empty: per image an (H, W) bool mask of pixels known to see nothing up to ``far`` (the sky,
+            `recon.sky`); each batch then carries ``empty (B,)`` (float 0/1) for the trainer's ``empty_weight``.
         drop_missed: with ``aabb``, leave out pixels whose rays miss the box (they can only show
             background); the count is in ``n_dropped``.
         seed: seeds the shuffling and random-background generators.
         device: where batches are produced (default: the images' device).
 
     Batches (:meth:`next_batch`) are dicts of ``rays_o, rays_d (B, 3)``, ``near, far (B,)``,
-    ``rgb (B, 3)`` target, ``background (B, 3)`` and ``image (B,)`` (long: which image each ray comes
-    from, for per-photo appearance); every pixel is used once per epoch.
+    ``rgb (B, 3)`` target, ``background (B, 3)``, ``image (B,)`` (long: which image each ray comes
+    from, for per-photo appearance) and, given ``empty``, ``empty (B,)``; every pixel is used once per epoch.
     """
 
     def __init__(
@@ -99,6 +101,7 @@ class RayBatcher:
         near_far: Tensor | None = None,
         background: Tensor | Sequence[float] = (1.0, 1.0, 1.0),
         random_background: bool = False,
+        empty: Sequence[Tensor] | None = None,
         drop_missed: bool = True,
         seed: int = 0,
         device: torch.device | str | None = None,
@@ -137,6 +140,11 @@ class RayBatcher:
                 raise ValueError(f"near_far must be (2,) or ({n}, 2), got {tuple(near_far.shape)}")
         else:
             self.near_far = None
+        self.empty: Tensor | None = None
+        if empty is not None:
+            if len(empty) != n or any(tuple(m.shape) != tuple(im.shape[:2]) for m, im in zip(empty, imgs, strict=True)):
+                raise ValueError("empty must hold one (H, W) mask per image, each the size of its image")
+            self.empty = torch.cat([torch.as_tensor(m, dtype=torch.bool).reshape(-1) for m in empty]).to(self.device)
         self.background = torch.as_tensor(background, dtype=torch.float32, device=self.device)
         self.random_background = random_background and self.has_alpha
         self.seed = seed
@@ -206,8 +214,11 @@ class RayBatcher:
         if self.has_alpha:
             a = px[:, 3:4]
             rgb = rgb * a + bg * (1.0 - a)
-        return {"rays_o": o, "rays_d": d, "near": near, "far": far, "rgb": rgb, "background": bg,
-                "image": self.image_index(flat)}
+        batch = {"rays_o": o, "rays_d": d, "near": near, "far": far, "rgb": rgb, "background": bg,
+                 "image": self.image_index(flat)}
+        if self.empty is not None:
+            batch["empty"] = self.empty[flat].float()
+        return batch
 
     def state_dict(self) -> dict[str, Any]:
         """Position in the shuffled stream (small: the permutation is regenerated from its seed state)."""
@@ -350,6 +361,7 @@ def train(
     extra_loss: Callable[[RadianceModel, int], dict[str, Tensor]] | None = None,
     appearance: torch.nn.Module | None = None,
     pose_refine: PoseRefinement | None = None,
+    empty_weight: float = 0.0,
 ) -> dict[str, Any]:
     """Optimize ``model`` on ``batcher``'s rays for ``steps`` steps (or the rest of them after a resume).
 
@@ -382,6 +394,8 @@ def train(
             rays are cast from the corrected cameras, its ``regularizer()`` joins the loss and its parameters are
             optimized by their own Adam at ``pose_refine.lr`` on the steps ``pose_refine.learns_at``, each update
             followed by ``pose_refine.hold_frame()``.
+        empty_weight: > 0 with a batcher given ``empty`` masks: adds ``empty_weight`` × the mean over the batch of
+            the sky rays' opacity (L1: a blob coloured like the sky costs the colour loss almost nothing).
 
     Returns a summary dict: step, loss, psnr, rays_per_s, elapsed_s, history, metrics (last eval).
 
@@ -457,6 +471,8 @@ def train(
                 terms[f"aux_rgb[{i}]"] = F.mse_loss(aux.float(), batch["rgb"])
             if "reg" in out:
                 terms["reg"] = out["reg"].float()
+            if empty_weight > 0 and "empty" in batch:  # sky pixels: whatever the field holds on their rays is wrong
+                terms["empty"] = empty_weight * (out["opacity"].float() * batch["empty"]).mean()
             if extra_loss is not None:
                 with torch.autocast(batch["rgb"].device.type, dtype=autocast or torch.bfloat16, enabled=autocast is not None):
                     terms.update({k: v.float() for k, v in extra_loss(model, step).items()})

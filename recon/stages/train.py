@@ -20,7 +20,7 @@ from recon.atomic import checksum_matches, checksum_path, fault_point, write_che
 from recon.config import TrainConfig, parse_duration
 from recon.errors import ReconError
 from recon.field import FIELD_FILE, build_model, save_field
-from recon.model_choice import choose_background, key_backdrop_for, model_spec
+from recon.model_choice import choose_background, key_backdrop_for, model_spec, sky_for
 from recon.pipeline import Stage, StageContext
 from recon.scene import Frame, Scene, load_scene, spread_evenly
 from recon.views import View, evaluate, load_views, view_tensors, write_previews
@@ -196,6 +196,11 @@ def run(ctx: StageContext) -> dict:
     views, backdrop, key_why = key_backdrop_for(cfg, kind, scene, views)
     reasons.append(key_why)
     background, random_bg, bg_why = choose_background(cfg, scene, views, backdrop)
+    sky, sky_why = sky_for(cfg, kind, scene, train_frames, views)
+    reasons.append(sky_why)
+    if sky is not None:
+        kwargs = {**kwargs, "config": {**kwargs["config"], "background": "sky"}}
+        bg_why = "the field's sky colour per ray direction (see sky:)"
     if budget_s:
         reasons.append(f"time budget {cfg.budget}: at most {cfg.steps} steps, stopping when the budget is spent")
     if kind == "fast" and device.type == "cpu":
@@ -226,6 +231,7 @@ def run(ctx: StageContext) -> dict:
         images, c2w, intr,
         aabb=aabb, near_far=None if bounded else near_far,
         background=torch.tensor(background), random_background=random_bg, seed=cfg.seed, device=device,
+        empty=None if sky is None else [torch.from_numpy(m) for m in sky],
     )
     appearance = None
     if use_appearance:
@@ -283,7 +289,7 @@ def run(ctx: StageContext) -> dict:
                     eval_fn=eval_fn, eval_every=cfg.eval_every or cfg.steps, callbacks=[on_step],
                     state=checkpoint["state"] if checkpoint else None,
                     budget_s=budget_s, spent_s=time_before, autocast=autocast, extra_loss=depth_prior,
-                    appearance=appearance, pose_refine=pose_refine,
+                    appearance=appearance, pose_refine=pose_refine, empty_weight=cfg.sky_weight if sky is not None else 0.0,
                 )
             for w in caught:
                 if "training is not improving" in str(w.message):
@@ -354,4 +360,5 @@ def run(ctx: StageContext) -> dict:
 
 # version 2: train.depth_prior=auto turns the prior on for the surface model, so a cached surface field is stale
 # version 3: the surface model keys a plain backdrop (train.backdrop_key) and starts from the SfM points' hull
-STAGE = Stage(name="train", folder="03_field", inputs=("normalize",), version=3, run=run)
+# version 4: train.sky=auto gives an unbounded capture with a clear sky a sky colour and trains its sky pixels empty
+STAGE = Stage(name="train", folder="03_field", inputs=("normalize",), version=4, run=run)
