@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from recon.geometry.coherence import depth_points, largest_piece, object_pixels, projected_coverage
+from recon.geometry.coherence import depth_points, largest_piece, object_pixels, point_agreement, projected_coverage
 
 
 def _square(cx: float, cy: float, half: float, z: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
@@ -31,6 +31,26 @@ def test_largest_piece_is_the_area_share_of_the_biggest_component():
     assert out["largest_area_fraction"] == pytest.approx(4 / 6)
     assert largest_piece(v1, f1) == {"pieces": 1, "largest_area_fraction": 1.0}
     assert largest_piece(np.zeros((0, 3)), np.zeros((0, 3), np.int64))["largest_area_fraction"] == 0.0
+
+
+def test_point_agreement_tells_points_on_the_mesh_from_points_it_hides_and_misses():
+    """A square 1 unit below the camera (|x|, |y| <= 0.2): a point on it is on the mesh; a point below it is hidden
+    (the mesh lies in front of a surface the photo saw); a point above it, or beside it where no face is, is missed."""
+    verts, faces = _square(0, 0, 0.2)
+    cam = _camera_above()
+    on = [[0.05, 0.05, 0.0], [-0.1, 0.15, -0.005]]  # within the tolerance 0.01 (the second just below)
+    hidden = [[0.0, -0.1, -0.2]]  # 0.2 below the square, behind it from the camera
+    missed = [[0.1, 0.0, 0.3], [0.35, 0.0, 0.0]]  # in front of the square; beside it
+    unseen = [[5.0, 0.0, 0.0], [0.0, 0.0, 2.0]]  # outside the image; behind the camera
+    out = point_agreement(verts, faces, [cam], [np.array(on + hidden + missed + unseen)], tolerance=0.01)
+    assert out["sightings"] == 5
+    assert out["on"] == pytest.approx(2 / 5) and out["in_front"] == pytest.approx(1 / 5)
+    assert out["missing"] == pytest.approx(2 / 5)
+    tight = point_agreement(verts, faces, [cam], [np.array(on)], tolerance=0.001)  # 0.005 off: in front now
+    assert tight["on"] == pytest.approx(0.5) and tight["in_front"] == pytest.approx(0.5)
+    assert point_agreement(verts, faces, [cam], [np.array(unseen)], 0.01)["sightings"] == 0
+    with pytest.raises(ValueError, match="one point set per camera"):
+        point_agreement(verts, faces, [cam, cam], [np.array(on)], 0.01)
 
 
 def test_projected_coverage_counts_object_pixels_the_mesh_covers():
@@ -104,6 +124,11 @@ def test_mesh_stage_coherence_uses_masks_or_the_region_above_the_ground():
     masked = coherence(top, faces, [view], [depth], region, ground, 0.05, masked=True)
     assert masked["projected"]["coverage"] == pytest.approx(0.5) and masked["projected"]["outside"] == 0.0
     assert coherence(top, faces, [], [], region, ground, 0.05, masked=False)["projected"] is None
+    # SfM points: only those in the region above the ground count; one on the box top, one on the table (cut)
+    seen = [np.array([[-0.1, 0.1, 0.5], [0.4, -0.4, 0.0]])]
+    agree = coherence(top, faces, [view], [depth], region, ground, 0.05, masked=False, seen_points=seen,
+                      point_tolerance=0.02)["points"]
+    assert agree["sightings"] == 1 and agree["on"] == 1.0
 
 
 def test_transparent_pixels_are_not_object_when_the_region_is_the_scene_box():

@@ -8,6 +8,11 @@
   The object pixels come from the masks when the capture has them; without masks from the field: the pixels
   whose rendered depth puts their surface point inside the object region (the box the mesh was cut to, above
   the ground plane it was cut at), i.e. what the photos show of the object.
+* **point agreement**: the SfM points each photo observes against the mesh's z-buffer in that photo. A photo saw a
+  surface at each of its points, so the mesh should pass through them: the share of sightings where it does
+  (`on`), where it lies in front and hides the point (`in_front`: mesh floating before a seen surface, such as
+  sceaux_castle's roofs smeared towards the cameras) and where it is behind or absent (`missing`). It needs no
+  field, so it also checks what the projected coverage takes from the field's depth.
 
 There is no ground truth on a real capture; these are the checks that still can fail there.
 """
@@ -22,7 +27,7 @@ from recon.geometry.clean import component_areas
 from recon.geometry.color import project
 from recon.geometry.raster import rasterize
 
-__all__ = ["largest_piece", "depth_points", "object_pixels", "projected_coverage"]
+__all__ = ["largest_piece", "depth_points", "object_pixels", "projected_coverage", "point_agreement"]
 
 
 def largest_piece(vertices: np.ndarray, faces: np.ndarray) -> dict:
@@ -99,3 +104,38 @@ def projected_coverage(
         "mesh_pixels": mesh_total,
         "views": per_view,
     }
+
+
+def point_agreement(
+    vertices: np.ndarray,
+    faces: np.ndarray,
+    cameras: Sequence[tuple[np.ndarray, Sequence[float], tuple[int, int]]],
+    points: Sequence[np.ndarray],
+    tolerance: float,
+) -> dict:
+    """Each camera's observed points ``points[k]`` (N_k, 3) against the mesh's z-buffer in that camera (module
+    docstring): a sighting is ``on`` when the nearest mesh face at the point's pixel lies within ``tolerance``
+    (scene units, along the optical axis) of it, ``in_front`` when nearer than that, else ``missing``. Points
+    behind a camera or outside its image are not sightings. Returns the three shares and the number of sightings."""
+    if len(cameras) != len(points):
+        raise ValueError(f"one point set per camera: {len(cameras)} cameras, {len(points)} point sets")
+    verts = np.asarray(vertices, np.float64)
+    tri = np.asarray(faces, np.int64).reshape(-1, 3)
+    on = in_front = total = 0
+    for (c2w, intr, hw), pts in zip(cameras, points):
+        uv, depth = project(np.asarray(pts, np.float64).reshape(-1, 3), np.asarray(c2w, np.float64),
+                            np.asarray(intr, np.float64))
+        h, w = hw
+        ok = (depth > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
+        if not ok.any():
+            continue
+        xy, z = project(verts, np.asarray(c2w, np.float64), np.asarray(intr, np.float64))
+        mesh_z = rasterize(xy, z, tri, (h, w))[2][uv[ok, 1].astype(int), uv[ok, 0].astype(int)]
+        gap = mesh_z - depth[ok]  # inf where no face covers the pixel
+        on += int((np.abs(gap) <= tolerance).sum())
+        in_front += int((gap < -tolerance).sum())
+        total += int(ok.sum())
+    if total == 0:
+        return {"sightings": 0, "on": 0.0, "in_front": 0.0, "missing": 0.0, "tolerance": float(tolerance)}
+    return {"sightings": total, "on": on / total, "in_front": in_front / total,
+            "missing": (total - on - in_front) / total, "tolerance": float(tolerance)}

@@ -31,7 +31,7 @@ from recon.config import MeshConfig, parse_region
 from recon.errors import ReconError
 from recon.field import load_field
 from recon.geometry.clean import SeenFn, clean_mesh
-from recon.geometry.coherence import largest_piece, object_pixels, projected_coverage
+from recon.geometry.coherence import largest_piece, object_pixels, point_agreement, projected_coverage
 from recon.geometry.color import colors_from_field, colors_from_photos, seen_by_views
 from recon.geometry.export import export_mesh, export_textured_mesh
 from recon.geometry.extract import (
@@ -320,6 +320,19 @@ COHERENCE_VIEWS = 8
 """Photos (spread evenly over those rendered for visibility) the mesh is rasterized into for its projected coverage."""
 
 
+POINT_TOL_CELLS = 1.0
+"""The mesh passes through an SfM point (coherence's point agreement) when within this many field voxels of it."""
+
+
+def seen_points(scene: Scene, views: Sequence[View]) -> list[np.ndarray] | None:
+    """Per view, the scene's sparse points its photo observes (None when the scene has no visibility: an import)."""
+    if not scene.point_visibility or len(scene.points) == 0:
+        return None
+    names = {f.stem: f.name for f in scene.frames}
+    points = np.asarray(scene.points, np.float64).reshape(-1, 3)
+    return [points[np.asarray(scene.point_visibility.get(names.get(v.name, v.name), []), np.int64)] for v in views]
+
+
 OBJECT_OPACITY = 0.5
 """A pixel shows a surface (for the coherence check) when the field renders it at least this opaque."""
 
@@ -327,12 +340,15 @@ OBJECT_OPACITY = 0.5
 def coherence(
     vertices: np.ndarray, faces: np.ndarray, views: Sequence[View], depths: Sequence[np.ndarray], region: np.ndarray,
     ground: np.ndarray | None, ground_margin: float, masked: bool, opacities: Sequence[np.ndarray] | None = None,
+    seen_points: Sequence[np.ndarray] | None = None, point_tolerance: float = 0.0,
 ) -> dict:
     """Is the mesh one surface covering what the photos show of the object (`geometry.coherence`)? The object's
     pixels are the masks' (``masked``), else the pixels at least OBJECT_OPACITY opaque (``opacities``) whose rendered
     depth lands in the mesh region above the cut ground. Without the opacity a transparent ray's depth is its exit
     from the scene box, which lies on the region's boundary when the region is the box: the surface model's runs
-    then counted the backdrop around the object as object and read 48-63% coverage."""
+    then counted the backdrop around the object as object and read 48-63% coverage. ``seen_points``: per view the
+    SfM points it observes; those in the mesh region are checked against the mesh (`point_agreement`, within
+    ``point_tolerance``)."""
     out: dict[str, Any] = {"largest_piece": largest_piece(vertices, faces)}
     if not views:
         out["projected"] = None
@@ -354,6 +370,9 @@ def coherence(
     proj["object"] = "the photos' masks" if masked else "pixels whose rendered depth lies in the mesh region (above the cut ground)"
     proj["photos"] = [views[i].name for i in pick]
     out["projected"] = proj
+    if seen_points is not None:
+        kept = [np.asarray(seen_points[i], np.float64).reshape(-1, 3) for i in pick]
+        out["points"] = point_agreement(vertices, faces, cams, [p[inside(p)] for p in kept], point_tolerance)
     return out
 
 
@@ -675,14 +694,20 @@ def run(ctx: StageContext) -> dict:
                         f"{len(views)} views, depth tolerance {hidden_tol:.3g} units)")
 
     t = time.perf_counter()
-    coherent = coherence(vertices, faces, views, depths, region, ground,
-                         GROUND_MARGIN_CELLS * surface_cell(model, region, shape)[0], masked, opacities or None)
+    cell = surface_cell(model, region, shape)[0]
+    coherent = coherence(vertices, faces, views, depths, region, ground, GROUND_MARGIN_CELLS * cell, masked,
+                         opacities or None, seen_points(scene, views), POINT_TOL_CELLS * cell)
     timings["coherence_s"] = round(time.perf_counter() - t, 3)
     piece, proj = coherent["largest_piece"], coherent["projected"]
+    agree = coherent.get("points")
     ctx.report.info(
         f"coherence: the largest of {piece['pieces']} piece(s) holds {piece['largest_area_fraction']:.1%} of the area"
         + (f"; in {len(proj['photos'])} photos the mesh covers {proj['coverage']:.1%} of the object's pixels "
            f"({proj['object']}), {proj['outside']:.1%} of its pixels lie outside them" if proj else "")
+        + (f"; of the {agree['sightings']:,} sightings of SfM points in the mesh region in those photos, the mesh "
+           f"passes within {agree['tolerance']:.3g} units of {agree['on']:.1%}, hides {agree['in_front']:.1%} "
+           f"(mesh in front of a seen surface) and misses {agree['missing']:.1%}"
+           if agree and agree["sightings"] else "")
     )
 
     t = time.perf_counter()
