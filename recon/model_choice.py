@@ -77,9 +77,9 @@ def sky_for(cfg: TrainConfig, kind: str, scene: Scene, frames: list[Frame],
         return None, "sky: off (no sparse points: nothing tells a clear sky from a smooth blue surface)"
     masks = []
     for frame, view in zip(frames, views, strict=True):
-        seen = scene.point_visibility.get(frame.name)
-        pts = points if seen is None else points[np.asarray(seen, np.int64)]
-        uv, z = project(pts, np.asarray(view.c2w, np.float64), np.asarray(view.intrinsics, np.float64))
+        seen = scene.observed_points(frame)
+        uv, z = project(points if seen is None else seen, np.asarray(view.c2w, np.float64),
+                        np.asarray(view.intrinsics, np.float64))
         masks.append(sky_mask(view.image, uv[z > 0]))
     share = float(sum(m.sum() for m in masks)) / max(1, sum(m.size for m in masks))
     with_sky = sum(bool(m.any()) for m in masks)
@@ -90,6 +90,11 @@ def sky_for(cfg: TrainConfig, kind: str, scene: Scene, frames: list[Frame],
     why = "train.sky=on" if cfg.sky == "on" else SKY_WHY
     return masks, (f"sky: on ({found}; {why}): a sky colour per ray direction behind the field, and the sky pixels "
                    f"train as empty space (weight {cfg.sky_weight:g})")
+
+
+def with_sky(kwargs: dict[str, Any]) -> dict[str, Any]:
+    """`model_spec`'s model kwargs with the fast field's background set to its sky colour (`sky_for` said on)."""
+    return {**kwargs, "config": {**kwargs["config"], "background": "sky"}}
 
 
 def choose_background(cfg: TrainConfig, scene: Scene, views: list[View], backdrop: np.ndarray | None = None) -> tuple[np.ndarray, bool, str]:

@@ -175,7 +175,7 @@ def profile_preset(data: str, preset: str, out_dir: Path, overrides: list[str], 
     from recon.nerf.trainer import RayBatcher, render_image, train
     from recon.scene import load_scene
     from recon.field import build_model
-    from recon.model_choice import choose_background, key_backdrop_for, model_spec, sky_for
+    from recon.model_choice import choose_background, key_backdrop_for, model_spec, sky_for, with_sky
     from recon.views import load_views, view_tensors
 
     config = load_config(preset, overrides)
@@ -188,7 +188,7 @@ def profile_preset(data: str, preset: str, out_dir: Path, overrides: list[str], 
     background, random_bg, _ = choose_background(cfg, scene, views, backdrop)
     sky, _ = sky_for(cfg, kind, scene, scene.split("train"), views)
     if sky is not None:
-        kwargs = {**kwargs, "config": {**kwargs["config"], "background": "sky"}}
+        kwargs = with_sky(kwargs)
     if kind != "fast":
         raise ValueError(f"--profile measures the fast grid model; preset {preset} trains '{kind}'")
     torch.manual_seed(cfg.seed)

@@ -126,6 +126,13 @@ class Scene:
     root: Path | None = None
     """Folder that relative `file_path`s are resolved against (the scene folder for images recon wrote)."""
 
+    def observed_points(self, frame: Frame) -> np.ndarray | None:
+        """(N, 3) the sparse points the frame's photo observes; None when the scene records none for it."""
+        seen = self.point_visibility.get(frame.name)
+        if seen is None:
+            return None
+        return np.asarray(self.points, np.float64).reshape(-1, 3)[np.asarray(seen, np.int64)]
+
     def image_path(self, frame: Frame) -> Path:
         path = Path(frame.file_path)
         if path.is_absolute() or self.root is None:

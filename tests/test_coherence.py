@@ -4,7 +4,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from recon.geometry.coherence import depth_points, largest_piece, object_pixels, point_agreement, projected_coverage
+from recon.geometry.coherence import (depth_points, largest_piece, mesh_zbuffers, object_pixels, point_agreement,
+                                      projected_coverage)
 
 
 def _square(cx: float, cy: float, half: float, z: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
@@ -42,15 +43,16 @@ def test_point_agreement_tells_points_on_the_mesh_from_points_it_hides_and_misse
     hidden = [[0.0, -0.1, -0.2]]  # 0.2 below the square, behind it from the camera
     missed = [[0.1, 0.0, 0.3], [0.35, 0.0, 0.0]]  # in front of the square; beside it
     unseen = [[5.0, 0.0, 0.0], [0.0, 0.0, 2.0]]  # outside the image; behind the camera
-    out = point_agreement(verts, faces, [cam], [np.array(on + hidden + missed + unseen)], tolerance=0.01)
+    zbuf = mesh_zbuffers(verts, faces, [cam])
+    out = point_agreement(zbuf, [cam], [np.array(on + hidden + missed + unseen)], tolerance=0.01)
     assert out["sightings"] == 5
     assert out["on"] == pytest.approx(2 / 5) and out["in_front"] == pytest.approx(1 / 5)
     assert out["missing"] == pytest.approx(2 / 5)
-    tight = point_agreement(verts, faces, [cam], [np.array(on)], tolerance=0.001)  # 0.005 off: in front now
+    tight = point_agreement(zbuf, [cam], [np.array(on)], tolerance=0.001)  # 0.005 off: in front now
     assert tight["on"] == pytest.approx(0.5) and tight["in_front"] == pytest.approx(0.5)
-    assert point_agreement(verts, faces, [cam], [np.array(unseen)], 0.01)["sightings"] == 0
+    assert point_agreement(zbuf, [cam], [np.array(unseen)], 0.01)["sightings"] == 0
     with pytest.raises(ValueError, match="one point set per camera"):
-        point_agreement(verts, faces, [cam, cam], [np.array(on)], 0.01)
+        point_agreement(zbuf * 2, [cam, cam], [np.array(on)], 0.01)
 
 
 def test_projected_coverage_counts_object_pixels_the_mesh_covers():
@@ -61,7 +63,7 @@ def test_projected_coverage_counts_object_pixels_the_mesh_covers():
     wide[30:70, 30:90] = True        # the object is 60 px wide, the mesh covers 40 of them
     half = np.zeros((100, 100), bool)
     half[30:70, 30:50] = True        # the object is half the square: the other half of the mesh is outside it
-    out = projected_coverage(verts, faces, [cam, cam], [wide, half])
+    out = projected_coverage(mesh_zbuffers(verts, faces, [cam, cam]), [wide, half])
     assert out["views"][0]["coverage"] == pytest.approx(40 * 40 / (40 * 60))
     assert out["views"][0]["outside"] == 0.0
     assert out["views"][1]["coverage"] == 1.0
@@ -69,7 +71,7 @@ def test_projected_coverage_counts_object_pixels_the_mesh_covers():
     assert out["coverage"] == pytest.approx((1600 + 800) / (2400 + 800))
     assert out["outside"] == pytest.approx(800 / 3200)
     with pytest.raises(ValueError, match="one object mask per camera"):
-        projected_coverage(verts, faces, [cam], [])
+        projected_coverage(mesh_zbuffers(verts, faces, [cam]), [])
 
 
 def test_object_pixels_from_rendered_depth_match_the_mesh_of_the_object():
@@ -88,7 +90,7 @@ def test_object_pixels_from_rendered_depth_match_the_mesh_of_the_object():
     obj = object_pixels(c2w, intr, depth, inside)
     assert obj.sum() == 20 * 20      # 0.4 units at distance 2 = 20 px
     verts, faces = _square(0, 0, 0.2)
-    out = projected_coverage(verts, faces, [(c2w, intr, hw)], [obj])
+    out = projected_coverage(mesh_zbuffers(verts, faces, [(c2w, intr, hw)]), [obj])
     assert out["coverage"] == 1.0 and out["outside"] == 0.0
     far = np.full(hw, np.inf)        # a transparent view: nothing is object
     assert not object_pixels(c2w, intr, far, inside).any()

@@ -25,9 +25,9 @@ import trimesh
 
 from recon.geometry.clean import component_areas
 from recon.geometry.color import project
-from recon.geometry.raster import rasterize
+from recon.geometry.raster import mesh_depth
 
-__all__ = ["largest_piece", "depth_points", "object_pixels", "projected_coverage", "point_agreement"]
+__all__ = ["largest_piece", "depth_points", "object_pixels", "mesh_zbuffers", "projected_coverage", "point_agreement"]
 
 
 def largest_piece(vertices: np.ndarray, faces: np.ndarray) -> dict:
@@ -63,32 +63,33 @@ def object_pixels(
     return out.reshape(depth.shape)
 
 
-def projected_coverage(
-    vertices: np.ndarray,
-    faces: np.ndarray,
-    cameras: Sequence[tuple[np.ndarray, Sequence[float], tuple[int, int]]],
-    objects: Sequence[np.ndarray],
-) -> dict:
-    """The mesh rasterized into each camera (c2w (4, 4) OpenGL, (fx, fy, cx, cy), (H, W)) against that view's
-    object pixels ``objects[k]`` (H, W) bool.
+def mesh_zbuffers(
+    vertices: np.ndarray, faces: np.ndarray, cameras: Sequence[tuple[np.ndarray, Sequence[float], tuple[int, int]]]
+) -> list[np.ndarray]:
+    """The mesh's z-buffer (H, W) in each camera (c2w (4, 4) OpenGL, (fx, fy, cx, cy), (H, W)), inf where no face
+    covers a pixel (`raster.mesh_depth`): what `projected_coverage` and `point_agreement` read."""
+    verts = np.asarray(vertices, np.float64)
+    tri = np.asarray(faces, np.int64).reshape(-1, 3)
+    return [mesh_depth(verts, tri, c2w, intr, tuple(hw)) for c2w, intr, hw in cameras]
+
+
+def projected_coverage(zbuffers: Sequence[np.ndarray], objects: Sequence[np.ndarray]) -> dict:
+    """The mesh, as its z-buffer in each camera (`mesh_zbuffers`), against that view's object pixels
+    ``objects[k]`` (H, W) bool.
 
     Returns ``coverage``: covered object pixels / object pixels over all views; ``outside``: mesh pixels that are
     not object / mesh pixels; both per view too, and the pixel counts. A view without object pixels counts in
     ``outside`` only.
     """
-    if len(cameras) != len(objects):
-        raise ValueError(f"one object mask per camera: {len(cameras)} cameras, {len(objects)} masks")
-    verts = np.asarray(vertices, np.float64)
-    tri = np.asarray(faces, np.int64).reshape(-1, 3)
+    if len(zbuffers) != len(objects):
+        raise ValueError(f"one object mask per camera: {len(zbuffers)} cameras, {len(objects)} masks")
     per_view = []
     obj_total = covered_total = mesh_total = outside_total = 0
-    for (c2w, intr, hw), obj in zip(cameras, objects):
+    for zbuf, obj in zip(zbuffers, objects):
         obj = np.asarray(obj, bool)
-        if obj.shape != tuple(hw):
-            raise ValueError(f"object mask {obj.shape} does not match the camera's size {tuple(hw)}")
-        xy, z = project(verts, np.asarray(c2w, np.float64), np.asarray(intr, np.float64))
-        face_id, _, _ = rasterize(xy, z, tri, tuple(hw))
-        mesh_px = face_id >= 0
+        if obj.shape != zbuf.shape:
+            raise ValueError(f"object mask {obj.shape} does not match the camera's size {zbuf.shape}")
+        mesh_px = np.isfinite(zbuf)
         n_obj, n_cov = int(obj.sum()), int((mesh_px & obj).sum())
         n_mesh, n_out = int(mesh_px.sum()), int((mesh_px & ~obj).sum())
         obj_total += n_obj
@@ -107,35 +108,28 @@ def projected_coverage(
 
 
 def point_agreement(
-    vertices: np.ndarray,
-    faces: np.ndarray,
+    zbuffers: Sequence[np.ndarray],
     cameras: Sequence[tuple[np.ndarray, Sequence[float], tuple[int, int]]],
     points: Sequence[np.ndarray],
     tolerance: float,
 ) -> dict:
-    """Each camera's observed points ``points[k]`` (N_k, 3) against the mesh's z-buffer in that camera (module
-    docstring): a sighting is ``on`` when the nearest mesh face at the point's pixel lies within ``tolerance``
-    (scene units, along the optical axis) of it, ``in_front`` when nearer than that, else ``missing``. Points
-    behind a camera or outside its image are not sightings. Returns the three shares and the number of sightings."""
-    if len(cameras) != len(points):
+    """Each camera's observed points ``points[k]`` (N_k, 3) against the mesh's z-buffer in that camera
+    (`mesh_zbuffers`; module docstring): a sighting is ``on`` when the nearest mesh face at the point's pixel lies
+    within ``tolerance`` (scene units, along the optical axis) of it, ``in_front`` when nearer than that, else
+    ``missing``. Points behind a camera or outside its image are not sightings. Returns the three shares, the
+    number of sightings and the tolerance."""
+    if not len(zbuffers) == len(cameras) == len(points):
         raise ValueError(f"one point set per camera: {len(cameras)} cameras, {len(points)} point sets")
-    verts = np.asarray(vertices, np.float64)
-    tri = np.asarray(faces, np.int64).reshape(-1, 3)
     on = in_front = total = 0
-    for (c2w, intr, hw), pts in zip(cameras, points):
+    for zbuf, (c2w, intr, _), pts in zip(zbuffers, cameras, points):
         uv, depth = project(np.asarray(pts, np.float64).reshape(-1, 3), np.asarray(c2w, np.float64),
                             np.asarray(intr, np.float64))
-        h, w = hw
+        h, w = zbuf.shape
         ok = (depth > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
-        if not ok.any():
-            continue
-        xy, z = project(verts, np.asarray(c2w, np.float64), np.asarray(intr, np.float64))
-        mesh_z = rasterize(xy, z, tri, (h, w))[2][uv[ok, 1].astype(int), uv[ok, 0].astype(int)]
-        gap = mesh_z - depth[ok]  # inf where no face covers the pixel
+        gap = zbuf[uv[ok, 1].astype(int), uv[ok, 0].astype(int)] - depth[ok]  # inf where no face covers the pixel
         on += int((np.abs(gap) <= tolerance).sum())
         in_front += int((gap < -tolerance).sum())
         total += int(ok.sum())
-    if total == 0:
-        return {"sightings": 0, "on": 0.0, "in_front": 0.0, "missing": 0.0, "tolerance": float(tolerance)}
-    return {"sightings": total, "on": on / total, "in_front": in_front / total,
-            "missing": (total - on - in_front) / total, "tolerance": float(tolerance)}
+    shares = ({"on": on / total, "in_front": in_front / total, "missing": (total - on - in_front) / total} if total
+              else {"on": 0.0, "in_front": 0.0, "missing": 0.0})
+    return {"sightings": total, **shares, "tolerance": float(tolerance)}

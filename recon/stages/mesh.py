@@ -31,7 +31,7 @@ from recon.config import MeshConfig, parse_region
 from recon.errors import ReconError
 from recon.field import load_field
 from recon.geometry.clean import SeenFn, clean_mesh
-from recon.geometry.coherence import largest_piece, object_pixels, point_agreement, projected_coverage
+from recon.geometry.coherence import largest_piece, mesh_zbuffers, object_pixels, point_agreement, projected_coverage
 from recon.geometry.color import colors_from_field, colors_from_photos, seen_by_views
 from recon.geometry.export import export_mesh, export_textured_mesh
 from recon.geometry.extract import (
@@ -324,15 +324,6 @@ POINT_TOL_CELLS = 1.0
 """The mesh passes through an SfM point (coherence's point agreement) when within this many field voxels of it."""
 
 
-def seen_points(scene: Scene, views: Sequence[View]) -> list[np.ndarray] | None:
-    """Per view, the scene's sparse points its photo observes (None when the scene has no visibility: an import)."""
-    if not scene.point_visibility or len(scene.points) == 0:
-        return None
-    names = {f.stem: f.name for f in scene.frames}
-    points = np.asarray(scene.points, np.float64).reshape(-1, 3)
-    return [points[np.asarray(scene.point_visibility.get(names.get(v.name, v.name), []), np.int64)] for v in views]
-
-
 OBJECT_OPACITY = 0.5
 """A pixel shows a surface (for the coherence check) when the field renders it at least this opaque."""
 
@@ -348,7 +339,7 @@ def coherence(
     from the scene box, which lies on the region's boundary when the region is the box: the surface model's runs
     then counted the backdrop around the object as object and read 48-63% coverage. ``seen_points``: per view the
     SfM points it observes; those in the mesh region are checked against the mesh (`point_agreement`, within
-    ``point_tolerance``)."""
+    ``point_tolerance``; None: the scene records no visibility, an import)."""
     out: dict[str, Any] = {"largest_piece": largest_piece(vertices, faces)}
     if not views:
         out["projected"] = None
@@ -366,13 +357,14 @@ def coherence(
 
     objects = [views[i].image[..., 3] >= 128 if masked else object_pixels(views[i].c2w, views[i].intrinsics, surface_depth(i), inside)
                for i in pick]
-    proj = projected_coverage(vertices, faces, cams, objects)
+    zbuffers = mesh_zbuffers(vertices, faces, cams)
+    proj = projected_coverage(zbuffers, objects)
     proj["object"] = "the photos' masks" if masked else "pixels whose rendered depth lies in the mesh region (above the cut ground)"
     proj["photos"] = [views[i].name for i in pick]
     out["projected"] = proj
     if seen_points is not None:
         kept = [np.asarray(seen_points[i], np.float64).reshape(-1, 3) for i in pick]
-        out["points"] = point_agreement(vertices, faces, cams, [p[inside(p)] for p in kept], point_tolerance)
+        out["points"] = point_agreement(zbuffers, cams, [p[inside(p)] for p in kept], point_tolerance)
     return out
 
 
@@ -623,6 +615,7 @@ def run(ctx: StageContext) -> dict:
     drop_hidden = cfg.drop_hidden and not surface
     bounded = meta.get("bounded", True)
     views: list[View] = []
+    view_frames: list[Frame] = []
     depths: list[np.ndarray] = []
     opacities: list[np.ndarray] = []
     masked = bool(train_frames) and all(f.mask_path for f in train_frames)
@@ -630,7 +623,8 @@ def run(ctx: StageContext) -> dict:
         t = time.perf_counter()
         limit = CPU_BAKE_VIEWS[kind] if device.type == "cpu" else 0
         depth_side = CPU_DEPTH_SIDE[kind] if device.type == "cpu" else None
-        views = load_views(scene, spread_evenly(train_frames, limit), max_side, ctx.report, "photos for visibility and colors")
+        view_frames = spread_evenly(train_frames, limit)
+        views = load_views(scene, view_frames, max_side, ctx.report, "photos for visibility and colors")
         if meta.get("appearance"):  # trained with per-photo appearance: bake every photo at the neutral one
             from dataclasses import replace
 
@@ -695,8 +689,10 @@ def run(ctx: StageContext) -> dict:
 
     t = time.perf_counter()
     cell = surface_cell(model, region, shape)[0]
+    observed = ([np.zeros((0, 3)) if p is None else p for p in map(scene.observed_points, view_frames)]
+                if scene.point_visibility else None)
     coherent = coherence(vertices, faces, views, depths, region, ground, GROUND_MARGIN_CELLS * cell, masked,
-                         opacities or None, seen_points(scene, views), POINT_TOL_CELLS * cell)
+                         opacities or None, observed, POINT_TOL_CELLS * cell)
     timings["coherence_s"] = round(time.perf_counter() - t, 3)
     piece, proj = coherent["largest_piece"], coherent["projected"]
     agree = coherent.get("points")

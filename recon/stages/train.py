@@ -20,7 +20,7 @@ from recon.atomic import checksum_matches, checksum_path, fault_point, write_che
 from recon.config import TrainConfig, parse_duration
 from recon.errors import ReconError
 from recon.field import FIELD_FILE, build_model, save_field
-from recon.model_choice import choose_background, key_backdrop_for, model_spec, sky_for
+from recon.model_choice import choose_background, key_backdrop_for, model_spec, sky_for, with_sky
 from recon.pipeline import Stage, StageContext
 from recon.scene import Frame, Scene, load_scene, spread_evenly
 from recon.views import View, evaluate, load_views, view_tensors, write_previews
@@ -199,7 +199,7 @@ def run(ctx: StageContext) -> dict:
     sky, sky_why = sky_for(cfg, kind, scene, train_frames, views)
     reasons.append(sky_why)
     if sky is not None:
-        kwargs = {**kwargs, "config": {**kwargs["config"], "background": "sky"}}
+        kwargs = with_sky(kwargs)
         bg_why = "the field's sky colour per ray direction (see sky:)"
     if budget_s:
         reasons.append(f"time budget {cfg.budget}: at most {cfg.steps} steps, stopping when the budget is spent")
