@@ -123,19 +123,23 @@ def _scene_with_points(n_views: int) -> tuple:
     return TrainConfig(), scene, frames, views
 
 
-@pytest.mark.parametrize("n_views, mode, masks, kind, on", [
-    (15, "auto", False, "fast", True), (24, "auto", False, "fast", False), (24, "on", False, "fast", True),
-    (15, "off", False, "fast", False), (15, "auto", True, "fast", False), (15, "on", True, "fast", True),
-    (24, "auto", False, "surface", True), (24, "auto", True, "surface", False), (24, "off", False, "surface", False),
+@pytest.mark.parametrize("n_views, mode, masks, kind, capture, on", [
+    (15, "auto", False, "fast", "object", True), (24, "auto", False, "fast", "object", False),
+    (24, "on", False, "fast", "object", True), (15, "off", False, "fast", "object", False),
+    (15, "auto", True, "fast", "object", False), (15, "on", True, "fast", "object", True),
+    (24, "auto", False, "surface", "object", True), (24, "auto", True, "surface", "object", False),
+    (24, "off", False, "surface", "object", False),
+    (24, "auto", False, "fast", "unbounded", True), (24, "auto", True, "fast", "unbounded", False),
+    (24, "off", False, "fast", "unbounded", False),
 ])
 def test_depth_prior_is_switched_on_by_few_views_and_says_why(n_views: int, mode: str, masks: bool, kind: str,
-                                                             on: bool) -> None:
+                                                             capture: str, on: bool) -> None:
     from dataclasses import replace
 
     from recon.stages.train import depth_prior_for
 
     cfg, scene, frames, views = _scene_with_points(n_views)
-    cfg = replace(cfg, depth_prior=mode)
+    cfg, scene = replace(cfg, depth_prior=mode), replace(scene, capture=capture)
     if masks:  # photos with masks: alpha 255 everywhere (all object), so every point stays a target when forced on
         scene.has_alpha = True
         views = [replace(v, image=np.concatenate([v.image, np.full(v.image.shape[:2] + (1,), 255, np.uint8)], -1)) for v in views]
@@ -146,6 +150,8 @@ def test_depth_prior_is_switched_on_by_few_views_and_says_why(n_views: int, mode
     assert (prior is not None) == on and why.startswith(f"depth prior: {'on' if on else 'off'}")
     if mode == "auto" and kind == "surface" and on:
         assert "surface model" in why and "concavity" in why  # the model decided it, whatever the photo count
+    elif mode == "auto" and capture == "unbounded" and on:
+        assert "unbounded capture" in why  # the background decided it, whatever the photo count
     elif mode == "auto":
         assert f"{n_views} training photos" in why
     if masks and mode == "auto":

@@ -34,13 +34,20 @@ SURFACE_DEPTH_WHY = (
     "points' depths say the rays pass through (27.8 dB, F@0.5% 0.90)"
 )
 
+UNBOUNDED_DEPTH_WHY = (
+    "an unbounded capture without masks: where the object's colour matches what lies behind it the photos alone leave "
+    "the surface soft and holed; on the fox (balanced, same poses) the SfM points the mesh misses fell from 24.1% to "
+    "4.5% of their sightings and its coverage of the fox's pixels rose from 83% to 94%"
+)
+
 
 def depth_prior_for(cfg: TrainConfig, kind: str, scene: Scene, frames: list[Frame], views: list[View],
                     kwargs: dict[str, Any], aabb: torch.Tensor | None, near_far: torch.Tensor,
                     device: torch.device) -> tuple[Any, str | None]:
     """The sparse-depth prior (`recon.nerf.depth_prior.DepthPrior`) or None, and why (printed either way).
 
-    auto: on with few photos, and for the surface model (`SURFACE_DEPTH_WHY`); off with masks."""
+    auto: on with few photos, for the surface model (`SURFACE_DEPTH_WHY`) and for unbounded captures
+    (`UNBOUNDED_DEPTH_WHY`); off with masks."""
     from recon.nerf.depth_prior import DepthPrior, sparse_depth_targets
     from recon.normalization import FEW_PHOTOS
 
@@ -48,9 +55,10 @@ def depth_prior_for(cfg: TrainConfig, kind: str, scene: Scene, frames: list[Fram
         return None, "depth prior: off (train.depth_prior=off)"
     visible = [np.asarray(scene.point_visibility.get(f.name, []), np.int64) for f in frames]
     n_obs = sum(len(v) for v in visible)
-    if cfg.depth_prior == "auto" and len(frames) >= FEW_PHOTOS and kind != "surface":
-        return None, (f"depth prior: off ({len(frames)} training photos >= {FEW_PHOTOS}: the photos constrain the "
-                      f"geometry; train.depth_prior=on forces it)")
+    few = len(frames) < FEW_PHOTOS
+    if cfg.depth_prior == "auto" and not few and kind != "surface" and scene.capture != "unbounded":
+        return None, (f"depth prior: off ({len(frames)} training photos >= {FEW_PHOTOS} of an object capture: the "
+                      f"photos constrain the geometry; train.depth_prior=on forces it)")
     if cfg.depth_prior == "auto" and scene.has_alpha:
         return None, (f"depth prior: off ({len(frames)} training photos, but masks: their silhouettes already constrain "
                       f"the geometry, and on the masked 15-photo tabletop the prior made the surface lumpy, F@1% 0.888 -> "
@@ -74,6 +82,8 @@ def depth_prior_for(cfg: TrainConfig, kind: str, scene: Scene, frames: list[Fram
         why = "train.depth_prior=on"
     elif kind == "surface":
         why = SURFACE_DEPTH_WHY
+    elif not few:
+        why = UNBOUNDED_DEPTH_WHY
     else:
         why = f"{len(frames)} training photos (< {FEW_PHOTOS}): few views leave the geometry ambiguous"
     sig = prior.sigma.cpu().numpy() if len(prior) else np.zeros(1)
