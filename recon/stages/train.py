@@ -371,4 +371,5 @@ def run(ctx: StageContext) -> dict:
 # version 2: train.depth_prior=auto turns the prior on for the surface model, so a cached surface field is stale
 # version 3: the surface model keys a plain backdrop (train.backdrop_key) and starts from the SfM points' hull
 # version 4: train.sky=auto gives an unbounded capture with a clear sky a sky colour and trains its sky pixels empty
-STAGE = Stage(name="train", folder="03_field", inputs=("normalize",), version=4, run=run)
+# version 5: train.depth_prior=auto turns the prior on for unbounded captures without masks
+STAGE = Stage(name="train", folder="03_field", inputs=("normalize",), version=5, run=run)
