@@ -197,7 +197,7 @@ def profile_preset(data: str, preset: str, out_dir: Path, overrides: list[str], 
     aabb = torch.tensor(np.asarray(scene.aabb), dtype=torch.float32)
     batcher = RayBatcher(images, c2w, intr, aabb=aabb, background=torch.tensor(background),
                          random_background=random_bg, seed=cfg.seed,
-                         empty=None if sky is None else [torch.from_numpy(m) for m in sky])
+                         empty=sky)
     autocast = torch.bfloat16 if cfg.precision == "bf16" else None
 
     prof = torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CPU])
@@ -216,7 +216,7 @@ def profile_preset(data: str, preset: str, out_dir: Path, overrides: list[str], 
         with _labelled(_labels(model, batcher)) as counts:
             result = train(model, batcher, steps=warmup + steps, lr=lr, lr_final=lr * cfg.lr_decay,
                            batch_rays=cfg.batch_rays, callbacks=[on_step], autocast=autocast,
-                           empty_weight=cfg.sky_weight if sky is not None else 0.0)
+                           empty_weight=cfg.sky_weight)
             samples = counts["render_weights_packed"][-steps:]
             colored = counts["_rgb_unit"][-steps:]
     wall = marks["t1"] - marks["t0"]

@@ -241,7 +241,7 @@ def run(ctx: StageContext) -> dict:
         images, c2w, intr,
         aabb=aabb, near_far=None if bounded else near_far,
         background=torch.tensor(background), random_background=random_bg, seed=cfg.seed, device=device,
-        empty=None if sky is None else [torch.from_numpy(m) for m in sky],
+        empty=sky,
     )
     appearance = None
     if use_appearance:
@@ -299,7 +299,7 @@ def run(ctx: StageContext) -> dict:
                     eval_fn=eval_fn, eval_every=cfg.eval_every or cfg.steps, callbacks=[on_step],
                     state=checkpoint["state"] if checkpoint else None,
                     budget_s=budget_s, spent_s=time_before, autocast=autocast, extra_loss=depth_prior,
-                    appearance=appearance, pose_refine=pose_refine, empty_weight=cfg.sky_weight if sky is not None else 0.0,
+                    appearance=appearance, pose_refine=pose_refine, empty_weight=cfg.sky_weight,
                 )
             for w in caught:
                 if "training is not improving" in str(w.message):
