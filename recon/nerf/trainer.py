@@ -80,7 +80,8 @@ class RayBatcher:
         random_background: RGBA only: composite each ray onto a fresh random color (given to the
             model too), which stops the model from painting the background into the density.
         empty: per image an (H, W) bool mask (tensor or array) of pixels known to see nothing up to
-            ``far`` (the sky, `recon.sky`); each batch then carries ``empty (B,)`` (float 0/1) for the trainer's ``empty_weight``.
+            ``far`` (the sky, `recon.sky`); each batch then carries ``empty (B,)`` (float 0/1) for the
+            trainer's ``empty_weight``.
         drop_missed: with ``aabb``, leave out pixels whose rays miss the box (they can only show
             background); the count is in ``n_dropped``.
         seed: seeds the shuffling and random-background generators.
@@ -395,7 +396,8 @@ def train(
             optimized by their own Adam at ``pose_refine.lr`` on the steps ``pose_refine.learns_at``, each update
             followed by ``pose_refine.hold_frame()``.
         empty_weight: with a batcher given ``empty`` masks (ignored without them): adds ``empty_weight`` × the
-            mean over the batch of the sky rays' opacity (L1: a blob coloured like the sky costs the colour loss almost nothing).
+            mean over the batch of the sky rays' opacity (L1: a blob coloured like the sky costs the colour loss
+            almost nothing).
 
     Returns a summary dict: step, loss, psnr, rays_per_s, elapsed_s, history, metrics (last eval).
 
