@@ -105,9 +105,12 @@ class SurfaceConfig:
     """Coarse to fine: level k (0 = coarsest) joins the SDF after k * level_every steps (0: all from the start)."""
     init_radius: float = 0.8
     """Radius of the initial sphere, as a fraction of half the box's shortest side (when no ``init_planes``)."""
-    init_shape: Literal["hull", "sphere"] = "hull"
-    """The surface training starts from. hull: the convex hull of the scene's sparse points (the train stage fills
-    ``init_planes``; a sphere when there are too few points); sphere: a sphere at the box centre."""
+    init_shape: Literal["auto", "visual_hull", "hull", "sphere"] = "auto"
+    """The surface training starts from. visual_hull: what no training photo's silhouette (masks or a keyed
+    backdrop) calls background, set with ``SurfaceModel.set_initial_sdf`` and saved with the weights; hull: the
+    convex hull of the scene's sparse points (the train stage fills ``init_planes``); sphere: a sphere at the box
+    centre. auto: the train stage picks the first of these the capture allows (`recon.model_choice.surface_start`);
+    the model itself reads auto as hull."""
     init_planes: tuple[tuple[float, float, float, float], ...] = ()
     """Half-spaces n·x <= d (unit n; rows (nx, ny, nz, d)) whose intersection is the initial surface instead of the
     sphere: the train stage passes the SfM points' convex hull (:func:`recon.nerf.surface.hull_planes`)."""
@@ -154,9 +157,9 @@ class SurfaceConfig:
     under the object (f = -0.14 there): NeuS gives no opacity where a ray enters already inside, so nothing
     held the bottom up, and the mesh's underside was the box floor, 1 % of the diagonal too low. 0: off."""
     init_prior_weight: float = 0.1
-    """With ``init_planes``: weight of mean (f - f0)² on the random box points, f0 the initial (hull) SDF. Where no
-    photo holds the surface (an underside no camera sees) it stays on the hull instead of drifting with the coarse
-    levels the seen parts move (the thin scene's base: carved 0.05 units up without it). 0: off."""
+    """With a visual hull or ``init_planes``: weight of mean (f - f0)² on the random box points, f0 that initial SDF.
+    Where no photo holds the surface (an underside no camera sees) it stays on the start shape instead of drifting
+    with the coarse levels the seen parts move (the thin scene's base: carved 0.05 units up without it). 0: off."""
     boundary_margin_cells: float = 2.0
     """The SDF at the box's faces is pushed to at least this many finest SDF cells (outside)."""
     boundary_points: int = 1024

@@ -6,11 +6,13 @@ closed by construction; rendering it as a volume lets photos train it like a rad
 
 * f(x) = f0(x) + sum of the enabled levels of a multi-level dense grid + a small MLP on the levels' values
   (last layer zero): at step 0 the field is exactly f0, a closed surface's SDF (the geometric initialization
-  of SAL/IDR/NeuS, here exact instead of approximate). f0 is the convex hull of the SfM points when the
-  config has its planes (``init_planes``, on a frozen grid), else a sphere |x - c| - r0. Why the hull, with a
-  weak pull back to it (``init_prior_weight``): what no photo sees drifts with the coarse levels the seen parts
-  move, and from the sphere the thin scene's unseen underside came out as a cave 0.05 units deep (kept by the
-  hull start alone); with the hull and the pull it is flat at the truth (F@1% 0.912 -> 0.980). The grid levels are
+  of SAL/IDR/NeuS, here exact instead of approximate). f0 is the photos' visual hull when they have silhouettes
+  (``init_shape="visual_hull"``, set with ``set_initial_sdf``; `recon.geometry.visual_hull`), else the convex hull
+  of the SfM points when the config has its planes (``init_planes``), on a frozen grid either way, else a sphere
+  |x - c| - r0. Why a hull, with a weak pull back to it (``init_prior_weight``): what no photo sees drifts with
+  the coarse levels the seen parts move, and from the sphere the thin scene's unseen underside came out as a cave
+  0.05 units deep (kept by the hull start alone); with the hull and the pull it is flat at the truth (F@1% 0.912
+  -> 0.980) when the SfM points reach the bottom edges, and as high as they end when not. The grid levels are
   :class:`recon.nerf.grid.DenseGrid` scalars read through ``grid_sample`` (the fastest read grid.py measured).
 * Coarse to fine (Neuralangelo, Li et al. 2023): level k is added to f after ``k * level_every`` steps,
   and the finite-difference step of the regularizers shrinks with the finest enabled level.
@@ -158,9 +160,14 @@ class SurfaceModel(RadianceModel):
         self.register_buffer("centre", aabb.mean(0))
         self.radius0 = cfg.init_radius * 0.5 * float((aabb[1] - aabb[0]).min())
         self.sdf_grid = MultiDenseGrid(cfg.sdf_res, 1, levels=cfg.sdf_levels)
-        # the initial surface when planes are given: their intersection's SDF on a frozen grid of the finest level's
-        # resolution (exact where it is planar), rebuilt from the config rather than saved
-        self.register_buffer("prior_volume", self._planes_volume(cfg, aabb), persistent=False)
+        # the initial surface on a frozen grid of the finest level's resolution: the planes' intersection (exact where
+        # it is planar), rebuilt from the config rather than saved; or a visual hull, which is saved with the weights
+        # (NaN until `set_initial_sdf` or a loaded state fills it, so a model never starts from an unset shape)
+        if cfg.init_shape == "visual_hull":
+            r = int(cfg.sdf_res)
+            self.register_buffer("prior_volume", torch.full((1, 1, r, r, r), float("nan")))
+        else:
+            self.register_buffer("prior_volume", self._planes_volume(cfg, aabb), persistent=False)
         self.level_cells = [extent / (g.res - 1) for g in self.sdf_grid.grids]
         n_lv = len(self.sdf_grid.grids)
         if cfg.sdf_mlp_width > 0:
@@ -195,9 +202,21 @@ class SurfaceModel(RadianceModel):
         vol = torch.cat([planes_sdf(pts[s:s + chunk], planes) for s in range(0, pts.shape[0], chunk)])
         return vol.view(1, 1, r, r, r)
 
+    @torch.no_grad()
+    def set_initial_sdf(self, volume: Any) -> None:
+        """Start from a signed distance given at the vertices of an sdf_res³ grid over the box, indexed [ix, iy, iz]
+        (``init_shape="visual_hull"``: `recon.geometry.visual_hull.visual_hull_sdf`)."""
+        if self.config.init_shape != "visual_hull":
+            raise ValueError(f"set_initial_sdf needs init_shape='visual_hull' (this model's is '{self.config.init_shape}')")
+        vol = torch.as_tensor(volume, dtype=torch.float32)
+        r = int(self.config.sdf_res)
+        if tuple(vol.shape) != (r, r, r) or not torch.isfinite(vol).all():
+            raise ValueError(f"the initial SDF must be a finite {r}³ grid (got shape {tuple(vol.shape)})")
+        self.prior_volume.copy_(vol.view(1, 1, r, r, r))
+
     def initial_sdf(self, x: Tensor, u: Tensor) -> Tensor:
-        """The SDF the grids add to (M,) at world points x (M, 3) (u: the same in [0, 1] of the box): the planes'
-        intersection when the config has them, else a sphere at the box centre."""
+        """The SDF the grids add to (M,) at world points x (M, 3) (u: the same in [0, 1] of the box): the visual
+        hull or the planes' intersection when the config has them, else a sphere at the box centre."""
         if self.prior_volume is None:
             return (x - self.centre.to(x)).norm(dim=-1) - self.radius0
         return F.grid_sample(self.prior_volume.to(x.dtype), grid_sample_coords(u, x.dtype), mode="bilinear",

@@ -20,7 +20,7 @@ from recon.atomic import checksum_matches, checksum_path, fault_point, write_che
 from recon.config import TrainConfig, parse_duration
 from recon.errors import ReconError
 from recon.field import FIELD_FILE, build_model, save_field
-from recon.model_choice import choose_background, key_backdrop_for, model_spec, sky_for, with_sky
+from recon.model_choice import choose_background, key_backdrop_for, model_spec, sky_for, surface_start, with_sky
 from recon.pipeline import Stage, StageContext
 from recon.scene import Frame, Scene, load_scene, spread_evenly
 from recon.views import View, evaluate, load_views, view_tensors, write_previews
@@ -205,6 +205,10 @@ def run(ctx: StageContext) -> dict:
     reasons.append(pose_why)
     views, backdrop, key_why = key_backdrop_for(cfg, kind, scene, views)
     reasons.append(key_why)
+    start_sdf = None
+    if kind == "surface":
+        kwargs, start_sdf, start_why = surface_start(kwargs, scene, views)
+        reasons.append(start_why)
     background, random_bg, bg_why = choose_background(cfg, scene, views, backdrop)
     sky, sky_why = sky_for(cfg, kind, scene, train_frames, views)
     reasons.append(sky_why)
@@ -231,7 +235,10 @@ def run(ctx: StageContext) -> dict:
     bounded = scene.capture == "object"
     aabb = torch.tensor(np.asarray(scene.aabb), dtype=torch.float32, device=device) if bounded else None
 
-    model = build_model(kind, kwargs).to(device)
+    model = build_model(kind, kwargs)
+    if start_sdf is not None:
+        model.set_initial_sdf(start_sdf)
+    model = model.to(device)
     images, c2w, intr, near_far = view_tensors(views, device)
     depth_prior, depth_why = depth_prior_for(cfg, kind, scene, train_frames, views, kwargs, aabb, near_far, device)
     if depth_why:
@@ -372,4 +379,5 @@ def run(ctx: StageContext) -> dict:
 # version 3: the surface model keys a plain backdrop (train.backdrop_key) and starts from the SfM points' hull
 # version 4: train.sky=auto gives an unbounded capture with a clear sky a sky colour and trains its sky pixels empty
 # version 5: train.depth_prior=auto turns the prior on for unbounded captures without masks
-STAGE = Stage(name="train", folder="03_field", inputs=("normalize",), version=5, run=run)
+# version 6: the surface model starts from the photos' visual hull when they have silhouettes
+STAGE = Stage(name="train", folder="03_field", inputs=("normalize",), version=6, run=run)

@@ -1,0 +1,76 @@
+"""The visual hull: the space no photo sees as background, as a signed distance on a grid.
+
+Why: a surface field starts from a closed shape and keeps it where no photo says otherwise (an underside no camera
+sees). The SfM points' convex hull is such a shape, but its faces pass wherever the points happen to end: few
+points lie on a base's bottom edges, so on the generator's thin scene the hull's bottom runs 0.01-0.06 units above
+the true bottom, and the mesh followed it. Silhouettes (masks, or a keyed backdrop) bound the object from every
+photo at once: carve every grid vertex that projects onto background, and what is left contains the object, down
+to the lowest edges the photos see.
+"""
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from recon.geometry.color import project
+
+__all__ = ["carve", "visual_hull_sdf"]
+
+
+def carve(box: np.ndarray, res: int, c2ws: Sequence[np.ndarray], intrinsics: Sequence[Sequence[float]],
+          objects: Sequence[np.ndarray], min_views: int = 1, margin_px: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """(inside (res, res, res) bool, carved_by (res, res, res) int): the vertices of a res³ grid over box (2, 3),
+    indexed [ix, iy, iz], that fewer than `min_views` photos see as background, and how many do.
+
+    objects[k]: photo k's (H, W) bool object pixels. A vertex is seen as background by a photo when it lies in
+    front of the camera, inside the frame, and more than `margin_px` pixels from the photo's object pixels.
+    Vertices outside a photo's frame learn nothing from it. The defaults carve what any one photo calls background:
+    near a surface only the photos that see it edge-on carve, so asking for two (or a margin) leaves a thick shell —
+    on the thin scene's SfM poses the hull's Chamfer distance to the true surface was 0.52% of the diagonal as
+    defaulted, 1.07% with a 2-pixel margin and 1.49% with a margin and two photos.
+    """
+    import cv2
+
+    box = np.asarray(box, np.float64)
+    axes = [np.linspace(box[0, i], box[1, i], res) for i in range(3)]
+    pts = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    carved_by = np.zeros(len(pts), np.int32)
+    kernel = np.ones((2 * margin_px + 1, 2 * margin_px + 1), np.uint8) if margin_px > 0 else None
+    for c2w, intr, obj in zip(c2ws, intrinsics, objects, strict=True):
+        obj = np.asarray(obj, np.uint8)
+        if kernel is not None:
+            obj = cv2.dilate(obj, kernel)
+        h, w = obj.shape
+        uv, z = project(pts, np.asarray(c2w, np.float64), np.asarray(intr, np.float64))
+        col, row = np.floor(uv[:, 0]).astype(np.int64), np.floor(uv[:, 1]).astype(np.int64)
+        seen = (z > 0) & (col >= 0) & (col < w) & (row >= 0) & (row < h)
+        background = np.zeros(len(pts), bool)
+        background[seen] = obj[row[seen], col[seen]] == 0
+        carved_by += background
+    carved_by = carved_by.reshape(res, res, res)
+    return carved_by < min_views, carved_by
+
+
+def visual_hull_sdf(inside: np.ndarray, box: np.ndarray, smooth_cells: float = 1.0) -> np.ndarray:
+    """Signed distance (res, res, res) float32 (negative inside, world units) of the vertices `inside` (a res³ grid
+    over box (2, 3)); the box's outer layer counts as outside, so the shape closes inside its box.
+
+    From two Euclidean distance transforms, the boundary put half a cell between inside and outside vertices, then
+    Gaussian-smoothed over `smooth_cells` cells: the carved grid's staircase would otherwise be the start's surface."""
+    from scipy import ndimage
+
+    box = np.asarray(box, np.float64)
+    res = inside.shape[0]
+    cell = (box[1] - box[0]) / (res - 1)
+    solid = inside.copy()
+    solid[[0, -1], :, :] = solid[:, [0, -1], :] = solid[:, :, [0, -1]] = False
+    if not solid.any():
+        raise ValueError("nothing is left inside the visual hull")
+    outside_d = ndimage.distance_transform_edt(~solid, sampling=cell)
+    inside_d = ndimage.distance_transform_edt(solid, sampling=cell)
+    half = 0.5 * float(cell.min())
+    sdf = np.where(solid, half - inside_d, outside_d - half)
+    if smooth_cells > 0:
+        sdf = ndimage.gaussian_filter(sdf, smooth_cells)
+    return sdf.astype(np.float32)
