@@ -94,3 +94,17 @@ def test_duplicate_faces_fins_cancel_and_copies_collapse():
     out, removed = remove_duplicate_faces(copy)
     assert removed == 1 and np.array_equal(out, faces)
     assert trimesh.Trimesh(tet.vertices, out).is_watertight
+
+
+def test_a_zero_area_face_marching_cubes_leaves_in_a_closed_mesh_keeps_it_closed() -> None:
+    """A tetrahedron whose edge AB is split by its midpoint M on one side only: the zero-area face (A, M, B) with three
+    distinct vertices closes it. Dropping it (as an area test would) opens a three-edge hole."""
+    from recon.geometry.clean import _mesh
+
+    v = np.array([[0.0, 0, 0], [2, 0, 0], [1, 2, 0], [1, 1, 2], [1, 0, 0]])  # A, B, C, D, M = (A + B) / 2
+    faces = np.array([[0, 4, 2], [4, 1, 2], [0, 3, 1], [1, 3, 2], [2, 3, 0], [0, 1, 4]])  # AMC, MBC, ADB, BDC, CDA, ABM
+    faces[:, [1, 2]] = faces[:, [2, 1]]  # any consistent winding; watertightness does not depend on it
+    mesh = _mesh(v, faces)
+    assert len(mesh.faces) == 6 and mesh.is_watertight
+    collapsed = _mesh(np.concatenate([v, v[:1]]), np.concatenate([faces, [[0, 5, 3]]]))  # vertex 5 merges into 0
+    assert len(collapsed.faces) == 6 and collapsed.is_watertight  # the face merging collapsed is dropped

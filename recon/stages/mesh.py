@@ -838,4 +838,5 @@ def _textured_summary(info: dict) -> str:
     return text
 
 
-STAGE = Stage(name="mesh", folder="04_mesh", inputs=("normalize", "train"), version=3, run=run)
+# version 4: zero-area faces marching cubes leaves stay (dropping one opened a three-edge hole in a closed zero set)
+STAGE = Stage(name="mesh", folder="04_mesh", inputs=("normalize", "train"), version=4, run=run)
