@@ -18,7 +18,7 @@ import trimesh
 
 from recon.atomic import read_json
 from recon.errors import ReconError
-from recon.geometry.compare import chamfer_fscore, fit_sim3, icp_sim3, sample_surface
+from recon.geometry.compare import chamfer_fscore, fit_sim3_robust, icp_sim3, sample_surface
 from recon.scene import Scene, load_scene, parse_frames
 
 SCENE_FOLDER = "02_scene"
@@ -74,8 +74,9 @@ def _true_poses(candidates: Sequence[Path]) -> tuple[Path, dict[str, np.ndarray]
 
 def align_sfm_to_truth(scene: Scene, truth: dict[str, np.ndarray]) -> tuple[np.ndarray, dict]:
     """4×4 similarity source (SfM) frame → true frame fitted on camera centres matched by file name
-    (then by stem), and its residuals: rms and max in true units and relative to the camera-rig
-    radius (rms distance of the true centres from their mean)."""
+    (then by stem), leaving out the cameras SfM misplaced (`fit_sim3_robust`), and its residuals over the cameras
+    it was fitted on: rms and max in true units and relative to the camera-rig radius (rms distance of the true
+    centres from their mean); the cameras left out are listed with theirs."""
     by_stem = {Path(n).stem: c for n, c in truth.items()}
     src, dst, names = [], [], []
     for f in scene.frames:
@@ -90,18 +91,21 @@ def align_sfm_to_truth(scene: Scene, truth: dict[str, np.ndarray]) -> tuple[np.n
             f"to align the SfM frame to the ground truth. Check that the photos keep their original names."
         )
     src_a, dst_a = np.asarray(src), np.asarray(dst)
-    s, rot, t = fit_sim3(src_a, dst_a)
+    s, rot, t, used = fit_sim3_robust(src_a, dst_a)
     res = np.linalg.norm(s * src_a @ rot.T + t - dst_a, axis=1)
     radius = float(np.sqrt(((dst_a - dst_a.mean(axis=0)) ** 2).sum(axis=1).mean()))
     sim = np.eye(4)
     sim[:3, :3], sim[:3, 3] = s * rot, t
+    fitted = res[used]
     info = {
         "cameras_matched": len(src),
+        "cameras_fitted": int(used.sum()),
         "scale": s,
-        "residual_rms": float(np.sqrt((res**2).mean())),
-        "residual_max": float(res.max()),
-        "residual_rms_rel": float(np.sqrt((res**2).mean()) / radius) if radius > 0 else float("nan"),
-        "worst_camera": names[int(res.argmax())],
+        "residual_rms": float(np.sqrt((fitted**2).mean())),
+        "residual_max": float(fitted.max()),
+        "residual_rms_rel": float(np.sqrt((fitted**2).mean()) / radius) if radius > 0 else float("nan"),
+        "worst_camera": names[int(np.flatnonzero(used)[fitted.argmax()])],
+        "cameras_left_out": {names[i]: float(res[i]) for i in np.flatnonzero(~used)},
     }
     return sim, info
 
@@ -177,10 +181,14 @@ def format_comparison(result: dict[str, Any]) -> str:
     al = result["alignment"]
     lines = [f"mesh {result['mesh']}  vs  ground truth {result['gt_mesh']}", f"alignment: {al['method']}"]
     if "residual_rms" in al:
+        fitted = al.get("cameras_fitted", al["cameras_matched"])
         lines.append(
-            f"  {al['cameras_matched']} cameras, residual rms {al['residual_rms']:.4g} ({al['residual_rms_rel']:.3%} of the "
-            f"rig radius), max {al['residual_max']:.4g} ({al['worst_camera']})"
+            f"  {fitted} of {al['cameras_matched']} cameras, residual rms {al['residual_rms']:.4g} ({al['residual_rms_rel']:.3%} "
+            f"of the rig radius), max {al['residual_max']:.4g} ({al['worst_camera']})"
         )
+        if al.get("cameras_left_out"):
+            lines.append("  left out of the fit (more than 3× the median residual: SfM misplaced them): " + ", ".join(
+                f"{name} {r:.4g}" for name, r in sorted(al["cameras_left_out"].items(), key=lambda kv: -kv[1])))
     lines.append(
         f"Chamfer-L1 {result['chamfer_l1']:.4g} ({result['chamfer_l1_rel']:.3%} of the GT diagonal {result['gt_diagonal']:.4g}); "
         f"accuracy {result['accuracy']:.4g}, completeness {result['completeness']:.4g}"

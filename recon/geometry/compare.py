@@ -97,6 +97,31 @@ def fit_sim3(src: np.ndarray, dst: np.ndarray, with_scale: bool = True) -> tuple
     return scale, rot, mu_d - scale * rot @ mu_s
 
 
+def fit_sim3_robust(src: np.ndarray, dst: np.ndarray, spread: float = 3.0, rounds: int = 5
+                    ) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
+    """`fit_sim3` that leaves out the pairs a few bad ones would drag: s, R, t and the (N,) bool inliers it was fitted on.
+
+    Refits on the pairs whose residual is at most `spread` × the median residual until they stop changing (at most
+    `rounds` times), keeping at least half. Why: aligning SfM cameras to the true ones by least squares lets one
+    misplaced camera move every other one: on the thin scene SfM placed `view_002` from 19 points 0.034 units off
+    (the median camera is 0.004 off), and the all-camera fit shifted the whole mesh by about as much as the 0.5%
+    F-score threshold. Trajectory alignment in evaluations is robust for this reason (Tanks and Temples fits its
+    cameras by RANSAC). A residual floor of 1e-9 of the points' spread keeps exact data whole.
+    """
+    src, dst = np.asarray(src, np.float64), np.asarray(dst, np.float64)
+    inliers = np.ones(len(src), bool)
+    s, rot, t = fit_sim3(src, dst)
+    floor = 1e-9 * float(np.linalg.norm(dst - dst.mean(axis=0), axis=1).max(initial=0.0))
+    for _ in range(rounds):
+        residual = np.linalg.norm(s * src @ rot.T + t - dst, axis=1)
+        keep = residual <= max(spread * float(np.median(residual)), floor)
+        if keep.sum() < max(3, (len(src) + 1) // 2) or (keep == inliers).all():
+            break
+        inliers = keep
+        s, rot, t = fit_sim3(src[inliers], dst[inliers])
+    return s, rot, t, inliers
+
+
 def icp_sim3(src: np.ndarray, dst: np.ndarray, iters: int = 30, keep: float = 0.9) -> tuple[float, np.ndarray, np.ndarray]:
     """Similarity dst ≈ s · R @ src + t refined by ICP between point sets src (N, 3) and dst (M, 3) that are
     already roughly aligned: each round pairs every src point with its nearest dst point, drops the worst
