@@ -6,7 +6,7 @@ the normalized scene frame, then to the source frame with the stored normalizati
 frame IS the ground truth's frame, so this is exact. With SfM poses the source frame is COLMAP's
 arbitrary one: when the capture folder (or the GT mesh's folder) holds a transforms.json with the
 true poses (the fixture generator writes one), a Sim(3) is fitted from our camera centres (source
-frame) to the true ones, frames matched by file name, and its residual reported.
+frame) to the true ones, frames matched by file name, leaving out the few SfM misplaced, and its residual reported.
 """
 from __future__ import annotations
 

@@ -327,6 +327,13 @@ def test_stage_writes_reloadable_meshes_report_and_previews_and_gt_comparison_is
     assert result["alignment"]["cameras_matched"] == 6 and result["alignment"]["residual_rms_rel"] < 1e-9
     assert result["alignment"]["scale"] == pytest.approx(3.0)
     assert result["fscore@0.01"] > 0.99 and result["chamfer_l1_rel"] < 3e-3
+    # one true camera far from where SfM put it: the fit leaves it out (and names it) instead of moving the mesh
+    frames[1]["transform_matrix"][0][3] += 2.0
+    (gt_path.parent / "transforms.json").write_text(json.dumps({"fl_x": 128.0, "fl_y": 128.0, "cx": 32, "cy": 32, "w": 64, "h": 64, "frames": frames}))
+    result = compare_to_gt(scene_dir, gt_path)
+    assert result["alignment"]["cameras_fitted"] == 5 and result["alignment"]["residual_rms_rel"] < 1e-9
+    assert list(result["alignment"]["cameras_left_out"]) == [Path(frames[1]["file_path"]).name]
+    assert result["fscore@0.01"] > 0.99 and "left out of the fit" in format_comparison(result)
     (gt_path.parent / "transforms.json").unlink()
     with pytest.raises(Exception, match="no transforms.json"):
         compare_to_gt(scene_dir, gt_path)
