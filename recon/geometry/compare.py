@@ -112,13 +112,15 @@ def fit_sim3_robust(src: np.ndarray, dst: np.ndarray, spread: float = 3.0, round
     exact data whole.
     """
     from itertools import combinations
+    from math import comb
 
     src, dst = np.asarray(src, np.float64), np.asarray(dst, np.float64)
     n = len(src)
     s, rot, t = fit_sim3(src, dst)
     best = float(np.median(np.linalg.norm(s * src @ rot.T + t - dst, axis=1)))
-    triples = list(combinations(range(n), 3)) if n <= 30 else None
-    if triples is None or len(triples) > samples:
+    if comb(n, 3) <= samples:
+        triples = list(combinations(range(n), 3))
+    else:
         rng = np.random.default_rng(0)
         triples = [tuple(rng.choice(n, 3, replace=False)) for _ in range(samples)]
     for idx in triples:

@@ -110,7 +110,7 @@ class SurfaceConfig:
     backdrop) calls background, set with ``SurfaceModel.set_initial_sdf`` and saved with the weights; hull: the
     convex hull of the scene's sparse points (the train stage fills ``init_planes``); sphere: a sphere at the box
     centre. auto: the train stage picks the first of these the capture allows (`recon.model_choice.surface_start`);
-    the model itself reads auto as hull."""
+    the model itself reads auto as hull (its ``init_planes``, else a sphere)."""
     init_planes: tuple[tuple[float, float, float, float], ...] = ()
     """Half-spaces n·x <= d (unit n; rows (nx, ny, nz, d)) whose intersection is the initial surface instead of the
     sphere: the train stage passes the SfM points' convex hull (:func:`recon.nerf.surface.hull_planes`)."""
