@@ -423,3 +423,39 @@ def test_bake_depths_are_the_mesh_z_buffer_without_its_silhouette_rim() -> None:
     _, info = mesh_stage.bake_colors(SoftSphere(400.0, 0.05), [view], [z], np.array([[0.0, 0.0, -4.0], [0.0, 0.0, -6.0]]),
                                      np.array([[0.0, 0.0, 1.0], [0.0, 0.0, 1.0]]), depth_tol=0.05)
     assert info["seen"] == 1 and info["unseen_from_field"] == 1
+
+
+@pytest.mark.parametrize("fails", ["unwrap", "export"])
+def test_a_failed_textured_mesh_still_delivers_the_vertex_colored_mesh_and_says_why(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str], fails: str
+) -> None:
+    """The textured mesh is optional: xatlas failing, or its export failing half-way, must not fail the stage."""
+    model = SoftSphere(amplitude=400.0, width=0.05, samples=64)
+    scene_dir = _scene_dir(tmp_path, model, np.eye(4), kind="transforms")
+    if fails == "unwrap":
+        def broken(*args, **kwargs):
+            raise ValueError("xatlas made no UV charts")
+        monkeypatch.setattr(mesh_stage, "make_textured_mesh", broken)
+    else:
+        real_export = mesh_stage.export_textured_mesh
+
+        def broken(*args, **kwargs):  # writes its files, then fails: nothing half-written may be left
+            real_export(*args, **kwargs)
+            raise OSError("disk full")
+        monkeypatch.setattr(mesh_stage, "export_textured_mesh", broken)
+    cfg = MeshConfig(resolution=33, target_faces=0, color="field", coarse_to_fine=False, texture_faces=200, texture_size=64)
+    summary, out = _run_stage(scene_dir, model, cfg, monkeypatch)
+
+    report = json.loads((out / "mesh_report.json").read_text())
+    glb = trimesh.load(out / "mesh.glb", force="mesh", process=False)
+    ply = trimesh.load(out / "mesh.ply", process=False)
+    assert len(glb.faces) == len(ply.faces) == report["faces"] == summary["faces"] > 100 and ply.visual.kind == "vertex"
+    textured = report["textured"]
+    error = "ValueError: xatlas made no UV charts" if fails == "unwrap" else "OSError: disk full"
+    assert textured["failed"] and textured["error"] == error
+    assert "mesh.texture_size" in textured["what_to_do"] and "mesh.texture_faces=0" in textured["what_to_do"]
+    assert summary["textured"].startswith("failed")
+    assert not list(out.glob("mesh_textured.*")) and not (out / "preview_textured.png").exists()
+    assert "preview_textured.png" not in report["previews"]
+    said = " ".join(capsys.readouterr().err.split())  # the console wraps long lines
+    assert said.count("textured mesh not written") == 1 and error in said

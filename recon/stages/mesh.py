@@ -730,9 +730,12 @@ def run(ctx: StageContext) -> dict:
 
     textured_info: dict[str, Any] | None = None
     if cfg.texture_faces:
-        textured_info, texture_previews = _textured(ctx, cfg, scene, model, views, surface_depths, vertices, faces, colors,
-                                                    transform, max_side, background, timings)
-        previews += texture_previews
+        try:
+            textured_info, texture_previews = _textured(ctx, cfg, scene, model, views, surface_depths, vertices, faces,
+                                                        colors, transform, max_side, background, timings)
+            previews += texture_previews
+        except Exception as exc:  # an optional output: the vertex-colored mesh above is the stage's result
+            textured_info = textured_failed(exc, cfg, ctx)
     timings["total_s"] = round(time.perf_counter() - t_all, 3)
 
     out = clean["output"]
@@ -830,7 +833,29 @@ def _textured(
     return info, previews
 
 
+TEXTURED_OUTPUTS = ("preview_textured.png", "texture_compare.png")
+"""The textured mesh's previews (besides its TEXTURED_STEM.* files): removed with them when texturing fails."""
+
+
+def textured_failed(exc: Exception, cfg: MeshConfig, ctx: StageContext) -> dict[str, Any]:
+    """The report's "textured" when unwrapping, baking or exporting the textured mesh failed: the error and what
+    to do, said in one warning line; its partial files are removed so no half-written textured mesh is left.
+
+    Why: the textured mesh is optional; the vertex-colored mesh (mesh.glb) is already written and is delivered."""
+    for path in [*ctx.out.glob(f"{TEXTURED_STEM}.*"), *(ctx.out / name for name in TEXTURED_OUTPUTS)]:
+        path.unlink(missing_ok=True)
+    error = f"{type(exc).__name__}: {exc}"
+    todo = (f"the vertex-colored {MESH_STEM}.glb is complete; for a textured mesh rerun the mesh stage with a larger "
+            f"--set mesh.texture_size (now {cfg.texture_size}) or fewer --set mesh.texture_faces (now {cfg.texture_faces}), "
+            f"or --set mesh.texture_faces=0 to skip it")
+    ctx.report.warn(f"textured mesh not written ({error}); {todo}")
+    return {"failed": True, "error": error, "what_to_do": todo, "texture_size": cfg.texture_size,
+            "texture_faces": cfg.texture_faces}
+
+
 def _textured_summary(info: dict) -> str:
+    if info.get("failed"):
+        return f"failed ({info['error']}), see mesh_report.json"
     text = f"{info['faces']:,} faces, {info['texture_size']}² texture"
     if info.get("held_out"):
         h = info["held_out"]
