@@ -1,0 +1,143 @@
+"""The realistic tabletop capture (fixtures/gen_tabletop.py, realistic=True): its masks, lens, clutter and
+exposures are what it says they are, checked against the object's mesh and the recorded camera."""
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+from PIL import Image, ImageDraw
+from scipy.ndimage import binary_erosion
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO / "fixtures"))
+import gen_tabletop as tt  # noqa: E402
+import generate as gen  # noqa: E402
+
+STRONG_LENS = (-0.45, 0.1)
+"""Far more barrel than a real lens, so that at 128 px the distortion moves the silhouette by more than a pixel."""
+
+
+@pytest.fixture(scope="module")
+def capture(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """3 views at 96x72 with the default lens: ~1 s."""
+    return tt.generate(tmp_path_factory.mktemp("tt") / "real", views=3, size="96x72", mesh_res=64, realistic=True)
+
+
+@pytest.fixture(scope="module")
+def distorted(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return tt.generate(tmp_path_factory.mktemp("tt") / "strong", views=3, size="128x96", mesh_res=64, realistic=True,
+                       k1=STRONG_LENS[0], k2=STRONG_LENS[1])
+
+
+def frames(out: Path) -> tuple[dict, list[tuple[np.ndarray, np.ndarray, Path]]]:
+    """transforms.json and, per frame, (c2w, mask as bool, photo path)."""
+    doc = json.loads((out / "transforms.json").read_text())
+    rows = []
+    for f in doc["frames"]:
+        mask = np.asarray(Image.open(out / "masks" / (Path(f["file_path"]).stem + ".png"))) > 127
+        rows.append((np.asarray(f["transform_matrix"]), mask, out / f["file_path"]))
+    return doc, rows
+
+
+def silhouette(mesh: trimesh.Trimesh, c2w: np.ndarray, doc: dict, k1: float, k2: float, up: int = 4) -> np.ndarray:
+    """The mesh projected through an OpenCV radial camera (forward model, independent of the renderer's inverse):
+    pixels it covers at least half of (triangles filled at up x up samples per pixel)."""
+    w, h = doc["w"], doc["h"]
+    local = (mesh.vertices - c2w[:3, 3]) @ c2w[:3, :3]
+    x, y = local[:, 0] / -local[:, 2], -local[:, 1] / -local[:, 2]
+    r2 = x * x + y * y
+    scale = 1.0 + k1 * r2 + k2 * r2 * r2
+    uv = np.stack([doc["fl_x"] * x * scale + doc["cx"], doc["fl_y"] * y * scale + doc["cy"]], axis=-1) * up
+    img = Image.new("L", (w * up, h * up), 0)
+    draw = ImageDraw.Draw(img)
+    for tri in uv[mesh.faces]:
+        draw.polygon([tuple(p) for p in tri], fill=255)
+    return np.asarray(img, dtype=np.float32).reshape(h, up, w, up).mean(axis=(1, 3)) >= 127.5
+
+
+def iou(a: np.ndarray, b: np.ndarray) -> float:
+    return float((a & b).sum() / (a | b).sum())
+
+
+def test_lens_undistort_inverts_distort_and_folding_lenses_are_refused() -> None:
+    rng = np.random.default_rng(0)
+    x, y = rng.uniform(-0.6, 0.6, 1000), rng.uniform(-0.45, 0.45, 1000)
+    for lens in (tt.Lens(tt.LENS_K1, tt.LENS_K2), tt.Lens(*STRONG_LENS)):
+        back = lens.undistort(*lens.distort(x, y))
+        assert np.abs(np.stack(back) - np.stack([x, y])).max() < 1e-9
+    tt.Lens(*STRONG_LENS).check(0.6)
+    with pytest.raises(ValueError, match="folds over"):
+        tt.Lens(-0.6, 0.08).check(0.6)  # its distorted radius peaks at 0.52
+
+
+def test_pixel_rays_reproject_to_their_pixels_through_the_recorded_lens() -> None:
+    """A point on the ray through pixel (u, v), projected by OpenCV's model with the same k1/k2, lands on (u, v)."""
+    k = gen.default_intrinsics(160, 120, fov_x_deg=50.0)
+    lens = tt.Lens(*STRONG_LENS)
+    c2w = gen.look_at(np.array([2.0, -1.0, 1.5]), np.zeros(3))
+    rng = np.random.default_rng(1)
+    u, v = rng.uniform(0, 160, 500), rng.uniform(0, 120, 500)
+    points = c2w[:3, 3] + 3.0 * tt.pixel_rays(c2w, k, lens, u, v)
+    local = (points - c2w[:3, 3]) @ c2w[:3, :3]
+    xd, yd = lens.distort(local[:, 0] / -local[:, 2], -local[:, 1] / -local[:, 2])
+    assert np.abs(k.fl_x * xd + k.cx - u).max() < 1e-3 and np.abs(k.fl_y * yd + k.cy - v).max() < 1e-3
+    assert np.abs(k.fl_x * local[:, 0] / -local[:, 2] + k.cx - u).max() > 3.0  # a pinhole puts them elsewhere
+
+
+def test_masks_are_the_object_silhouette_through_the_distorted_lens(distorted: Path) -> None:
+    doc, rows = frames(distorted)
+    assert (doc["k1"], doc["k2"]) == STRONG_LENS  # the true camera is recorded
+    mesh = trimesh.load(distorted / "gt_mesh.ply")
+    for c2w, mask, _ in rows:
+        true_lens = silhouette(mesh, c2w, doc, doc["k1"], doc["k2"])
+        pinhole = silhouette(mesh, c2w, doc, 0.0, 0.0)
+        assert iou(mask, true_lens) > 0.975
+        assert iou(mask, true_lens) > iou(mask, pinhole) + 0.005  # the distortion is in the masks, not only the photos
+        assert abs(mask.sum() / true_lens.sum() - 1) < 0.012 < abs(mask.sum() / pinhole.sum() - 1)
+
+
+def test_default_lens_mesh_reprojects_onto_masks_and_clutter_stays_outside(capture: Path) -> None:
+    doc, rows = frames(capture)
+    info = json.loads((capture / "scene_info.json").read_text())
+    mesh = trimesh.load(capture / "gt_mesh.ply")
+    room = tt.Room()
+    k = gen.default_intrinsics(doc["w"], doc["h"], fov_x_deg=50.0)
+    lens = tt.Lens(doc["k1"], doc["k2"])
+    seen_on_table = seen_in_room = 0
+    for (c2w, mask, _), photo in zip(rows, info["photos"]):
+        assert iou(mask, silhouette(mesh, c2w, doc, doc["k1"], doc["k2"])) > 0.95
+        assert photo["object_pixels_hidden_by_clutter"] == 0
+        labels = tt.trace(room, c2w[:3, 3], tt.pixel_rays(c2w, k, lens, *pixel_centres(doc)), list(range(len(room.props))),
+                          0.0)[1].reshape(mask.shape)
+        clutter = labels >= 1  # 0 is the table itself
+        assert not (binary_erosion(mask) & clutter).any()  # only the object's anti-aliased rim may show some behind it
+        assert ((labels == tt.OBJECT) == mask).mean() > 0.98  # the object, and nothing else, is what the mask covers
+        on_table = np.isin(labels, [i for i, p in enumerate(room.props) if p.on_table])
+        seen_on_table += int(on_table.sum())
+        seen_in_room += int((clutter & ~on_table).sum())
+    assert seen_on_table > 20 and seen_in_room > 20  # clutter on the table and in the room is in the photos
+
+
+def pixel_centres(doc: dict) -> tuple[np.ndarray, np.ndarray]:
+    jj, ii = np.mgrid[0:doc["h"], 0:doc["w"]]
+    return ii.ravel() + 0.5, jj.ravel() + 0.5
+
+
+def test_photos_are_auto_exposed_white_balanced_and_carry_camera_exif(capture: Path) -> None:
+    doc, rows = frames(capture)
+    info = json.loads((capture / "scene_info.json").read_text())
+    exposures = [p["exposure"] for p in info["photos"]]
+    assert max(exposures) / min(exposures) > 1.05  # each photo metered on its own
+    assert len({tuple(p["white_balance"]) for p in info["photos"]}) == len(rows)
+    assert len({p["blur_sigma_px"] for p in info["photos"]}) == len(rows)
+    for _, _, path in rows:
+        photo = np.asarray(Image.open(path), dtype=np.float32) / 255
+        assert abs(photo.mean() - tt.METER_TARGET) < 0.12  # the meter brought every frame near its target
+        with Image.open(path) as img:
+            sub = img.getexif().get_ifd(0x8769)
+        assert abs(sub[0xA405] * np.hypot(doc["w"], doc["h"]) / np.hypot(36, 24) / doc["fl_x"] - 1) < 0.03
+    assert info["gains"][0] == pytest.approx(np.multiply(exposures[0], info["photos"][0]["white_balance"]).tolist())
