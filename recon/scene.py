@@ -13,7 +13,6 @@ up as the same `Scene`, so nothing downstream knows where the poses came from.
 from __future__ import annotations
 
 import math
-import struct
 import os
 import zipfile
 from collections.abc import Sequence
@@ -26,17 +25,12 @@ import numpy as np
 from recon.errors import InputError
 from recon.images import IMAGE_SUFFIXES, MIN_SIDE, oriented_size
 from recon.atomic import read_json, write_json_atomic
+from recon.colmap import LENS_MODELS, find_colmap_model, read_model, reconstruction_frames
 
 SCENE_FORMAT = "recon-scene"
 SCENE_VERSION = 1
 Split = Literal["train", "val", "test"]
 SPLITS: tuple[str, ...] = ("train", "val", "test")
-LENS_MODELS = {
-    "SIMPLE_PINHOLE": "OPENCV", "PINHOLE": "OPENCV", "SIMPLE_RADIAL": "OPENCV", "RADIAL": "OPENCV",
-    "OPENCV": "OPENCV", "OPENCV_FISHEYE": "OPENCV_FISHEYE",
-}
-"""transforms.json / COLMAP camera_model -> the lens recon undistorts it as. Pinhole and radial models are
-radial-tangential with some terms zero; a fisheye is OpenCV's equidistant model (k1..k4)."""
 INTRINSIC_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h", "k1", "k2", "p1", "p2", "k3", "k4", "camera_model")
 
 RAY_DISTANCE = "distance along the unit-length ray"
@@ -67,7 +61,7 @@ class Frame:
     k4: float = 0.0
     camera_model: str = "OPENCV"
     """The lens: OPENCV (radial-tangential k1 k2 p1 p2 k3; holds PINHOLE and the radial models) or
-    OPENCV_FISHEYE (equidistant k1 k2 k3 k4). See `LENS_MODELS`."""
+    OPENCV_FISHEYE (equidistant k1 k2 k3 k4). See `recon.colmap.LENS_MODELS`."""
     split: str | None = None
     mask_path: str | None = None
     """Mask image of the photo (white = object; nerfstudio's `mask_path`): pixels outside are background."""
@@ -432,31 +426,6 @@ def check_cameras(scene: Scene, source: Path | str) -> None:
             )
 
 
-_COLMAP_MIN_RECORD = {"cameras.bin": 24, "images.bin": 73, "points3D.bin": 51, "rigs.bin": 8, "frames.bin": 8}
-"""Fewest bytes one record of each COLMAP binary file takes (its fixed fields; variable parts count as empty)."""
-
-
-def check_colmap_binaries(model: Path) -> None:
-    """Refuse COLMAP .bin files whose header promises more records than the file can hold.
-
-    COLMAP reserves memory for the count in the first 8 bytes: a truncated or foreign file (a 4-byte
-    points3D.bin) made pycolmap allocate without bound. This reads only the headers and sizes."""
-    for name, min_record in _COLMAP_MIN_RECORD.items():
-        path = model / name
-        if not path.is_file():
-            continue
-        size = path.stat().st_size
-        with open(path, "rb") as f:
-            head = f.read(8)
-        count = struct.unpack("<Q", head)[0] if len(head) == 8 else None
-        if count is None or count * min_record > size - 8:
-            found = "shorter than its 8-byte header" if count is None else f"says it holds {count:,} records"
-            raise InputError(
-                f"The COLMAP file {path} is damaged: it is {size:,} bytes and {found}. Re-export the model from "
-                f"COLMAP (File > Export model), or pass the photos folder to run structure from motion again."
-            )
-
-
 def _mask_path(base: Path, fd: dict, source: Path | str, check_files: bool) -> str | None:
     if fd.get("mask_path") is None:
         return None
@@ -474,7 +443,8 @@ def find_masks(photos: Sequence[Path]) -> tuple[Path | None, dict[str, Path]]:
     if not photos:
         return None, {}
     folder = photos[0].parent
-    found = next((c for c in (folder / MASK_FOLDER, folder.parent / MASK_FOLDER) if c.is_dir()), None)
+    # a photos folder that is itself named masks/ is not its own masks folder
+    found = next((c for c in (folder / MASK_FOLDER, folder.parent / MASK_FOLDER) if c.is_dir() and not c.samefile(folder)), None)
     if found is None:
         return None, {}
     by_stem = {p.stem: p for p in sorted(found.iterdir()) if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES}
@@ -524,14 +494,6 @@ def detect_source(path: Path) -> str:
         f"The input {path} is a file recon cannot use. Pass a folder of photos, a video (MP4/MOV/M4V), a folder "
         f"with transforms.json, a COLMAP project/model folder, or a NeRF .npz file."
     )
-
-
-def find_colmap_model(path: Path) -> Path | None:
-    """A COLMAP sparse model folder: `path` itself, `path/sparse/0`, or `path/sparse`."""
-    for cand in (path, path / "sparse" / "0", path / "sparse", path / "colmap" / "sparse" / "0"):
-        if (cand / "cameras.bin").is_file() or (cand / "cameras.txt").is_file():
-            return cand
-    return None
 
 
 def _load_json(path: Path) -> Any:
@@ -603,22 +565,7 @@ def import_colmap(folder: Path, log_dir: Path | None = None) -> Scene:
     """A COLMAP sparse model (cameras/images/points3D .bin or .txt); images from the project's images/ folder.
 
     COLMAP's own log files go to `log_dir` (not /tmp)."""
-    import pycolmap
-
-    from recon.sfm import pycolmap_logging_to
-
-    pycolmap_logging_to(log_dir)
-
-    model = find_colmap_model(folder)
-    if model is None:
-        raise InputError(f"{folder} holds no COLMAP model (cameras.bin / cameras.txt).")
-    check_colmap_binaries(model)
-    try:
-        rec = pycolmap.Reconstruction(str(model))
-    except Exception as exc:  # pycolmap raises plain RuntimeError/ValueError on damaged files
-        raise InputError(f"Cannot read the COLMAP model in {model}: {exc}. Re-export it from COLMAP.") from None
-    from recon.sfm import reconstruction_frames
-
+    model, rec = read_model(folder, log_dir)
     names = sorted(rec.images[i].name for i in rec.images.keys())
     for root in (folder / "images", model / "images", model.parent / "images", model.parent.parent / "images", folder):
         if root.is_dir() and any((root / name).is_file() for name in names[:5]):
