@@ -111,8 +111,8 @@ def test_default_lens_mesh_reprojects_onto_masks_and_clutter_stays_outside(captu
     for (c2w, mask, _), photo in zip(rows, info["photos"]):
         assert iou(mask, silhouette(mesh, c2w, doc, doc["k1"], doc["k2"])) > 0.95
         assert photo["object_pixels_hidden_by_clutter"] == 0
-        labels = tt.trace(room, c2w[:3, 3], tt.pixel_rays(c2w, k, lens, *pixel_centres(doc)), list(range(len(room.props))),
-                          0.0)[1].reshape(mask.shape)
+        rays = tt.pixel_rays(c2w, k, lens, *pixel_centres(doc))
+        labels = tt.trace(room, c2w[:3, 3], rays, list(range(len(room.props))), 0.0)[1].reshape(mask.shape)
         clutter = labels >= 1  # 0 is the table itself
         assert not (binary_erosion(mask) & clutter).any()  # only the object's anti-aliased rim may show some behind it
         assert ((labels == tt.OBJECT) == mask).mean() > 0.98  # the object, and nothing else, is what the mask covers
@@ -141,3 +141,21 @@ def test_photos_are_auto_exposed_white_balanced_and_carry_camera_exif(capture: P
             sub = img.getexif().get_ifd(0x8769)
         assert abs(sub[0xA405] * np.hypot(doc["w"], doc["h"]) / np.hypot(36, 24) / doc["fl_x"] - 1) < 0.03
     assert info["gains"][0] == pytest.approx(np.multiply(exposures[0], info["photos"][0]["white_balance"]).tolist())
+
+
+def test_bench_dataset_is_the_photos_alone_with_the_truth_beside(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """`recon bench --data tabletop_realistic` gets a photos folder with no masks anywhere recon looks for them, and
+    compare_to_gt finds the true poses next to the true mesh."""
+    from recon.bench import GENERATED
+    from recon.scene import find_masks
+
+    assert GENERATED["tabletop_realistic"] == "gen_tabletop"
+    monkeypatch.setattr(tt, "BENCH_CAPTURE", {"views": 3, "size": "64x48", "seed": 0, "supersample": 1, "mesh_res": 48})
+    photos, gt = tt.bench_dataset(tmp_path / "data", verbose=False)
+    listed = sorted(photos.iterdir())
+    assert [p.name for p in listed] == ["view_000.jpg", "view_001.jpg", "view_002.jpg"]
+    assert find_masks(listed) == (None, {})
+    assert gt.is_file() and (gt.parent / "transforms.json").is_file() and (gt.parent / "masks").is_dir()
+    inode = listed[0].stat().st_ino
+    tt.bench_dataset(tmp_path / "data", verbose=False)  # cached: nothing rendered or linked again
+    assert listed[0].stat().st_ino == inode
