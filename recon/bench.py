@@ -27,15 +27,36 @@ DATASETS = {
     "lego-half": (SHARED / "nerf_synthetic_lego_half", None),
     "fox": (SHARED / "fox" / "images", None),
 }
+GENERATED = {"tabletop_realistic": "gen_tabletop"}
+"""Data sets rendered on first use (then cached) by fixtures/<generator>.py's `bench_dataset`: photos without masks."""
+
+
+def _generated_dataset(name: str) -> tuple[Path, Path]:
+    """Render (once) a generated data set into the user cache: its photos folder and its true mesh."""
+    import importlib.util
+    import os
+
+    script = REPO / "fixtures" / f"{GENERATED[name]}.py"
+    if not script.is_file():
+        raise ReconError(f"Benchmark data '{name}' is rendered by {script}, which this installation lacks; "
+                         f"run recon bench from a source checkout.")
+    spec = importlib.util.spec_from_file_location(GENERATED[name], script)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    cache = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "recon" / "datasets" / name
+    return module.bench_dataset(cache)
 
 
 def resolve_dataset(name: str) -> tuple[Path, Path | None]:
+    if name in GENERATED:
+        return _generated_dataset(name)
     if name in DATASETS:
         source, gt = DATASETS[name]
     else:
         source, gt = Path(name), None
     if not source.exists():
-        raise ReconError(f"Benchmark data '{name}' not found at {source}. Known: {', '.join(DATASETS)} or a path.")
+        known = ", ".join([*DATASETS, *GENERATED])
+        raise ReconError(f"Benchmark data '{name}' not found at {source}. Known: {known} or a path.")
     return source, gt if gt is not None and gt.exists() else None
 
 
