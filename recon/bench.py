@@ -3,13 +3,19 @@
 Each preset runs the real pipeline in its own scene folder (poses and normalize are computed once and
 reused through the stage cache), then the table (Markdown), the raw numbers (JSON) and a PNG of
 held-out PSNR against training time, one curve per preset, are written to the output folder.
-A benchmark measures; it asserts nothing.
+Every row also records where and when it was measured (commit, machine, device, load average, date), because
+speed numbers from different commits, machines or loads are not comparable. A benchmark measures; it asserts nothing.
 """
 from __future__ import annotations
 
 import json
+import os
+import platform
 import shutil
+import subprocess
 import time
+from datetime import datetime, timezone
+from importlib import metadata
 from pathlib import Path
 from typing import Any
 
@@ -60,6 +66,52 @@ def resolve_dataset(name: str) -> tuple[Path, Path | None]:
     return source, gt if gt is not None and gt.exists() else None
 
 
+def _git(*args: str) -> str | None:
+    try:
+        done = subprocess.run(["git", "-C", str(REPO), *args], capture_output=True, text=True, timeout=10)
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return done.stdout.strip() if done.returncode == 0 else None
+
+
+def _load_average() -> list[float] | None:
+    try:
+        return [round(x, 2) for x in os.getloadavg()]
+    except (AttributeError, OSError):  # not on every platform
+        return None
+
+
+def _cpu_model() -> str:
+    """The CPU's model name where the OS says it (Linux), else its architecture."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def provenance() -> dict[str, Any]:
+    """The commit and machine a measurement ran on: what a reader needs to tell whether two numbers compare."""
+    status = _git("status", "--porcelain", "--untracked-files=no")
+    try:
+        torch_version: str | None = metadata.version("torch")
+    except metadata.PackageNotFoundError:
+        torch_version = None
+    return {
+        "commit": _git("rev-parse", "HEAD"),
+        "uncommitted_changes": bool(status) if status is not None else None,
+        "machine": {
+            "cpu_count": os.cpu_count(),
+            "cpu": _cpu_model(),
+            "system": platform.system(),
+            "python": platform.python_version(),
+            "torch": torch_version,
+        },
+    }
+
+
 def prepare_scene(data: str, out_dir: Path, config: Any, report: Reporter) -> Path:
     """Poses and normalize of `data` in `out_dir/<name>-poses` (cached): the scene every preset starts from."""
     from recon.stages import default_pipeline
@@ -84,7 +136,10 @@ def run_bench(
 
     source, gt = resolve_dataset(data)
     pipeline = default_pipeline()
+    where = provenance()
+    t0 = time.perf_counter()
     base = prepare_scene(data, out_dir, load_config(None, overrides), report)
+    prepare_wall = time.perf_counter() - t0
     rows = []
     for preset in presets:
         scene = out_dir / f"{Path(data).name}-{preset}"
@@ -92,6 +147,7 @@ def run_bench(
             shutil.copytree(base, scene, ignore=shutil.ignore_patterns(".lock", ".work"))
         config = load_config(preset, overrides)
         report.info(f"[bold]benchmark: {escape(preset)}[/] on {escape(data)}", markup=True)
+        load_start = _load_average()
         t0 = time.perf_counter()
         # poses/normalize: cached from the shared copy unless this preset changes their options; train (and
         # mesh) always run, so every preset's time is measured
@@ -102,6 +158,14 @@ def run_bench(
         metrics = json.loads((scene / "03_field" / "metrics.json").read_text())
         row: dict[str, Any] = {
             "name": preset,
+            "data": data,
+            "overrides": list(overrides),
+            "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+            **where,
+            "device": metrics.get("device"),
+            "load_average_start": load_start,  # 1, 5 and 15 minutes: others' jobs slow every rate here
+            "load_average_end": _load_average(),
+            "poses_normalize_wall_s": round(prepare_wall, 1),  # shared by every preset; cached on a rerun
             "model": metrics["model"],
             "steps": metrics["steps"],
             "train_time_s": metrics["train_time_s"],
@@ -151,9 +215,24 @@ def write_results(rows: list[dict[str, Any]], out_dir: Path, data: str) -> None:
             line += f" {f05:.3f} |" if f05 is not None else " — |"
             line += f" {nc:.3f} |" if nc is not None else " — |"
         lines.append(line)
-    lines += ["", "![PSNR vs time](bench.png)", ""]
+    lines += ["", *provenance_lines(rows), "", "![PSNR vs time](bench.png)", ""]
     if has_mesh:  # one point per preset: the mesh's accuracy against its training time
         lines += ["![mesh accuracy vs time](bench_accuracy.png)", ""]
         accuracy_plot(rows, out_dir / "bench_accuracy.png", title=f"mesh F-score vs training time — {data}")
     (out_dir / "bench.md").write_text("\n".join(lines))
     tradeoff_plot(rows, out_dir / "bench.png", title=f"held-out PSNR vs training time — {data}")
+
+
+def provenance_lines(rows: list[dict[str, Any]]) -> list[str]:
+    """One line per row saying where and when it ran (rows written before this was recorded have none)."""
+    lines = []
+    for r in rows:
+        machine = r.get("machine")
+        if not machine:
+            continue
+        load = r.get("load_average_start") or []
+        commit = (r.get("commit") or "unknown")[:12] + (" + uncommitted changes" if r.get("uncommitted_changes") else "")
+        lines.append(f"- {r['name']}: commit {commit}, {r.get('date', '?')}, {machine.get('cpu_count')} CPUs "
+                     f"({machine.get('cpu')}), torch {machine.get('torch')}, device {r.get('device')}, load average "
+                     f"{load[0] if load else '?'} at the start")
+    return lines
