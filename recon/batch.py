@@ -28,8 +28,8 @@ GENERIC_NAMES = {"images", "image", "photos", "imgs", "rgb", "input", "frames"}
 """Photo folder names that say nothing about the capture: such a capture is named after the folder above."""
 STAGES = ("poses", "normalize", "train", "mesh")
 PROCESS_BASE_MB = 2048
-"""Memory a capture's process needs besides the mesh's density grid: torch, pycolmap, photos, the model. The
-README's Lego mesh stage peaked at 1.9 GB with a 226 MB (384³) grid."""
+"""Memory a capture's process needs besides the mesh's density grid: torch, pycolmap, photos, the model (a
+half-resolution Lego's mesh stage at 384³ stays under it)."""
 
 
 @dataclass
@@ -158,7 +158,7 @@ def task_resources(config: RunConfig, cluster: dict[str, float], cpus_per_captur
         num_cpus = 1.0
         reasons.append(
             "1 CPU: CPU training; one thread per capture and one capture per core gives the most captures per hour "
-            "(measured in README); set --cpus-per-capture N for fewer, faster captures (time-budget presets train more steps)"
+            "(docs/batch.md); set --cpus-per-capture N for fewer, faster captures (time-budget presets train more steps)"
         )
     res = config.mesh.resolution or config.mesh.max_resolution
     grid_mb = min(config.mesh.memory_budget_mb, math.ceil(res**3 * 4 / 2**20))

@@ -142,7 +142,7 @@ class TrainConfig:
     pose_refine: Literal["on", "off"] = "off"
     """on: learn a small rotation and shift per training photo with the field (recon.nerf.pose_refine), for poses SfM
     left a few pixels off; held-out photos are then scored with their pose fitted on their left half. Off by default:
-    measured, it found the generator's misregistered photos but raised neither the held-out PSNR nor F@0.5%."""
+    it finds misregistered photos but has not raised the held-out PSNR or the mesh accuracy (docs/real_captures.md)."""
     classic: ClassicConfig = field(default_factory=ClassicConfig)
     fast: FastConfig = field(default_factory=FastConfig)
     """The fast grid model's options (its box and boundedness are set from the scene)."""
@@ -165,10 +165,9 @@ class MeshConfig:
     iso: float = 0.0
     """Density iso-level; 0: automatic (one cell of thickness is `iso_opacity` opaque)."""
     iso_opacity: float = 0.0
-    """Opacity of one cell of material at the automatic iso-level; 0: 0.35 (the mesh stage's ISO_OPACITY, where
-    it is measured), or 0.25 when masks trained the background empty (the masks already carve the object, so the
-    level can be lower and close the holes an undertrained field leaves: on the 15-photo tabletop at 500 steps
-    F@1% 0.80 -> 0.88)."""
+    """Opacity of one cell of material at the automatic iso-level; 0: 0.35 (the mesh stage's ISO_OPACITY), or 0.25
+    when masks trained the background empty (the masks already carve the object, so the level can be lower and close
+    the holes an undertrained field leaves)."""
     min_component_fraction: float = 0.05
     """Drop disconnected pieces with less than this fraction of the largest piece's area (floaters)."""
     smooth_iters: int = 0
@@ -176,17 +175,14 @@ class MeshConfig:
     fill_cavities: int = 0
     """Fill the empty space the density field's material encloses before marching cubes, after closing holes up to
     about twice this many cells wide (0: off; the density presets: 4). Not on the whole box of an unbounded scene;
-    see `recon.geometry.extract.fill_enclosed` and `recon.stages.mesh.hollow_fill_applies`. Measured 2026-11-25 on the
-    same fields, 0 -> 4: masked tabletop (balanced, 3,876 steps) F@1% 0.922 -> 0.958, F@0.5% 0.851 -> 0.919, normals
-    0.871 -> 0.930 (2 / 6 cells: 0.948 / 0.963); sample (fast, 892 steps) F@1% 0.897 -> 0.902, F@0.5% 0.813 -> 0.829,
-    Chamfer 0.588 -> 0.552%."""
+    see `recon.geometry.extract.fill_enclosed` and `recon.stages.mesh.hollow_fill_applies`. Why: a density field is a
+    shell whose inner walls show through its pits, and the hidden-face test keeps them; filling removes them."""
     target_faces: int = 300000
     """Decimate to this many faces (0: keep all)."""
     drop_hidden: bool = True
     """Remove faces that no photo sees (depth-tested against the field's rendered depth): the walls and
-    islands marching cubes finds inside a soft, unconstrained interior. On the shipped sample (SfM poses)
-    F-score@1% rose 0.755 → 0.912 with the fast preset (precision 0.73 → 0.955) and 0.775 → 0.924 with
-    balanced. Off, the mesh is closed where the field is, but full of inner walls."""
+    islands marching cubes finds inside a soft, unconstrained interior; they cost most of the mesh's precision.
+    Off, the mesh is closed where the field is, but full of inner walls."""
     color: Literal["photos", "field"] = "photos"
     """Per-vertex color: baked from the photos (depth-tested), or queried from the field."""
     frame: Literal["normalized", "source"] = "normalized"

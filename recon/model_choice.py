@@ -133,9 +133,9 @@ def model_spec(cfg: TrainConfig, scene: Scene, views: list[View]) -> tuple[str, 
     reasons += why
     if cfg.model == "auto":
         reasons.append(
-            "surface model not chosen: it renders less sharply (Lego, 25 test views: 21.7 dB against balanced's 30.9); for a closed, "
-            "smooth mesh of this object capture use --preset surface (train.model=surface; the masked tabletop's "
-            "mesh: F-score@1% 0.983 against balanced's 0.958 with its hollow filled)" if scene.capture == "object"
+            "surface model not chosen: its renders are softer than the density models' (coarser grids); for a "
+            "closed, smooth and more accurate mesh of this object capture use --preset surface (train.model=surface; "
+            "docs/surface.md)" if scene.capture == "object"
             else "surface model not offered: it needs an object capture (this scene is unbounded)"
         )
     return kind, {"config": asdict(fast_cfg)}, cfg.lr or FAST_LR, reasons
@@ -204,13 +204,12 @@ START_WHY = "what no photo sees keeps the shape the SDF starts from, pulled back
 
 VISUAL_HULL_WHY = (
     f"{START_WHY}, and the silhouettes bound it down to the lowest edges the photos see; the SfM points' convex hull "
-    "passes where the points end, 0.01-0.06 units above the thin scene's true bottom, and as a start shape its distance "
-    "to the true surface was 3.8% of the diagonal there against the visual hull's 0.52%"
+    "passes where the points end, above an object's lowest edges when few points lie on them"
 )
 
 HULL_WHY = (
-    f"{START_WHY}; from a sphere the thin scene's unseen underside came out as a cave 0.05 units deep, from the hull it "
-    "is flat at the truth where the points reach the bottom edges (F-score@1% 0.912 -> 0.980)"
+    f"{START_WHY}; from a sphere an unseen underside drifts into a cave, from the hull it stays flat where the points "
+    "reach the bottom edges"
 )
 
 FAST_LR = 1e-2

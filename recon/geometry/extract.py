@@ -162,13 +162,9 @@ def density_grid_sparse(
     dilation) is missed; raise ``coarse`` for thin structures. Memory is not saved: the output is the
     dense (R, R, R) float32 array (512 MiB at R = 512) that marching cubes needs.
 
-    Measured on the shared 2-core CPU (1 torch thread; CPU seconds, wall ≈ 2× under load), sphere +
-    torus filling ~40 % of the box, R = 512, coarse = 64, dilate = 1 — sparse evaluates 22.4 M of
-    134.2 M nodes (16.7 %), and the meshes are identical (1 376 340 faces both):
-    - analytic density (~50 ns/point): dense 7.6 s, sparse 3.1 s; peak RSS 0.86 vs 0.91 GB.
-    - density costing like a 3-64-64-1 MLP: sparse 18.0 s, peak RSS 1.06 GB; dense 13.1 s at R = 256
-      → ~105 s at R = 512 (same per-point cost), i.e. ~6× faster. At R = 256, coarse = 32: 32 % of
-      the nodes, 3.8 s vs 13.1 s. The saving grows with R (surface ∝ R², volume ∝ R³).
+    The mesh is the same as the dense evaluation's, from a fraction of the density calls (a sphere and torus
+    filling ~40 % of the box at R = 512: about a sixth of the nodes); the saving grows with R (surface ∝ R²,
+    volume ∝ R³), so it matters most when the density is an MLP.
 
     Returns ``(grid (Rx, Ry, Rz) float32, info)``; info: ``evaluated`` (points passed to density_fn),
     ``dense`` (R³), ``active_blocks`` (blocks evaluated at full resolution), ``blocks``, ``block`` (s).
@@ -309,8 +305,7 @@ def fill_enclosed(grid: np.ndarray, level: float, hole_cells: int) -> tuple[np.n
     Why: a radiance field is opaque only where the photos look, so it is a shell with a soft, empty inside, and
     marching cubes meshes the shell's inner wall too. The hidden-face test drops that wall only where no photo
     sees it; where the shell has pits and holes (a crease few photos see) the photos see the inner wall through
-    them and it stays (the masked tabletop: 18% of the mesh lay inside the true surface, a third of it facing
-    inward). Here the outside is the empty space a ball of radius ``hole_cells`` reaches from the grid's border
+    them and it stays. Here the outside is the empty space a ball of radius ``hole_cells`` reaches from the grid's border
     (its centres a connected set, so it passes no hole narrower than the ball), and the empty space it does not
     reach is raised; the ball's own reach into the holes stays empty, so a hole becomes a dent as deep as the
     shell and the gaps between real parts wider than the ball are kept. Pockets smaller than (2k + 1)³ nodes are

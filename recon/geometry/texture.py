@@ -27,9 +27,8 @@ ColorFn = Callable[[np.ndarray, np.ndarray], np.ndarray]
 
 CHARTS_PER_ATLAS = 128
 """xatlas grows each chart to at most 1/CHARTS_PER_ATLAS of the surface area, in one pass (no further chart
-iterations). Its defaults (unbounded charts, one refining iteration) spent 120-130 s on the shipped sample's
-50k-face mesh on the loaded 2-core CPU; with this cap and no iterations, 8 s for ~5,200 charts at the same
-atlas utilization (0.80). Unbounded charts on a smooth sphere take longest: a few huge charts to flatten.
+iterations). Its defaults (unbounded charts, one refining iteration) take over ten times as long on a 50k-face
+marching-cubes mesh for the same atlas utilization. Unbounded charts on a smooth sphere take longest: a few huge charts to flatten.
 A marching-cubes surface still splits into thousands of small charts (its normals vary), so the padding
 between them decides how much of the texture the surface gets: 25 % of it with 4 texels, 39 % with 2."""
 

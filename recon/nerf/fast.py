@@ -11,8 +11,8 @@ Design (DVGO-like, tuned for a small CPU; runs unchanged on CUDA):
 * samples come packed from :func:`recon.nerf.occupancy.march` (occupied cells only, early ray
   termination in a no-grad pre-pass), ordered along each ray (grids read ordered points faster).
   In a bounded scene rays are clipped to the box around the occupied cells once the grid is warm. On the CPU
-  a bounded scene marches in C (:mod:`recon.nerf.native`: the same samples, 2.5x faster renders, ~1.8x faster
-  training steps on Lego), and rendering composites there too.
+  a bounded scene marches in C (:mod:`recon.nerf.native`: the same samples as the torch path, faster), and
+  rendering composites there too.
 
 Coordinates: world = normalized scene frame. Bounded scenes map the ``aabb`` onto the grids'
 unit cube; unbounded ones contract (:mod:`recon.nerf.contraction`) into [-2, 2]^3 first.
@@ -20,32 +20,15 @@ unit cube; unbounded ones contract (:mod:`recon.nerf.contraction`) into [-2, 2]^
 The trainer must call :meth:`FastModel.step_update` before every training step: it refreshes the
 occupancy grid, and until ``occupancy_warmup`` steps have passed training marches with coarse steps.
 
-Measured on the shared 2-core CPU (Lego half-res resized to 200x200, white background, aabb
-[-1.5, 1.5]^3, near 2, far 6, 4096 rays/step, Adam lr 1e-2 (grids 0.1), no lr decay, 5 test views;
-budgets in process CPU seconds because other jobs took 30-70% of the machine):
+Why these defaults:
 
-    config (defaults unless named)              CPU budget  steps  samples/ray  test PSNR
-    default (3-level dense density, dense 128^3x12 features)   240 s     447    28.8     25.81 dB
-    grid="vm" (TensoRF 128, 12 comps)           240 s       341    28.9         25.06 dB
-    density_levels=1 (single 128^3 density)     ~150 s wall, 415 steps            23.01 dB
-    occupancy_alpha=0.01 (= init_alpha)         occupancy stuck at 44% of the box, ~100 samples/ray, 3x slower steps
-A coarse-to-fine density (3 levels) reached 22.2 dB at step 100 where a single 128^3 grid had 16.7 dB;
-occupancy culls to ~10% of the box after 16 steps and early termination leaves ~25-29 samples/ray.
+* Density is a coarse-to-fine sum of dense levels: a single fine grid learns the coarse shape much later.
+* Density is counted per voxel (``density_scale``): Adam moves a raw value by about lr per step, so a density in
+  world units (hundreds for an opaque voxel) takes thousands of steps to become opaque and short runs stay soft.
+* The occupancy threshold sits above ``init_alpha``: at the initial opacity nothing is culled and every
+  ray marches the whole box.
 
-Then (idle 2-core CPU, same data, density 128^3 / features 96^3, view-independent MLP, 200 steps,
-3 test views):
-
-    change                                              test PSNR   samples/ray   rays/s
-    σ in world units, grids over the whole box          23.58 dB    31.0          14.0k
-    + shrink to the occupied core at step 64            23.83 dB    31.0          13.9k
-    + σ counted per voxel (``density_scale``)           26.56 dB    21.7          17.7k
-      same with trunc_exp instead of softplus           26.44 dB    19.7          17.7k
-
-Per-voxel density was the big one: Adam moves a raw value by about lr per step, so an opaque voxel
-(σ of hundreds per world unit) took thousands of steps and 4-minute fields stayed soft. Through the
-train stage (`recon train`, fast preset, random backgrounds): Lego at 200x200, 2.5 min of training:
-27.61 dB on test views r_0-r_24 (21.70 dB before); at 400x400, 4 min: 26.50 dB on the same views and
-27.89 dB on 25 views spread over the whole test spiral (`recon bench` + `recon eval --limit 25`).
+Current speed and accuracy: docs/presets.md and the records in benchmarks/.
 """
 from __future__ import annotations
 

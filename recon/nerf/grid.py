@@ -10,31 +10,16 @@ which use ``F.grid_sample`` on a view of the same storage: no custom CUDA, runs 
 Plain reference implementations (:func:`trilinear_reference`, :func:`hash_reference`) are slow
 per-corner loops that the tests compare the fast path against.
 
-Measurements on this shared 2-core CPU (2026-11; other jobs kept the load at 3-7, so absolute numbers are
-low and noisy; ratios taken back to back are the useful part). fwd+bwd+fused Adam on 200k points ordered
-along rays, then a fit of a 40-sphere RGB field (encoder + linear head, 300 steps x 8192 random points,
-Adam lr 0.05, PSNR on 50k held-out points):
-
-    encoder              params   train Mpts/s (1 thr / 2 thr)   fwd Mpts/s   fit PSNR   fit time
-    dense 128^3 x 1      2.1 M    4.4 / 4.8                      15-16        -          -
-    dense 96^3 x 12      10.6 M   0.92 / 0.80                    3.6-4.7      25.2 dB    18 s
-    dense 128^3 x 12     25.2 M   0.66 / 0.57                    3.7-7.0      21.4 dB    23 s
-    multi-dense 3 levels 28.9 M   0.44 (2 thr)                   2.5          29.5 dB    30 s
-    VM 128 x 16 comps    0.79 M   0.34 / 0.30                    1.5-1.8      30.5 dB    11 s
-    hash 16 lv x 2, 2^17 3.2 M    0.12 / 0.10                    0.15-0.19    41.3 dB    31 s
-
-Two threads bought nothing here because the second core was busy with other jobs. Findings:
-* ``F.grid_sample`` vs this module's gather on the same points (CPU ms for 240k points): 1 channel
-  31 vs 50 fwd+bwd, 9 vs 34 fwd -> scalar grids use grid_sample; 12 channels 375 vs 217 fwd+bwd,
-  87 vs 41 fwd -> feature grids use the gather (channels-last rows are read and written contiguously).
-  ``F.embedding_bag``'s own backward (sort-based) was ~1.2 s for 2.4 M rows: ours uses ``index_add_``.
-* Building corner indices/weights as per-axis outer products instead of (M, 8, 3) temporaries made
-  the gather path 3x faster.
-* A big dense grid pays per *parameter* every step (zeroing a 25 M gradient ~20-130 ms, fused Adam
-  ~16-77 ms): at the small color batches of NeRF training that dominates, which is why the VM
-  factorization fits faster in wall time despite 3x the per-point cost. The hash encoding learns the
-  most per step but its 16 levels x 8 corners of integer work cost 5-8x a dense lookup on this CPU.
-* In the radiance field (recon.nerf.fast, Lego 200x200, same CPU budget) see that module's docstring.
+Why each encoder reads the way it does (ratios measured back to back on a CPU; `recon bench --profile` measures
+them on yours):
+* Scalar dense grids read through ``F.grid_sample``, which is faster than the gather for one channel; feature
+  grids (many channels) use the gather, whose channels-last rows are read and written contiguously.
+  ``F.embedding_bag``'s own (sort-based) backward is slow for millions of rows, so the gather uses ``index_add_``.
+* Corner indices and weights are built as per-axis outer products, not (M, 8, 3) temporaries (several times faster).
+* A big dense grid pays per *parameter* every step (zeroing its gradient, the Adam update): at the small color
+  batches of NeRF training that dominates, which is why the VM factorization can fit faster in wall time despite
+  a higher per-point cost. The hash encoding learns the most per step, but its 16 levels x 8 corners of integer
+  work cost several times a dense lookup on a CPU.
 """
 from __future__ import annotations
 

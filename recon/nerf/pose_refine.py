@@ -10,9 +10,8 @@ held-out photos are posed in it), so the corrections must not move the cameras t
 Held-out photos are scored with their own pose fitted to the frozen field on the half of the photo not scored
 (`recon.nerf.trainer.align_pose`, BARF's protocol): their SfM poses are as far off as the training photos' were.
 
-Measured (README, "Pose refinement"): on the generator's thin scene the largest corrections went to the two photos
-SfM misplaced most, but neither F@0.5% nor the held-out PSNR rose, and the fox's poses needed 0.16 px; so it is
-opt-in (``train.pose_refine=on``).
+It finds the photos SfM misplaced most, but has not raised the held-out PSNR or the mesh's fine accuracy
+(docs/real_captures.md), so it is opt-in (``train.pose_refine=on``).
 
 The corrected training poses go into the field's metadata (``refined_c2w``), from which the mesh stage bakes colours.
 """
@@ -34,10 +33,8 @@ REG_WEIGHT = 1e-2
 
 LR = 2e-5
 """Adam's rate for the corrections (radians, scene units per step): Adam moves a parameter about this much per update
-whatever its gradient's size, so over 750 updates (3,000 steps) a camera can turn ~0.9° at most; 1e-5 moved the thin
-scene's worst camera 1.0 of the 2.5 px it is off, 2e-5 1.45 px. 1e-3 (nerfstudio's rate) moved the
-shipped sample's cameras, which SfM places within 0.3 px, by 1.9 px (median) in 180 steps of a field still forming,
-and cost 1.9 dB."""
+whatever its gradient's size, so over 750 updates (3,000 steps) a camera can turn ~0.9° at most. Half this moves
+a misplaced camera too little; nerfstudio's 1e-3 moves well-placed cameras while the field is still forming."""
 
 EVERY = 4
 """The corrections learn on every EVERY-th step only: then the rays carry gradients back through every sample's

@@ -10,9 +10,8 @@ closed by construction; rendering it as a volume lets photos train it like a rad
   (``init_shape="visual_hull"``, set with ``set_initial_sdf``; `recon.geometry.visual_hull`), else the convex hull
   of the SfM points when the config has its planes (``init_planes``), on a frozen grid either way, else a sphere
   |x - c| - r0. Why a hull, with a weak pull back to it (``init_prior_weight``): what no photo sees drifts with
-  the coarse levels the seen parts move, and from the sphere the thin scene's unseen underside came out as a cave
-  0.05 units deep (kept by the hull start alone); with the hull and the pull it is flat at the truth (F@1% 0.912
-  -> 0.980) when the SfM points reach the bottom edges, and as high as they end when not. The grid levels are
+  the coarse levels the seen parts move, so from a sphere an unseen underside comes out as a cave; the hull and
+  the pull keep it where the silhouettes (or the SfM points) put it. The grid levels are
   :class:`recon.nerf.grid.DenseGrid` scalars read through ``grid_sample`` (the fastest read grid.py measured).
 * Coarse to fine (Neuralangelo, Li et al. 2023): level k is added to f after ``k * level_every`` steps,
   and the finite-difference step of the regularizers shrinks with the finest enabled level.
@@ -30,35 +29,22 @@ closed by construction; rendering it as a volume lets photos train it like a rad
   of the finest enabled level, so the gradient spans grid cells instead of being one cell's constant).
 * The object closes inside its box: relu(2 cells - f) on random points of the box's faces. NeuS makes
   opacity only where a ray crosses from f > 0 to f < 0, so an inside that reaches a face is invisible to
-  rays entering there and nothing holds it back: on the shipped sample the SDF ran through the box floor
-  under the object (f = -0.14 at the floor) and the mesh's underside was the floor, 1 % of the diagonal low.
+  rays entering there and nothing holds it back: without it the SDF can run through the box floor under the
+  object, and the mesh's underside is then the floor.
 * Empty space: the occupancy grid of :mod:`recon.nerf.occupancy` marks a vertex occupied when
   |f| < 2 cell diagonals + ``band_width / s`` (weights are below e^-band_width of the peak beyond); rays march only
   through that shell, and a no-grad pre-pass drops samples behind the surface (early termination).
 * Color as in :mod:`recon.nerf.fast`: a dense feature grid and a small MLP (optionally view dependent).
 * Concavities: NeuS gives opacity wherever f falls along a ray, inside too, so a field that has closed over a
-  concavity keeps a lid there (the generator's bowl: f = -0.10 at the box's top face, 21.9 dB), and colours
-  alone do not open it. The train stage adds the SfM points' depths (`recon.nerf.depth_prior`) for this model,
-  which do: 27.8 dB, Chamfer 0.30 % of the diagonal.
+  concavity (a bowl) keeps a lid there, and colours alone do not open it. The train stage adds the SfM points'
+  depths (`recon.nerf.depth_prior`) for this model, which do.
 
 Coordinates: the normalized scene frame of an object capture (bounded; the grids span ``aabb``).
 
-Measured on the shared 2-core CPU while 7 jobs ran (load average 8-25, so absolute times are several
-times an idle machine's):
-
-* Regularizer gradients, 6144 points on the 4-level 128³ SDF: central differences (Eikonal + curvature,
-  7 SDF reads, forward + backward) 450 ms; autograd with ``create_graph`` (Eikonal only) 549 ms, and its
-  gradient is constant inside a grid cell. Finite differences it is.
-* A Softplus(β=100) hidden layer in the SDF MLP (IDR/NeuS's choice) cost 4.0 s of 14.5 s over 10 steps on
-  CPU; ReLU costs ~0.3 s, so the MLP uses ReLU (the grids already make f piecewise trilinear).
-* Shipped sample (SfM poses), ``--preset surface``, 10-minute budget: 277 steps (1,887 rays/s), test PSNR
-  24.38 dB; zero set at 256³: watertight, Chamfer-L1 0.47 % of the diagonal, F@1 % 0.85, F@0.5 % 0.74,
-  normal agreement 0.924 (0.945 with 20 Taubin iterations). Under that load 277 steps is what 10 minutes
-  buys; the shape is right (handle and hole open, closed underside) but the surface still carries
-  grid-scale bumps. With a 96³ SDF and 64³ color grid at load 2-6: 1,405 steps, 30.50 dB, Chamfer 0.42 %,
-  F@1 % 0.89, F@0.5 % 0.82, normal agreement 0.992, watertight (the preset's values). With the box-boundary
-  term and COLMAP's 2x SIFT on the small photos, 1,400 steps (43 min at load 20-27): 30.99 dB, Chamfer
-  0.292 %, F@1 % 0.995, F@0.5 % 0.935, normal agreement 0.994, watertight.
+Two choices for CPU speed: the regularizers' gradients are central differences, not autograd with
+``create_graph`` (slower, and constant inside a grid cell); the SDF MLP uses ReLU, not IDR/NeuS's Softplus
+(several times the cost on a CPU, and the grids already make f piecewise trilinear). Current accuracy and speed:
+docs/surface.md and the records in benchmarks/.
 """
 from __future__ import annotations
 

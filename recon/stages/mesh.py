@@ -60,8 +60,8 @@ default), fixed once per mesh so vertices and texels are tested alike."""
 COARSE_NODES = 64
 """Coarse grid nodes per axis: for coarse-to-fine refinement and for estimating the iso-level first."""
 CPU_BAKE_VIEWS = {"fast": 24, "classic": 6}
-"""On the CPU each baking view costs a render of its depth: at most this many views, spread evenly
-(fast model ~26k rays/s on the shared CPU: 24 views at 200 px ≈ 40 s; classic NeRF ~240 rays/s)."""
+"""On the CPU each baking view costs a render of its depth: at most this many views, spread evenly (the classic
+NeRF renders about a hundred times slower than the fast model, so it gets fewer)."""
 CPU_DEPTH_SIDE = {"fast": 200, "classic": 64}
 """On the CPU depth maps for baking are rendered at most this many pixels on the longest side."""
 DENSITY_CHUNK = 2**16
@@ -69,9 +69,8 @@ DENSITY_CHUNK = 2**16
 HELD_OUT_VIEWS = 8
 """The textured and vertex-colored meshes are compared in at most this many held-out views (spread evenly)."""
 HIDDEN_TOL_CELLS = 1.0
-"""Depth tolerance of the hidden-face test in `surface_cell` units (the field's voxel for grid models). On the
-shipped sample (voxel ≈ 0.015 units, single-pixel depth match) 0.01, 0.015 and 0.02 units gave F@1% 0.923, 0.921
-and 0.917; the inner walls lie several voxels behind the visible surface."""
+"""Depth tolerance of the hidden-face test in `surface_cell` units (the field's voxel for grid models). The
+result is insensitive to it near one voxel: the inner walls lie several voxels behind the visible surface."""
 
 
 # ---------------------------------------------------------------------------------------- resolution
@@ -141,8 +140,8 @@ def capture_iso_opacity(cfg: MeshConfig, masked: bool) -> tuple[float, str]:
 def hollow_fill_applies(scene: Scene, cfg: MeshConfig, bounded: bool) -> tuple[bool, str]:
     """Whether mesh.fill_cavities applies, and why: it fills what an object's material encloses, so it runs when
     the mesh region is an object's (an object capture, normalize's object region, or a box given) and not on the
-    whole box of an unbounded scene, whose walls, sky blobs and gaps enclose no object's inside (sceaux_castle,
-    `balanced`, filled: its largest piece 77% -> 71% of the area, its pixels outside the photos' 0.6% -> 4.0%)."""
+    whole box of an unbounded scene, whose walls, sky blobs and gaps enclose no object's inside (filling them
+    there joins background into the mesh and splits its largest piece)."""
     if not cfg.fill_cavities:
         return False, ""
     choice = parse_region(cfg.region)
@@ -154,12 +153,9 @@ def hollow_fill_applies(scene: Scene, cfg: MeshConfig, bounded: bool) -> tuple[b
 
 ISO_OPACITY = 0.35
 """One cell of material this opaque is surface (`auto_iso_level`), unless mesh.iso_opacity says otherwise. A field
-is soft where few photos agree (fur, foliage, a facade at a slant, an undertrained patch), and at 50% (the level
-until 2026-11-25) its mesh fell into pieces and holes. Same fields, 50% -> 35%: fox largest piece 49% -> 88% of the
-area, covering 54% -> 79% of its pixels (outside 8.4% -> 10.9%); sceaux_castle 77% -> 90%, 60% -> 83% (0.6% ->
-3.3%); the tabletop without masks F@1% 0.919 -> 0.932, F@0.5% 0.862 -> 0.860; the sample (2,217-step `fast` field)
-F@1% 0.929 -> 0.930, F@0.5% 0.876 -> 0.893, normals 0.896 -> 0.918, and (921 steps) its vertex colours in the
-held-out photos 21.61 -> 25.45 dB. 25% grew out of the surface (tabletop F@0.5% 0.773)."""
+is soft where few photos agree (fur, foliage, a facade at a slant, an undertrained patch): at 50% its mesh falls
+into pieces and holes, at 25% it grows out of the surface; 35% keeps real captures in one piece without thickening
+object captures (docs/real_captures.md)."""
 MASKED_ISO_OPACITY = 0.25
 """The same with masks: the masked-out pixels trained the space around the object empty, so a lower level cannot
 grow into the background; it closes the holes a soft, undertrained surface leaves (see MeshConfig.iso_opacity)."""

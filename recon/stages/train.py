@@ -30,14 +30,12 @@ CHECKPOINT = "checkpoint.pt"
 
 SURFACE_DEPTH_WHY = (
     "the surface model starts from a closed shape, and the photos' colours alone do not open a concavity it has "
-    "closed over: on the generator's bowl the SDF kept a lid at the rim (test PSNR 21.9 dB, F@0.5% 0.60); the SfM "
-    "points' depths say the rays pass through (27.8 dB, F@0.5% 0.90)"
+    "closed over (a bowl keeps a lid at its rim); the SfM points' depths say the rays pass through to the floor"
 )
 
 UNBOUNDED_DEPTH_WHY = (
     "an unbounded capture without masks: where the object's colour matches what lies behind it the photos alone leave "
-    "the surface soft and holed; on the fox (balanced, same poses) the SfM points the mesh misses fell from 24.1% to "
-    "4.5% of their sightings and its coverage of the fox's pixels rose from 83% to 94%"
+    "the surface soft and holed at any depth; the SfM points say at which depth the surface is"
 )
 
 
@@ -61,8 +59,7 @@ def depth_prior_for(cfg: TrainConfig, kind: str, scene: Scene, frames: list[Fram
                       f"photos constrain the geometry; train.depth_prior=on forces it)")
     if cfg.depth_prior == "auto" and scene.has_alpha:
         return None, (f"depth prior: off ({len(frames)} training photos, but masks: their silhouettes already constrain "
-                      f"the geometry, and on the masked 15-photo tabletop the prior made the surface lumpy, F@1% 0.888 -> "
-                      f"0.629; train.depth_prior=on forces it)")
+                      f"the geometry, and with masks the prior makes the surface lumpy; train.depth_prior=on forces it)")
     if n_obs == 0:
         return None, "depth prior: off (the scene has no sparse points seen by the training photos)"
     scale = float(np.median([v.hw[1] / f.w for f, v in zip(frames, views, strict=True)]))
@@ -104,10 +101,8 @@ def choose_appearance(cfg: TrainConfig, kind: str, views: list[View]) -> tuple[b
 
 
 POSE_REFINE_WHY = (
-    "measured with the surface preset on the generator's thin scene (10 min): the largest corrections went to the two "
-    "photos SfM misplaced most (view_006, view_002), Chamfer 0.311 -> 0.299% and F@1% 0.980 -> 0.992, but F@0.5% "
-    "0.873 -> 0.861 and held-out PSNR 30.89 -> 30.65 dB (both with poses fitted); on the fox (fast) corrections of "
-    "0.16 px (median) and no gain"
+    "it finds the photos SfM misplaced, but has not raised the held-out PSNR or the mesh's fine accuracy "
+    "(docs/real_captures.md)"
 )
 
 
