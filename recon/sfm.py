@@ -24,8 +24,10 @@ from typing import TYPE_CHECKING, Literal
 import numpy as np
 from PIL import Image
 
+from recon.colmap import pycolmap_logging_to, reconstruction_frames
 from recon.errors import ReconError
 from recon.images import device_of
+from recon.scene import spread_evenly
 
 if TYPE_CHECKING:  # pycolmap is imported when SfM runs: loading options (recon.config) must not pay for it
     import pycolmap
@@ -100,65 +102,6 @@ class SfmResult:
     refinement: dict = field(default_factory=dict)
     """The final robust bundle adjustment: {"loss", "scale_px", "focal_before", "focal_after", "error_before_px",
     "error_after_px"} (median focal over the cameras, pixels)."""
-
-
-def opencv_w2c_to_opengl_c2w(cam_from_world: np.ndarray) -> np.ndarray:
-    """World->camera [R|t] in OpenCV axes (3, 4) -> camera-to-world (4, 4) in OpenGL axes.
-
-    Inverts the rigid transform (R^T, -R^T t) and flips the camera's Y and Z axes, so that the
-    camera looks down -Z with +Y up. The world frame is unchanged.
-    """
-    w2c = np.asarray(cam_from_world, dtype=np.float64)
-    if w2c.shape != (3, 4):
-        raise ValueError(f"cam_from_world must be (3, 4), got {w2c.shape}")
-    rot, trans = w2c[:, :3], w2c[:, 3]
-    c2w = np.eye(4)
-    c2w[:3, :3] = rot.T
-    c2w[:3, 3] = -rot.T @ trans
-    return c2w @ np.diag([1.0, -1.0, -1.0, 1.0])
-
-
-IMPORTABLE_CAMERA_MODELS = CAMERA_MODELS + ("OPENCV_FISHEYE",)
-"""COLMAP camera models whose lens recon can undistort (the transforms.json OPENCV / OPENCV_FISHEYE conventions)."""
-
-
-def lens_model(model_name: str) -> str:
-    """The transforms.json lens of a COLMAP camera model: OPENCV_FISHEYE (equidistant, k1..k4) or OPENCV
-    (radial-tangential, which holds every pinhole and radial model)."""
-    return "OPENCV_FISHEYE" if model_name == "OPENCV_FISHEYE" else "OPENCV"
-
-
-def camera_params_to_intrinsics(model_name: str, params: np.ndarray) -> dict[str, float]:
-    """COLMAP camera params -> {"fl_x", "fl_y", "cx", "cy", "k1", "k2", "p1", "p2", "k3", "k4"} (pixels; unitless k, p).
-
-    Supports the models whose distortion the transforms.json convention can hold:
-    SIMPLE_PINHOLE (f, cx, cy), PINHOLE (fx, fy, cx, cy), SIMPLE_RADIAL (f, cx, cy, k),
-    RADIAL (f, cx, cy, k1, k2), OPENCV (fx, fy, cx, cy, k1, k2, p1, p2) and
-    OPENCV_FISHEYE (fx, fy, cx, cy, k1, k2, k3, k4; see `lens_model`).
-    """
-    p = [float(v) for v in params]
-    layouts: dict[str, tuple[str, ...]] = {
-        "SIMPLE_PINHOLE": ("f", "cx", "cy"),
-        "PINHOLE": ("fl_x", "fl_y", "cx", "cy"),
-        "SIMPLE_RADIAL": ("f", "cx", "cy", "k1"),
-        "RADIAL": ("f", "cx", "cy", "k1", "k2"),
-        "OPENCV": ("fl_x", "fl_y", "cx", "cy", "k1", "k2", "p1", "p2"),
-        "OPENCV_FISHEYE": ("fl_x", "fl_y", "cx", "cy", "k1", "k2", "k3", "k4"),
-    }
-    if model_name not in layouts:
-        raise ValueError(
-            f"camera model {model_name} is not supported; use one of {', '.join(IMPORTABLE_CAMERA_MODELS)} "
-            "(or undistort the images to PINHOLE with COLMAP's image_undistorter first)"
-        )
-    names = layouts[model_name]
-    if len(p) != len(names):
-        raise ValueError(f"{model_name} takes {len(names)} params, got {len(p)}")
-    values = dict(zip(names, p))
-    if "f" in values:
-        values["fl_x"] = values["fl_y"] = values.pop("f")
-    out = {"k1": 0.0, "k2": 0.0, "p1": 0.0, "p2": 0.0, "k3": 0.0, "k4": 0.0}
-    out.update(values)
-    return {k: out[k] for k in ("fl_x", "fl_y", "cx", "cy", "k1", "k2", "p1", "p2", "k3", "k4")}
 
 
 def choose_camera(
@@ -359,8 +302,6 @@ def loop_pairs(names: list[str], keyframes: int, overlap: int) -> list[tuple[str
     """Loop-closure pairs for sequential matching: every two of `keyframes` images spread over the sequence
     (in name order, as COLMAP's sequential matcher orders them) that it would not pair already (more than
     `overlap` apart)."""
-    from recon.scene import spread_evenly
-
     ordered = sorted(names)
     if keyframes < 2:
         return []
@@ -377,43 +318,6 @@ def _too_few_message(num_registered: int, num_images: int, need: int) -> str:
         "of a subject with more texture (plain walls, glass and shiny surfaces have too little), "
         "sharper (steady the camera, avoid motion blur), or simply more photos."
     )
-
-
-def reconstruction_frames(
-    rec: pycolmap.Reconstruction, names: list[str]
-) -> tuple[dict[str, dict], np.ndarray, np.ndarray, np.ndarray, dict[str, np.ndarray]]:
-    """Frames (OpenGL c2w + intrinsics) and sparse points of a reconstruction."""
-    frames: dict[str, dict] = {}
-    image_name_by_id: dict[int, str] = {}
-    for image_id, image in rec.images.items():
-        if not image.has_pose:
-            continue
-        camera = rec.cameras[image.camera_id]
-        c2w = opencv_w2c_to_opengl_c2w(image.cam_from_world().matrix())
-        frame: dict = {"c2w": c2w.tolist()}
-        frame.update(camera_params_to_intrinsics(camera.model_name, camera.params))
-        frame["camera_model"] = lens_model(camera.model_name)
-        frame["w"], frame["h"] = int(camera.width), int(camera.height)
-        frames[image.name] = frame
-        image_name_by_id[image_id] = image.name
-    point_ids = sorted(rec.points3D.keys())
-    num = len(point_ids)
-    xyz = np.zeros((num, 3), dtype=np.float64)
-    rgb = np.zeros((num, 3), dtype=np.uint8)
-    err = np.zeros((num,), dtype=np.float64)
-    seen: dict[str, list[int]] = {name: [] for name in frames}
-    for index, point_id in enumerate(point_ids):
-        point = rec.points3D[point_id]
-        xyz[index] = point.xyz
-        rgb[index] = point.color
-        err[index] = point.error
-        for image_id in {el.image_id for el in point.track.elements}:
-            name = image_name_by_id.get(image_id)
-            if name is not None:
-                seen[name].append(index)
-    visible = {name: np.asarray(idx, dtype=np.int64) for name, idx in seen.items()}
-    ordered = {name: frames[name] for name in names if name in frames}
-    return ordered, xyz, rgb, err, visible
 
 
 def _map(
@@ -464,17 +368,6 @@ def refine_robust(reconstruction: pycolmap.Reconstruction, scale_px: float = ROB
     pycolmap.bundle_adjustment(reconstruction, ba)
     return {"loss": "cauchy", "scale_px": scale_px, **before, "focal_after": focal(),
             "error_after_px": float(reconstruction.compute_mean_reprojection_error())}
-
-
-def pycolmap_logging_to(log_dir: Path | None) -> None:
-    """Send COLMAP's own log files (glog: `colmap.ERROR.<date>.<pid>` ...) into `log_dir` instead of /tmp."""
-    import pycolmap
-
-    if log_dir is None:
-        return
-    log_dir.mkdir(parents=True, exist_ok=True)
-    for level in (pycolmap.logging.Level.INFO, pycolmap.logging.Level.WARNING, pycolmap.logging.Level.ERROR):
-        pycolmap.logging.set_log_destination(level, str(log_dir / f"colmap.{level.name}."))
 
 
 def run_sfm(

@@ -211,7 +211,7 @@ def _colmap_model(folder: Path, camera_params: tuple[float, ...] = (50.0, 32.0, 
 
 def test_colmap_binaries_are_size_checked_before_pycolmap_reads_them(tmp_path: Path) -> None:
     """A 4-byte points3D.bin made pycolmap's memory grow without bound (> 8 GB in 27 s)."""
-    from recon.scene import check_colmap_binaries
+    from recon.colmap import check_colmap_binaries
 
     project = _colmap_model(tmp_path / "project")
     model = project / "sparse" / "0"
@@ -336,7 +336,7 @@ def test_transforms_file_fingerprint_covers_its_images(capture: Path) -> None:
 def test_pycolmap_logs_land_in_the_given_folder(tmp_path: Path) -> None:
     import pycolmap
 
-    from recon.sfm import pycolmap_logging_to
+    from recon.colmap import pycolmap_logging_to
 
     pycolmap_logging_to(tmp_path / "logs")
     pycolmap.logging.error("recon test line")

@@ -15,13 +15,12 @@ import numpy as np
 import pytest
 from PIL import Image
 
+from recon.colmap import camera_params_to_intrinsics, opencv_w2c_to_opengl_c2w
 from recon.errors import ReconError
 from recon.sfm import (
     SfmOptions,
     SfmResult,
-    camera_params_to_intrinsics,
     choose_camera,
-    opencv_w2c_to_opengl_c2w,
     run_sfm,
 )
 

@@ -15,12 +15,12 @@ from recon.atomic import sha256_file
 from recon.config import PosesConfig
 from recon.errors import InputError
 from recon.images import camera_exif, list_photos, oriented_size, read_image, save_image
+from recon.colmap import find_colmap_model
 from recon.pipeline import Stage, StageContext
 from recon.scene import (
     Scene,
     check_cameras,
     detect_source,
-    find_colmap_model,
     find_masks,
     frame_from_sfm,
     import_colmap,
