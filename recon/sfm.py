@@ -232,9 +232,9 @@ ATTEMPTS = (
 
 SMALL_PHOTO_SIDE = 1000
 """Photos whose longest side is at most this many pixels get SIFT on the image upsampled 2x in the first
-attempt too (first octave -1, COLMAP's own default): on the shipped sample's 400-px photos extraction at
-native resolution (first octave 0) found 1,004 points and a focal length 2.2 % short, COLMAP's default
-2,246 points and 0.8 % (the object then comes out 2.2 % vs 0.8 % too large after camera alignment)."""
+attempt too (first octave -1, COLMAP's own default): at native resolution small photos give about half the
+points and a focal length several times further off, and a short focal length makes the object come out that
+much too large after camera alignment."""
 
 
 def attempts_for(sizes: list[tuple[int, int]], attempts: tuple[Attempt, ...] = ATTEMPTS) -> tuple[Attempt, ...]:

@@ -48,8 +48,8 @@ class FastConfig:
     """Occupancy grid cells per side."""
     occupancy_alpha: float = 0.02
     """A vertex is occupied when its density gives at least this opacity over one step. Keep it above
-    ``init_alpha``: space no ray has touched yet then gets culled at the first refresh (at 0.01 = init,
-    44% of Lego's box stayed occupied and steps were 3x slower; at 0.02, 8-10%)."""
+    ``init_alpha``: space no ray has touched yet then gets culled at the first refresh (at ``init_alpha`` itself
+    much of the box stays occupied and every step marches through it)."""
     occupancy_warmup: int = 16
     """Steps during which every cell counts as occupied."""
     occupancy_every: int = 8
@@ -159,7 +159,7 @@ class SurfaceConfig:
     init_prior_weight: float = 0.1
     """With a visual hull or ``init_planes``: weight of mean (f - f0)² on the random box points, f0 that initial SDF.
     Where no photo holds the surface (an underside no camera sees) it stays on the start shape instead of drifting
-    with the coarse levels the seen parts move (the thin scene's base: carved 0.05 units up without it). 0: off."""
+    with the coarse levels the seen parts move (without it an unseen base is carved up into a cave). 0: off."""
     boundary_margin_cells: float = 2.0
     """The SDF at the box's faces is pushed to at least this many finest SDF cells (outside)."""
     boundary_points: int = 1024

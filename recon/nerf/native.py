@@ -1,7 +1,7 @@
 """The fast model's hot loops in C (``march.c``): built with the system's C compiler on first use, torch otherwise.
 
-Why: the torch marcher costs ~25 tensor passes over every candidate step (8.3 M per 400×400 Lego view, 72% of
-them in empty cells) and three ``grid_sample`` calls per density; in C a candidate is a few flops. Here: the
+Why: the torch marcher costs ~25 tensor passes over every candidate step (millions per view, most of them in
+empty cells) and three ``grid_sample`` calls per density; in C a candidate is a few flops. Here: the
 march (occupancy, empty-block jumps, density levels, early termination; when rendering, compositing too) and
 dense grids' trilinear reads and their table gradient. The library is plain C with no Python or torch headers,
 so it builds in about a second with ``cc``; it is cached under ``~/.cache/recon`` (``$XDG_CACHE_HOME``) keyed by
