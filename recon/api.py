@@ -153,7 +153,7 @@ class Field:
         import numpy as np
         import torch
 
-        from recon.nerf.trainer import render_image
+        from recon.nerf.evaluate import render_image
 
         if width < 1 or height < 1 or fl_x <= 0:
             raise ReconError(f"A camera needs a positive size and focal length; got {width}×{height}, fl_x={fl_x}.")

@@ -140,7 +140,7 @@ def attribute(prof: torch.profiler.profile) -> dict[str, float]:
 
 def _labels(model: Any, batcher: Any) -> list[tuple[Any, str, str]]:
     import recon.nerf.fast as fast
-    from recon.nerf.trainer import RayBatcher
+    from recon.nerf.fitting import RayBatcher
 
     return [
         (fast, "march", "recon:marcher (occupancy skip + no-grad density pre-pass)"),
@@ -172,7 +172,9 @@ def profile_preset(data: str, preset: str, out_dir: Path, overrides: list[str], 
     and write nothing (the caller writes profile.md)."""
     from recon.bench import prepare_scene
     from recon.config import load_config
-    from recon.nerf.trainer import RayBatcher, render_image, train
+    from recon.nerf.evaluate import render_image
+    from recon.nerf.fitting import RayBatcher
+    from recon.nerf.trainer import train
     from recon.scene import load_scene
     from recon.field import build_model
     from recon.model_choice import choose_background, key_backdrop_for, model_spec, sky_for, with_sky

@@ -335,7 +335,7 @@ class TrainingView:
         import torch
 
         from recon.images import resize
-        from recon.nerf.trainer import render_image
+        from recon.nerf.evaluate import render_image
 
         t0 = time.perf_counter()
         view, model = data["view"], data["model"]

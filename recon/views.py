@@ -115,7 +115,7 @@ def pixel_footprint(aabb: np.ndarray, centres: np.ndarray, focals: np.ndarray) -
 def render_view(model: torch.nn.Module, view: View, aabb: torch.Tensor | None, background: np.ndarray, chunk: int | None = None,
                 autocast: torch.dtype | None = None) -> dict[str, np.ndarray]:
     """Render a view at its resolution → numpy rgb (H, W, 3), depth (H, W), opacity (H, W)."""
-    from recon.nerf.trainer import render_image
+    from recon.nerf.evaluate import render_image
 
     h, w = view.hw
     device = next(model.parameters()).device
@@ -141,25 +141,20 @@ def target_rgb(view: View, background: np.ndarray) -> np.ndarray:
     return img
 
 
-POSE_PROTOCOL = ("each held-out photo's pose is fitted to the frozen field on its left half (the training poses were "
-                 "refined) and PSNR/SSIM are measured on its right half only, so no scored pixel shapes the pose")
-
-
 def evaluate(model: torch.nn.Module, views: list[View], aabb: torch.Tensor | None, background: np.ndarray, keep: bool = False,
              autocast: torch.dtype | None = None, appearance: bool = False, align_poses: bool = False) -> dict[str, Any]:
     """PSNR/SSIM of renders against photos; with keep=True also the renders themselves.
 
     appearance=True (a field trained with per-photo appearance): each photo's colour transform is fitted on
-    its left half and the right half is scored (recon.nerf.appearance.HELD_OUT_PROTOCOL); the full-image
+    its left half and the right half is scored (recon.nerf.evaluate.HELD_OUT_PROTOCOL); the full-image
     PSNR of the neutral render is kept as ``psnr_neutral``. align_poses=True (a field trained with refined poses):
-    each photo's pose is first fitted on its left half (`POSE_PROTOCOL`); the right half is scored, and the PSNR at
-    the given pose over the whole photo is kept as ``psnr_given_pose``.
+    each photo's pose is first fitted on its left half (recon.nerf.evaluate.POSE_PROTOCOL); the right half is
+    scored, and the PSNR at the given pose over the whole photo is kept as ``psnr_given_pose``.
     """
     from dataclasses import replace
 
     from recon.metrics import psnr, ssim
-    from recon.nerf.appearance import held_out_right_half, left_right_split
-    from recon.nerf.trainer import align_pose
+    from recon.nerf.evaluate import align_pose, held_out_right_half, left_right_split
 
     per_view, renders = [], []
     for view in views:

@@ -18,14 +18,14 @@ from recon.nerf.appearance import (
     decide,
     exposure_spread,
     fit_affine,
-    held_out_right_half,
-    left_right_split,
     to_neutral,
 )
+from recon.nerf.evaluate import held_out_right_half, left_right_split, render_image
 from recon.nerf.fast import FastConfig, FastModel
 from recon.nerf.render import RadianceModel, render_dense
 from recon.nerf.sampling import stratified
-from recon.nerf.trainer import RayBatcher, render_image, train
+from recon.nerf.fitting import RayBatcher
+from recon.nerf.trainer import train
 
 SAMPLE = Path(__file__).resolve().parents[1] / "fixtures" / "sample"
 AABB = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])

@@ -104,7 +104,8 @@ def test_a_white_ball_on_a_white_backdrop_survives_without_the_key_and_vanishes_
     import torch
 
     from recon.nerf.surface import SurfaceConfig, SurfaceModel
-    from recon.nerf.trainer import RayBatcher, train
+    from recon.nerf.fitting import RayBatcher
+    from recon.nerf.trainer import train
     from recon.scene import look_at
 
     torch.manual_seed(0)

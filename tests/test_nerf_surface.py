@@ -14,7 +14,8 @@ from recon.field import build_model
 from recon.nerf.rays import camera_rays
 from recon.nerf.render import accumulate_packed, render_weights_packed
 from recon.nerf.surface import SurfaceConfig, SurfaceModel, eikonal_loss, neus_tau, sdf_fd_terms
-from recon.nerf.trainer import RayBatcher, train
+from recon.nerf.fitting import RayBatcher
+from recon.nerf.trainer import train
 from recon.progress import Reporter
 from recon.scene import look_at
 from recon.stages import mesh as mesh_stage

@@ -10,7 +10,8 @@ import torch
 from torch import Tensor
 
 from recon.nerf.render import RadianceModel
-from recon.nerf.trainer import RayBatcher, TrainingDiverged, train
+from recon.nerf.fitting import RayBatcher
+from recon.nerf.trainer import TrainingDiverged, train
 from tests.test_trainer import AABB, _scene, _tiny_model
 
 DEFAULT_LR = 5e-4  # the classic model's default (recon/stages/train.py: model_spec)

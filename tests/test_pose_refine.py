@@ -13,7 +13,9 @@ from recon.config import TrainConfig
 from recon.nerf.pose_refine import PoseRefinement, so3_exp
 from recon.nerf.render import RadianceModel, render_dense
 from recon.nerf.sampling import stratified
-from recon.nerf.trainer import RayBatcher, align_pose, render_image, train
+from recon.nerf.evaluate import align_pose, render_image
+from recon.nerf.fitting import RayBatcher
+from recon.nerf.trainer import train
 from recon.scene import look_at
 from recon.stages.train import choose_pose_refine
 

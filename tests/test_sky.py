@@ -11,7 +11,8 @@ import torch
 from recon.config import TrainConfig
 from recon.model_choice import sky_for
 from recon.nerf.fast import FastConfig, FastModel, SkyColor
-from recon.nerf.trainer import RayBatcher, train
+from recon.nerf.fitting import RayBatcher
+from recon.nerf.trainer import train
 from recon.scene import Frame, Scene, look_at
 from recon.sky import SKY_POINT_MARGIN, sky_mask
 from recon.views import View

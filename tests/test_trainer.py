@@ -10,13 +10,9 @@ from torch import Tensor
 from recon.nerf.classic import ClassicModel
 from recon.nerf.render import RadianceModel, render_dense
 from recon.nerf.sampling import stratified
-from recon.nerf.trainer import (
-    RayBatcher,
-    TrainingDiverged,
-    lr_at,
-    render_image,
-    train,
-)
+from recon.nerf.evaluate import render_image
+from recon.nerf.fitting import RayBatcher, lr_at
+from recon.nerf.trainer import TrainingDiverged, train
 
 AABB = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
 COLOR = torch.tensor([0.9, 0.2, 0.1])

@@ -12,8 +12,8 @@ Three things live here and nowhere else:
 
 * :class:`PhotoAppearance`, the trainable transforms (applied to rendered rays by :func:`recon.nerf.trainer.train`);
 * :func:`fit_affine`, the same transform fitted in closed form (ridge least squares towards the identity):
-  held-out photos get theirs from their LEFT half and are scored on their RIGHT half (NeRF-W's protocol),
-  so the test pixels never shape what scores them;
+  held-out photos get theirs from their LEFT half and are scored on their RIGHT half (NeRF-W's protocol,
+  :func:`recon.nerf.evaluate.held_out_right_half`), so the test pixels never shape what scores them;
 * :func:`exposure_spread` / :func:`decide`, the automatic switch: the model is only used where the
   photos' brightness or colour balance jumps between neighbouring viewpoints.
 
@@ -33,10 +33,7 @@ __all__ = [
     "ExposureSpread",
     "fit_affine",
     "apply_affine",
-    "left_right_split",
-    "held_out_right_half",
     "to_neutral",
-    "HELD_OUT_PROTOCOL",
     "exposure_spread",
     "decide",
 ]
@@ -172,30 +169,6 @@ def apply_affine(pred: np.ndarray, a: np.ndarray, b: np.ndarray, *, opacity: np.
     x, offset = _design(pred, opacity, background)
     w = np.vstack([a.T, b[None]])
     return np.clip(x @ w + offset, 0.0, 1.0).reshape(pred.shape).astype(np.float32)
-
-
-def left_right_split(width: int) -> tuple[slice, slice]:
-    """Columns of the half a held-out photo's transform is fitted on (left) and of the half scored (right)."""
-    half = width // 2
-    return slice(0, half), slice(half, width)
-
-
-HELD_OUT_PROTOCOL = ("each held-out photo's colour transform is fitted (closed form) on its left half and PSNR/SSIM "
-                     "are measured on its right half only (NeRF-W), so no scored pixel shapes the transform")
-
-
-def held_out_right_half(pred: np.ndarray, target: np.ndarray, opacity: np.ndarray | None = None,
-                        background: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """(render, photo) of the right half of a held-out view, the render through the transform fitted on the left.
-
-    pred, target: (H, W, 3); opacity (H, W) and background (3,) for photos with alpha (only the field's part is
-    transformed). Only the left half's pixels enter the fit (see :func:`left_right_split`).
-    """
-    left, right = left_right_split(pred.shape[1])
-    op_l = None if opacity is None else opacity[:, left]
-    a, b = fit_affine(pred[:, left], target[:, left], opacity=op_l, background=background)
-    op_r = None if opacity is None else opacity[:, right]
-    return apply_affine(np.ascontiguousarray(pred[:, right]), a, b, opacity=op_r, background=background), target[:, right]
 
 
 # ----------------------------------------------------------------------------- automatic switch

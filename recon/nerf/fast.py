@@ -205,7 +205,7 @@ class FastModel(RadianceModel):
     """Grid radiance field with occupancy-guided packed marching (see the module docstring)."""
 
     render_chunk = 16384
-    """Rays per chunk when rendering an image (:func:`recon.nerf.trainer.render_image`). Peak memory of a 400×400
+    """Rays per chunk when rendering an image (:func:`recon.nerf.evaluate.render_image`). Peak memory of a 400×400
     Lego render grew by 170 MB at 8192 rays and 880 MB at 65536, for no CPU time saved under load."""
 
     def __init__(self, config: FastConfig | None = None) -> None:

@@ -8,7 +8,7 @@ cameras where the SfM points left them loose. The field's frame must stay the Sf
 held-out photos are posed in it), so the corrections must not move the cameras together: after each update the similarity that the corrected camera centres make with the SfM ones
 (a shift, turn or scale of the whole rig, which the field could follow) is taken out (:meth:`PoseRefinement.hold_frame`).
 Held-out photos are scored with their own pose fitted to the frozen field on the half of the photo not scored
-(`recon.nerf.trainer.align_pose`, BARF's protocol): their SfM poses are as far off as the training photos' were.
+(`recon.nerf.evaluate.align_pose`, BARF's protocol): their SfM poses are as far off as the training photos' were.
 
 It finds the photos SfM misplaced most, but has not raised the held-out PSNR or the mesh's fine accuracy
 (docs/real_captures.md), so it is opt-in (``train.pose_refine=on``).

@@ -2,46 +2,37 @@
 
 Pieces:
 
-* :class:`RayBatcher` holds every training pixel (colors + which camera/pixel) and yields
-  shuffled batches mixed across images, with rays computed on the fly (cheap) so that memory is
-  that of the images, not of the rays. Shuffling uses its own seeded generators: same seed, same
-  batches.
 * :func:`train` runs Adam + MSE with an exponential learning-rate decay, calls callbacks after
   every step (checkpointing, evaluation, logging are the caller's business), and stops with
   :class:`TrainingDiverged` on a non-finite loss. A run resumed from :meth:`TrainProgress.state_dict`
   continues exactly as the uninterrupted run would (same batches, same jitter, same updates).
-* :func:`render_image` renders a full camera in chunks under ``no_grad``.
 
-Camera conventions: see :mod:`recon.nerf.rays` (OpenGL c2w, pixel centres, pinhole, unit rays_d).
+Its rays come from a :class:`recon.nerf.fitting.RayBatcher`. Reading a trained field (rendering a camera, scoring
+held-out photos) is :mod:`recon.nerf.evaluate`'s: nothing that only uses a field imports this module.
 """
 from __future__ import annotations
 
 import copy
-import itertools
 import math
 import time
 import warnings
 from dataclasses import dataclass, field
-from typing import Any, Callable, Iterable, Sequence
+from typing import Any, Callable, Iterable
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
 from ..metrics import mse_to_psnr
-from .rays import camera_rays, pixel_rays, ray_aabb
+from .fitting import RayBatcher, lr_at
 from .pose_refine import PoseRefinement
 from .render import RadianceModel
 
 __all__ = [
-    "RayBatcher",
     "TrainProgress",
     "TrainingDiverged",
     "TrainingInterrupted",
-    "align_pose",
-    "lr_at",
     "make_optimizer",
-    "render_image",
     "train",
 ]
 
@@ -63,179 +54,6 @@ class TrainingInterrupted(KeyboardInterrupt):
         super().__init__(f"training interrupted after step {step}")
 
 
-# ----------------------------------------------------------------------------- data
-class RayBatcher:
-    """All training pixels of a set of posed images, served as shuffled ray batches.
-
-    Args:
-        images: (n, H, W, C) tensor or a list of (H_i, W_i, C) tensors; C = 3 (RGB) or 4 (RGBA,
-            straight alpha); float in [0, 1] or uint8 (kept as uint8 to save memory).
-        c2w: (n, 4, 4) or (n, 3, 4) camera-to-world, OpenGL convention, scene frame.
-        intrinsics: (n, 4) ``fl_x, fl_y, cx, cy`` in pixels of these images.
-        aabb: (2, 3) scene box; rays get near/far from it. Either this or ``near_far``.
-        near_far: (n, 2) or (2,) per-image (or global) near and far distances along the unit-length rays
-            (world units; not depths along the optical axis).
-        background: (3,) color behind the scene: RGBA pixels are composited onto it, and the
-            model renders leftover transmittance with it.
-        random_background: RGBA only: composite each ray onto a fresh random color (given to the
-            model too), which stops the model from painting the background into the density.
-        empty: per image an (H, W) bool mask (tensor or array) of pixels known to see nothing up to
-            ``far`` (the sky, `recon.sky`); each batch then carries ``empty (B,)`` (float 0/1) for the
-            trainer's ``empty_weight``.
-        drop_missed: with ``aabb``, leave out pixels whose rays miss the box (they can only show
-            background); the count is in ``n_dropped``.
-        seed: seeds the shuffling and random-background generators.
-        device: where batches are produced (default: the images' device).
-
-    Batches (:meth:`next_batch`) are dicts of ``rays_o, rays_d (B, 3)``, ``near, far (B,)``,
-    ``rgb (B, 3)`` target, ``background (B, 3)``, ``image (B,)`` (long: which image each ray comes
-    from, for per-photo appearance) and, given ``empty``, ``empty (B,)``; every pixel is used once per epoch.
-    """
-
-    def __init__(
-        self,
-        images: Tensor | Sequence[Tensor],
-        c2w: Tensor,
-        intrinsics: Tensor,
-        *,
-        aabb: Tensor | None = None,
-        near_far: Tensor | None = None,
-        background: Tensor | Sequence[float] = (1.0, 1.0, 1.0),
-        random_background: bool = False,
-        empty: Sequence[Tensor] | None = None,
-        drop_missed: bool = True,
-        seed: int = 0,
-        device: torch.device | str | None = None,
-    ) -> None:
-        imgs = list(images) if not isinstance(images, Tensor) else list(images.unbind(0))
-        n = len(imgs)
-        if n == 0:
-            raise ValueError("RayBatcher needs at least one image")
-        self.device = torch.device(device) if device is not None else imgs[0].device
-        chans = {im.shape[-1] for im in imgs}
-        if any(im.dim() != 3 for im in imgs) or not chans <= {3, 4} or len(chans) != 1:
-            raise ValueError(f"images must all be (H, W, 3) or all (H, W, 4); got shapes {sorted({tuple(i.shape) for i in imgs})}")
-        self.has_alpha = chans == {4}
-        if c2w.shape[0] != n or c2w.shape[1:] not in ((4, 4), (3, 4)):
-            raise ValueError(f"c2w must be ({n}, 4, 4) for {n} images, got {tuple(c2w.shape)}")
-        if intrinsics.shape != (n, 4):
-            raise ValueError(f"intrinsics must be ({n}, 4) = fl_x, fl_y, cx, cy per image, got {tuple(intrinsics.shape)}")
-        if (aabb is None) == (near_far is None):
-            raise ValueError("give exactly one of aabb (scene box) or near_far (per-image near/far)")
-        self.pixels = torch.cat([im.reshape(-1, im.shape[-1]) for im in imgs]).to(self.device)
-        if self.pixels.is_floating_point():
-            bad = ~torch.isfinite(self.pixels).all(-1)
-            if bad.any():
-                first = int(bad.nonzero()[0])
-                raise ValueError(f"images contain NaN/inf values (first at flat pixel {first}); fix the inputs")
-        sizes = torch.tensor([[im.shape[1], im.shape[0]] for im in imgs], device=self.device)  # (n, 2) = W, H
-        self.sizes = sizes
-        self.offsets = torch.cat([torch.zeros(1, dtype=torch.long, device=self.device), torch.cumsum(sizes[:, 0] * sizes[:, 1], 0)])
-        self.c2w = c2w[:, :3, :4].to(self.device, torch.float32)
-        self.intrinsics = intrinsics.to(self.device, torch.float32)
-        self.aabb = None if aabb is None else aabb.to(self.device, torch.float32)
-        if near_far is not None:
-            nf = near_far.to(self.device, torch.float32)
-            self.near_far = nf.expand(n, 2) if nf.shape == (2,) else nf
-            if self.near_far.shape != (n, 2):
-                raise ValueError(f"near_far must be (2,) or ({n}, 2), got {tuple(near_far.shape)}")
-        else:
-            self.near_far = None
-        self.empty: Tensor | None = None
-        if empty is not None:
-            if len(empty) != n or any(tuple(m.shape) != tuple(im.shape[:2]) for m, im in zip(empty, imgs, strict=True)):
-                raise ValueError("empty must hold one (H, W) mask per image, each the size of its image")
-            self.empty = torch.cat([torch.as_tensor(m, dtype=torch.bool).reshape(-1) for m in empty]).to(self.device)
-        self.background = torch.as_tensor(background, dtype=torch.float32, device=self.device)
-        self.random_background = random_background and self.has_alpha
-        self.seed = seed
-        self.valid: Tensor | None = None
-        total = int(self.offsets[-1])
-        if self.aabb is not None and drop_missed:
-            keep = torch.cat([self._rays(torch.arange(s, min(s + 2**20, total), device=self.device))[4]
-                              for s in range(0, total, 2**20)])
-            self.valid = keep.nonzero().squeeze(-1)
-        self.n_rays = total if self.valid is None else int(self.valid.numel())
-        self.n_dropped = total - self.n_rays
-        if self.n_rays == 0:
-            raise ValueError("no training ray meets the scene box: check the poses and the aabb")
-        self._perm_gen = torch.Generator().manual_seed(seed)
-        self._bg_gen = torch.Generator(device=self.device).manual_seed(seed + 1)
-        self._new_epoch()
-
-    # -- pixel bookkeeping
-    def image_index(self, flat: Tensor) -> Tensor:
-        """Flat pixel indices (B,) -> the index (B,) long of the image each pixel belongs to."""
-        return torch.searchsorted(self.offsets, flat, right=True) - 1
-
-    def _rays(self, flat: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
-        """Flat pixel indices (B,) -> rays_o, rays_d (B, 3), near, far (B,), hit (B,) bool."""
-        img = self.image_index(flat)
-        local = flat - self.offsets[img]
-        w = self.sizes[img, 0]
-        px = (local % w).float() + 0.5
-        py = torch.div(local, w, rounding_mode="floor").float() + 0.5
-        k = self.intrinsics[img]
-        o, d = pixel_rays(self.c2w[img], k[:, 0], k[:, 1], k[:, 2], k[:, 3], px, py)
-        if self.aabb is not None:
-            near, far, hit = ray_aabb(o, d, self.aabb)
-        else:
-            near, far = self.near_far[img, 0], self.near_far[img, 1]
-            hit = far > near
-        return o, d, near, far, hit
-
-    def _new_epoch(self) -> None:
-        self._epoch_gen_state = self._perm_gen.get_state()
-        self._perm = torch.randperm(self.n_rays, generator=self._perm_gen)
-        self._cursor = 0
-
-    def _take(self, b: int) -> Tensor:
-        parts, need = [], b
-        while need > 0:
-            if self._cursor >= self.n_rays:
-                self._new_epoch()
-            chunk = self._perm[self._cursor : self._cursor + need]
-            self._cursor += chunk.numel()
-            need -= chunk.numel()
-            parts.append(chunk)
-        idx = torch.cat(parts).to(self.device)
-        return idx if self.valid is None else self.valid[idx]
-
-    def next_batch(self, batch_rays: int) -> dict[str, Tensor]:
-        """The next ``batch_rays`` rays of the shuffled epoch (crossing into the next epoch as needed)."""
-        flat = self._take(batch_rays)
-        o, d, near, far, _ = self._rays(flat)
-        px = self.pixels[flat]
-        px = px.float() / 255.0 if not px.is_floating_point() else px.float()
-        if self.random_background:
-            bg = torch.rand((flat.numel(), 3), generator=self._bg_gen, device=self.device)
-        else:
-            bg = self.background.expand(flat.numel(), 3)
-        rgb = px[:, :3]
-        if self.has_alpha:
-            a = px[:, 3:4]
-            rgb = rgb * a + bg * (1.0 - a)
-        batch = {"rays_o": o, "rays_d": d, "near": near, "far": far, "rgb": rgb, "background": bg,
-                 "image": self.image_index(flat)}
-        if self.empty is not None:
-            batch["empty"] = self.empty[flat].float()
-        return batch
-
-    def state_dict(self) -> dict[str, Any]:
-        """Position in the shuffled stream (small: the permutation is regenerated from its seed state)."""
-        return {"epoch_gen_state": self._epoch_gen_state.clone(), "cursor": self._cursor,
-                "bg_gen_state": self._bg_gen.get_state().clone(), "n_rays": self.n_rays}
-
-    def load_state_dict(self, state: dict[str, Any]) -> None:
-        """Continue the stream exactly where :meth:`state_dict` was taken (same images and seed)."""
-        if state["n_rays"] != self.n_rays:
-            raise ValueError(f"batcher state is for {state['n_rays']} rays, this batcher has {self.n_rays}: different data")
-        self._perm_gen.set_state(state["epoch_gen_state"])
-        self._new_epoch()
-        self._cursor = int(state["cursor"])
-        self._bg_gen.set_state(state["bg_gen_state"])
-
-
 # ----------------------------------------------------------------------------- optimization
 def make_optimizer(model: RadianceModel, lr: float) -> torch.optim.Adam:
     """Adam over ``model.param_groups(lr)``; fused kernel when the device/dtypes allow it.
@@ -250,19 +68,6 @@ def make_optimizer(model: RadianceModel, lr: float) -> torch.optim.Adam:
         return torch.optim.Adam(groups, lr=lr, fused=True)
     except (RuntimeError, ValueError):
         return torch.optim.Adam(groups, lr=lr)
-
-
-def lr_at(step: int, steps: int, lr: float, lr_final: float | None, fraction: float | None = None) -> float:
-    """Exponential decay from ``lr`` at step 0 to ``lr_final`` at ``steps`` (constant if lr_final is None).
-
-    ``fraction`` (of the training done, e.g. of a time budget) overrides ``step / steps`` when larger.
-    """
-    if lr_final is None or steps <= 0:
-        return lr
-    frac = min(step, steps) / steps
-    if fraction is not None:
-        frac = min(max(frac, fraction), 1.0)
-    return lr * (lr_final / lr) ** frac
 
 
 def _rng_state() -> dict[str, Any]:
@@ -525,118 +330,3 @@ def train(
     elapsed = time.perf_counter() - t0
     return {"step": done, "loss": loss_v, "psnr": psnr_v, "elapsed_s": elapsed,
             "rays_per_s": (done - start) * batch_rays / max(elapsed, 1e-9), "history": history, "metrics": metrics}
-
-
-# ----------------------------------------------------------------------------- inference
-def render_image(
-    model: RadianceModel,
-    c2w: Tensor,
-    intrinsics: Tensor | Sequence[float],
-    h: int,
-    w: int,
-    chunk: int | None = None,
-    *,
-    aabb: Tensor | None = None,
-    near: float | None = None,
-    far: float | None = None,
-    background: Tensor | Sequence[float] = (1.0, 1.0, 1.0),
-    autocast: torch.dtype | None = None,
-) -> dict[str, Tensor]:
-    """Render one camera, ``chunk`` rays at a time (default: the model's ``render_chunk``, else 8192), under
-    ``inference_mode`` in eval mode.
-
-    Args:
-        c2w: (4, 4) or (3, 4) camera-to-world (OpenGL); intrinsics: fl_x, fl_y, cx, cy (pixels).
-        aabb: (2, 3) scene box giving near/far per ray (rays missing it show the background
-            without running the model); or give ``near`` and ``far`` distances.
-        autocast: mixed-precision dtype for the model (see :func:`train`), or None.
-
-    Returns dict: rgb (h, w, 3), depth (h, w) (0 where the ray misses the box), opacity (h, w).
-    """
-    first = next(itertools.chain(model.parameters(), model.buffers()), None)
-    device = first.device if first is not None else torch.device("cpu")
-    k = [float(v) for v in (intrinsics.tolist() if isinstance(intrinsics, Tensor) else intrinsics)]
-    o, d = camera_rays(c2w.to(device, torch.float32), *k, w, h)
-    o, d = o.reshape(-1, 3), d.reshape(-1, 3)
-    if aabb is not None:
-        t0, t1, hit = ray_aabb(o, d, aabb.to(device, torch.float32))
-    elif near is not None and far is not None:
-        t0, t1 = torch.full_like(o[:, 0], near), torch.full_like(o[:, 0], far)
-        hit = torch.ones_like(t0, dtype=torch.bool)
-    else:
-        raise ValueError("render_image needs aabb or both near and far")
-    bg = torch.as_tensor(background, dtype=torch.float32, device=device)
-    rgb = bg.expand(h * w, 3).clone()
-    depth = torch.zeros(h * w, device=device)
-    opacity = torch.zeros(h * w, device=device)
-    idx = hit.nonzero().squeeze(-1)
-    chunk = chunk or int(getattr(model, "render_chunk", 8192))
-    was_training = model.training
-    model.eval()
-    try:
-        with torch.inference_mode(), torch.autocast(device.type, dtype=autocast or torch.bfloat16, enabled=autocast is not None):
-            for s in range(0, idx.numel(), chunk):
-                i = idx[s : s + chunk]
-                out = model.render_rays(o[i], d[i], t0[i], t1[i], training=False, background=bg)
-                rgb[i], depth[i], opacity[i] = out["rgb"].float(), out["depth"].float(), out["opacity"].float()
-    finally:
-        model.train(was_training)
-    return {"rgb": rgb.view(h, w, 3), "depth": depth.view(h, w), "opacity": opacity.view(h, w)}
-
-
-ALIGN_STEPS = 100
-"""Updates that fit a held-out photo's pose to the frozen field (its rate decays from ALIGN_LR to 1/40 of it)."""
-
-ALIGN_LR = 2e-3
-"""Adam's rate for those updates (radians, scene units): up to ~0.1 rad over the fit, far more than SfM is off."""
-
-
-def align_pose(
-    model: RadianceModel,
-    image: Tensor,
-    c2w: Tensor,
-    intrinsics: Sequence[float],
-    *,
-    aabb: Tensor | None = None,
-    near_far: tuple[float, float] | None = None,
-    background: Tensor | Sequence[float] = (1.0, 1.0, 1.0),
-    steps: int = ALIGN_STEPS,
-    batch_rays: int = 1024,
-    lr: float = ALIGN_LR,
-    seed: int = 0,
-) -> Tensor:
-    """A photo's camera (4, 4) fitted to the frozen field on the pixels of ``image`` (H, W, C): for scoring a held-out
-    photo of a field whose training poses were refined (BARF's protocol), since the field's frame then differs from the
-    given poses by the photos' own pose errors. Pass only the columns that will not be scored (a left half, cropped
-    from x = 0, keeps the intrinsics). The model's parameters are left untouched."""
-    device = c2w.device
-    k = torch.tensor([list(intrinsics)], dtype=torch.float32, device=device)
-    batcher = RayBatcher([image.to(device)], c2w[None, :3, :4].float(), k, aabb=aabb,
-                         near_far=None if aabb is not None else torch.tensor(near_far, dtype=torch.float32),
-                         background=background, seed=seed, device=device)
-    refine = PoseRefinement(1).to(device)
-    opt = torch.optim.Adam(refine.parameters(), lr=lr)
-    frozen = [(p, p.requires_grad) for p in model.parameters()]
-    was_training = model.training
-    model.eval()
-    try:
-        for p, _ in frozen:
-            p.requires_grad_(False)
-        with torch.enable_grad():
-            for step in range(steps):
-                for g in opt.param_groups:
-                    g["lr"] = lr_at(step, steps, lr, lr / 40.0)
-                batch = refine.correct_batch(batcher.next_batch(batch_rays), batcher.aabb)
-                out = model.render_rays(batch["rays_o"], batch["rays_d"], batch["near"], batch["far"],
-                                        training=False, background=batch["background"])
-                loss = F.mse_loss(out["rgb"].float(), batch["rgb"])
-                opt.zero_grad(set_to_none=True)
-                loss.backward()
-                opt.step()
-    finally:
-        for p, flag in frozen:
-            p.requires_grad_(flag)
-        model.train(was_training)
-    full = torch.eye(4, dtype=torch.float32, device=device)
-    full[:3, :4] = c2w[:3, :4].float()
-    return refine.corrected_c2w(full[None])[0]

@@ -128,7 +128,7 @@ def _pose_metrics(refine: Any, why: str, views: list[View], focal: list[float], 
 
 def _appearance_metrics(appearance: Any, why: str, views: list[View]) -> dict[str, Any]:
     """metrics.json's record of the appearance choice, the held-out protocol and the photos' fitted gains."""
-    from recon.nerf.appearance import HELD_OUT_PROTOCOL
+    from recon.nerf.evaluate import HELD_OUT_PROTOCOL
 
     if appearance is None:
         return {"on": False, "reason": why, "held_out": "plain: the neutral render against the whole photo"}
@@ -171,7 +171,8 @@ def _object_distance(views: list[View], scene: Scene) -> list[float]:
 
 def run(ctx: StageContext) -> dict:
     from recon.nerf.device import select_device
-    from recon.nerf.trainer import RayBatcher, TrainingDiverged, TrainingInterrupted, train
+    from recon.nerf.fitting import RayBatcher
+    from recon.nerf.trainer import TrainingDiverged, TrainingInterrupted, train
     from recon.plots import training_curves
 
     cfg: TrainConfig = ctx.config
@@ -220,11 +221,11 @@ def run(ctx: StageContext) -> dict:
     for r in reasons:
         ctx.report.info(f"model: {r}")
     if use_appearance:
-        from recon.nerf.appearance import HELD_OUT_PROTOCOL
+        from recon.nerf.evaluate import HELD_OUT_PROTOCOL
 
         ctx.report.info(f"held-out evaluation: {HELD_OUT_PROTOCOL}")
     if use_pose_refine:
-        from recon.views import POSE_PROTOCOL
+        from recon.nerf.evaluate import POSE_PROTOCOL
 
         ctx.report.info(f"held-out evaluation: {POSE_PROTOCOL}")
     bounded = scene.capture == "object"
