@@ -16,7 +16,7 @@ from recon.config import MeshConfig
 from recon.geometry.export import Z_UP_TO_Y_UP, export_textured_mesh
 from recon.geometry.color import project
 from recon.geometry.raster import interpolate, rasterize, render_mesh
-from recon.geometry.texture import make_textured_mesh, pad_texture, texel_samples, unwrap
+from recon.geometry.texture import XATLAS_AREA_EPSILON, make_textured_mesh, pad_texture, texel_samples, unwrap
 from recon.progress import Reporter
 from recon.scene import look_at
 from recon.stages import mesh as mesh_stage
@@ -45,6 +45,33 @@ def test_unwrap_keeps_faces_and_makes_non_overlapping_charts() -> None:
     # charts do not overlap: the texels covered match the charts' total UV area (up to their edges)
     assert mask.mean() == pytest.approx(uv_area(uv, faces), rel=0.1)
     assert np.abs(np.linalg.norm(points, axis=1) - 1).max() < 0.02  # texel points lie on the (inscribed) sphere
+
+
+def test_unwrap_does_not_depend_on_the_mesh_scale() -> None:
+    """xatlas leaves out faces of area <= float32 eps in absolute units (a small object or a dense mesh: all of
+    them, and no atlas at all); unwrap scales the mesh first, so a millimetre sphere unwraps like a metre one."""
+    sphere = trimesh.creation.icosphere(subdivisions=3)
+    small = sphere.vertices * 1e-3 + [5.0, -3.0, 2.0]
+    assert trimesh.Trimesh(small, sphere.faces, process=False).area_faces.max() < XATLAS_AREA_EPSILON  # every face
+    source, faces, uv = unwrap(sphere.vertices, sphere.faces, 64)
+    small_source, small_faces, small_uv = unwrap(small, sphere.faces, 64)
+    np.testing.assert_array_equal(small_source[small_faces], sphere.faces)
+    assert uv_area(uv, faces) > 0.1 and uv_area(small_uv, small_faces) == pytest.approx(uv_area(uv, faces), rel=0.02)
+    assert len(np.unique(small_uv.round(6), axis=0)) > 0.9 * len(small_uv)  # no face collapsed to one UV point
+
+
+def test_unwrap_of_a_mesh_without_area_says_so_and_a_small_texture_still_unwraps() -> None:
+    sphere = trimesh.creation.icosphere(subdivisions=3)
+    for faces in (sphere.faces[:0], np.repeat(sphere.faces[:, :1], 3, axis=1)):
+        with pytest.raises(ValueError, match="without faces|none of its"):
+            unwrap(sphere.vertices, faces, 64)
+    with pytest.raises(ValueError, match="none of its 1,280 faces"):
+        unwrap(np.full_like(sphere.vertices, np.nan), sphere.faces, 64)
+    # far more charts than a 16² texture has texels: still one atlas (xatlas packs its own resolution)
+    bumpy = sphere.vertices * (1 + 0.05 * np.random.default_rng(0).standard_normal((len(sphere.vertices), 1)))
+    source, faces, uv = unwrap(bumpy, sphere.faces, 16)
+    np.testing.assert_array_equal(source[faces], sphere.faces)
+    assert 0 <= uv.min() and uv.max() <= 1
 
 
 def test_texel_samples_on_a_flat_quad_are_the_texel_centres() -> None:

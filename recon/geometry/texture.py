@@ -10,6 +10,7 @@ u = (c + 0.5) / W, v = 1 − (r + 0.5) / H (`raster.uv_to_pixels` maps the other
 """
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, field
 from typing import Callable
@@ -33,6 +34,13 @@ A marching-cubes surface still splits into thousands of small charts (its normal
 between them decides how much of the texture the surface gets: 25 % of it with 4 texels, 39 % with 2."""
 
 
+XATLAS_AREA_EPSILON = float(np.finfo(np.float32).eps)
+"""xatlas leaves out of every chart each face whose area is at most this, in the input's own units (absolute,
+not relative to the mesh): a mesh of small faces (a small object in scene units, a dense mesh) loses them all
+and xatlas makes no atlas. `unwrap` therefore scales the mesh to a mean face area of 1 first; the UVs do not
+depend on the scale, so only faces degenerate relative to the rest are left out."""
+
+
 def unwrap(
     vertices: np.ndarray, faces: np.ndarray, size: int, padding: int = 2
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -41,17 +49,29 @@ def unwrap(
     vertices: (V, 3); faces: (F, 3). Charts are packed ``padding`` texels of xatlas's atlas apart — room for
     the seam padding, so bilinear lookups at an island's edge do not reach a neighbour. xatlas only
     approximates the resolution asked for (1024 → ~1440 on the sample), so in our texture the gaps are
-    ~30 % narrower. Returns ``source (V2,) int64``: the input vertex each output vertex copies (vertices on a
-    chart seam are split), ``faces (F, 3) int64`` into the output vertices (same order as the input faces)
-    and ``uv (V2, 2) float64`` in [0, 1].
+    ~30 % narrower; it always packs one atlas (no texel density is given), whatever ``size``. Returns
+    ``source (V2,) int64``: the input vertex each output vertex copies (vertices on a chart seam are split),
+    ``faces (F, 3) int64`` into the output vertices (same order as the input faces) and ``uv (V2, 2) float64``
+    in [0, 1]. Raises ValueError when no face has an area (an empty, collapsed or non-finite mesh).
     """
-    verts = np.ascontiguousarray(vertices, np.float32)
+    verts = np.asarray(vertices, np.float64)
     tris = np.ascontiguousarray(faces, np.uint32)
-    area = 0.5 * np.linalg.norm(np.cross(verts[tris[:, 1]] - verts[tris[:, 0]], verts[tris[:, 2]] - verts[tris[:, 0]]), axis=1).sum()
+    if len(tris) == 0:
+        raise ValueError("cannot unwrap a mesh without faces")
+    corners = verts[tris]  # (F, 3, 3)
+    with np.errstate(invalid="ignore", over="ignore"):  # non-finite corners: their faces are not usable
+        areas = 0.5 * np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1)
+    usable = np.isfinite(areas) & (areas > 0)
+    if not usable.any():
+        raise ValueError(f"cannot unwrap the mesh: none of its {len(tris):,} faces has an area (all degenerate or non-finite)")
+    used = np.unique(tris[usable])
+    centre, mean_area = verts[used].mean(axis=0), float(areas[usable].mean())
+    scaled = np.ascontiguousarray((verts - centre) / math.sqrt(mean_area), np.float32)  # mean face area 1
+    scaled[~np.isfinite(scaled).all(axis=1)] = np.nan  # xatlas leaves out faces with a NaN corner (not with inf)
     atlas = xatlas.Atlas()
-    atlas.add_mesh(verts, tris)
+    atlas.add_mesh(scaled, tris)
     charts = xatlas.ChartOptions()
-    charts.max_chart_area = float(area) / CHARTS_PER_ATLAS
+    charts.max_chart_area = float(areas[usable].sum() / mean_area) / CHARTS_PER_ATLAS
     charts.max_iterations = 0
     pack = xatlas.PackOptions()
     pack.resolution = int(size)  # xatlas picks its texel density to about fit: its atlas may be larger; uv are fractions
@@ -59,7 +79,9 @@ def unwrap(
     pack.bilinear = True
     atlas.generate(chart_options=charts, pack_options=pack)
     if atlas.atlas_count != 1:
-        raise ValueError(f"xatlas made {atlas.atlas_count} atlases for one {size}² texture; raise the texture size")
+        left_out = int((areas[usable] / mean_area <= XATLAS_AREA_EPSILON).sum()) + int((~usable).sum())
+        raise ValueError(f"xatlas made {atlas.atlas_count} atlases ({atlas.chart_count} charts) for a {size}² texture of "
+                         f"{len(tris):,} faces, {left_out:,} of them degenerate")
     source, new_faces, uv = atlas[0]
     return np.asarray(source, np.int64), np.asarray(new_faces, np.int64), np.asarray(uv, np.float64)
 
