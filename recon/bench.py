@@ -40,15 +40,19 @@ GENERATED = {"tabletop_realistic": "gen_tabletop"}
 def _generated_dataset(name: str) -> tuple[Path, Path]:
     """Render (once) a generated data set into the user cache: its photos folder and its true mesh."""
     import importlib.util
-    import os
+    import sys
 
     script = REPO / "fixtures" / f"{GENERATED[name]}.py"
     if not script.is_file():
         raise ReconError(f"Benchmark data '{name}' is rendered by {script}, which this installation lacks; "
                          f"run recon bench from a source checkout.")
-    spec = importlib.util.spec_from_file_location(GENERATED[name], script)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
+    module_name = f"_recon_fixture_{GENERATED[name]}"
+    module = sys.modules.get(module_name)
+    if module is None:
+        spec = importlib.util.spec_from_file_location(module_name, script)
+        module = importlib.util.module_from_spec(spec)
+        sys.modules[module_name] = module  # its dataclasses look their module up while it loads
+        spec.loader.exec_module(module)
     cache = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "recon" / "datasets" / name
     return module.bench_dataset(cache)
 

@@ -146,16 +146,18 @@ def test_photos_are_auto_exposed_white_balanced_and_carry_camera_exif(capture: P
 def test_bench_dataset_is_the_photos_alone_with_the_truth_beside(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """`recon bench --data tabletop_realistic` gets a photos folder with no masks anywhere recon looks for them, and
     compare_to_gt finds the true poses next to the true mesh."""
-    from recon.bench import GENERATED
+    from recon.bench import resolve_dataset
     from recon.scene import find_masks
 
-    assert GENERATED["tabletop_realistic"] == "gen_tabletop"
     monkeypatch.setattr(tt, "BENCH_CAPTURE", {"views": 3, "size": "64x48", "seed": 0, "supersample": 1, "mesh_res": 48})
-    photos, gt = tt.bench_dataset(tmp_path / "data", verbose=False)
+    monkeypatch.setitem(sys.modules, "_recon_fixture_gen_tabletop", tt)  # the module bench loads, with the tiny size
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    photos, gt = resolve_dataset("tabletop_realistic")
+    assert photos == tmp_path / "recon" / "datasets" / "tabletop_realistic" / "photos"
     listed = sorted(photos.iterdir())
     assert [p.name for p in listed] == ["view_000.jpg", "view_001.jpg", "view_002.jpg"]
     assert find_masks(listed) == (None, {})
     assert gt.is_file() and (gt.parent / "transforms.json").is_file() and (gt.parent / "masks").is_dir()
     inode = listed[0].stat().st_ino
-    tt.bench_dataset(tmp_path / "data", verbose=False)  # cached: nothing rendered or linked again
+    tt.bench_dataset(photos.parent, verbose=False)  # cached: nothing rendered or linked again
     assert listed[0].stat().st_ino == inode
