@@ -19,7 +19,8 @@ from typing import Any
 
 from recon.config import RunConfig, load_config
 from recon.errors import InputError, ReconError
-from recon.atomic import write_bytes_atomic, write_json_atomic
+from recon.atomic import read_json, write_bytes_atomic, write_json_atomic
+from recon.ownership import OwnedFolder, claim_folder, resolve_path
 from recon.pipeline import MANIFEST, prepare_scene_dir
 from recon.progress import Reporter, format_seconds
 
@@ -27,6 +28,8 @@ INSTALL_HINT = 'pip install -c constraints.txt -e ".[ray]"'
 GENERIC_NAMES = {"images", "image", "photos", "imgs", "rgb", "input", "frames"}
 """Photo folder names that say nothing about the capture: such a capture is named after the folder above."""
 STAGES = ("poses", "normalize", "train", "mesh")
+REPORT_FILES = ("batch.md", "batch.json")
+"""The files `recon batch` writes into OUT itself (each capture's scene folder is its own, with its manifest)."""
 PROCESS_BASE_MB = 2048
 """Memory a capture's process needs besides the mesh's density grid: torch, pycolmap, photos, the model (a
 half-resolution Lego's mesh stage at 384³ stays under it)."""
@@ -87,24 +90,59 @@ def expand_inputs(inputs: list[Path]) -> list[Capture]:
         else:
             paths.append(item)
     seen: set[Path] = set()
-    unique: list[Path] = []
+    unique: list[tuple[Path, Path]] = []
     for p in paths:
-        key = p.resolve()
+        key = resolve_path(p, "The capture")
         if key not in seen:
             seen.add(key)
-            unique.append(p)
+            unique.append((p, key))
     used: set[str] = set()
     captures = []
-    for p in unique:
-        base = name = capture_name(p)
-        k = 1
-        while name in used:
-            k += 1
-            name = f"{base}-{k}"
+    for p, resolved in unique:
+        name = _free_name(capture_name(p), used)
         used.add(name)
         error = None if p.exists() else f"The input {p} does not exist. Fix the path (or remove it from the list)."
-        captures.append(Capture(name, p.resolve(), error))
+        captures.append(Capture(name, resolved, error))
     return captures
+
+
+def _free_name(base: str, taken: set[str]) -> str:
+    """`base`, or the first of base-2, base-3, ... not in `taken`."""
+    name, k = base, 1
+    while name in taken:
+        k += 1
+        name = f"{base}-{k}"
+    return name
+
+
+def place_captures(captures: list[Capture], owned: OwnedFolder) -> list[str]:
+    """Give each capture its folder in OUT without taking one that holds another capture; record them in OUT's record.
+
+    A capture that an earlier batch into OUT already ran keeps its folder (so it resumes); any other gets its own
+    name, or name-2, name-3, ... when that folder holds a different capture (or something that is not recon's).
+    Returns one line per capture whose name was taken, saying where it goes instead.
+    """
+    raw = owned.record.get("captures")
+    recorded: dict[str, str] = {k: v for k, v in raw.items() if isinstance(v, str)} if isinstance(raw, dict) else {}
+    folder_of = {source: name for name, source in recorded.items()}
+    holders = dict(recorded)  # folder name → the capture in it ("" for something in OUT that is no capture of a batch)
+    for entry in owned.path.iterdir() if owned.path.is_dir() else ():
+        holders.setdefault(entry.name, "")
+    notes = []
+    for c in captures:
+        if str(c.source) in folder_of:
+            c.name = folder_of[str(c.source)]
+            continue
+        base = capture_name(c.source)
+        c.name = _free_name(base, set(holders))
+        if c.name != base:
+            held = f"holds {holders[base]}" if holders[base] else "is not a capture folder of recon batch"
+            notes.append(f"{c.source} → {owned.path / c.name}: {owned.path / base} {held}")
+        holders[c.name] = str(c.source)
+        if not c.error:
+            recorded[c.name] = str(c.source)
+    owned.record["captures"] = recorded
+    return notes
 
 
 def _read_list(path: Path) -> list[Path]:
@@ -265,6 +303,7 @@ def start_ray(address: str | None) -> Any:
 
     Workers get this recon on their PYTHONPATH (on a cluster: a path all nodes see, like the outputs) and
     OMP_WAIT_POLICY=PASSIVE; Ray itself sets OMP_NUM_THREADS to each task's CPUs, which recon's torch honors.
+    A Ray started here listens on loopback only (`_start_local_ray`): joining a cluster is always explicit.
     """
     import logging
 
@@ -274,11 +313,50 @@ def start_ray(address: str | None) -> Any:
     code = str(Path(__file__).resolve().parents[1])
     env = {"PYTHONPATH": os.pathsep.join(p for p in (code, os.environ.get("PYTHONPATH", "")) if p), "OMP_WAIT_POLICY": "PASSIVE"}
     kwargs: dict[str, Any] = {"runtime_env": {"env_vars": env}, "logging_level": logging.WARNING, "log_to_driver": False}
-    if address:
+    if address and not _is_loopback(address):
         ray.init(address=address, **kwargs)
+    elif address:  # a Ray on this machine (like the one a local batch starts): join it on loopback too
+        _init_on_loopback(ray, address=address, **kwargs)
     else:
-        ray.init(num_cpus=len(os.sched_getaffinity(0)), include_dashboard=False, **kwargs)
+        _init_on_loopback(ray, num_cpus=len(os.sched_getaffinity(0)), include_dashboard=False, **kwargs)
     return ray
+
+
+LOOPBACK = "127.0.0.1"
+
+
+def _is_loopback(address: str) -> bool:
+    host = address.rsplit(":", 1)[0].strip("[]") if ":" in address else address
+    return host in ("localhost", "::1") or host.startswith("127.")
+
+
+def _init_on_loopback(ray: Any, **kwargs: Any) -> None:
+    """`ray.init` with this node on 127.0.0.1: every server it starts (GCS, raylet, object manager, workers, agents)
+    listens on loopback only, and a driver joins a loopback address as given.
+
+    Ray binds its servers to loopback only when the node's address is 127.0.0.1, but on Linux it swaps a given
+    127.0.0.1 (also in a cluster address) for the machine's network address unless its clusters are switched off,
+    as Ray itself does on macOS and Windows (`ray_constants.ENABLE_RAY_CLUSTER`, read when addresses are resolved).
+    Anyone who could reach a server on the network address could join the cluster and run code as the user. The
+    switch is flipped only for this call; if Ray still comes up on another address, it is stopped and the batch
+    refused.
+    """
+    from ray._private import ray_constants
+
+    clusters = ray_constants.ENABLE_RAY_CLUSTER
+    ray_constants.ENABLE_RAY_CLUSTER = False
+    try:
+        ray.init(_node_ip_address=LOOPBACK, **kwargs)
+    finally:
+        ray_constants.ENABLE_RAY_CLUSTER = clusters
+    node_ip = ray.util.get_node_ip_address()
+    if node_ip != LOOPBACK:
+        ray.shutdown()
+        raise ReconError(
+            f"Ray started on the network address {node_ip} instead of {LOOPBACK}, where other machines could join it "
+            f"and run code as you; recon stopped it. This Ray version ({ray.__version__}) starts differently from the "
+            f"one recon knows: install the version in constraints.txt, or join a cluster you set up with --address."
+        )
 
 
 def _board_class(ray: Any) -> Any:
@@ -319,7 +397,10 @@ def run_batch(
     require_ray()
     config = load_config(preset, overrides)  # a bad option fails here, before Ray starts
     captures = expand_inputs(inputs)
-    prepare_scene_dir(out)
+    owned = claim_folder(out, "batch", [c.source for c in captures if not c.error])
+    renamed = place_captures(captures, owned)
+    owned.save(REPORT_FILES)  # before any capture runs: a re-run after a crash finds every capture's folder
+    prepare_scene_dir(owned.path)
     ray = start_ray(address)
     resources = task_resources(config, ray.cluster_resources(), cpus_per_capture)
     nodes = [n["Resources"] for n in ray.nodes() if n.get("Alive")]
@@ -328,9 +409,8 @@ def run_batch(
         f"recon batch: {len(captures)} captures, preset {preset}, {len(nodes)} node(s) "
         f"({', '.join(_node_text(n) for n in nodes)})"
     )
-    for c in captures:
-        if c.name != capture_name(c.source):
-            report.info(f"{c.source} → {out / c.name}: an earlier capture is also named {capture_name(c.source)}")
+    for note in renamed:
+        report.info(note)
     report.info(f"each capture asks for: {'; '.join(resources.reasons)}")
     report.info(f"so Ray runs up to {sum(per_node)} captures at once ({' + '.join(map(str, per_node))} per node)")
     if sum(per_node) == 0:
@@ -380,8 +460,27 @@ def run_batch(
         "captures": [records[c.name] for c in captures],
     }
     result["failed"] = sum(1 for r in result["captures"] if r.get("error"))
+    result["earlier"] = earlier_records(out, {c.name for c in captures})
     write_batch_reports(out, result)
     return result
+
+
+def earlier_records(out: Path, names: set[str]) -> list[dict[str, Any]]:
+    """The records of captures that earlier batches into OUT ran and this one did not (from OUT/batch.json)."""
+    try:
+        previous = read_json(out / "batch.json")
+    except (OSError, ValueError):
+        return []
+    if not isinstance(previous, dict):
+        return []
+    rows = [r for key in ("captures", "earlier") for r in previous.get(key) or [] if isinstance(r, dict)]
+    seen: set[str] = set(names)
+    kept = []
+    for r in rows:
+        if isinstance(r.get("name"), str) and r["name"] not in seen:
+            seen.add(r["name"])
+            kept.append(r)
+    return kept
 
 
 def _node_text(node: dict[str, float]) -> str:
@@ -394,9 +493,11 @@ def _first_line(exc: BaseException) -> str:
 
 
 def write_batch_reports(out: Path, result: dict[str, Any]) -> None:
-    """OUT/batch.json (everything) and OUT/batch.md (a table), both written atomically."""
+    """OUT/batch.json (everything) and OUT/batch.md (a table of this batch's captures, then of those only earlier
+    batches into OUT ran), both written atomically."""
     write_json_atomic(out / "batch.json", result)
     ok = len(result["captures"]) - result["failed"]
+    table = ["| capture | stages | wall | photos | test PSNR | mesh | error |", "|---|---|---|---|---|---|---|"]
     lines = [
         f"# recon batch — {ok} of {len(result['captures'])} captures done, {result['failed']} failed",
         "",
@@ -404,13 +505,17 @@ def write_batch_reports(out: Path, result: dict[str, Any]) -> None:
         + f"; wall time {format_seconds(result['wall_s'])}; each capture asked for "
         f"{result['resources']['num_cpus']:g} CPU, {result['resources']['num_gpus']:g} GPU, {result['resources']['memory_mb']} MB.",
         "",
-        "| capture | stages | wall | photos | test PSNR | mesh | error |",
-        "|---|---|---|---|---|---|---|",
+        *table,
+        *map(_report_row, result["captures"]),
     ]
-    for r in result["captures"]:
-        stages = " ".join(f"{s}:{row['action'] if row['status'] == 'done' else row['status']}" for s, row in r.get("stages", {}).items())
-        psnr = f"{r['psnr']:.2f} dB" if "psnr" in r else "—"
-        mesh = f"{r['faces']:,} faces" if "faces" in r else "—"
-        error = (r.get("error") or "").replace("|", "\\|").replace("\n", " ")
-        lines.append(f"| {r['name']} | {stages} | {format_seconds(r.get('wall_s'))} | {r.get('photos', '—')} | {psnr} | {mesh} | {error} |")
+    if result.get("earlier"):
+        lines += ["", "## Captures of earlier batches into this folder", "", *table, *map(_report_row, result["earlier"])]
     write_bytes_atomic(out / "batch.md", "\n".join(lines) + "\n")
+
+
+def _report_row(r: dict[str, Any]) -> str:
+    stages = " ".join(f"{s}:{row['action'] if row['status'] == 'done' else row['status']}" for s, row in r.get("stages", {}).items())
+    psnr = f"{r['psnr']:.2f} dB" if "psnr" in r else "—"
+    mesh = f"{r['faces']:,} faces" if "faces" in r else "—"
+    error = (r.get("error") or "").replace("|", "\\|").replace("\n", " ")
+    return f"| {r['name']} | {stages} | {format_seconds(r.get('wall_s'))} | {r.get('photos', '—')} | {psnr} | {mesh} | {error} |"

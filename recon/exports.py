@@ -6,8 +6,9 @@ the field and the default mesh live in) or `source` (the SfM or imported poses a
 distortion and no EXIF rotation), so every export describes plain pinhole cameras — what Gaussian-splatting
 trainers and nerfstudio's `splatfacto` expect. (The mesh exporter is `recon.geometry.export`.)
 
-An export folder carries a marker file (`.recon-export.json`); recon only ever replaces a folder that is
-empty or carries it, and swaps the finished export into place atomically.
+An export folder follows recon's ownership rule (`recon.ownership`): it is new, empty or an earlier export
+(its `.recon-export.json` lists the files recon wrote); the export is built in a staging folder inside it and
+moved in file by file, replacing only recon's own files, so whatever the user added there stays.
 """
 from __future__ import annotations
 
@@ -22,14 +23,14 @@ import numpy as np
 
 from recon.atomic import write_json_atomic
 from recon.errors import ReconError
-from recon.pipeline import _swap_into_place
+from recon.ownership import claim_folder, marker_name
 from recon.scene import Frame, Scene, load_scene
 
 ExportFormat = Literal["nerfstudio", "colmap", "points"]
 ExportFrame = Literal["normalized", "source"]
 FORMATS: tuple[str, ...] = ("nerfstudio", "colmap", "points")
 FRAMES: tuple[str, ...] = ("normalized", "source")
-MARKER = ".recon-export.json"
+MARKER = marker_name("export")
 POINTS_FILE = "points.ply"
 OPENGL_TO_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])
 """Flips a camera's Y and Z axes: OpenGL (looks down -Z, +Y up) ↔ OpenCV (looks down +Z, +Y down)."""
@@ -72,20 +73,15 @@ def scene_in_frame(scene_dir: Path, frame: ExportFrame) -> Scene:
 
 
 def export_scene(scene_dir: Path, fmt: ExportFormat, out: Path, frame: ExportFrame = "normalized", report: Any = None) -> list[Path]:
-    """Write one export of the scene into `out` (atomically; an existing `out` must be empty or a recon export).
+    """Write one export of the scene into `out` (new, empty or an earlier export: see `recon.ownership`).
 
     Returns the main files written (for the user to open).
     """
     if fmt not in FORMATS:
         raise ReconError(f"--format must be one of {', '.join(FORMATS)}; got '{fmt}'.")
     scene = scene_in_frame(scene_dir, frame)
-    _check_out(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.parent / f".tmp-export-{out.name}-{os.getpid()}"
-    if tmp.exists():
-        shutil.rmtree(tmp)
-    tmp.mkdir()
-    try:
+    owned = claim_folder(out, "export")
+    with owned.staging() as tmp:
         if fmt == "points":
             written = [write_points_ply(scene, tmp / POINTS_FILE)]
         else:
@@ -95,23 +91,9 @@ def export_scene(scene_dir: Path, fmt: ExportFormat, out: Path, frame: ExportFra
                 written = [write_transforms(scene, frames, names, tmp, frame)]
             else:
                 written = write_colmap_text(scene, frames, names, tmp / "sparse" / "0")
-        write_json_atomic(tmp / MARKER, {"format": fmt, "frame": frame, "scene": str(scene_dir.resolve()), "cameras": len(scene.frames)})
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-    _swap_into_place(tmp, out, "export")
+        owned.record = {"format": fmt, "frame": frame, "scene": str(scene_dir.resolve()), "cameras": len(scene.frames)}
+        owned.replace_with(tmp)
     return [out / p.relative_to(tmp) for p in written]
-
-
-def _check_out(out: Path) -> None:
-    """Refuse an --out that is a file, or a non-empty folder recon's export did not make."""
-    if out.exists() and not out.is_dir():
-        raise ReconError(f"--out {out} is a file. Give a folder path for the export.")
-    if out.is_dir() and any(out.iterdir()) and not (out / MARKER).is_file():
-        raise ReconError(
-            f"--out {out} is a folder with files that recon did not export, and recon does not replace what it did not make. "
-            f"Give a new or empty folder."
-        )
 
 
 def export_names(scene: Scene) -> list[str]:

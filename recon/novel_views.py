@@ -15,6 +15,7 @@ from recon.errors import ReconError
 from recon.field import load_field
 from recon.images import save_image
 from recon.atomic import write_json_atomic
+from recon.ownership import claim_folder
 from recon.scene import Scene, load_scene, look_at, spread_evenly
 from recon.views import View, evaluate, load_views, render_view, write_previews
 
@@ -72,11 +73,25 @@ def _trained(scene_dir: Path, device: str) -> tuple[Scene, torch.nn.Module, dict
     return scene, model, meta, aabb
 
 
+def render_names(scene: Scene, kind: PathKind, frames: int, depth: bool) -> list[str]:
+    """The files a render of this path writes (frames, then videos), known before anything renders."""
+    stems = [f.stem for f in (scene.split(kind) or scene.frames)] if kind in ("train", "test") else [f"{kind}_{i:03d}" for i in range(frames)]
+    videos = [kind, f"{kind}_depth"] if depth else [kind]
+    return ([f"{s}.png" for s in stems] + ([f"{s}_depth.png" for s in stems] if depth else [])
+            + [f"{v}{ext}" for v in videos for ext in (".gif", ".mp4")])
+
+
 def render_path(scene_dir: Path, kind: PathKind, out_dir: Path, frames: int = 60, max_side: int | None = None,
                 depth: bool = False, fps: int = 24, device: str = "auto", report: Any = None) -> list[Path]:
-    """Render a camera path to PNG frames + GIF/MP4. train/test frames are named after their photos."""
+    """Render a camera path to PNG frames + GIF/MP4. train/test frames are named after their photos.
+
+    `out_dir` follows recon's ownership rule (`recon.ownership`): a new or empty folder or an earlier render,
+    whose files recon replaces while a file of the user's in the way is refused before anything renders.
+    """
     from recon.plots import depth_to_color
 
+    owned = claim_folder(out_dir, "render")
+    owned.check_free(render_names(load_scene(scene_dir / "02_scene"), kind, frames, depth))
     scene, model, meta, aabb = _trained(scene_dir, device)
     background = np.asarray(meta["background"], dtype=np.float32)
     side = max_side or meta["max_side"]
@@ -86,28 +101,29 @@ def render_path(scene_dir: Path, kind: PathKind, out_dir: Path, frames: int = 60
     else:
         ref = load_views(scene, scene.frames[:1], side)[0]
         views = [View(f"{kind}_{i:03d}", ref.image, pose, ref.intrinsics, ref.near, ref.far) for i, pose in enumerate(orbit_poses(scene, frames, kind == "spiral"))]
-    out_dir.mkdir(parents=True, exist_ok=True)
     rgb_frames, depth_frames = [], []
-    task = report.task(f"rendering {kind} path", total=len(views)) if report else None
-    bar = task.__enter__() if task else None
-    try:
-        for view in views:
-            out = render_view(model, view, aabb, background)
-            save_image(out_dir / f"{view.name}.png", out["rgb"])
-            rgb_frames.append(out["rgb"])
-            if depth:
-                d = depth_to_color(out["depth"], out["opacity"])
-                save_image(out_dir / f"{view.name}_depth.png", d)
-                depth_frames.append(d)
-            if bar:
-                bar.advance()
-    finally:
-        if task:
-            task.__exit__(None, None, None)
-    written = _write_video(rgb_frames, out_dir / kind, fps)
-    if depth_frames:
-        written += _write_video(depth_frames, out_dir / f"{kind}_depth", fps)
-    return written
+    with owned.staging() as staged:
+        task = report.task(f"rendering {kind} path", total=len(views)) if report else None
+        bar = task.__enter__() if task else None
+        try:
+            for view in views:
+                out = render_view(model, view, aabb, background)
+                save_image(staged / f"{view.name}.png", out["rgb"])
+                rgb_frames.append(out["rgb"])
+                if depth:
+                    d = depth_to_color(out["depth"], out["opacity"])
+                    save_image(staged / f"{view.name}_depth.png", d)
+                    depth_frames.append(d)
+                if bar:
+                    bar.advance()
+        finally:
+            if task:
+                task.__exit__(None, None, None)
+        written = _write_video(rgb_frames, staged / kind, fps)
+        if depth_frames:
+            written += _write_video(depth_frames, staged / f"{kind}_depth", fps)
+        owned.replace_with(staged)
+    return [out_dir / p.name for p in written]
 
 
 def evaluate_scene(scene_dir: Path, out_dir: Path, split: str = "test", max_side: int | None = None, device: str = "auto", report: Any = None, limit: int = 0) -> dict[str, Any]:

@@ -29,6 +29,7 @@ from typing import Any
 from recon.atomic import fault_point, is_temp_name, read_json, sha256_file, write_json_atomic
 from recon.config import RunConfig, config_slice
 from recon.errors import ReconError
+from recon.ownership import forbidden_reason, overlap_reason, resolve_path, scene_part_reason
 from recon.progress import Reporter
 
 MANIFEST = "manifest.json"
@@ -195,18 +196,6 @@ RECON_NAMES = frozenset({MANIFEST, LOCK, ".work"}) | LOG_NAMES
 """Names recon itself creates directly in a scene folder (besides the stage folders and temporary names)."""
 
 
-def _forbidden_out(resolved: Path) -> str | None:
-    """Why a resolved path can never be a scene folder: the root, the home folder or a folder above it."""
-    home = Path.home().resolve()
-    if resolved == Path(resolved.anchor):
-        return "the root of the file system"
-    if resolved == home:
-        return "your home folder"
-    if resolved in home.parents:
-        return "a folder that holds your home folder"
-    return None
-
-
 def check_scene_dir(scene_dir: Path, source: Path | None, stage_folders: list[str]) -> None:
     """Refuse an output folder recon could damage: recon writes only into a new or empty folder or a scene it made.
 
@@ -215,18 +204,20 @@ def check_scene_dir(scene_dir: Path, source: Path | None, stage_folders: list[st
     lock file and nothing but names recon gives its own files (a scene whose manifest was damaged, or a first run
     stopped before its first manifest write).
     """
-    resolved = scene_dir.resolve()
-    why = _forbidden_out(resolved)
+    resolved = resolve_path(scene_dir, "The output folder")
+    why = forbidden_reason(resolved)
     if why:
         raise ReconError(
             f"Refusing to use {scene_dir} as the output folder: it is {why}, and recon would write its scene files "
             f"there. Give --out a new folder, e.g. --out {Path.home() / 'recon-scene'}."
         )
+    why = scene_part_reason(resolved)
+    if why:
+        raise ReconError(f"Refusing to use {scene_dir} as the output folder: it is {why}. Give --out a folder outside it.")
     if source is not None:
-        photos = source.resolve()
-        if photos == resolved or resolved in photos.parents or photos in resolved.parents:
-            relation = ("is the input" if photos == resolved else "contains the input" if resolved in photos.parents
-                        else "is inside the input")
+        photos = resolve_path(source, "The input")
+        relation = overlap_reason(resolved, photos)
+        if relation:
             raise ReconError(
                 f"The output folder {scene_dir} {relation} {source}. recon must never write among the photos (or the "
                 f"photos among its outputs, which it replaces): choose an --out folder outside {photos.parent if photos.is_file() else photos}, "

@@ -7,9 +7,13 @@ task's CPUs, and the reference runs with OMP_NUM_THREADS=1).
 """
 from __future__ import annotations
 
+import contextlib
+import ipaddress
 import json
 import os
+import shutil
 import signal
+import struct
 import subprocess
 import sys
 import threading
@@ -134,6 +138,64 @@ def references(captures: dict[str, Path], tmp_path_factory: pytest.TempPathFacto
     return {name: root / name for name in procs}
 
 
+def _listening_sockets(pids: set[int]) -> list[tuple[ipaddress.IPv4Address | ipaddress.IPv6Address, int, int]]:
+    """(address, port, pid) of every TCP socket in LISTEN state that one of `pids` holds, from /proc/net/tcp{,6}."""
+    owner = {}
+    for pid in pids:
+        with contextlib.suppress(OSError):
+            for fd in os.listdir(f"/proc/{pid}/fd"):
+                with contextlib.suppress(OSError):
+                    link = os.readlink(f"/proc/{pid}/fd/{fd}")
+                    if link.startswith("socket:["):
+                        owner[link[8:-1]] = pid
+    found = []
+    for table in ("tcp", "tcp6"):
+        for line in Path(f"/proc/net/{table}").read_text().splitlines()[1:]:
+            fields = line.split()
+            if fields[3] != "0A" or fields[9] not in owner:  # 0A: TCP_LISTEN
+                continue
+            hex_ip, hex_port = fields[1].split(":")
+            words = [struct.pack("<I", int(hex_ip[i : i + 8], 16)) for i in range(0, len(hex_ip), 8)]  # host-order words
+            ip = ipaddress.ip_address(b"".join(words))
+            found.append((ip, int(hex_port, 16), owner[fields[9]]))
+    return found
+
+
+def _descendants(root: int) -> set[int]:
+    children: dict[int, list[int]] = {}
+    for entry in os.listdir("/proc"):
+        if entry.isdigit():
+            with contextlib.suppress(OSError):
+                ppid = int(Path(f"/proc/{entry}/stat").read_text().rsplit(")", 1)[1].split()[1])
+                children.setdefault(ppid, []).append(int(entry))
+    found, todo = set(), [root]
+    while todo:
+        pid = todo.pop()
+        found.add(pid)
+        todo += children.get(pid, [])
+    return found
+
+
+@pytest.mark.skipif(not Path("/proc/net/tcp").is_file(), reason="reads the sockets from Linux's /proc")
+def test_local_ray_listens_on_loopback_only(ray_address: str) -> None:
+    """Issue 35: the Ray a local batch starts listened on every interface: anyone reaching the machine could join it."""
+    import ray
+
+    @ray.remote(num_cpus=0)
+    class Probe:
+        def pid(self) -> int:
+            return os.getpid()
+
+    probe = Probe.remote()  # a worker process of its own, besides the GCS, the raylet and the driver
+    assert ray.get(probe.pid.remote()) in _descendants(os.getpid())
+    sockets = _listening_sockets(_descendants(os.getpid()))
+    assert len({pid for _, _, pid in sockets}) >= 4, sockets  # driver, GCS, raylet, worker at least
+    exposed = [s for s in sockets if not (s[0].is_loopback or (s[0].version == 6 and s[0].ipv4_mapped and s[0].ipv4_mapped.is_loopback))]
+    assert not exposed, exposed
+    assert ray_address.startswith("127.0.0.1:")
+    ray.kill(probe)
+
+
 def _record(result: dict, name: str) -> dict:
     return next(r for r in result["captures"] if r["name"] == name)
 
@@ -175,6 +237,22 @@ def test_batch_matches_recon_run_and_reports_the_broken_capture(
     for name in references:
         assert {s["action"] for s in _record(again, name)["stages"].values()} == {"cached"}
     assert _record(again, "broken")["error"] == broken["error"]
+
+    # issue 35: another capture that is also named blocks used to re-run OUT/blocks over the first one's scene, and
+    # batch.md then listed only the latest batch
+    other = tmp_path / "elsewhere" / "blocks" / "images"
+    shutil.copytree(captures["broken"] / "images", other)
+    finished = faults.finished_times(out / "blocks")
+    res = CliRunner().invoke(app, ["batch", str(other.parent), "--out", str(out), "--address", ray_address, *SETTINGS])
+    assert res.exit_code == 1, res.output  # the new capture's photos are unreadable
+    flat = " ".join(res.output.split())
+    assert f"{out / 'blocks-2'}: {out / 'blocks'} holds {captures['blocks'].resolve()}" in flat, res.output
+    assert faults.finished_times(out / "blocks") == finished and faults.manifest(out / "blocks")["source"] == str(captures["blocks"].resolve())
+    third = json.loads((out / "batch.json").read_text())
+    assert [r["name"] for r in third["captures"]] == ["blocks-2"]
+    assert sorted(r["name"] for r in third["earlier"]) == ["blocks", "broken", "concave"]
+    md = (out / "batch.md").read_text()
+    assert "0 of 1 captures done" in md and "| blocks | poses:cached" in md and "| concave |" in md
 
 
 def _pid_in_train(scene: Path) -> int | None:

@@ -440,3 +440,106 @@ def test_bench_reruns_poses_and_normalize_only_when_a_preset_changes_them(tmp_pa
     run_bench(str(photos), ["plain", "wide"], tmp_path / "bench", [], Reporter(quiet=True), until="train")
     assert ran == [("photos-poses", "poses"), ("photos-poses", "normalize"),
                    ("photos-plain", "train"), ("photos-wide", "normalize"), ("photos-wide", "train")]
+
+
+# ---------------------------------------------------------------------------------------- issue 35: who owns a folder
+@pytest.fixture(scope="module")
+def trained(tiny: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    scene = tmp_path_factory.mktemp("owned") / "scene"
+    proc = faults.run(tiny, scene, "--until", "train")
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    return scene
+
+
+@pytest.mark.parametrize("where", ["photos", "home", "user's batch.md"])
+def test_batch_out_may_not_be_the_photos_home_or_a_users_folder(capture: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                                where: str) -> None:
+    """`recon batch --out` took the capture's own photos folder and $HOME, and overwrote a batch.md the user had there."""
+    pytest.importorskip("ray")
+    home = tmp_path / "home"
+    home.mkdir()
+    monkeypatch.setenv("HOME", str(home))
+    out = {"photos": capture, "home": home, "user's batch.md": tmp_path / "reports"}[where]
+    out.mkdir(exist_ok=True)
+    (out / "batch.md").write_text("my notes")
+    before = snapshot(out)
+    needle = {"photos": "is the input", "home": "your home folder", "user's batch.md": "files that recon did not write (batch.md)"}[where]
+    assert_refused(*recon("batch", capture, "--out", out), needle)
+    assert snapshot(out) == before
+
+
+def test_export_and_render_never_write_into_a_stage_folder(trained: Path) -> None:
+    """`recon export --out SCENE/03_field/x` or `recon render --out SCENE/04_mesh` corrupted the stage, which then re-ran."""
+    before = snapshot(trained)
+    assert_refused(*recon("export", trained, "--out", trained / "03_field" / "x"), "inside the stage folder", "03_field")
+    assert_refused(*recon("render", trained, "--out", trained / "02_scene", "--frames", "1"), "inside the stage folder")
+    assert_refused(*recon("render", trained, "--out", trained, "--frames", "1"), "it holds a recon scene, not a recon render")
+    assert snapshot(trained) == before
+
+
+def test_reexport_keeps_the_files_the_user_added(trained: Path, tmp_path: Path) -> None:
+    """Re-exporting over an export deleted what the user had added there."""
+    out = tmp_path / "ns"
+    assert recon("export", trained, "--out", out)[0] == 0
+    (out / "notes.txt").write_text("mine")
+    (out / "images" / "sketch.txt").write_text("mine too")
+    code, output = recon("export", trained, "--out", out, "--format", "colmap")
+    assert code == 0, output
+    assert (out / "notes.txt").read_text() == "mine" and (out / "images" / "sketch.txt").read_text() == "mine too"
+    assert (out / "sparse" / "0" / "images.txt").is_file() and not (out / "transforms.json").exists()
+    (out / "transforms.json").write_text("{}")  # the user's file where the nerfstudio export would write its own
+    before = snapshot(out)
+    assert_refused(*recon("export", trained, "--out", out), "transforms.json, which recon did not write there")
+    assert snapshot(out) == before
+
+
+def test_rerender_keeps_the_users_files_and_never_overwrites_them(trained: Path, tmp_path: Path) -> None:
+    """`recon render --out DIR` overwrote a user's orbit.gif and frames without asking."""
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "orbit.gif").write_bytes(b"my gif")
+    assert_refused(*recon("render", trained, "--out", mine, "--frames", "2"), "files that recon did not render (orbit.gif)")
+    assert (mine / "orbit.gif").read_bytes() == b"my gif" and len(list(mine.iterdir())) == 1
+    out = tmp_path / "renders"
+    assert recon("render", trained, "--out", out, "--frames", "2")[0] == 0
+    (out / "notes.txt").write_text("mine")
+    (out / "spiral.gif").write_bytes(b"my spiral")
+    assert_refused(*recon("render", trained, "--out", out, "--path", "spiral", "--frames", "2"), "spiral.gif")
+    (out / "spiral.gif").unlink()
+    code, output = recon("render", trained, "--out", out, "--path", "spiral", "--frames", "2")
+    assert code == 0, output
+    assert (out / "notes.txt").read_text() == "mine" and (out / "spiral_001.png").is_file()
+    assert not (out / "orbit.gif").exists()  # recon's earlier render is replaced, not mixed with this one
+    assert not [p for p in out.iterdir() if p.name.startswith(".recon-staging")]
+
+
+def test_photos_folder_named_masks_is_not_its_own_masks_folder(tmp_path: Path) -> None:
+    from recon.scene import find_masks
+
+    photos = tmp_path / "masks"
+    photos.mkdir()
+    for i in range(3):
+        Image.fromarray(np.full((40, 40, 3), 60 * i, np.uint8)).save(photos / f"p{i}.png")
+    assert find_masks(sorted(photos.iterdir())) == (None, {})
+
+
+@pytest.mark.parametrize("kind", ["loop", "dangling"])
+def test_broken_links_are_a_clear_error_and_leave_nothing_behind(capture: Path, trained: Path, tmp_path: Path, kind: str) -> None:
+    """Symlink loops as --out, a batch entry or an export target were internal errors; an export to a dangling link
+    left its temporary folder behind."""
+    pytest.importorskip("ray")
+    links = tmp_path / "links"
+    links.mkdir()
+    bad = links / "out"
+    if kind == "loop":
+        bad.symlink_to(links / "out")
+    else:
+        bad.symlink_to(tmp_path / "nowhere" / "folder")
+    needle = "loops or points to nothing"
+    assert_refused(*recon("export", trained, "--out", bad), str(bad), needle)
+    assert_refused(*recon("render", trained, "--out", bad, "--frames", "1"), str(bad), needle)
+    assert_refused(*recon("batch", capture, "--out", bad), str(bad), needle)
+    assert_refused(*recon("batch", bad, "--out", tmp_path / "batch"), str(bad), needle)
+    assert_refused(*recon("run", capture, "--out", bad, *QUICK), str(bad), needle)
+    assert sorted(p.name for p in links.iterdir()) == ["out"] and not (tmp_path / "batch").exists()
+    assert not (tmp_path / "nowhere").exists()
