@@ -95,6 +95,28 @@ def test_headless_screenshot_is_not_blank(viewer: SceneViewer, tmp_path: Path) -
     assert len(np.unique(centre.reshape(-1, 3) // 16, axis=0)) > 50  # the coloured object, not a flat page
 
 
+def test_browser_cleanup_stops_every_helper_before_removing_the_profile(tmp_path: Path) -> None:
+    """Chromium's helpers outlive the browser for a moment and write into its profile: removing it then raced them
+    (`OSError: Directory not empty: 'Default'`). A stand-in browser whose helper ignores SIGTERM and keeps writing
+    there: the whole process group is stopped and waited for, then the profile removed, without an error."""
+    import os
+    import subprocess
+    import time
+
+    from tests.browser import _group_alive, close_browser
+
+    profile = tmp_path / "profile"
+    (profile / "Default").mkdir(parents=True)
+    helper = f'trap "" TERM; while :; do touch "{profile}/Default/f$RANDOM"; sleep 0.005; done'
+    proc = subprocess.Popen(["bash", "-c", f"bash -c '{helper}' & trap 'exit 0' TERM; wait"], start_new_session=True)
+    deadline = time.monotonic() + 30
+    while len(os.listdir(profile / "Default")) < 3 and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert os.listdir(profile / "Default"), "the stand-in helper never wrote"
+    close_browser(proc, profile, wait_s=1.0)
+    assert proc.returncode is not None and not _group_alive(proc.pid) and not profile.exists()
+
+
 def test_training_view_shows_progress_and_the_current_render(viewer: SceneViewer) -> None:
     """The `recon run --view` observer: the step/loss/PSNR text, the cameras, and photo | render of a held-out view."""
     from recon.nerf.trainer import TrainProgress
