@@ -53,6 +53,16 @@ def blender_env() -> dict[str, str]:
     return {**os.environ, "PATH": os.pathsep.join(keep)}
 
 
+@pytest.fixture(scope="module", autouse=True)
+def blender_has_numpy() -> None:
+    """Skip unless Blender's Python imports numpy: its glTF importer needs it, and Debian's blender package does
+    not depend on python3-numpy, so a plain `apt-get install blender` cannot import a glb at all."""
+    run = subprocess.run([BLENDER, "-b", "--factory-startup", "--python-exit-code", "1", "--python-expr", "import numpy"],
+                         capture_output=True, text=True, timeout=120, env=blender_env())
+    if run.returncode != 0:
+        pytest.skip("Blender's Python cannot import numpy, which its glTF importer needs (apt-get install python3-numpy)")
+
+
 def test_glb_imports_upright_with_colors(tmp_path):
     tower = trimesh.creation.box(extents=(0.2, 0.4, 1.6))  # tall along scene +Z
     tower.apply_translation((0.0, 0.0, 0.8))
