@@ -19,7 +19,7 @@ from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
 
-from recon.config import RunConfig, available_presets, load_config, preset_description
+from recon.config import RunConfig, available_presets, check_batch_against_pixels, load_config, preset_description
 from recon.errors import ConfigError, ReconError
 from recon.pipeline import install_sigterm_as_interrupt, is_disk_full
 from recon.progress import Reporter, format_seconds, format_summary
@@ -154,6 +154,12 @@ def _run(
         preset = preset or _recorded_preset(scene_dir)
         config = _config(preset, overrides)
         _check_device(config)
+        if source is not None:
+            from recon.images import count_photos
+            from recon.ownership import resolve_path
+
+            source = resolve_path(source, "The photos folder")  # a link loop is the user's to fix, not a crash
+            check_batch_against_pixels(config, count_photos(source, config.poses.video_frames))
         report = Reporter(console, quiet=quiet)
         report.observers = list(observers or [])
         if not quiet:
@@ -162,7 +168,7 @@ def _run(
             scene_dir,
             config,
             report,
-            source=source.resolve() if source is not None else None,
+            source=source,
             from_stage=from_stage,
             until_stage=until_stage,
             force=force,

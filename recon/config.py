@@ -6,15 +6,19 @@ naming the key, so a typo never silently falls back to a default.
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import math
+import os
 import re
 import tomllib
 import typing
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
+
+import numpy as np
 
 from recon.errors import ConfigError
 from recon.nerf.model_config import FastConfig, GridKind, SurfaceConfig
@@ -268,7 +272,7 @@ def _apply_overrides(config: RunConfig, overrides: list[str] | None) -> None:
     for item in overrides or []:
         key, sep, raw = item.partition("=")
         if not sep or not key.strip():
-            raise ConfigError(f"--set expects KEY=VALUE (e.g. --set train.steps=2000), got '{item}'.")
+            raise ConfigError(f"--set expects KEY=VALUE (e.g. --set train.steps=2000), got {_shown(item)}.")
         set_value(config, key.strip(), raw.strip(), source="--set")
 
 
@@ -290,88 +294,279 @@ def _gpu_training(device: str) -> bool:
     return bool(torch.cuda.is_available())
 
 
-def _at_least(low: float) -> tuple[Any, str]:
-    return (lambda v: v >= low), f"at least {low}"
+@dataclass(frozen=True)
+class Bound:
+    """The allowed range of one numeric option: [low, high] (either end open), plus one special value outside it
+    (`off`, e.g. 0 for "automatic") that the option's doc gives a meaning."""
+
+    low: float
+    high: float
+    low_open: bool = False
+    high_open: bool = False
+    off: float | None = None
+    off_means: str = ""
+
+    def ok(self, value: float) -> bool:
+        if self.off is not None and value == self.off:
+            return True
+        above = value > self.low if self.low_open else value >= self.low
+        below = value < self.high if self.high_open else value <= self.high
+        return above and below
+
+    def describe(self) -> str:
+        low = f"greater than {self.low:g}" if self.low_open else f"at least {self.low:g}"
+        high = f"below {self.high:g}" if self.high_open else f"at most {self.high:g}"
+        text = f"{low} and {high}"
+        return f"{self.off:g} ({self.off_means}) or {text}" if self.off is not None else text
 
 
-def _positive() -> tuple[Any, str]:
-    return (lambda v: v > 0), "greater than 0"
+def _range(low: float, high: float, off: float | None = None, off_means: str = "") -> Bound:
+    return Bound(low, high, off=off, off_means=off_means)
 
 
-def _between(low: float, high: float) -> tuple[Any, str]:
-    return (lambda v: low <= v <= high), f"between {low} and {high}"
+def _above(low: float, high: float) -> Bound:
+    return Bound(low, high, low_open=True)
 
 
-BOUNDS: dict[str, tuple[Any, str]] = {
-    "poses.max_side": _at_least(16),
-    "poses.max_features": _at_least(64),
-    "poses.sequential_overlap": _at_least(1),
-    "poses.loop_keyframes": _at_least(0),
-    "poses.video_frames": _at_least(3),
-    "poses.video_min_change": _at_least(0),
-    "poses.num_threads": _at_least(-1),
-    "poses.min_registered": _at_least(2),
-    "poses.min_registered_fraction": _between(0, 1),
-    "normalize.link_spacings": _positive(),
-    "normalize.box_margin": _between(0, 10),
-    "mesh.iso_opacity": _between(0, 0.99),
-    "normalize.depth_percentile": _between(0, 49),
-    "normalize.test_every": _at_least(0),
-    "normalize.val_every": _at_least(0),
-    "train.steps": _at_least(1),
-    "train.batch_rays": _at_least(1),
-    "train.lr": _at_least(0),
-    "train.lr_decay": _positive(),
-    "train.max_side": _at_least(4),
-    "train.eval_every": _at_least(0),
-    "train.eval_views": _at_least(0),
-    "train.final_eval_views": _at_least(0),
-    "train.checkpoint_every": _at_least(0),
-    "train.depth_weight": _at_least(0),
-    "train.depth_rays": _at_least(1),
-    "train.classic.n_coarse": _at_least(1),
-    "train.classic.n_fine": _at_least(0),
-    "train.classic.pos_freqs": _at_least(0),
-    "train.classic.dir_freqs": _at_least(0),
-    "train.classic.depth": _at_least(1),
-    "train.classic.width": _at_least(1),
-    "train.fast.density_res": _at_least(2),
-    "train.fast.feature_res": _at_least(2),
-    "train.fast.feature_dim": _at_least(1),
-    "train.fast.sh_degree": _between(0, 4),
-    "train.fast.mlp_width": _at_least(1),
-    "train.fast.mlp_layers": _at_least(0),
-    "train.fast.occupancy_res": _at_least(2),
-    "train.fast.step_ratio": _positive(),
-    "train.fast.max_samples": _at_least(1),
-    "train.fast.cone_angle": _at_least(0),
-    "train.fast.grid_lr_scale": _positive(),
-    "train.surface.sdf_res": _at_least(17),
-    "train.surface.sdf_levels": _at_least(1),
-    "train.surface.feature_res": _at_least(2),
-    "train.surface.feature_dim": _at_least(1),
-    "train.surface.init_radius": _between(0.01, 1),
-    "train.surface.init_sharpness": _positive(),
-    "train.surface.step_ratio": _positive(),
-    "train.surface.occupancy_res": _at_least(2),
-    "train.surface.eikonal_weight": _at_least(0),
-    "train.surface.curvature_weight": _at_least(0),
-    "train.surface.boundary_weight": _at_least(0),
-    "train.surface.boundary_margin_cells": _at_least(0),
-    "train.surface.boundary_points": _at_least(0),
-    "mesh.resolution": ((lambda v: v == 0 or v >= 8), "0 (automatic) or at least 8"),
-    "mesh.max_resolution": _at_least(8),
-    "mesh.memory_budget_mb": _at_least(1),
-    "mesh.iso": _at_least(0),
-    "mesh.min_component_fraction": _between(0, 1),
-    "mesh.smooth_iters": _at_least(0),
-    "mesh.fill_cavities": _at_least(0),
-    "mesh.target_faces": _at_least(0),
-    "mesh.real_size": _at_least(0),
-    "mesh.texture_faces": ((lambda v: v == 0 or v >= 4), "0 (no textured mesh) or at least 4"),
-    "mesh.texture_size": _at_least(16),
+def _fraction() -> Bound:
+    """A probability, opacity or transmittance: 1 would mean log(0) or nothing left to render."""
+    return Bound(0.0, 1.0, high_open=True)
+
+
+SEED = _range(0, 2**31 - 1)
+"""Seeds go to COLMAP (a C int) and NumPy (which refuses negative seeds)."""
+PERIOD = _range(1, 10**7)
+"""A period in steps that code takes a remainder by: 0 would divide by zero."""
+STEPS = _range(0, 10**8)
+WEIGHT = _range(0, 1e4)
+LR_SCALE = _above(0, 1e4)
+MAX_RAYS_PER_STEP = 2**18
+"""Rays rendered per training step (batch plus depth rays): 64 times the presets' largest batch (4096)."""
+MAX_GRID_RES = 1024
+MAX_HOLDOUT_EVERY = 10**4
+
+BOUNDS: dict[str, Bound] = {
+    "poses.max_side": _range(16, 20000),
+    "poses.max_features": _range(64, 100000),
+    "poses.sequential_overlap": _range(1, 10000),
+    "poses.loop_keyframes": _range(0, 10000),
+    "poses.video_frames": _range(3, 100000),
+    "poses.video_min_change": _range(0, 255),
+    "poses.num_threads": _range(1, 1024, off=-1, off_means="every core"),
+    "poses.seed": SEED,
+    "poses.min_registered": _range(2, 10**6),
+    "poses.min_registered_fraction": _range(0, 1),
+    "normalize.link_spacings": _above(0, 1e4),
+    "normalize.box_margin": _range(0, 10),
+    "normalize.depth_percentile": _range(0, 49),
+    "normalize.test_every": _range(2, MAX_HOLDOUT_EVERY, off=0, off_means="none"),
+    "normalize.val_every": _range(2, MAX_HOLDOUT_EVERY, off=0, off_means="none"),
+    "train.steps": _range(1, 10**8),
+    "train.batch_rays": _range(1, MAX_RAYS_PER_STEP),
+    "train.lr": _range(0, 1),
+    "train.lr_decay": _above(0, 1),
+    "train.max_side": _range(4, 16384),
+    "train.eval_every": STEPS,
+    "train.eval_views": _range(0, 10**5),
+    "train.final_eval_views": _range(0, 10**5),
+    "train.checkpoint_every": STEPS,
+    "train.seed": SEED,
+    "train.depth_weight": WEIGHT,
+    "train.depth_rays": _range(1, MAX_RAYS_PER_STEP),
+    "train.sky_weight": WEIGHT,
+    "train.classic.n_coarse": _range(1, 1024),
+    "train.classic.n_fine": _range(0, 1024),
+    "train.classic.pos_freqs": _range(0, 20),
+    "train.classic.dir_freqs": _range(0, 20),
+    "train.classic.depth": _range(1, 32),
+    "train.classic.width": _range(1, 4096),
+    "train.fast.density_res": _range(2, MAX_GRID_RES),
+    "train.fast.feature_res": _range(2, MAX_GRID_RES),
+    "train.fast.feature_dim": _range(1, 64),
+    "train.fast.density_levels": _range(1, 8),
+    "train.fast.feature_levels": _range(1, 8),
+    "train.fast.sh_degree": _range(0, 3),
+    "train.fast.mlp_width": _range(1, 1024),
+    "train.fast.mlp_layers": _range(0, 16),
+    "train.fast.occupancy_res": _range(2, 512),
+    "train.fast.occupancy_alpha": Bound(0, 1, low_open=True, high_open=True),
+    "train.fast.occupancy_warmup": STEPS,
+    "train.fast.occupancy_every": PERIOD,
+    "train.fast.warmup_step_scale": _above(0, 100),
+    "train.fast.step_ratio": _above(0, 100),
+    "train.fast.max_samples": _range(1, 65536),
+    "train.fast.cone_angle": _range(0, 1),
+    "train.fast.early_stop_transmittance": _fraction(),
+    "train.fast.color_min_weight": _fraction(),
+    "train.fast.init_alpha": Bound(0, 1, low_open=True, high_open=True),
+    "train.fast.tv_weight": WEIGHT,
+    "train.fast.distortion_weight": WEIGHT,
+    "train.fast.entropy_weight": WEIGHT,
+    "train.fast.grid_lr_scale": LR_SCALE,
+    "train.fast.shrink_step": STEPS,
+    "train.fast.shrink_margin": _range(0, 1),
+    "train.surface.sdf_res": _range(17, MAX_GRID_RES),
+    "train.surface.sdf_levels": _range(1, 8),
+    "train.surface.sdf_mlp_width": _range(0, 1024),
+    "train.surface.level_every": STEPS,
+    "train.surface.init_radius": _range(0.01, 1),
+    "train.surface.init_sharpness": _above(0, 1e5),
+    "train.surface.feature_res": _range(2, MAX_GRID_RES),
+    "train.surface.feature_dim": _range(1, 64),
+    "train.surface.sh_degree": _range(0, 3),
+    "train.surface.mlp_width": _range(1, 1024),
+    "train.surface.mlp_layers": _range(0, 16),
+    "train.surface.step_ratio": _above(0, 100),
+    "train.surface.max_samples": _range(1, 65536),
+    "train.surface.occupancy_res": _range(2, 512),
+    "train.surface.occupancy_warmup": STEPS,
+    "train.surface.occupancy_every": PERIOD,
+    "train.surface.warmup_step_scale": _above(0, 100),
+    "train.surface.band_width": _above(0, 100),
+    "train.surface.early_stop_transmittance": _fraction(),
+    "train.surface.color_min_weight": _fraction(),
+    "train.surface.eikonal_weight": WEIGHT,
+    "train.surface.curvature_weight": WEIGHT,
+    "train.surface.boundary_weight": WEIGHT,
+    "train.surface.init_prior_weight": WEIGHT,
+    "train.surface.boundary_margin_cells": _range(0, 100),
+    "train.surface.boundary_points": _range(0, MAX_RAYS_PER_STEP),
+    "train.surface.eikonal_samples": _range(1, MAX_RAYS_PER_STEP),  # 0: the mean over no sample is NaN
+    "train.surface.eikonal_points": _range(1, MAX_RAYS_PER_STEP),
+    "train.surface.sdf_lr_scale": LR_SCALE,
+    "train.surface.grid_lr_scale": LR_SCALE,
+    "train.surface.sharpness_lr_scale": _range(0, 1e4),
+    "mesh.resolution": _range(8, 4096, off=0, off_means="automatic"),
+    "mesh.max_resolution": _range(8, 4096),
+    "mesh.memory_budget_mb": _range(1, 2**30),
+    "mesh.iso": _range(0, 1e12),
+    "mesh.iso_opacity": _range(0, 0.99),
+    "mesh.min_component_fraction": _range(0, 1),
+    "mesh.smooth_iters": _range(0, 10000),
+    "mesh.fill_cavities": _range(0, 256),
+    "mesh.target_faces": _range(4, 10**8, off=0, off_means="keep all"),
+    "mesh.real_size": _range(0, 1e9),
+    "mesh.texture_faces": _range(4, 150000, off=0, off_means="no textured mesh"),
+    "mesh.texture_size": _range(16, 8192),
 }
-"""Allowed range of each numeric option: checked once the preset and every --set are applied."""
+"""Allowed range of every int and float option (tests/test_bad_input.py checks that none is missing): checked once
+the preset and every --set are applied. texture_faces stops at 150,000 because xatlas (the UV unwrap) crashed the
+process (SIGSEGV) unwrapping 300,000 faces; texture_size at 8192 because its packing time grows with the size
+(15 s at 4096 and 54 s at 16384 for a 320-face sphere, over 60 s from 20000)."""
+
+GRID_COPIES_IN_MESH_STAGE = 6.0
+"""The mesh stage's peak memory in units of its float32 density grid (which mesh.memory_budget_mb caps): the grid,
+plus 4.7 grids more that fill_enclosed allocates (its masks and labels; tracemalloc on 128³ and 256³ grids), plus
+marching cubes' 0.2-0.4."""
+TEXTURE_BAKE_BYTES_PER_TEXEL = 180
+"""Peak memory of baking a texture, per texel (rasterized face ids and barycentrics, points, colors, the padding's
+distance transform): measured 0.75 GB over the process for a 2048² bake."""
+TRAINING_BYTES_PER_PARAMETER = 16
+"""A trained float32 parameter costs itself, its gradient and Adam's two moments."""
+
+
+def machine_memory_bytes() -> int:
+    """Physical memory of this machine, or the container's memory limit (cgroup v2 / v1) when that is lower."""
+    total = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    for limit_file in ("/sys/fs/cgroup/memory.max", "/sys/fs/cgroup/memory/memory.limit_in_bytes"):
+        with contextlib.suppress(OSError, ValueError):
+            total = min(total, int(Path(limit_file).read_text().strip()))
+    return total
+
+
+def _dense_grid_parameters(res: int, channels: int, levels: int) -> int:
+    """Values in a dense grid of `levels` levels, each half the resolution of the previous (at most 8/7 res³)."""
+    return sum(max(2, (res - 1) // 2**k + 1) ** 3 for k in range(levels)) * channels
+
+
+def implied_memory(config: RunConfig) -> list[tuple[str, str, int]]:
+    """The memory each memory-hungry group of options implies: (options to lower, what needs it, bytes).
+
+    The mesh grid is what mesh.memory_budget_mb allows of mesh.resolution (or max_resolution) cubed, times the
+    copies the stage makes of it; the training grids are counted as dense (the default; vm and hash grids of the
+    same resolution are far smaller); the texture is baked at mesh.texture_size².
+    """
+    mesh, fast, surface = config.mesh, config.train.fast, config.train.surface
+    res = mesh.resolution or mesh.max_resolution
+    grid = min(4 * res**3, mesh.memory_budget_mb * 2**20)
+    out = [("mesh.resolution / mesh.max_resolution / mesh.memory_budget_mb",
+            "the mesh stage (its float32 density grid and the grids filling and meshing copy from it)",
+            int(grid * GRID_COPIES_IN_MESH_STAGE))]
+    if config.mesh.texture_faces:
+        out.append(("mesh.texture_size", "baking the texture", TEXTURE_BAKE_BYTES_PER_TEXEL * mesh.texture_size**2))
+    if config.train.model in ("auto", "fast"):
+        params = (_dense_grid_parameters(fast.density_res, 1, fast.density_levels)
+                  + _dense_grid_parameters(fast.feature_res, fast.feature_dim, fast.feature_levels))
+        out.append(("train.fast.density_res / feature_res / feature_dim / *_levels", "training the fast model's grids",
+                    TRAINING_BYTES_PER_PARAMETER * params))
+    if config.train.model == "surface":
+        params = (_dense_grid_parameters(surface.sdf_res, 1, surface.sdf_levels)
+                  + _dense_grid_parameters(surface.feature_res, surface.feature_dim, 1))
+        out.append(("train.surface.sdf_res / sdf_levels / feature_res / feature_dim",
+                    "training the surface model's grids", TRAINING_BYTES_PER_PARAMETER * params))
+    return out
+
+
+def _check_types(config: Any, prefix: str = "") -> None:
+    """Every option holds its declared type (a finite number for numbers): an API caller may set fields directly."""
+    hints = _field_types(type(config))
+    for f in dataclasses.fields(config):
+        value, dotted, ftype = getattr(config, f.name), f"{prefix}{f.name}", hints[f.name]
+        if dataclasses.is_dataclass(value):
+            _check_types(value, f"{dotted}.")
+        elif ftype in (int, float):
+            number = isinstance(value, (int, float)) and not isinstance(value, bool)
+            whole = isinstance(value, int)  # math.isfinite would overflow on a 400-digit int
+            if not number or (ftype is int and not whole) or (not whole and not math.isfinite(value)):
+                raise ConfigError(f"Option '{dotted}' must be a finite {'whole ' if ftype is int else ''}number; "
+                                  f"got {value!r}. Fix it in the preset or the --set override.")
+
+
+def _check_boxes(config: RunConfig) -> None:
+    """The grid models' boxes: finite, each min below its max (the train stage sets them from the scene)."""
+    for dotted, box in (("train.fast.aabb", config.train.fast.aabb), ("train.surface.aabb", config.train.surface.aabb)):
+        lows, highs = box
+        if not all(math.isfinite(v) for v in (*lows, *highs)) or not all(lo < hi for lo, hi in zip(lows, highs)):
+            raise ConfigError(f"Option '{dotted}' must be [[xmin, ymin, zmin], [xmax, ymax, zmax]] with finite values, "
+                              f"each min below its max; got {box}.")
+    if not all(all(math.isfinite(v) for v in row) for row in config.train.surface.init_planes):
+        raise ConfigError("Option 'train.surface.init_planes' must hold finite rows (nx, ny, nz, d).")
+
+
+def _check_cross(config: RunConfig) -> None:
+    """Checks that involve several options: rays per step, the held-out split, the memory the options imply."""
+    train = config.train
+    if train.batch_rays + train.depth_rays > MAX_RAYS_PER_STEP:
+        raise ConfigError(
+            f"Options 'train.batch_rays' ({train.batch_rays}) and 'train.depth_rays' ({train.depth_rays}) add up to "
+            f"more than {MAX_RAYS_PER_STEP} rays per training step. Lower them (the presets use at most 4096 + 512)."
+        )
+    test, val = config.normalize.test_every, config.normalize.val_every
+    if test and val:
+        ranks = np.arange(math.lcm(test, val))
+        if ((ranks % test == 0) | (ranks % val == val // 2)).all():
+            raise ConfigError(
+                f"Options 'normalize.test_every'={test} and 'normalize.val_every'={val} hold out every photo: none "
+                f"would be left to train on. Raise one of them (the default is 8 and 8) or set it to 0."
+            )
+    available = machine_memory_bytes()
+    for keys, what, need in implied_memory(config):
+        if need > available:
+            raise ConfigError(
+                f"Options {keys} imply about {need / 2**30:.1f} GiB for {what}, more than this machine's "
+                f"{available / 2**30:.1f} GiB of memory. Lower them (the presets' values fit in a few GiB)."
+            )
+
+
+def check_batch_against_pixels(config: RunConfig, photos: int) -> None:
+    """train.batch_rays above every pixel the training photos can have: each step would repeat pixels."""
+    pixels = photos * config.train.max_side**2
+    if photos > 0 and config.train.batch_rays > pixels:
+        raise ConfigError(
+            f"Option 'train.batch_rays'={config.train.batch_rays} is more than all the pixels of the {photos} "
+            f"photo(s) at train.max_side={config.train.max_side} (at most {pixels:,}): every step would repeat pixels. "
+            f"Lower train.batch_rays to at most {pixels:,}, or raise train.max_side."
+        )
 
 
 DEVICE_PATTERN = re.compile(r"auto|cpu|cuda(:\d+)?")
@@ -379,24 +574,28 @@ DEVICE_PATTERN = re.compile(r"auto|cpu|cuda(:\d+)?")
 
 
 def validate(config: RunConfig) -> None:
-    """Refuse out-of-range values (negative steps, zero batch, an unreadable budget, an unknown device...) before
-    any stage runs, naming the option: a typo must not surface after structure from motion has run."""
+    """Refuse wrong types and out-of-range values (negative steps, zero batch, a zero period, a probability of 1,
+    an unreadable budget, an unknown device, more memory than the machine has...) before any stage runs, naming
+    the option: a typo must not surface after structure from motion has run."""
     try:
         parse_duration(config.train.budget)
     except ConfigError as exc:
         raise ConfigError(f"Option 'train.budget' (or --budget): {exc}") from None
     if not DEVICE_PATTERN.fullmatch(config.train.device.strip().lower()):
         raise ConfigError(
-            f"Option 'train.device' must be auto, cpu, cuda or cuda:K (e.g. cuda:0); got '{config.train.device}'."
+            f"Option 'train.device' must be auto, cpu, cuda or cuda:K (e.g. cuda:0); got {_shown(config.train.device)}."
         )
-    for dotted, (ok, allowed) in BOUNDS.items():
+    _check_types(config)
+    for dotted, bound in BOUNDS.items():
         value: Any = config
         for part in dotted.split("."):
-            value = getattr(value, part, None)
-        if value is not None and not ok(value):
+            value = getattr(value, part)
+        if not bound.ok(value):
             raise ConfigError(
-                f"Option '{dotted}' must be {allowed}; got {value}. Fix it in the preset or the --set override."
+                f"Option '{dotted}' must be {bound.describe()}; got {_shown(value)}. Fix it in the preset or the --set override."
             )
+    _check_boxes(config)
+    _check_cross(config)
     parse_region(config.mesh.region)
 
 
@@ -414,7 +613,7 @@ def parse_region(text: str) -> str | tuple[tuple[float, float, float], tuple[flo
     ):
         raise ConfigError(
             f"Option 'mesh.region' must be auto, all, or a box xmin,ymin,zmin,xmax,ymax,zmax (source frame, each min "
-            f"below its max); got '{text}'."
+            f"below its max); got {_shown(text)}."
         )
     return (numbers[0], numbers[1], numbers[2]), (numbers[3], numbers[4], numbers[5])
 
@@ -484,7 +683,7 @@ def _coerce(raw: Any, ftype: Any, dotted: str, source: str) -> Any:
             value = _parse_scalar(raw)
         if value not in args:
             raise ConfigError(
-                f"Option '{dotted}' ({source}) must be one of {', '.join(map(str, args))}; got '{raw}'."
+                f"Option '{dotted}' ({source}) must be one of {', '.join(map(str, args))}; got {_shown(raw)}."
             )
         return value
     if origin in (typing.Union, getattr(__import__("types"), "UnionType", None)):
@@ -497,11 +696,11 @@ def _coerce(raw: Any, ftype: Any, dotted: str, source: str) -> Any:
                 return _coerce(raw, arg, dotted, source)
             except ConfigError:
                 continue
-        raise ConfigError(f"Option '{dotted}' ({source}) got '{raw}', which is not a valid {ftype}.")
+        raise ConfigError(f"Option '{dotted}' ({source}) got {_shown(raw)}, which is not a valid {ftype}.")
     if origin in (list, tuple):
         value = _parse_scalar(raw) if isinstance(raw, str) else raw
         if not isinstance(value, (list, tuple)):
-            raise ConfigError(f"Option '{dotted}' ({source}) expects a list like [1, 2]; got '{raw}'.")
+            raise ConfigError(f"Option '{dotted}' ({source}) expects a list like [1, 2]; got {_shown(raw)}.")
         inner = args[0] if args else Any
         items = [_coerce(v, inner, dotted, source) if inner is not Any and inner is not Ellipsis else v for v in value]
         return tuple(items) if origin is tuple else items
@@ -510,21 +709,31 @@ def _coerce(raw: Any, ftype: Any, dotted: str, source: str) -> Any:
             return raw
         if isinstance(raw, str) and raw.lower() in ("true", "1", "yes", "on", "false", "0", "no", "off"):
             return raw.lower() in ("true", "1", "yes", "on")
-        raise ConfigError(f"Option '{dotted}' ({source}) expects true or false; got '{raw}'.")
+        raise ConfigError(f"Option '{dotted}' ({source}) expects true or false; got {_shown(raw)}.")
     if ftype in (int, float):
         value = _parse_scalar(raw) if isinstance(raw, str) else raw
         if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise ConfigError(f"Option '{dotted}' ({source}) expects a number; got '{raw}'.")
+            raise ConfigError(f"Option '{dotted}' ({source}) expects a number; got {_shown(raw)}.")
         if ftype is int:
             if isinstance(value, float) and not value.is_integer():
-                raise ConfigError(f"Option '{dotted}' ({source}) expects a whole number; got '{raw}'.")
+                raise ConfigError(f"Option '{dotted}' ({source}) expects a whole number; got {_shown(raw)}.")
             return int(value)
-        if value != value or value in (float("inf"), float("-inf")):
-            raise ConfigError(f"Option '{dotted}' ({source}) must be a finite number; got '{raw}'.")
-        return float(value)
+        try:
+            number = float(value)
+        except OverflowError:  # an int beyond float range
+            number = float("inf")
+        if not math.isfinite(number):
+            raise ConfigError(f"Option '{dotted}' ({source}) must be a finite number; got {_shown(raw)}.")
+        return number
     if ftype is str:
         return str(raw)
     return raw
+
+
+def _shown(raw: Any, limit: int = 60) -> str:
+    """A value quoted for an error message, cut short when long: the message stays one readable line."""
+    text = str(raw)
+    return f"'{text}'" if len(text) <= limit else f"'{text[:limit]}…' ({len(text)} characters)"
 
 
 def _parse_scalar(raw: str) -> Any:
@@ -549,9 +758,9 @@ def parse_duration(text: str) -> float:
     try:
         value = float(number) * scale
     except ValueError:
-        raise ConfigError(f"Cannot read the time budget '{text}': write it like 90s, 5m or 1h.") from None
+        raise ConfigError(f"Cannot read the time budget {_shown(text)}: write it like 90s, 5m or 1h.") from None
     if not value > 0 or value == float("inf"):
-        raise ConfigError(f"The time budget must be positive and finite, got '{text}'.")
+        raise ConfigError(f"The time budget must be positive and finite, got {_shown(text)}.")
     return value
 
 

@@ -38,6 +38,30 @@ def list_photos(folder: Path) -> tuple[list[Path], list[Path]]:
     return photos, skipped
 
 
+def count_photos(source: Path, video_frames: int) -> int:
+    """How many photos the poses stage would read from `source` at most: the image files directly in the folder,
+    plus `video_frames` when it is a video or holds any; 0 when that cannot be told (a poses file, a missing path)."""
+    from recon.video import is_video, list_videos
+
+    try:
+        if source.is_file():
+            return video_frames if is_video(source) else 0
+        if not source.is_dir():
+            return 0
+        return len(list_photos(source)[0]) + (video_frames if list_videos(source) else 0)
+    except OSError:
+        return 0
+
+
+def too_large(path: Path | str, width: int, height: int, what: str = "image") -> InputError:
+    """The error for a photo (or a video's frames) over MAX_PIXELS, told from the header before any decoding."""
+    return InputError(
+        f"The {what} {path} is {width}×{height} px ({width * height / 1e6:,.0f} Mpx), over the "
+        f"{MAX_PIXELS // 1_000_000} Mpx recon decodes safely. Downscale it (e.g. to 8000 px on the long side) before "
+        f"running recon."
+    )
+
+
 def unreadable(path: Path, exc: BaseException) -> InputError:
     return InputError(
         f"Cannot read the image {path}: {exc}. The file is corrupt or not an image; "
@@ -66,11 +90,21 @@ def _open(path: Path, max_side: int | None = None) -> Image.Image:
 
 
 def oriented_size(path: Path) -> tuple[int, int]:
-    """(width, height) after EXIF orientation, without decoding the pixels."""
+    """(width, height) after EXIF orientation, from the header alone (PIL's open reads no pixels); a size over
+    MAX_PIXELS is refused here, before anything decodes it."""
     try:
-        with Image.open(path) as img:
-            w, h = img.size
-            orientation = img.getexif().get(0x0112, 1)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+            with Image.open(path) as img:
+                w, h = img.size
+                if w * h > MAX_PIXELS:  # before getexif: for a PNG it decodes the whole image
+                    raise too_large(path, w, h)
+                orientation = img.getexif().get(0x0112, 1)
+    except Image.DecompressionBombError as exc:  # PIL's own refusal at twice MAX_IMAGE_PIXELS (it says the size)
+        raise InputError(
+            f"The image {path} is too large to decode safely ({exc}). Downscale it (e.g. to 8000 px on the long "
+            f"side) before running recon."
+        ) from None
     except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as exc:
         raise unreadable(path, exc) from None
     return (h, w) if orientation in (5, 6, 7, 8) else (w, h)

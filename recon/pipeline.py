@@ -28,7 +28,7 @@ from typing import Any
 
 from recon.atomic import fault_point, is_temp_name, read_json, sha256_file, write_json_atomic
 from recon.config import RunConfig, config_slice
-from recon.errors import ReconError
+from recon.errors import InputError, ReconError
 from recon.ownership import forbidden_reason, overlap_reason, resolve_path, scene_part_reason
 from recon.progress import Reporter
 
@@ -159,6 +159,14 @@ class Manifest:
                 self.data = data
             except (OSError, ValueError) as exc:
                 self.warning = f"{self.path} was unreadable ({exc}); every stage's cache is ignored and re-checked."
+        version = self.data["version"]
+        if not 1 <= version <= MANIFEST_VERSION:  # a newer recon's scene, or a version no recon wrote: never guess
+            why = ("a newer recon wrote it: upgrade recon to use this scene" if version > MANIFEST_VERSION else
+                   "no recon writes that version, so the file was edited or damaged")
+            raise InputError(
+                f"{self.path} is manifest version {version}, and this recon reads versions 1 to {MANIFEST_VERSION}; "
+                f"{why}, or give --out a new folder."
+            )
 
     @property
     def stages(self) -> dict[str, dict]:

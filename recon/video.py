@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from recon.errors import InputError
+from recon.images import MAX_PIXELS, too_large
 
 VIDEO_SUFFIXES = frozenset({".mp4", ".mov", ".m4v"})
 ANALYSIS_SIDE = 640
@@ -160,14 +161,20 @@ def _open(path: Path) -> Iterator[object]:
 
 
 def probe(path: Path) -> VideoInfo:
-    """Size (as displayed), frame rate, frame count and rotation of a clip, decoding one frame to be sure."""
+    """Size (as displayed), frame rate, frame count and rotation of a clip, decoding one frame to be sure; frames
+    over the photos' pixel limit (recon.images.MAX_PIXELS) are refused from the header, before that decode."""
     import cv2
 
     path = Path(path)
     with _open(path) as cap:
+        width, height = int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)), int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))
+        if width * height > MAX_PIXELS:  # from the container's header: refused before a frame is decoded
+            raise too_large(path, width, height, "video")
         ok, frame = cap.read()
         if not ok or frame is None:
             raise _unreadable(path, "it holds no frame that can be decoded")
+        if frame.shape[0] * frame.shape[1] > MAX_PIXELS:  # a header that gave no size (or a wrong one)
+            raise too_large(path, frame.shape[1], frame.shape[0], "video")
         count = int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
         fps = float(cap.get(cv2.CAP_PROP_FPS))
         rotation = int(round(cap.get(cv2.CAP_PROP_ORIENTATION_META))) % 360

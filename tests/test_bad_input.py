@@ -8,11 +8,15 @@ valid Scene or raise InputError, never anything else.
 from __future__ import annotations
 
 import copy
+import dataclasses
 import json
 import math
 import os
 import shutil
+import struct
 import sys
+import typing
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -23,8 +27,17 @@ from PIL import Image
 from typer.testing import CliRunner
 
 from recon.cli import app
-from recon.config import BOUNDS, RunConfig, load_config
+from recon.config import (
+    BOUNDS,
+    TEXTURE_BAKE_BYTES_PER_TEXEL,
+    RunConfig,
+    available_presets,
+    load_config,
+    machine_memory_bytes,
+)
 from recon.errors import ConfigError, InputError
+from recon.images import read_image
+from recon.pipeline import MANIFEST_VERSION
 from recon.scene import look_at, Scene, import_npz, import_transforms, load_scene
 
 REPO = Path(__file__).resolve().parents[1]
@@ -248,7 +261,7 @@ CONFIG_CASES = [
     ("train.steps=-5", "train.steps", "at least 1"),
     ("train.batch_rays=0", "train.batch_rays", "at least 1"),
     ("mesh.resolution=-3", "mesh.resolution", "at least 8"),
-    ("mesh.min_component_fraction=2", "mesh.min_component_fraction", "between 0 and 1"),
+    ("mesh.min_component_fraction=2", "mesh.min_component_fraction", "at most 1"),
     ("train.lr=-1e-3", "train.lr", "at least 0"),
     ("train.steps=many", "train.steps", "expects a number"),
     ("train.steps=2.5", "train.steps", "whole number"),
@@ -284,16 +297,70 @@ def test_unknown_and_broken_presets(tmp_path: Path) -> None:
     assert_clean_error(*recon("run", str(cap), "--out", out, "--preset", str(bad)), "[trian]", "Valid sections")
 
 
-def test_every_bound_names_a_real_option_and_defaults_pass() -> None:
+def numeric_options(config: object, prefix: str = "") -> list[str]:
+    """Dotted names of every int and float option of a config (nested sections included)."""
+    hints = typing.get_type_hints(type(config))
+    names: list[str] = []
+    for f in dataclasses.fields(config):  # type: ignore[arg-type]
+        value = getattr(config, f.name)
+        if dataclasses.is_dataclass(value):
+            names += numeric_options(value, f"{prefix}{f.name}.")
+        elif hints[f.name] in (int, float):
+            names.append(f"{prefix}{f.name}")
+    return names
+
+
+def test_every_numeric_option_has_bounds_and_defaults_and_presets_pass() -> None:
+    assert sorted(BOUNDS) == sorted(numeric_options(RunConfig()))
     config = RunConfig()
-    for dotted, (ok, _) in BOUNDS.items():
+    for dotted, bound in BOUNDS.items():
         value = config
         for part in dotted.split("."):
-            assert hasattr(value, part), f"BOUNDS names '{dotted}', which is not an option"
             value = getattr(value, part)
-        assert ok(value), f"the default {dotted}={value} is outside its own bounds"
+        assert bound.ok(value), f"the default {dotted}={value} is outside its own bounds"
+    for preset in available_presets():
+        load_config(preset)  # raises if a shipped preset broke its bounds
     with pytest.raises(ConfigError, match="train.steps"):
         load_config(None, ["train.steps=0"])
+
+
+CROSS_CASES = [
+    (["train.batch_rays=262144", "train.depth_rays=512"], "rays per training step"),
+    (["normalize.test_every=2", "normalize.val_every=2"], "none would be left to train on"),
+    (["mesh.resolution=4096", "mesh.memory_budget_mb=1073741824"], "more than this machine"),
+    (["train.fast.density_res=1024", "train.fast.feature_res=1024", "train.fast.feature_dim=64"], "more than this machine"),
+    (["mesh.texture_size=8192"], None),
+    (["train.fast.occupancy_every=0"], "train.fast.occupancy_every"),
+    (["train.fast.init_alpha=1"], "below 1"),
+    (["train.fast.sh_degree=4"], "at most 3"),
+    (["train.surface.eikonal_samples=0"], "at least 1"),
+    (["mesh.texture_faces=300000"], "at most 150000"),
+    (["train.fast.aabb=[[0, 0, 0], [0, 1, 1]]"], "each min below its max"),
+]
+
+
+@pytest.mark.parametrize(("overrides", "needle"), CROSS_CASES, ids=[" ".join(c[0]) for c in CROSS_CASES])
+def test_cross_key_and_memory_checks(overrides: list[str], needle: str | None) -> None:
+    """Several options at once, and the memory they imply against this machine's, refused before any stage."""
+    if needle is None:  # the largest texture: allowed exactly when its bake fits in this machine's memory
+        needs = TEXTURE_BAKE_BYTES_PER_TEXEL * 8192**2
+        if needs <= machine_memory_bytes():
+            load_config(None, overrides)
+            return
+        needle = "more than this machine"
+    with pytest.raises(ConfigError, match=needle):
+        load_config(None, overrides)
+
+
+def test_batch_rays_against_the_pixels_of_the_photos(tmp_path: Path) -> None:
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    for i in range(3):
+        _rgb(photos / f"p{i}.png", seed=i)
+    code, out = recon("run", str(photos), "--out", str(tmp_path / "scene"), "--set", "train.max_side=32",
+                      "--set", "train.batch_rays=4000")
+    assert_clean_error(code, out, "train.batch_rays", "3 photo(s)", "3,072")
+    assert not (tmp_path / "scene" / "01_poses").exists()
 
 
 # ------------------------------------------------------------------------------------------------ paths
@@ -437,3 +504,73 @@ def test_fuzz_import_npz(tmp_path_factory: pytest.TempPathFactory, images: np.nd
     except InputError:
         return
     assert_valid_scene(scene)
+
+
+# ------------------------------------------------------------------------------------------------ sizes, links, manifest
+
+
+def _png_header(path: Path, width: int, height: int) -> None:
+    """A PNG that is only a header (IHDR claiming width × height, RGB 8-bit) and an end: 57 bytes, no pixels."""
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
+    ihdr = struct.pack(">IIBBBBB", width, height, 8, 2, 0, 0, 0)
+    path.write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IEND", b""))
+
+
+@pytest.mark.parametrize("side", [30000, 21000], ids=["over-twice-the-limit", "over-the-limit"])
+def test_huge_png_header_is_refused_before_decoding(tmp_path: Path, side: int) -> None:
+    """PIL refuses 30000² itself (over twice the limit); 21000² only warns, and recon refuses it from the header."""
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    for i in range(3):
+        _rgb(photos / f"p{i}.png", size=64, seed=i)
+    _png_header(photos / "huge.png", side, side)
+    assert (photos / "huge.png").stat().st_size < 100
+    with pytest.raises(InputError, match="huge.png.*too large|huge.png.*Mpx"):
+        read_image(photos / "huge.png", max_side=400)
+    code, out = recon("run", str(photos), "--out", str(tmp_path / "scene"), "--until", "poses", "-q")
+    assert_clean_error(code, out, "huge.png", "Downscale it")
+
+
+def test_video_frames_over_the_pixel_limit_are_refused_from_the_header(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A tiny clip against a limit lowered below its frames: refused with the header's size, as 16000² would be."""
+    import cv2
+
+    import recon.video
+
+    clip = tmp_path / "clip.mp4"
+    writer = cv2.VideoWriter(str(clip), cv2.VideoWriter_fourcc(*"mp4v"), 10, (96, 64))
+    for i in range(3):
+        writer.write(np.full((64, 96, 3), 40 * i, np.uint8))
+    writer.release()
+    assert recon.video.probe(clip).width == 96
+    monkeypatch.setattr(recon.video, "MAX_PIXELS", 96 * 64 - 1)
+    with pytest.raises(InputError, match=r"clip.mp4 is 96×64 px"):
+        recon.video.probe(clip)
+
+
+def test_symlink_loop_as_the_photos_folder(tmp_path: Path) -> None:
+    (tmp_path / "a").symlink_to(tmp_path / "b")
+    (tmp_path / "b").symlink_to(tmp_path / "a")
+    (tmp_path / "self").symlink_to(tmp_path / "self")
+    for name in ("a", "self"):
+        code, out = recon("run", str(tmp_path / name), "--out", str(tmp_path / f"scene-{name}"))
+        assert_clean_error(code, out, str(tmp_path / name), "loops or points to nothing")
+
+
+@pytest.mark.parametrize("version", [0, -1, MANIFEST_VERSION + 1], ids=["zero", "negative", "future"])
+def test_manifest_of_an_unknown_version_is_refused(tmp_path: Path, version: int) -> None:
+    cap = tmp_path / "cap"
+    _capture(cap)
+    scene = tmp_path / "scene"
+    assert _run_import(cap, scene)[0] == 0
+    manifest = scene / "manifest.json"
+    data = json.loads(manifest.read_text())
+    data["version"] = version
+    manifest.write_text(json.dumps(data))
+    code, out = _run_import(cap, scene)
+    assert_clean_error(code, out, "manifest.json", f"manifest version {version}", "give --out a new folder")
+    assert ("upgrade recon" in out) == (version > MANIFEST_VERSION)
+    assert_clean_error(*recon("status", str(scene)), f"manifest version {version}")
+    assert json.loads(manifest.read_text())["version"] == version  # refused, not rewritten
