@@ -5,7 +5,8 @@ until the server says it has shown something, and only then is the screenshot ta
 
 Chromium runs in its own process group with a profile folder this module owns: on exit the whole group
 (browser, renderers, GPU and crash-reporter helpers) is stopped and waited for before the folder is
-removed, and a file a dying helper still writes there cannot fail the test (`close_browser`).
+removed, and a file a dying helper still writes there cannot fail the test (`close_browser`). Its DevTools
+port is the one it picked itself (`_devtools_port`), not one chosen here that another process could take first.
 """
 from __future__ import annotations
 
@@ -14,7 +15,6 @@ import json
 import os
 import shutil
 import signal
-import socket
 import subprocess
 import tempfile
 import time
@@ -30,10 +30,14 @@ def find_chromium() -> str | None:
     return next((shutil.which(n) for n in ("chromium", "chromium-browser", "google-chrome") if shutil.which(n)), None)
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+def _devtools_port(profile: Path) -> int | None:
+    """The port Chromium's DevTools listens on (it was started with port 0: it picks a free one and writes it
+    into the profile, so no other process can take it between our choosing and its binding), or None yet."""
+    try:
+        first = (profile / "DevToolsActivePort").read_text().splitlines()[0]
+    except (OSError, IndexError):
+        return None
+    return int(first) if first.isdigit() else None
 
 
 def screenshot(url: str, out: Path, ready: Callable[[], bool], size: tuple[int, int] = (1000, 700), timeout_s: float = 120.0,
@@ -44,20 +48,23 @@ def screenshot(url: str, out: Path, ready: Callable[[], bool], size: tuple[int, 
     browser = find_chromium()
     if browser is None:
         raise FileNotFoundError("no Chromium")
-    port = _free_port()
     profile = Path(tempfile.mkdtemp(prefix="recon-chromium-"))
-    proc = subprocess.Popen([browser, *FLAGS, f"--window-size={size[0]},{size[1]}", f"--remote-debugging-port={port}",
+    proc = subprocess.Popen([browser, *FLAGS, f"--window-size={size[0]},{size[1]}", "--remote-debugging-port=0",
                              f"--user-data-dir={profile}", "about:blank"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
                             start_new_session=True)
     try:
         deadline = time.monotonic() + timeout_s
         targets = None
         while targets is None:
+            port = _devtools_port(profile)
             try:
-                with urllib.request.urlopen(f"http://127.0.0.1:{port}/json/list", timeout=5) as r:
-                    targets = [t for t in json.load(r) if t.get("type") == "page"] or None
+                if port is not None:
+                    with urllib.request.urlopen(f"http://127.0.0.1:{port}/json/list", timeout=5) as r:
+                        targets = [t for t in json.load(r) if t.get("type") == "page"] or None
             except OSError:
                 pass
+            if proc.poll() is not None:
+                raise RuntimeError(f"Chromium exited with code {proc.returncode} before its DevTools endpoint came up")
             if time.monotonic() > deadline:
                 raise TimeoutError("Chromium's DevTools endpoint did not come up")
             time.sleep(0.3)
