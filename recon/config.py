@@ -61,6 +61,9 @@ class NormalizeConfig:
     """Every Nth photo (sorted by name) is held out for testing (when the source gives no split); 0: none."""
     val_every: int = 8
     """Every Nth photo, offset by half of it, is held out for validation; 0: none."""
+    masks: Literal["auto", "off"] = "auto"
+    """auto: an object capture without masks that shows a lot of table and room gets object masks cut from its
+    photos (`recon.auto_masks`, written to 02_scene/masks/) when they agree across photos; off: never."""
 
 
 @dataclass

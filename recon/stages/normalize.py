@@ -1,16 +1,31 @@
-"""normalize stage: the canonical scene (upright, centred, scaled), near/far per camera, the data split."""
+"""normalize stage: the canonical scene (upright, centred, scaled), near/far per camera, the data split, and — for an
+object photographed without masks in front of its table and room — the object's masks cut from the photos."""
 from __future__ import annotations
 
+from pathlib import Path
+
+import numpy as np
+
+from recon.auto_masks import object_on_background, segment_object
+from recon.images import save_image
 from recon.normalization import normalize
 from recon.pipeline import Stage, StageContext
-from recon.scene import load_scene
+from recon.scene import Scene, load_scene
+
+MASK_FOLDER = "masks"
 
 
 def run(ctx: StageContext) -> dict:
     source = load_scene(ctx.inputs["poses"])
     scene = normalize(source, ctx.config)
+    masked, why = 0, ""
+    if ctx.config.masks == "auto" and object_on_background(scene):
+        masked, why = _auto_masks(ctx, source, scene)
+        if masked:
+            scene = normalize(source, ctx.config)
+        scene.notes["masks"] = why
     scene.save(ctx.out)
-    for key in ("up", "capture", "region", "box", "scale", "split"):
+    for key in ("up", "capture", "region", "masks", "box", "scale", "split"):
         if scene.notes.get(key):
             ctx.report.info(f"{key}: {scene.notes[key]}")
     counts = {s: len(scene.split(s)) for s in ("train", "val", "test")}
@@ -18,14 +33,41 @@ def run(ctx: StageContext) -> dict:
     far = max(f.far for f in scene.frames)
     return {
         "headline": f"{scene.capture} capture, {counts['train']}/{counts['val']}/{counts['test']} train/val/test views, "
-        f"near {near:.3g} far {far:.3g}",
+        f"near {near:.3g} far {far:.3g}" + (f", {masked} automatic masks" if masked else ""),
         "capture": scene.capture,
         "split": counts,
         "aabb": scene.aabb.round(4).tolist(),
+        "auto_masks": masked,
     }
 
 
-# version 3: the box holds the linked sparse points (stray ones dropped) instead of the 2 %–98 % percentiles, so a
-# thin part is no longer cut off; its margin went from 10 % to 5 % of the size on each side
-# version 4: with no ground under the object, a wall behind it (every camera in front) is found and cut like the ground
-STAGE = Stage(name="normalize", folder="02_scene", inputs=("poses",), version=4, run=run)
+def _auto_masks(ctx: StageContext, source: Scene, scene: Scene) -> tuple[int, str]:
+    """Cut the object out of every photo; when the cuts agree, give `source`'s frames the masks (written to
+    02_scene/masks/). Returns how many photos got one (0: none) and why."""
+    with ctx.report.task("automatic masks: cutting the object out of each photo", total=len(scene.frames)) as bar:
+        found = segment_object(scene, progress=bar.advance)
+    final = ctx.scene_dir / ctx.folder / MASK_FOLDER  # where the masks live once the stage folder is sealed
+    if not found.confident:
+        _write(ctx.out / "masks_unsure", found.masks)  # for a look; not used
+        return 0, (
+            f"{found.reason}: kept the photos unmasked, so the table and room are modelled too (contracted). "
+            f"Give the photos a masks/ folder (white = object) to mesh the object alone"
+        )
+    _write(ctx.out / MASK_FOLDER, found.masks)
+    for frame in source.frames:
+        frame.mask_path = str(final / f"{Path(frame.file_path).stem}.png")
+    source.has_alpha = True
+    return len(found.masks), (
+        f"{found.reason}: trained and meshed as a masked object. To fix a mask, copy {final} next to the photos "
+        f"folder as masks/, edit it (white = object) and run again"
+    )
+
+
+def _write(folder: Path, masks: dict[str, np.ndarray]) -> None:
+    folder.mkdir(parents=True, exist_ok=True)
+    for name, mask in masks.items():
+        save_image(folder / f"{Path(name).stem}.png", mask.astype(np.float32)[..., None])
+
+
+# version 5: an object on a background without masks gets automatic masks (normalize.masks=auto)
+STAGE = Stage(name="normalize", folder="02_scene", inputs=("poses",), version=5, run=run)

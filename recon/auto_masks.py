@@ -1,0 +1,280 @@
+"""Object masks for captures that come without them: the object the cameras look at, cut out of every photo.
+
+No learned weights. The sparse points of the object region (`recon.region`) seen by a photo seed the object; the
+points on the cut support plane, the points outside the region and every pixel outside the region's projected box
+seed the background; GrabCut (colour models and a graph cut, OpenCV) segments between them. Then the photos vote:
+a pixel stays object only where its ray passes through space that (almost) no photo calls background — the masks'
+visual hull. How well each photo's cut agrees with the hull the others carve says how sure the segmentation is.
+Pure numpy/OpenCV on a normalized `Scene` and its photos; the caller decides what to do with unsure masks.
+"""
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.ndimage import binary_erosion
+
+from recon.geometry.color import project
+from recon.geometry.visual_hull import carve
+from recon.images import read_image, undistort
+from recon.scene import Frame, Scene
+
+SEGMENT_SIDE = 640
+"""Photos are segmented at this longest side (pixels); the masks are written back at the photos' own size."""
+REGION_MARGIN = 0.1
+"""Outside the object region's box grown by this fraction of its size on each side, every pixel is background."""
+GROUND_BAND = 0.02
+"""Sparse points within this fraction of the region's size of the support plane are the plane's (background)."""
+SEED_RADIUS = 0.004
+"""Seed discs around projected sparse points, as a fraction of the photo's diagonal."""
+HULL_RES = 96
+"""Grid vertices per side of the visual hull the photos vote on."""
+HULL_TOLERANCE = 0.1
+"""A hull vertex survives while at most this fraction of the photos (at least one) call it background: one bad
+cut must not carve the object out of every other photo."""
+MIN_AGREEMENT = 0.85
+"""The masks are trusted when the median photo's cut and the other photos' hull overlap (IoU) at least this much."""
+MIN_SEED_RECALL = 0.9
+"""... and the masks keep at least this fraction of the object's sparse points where the photos see them."""
+EDGE_PERCENTILE = 80
+"""A pixel is an edge when its colour gradient is in the photo's top (100 - this) percent."""
+MIN_EDGE_SUPPORT = 0.5
+"""... and the median photo's mask outline runs along edges for at least this fraction of its length: seeds alone
+(photos that do not show what their cameras should) give outlines that agree across photos but ignore the image."""
+
+
+@dataclass
+class ObjectMasks:
+    """Per-photo object masks and how far they can be trusted."""
+
+    masks: dict[str, np.ndarray]
+    """Frame name -> (h, w) bool at the photo's own size and pixels (lens distortion as in the photo)."""
+    agreement: dict[str, float]
+    """Frame name -> IoU of the photo's cut with the silhouette of the hull all photos carve."""
+    seed_recall: float
+    """Fraction of the object's sparse-point sightings that fall inside the final masks."""
+    edge_support: dict[str, float]
+    """Frame name -> fraction of the mask's outline that lies on an edge of the photo."""
+    confident: bool
+    reason: str
+    coverage: dict[str, float] = field(default_factory=dict)
+    """Frame name -> fraction of the photo's pixels that are object."""
+
+
+PhotoLoader = Callable[[Frame], np.ndarray]
+
+
+def object_on_background(scene: Scene) -> bool:
+    """An object capture whose photos show a lot of table and room (normalize contracted it around the object)."""
+    return scene.capture == "unbounded" and scene.region is not None and not scene.has_alpha
+
+
+def segment_object(scene: Scene, load_photo: PhotoLoader | None = None, side: int = SEGMENT_SIDE,
+                   progress: Callable[[], object] | None = None) -> ObjectMasks:
+    """Segment the object region of a normalized scene in every photo (see the module docstring).
+
+    scene: normalized, with `region` (2, 3) and sparse points with per-photo visibility; load_photo(frame) -> the
+    photo as float (H, W, 3) in [0, 1] at any size with the frame's aspect (default: read from disk at `side`).
+    """
+    import cv2
+
+    if scene.region is None:
+        raise ValueError("segment_object needs the scene's object region (normalize finds it for object captures)")
+    load = load_photo or (lambda f: read_image(scene.image_path(f), max_side=side)[..., :3])
+    region = np.asarray(scene.region, np.float64)
+    extent = region[1] - region[0]
+    grown = np.stack([region[0] - REGION_MARGIN * extent, region[1] + REGION_MARGIN * extent])
+    points = np.asarray(scene.points, np.float64).reshape(-1, 3)
+    object_pts, background_pts = _label_points(points, region, grown, scene.ground)
+
+    cuts, intrinsics, sizes, seeds, edges = [], [], [], [], []
+    for frame in scene.frames:
+        photo = np.asarray(load(frame), np.float32)[..., :3]
+        h, w = photo.shape[:2]
+        sx, sy = w / frame.w, h / frame.h
+        intr = np.array([frame.fl_x * sx, frame.fl_y * sy, frame.cx * sx, frame.cy * sy])
+        pinhole = undistort(photo, *intr, frame.distortion, frame.camera_model)
+        seen = scene.point_visibility.get(frame.name)
+        seen = np.arange(len(points)) if seen is None else np.asarray(seen, np.int64)
+        # every object point lands inside the object's outline (the object hides its own back, not its outline);
+        # background points only where the photo sees them (a hidden table point may lie behind the object)
+        fg = _visible_uv(points[object_pts], frame.c2w, intr, w, h)
+        bg = _visible_uv(points[seen[background_pts[seen]]], frame.c2w, intr, w, h)
+        box_uv = _visible_uv(_corners(grown), frame.c2w, intr, w, h, clip=False)
+        cuts.append(_grabcut(cv2, pinhole, fg, bg, box_uv))
+        edges.append(_edges(cv2, pinhole))
+        if progress is not None:
+            progress()
+        intrinsics.append(intr)
+        sizes.append((w, h))
+        seeds.append(fg)
+
+    n = len(cuts)
+    _, carved_by = carve(grown, HULL_RES, [f.c2w for f in scene.frames], intrinsics, cuts)
+    inside = (carved_by <= max(1, int(HULL_TOLERANCE * n))).reshape((HULL_RES,) * 3)
+    shell = inside & ~binary_erosion(inside)  # the hull's outer vertices project onto its whole silhouette
+    axes = [np.linspace(grown[0, i], grown[1, i], HULL_RES) for i in range(3)]
+    hull_pts = np.stack([axes[i][idx] for i, idx in enumerate(np.nonzero(shell))], axis=-1)
+    cell = float(np.max(extent * (1 + 2 * REGION_MARGIN)) / (HULL_RES - 1))
+
+    masks, agreement, coverage, support, kept, total = {}, {}, {}, {}, 0, 0
+    for frame, cut, intr, (w, h), fg, edge in zip(scene.frames, cuts, intrinsics, sizes, seeds, edges, strict=True):
+        silhouette = _silhouette(cv2, hull_pts, cell, frame.c2w, intr, w, h)
+        final = cut & silhouette
+        outline = _outline(cv2, final)
+        support[frame.name] = float(edge[outline].mean()) if outline.any() else 0.0
+        union = int((cut | silhouette).sum())
+        agreement[frame.name] = float((cut & silhouette).sum() / union) if union else 0.0
+        if len(fg):
+            px = np.clip(fg.astype(np.int64), 0, [w - 1, h - 1])
+            kept += int(final[px[:, 1], px[:, 0]].sum())
+            total += len(fg)
+        masks[frame.name] = _to_photo_pixels(cv2, final, frame, intr)
+        coverage[frame.name] = float(masks[frame.name].mean())
+
+    median = float(np.median(list(agreement.values()))) if agreement else 0.0
+    recall = kept / total if total else 0.0
+    worst = min(agreement, key=agreement.get) if agreement else ""
+    empty = [name for name, c in coverage.items() if c <= 0.0]
+    on_edges = float(np.median(list(support.values()))) if support else 0.0
+    confident = median >= MIN_AGREEMENT and recall >= MIN_SEED_RECALL and on_edges >= MIN_EDGE_SUPPORT and not empty
+    reason = (
+        f"automatic object masks for {n} photos: the photos' cuts agree with the hull they carve together "
+        f"(median IoU {median:.2f}, least {agreement.get(worst, 0.0):.2f} in {worst}), keep {recall:.0%} of the "
+        f"object's sparse points and their outlines follow the photos' edges ({on_edges:.0%})"
+    )
+    if not confident:
+        why = ([f"median agreement {median:.2f} < {MIN_AGREEMENT}"] if median < MIN_AGREEMENT else []) + (
+            [f"{recall:.0%} of the object's points kept < {MIN_SEED_RECALL:.0%}"] if recall < MIN_SEED_RECALL else []) + (
+            [f"outlines on edges {on_edges:.0%} < {MIN_EDGE_SUPPORT:.0%}"] if on_edges < MIN_EDGE_SUPPORT else []) + (
+            [f"{len(empty)} photo(s) with an empty mask"] if empty else [])
+        reason += f" — not sure enough ({'; '.join(why)})"
+    return ObjectMasks(masks, agreement, recall, support, confident, reason, coverage)
+
+
+def _label_points(points: np.ndarray, region: np.ndarray, grown: np.ndarray,
+                  ground: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """(object (P,) bool, background (P,) bool): points inside the region and off the support plane; points outside
+    the grown region or on the plane. Points between the two boxes are neither (unsure)."""
+    finite = np.all(np.isfinite(points), axis=1)
+    safe = np.where(finite[:, None], points, 0.0)
+    inside = finite & np.all((safe >= region[0]) & (safe <= region[1]), axis=1)
+    outside = finite & ~np.all((safe >= grown[0]) & (safe <= grown[1]), axis=1)
+    on_plane = np.zeros(len(points), bool)
+    if ground is not None:
+        band = GROUND_BAND * float(np.max(region[1] - region[0]))
+        height = safe @ np.asarray(ground[:3], np.float64) - float(ground[3])
+        on_plane = finite & (height < band)
+    return inside & ~on_plane, outside | on_plane
+
+
+def _corners(box: np.ndarray) -> np.ndarray:
+    return np.array([[box[i, 0], box[j, 1], box[k, 2]] for i in (0, 1) for j in (0, 1) for k in (0, 1)])
+
+
+def _visible_uv(points: np.ndarray, c2w: np.ndarray, intr: np.ndarray, w: int, h: int, clip: bool = True) -> np.ndarray:
+    """(M, 2) pixel coordinates of the points in front of the camera (and, with clip, inside the frame)."""
+    if not len(points):
+        return np.zeros((0, 2))
+    uv, z = project(points, c2w, intr)
+    keep = z > 1e-9
+    if clip:
+        keep &= (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
+    return uv[keep]
+
+
+def _grabcut(cv2, photo: np.ndarray, fg: np.ndarray, bg: np.ndarray, box_uv: np.ndarray) -> np.ndarray:
+    """(h, w) bool object pixels of one undistorted photo from its seeds (see the module docstring)."""
+    h, w = photo.shape[:2]
+    label = np.full((h, w), cv2.GC_BGD, np.uint8)
+    if len(box_uv) == 8:  # the whole grown box in front of the camera: outside its outline is background
+        cv2.fillConvexPoly(label, cv2.convexHull(np.round(box_uv).astype(np.int32)), int(cv2.GC_PR_BGD))
+    else:  # the camera is inside or beside the box: no pixel is sure background by the outline
+        label[:] = cv2.GC_PR_BGD
+    if len(fg) < 3:
+        return np.zeros((h, w), bool)
+    hull = cv2.convexHull(np.round(fg).astype(np.int32))
+    cv2.fillConvexPoly(label, hull, int(cv2.GC_PR_FGD))
+    radius = max(1, int(round(SEED_RADIUS * np.hypot(w, h))))
+    for u, v in np.round(bg).astype(np.int32):
+        cv2.circle(label, (int(u), int(v)), radius, int(cv2.GC_BGD), -1)
+    for u, v in np.round(fg).astype(np.int32):
+        cv2.circle(label, (int(u), int(v)), radius, int(cv2.GC_FGD), -1)
+    image = np.round(np.clip(photo, 0, 1) * 255).astype(np.uint8)
+    bgd, fgd = np.zeros((1, 65), np.float64), np.zeros((1, 65), np.float64)
+    cv2.setRNGSeed(0)
+    cv2.grabCut(image, label, None, bgd, fgd, 5, cv2.GC_INIT_WITH_MASK)
+    cut = (label == cv2.GC_FGD) | (label == cv2.GC_PR_FGD)
+    return _keep_seeded_pieces(cv2, cut, fg)
+
+
+def _keep_seeded_pieces(cv2, cut: np.ndarray, fg: np.ndarray) -> np.ndarray:
+    """The connected pieces of the cut that hold an object seed, with their enclosed holes filled."""
+    count, labels = cv2.connectedComponents(cut.astype(np.uint8), connectivity=8)
+    h, w = cut.shape
+    px = np.clip(np.round(fg).astype(np.int64), 0, [w - 1, h - 1])
+    seeded = np.unique(labels[px[:, 1], px[:, 0]])
+    keep = np.isin(labels, seeded[seeded > 0])
+    # holes: background pieces that do not touch the border
+    count, holes = cv2.connectedComponents((~keep).astype(np.uint8), connectivity=4)
+    border = np.unique(np.concatenate([holes[0], holes[-1], holes[:, 0], holes[:, -1]]))
+    return keep | (~keep & ~np.isin(holes, border))
+
+
+def _edges(cv2, photo: np.ndarray) -> np.ndarray:
+    """(h, w) bool: pixels whose Lab colour gradient is in the photo's top (100 - EDGE_PERCENTILE) percent."""
+    lab = cv2.cvtColor(np.clip(photo, 0, 1).astype(np.float32), cv2.COLOR_RGB2LAB)
+    gx, gy = cv2.Sobel(lab, cv2.CV_32F, 1, 0), cv2.Sobel(lab, cv2.CV_32F, 0, 1)
+    grad = np.sqrt((gx**2 + gy**2).sum(axis=-1))
+    return grad > np.percentile(grad, EDGE_PERCENTILE)
+
+
+def _outline(cv2, mask: np.ndarray) -> np.ndarray:
+    """(h, w) bool: the pixels on either side of the mask's boundary."""
+    m = mask.astype(np.uint8)
+    kernel = np.ones((3, 3), np.uint8)
+    return (cv2.dilate(m, kernel) - cv2.erode(m, kernel)) > 0
+
+
+def _silhouette(cv2, hull_pts: np.ndarray, cell: float, c2w: np.ndarray, intr: np.ndarray, w: int, h: int) -> np.ndarray:
+    """(h, w) bool: the pixels the hull's vertices cover, each splatted as wide as a grid cell at its depth."""
+    out = np.zeros((h, w), bool)
+    if not len(hull_pts):
+        return out
+    uv, z = project(hull_pts, c2w, intr)
+    front = z > 1e-9
+    uv, z = uv[front], z[front]
+    ok = (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
+    if not ok.any():
+        return out
+    px = uv[ok].astype(np.int64)
+    out[px[:, 1], px[:, 0]] = True
+    spacing = cell * max(intr[0], intr[1]) / float(np.median(z[ok]))  # pixels between neighbouring vertices
+    gap = int(np.ceil(spacing))  # close the gaps between splatted vertices, then grow by half a cell
+    closing = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * gap + 1, 2 * gap + 1))
+    out = cv2.morphologyEx(out.astype(np.uint8), cv2.MORPH_CLOSE, closing)
+    half = int(round(0.5 * spacing))
+    if half > 0:
+        out = cv2.dilate(out, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * half + 1, 2 * half + 1)))
+    return out.astype(bool)
+
+
+def _to_photo_pixels(cv2, mask: np.ndarray, frame: Frame, intr: np.ndarray) -> np.ndarray:
+    """A mask in the undistorted segmentation image, resampled onto the photo's own (distorted) full-size pixels."""
+    h, w = mask.shape
+    soft = mask.astype(np.float32)
+    if not any(abs(d) > 0 for d in frame.distortion) and frame.camera_model != "OPENCV_FISHEYE":
+        return cv2.resize(soft, (frame.w, frame.h), interpolation=cv2.INTER_LINEAR) >= 0.5
+    # where each photo pixel lands in the pinhole image: undistort the pixel grid (at full size), then scale
+    u, v = np.meshgrid(np.arange(frame.w, dtype=np.float64) + 0.5, np.arange(frame.h, dtype=np.float64) + 0.5)
+    K = np.array([[frame.fl_x, 0, frame.cx], [0, frame.fl_y, frame.cy], [0, 0, 1]])
+    pts = np.stack([u.ravel(), v.ravel()], axis=-1)[:, None, :]
+    if frame.camera_model == "OPENCV_FISHEYE":
+        flat = cv2.fisheye.undistortPoints(pts, K, np.asarray(frame.distortion, np.float64), P=K)
+    else:
+        flat = cv2.undistortPoints(pts, K, np.asarray(frame.distortion, np.float64), P=K)
+    flat = flat.reshape(frame.h, frame.w, 2)
+    map_x = (flat[..., 0] * w / frame.w - 0.5).astype(np.float32)
+    map_y = (flat[..., 1] * h / frame.h - 0.5).astype(np.float32)
+    return cv2.remap(soft, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0) >= 0.5

@@ -1,0 +1,135 @@
+"""Automatic object masks: a textured ball on a textured table in a textured room, rendered in closed form from a ring
+of cameras, with sparse points sampled on the ball and the table. The cut must match the true silhouette, agree
+across photos, and say it is unsure when the photos do not fit their cameras."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from recon.auto_masks import object_on_background, segment_object
+from recon.scene import Frame, Scene, look_at
+
+W, H, FOCAL = 160, 120, 150.0
+BALL_C, BALL_R = np.array([0.0, 0.0, 0.3]), 0.3
+TABLE_Z = 0.0
+
+
+def _noise(p: np.ndarray, freq: float, seed: int) -> np.ndarray:
+    """A smooth pseudo-random value in [0, 1] per 3D point (sum of sines)."""
+    rng = np.random.default_rng(seed)
+    k = rng.normal(0, freq, (6, 3))
+    phase = rng.uniform(0, 2 * np.pi, 6)
+    return 0.5 + 0.5 * np.sin(p @ k.T + phase).mean(axis=1)
+
+
+def _render(c2w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(H, W, 3) photo and (H, W) true object mask: ball (warm), table (grey-brown), room (blue-green)."""
+    u, v = np.meshgrid(np.arange(W) + 0.5, np.arange(H) + 0.5)
+    d_cam = np.stack([(u - W / 2) / FOCAL, -(v - H / 2) / FOCAL, -np.ones_like(u)], -1).reshape(-1, 3)
+    d = d_cam @ c2w[:3, :3].T
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    o = c2w[:3, 3]
+    oc = o - BALL_C
+    b = d @ oc
+    disc = b**2 - (oc @ oc - BALL_R**2)
+    t_ball = np.where(disc > 0, -b - np.sqrt(np.maximum(disc, 0)), np.inf)
+    t_table = np.where(d[:, 2] < -1e-6, (TABLE_Z - o[2]) / np.where(d[:, 2] < -1e-6, d[:, 2], -1), np.inf)
+    on_table = np.isfinite(t_table) & (np.abs(o[None, :2] + t_table[:, None] * d[:, :2]).max(axis=1) < 2.0)
+    t_table = np.where(on_table, t_table, np.inf)
+    ball = t_ball < t_table
+    rgb = np.zeros((len(d), 3))
+    p_room = o + 8.0 * d
+    n = _noise(p_room, 1.5, 3)
+    rgb[:] = np.stack([0.2 + 0.2 * n, 0.45 + 0.3 * n, 0.5 + 0.2 * n], -1)
+    tab = ~ball & np.isfinite(t_table)
+    pt = o + t_table[tab, None] * d[tab]
+    n = _noise(pt, 12.0, 5)
+    rgb[tab] = np.stack([0.45 + 0.25 * n, 0.35 + 0.2 * n, 0.25 + 0.15 * n], -1)
+    pb = o + t_ball[ball, None] * d[ball]
+    n = _noise(pb, 14.0, 7)
+    shade = 0.6 + 0.4 * np.clip((pb - BALL_C) @ np.array([0.3, 0.2, 0.93]) / BALL_R, 0, 1)
+    rgb[ball] = np.stack([0.9 * n + 0.1, 0.3 * n + 0.05, 0.1 + 0 * n], -1) * shade[:, None]
+    return rgb.reshape(H, W, 3).astype(np.float32), ball.reshape(H, W)
+
+
+def _scene(n_views: int = 10) -> tuple[Scene, dict[str, np.ndarray], dict[str, np.ndarray]]:
+    rng = np.random.default_rng(0)
+    frames, photos, truth = [], {}, {}
+    for i in range(n_views):
+        az, el = 2 * np.pi * i / n_views, np.radians(25 + 10 * (i % 2))
+        eye = BALL_C + 2.0 * np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+        c2w = look_at(eye, BALL_C)
+        frame = Frame(f"view_{i:03d}.png", c2w, FOCAL, FOCAL, W / 2, H / 2, W, H)
+        frames.append(frame)
+        photos[frame.name], truth[frame.name] = _render(c2w)
+    ball = rng.normal(size=(300, 3))
+    ball = BALL_C + BALL_R * ball / np.linalg.norm(ball, axis=1, keepdims=True)
+    ball = ball[ball[:, 2] > TABLE_Z + 0.02]
+    table = np.column_stack([rng.uniform(-1.5, 1.5, (400, 2)), np.full(400, TABLE_Z)])
+    table = table[np.linalg.norm(table[:, :2] - BALL_C[:2], axis=1) > BALL_R + 0.02]
+    points = np.concatenate([ball, table])
+    visibility = {}
+    for f in frames:  # a ball point is seen from the cameras on its side; a table point when the ball is not in front
+        to_cam = f.c2w[:3, 3] - points
+        ball_side = np.einsum("ij,ij->i", points - BALL_C, to_cam) > 0
+        oc = points - BALL_C
+        dn = to_cam / np.linalg.norm(to_cam, axis=1, keepdims=True)
+        bb = np.einsum("ij,ij->i", dn, oc)
+        blocked = (bb**2 - (np.einsum("ij,ij->i", oc, oc) - BALL_R**2) > 0) & (-bb - np.sqrt(np.maximum(bb**2 - (np.einsum("ij,ij->i", oc, oc) - BALL_R**2), 0)) > 1e-3)
+        is_ball = np.arange(len(points)) < len(ball)
+        visibility[f.name] = np.flatnonzero(np.where(is_ball, ball_side, ~blocked))
+    region = np.stack([BALL_C - BALL_R, BALL_C + BALL_R])
+    scene = Scene(frames=frames, points=points, point_visibility=visibility, region=region,
+                  ground=np.array([0.0, 0.0, 1.0, TABLE_Z]), capture="unbounded")
+    return scene, photos, truth
+
+
+def _iou(a: np.ndarray, b: np.ndarray) -> float:
+    return float((a & b).sum() / max((a | b).sum(), 1))
+
+
+def test_masks_match_the_true_silhouette_and_agree() -> None:
+    scene, photos, truth = _scene()
+    assert object_on_background(scene)
+    found = segment_object(scene, load_photo=lambda f: photos[f.name])
+    ious = [_iou(found.masks[name], truth[name]) for name in truth]
+    assert min(ious) > 0.85 and np.mean(ious) > 0.9, ious
+    assert found.confident, found.reason
+    assert found.seed_recall > 0.9
+    assert all(m.shape == (H, W) for m in found.masks.values())
+
+
+def test_photos_that_do_not_fit_their_cameras_are_not_trusted() -> None:
+    scene, photos, _ = _scene()
+    names = sorted(photos)
+    shifted = {names[i]: np.roll(photos[names[(i + 3) % len(names)]], W // 3, axis=1) for i in range(len(names))}
+    found = segment_object(scene, load_photo=lambda f: shifted[f.name])
+    assert not found.confident
+    assert "not sure enough" in found.reason and "edges" in found.reason
+
+
+def test_masks_come_back_in_the_photos_distorted_pixels() -> None:
+    """With a lens distortion the mask is resampled onto the photo's own pixel grid: undistorting it again must give
+    the pinhole cut back."""
+    import cv2
+
+    from recon.auto_masks import _to_photo_pixels
+    from recon.images import undistort
+
+    frame = Frame("a.png", np.eye(4), FOCAL, FOCAL, W / 2, H / 2, W, H, k1=-0.3, k2=0.05)
+    pinhole = np.zeros((H, W), bool)
+    cv2.circle(pinhole.view(np.uint8), (132, 28), 18, 1, -1)
+    photo = _to_photo_pixels(cv2, pinhole, frame, np.array([FOCAL, FOCAL, W / 2, H / 2]))
+    back = undistort(photo.astype(np.float32), FOCAL, FOCAL, W / 2, H / 2, frame.distortion) >= 0.5
+    assert _iou(back, pinhole) > 0.95
+    assert _iou(photo, pinhole) < 0.9  # the distortion moved it
+
+
+def test_an_object_capture_with_masks_or_without_region_is_left_alone() -> None:
+    scene, _, _ = _scene(3)
+    scene.has_alpha = True
+    assert not object_on_background(scene)
+    scene.has_alpha, scene.region = False, None
+    assert not object_on_background(scene)
+    with pytest.raises(ValueError):
+        segment_object(scene, load_photo=lambda f: np.zeros((H, W, 3)))
