@@ -155,7 +155,7 @@ def _run(
         config = _config(preset, overrides)
         _check_device(config)
         if source is not None:
-            from recon.images import count_photos
+            from recon.video import count_photos
             from recon.ownership import resolve_path
 
             source = resolve_path(source, "The photos folder")  # a link loop is the user's to fix, not a crash

@@ -38,21 +38,6 @@ def list_photos(folder: Path) -> tuple[list[Path], list[Path]]:
     return photos, skipped
 
 
-def count_photos(source: Path, video_frames: int) -> int:
-    """How many photos the poses stage would read from `source` at most: the image files directly in the folder,
-    plus `video_frames` when it is a video or holds any; 0 when that cannot be told (a poses file, a missing path)."""
-    from recon.video import is_video, list_videos
-
-    try:
-        if source.is_file():
-            return video_frames if is_video(source) else 0
-        if not source.is_dir():
-            return 0
-        return len(list_photos(source)[0]) + (video_frames if list_videos(source) else 0)
-    except OSError:
-        return 0
-
-
 def too_large(path: Path | str, width: int, height: int, what: str = "image") -> InputError:
     """The error for a photo (or a video's frames) over MAX_PIXELS, told from the header before any decoding."""
     return InputError(

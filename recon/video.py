@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from recon.errors import InputError
-from recon.images import MAX_PIXELS, too_large
+from recon.images import MAX_PIXELS, list_photos, too_large
 
 VIDEO_SUFFIXES = frozenset({".mp4", ".mov", ".m4v"})
 ANALYSIS_SIDE = 640
@@ -281,3 +281,16 @@ def select_frames(
         raise _unreadable(path, f"decoding stopped after {index} of the {info.frame_count} frames it announces")
     result.seconds = time.perf_counter() - start
     return result
+
+
+def count_photos(source: Path, video_frames: int) -> int:
+    """How many photos the poses stage would read from `source` at most: the image files directly in the folder,
+    plus `video_frames` when it is a video or holds any; 0 when that cannot be told (a poses file, a missing path)."""
+    try:
+        if source.is_file():
+            return video_frames if is_video(source) else 0
+        if not source.is_dir():
+            return 0
+        return len(list_photos(source)[0]) + (video_frames if list_videos(source) else 0)
+    except OSError:
+        return 0
