@@ -14,17 +14,21 @@ written to `work_dir/sparse/` so other tools can open it.
 """
 from __future__ import annotations
 
+import contextlib
+import os
 import shutil
+import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 from PIL import Image
+from scipy.spatial import cKDTree
 
-from recon.colmap import pycolmap_logging_to, reconstruction_frames
+from recon.colmap import reconstruction_frames
 from recon.errors import ReconError
 from recon.images import device_of
 from recon.scene import spread_evenly
@@ -78,7 +82,7 @@ class SfmResult:
     registered: list[str]
     """Names of the images that got a pose, in input order."""
     dropped: list[str]
-    """Names of the images left out of the model, in input order."""
+    """Names of the images SfM could not register, in input order."""
     frames: dict[str, dict]
     """name -> {"c2w": 4x4 nested list (OpenGL camera-to-world), "fl_x", "fl_y", "cx", "cy" (pixels),
     "w", "h" (pixels), "k1", "k2", "p1", "p2", "k3", "k4", "camera_model"} for each registered image."""
@@ -102,6 +106,9 @@ class SfmResult:
     refinement: dict = field(default_factory=dict)
     """The final robust bundle adjustment: {"loss", "scale_px", "focal_before", "focal_after", "error_before_px",
     "error_after_px"} (median focal over the cameras, pixels)."""
+    excluded: dict[str, str] = field(default_factory=dict)
+    """Registered images whose pose disagrees with the rest (see `pose_outliers`), left out of the model:
+    name -> reason, in input order. They are in neither `registered` nor `dropped`."""
 
 
 def choose_camera(
@@ -200,9 +207,9 @@ def _image_info(image_dir: Path, names: list[str]) -> tuple[list[tuple[int, int]
 @dataclass(frozen=True)
 class Attempt:
     """One way to extract and match features. The retry finds more, and more reliable, correspondences
-    on photos SfM dropped: twice the features, SIFT on the image upsampled 2× (first octave -1: extraction at
-    a higher resolution, small detail), a lower peak threshold (low-contrast texture), a looser ratio test,
-    and guided matching (more inliers once the two-view geometry is known)."""
+    on photos SfM dropped: twice the features, for small photos SIFT on the image upsampled 2× (first octave -1:
+    extraction at a higher resolution, small detail; see `attempts_for`), a lower peak threshold (low-contrast
+    texture), a looser ratio test, and guided matching (more inliers once the two-view geometry is known)."""
 
     name: str
     feature_factor: int = 1
@@ -237,15 +244,35 @@ points and a focal length several times further off, and a short focal length ma
 much too large after camera alignment."""
 
 
+SMALL_CAPTURE = 50
+"""Captures of at most this many (large) photos start with `THOROUGH`: matching them costs little, and a failed
+pass followed by a retry cost a tester 5-8 minutes on 14 photos of 1600 px."""
+THOROUGH = Attempt("thorough", max_ratio=0.85)
+"""More correspondences for the price of one pass: the ratio test keeps more matches (RANSAC still verifies every
+one). On 8 fox photos at 1600 px: 17 % more sparse points for 28 % more CPU time than the default; a lower SIFT
+peak threshold added CPU time (more features to match) and no points, guided matching 3x the points for 7x the
+matching time (20x on 14 photos)."""
+
+
 def attempts_for(sizes: list[tuple[int, int]], attempts: tuple[Attempt, ...] = ATTEMPTS) -> tuple[Attempt, ...]:
-    """The attempts for photos of these sizes: small photos (longest side <= SMALL_PHOTO_SIDE) extract at 2x
-    resolution first, and at native resolution next if that left photos out (on the 160x120 frames of the
-    video test the 2x attempt once registered 3 of 43 frames where native resolution registers all: COLMAP's
-    multi-threaded mapper is not deterministic); larger photos keep native resolution (4x the pixels would
-    cost more than the detail they add)."""
-    if sizes and max(max(w, h) for w, h in sizes) <= SMALL_PHOTO_SIDE and attempts[0].first_octave >= 0:
-        return (replace(attempts[0], name="default, 2× resolution", first_octave=-1),) + attempts
-    return attempts
+    """The attempts for photos of these sizes, in order.
+
+    Small photos (longest side <= SMALL_PHOTO_SIDE) extract at 2x resolution first, and at native resolution
+    next if that left photos out (on the 160x120 frames of the video test the 2x attempt once registered 3 of
+    43 frames where native resolution registers all: COLMAP's multi-threaded mapper is not deterministic).
+    Larger photos keep native resolution in every attempt (4x the pixels would cost more than the detail they
+    add), and a small capture of them (at most SMALL_CAPTURE) starts with `THOROUGH`.
+    """
+    if not sizes:
+        return attempts
+    if max(max(w, h) for w, h in sizes) <= SMALL_PHOTO_SIDE:
+        if attempts[0].first_octave >= 0:
+            return (replace(attempts[0], name="default, 2× resolution", first_octave=-1),) + attempts
+        return attempts
+    native = tuple(replace(a, first_octave=0) for a in attempts)
+    if len(sizes) <= SMALL_CAPTURE:
+        return (THOROUGH,) + native[1:]
+    return native
 
 
 def register_best(run_attempt: Callable[[Attempt], pycolmap.Reconstruction | None], total: int, options: SfmOptions,
@@ -343,6 +370,95 @@ def _map(
     return max(models.values(), key=lambda r: r.num_reg_images(), default=None)
 
 
+FAR_OFF_SPREADS = 3.0
+"""A camera is far off when its centre is further than this many robust spreads (the median distance of the
+centres from their median centre) from the median centre, and ..."""
+ALONE_SPACINGS = 5.0
+"""... its nearest camera further than this many usual spacings (the median nearest-camera distance). An orbit's
+cameras are all about one spread out; the end cameras of a short walk along a facade can be three or four spreads
+out, but a step or two from the next one (in 3000 simulated orbits and walks of 5-80 photos with steps varying
+ninefold, no camera was both)."""
+FEW_POINTS_FRACTION = 1 / 3
+"""A camera seeing fewer than this fraction of the median camera's sparse points is weakly supported."""
+HIGH_ERROR_FACTOR = 2.0
+"""A camera whose mean reprojection error is over this many times the median camera's is poorly fitted."""
+MIN_CAMERAS_TO_JUDGE = 5
+"""Medians of fewer cameras say too little about what the rest agree on: nothing is left out below this."""
+
+
+def pose_outliers(names: list[str], centres: np.ndarray, points_seen: np.ndarray, errors_px: np.ndarray) -> dict[str, str]:
+    """The cameras whose pose disagrees with the rest, each with the reason in a sentence.
+
+    names: (N,); centres: (N, 3) camera centres, any similarity frame; points_seen: (N,) sparse points each
+    camera observes; errors_px: (N,) each camera's mean reprojection error (NaN: none). A camera is left out
+    when its centre is far off, from the middle and from every other camera (`FAR_OFF_SPREADS`,
+    `ALONE_SPACINGS`), AND its pose is weakly supported (`FEW_POINTS_FRACTION` of the median camera's points)
+    or poorly fitted (`HIGH_ERROR_FACTOR` times the median error): a misregistered photo hangs on a few
+    matches, while a photo genuinely taken from further away still sees plenty.
+    """
+    centres = np.asarray(centres, dtype=np.float64).reshape(-1, 3)
+    points_seen = np.asarray(points_seen, dtype=np.float64)
+    errors_px = np.asarray(errors_px, dtype=np.float64)
+    if not len(names) == len(centres) == len(points_seen) == len(errors_px):
+        raise ValueError(f"{len(names)} names, {len(centres)} centres, {len(points_seen)} point counts and "
+                         f"{len(errors_px)} errors: one of each per camera is needed")
+    if len(names) < MIN_CAMERAS_TO_JUDGE:
+        return {}
+    distance = np.linalg.norm(centres - np.median(centres, axis=0), axis=1)
+    spread = float(np.median(distance))
+    gap = cKDTree(centres).query(centres, k=2)[0][:, 1]  # distance to the nearest other camera
+    spacing = float(np.median(gap))
+    if not (spread > 0.0 and spacing > 0.0):
+        return {}
+    median_points, median_error = float(np.median(points_seen)), float(np.nanmedian(errors_px))
+    outliers = {}
+    for i, name in enumerate(names):
+        far, alone = distance[i] / spread, gap[i] / spacing
+        if not (far > FAR_OFF_SPREADS and alone > ALONE_SPACINGS):
+            continue
+        weak = []
+        if points_seen[i] < FEW_POINTS_FRACTION * median_points:
+            weak.append(f"it sees {points_seen[i]:.0f} sparse points (median camera {median_points:.0f})")
+        if not errors_px[i] <= HIGH_ERROR_FACTOR * median_error:  # NaN too
+            weak.append(f"its reprojection error is {errors_px[i]:.2f} px (median {median_error:.2f} px)")
+        if weak:
+            outliers[name] = (f"its pose disagrees with the others: the camera sits {far:.1f}x the camera spread from "
+                              f"the median camera centre ({alone:.0f}x the usual spacing from its nearest camera), and "
+                              f"{' and '.join(weak)}")
+    return outliers
+
+
+def camera_support(rec: pycolmap.Reconstruction) -> tuple[list[str], np.ndarray, np.ndarray, np.ndarray]:
+    """Per registered image of `rec`: (names, (N, 3) centres, (N,) sparse points observed, (N,) mean reprojection
+    error in pixels) -- what `pose_outliers` judges."""
+    xyz_by_id = {point_id: point.xyz for point_id, point in rec.points3D.items()}
+    names, centres, seen, errors = [], [], [], []
+    for image in rec.images.values():
+        if not image.has_pose:
+            continue
+        observations = image.get_observation_points2D()
+        error = float("nan")
+        if len(observations):
+            xy = np.array([obs.xy for obs in observations])
+            world = np.array([xyz_by_id[obs.point3D_id] for obs in observations])
+            projected = image.camera.img_from_cam(image.cam_from_world() * world, check_cheirality=False)
+            error = float(np.mean(np.linalg.norm(projected - xy, axis=1)))
+        names.append(image.name)
+        centres.append(image.projection_center())
+        seen.append(len(observations))
+        errors.append(error)
+    return names, np.reshape(centres, (-1, 3)), np.asarray(seen, dtype=np.int64), np.asarray(errors)
+
+
+def leave_out_outliers(rec: pycolmap.Reconstruction) -> dict[str, str]:
+    """Deregister (in place) the images whose pose `pose_outliers` rejects; returns name -> reason."""
+    outliers = pose_outliers(*camera_support(rec))
+    for name in outliers:
+        image = rec.find_image_with_name(name)
+        rec.deregister_frame(image.frame_id)
+    return outliers
+
+
 ROBUST_LOSS_SCALE_PX = 0.5
 """Cauchy scale of the final bundle adjustment: observations a few times the usual 0.3 px error count less."""
 
@@ -370,22 +486,70 @@ def refine_robust(reconstruction: pycolmap.Reconstruction, scale_px: float = ROB
             "error_after_px": float(reconstruction.compute_mean_reprojection_error())}
 
 
+@contextlib.contextmanager
+def native_output_to(log_file: Path | None) -> Iterator[None]:
+    """While inside, everything COLMAP prints goes to the end of `log_file`, none of it to the terminal.
+
+    COLMAP logs through glog onto file descriptor 2, and Ceres (its bundle adjuster) prints solver warnings
+    ("Linear solver failure ... Eigen failure") there too, whatever glog's level flags say; so descriptor 2
+    itself is pointed at the log file, and glog logs every level to it alone (no glog files of its own).
+    Python's `sys.stderr` (recon's progress bars and messages) keeps writing to the terminal. None: COLMAP
+    errors only, on stderr.
+    """
+    import pycolmap
+
+    glog = pycolmap.logging
+    flags = {name: getattr(glog, name) for name in ("minloglevel", "logtostderr", "stderrthreshold")}
+    if log_file is None:
+        glog.minloglevel = max(int(flags["minloglevel"]), 2)
+        try:
+            yield
+        finally:
+            glog.minloglevel = flags["minloglevel"]
+        return
+    log_file.parent.mkdir(parents=True, exist_ok=True)
+    python_stderr = sys.stderr
+    try:
+        on_descriptor_2 = python_stderr.fileno() == 2
+    except (AttributeError, OSError, ValueError):  # pytest's capture, a StringIO...: not the descriptor
+        on_descriptor_2 = False
+    python_stderr.flush()
+    terminal = os.dup(2)
+    with open(log_file, "ab") as log:
+        os.dup2(log.fileno(), 2)
+    try:
+        if on_descriptor_2:
+            sys.stderr = open(os.dup(terminal), "w", buffering=1, encoding=python_stderr.encoding,  # noqa: SIM115
+                              errors=python_stderr.errors)
+        glog.minloglevel, glog.logtostderr, glog.stderrthreshold = 0, True, 0
+        yield
+    finally:
+        for name, value in flags.items():
+            setattr(glog, name, value)
+        if sys.stderr is not python_stderr:
+            sys.stderr.close()
+            sys.stderr = python_stderr
+        os.dup2(terminal, 2)
+        os.close(terminal)
+
+
 def run_sfm(
     image_dir: Path,
     names: list[str],
     work_dir: Path,
     options: SfmOptions,
     progress: ProgressFn | None = None,
-    log_dir: Path | None = None,
+    log_file: Path | None = None,
 ) -> SfmResult:
     """Recover camera poses, intrinsics and sparse points for `names` (paths relative to image_dir).
 
     Writes work_dir/database.db (features and matches; any old one is replaced) and the largest
-    model to work_dir/sparse/. Raises ReconError when fewer than options.min_registered images,
-    or fewer than options.min_registered_fraction of them, get a pose.
+    model, less the cameras whose pose disagrees with the rest (`leave_out_outliers`), to work_dir/sparse/.
+    Raises ReconError when fewer than options.min_registered images, or fewer than
+    options.min_registered_fraction of them, get a pose.
     progress(phase, fraction) is called at the start and end of "extract", "match" and "map"
-    (and with ("map", 0.5) when mapping is retried with relaxed thresholds). COLMAP's log files go to
-    `log_dir` (see `pycolmap_logging_to`).
+    (and with ("map", 0.5) when mapping is retried with relaxed thresholds). Everything COLMAP prints is
+    appended to `log_file` (see `native_output_to`).
     """
     import pycolmap
 
@@ -403,9 +567,6 @@ def run_sfm(
     model, shared, reason = choose_camera(sizes, exif_models, options.camera_model, options.shared_intrinsics)
     matcher = _pick_matcher(options.matcher, len(names))
 
-    pycolmap_logging_to(log_dir)
-    # glog errors only: COLMAP's INFO and WARNING lines (thread counts, focal priors) are noise to users
-    pycolmap.logging.minloglevel = max(int(pycolmap.logging.minloglevel), 2)
     pycolmap.set_random_seed(options.seed)
     work_dir.mkdir(parents=True, exist_ok=True)
     database = work_dir / "database.db"
@@ -416,9 +577,12 @@ def run_sfm(
     models_dir = work_dir / "models"
 
     attempts_here = attempts_for(sizes)
-    if attempts_here[0] is not ATTEMPTS[0]:
+    if attempts_here[0].first_octave < 0:
         reason += (f" Features: SIFT at 2× resolution (first octave -1), the photos being at most {SMALL_PHOTO_SIDE} px"
                    " (native resolution next if that leaves photos out).")
+    elif attempts_here[0] is THOROUGH:
+        reason += (f" Features: {THOROUGH.settings(options)} from the first pass, a capture of at most {SMALL_CAPTURE}"
+                   " photos being cheap to match.")
 
     def run_attempt(attempt: Attempt) -> pycolmap.Reconstruction | None:
         retry = attempt is not attempts_here[0]
@@ -468,13 +632,15 @@ def run_sfm(
         report("map", 1.0)
         return best
 
-    best, attempts = register_best(run_attempt, len(names), options, attempts_here)
-    num_registered = best.num_reg_images() if best is not None else 0
-    if best is None or num_registered < needed:
-        raise ReconError(_too_few_message(num_registered, len(names), needed))
-    start = time.perf_counter()
-    refinement = refine_robust(best)
-    timings["map"] += time.perf_counter() - start
+    with native_output_to(log_file):
+        best, attempts = register_best(run_attempt, len(names), options, attempts_here)
+        excluded = leave_out_outliers(best) if best is not None else {}
+        num_registered = best.num_reg_images() if best is not None else 0
+        if best is None or num_registered < needed:
+            raise ReconError(_too_few_message(num_registered, len(names), needed))
+        start = time.perf_counter()
+        refinement = refine_robust(best)
+        timings["map"] += time.perf_counter() - start
 
     sparse_dir = work_dir / "sparse"
     shutil.rmtree(sparse_dir, ignore_errors=True)
@@ -487,7 +653,7 @@ def run_sfm(
         shared_intrinsics=shared,
         choice_reason=reason,
         registered=[n for n in names if n in frames],
-        dropped=[n for n in names if n not in frames],
+        dropped=[n for n in names if n not in frames and n not in excluded],
         frames=frames,
         points_xyz=xyz,
         points_rgb=rgb,
@@ -499,4 +665,5 @@ def run_sfm(
         num_cameras=len(groups),
         attempts=attempts,
         refinement=refinement,
+        excluded={n: excluded[n] for n in names if n in excluded},
     )

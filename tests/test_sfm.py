@@ -6,9 +6,15 @@ fraction of the cameras' RMS radius around their centroid, and median rotation e
 """
 from __future__ import annotations
 
+import contextlib
 import json
 import math
+import os
+import re
+import shutil
+import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -18,9 +24,14 @@ from PIL import Image
 from recon.colmap import camera_params_to_intrinsics, opencv_w2c_to_opengl_c2w
 from recon.errors import ReconError
 from recon.sfm import (
+    ATTEMPTS,
+    SMALL_CAPTURE,
+    THOROUGH,
     SfmOptions,
     SfmResult,
+    attempts_for,
     choose_camera,
+    pose_outliers,
     run_sfm,
 )
 
@@ -186,6 +197,183 @@ def test_choose_camera_auto_shares_only_one_size_and_device() -> None:
         choose_camera([(400, 300), (300, 400)], [None, None], shared_intrinsics="yes")
     with pytest.raises(ValueError):
         choose_camera([(400, 300)], [None], camera_model="FISHEYE")
+
+
+# ----------------------------------------------------------------------------------------------
+# poses that disagree with the rest
+# ----------------------------------------------------------------------------------------------
+def orbit(rng: np.random.Generator, n: int, radius: float = 2.0) -> np.ndarray:
+    """(n, 3) camera centres of a hand-held orbit: uneven azimuth steps, elevations 10-60 degrees, +-10 % distance."""
+    azimuth = np.cumsum(rng.uniform(0.5, 1.5, n)) / n * 2 * np.pi
+    elevation = np.radians(rng.uniform(10, 60, n))
+    dist = radius * rng.uniform(0.9, 1.1, n)
+    return dist[:, None] * np.stack([np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth),
+                                     np.sin(elevation)], -1) + rng.normal(0, 5, 3)
+
+
+def test_a_far_off_weakly_supported_camera_is_left_out_with_its_reason() -> None:
+    rng = np.random.default_rng(0)
+    names = [f"IMG_{i:02d}.jpg" for i in range(14)]
+    centres = orbit(rng, 14)
+    points, errors = rng.integers(300, 900, 14), rng.uniform(0.4, 0.8, 14)
+    assert pose_outliers(names, centres, points, errors) == {}
+    middle = np.median(centres, axis=0)
+    spread = np.median(np.linalg.norm(centres - middle, axis=1))
+    moved = centres.copy()
+    moved[5] = middle + (centres[5] - middle) * 6.8 * spread / np.linalg.norm(centres[5] - middle)
+    few = points.copy()
+    few[5] = 25  # a photo SfM placed on a few matches
+    out = pose_outliers(names, moved, few, errors)
+    assert list(out) == ["IMG_05.jpg"]
+    assert "6.8x the camera spread" in out["IMG_05.jpg"] and "25 sparse points" in out["IMG_05.jpg"]
+    high = errors.copy()
+    high[5] = 3.0  # or fitted badly
+    out = pose_outliers(names, moved, points, high)
+    assert list(out) == ["IMG_05.jpg"] and "3.00 px" in out["IMG_05.jpg"] and "sparse points" not in out["IMG_05.jpg"]
+    # far off but well supported (a photo from further back that sees plenty): kept
+    assert pose_outliers(names, moved, points, errors) == {}
+    # weakly supported but where the others are: kept (a close-up, a photo with little texture)
+    assert pose_outliers(names, centres, few, high) == {}
+    # too few cameras to say what the rest agree on
+    assert pose_outliers(names[:4], moved[:4] * [[1], [1], [1], [50]], [500, 500, 500, 5], [0.5] * 4) == {}
+    with pytest.raises(ValueError, match="one of each per camera"):
+        pose_outliers(names, centres[:3], points, errors)
+
+
+def test_normal_captures_never_lose_a_camera() -> None:
+    """Orbits and facade walks, with a third of the photos weak (few points, high error): nothing is far off."""
+    rng = np.random.default_rng(1)
+    lost = 0
+    for trial in range(300):
+        n = int(rng.integers(5, 80))
+        if trial % 2:
+            centres = orbit(rng, n, radius=float(rng.uniform(0.5, 5)))
+        else:  # a walk along a facade: unevenly spaced steps on a line, a little height and depth jitter
+            along = np.cumsum(rng.uniform(0.2, 1.8, n))
+            centres = np.stack([along, rng.normal(0, 0.1, n), rng.normal(1.6, 0.05, n)], -1)
+        points = rng.integers(300, 3000, n)
+        errors = rng.uniform(0.3, 0.9, n)
+        weak = rng.random(n) < 0.3
+        points[weak], errors[weak] = 10, 5.0
+        lost += len(pose_outliers([str(i) for i in range(n)], centres, points, errors))
+    assert lost == 0
+
+
+def test_large_photos_keep_native_resolution_and_small_captures_start_thorough() -> None:
+    """No attempt extracts 1600-px photos at twice their size (the retry that took a tester 5-8 minutes); a capture
+    of at most SMALL_CAPTURE of them starts with the thorough settings instead of a pass that may fail first."""
+    options = SfmOptions()
+    small_capture = attempts_for([(1600, 1200)] * 14)
+    assert small_capture[0] is THOROUGH and len(small_capture) == 2
+    assert all(a.first_octave == 0 for a in small_capture) and "guided" in small_capture[1].settings(options)
+    assert "2×" not in " ".join(a.settings(options) for a in small_capture)
+    large_capture = attempts_for([(1600, 1200)] * (SMALL_CAPTURE + 1))
+    assert [a.name for a in large_capture] == ["default", "more features"]
+    assert all(a.first_octave == 0 for a in large_capture)
+    small_photos = attempts_for([(400, 400)] * 14)  # small photos: 2x extraction first, as before
+    assert small_photos[0].first_octave == -1 and small_photos[1:] == ATTEMPTS
+
+
+SAMPLE = Path(__file__).resolve().parents[1] / "fixtures" / "sample" / "images"
+GLOG_LINE = re.compile(r"^[IWEF]\d{8} \d\d:\d\d:\d\d", re.MULTILINE)
+"""A glog line: severity letter, date, time (`I20261126 04:58:52.999 ... bundle_adjustment.cc:46] ...`)."""
+
+
+@contextlib.contextmanager
+def captured_descriptor_2(into: Path) -> Iterator[None]:
+    """Everything written to file descriptor 2 (Python or native code) goes to `into` while inside."""
+    sys.stderr.flush()
+    saved = os.dup(2)
+    with open(into, "wb") as sink:
+        os.dup2(sink.fileno(), 2)
+    try:
+        yield
+    finally:
+        sys.stderr.flush()
+        os.dup2(saved, 2)
+        os.close(saved)
+
+
+@pytest.fixture(scope="module")
+def sample_poses(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, str, str, str]:
+    """`recon run photos --until poses` on 16 photos of the shipped sample, with one photo's pose reported as an
+    outlier: (scene folder, what reached descriptor 2, the CLI's output, the photo left out)."""
+    from typer.testing import CliRunner
+
+    import recon.sfm
+    from recon.cli import app
+
+    folder = tmp_path_factory.mktemp("sfm_sample")
+    photos = folder / "photos"
+    photos.mkdir()
+    for path in sorted(SAMPLE.iterdir())[:16]:
+        shutil.copy(path, photos / path.name)
+    flagged: list[str] = []
+
+    def one_outlier(names: list[str], *args: np.ndarray) -> dict[str, str]:
+        flagged.append(names[len(names) // 2])
+        return {flagged[-1]: "a reason given by the test"}
+
+    stderr_file = folder / "stderr.txt"
+    with pytest.MonkeyPatch.context() as patch, captured_descriptor_2(stderr_file):
+        patch.setattr(recon.sfm, "pose_outliers", one_outlier)
+        result = CliRunner().invoke(app, ["run", str(photos), "--out", str(folder / "scene"), "--until", "poses", "-q"])
+    assert result.exit_code == 0, result.output
+    assert len(flagged) == 1
+    return folder / "scene", stderr_file.read_text(errors="replace"), result.output, flagged[0]
+
+
+def test_colmap_output_goes_to_the_scene_log_not_the_terminal(sample_poses: tuple[Path, str, str, str]) -> None:
+    scene_dir, stderr, output, _ = sample_poses
+    assert not GLOG_LINE.search(stderr) and not GLOG_LINE.search(output), (stderr + output)[:2000]
+    assert "Linear solver" not in stderr + output and "bundle_adjustment" not in stderr + output
+    log = (scene_dir / "logs" / "01_poses.log").read_text()
+    assert len(GLOG_LINE.findall(log)) >= 10 and "Bundle adjustment report" in log
+
+
+def test_a_photo_whose_pose_disagrees_is_left_out_and_named(sample_poses: tuple[Path, str, str, str]) -> None:
+    import pycolmap
+
+    from recon.scene import load_scene
+
+    scene_dir, _, output, flagged = sample_poses
+    summary = json.loads((scene_dir / "manifest.json").read_text())["stages"]["poses"]["summary"]
+    assert summary["excluded"] == {flagged: "a reason given by the test"}
+    assert summary["registered"] == 15 and summary["total"] == 16 and summary["dropped"] == []
+    assert f"{flagged} is left out of training: a reason given by the test" in " ".join(output.split())
+    assert flagged not in {f.name for f in load_scene(scene_dir / "01_poses").frames}
+    model = pycolmap.Reconstruction(str(scene_dir / "01_poses" / "colmap" / "sparse"))
+    assert model.num_reg_images() == 15
+    left_out = model.find_image_with_name(flagged)  # the written model keeps posed images only
+    assert left_out is None or not left_out.has_pose
+
+
+def test_a_camera_moved_far_off_a_real_model_is_deregistered(sample_poses: tuple[Path, str, str, str]) -> None:
+    """The sample's own SfM poses (a normal orbit) lose no camera; one moved 7 spreads away (its matches kept, so
+    they no longer fit) is deregistered with its observations, and the reason names the distance."""
+    import pycolmap
+
+    from recon.sfm import camera_support, leave_out_outliers
+
+    scene_dir, *_ = sample_poses
+    model = pycolmap.Reconstruction(str(scene_dir / "01_poses" / "colmap" / "sparse"))
+    assert leave_out_outliers(model) == {} and model.num_reg_images() == 15
+    names, centres, points, errors = camera_support(model)
+    assert len(names) == 15 and points.min() > 0 and np.median(errors) < 1.0
+    middle = np.median(centres, axis=0)
+    spread = np.median(np.linalg.norm(centres - middle, axis=1))
+    image = model.find_image_with_name(names[3])
+    pose = image.cam_from_world()
+    centre = middle + 7 * spread * (centres[3] - middle) / np.linalg.norm(centres[3] - middle)
+    rotation = pose.rotation.matrix()
+    model.frame(image.frame_id).set_cam_from_world(image.camera_id, pycolmap.Rigid3d(np.hstack([rotation, (-rotation @ centre)[:, None]])))
+    observations = image.num_points3D
+    points_before = model.num_points3D()
+    out = leave_out_outliers(model)
+    assert list(out) == [names[3]] and "x the camera spread" in out[names[3]] and "reprojection error" in out[names[3]]
+    assert model.num_reg_images() == 14 and not model.find_image_with_name(names[3]).has_pose
+    assert observations > 0 and model.num_points3D() <= points_before
+    assert all(el.image_id != image.image_id for point in model.points3D.values() for el in point.track.elements)
 
 
 # ----------------------------------------------------------------------------------------------

@@ -14,7 +14,7 @@ def test_small_photos_extract_at_twice_the_resolution_from_the_first_attempt() -
 
 def test_large_photos_keep_native_resolution_first() -> None:
     large = attempts_for([(400, 400), (SMALL_PHOTO_SIDE + 1, 600)])
-    assert large == ATTEMPTS and large[0].first_octave == 0
+    assert all(a.first_octave == 0 for a in large)  # every attempt, the retry too (tests/test_sfm.py: which ones)
 
 
 class _Opts:

@@ -31,7 +31,8 @@ from recon.scene import (
 
 MIN_PHOTOS = 3
 LOG_DIR = "logs"
-"""COLMAP's own log files go to SCENE/logs/ (outside the stage folder: glog may still append after it is sealed)."""
+"""COLMAP's own log files go to SCENE/logs/ (outside the stage folder: glog may still append after it is sealed);
+what it prints while SfM runs goes to SCENE/logs/01_poses.log."""
 
 
 def source_digest(source: Path, cfg: PosesConfig | None) -> str:
@@ -237,13 +238,14 @@ def _structure_from_motion(ctx: StageContext, photos: list[Path] | None = None) 
             elif fraction >= 1.0:
                 bar.advance()
 
-        result = run_sfm(image_dir, [n for _, n in names], sfm_dir, options, progress=progress, log_dir=ctx.scene_dir / LOG_DIR)
+        log_file = ctx.scene_dir / LOG_DIR / f"{ctx.folder}.log"
+        result = run_sfm(image_dir, [n for _, n in names], sfm_dir, options, progress=progress, log_file=log_file)
     ctx.report.info(f"Camera model: {result.camera_model} — {result.choice_reason}")
     if len(result.attempts) > 1:
         first, last = result.attempts[0], result.attempts[-1]
         helped = "helped" if last["registered"] > first["registered"] else "did not help"
         ctx.report.info(
-            f"registration retry: the default settings registered {first['registered']}/{len(names)} photos; "
+            f"registration retry: the first pass ({first['settings']}) registered {first['registered']}/{len(names)} photos; "
             f"retried with {last['settings']}: {last['registered']}/{len(names)} ({helped})"
         )
     ref = result.refinement
@@ -258,6 +260,8 @@ def _structure_from_motion(ctx: StageContext, photos: list[Path] | None = None) 
             f"{len(result.dropped)} of {len(names)} photos could not be registered and are left out: "
             + ", ".join(by_sfm_name[n].name for n in result.dropped)
         )
+    for sfm_name, reason in result.excluded.items():
+        ctx.report.warn(f"{by_sfm_name[sfm_name].name} is left out of training: {reason}.")
     frames = []
     for sfm_name, fd in result.frames.items():
         path = by_sfm_name[sfm_name]
@@ -283,12 +287,14 @@ def _structure_from_motion(ctx: StageContext, photos: list[Path] | None = None) 
     )
     summary = {
         "headline": (
-            f"{len(result.registered)}/{len(names)} photos registered, {result.num_points} points, "
-            f"reprojection error {result.mean_reprojection_error:.2f} px"
+            f"{len(result.registered)}/{len(names)} photos registered"
+            + (f" ({len(result.excluded)} more left out: pose disagrees)" if result.excluded else "")
+            + f", {result.num_points} points, reprojection error {result.mean_reprojection_error:.2f} px"
         ),
         "registered": len(result.registered),
         "total": len(names),
         "dropped": [by_sfm_name[n].name for n in result.dropped],
+        "excluded": {by_sfm_name[n].name: reason for n, reason in result.excluded.items()},
         "points": result.num_points,
         "reprojection_error_px": round(result.mean_reprojection_error, 4),
         "camera_model": result.camera_model,
@@ -301,4 +307,4 @@ def _structure_from_motion(ctx: StageContext, photos: list[Path] | None = None) 
     return scene, summary
 
 
-STAGE = Stage(name="poses", folder="01_poses", inputs=(), version=4, run=run, needs_source=True, source_digest=source_digest)
+STAGE = Stage(name="poses", folder="01_poses", inputs=(), version=5, run=run, needs_source=True, source_digest=source_digest)
