@@ -13,6 +13,7 @@ from __future__ import annotations
 import contextlib
 import os
 import time
+from collections import deque
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -27,6 +28,15 @@ ANALYSIS_SIDE = 640
 """Sharpness is measured on a gray copy downscaled to this longest side (cost independent of 4K/1080p)."""
 CHANGE_SIDE = 128
 """Frames are compared (camera standing still?) on gray copies this small: codec and sensor noise average out."""
+BLURRED_FRACTION = 0.7
+"""A window's sharpest frame below this fraction of the median sharpness of the last TYPICAL_FRAMES frames is
+blurred, and its window is merged into the next: when windows hold a frame or two, a jerk of the hand can blur
+a whole window while its neighbours are sharp (a rendered orbit's blurred frames measure 0.25-0.62 of it, its
+other frames 0.81 and up)."""
+TYPICAL_FRAMES = 31
+MAX_MERGED_WINDOWS = 2
+"""A blurred stretch longer than this many windows keeps its sharpest frame all the same: a view, however
+blurred, is better than a gap in the orbit."""
 TRUNCATED_TOLERANCE = 0.02
 """Decoding may end this fraction of the announced frame count early (rounded container durations)."""
 
@@ -216,7 +226,8 @@ def select_frames(
 
     on_keep(frame, image) gets each kept frame as soon as its window ends, image an RGB uint8 (H, W, 3)
     array as displayed. progress(frames_read) is called every few frames. A window whose sharpest frame
-    barely differs from the last kept one (options.min_change) keeps nothing: the camera stood still.
+    barely differs from the last kept one (options.min_change) keeps nothing: the camera stood still. A window
+    whose sharpest frame is blurred (BLURRED_FRACTION) is merged into the next, whose frames compete with it.
     Raises InputError when the clip cannot be decoded or ends well before the frames it announced.
     """
     import cv2
@@ -232,12 +243,18 @@ def select_frames(
     last_small: np.ndarray | None = None
     best: tuple[float, int, float, np.ndarray] | None = None  # sharpness, index, time, BGR image of the window
     window = 0
+    recent: deque[float] = deque(maxlen=TYPICAL_FRAMES)
+    merged = 0
 
-    def close_window() -> None:
-        nonlocal best, last_small
+    def close_window(last: bool = False) -> None:
+        nonlocal best, last_small, merged
         if best is None:
             return
         sharp, index, t, image = best
+        if not last and merged < MAX_MERGED_WINDOWS and sharp < BLURRED_FRACTION * float(np.median(recent)):
+            merged += 1  # blurred: left pending, so that a sharp frame of the next window replaces it
+            return
+        merged = 0
         small = _small_gray(image, CHANGE_SIDE)
         diff = None if last_small is None else change(small, last_small)
         if diff is not None and diff < options.min_change:
@@ -261,6 +278,7 @@ def select_frames(
                 close_window()
                 window = frame_window
             sharp = sharpness(frame)
+            recent.append(sharp)
             if best is None or sharp > best[0]:
                 if best is not None:
                     result.dropped[REASON_BLURRIER] = result.dropped.get(REASON_BLURRIER, 0) + 1
@@ -270,7 +288,7 @@ def select_frames(
             index += 1
             if progress is not None and index % 8 == 0:
                 progress(index)
-        close_window()
+        close_window(last=True)
     result.read = index
     result.windows = window + 1 if index else 0
     if progress is not None:
