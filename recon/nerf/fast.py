@@ -11,8 +11,8 @@ Design (DVGO-like, tuned for a small CPU; runs unchanged on CUDA):
 * samples come packed from :func:`recon.nerf.occupancy.march` (occupied cells only, early ray
   termination in a no-grad pre-pass), ordered along each ray (grids read ordered points faster).
   In a bounded scene rays are clipped to the box around the occupied cells once the grid is warm. On the CPU
-  a bounded scene marches in C (:mod:`recon.nerf.native`: the same samples as the torch path, faster), and
-  rendering composites there too.
+  rays march in C (:mod:`recon.nerf.native`: the same samples as the torch path, faster; bounded and contracted
+  steps), and rendering composites there too.
 
 Coordinates: world = normalized scene frame. Bounded scenes map the ``aabb`` onto the grids'
 unit cube; unbounded ones contract (:mod:`recon.nerf.contraction`) into [-2, 2]^3 first.
@@ -330,14 +330,15 @@ class FastModel(RadianceModel):
         # (evaluation, recon render, the viewer) the marcher's densities are the ones rendered, not evaluated again
         early_stop = cfg.early_stop_transmittance > 0
         contracted = cfg.unbounded and cfg.unbounded_steps == "contracted"
-        # the contracted marcher has no front-to-back variant: it returns no densities to reuse
-        infer = not training and not torch.is_grad_enabled() and early_stop and not contracted
+        no_grad = not training and not torch.is_grad_enabled() and early_stop
         field = self._dense_density() if early_stop else None
-        if infer and field is not None:  # march and composite natively: only the colored samples come back
+        if no_grad and field is not None:  # march and composite natively: only the colored samples come back
             fused = march_render_native(rays_o, rays_d, t_near, t_far, field, step_size, cfg.max_samples,
                                         cfg.early_stop_transmittance, cfg.color_min_weight)
             if fused is not None:
                 return self._composite_native(fused, rays_o, rays_d, far, background)
+        # the torch contracted marcher has no front-to-back variant: it returns no densities to reuse
+        infer = no_grad and not contracted
         with torch.no_grad():
             native = None
             if field is not None:
@@ -346,6 +347,7 @@ class FastModel(RadianceModel):
             if native is not None:
                 ts, te, ri, sigma = native
                 evaluated[0] += int(ts.shape[0])
+                infer = no_grad  # the native marcher's densities are the rendered ones
             elif early_stop and not contracted:
                 ts, te, ri, sigma = march_front_to_back(
                     rays_o, rays_d, t_near, t_far, self.occupancy, step_size, cfg.max_samples, sigma_fn,
@@ -386,15 +388,19 @@ class FastModel(RadianceModel):
         return out
 
     def _dense_density(self) -> DenseDensity | None:
-        """The field as the native marcher (:mod:`recon.nerf.native`) takes it, where it applies: a bounded field on
-        dense scalar density grids with uniform steps. None where it does not (the torch marcher runs)."""
+        """The field as the native marcher (:mod:`recon.nerf.native`) takes it, where it applies: dense scalar density
+        grids, with uniform steps (bounded) or contracted ones (unbounded). None where it does not (world steps
+        through an unbounded scene, cone steps, other grids: the torch marcher runs)."""
         cfg = self.config
         grid = self.density_grid
         levels = [grid] if isinstance(grid, DenseGrid) else list(grid.grids) if isinstance(grid, MultiDenseGrid) else []
-        if cfg.unbounded or cfg.cone_angle > 0 or not levels or any(g.channels != 1 for g in levels):
+        contracted = cfg.unbounded and cfg.unbounded_steps == "contracted"
+        if cfg.unbounded and not contracted or not contracted and cfg.cone_angle > 0 or not levels \
+                or any(g.channels != 1 for g in levels):  # (contracted steps ignore cone_angle, as torch's do)
             return None
         return DenseDensity(self.occupancy.occupied, self.occupancy.box, [g.table.detach().view(-1) for g in levels],
-                            self.grid_box, self.density_bias, self.density_scale, cfg.density_activation != "softplus")
+                            self.grid_box, self.density_bias, self.density_scale, cfg.density_activation != "softplus",
+                            contracted)
 
     def _composite_native(self, fused: dict[str, Tensor], rays_o: Tensor, rays_d: Tensor, far: Tensor,
                           background: Tensor | None) -> dict[str, Any]:

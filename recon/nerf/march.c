@@ -8,6 +8,11 @@
  * empty step never leaves the registers. Plain C (no Python or torch headers): it builds in a second,
  * and recon.nerf.native falls back to the torch marcher wherever it does not build.
  *
+ * Unbounded scenes (contracted != 0) take recon.nerf.contraction.contracted_intervals' steps instead: constant length
+ * in contracted space, exact on the piecewise-linear L-inf radius along the ray, with the same float64/float32
+ * split as torch; each midpoint is contracted before the occupancy lookup (the grid spans the contracted cube) and
+ * the density read, and the torch reference is contracted_intervals, OccupancyGrid.query and the transmittance cut.
+ *
  * Rendering (no gradients) composites here too and hands back only the samples worth coloring.
  *
  * Entry points return how many samples they have for these rays; samples are written while they fit in
@@ -56,6 +61,106 @@ static inline float trilinear(const float *table, int64_t res, float ux, float u
     return c0 * (1.0f - fx) + c1 * fx;
 }
 
+#define N_BREAKS 17 /* recon.nerf.contraction.N_BREAKS: 3 zeros, 6 axis crossings, 6 crossings of +-1, near, far */
+
+/* One ray's contracted steps: the breakpoints of r(t) = max(1, ||o + t d||_inf) in [t_near, t_far], r at each, and
+ * the cumulative step count at each (scaled down when the ray's count is capped). */
+typedef struct {
+    float b32[N_BREAKS], rho32[N_BREAKS];
+    double cum[N_BREAKS];
+    float lam_scale; /* step * scale, in float32 as torch multiplies it */
+    int piece;       /* the piece the last boundary fell in (boundaries only move forward) */
+} contracted_ray;
+
+static inline double finite_or_zero(double v) { return isfinite(v) ? v : 0.0; }
+
+/* recon.nerf.contraction._norm_breaks and the counts of contracted_intervals for one ray; returns its step count. */
+static int64_t contracted_setup(const float *o32, const float *d32, float tn32, float tf32, double step,
+                                int64_t max_samples, contracted_ray *cr)
+{
+    double o[3], d[3], b[N_BREAKS], rho[N_BREAKS];
+    for (int a = 0; a < 3; ++a) o[a] = (double)o32[a], d[a] = (double)d32[a];
+    const double tn = (double)tn32, tf = (double)tf32;
+    int n = 0;
+    b[n++] = tn;
+    for (int a = 0; a < 3; ++a) b[n++] = finite_or_zero(-o[a] / d[a]);
+    static const int pairs[3][2] = {{0, 1}, {0, 2}, {1, 2}};
+    for (int p = 0; p < 3; ++p) {
+        const int j = pairs[p][0], k = pairs[p][1];
+        b[n++] = finite_or_zero(-(o[j] - o[k]) / (d[j] - d[k]));
+        b[n++] = finite_or_zero(-(o[j] + o[k]) / (d[j] + d[k]));
+    }
+    for (int a = 0; a < 3; ++a) b[n++] = finite_or_zero((1.0 - o[a]) / d[a]);
+    for (int a = 0; a < 3; ++a) b[n++] = finite_or_zero((-1.0 - o[a]) / d[a]);
+    b[n++] = tf;
+    for (int i = 1; i < N_BREAKS - 1; ++i) b[i] = fmin(fmax(b[i], tn), tf);
+    for (int i = 1; i < N_BREAKS; ++i) { /* insertion sort: 17 values */
+        const double v = b[i];
+        int j = i - 1;
+        while (j >= 0 && b[j] > v) b[j + 1] = b[j], --j;
+        b[j + 1] = v;
+    }
+    for (int i = 0; i < N_BREAKS; ++i) {
+        double r = 0.0;
+        for (int a = 0; a < 3; ++a) {
+            const double x = fabs(o[a] + b[i] * d[a]);
+            if (x > r || isnan(x)) r = x;
+        }
+        rho[i] = r < 1.0 ? 1.0 : r;
+    }
+    cr->cum[0] = 0.0;
+    for (int i = 0; i + 1 < N_BREAKS; ++i) cr->cum[i + 1] = cr->cum[i] + (b[i + 1] - b[i]) / (step * rho[i] * rho[i + 1]);
+    const double total = cr->cum[N_BREAKS - 1];
+    double count = ceil(total);
+    if (count > (double)max_samples) count = (double)max_samples;
+    const double scale = total > (double)max_samples ? total / (double)max_samples : 1.0;
+    for (int i = 0; i < N_BREAKS; ++i) {
+        cr->cum[i] /= scale;
+        cr->b32[i] = (float)b[i];
+        cr->rho32[i] = (float)rho[i];
+    }
+    cr->lam_scale = (float)step * (float)scale;
+    cr->piece = 0;
+    return tf32 > tn32 ? (int64_t)count : 0;
+}
+
+/* Boundary k of the ray's intervals (at cumulative step count k + u): contracted_intervals' inverse of the count
+ * on the piece it falls in (float32 within the piece, as torch). */
+static inline float contracted_boundary(contracted_ray *cr, int64_t k, double u) {
+    double s = (double)k + u;
+    if (s > cr->cum[N_BREAKS - 1]) s = cr->cum[N_BREAKS - 1];
+    int j = cr->piece;
+    while (j + 1 < N_BREAKS && cr->cum[j + 1] <= s) ++j;
+    cr->piece = j;
+    if (j > N_BREAKS - 2) j = N_BREAKS - 2;
+    const float ta = cr->b32[j], tb = cr->b32[j + 1], ra = cr->rho32[j];
+    float span = tb - ta;
+    if (span < 1e-30f) span = 1e-30f;
+    const float beta = (cr->rho32[j + 1] - ra) / span;
+    const float lam = (float)(s - cr->cum[j]) * cr->lam_scale;
+    float den = 1.0f - lam * ra * beta;
+    if (den < 1e-12f) den = 1e-12f;
+    const float t = ta + lam * ra * ra / den;
+    return t < tb ? t : tb;
+}
+
+/* recon.nerf.contraction.contract of one point (float32, as torch computes it). */
+static inline void contract_point(const float x[3], float c[3]) {
+    float n = 0.0f;
+    float y[3];
+    for (int a = 0; a < 3; ++a) {
+        y[a] = x[a] > 3.4028234663852886e38f ? 3.4028234663852886e38f : (x[a] < -3.4028234663852886e38f ? -3.4028234663852886e38f : x[a]);
+        const float v = fabsf(y[a]);
+        if (v > n || isnan(v)) n = v;
+    }
+    if (n <= 1.0f) {
+        c[0] = y[0], c[1] = y[1], c[2] = y[2];
+        return;
+    }
+    const float f = 2.0f - 1.0f / n;
+    for (int a = 0; a < 3; ++a) c[a] = f * (y[a] / n);
+}
+
 /* The march shared by both entry points. Samples mode (render == 0): every kept sample's t_start, t_end, ray and
  * density go to out_ts/out_te/out_ri/out_sigma. Render mode (render != 0): each ray's opacity (sum of weights),
  * weighted depth (sum of weight * midpoint) and sample count go to ray_opacity/ray_depth/ray_samples, and only the
@@ -64,19 +169,21 @@ static inline float trilinear(const float *table, int64_t res, float ux, float u
  * float32) times -expm1(-tau). Returns the number of samples (samples mode) or of colored samples (render mode). */
 static int64_t march(
     int render, int64_t n_rays, const float *rays_o, const float *rays_d, const float *t_near, const float *t_far,
-    const float *jitter, const uint8_t *occupied, int64_t occ_res, const float *occ_lo, const float *occ_hi,
+    const double *jitter, const uint8_t *occupied, int64_t occ_res, const float *occ_lo, const float *occ_hi,
     const uint8_t *blocks, int64_t block, float step, int64_t max_samples, double log_min_t,
     int64_t n_levels, const float *const *tables, const int64_t *level_res, const float *grid_lo, const float *grid_hi,
-    float bias, float density_scale, int32_t exp_activation, float sigma_max, float tau_max,
+    float bias, float density_scale, int32_t exp_activation, float sigma_max, float tau_max, int32_t contracted,
     int64_t capacity, float *out_ts, float *out_te, int64_t *out_ri, float *out_sigma, int64_t ray_base,
     float color_min_weight, float *ray_opacity, float *ray_depth, int64_t *ray_samples, float *out_u, float *out_w)
 {
     int64_t m = 0;
-    float scale[3], gsize[3];
+    float scale[3], gsize[3], osize[3];
     for (int a = 0; a < 3; ++a) {
         scale[a] = (float)occ_res / (occ_hi[a] - occ_lo[a]);
         gsize[a] = grid_hi[a] - grid_lo[a];
+        osize[a] = occ_hi[a] - occ_lo[a];
     }
+    contracted_ray cr = {.lam_scale = 0.0f, .piece = 0};
     const float cells = (float)occ_res;
     corner_cache caches[MAX_CACHED_LEVELS];
     for (int l = 0; l < MAX_CACHED_LEVELS; ++l) caches[l].cell = -1;
@@ -84,10 +191,17 @@ static int64_t march(
         const float tn = t_near[r], tf = t_far[r];
         float opacity = 0.0f, depth_sum = 0.0f;
         int64_t kept = 0;
-        int64_t count = tf > tn ? (int64_t)ceilf((tf - tn) / step) : 0;
-        if (count > max_samples) count = max_samples;
-        const float u = jitter ? jitter[r] : 0.0f;
         const float *o = rays_o + 3 * r, *d = rays_d + 3 * r;
+        int64_t count;
+        if (contracted) {
+            count = contracted_setup(o, d, tn, tf, (double)step, max_samples, &cr);
+        } else {
+            count = tf > tn ? (int64_t)ceilf((tf - tn) / step) : 0;
+            if (count > max_samples) count = max_samples;
+        }
+        const float u = jitter ? (float)jitter[r] : 0.0f;
+        const double u64 = jitter ? jitter[r] : 0.0;
+        float t_next = contracted && count > 0 ? contracted_boundary(&cr, 0, u64) : 0.0f;
         float po[3], pd[3];
         for (int a = 0; a < 3; ++a) {
             po[a] = (o[a] - occ_lo[a]) * scale[a];
@@ -95,13 +209,36 @@ static int64_t march(
         }
         double depth = 0.0, trans = 1.0; /* optical depth and transmittance at the next sample's start */
         for (int64_t k = 0; k < count; ++k) {
-            const float ts = tn + ((float)k + u) * step;
-            if (!(ts < tf)) break;
-            float te = ts + step;
-            if (te > tf) te = tf;
+            float ts, te, ux, uy, uz, px, py, pz;
+            if (contracted) { /* interval k spans boundaries k and k + 1; empty ones (clipped at far) are skipped */
+                ts = t_next;
+                te = t_next = contracted_boundary(&cr, k + 1, u64);
+                if (!(te > ts)) continue;
+            } else {
+                ts = tn + ((float)k + u) * step;
+                if (!(ts < tf)) break;
+                te = ts + step;
+                if (te > tf) te = tf;
+            }
             const float tm = 0.5f * (ts + te);
-            const float px = po[0] + pd[0] * tm, py = po[1] + pd[1] * tm, pz = po[2] + pd[2] * tm;
-            if (!(px >= 0.0f && px <= cells && py >= 0.0f && py <= cells && pz >= 0.0f && pz <= cells)) continue;
+            if (contracted) { /* occupancy and density at the contracted midpoint, as OccupancyGrid.query does */
+                const float x[3] = {o[0] + d[0] * tm, o[1] + d[1] * tm, o[2] + d[2] * tm};
+                float c[3];
+                contract_point(x, c);
+                const float qx = (c[0] - occ_lo[0]) / osize[0], qy = (c[1] - occ_lo[1]) / osize[1],
+                            qz = (c[2] - occ_lo[2]) / osize[2];
+                if (!(qx >= 0.0f && qx <= 1.0f && qy >= 0.0f && qy <= 1.0f && qz >= 0.0f && qz <= 1.0f)) continue;
+                px = qx * cells, py = qy * cells, pz = qz * cells;
+                ux = clamp01((c[0] - grid_lo[0]) / gsize[0]);
+                uy = clamp01((c[1] - grid_lo[1]) / gsize[1]);
+                uz = clamp01((c[2] - grid_lo[2]) / gsize[2]);
+            } else {
+                px = po[0] + pd[0] * tm, py = po[1] + pd[1] * tm, pz = po[2] + pd[2] * tm;
+                if (!(px >= 0.0f && px <= cells && py >= 0.0f && py <= cells && pz >= 0.0f && pz <= cells)) continue;
+                ux = clamp01((o[0] + d[0] * tm - grid_lo[0]) / gsize[0]);
+                uy = clamp01((o[1] + d[1] * tm - grid_lo[1]) / gsize[1]);
+                uz = clamp01((o[2] + d[2] * tm - grid_lo[2]) / gsize[2]);
+            }
             int64_t ix = (int64_t)floorf(px), iy = (int64_t)floorf(py), iz = (int64_t)floorf(pz);
             if (ix > occ_res - 1) ix = occ_res - 1;
             if (iy > occ_res - 1) iy = occ_res - 1;
@@ -109,7 +246,7 @@ static int64_t march(
             if (!occupied[(ix * occ_res + iy) * occ_res + iz]) {
                 /* in an empty block, jump to the last step whose midpoint is surely still in it (in an occupied
                    block, stepping on is cheaper than computing where an empty cell ends) */
-                if (!blocks) continue;
+                if (!blocks || contracted) continue; /* contracted steps are not uniform in t: no jumps */
                 const int64_t nb = occ_res / block, bx = ix / block, by = iy / block, bz = iz / block;
                 if (blocks[(bx * nb + by) * nb + bz]) continue;
                 const float lo[3] = {(float)(bx * block), (float)(by * block), (float)(bz * block)};
@@ -128,9 +265,6 @@ static int64_t march(
                 continue;
             }
             if (!(depth < log_min_t)) break; /* transmittance at this sample's start is below the bar */
-            const float ux = clamp01((o[0] + d[0] * tm - grid_lo[0]) / gsize[0]);
-            const float uy = clamp01((o[1] + d[1] * tm - grid_lo[1]) / gsize[1]);
-            const float uz = clamp01((o[2] + d[2] * tm - grid_lo[2]) / gsize[2]);
             float raw = 0.0f;
             for (int64_t l = 0; l < n_levels; ++l)
                 raw += trilinear(tables[l], level_res[l], ux, uy, uz, l < MAX_CACHED_LEVELS ? &caches[l] : 0);
@@ -182,16 +316,16 @@ static int64_t march(
 /* The samples themselves (for training, which evaluates their densities again with gradients). */
 int64_t recon_march_dense(
     int64_t n_rays, const float *rays_o, const float *rays_d, const float *t_near, const float *t_far,
-    const float *jitter, const uint8_t *occupied, int64_t occ_res, const float *occ_lo, const float *occ_hi,
+    const double *jitter, const uint8_t *occupied, int64_t occ_res, const float *occ_lo, const float *occ_hi,
     const uint8_t *blocks, int64_t block, float step, int64_t max_samples, double log_min_t,
     int64_t n_levels, const float *const *tables, const int64_t *level_res, const float *grid_lo, const float *grid_hi,
-    float bias, float density_scale, int32_t exp_activation, float sigma_max, float tau_max,
+    float bias, float density_scale, int32_t exp_activation, float sigma_max, float tau_max, int32_t contracted,
     int64_t capacity, float *out_ts, float *out_te, int64_t *out_ri, float *out_sigma, int64_t ray_base)
 {
     return march(0, n_rays, rays_o, rays_d, t_near, t_far, jitter, occupied, occ_res, occ_lo, occ_hi, blocks, block,
                  step, max_samples,
                  log_min_t, n_levels, tables, level_res, grid_lo, grid_hi, bias, density_scale, exp_activation,
-                 sigma_max, tau_max, capacity, out_ts, out_te, out_ri, out_sigma, ray_base, 0.0f, 0, 0, 0, 0, 0);
+                 sigma_max, tau_max, contracted, capacity, out_ts, out_te, out_ri, out_sigma, ray_base, 0.0f, 0, 0, 0, 0, 0);
 }
 
 /* Compositing too, for rendering without gradients: per-ray opacity, weighted depth and sample count, and the
@@ -201,14 +335,14 @@ int64_t recon_march_render(
     const uint8_t *occupied, int64_t occ_res, const float *occ_lo, const float *occ_hi,
     const uint8_t *blocks, int64_t block, float step, int64_t max_samples, double log_min_t,
     int64_t n_levels, const float *const *tables, const int64_t *level_res, const float *grid_lo, const float *grid_hi,
-    float bias, float density_scale, int32_t exp_activation, float sigma_max, float tau_max,
+    float bias, float density_scale, int32_t exp_activation, float sigma_max, float tau_max, int32_t contracted,
     int64_t capacity, float *out_u, float *out_w, int64_t *out_ri, int64_t ray_base,
     float color_min_weight, float *ray_opacity, float *ray_depth, int64_t *ray_samples)
 {
     return march(1, n_rays, rays_o, rays_d, t_near, t_far, 0, occupied, occ_res, occ_lo, occ_hi, blocks, block,
                  step, max_samples,
                  log_min_t, n_levels, tables, level_res, grid_lo, grid_hi, bias, density_scale, exp_activation,
-                 sigma_max, tau_max, capacity, 0, 0, out_ri, 0, ray_base, color_min_weight, ray_opacity, ray_depth,
+                 sigma_max, tau_max, contracted, capacity, 0, 0, out_ri, 0, ray_base, color_min_weight, ray_opacity, ray_depth,
                  ray_samples, out_u, out_w);
 }
 

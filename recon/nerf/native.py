@@ -81,7 +81,8 @@ def native_marcher() -> ctypes.CDLL | None:
         return None
     p, i64, f32 = ctypes.c_void_p, ctypes.c_int64, ctypes.c_float
     lib.recon_march_dense.restype = i64
-    field = [p, i64, p, p, p, i64, f32, i64, ctypes.c_double, i64, p, p, p, p, f32, f32, ctypes.c_int32, f32, f32]
+    i32 = ctypes.c_int32
+    field = [p, i64, p, p, p, i64, f32, i64, ctypes.c_double, i64, p, p, p, p, f32, f32, i32, f32, f32, i32]
     lib.recon_march_dense.argtypes = [i64, p, p, p, p, p, *field, i64, p, p, p, p, i64]
     lib.recon_march_render.restype = i64
     lib.recon_march_render.argtypes = [i64, p, p, p, p, *field, i64, p, p, p, i64, f32, p, p, p]
@@ -89,7 +90,8 @@ def native_marcher() -> ctypes.CDLL | None:
     lib.recon_trilinear_features.argtypes = [i64, p, p, i64, i64, p]
     lib.recon_trilinear_backward.restype = None
     lib.recon_trilinear_backward.argtypes = [i64, p, p, i64, i64, p]
-    _status = (f"native C (recon/nerf/march.c, built once into {target.parent}): bounded scenes' rays are marched in C, "
+    _status = (f"native C (recon/nerf/march.c, built once into {target.parent}): rays are marched in C (bounded and "
+               "contracted steps), "
                "and renders read the feature grid in C (RECON_NATIVE=0: torch throughout)")
     return lib
 
@@ -105,7 +107,9 @@ class DenseDensity:
     """What the native marcher needs of a field: its occupancy grid, its density levels and their activation.
 
     tables: each density level's (res³,) values, indexed [ix][iy][iz]; grid_box (2, 3) maps points onto them;
-    density = activation(sum of levels + bias) * density_scale (softplus, or exp clamped at 15)."""
+    density = activation(sum of levels + bias) * density_scale (softplus, or exp clamped at 15).
+    contracted: an unbounded field: rays take :func:`recon.nerf.contraction.contracted_intervals`' steps and points
+    are contracted before the occupancy grid (over the contracted cube) and the density grids read them."""
 
     occupied: Tensor
     occupancy_box: Tensor
@@ -114,6 +118,7 @@ class DenseDensity:
     bias: float
     density_scale: float
     exp_activation: bool
+    contracted: bool = False
 
     def runnable(self, *rays: Tensor) -> bool:
         return native_marcher() is not None and all(
@@ -123,7 +128,7 @@ class DenseDensity:
         """The library's arguments from the occupancy grid to tau_max (the tensors are kept alive by self)."""
         from recon.nerf.render import SIGMA_MAX, TAU_MAX
 
-        blocks = _empty_blocks(self.occupied)
+        blocks = None if self.contracted else _empty_blocks(self.occupied)  # contracted steps do not jump
         self._keep = [t.contiguous() for t in (self.occupied.view(torch.uint8), self.occupancy_box, self.grid_box, *self.tables)]
         occ, occ_box, gbox, *tabs = self._keep
         self._ptrs = (ctypes.c_void_p * len(tabs))(*[t.data_ptr() for t in tabs])
@@ -132,7 +137,7 @@ class DenseDensity:
                 None if blocks is None else blocks.data_ptr(), BLOCK, float(step_size),
                 int(max_samples), -math.log(min_transmittance), len(tabs), ctypes.cast(self._ptrs, ctypes.c_void_p),
                 ctypes.cast(self._res, ctypes.c_void_p), gbox[0].data_ptr(), gbox[1].data_ptr(), float(self.bias),
-                float(self.density_scale), int(self.exp_activation), SIGMA_MAX, TAU_MAX]
+                float(self.density_scale), int(self.exp_activation), SIGMA_MAX, TAU_MAX, int(self.contracted)]
 
 
 BLOCK = 8
@@ -178,15 +183,18 @@ def march_dense_native(
     """:func:`recon.nerf.occupancy.march_front_to_back` with the fast model's dense density, natively; None when
     the library is not available or the tensors are not float32 on the CPU (the caller then marches in torch).
 
-    jitter: offset each ray's steps by one uniform draw per ray, drawn as the torch marcher draws it (only when
-    this marcher runs, so a fallback draws the same numbers).
+    jitter: offset each ray's steps by one uniform draw per ray, drawn as the torch marcher draws it (float32 for
+    bounded steps, float64 for contracted ones; only when this marcher runs, so a fallback draws the same numbers).
+    A contracted field's reference is :func:`recon.nerf.occupancy.march` with ``contracted=True`` and a ``sigma_fn``.
     Returns t_starts, t_ends, ray_indices, sigma (M,), sorted by ray and along each ray.
     """
     if not field.runnable(rays_o, rays_d, t_near, t_far):
         return None
     lib = native_marcher()
     rays_o, rays_d, t_near, t_far = (t.contiguous() for t in (rays_o, rays_d, t_near, t_far))
-    jit = torch.rand(rays_o.shape[0], dtype=torch.float32) if jitter else None
+    jit = None
+    if jitter:
+        jit = torch.rand(rays_o.shape[0], dtype=torch.float64 if field.contracted else torch.float32).double()
     common = field.args(step_size, max_samples, min_transmittance)
 
     def run(lo: int, hi: int, capacity: int) -> tuple[int, list[Tensor]]:
