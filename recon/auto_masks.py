@@ -28,13 +28,16 @@ GROUND_BAND = 0.02
 """Sparse points within this fraction of the region's size of the support plane are the plane's (background)."""
 SEED_RADIUS = 0.004
 """Seed discs around projected sparse points, as a fraction of the photo's diagonal."""
+MAX_SPECK = 2e-4
+"""Enclosed background pieces smaller than this fraction of the photo are noise in the cut and become object."""
 HULL_RES = 96
 """Grid vertices per side of the visual hull the photos vote on."""
 HULL_TOLERANCE = 0.1
 """A hull vertex survives while at most this fraction of the photos (at least one) call it background: one bad
 cut must not carve the object out of every other photo."""
-MIN_AGREEMENT = 0.85
-"""The masks are trusted when the median photo's cut and the other photos' hull overlap (IoU) at least this much."""
+MIN_AGREEMENT = 0.9
+"""The masks are trusted when, in the median photo, at least this fraction of the cut lies inside the hull all photos
+carve (the hull is fatter than the object where no photo looks edge-on, so only the cut's excess counts)."""
 MIN_SEED_RECALL = 0.9
 """... and the masks keep at least this fraction of the object's sparse points where the photos see them."""
 EDGE_PERCENTILE = 80
@@ -51,7 +54,7 @@ class ObjectMasks:
     masks: dict[str, np.ndarray]
     """Frame name -> (h, w) bool at the photo's own size and pixels (lens distortion as in the photo)."""
     agreement: dict[str, float]
-    """Frame name -> IoU of the photo's cut with the silhouette of the hull all photos carve."""
+    """Frame name -> fraction of the photo's cut inside the silhouette of the hull all photos carve."""
     seed_recall: float
     """Fraction of the object's sparse-point sightings that fall inside the final masks."""
     edge_support: dict[str, float]
@@ -124,8 +127,7 @@ def segment_object(scene: Scene, load_photo: PhotoLoader | None = None, side: in
         final = cut & silhouette
         outline = _outline(cv2, final)
         support[frame.name] = float(edge[outline].mean()) if outline.any() else 0.0
-        union = int((cut | silhouette).sum())
-        agreement[frame.name] = float((cut & silhouette).sum() / union) if union else 0.0
+        agreement[frame.name] = float(final.sum() / cut.sum()) if cut.any() else 0.0
         if len(fg):
             px = np.clip(fg.astype(np.int64), 0, [w - 1, h - 1])
             kept += int(final[px[:, 1], px[:, 0]].sum())
@@ -140,12 +142,12 @@ def segment_object(scene: Scene, load_photo: PhotoLoader | None = None, side: in
     on_edges = float(np.median(list(support.values()))) if support else 0.0
     confident = median >= MIN_AGREEMENT and recall >= MIN_SEED_RECALL and on_edges >= MIN_EDGE_SUPPORT and not empty
     reason = (
-        f"automatic object masks for {n} photos: the photos' cuts agree with the hull they carve together "
-        f"(median IoU {median:.2f}, least {agreement.get(worst, 0.0):.2f} in {worst}), keep {recall:.0%} of the "
+        f"automatic object masks for {n} photos: the photos' cuts lie in the hull they carve together "
+        f"(median {median:.0%}, least {agreement.get(worst, 0.0):.0%} in {worst}), keep {recall:.0%} of the "
         f"object's sparse points and their outlines follow the photos' edges ({on_edges:.0%})"
     )
     if not confident:
-        why = ([f"median agreement {median:.2f} < {MIN_AGREEMENT}"] if median < MIN_AGREEMENT else []) + (
+        why = ([f"median {median:.0%} in the hull < {MIN_AGREEMENT:.0%}"] if median < MIN_AGREEMENT else []) + (
             [f"{recall:.0%} of the object's points kept < {MIN_SEED_RECALL:.0%}"] if recall < MIN_SEED_RECALL else []) + (
             [f"outlines on edges {on_edges:.0%} < {MIN_EDGE_SUPPORT:.0%}"] if on_edges < MIN_EDGE_SUPPORT else []) + (
             [f"{len(empty)} photo(s) with an empty mask"] if empty else [])
@@ -210,16 +212,17 @@ def _grabcut(cv2, photo: np.ndarray, fg: np.ndarray, bg: np.ndarray, box_uv: np.
 
 
 def _keep_seeded_pieces(cv2, cut: np.ndarray, fg: np.ndarray) -> np.ndarray:
-    """The connected pieces of the cut that hold an object seed, with their enclosed holes filled."""
-    count, labels = cv2.connectedComponents(cut.astype(np.uint8), connectivity=8)
+    """The connected pieces of the cut that hold an object seed, with pinholes (enclosed specks under
+    MAX_SPECK of the photo) filled; larger enclosed background — a handle's opening — stays background."""
+    _, labels = cv2.connectedComponents(cut.astype(np.uint8), connectivity=8)
     h, w = cut.shape
     px = np.clip(np.round(fg).astype(np.int64), 0, [w - 1, h - 1])
     seeded = np.unique(labels[px[:, 1], px[:, 0]])
     keep = np.isin(labels, seeded[seeded > 0])
-    # holes: background pieces that do not touch the border
-    count, holes = cv2.connectedComponents((~keep).astype(np.uint8), connectivity=4)
+    count, holes, stats, _ = cv2.connectedComponentsWithStats((~keep).astype(np.uint8), connectivity=4)
     border = np.unique(np.concatenate([holes[0], holes[-1], holes[:, 0], holes[:, -1]]))
-    return keep | (~keep & ~np.isin(holes, border))
+    small = np.flatnonzero(stats[:, cv2.CC_STAT_AREA] < MAX_SPECK * h * w)
+    return keep | np.isin(holes, np.setdiff1d(small, border))
 
 
 def _edges(cv2, photo: np.ndarray) -> np.ndarray:

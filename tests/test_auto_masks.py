@@ -99,6 +99,22 @@ def test_masks_match_the_true_silhouette_and_agree() -> None:
     assert all(m.shape == (H, W) for m in found.masks.values())
 
 
+def test_the_other_photos_veto_what_one_cut_takes_from_the_table() -> None:
+    """Paint a strip of the ball's texture on the table under the ball in one photo: its cut takes the strip, the
+    hull the other photos carve leaves it out of the mask, and that photo's agreement says so."""
+    scene, photos, truth = _scene()
+    name = sorted(photos)[0]
+    ys, xs = np.nonzero(truth[name])
+    top, bottom, left, right = ys.min(), ys.max() + 1, xs.min(), xs.max()
+    photos[name] = photos[name].copy()
+    photos[name][bottom:bottom + 12, left:right] = photos[name][top:top + 12, left:right]
+    found = segment_object(scene, load_photo=lambda f: photos[f.name])
+    assert found.agreement[name] < 0.95 <= np.median(list(found.agreement.values()))
+    assert found.masks[name][bottom:bottom + 12, left:right].mean() < 0.2
+    assert _iou(found.masks[name], truth[name]) > 0.85
+    assert found.confident
+
+
 def test_photos_that_do_not_fit_their_cameras_are_not_trusted() -> None:
     scene, photos, _ = _scene()
     names = sorted(photos)
