@@ -286,12 +286,25 @@ def eval_(
     device: Annotated[str, typer.Option("--device", help="auto | cpu | cuda")] = "auto",
     limit: Annotated[int, typer.Option("--limit", help="Evaluate at most N views of the split (0: all).")] = 0,
     gt_mesh: Annotated[Optional[Path], typer.Option("--gt-mesh", help="Ground-truth mesh: report Chamfer-L1 and F-score of our mesh.")] = None,
+    gt_masks: Annotated[Optional[Path], typer.Option("--gt-masks", help="Folder of true object masks (white = object, named like the photos): IoU of the mesh's silhouette and of the automatic masks.")] = None,
 ) -> None:
     """Render every held-out view: per-view and mean PSNR/SSIM, and image grids (and mesh accuracy with --gt-mesh)."""
     from recon.novel_views import evaluate_scene
 
     with _guard(scene):
         target = out or scene / "eval"
+        if gt_masks is not None:
+            from recon.atomic import write_json_atomic
+            from recon.mesh_eval import silhouette_iou
+
+            result = silhouette_iou(scene, gt_masks)
+            target.mkdir(parents=True, exist_ok=True)
+            write_json_atomic(target / "silhouette_iou.json", result)
+            line = (f"mesh silhouette vs {gt_masks}: IoU {result['mean_iou']:.3f} (least {result['min_iou']:.3f}), "
+                    f"precision {result['mean_precision']:.3f}, recall {result['mean_recall']:.3f} over {len(result['views'])} photos")
+            if "mean_masks_iou" in result:
+                line += f"; the scene's masks: IoU {result['mean_masks_iou']:.3f}"
+            out_console.print(line + f" — {target / 'silhouette_iou.json'}", markup=False)
         if gt_mesh is not None:
             from recon.mesh_eval import compare_to_gt, format_comparison
             from recon.atomic import write_json_atomic
@@ -302,6 +315,7 @@ def eval_(
             target.mkdir(parents=True, exist_ok=True)
             write_json_atomic(target / "mesh_accuracy.json", comparison)
             out_console.print(format_comparison(comparison), markup=False)
+        if gt_mesh is not None or gt_masks is not None:
             return
         result = evaluate_scene(scene, target, split=split, max_side=max_side, device=device, report=Reporter(console), limit=limit)
         out_console.print(

@@ -209,3 +209,51 @@ def format_comparison(result: dict[str, Any]) -> str:
             + ", ".join(f"F@{tau:.1%} {icp[f'fscore@{tau:g}']:.3f}" for tau in result["thresholds"])
         )
     return "\n".join(lines)
+
+
+MASK_EVAL_SIDE = 800
+"""Silhouettes are compared at this longest side (pixels)."""
+
+
+def silhouette_iou(scene_dir: Path, masks_dir: Path) -> dict[str, Any]:
+    """How well the scene's mesh (and its automatic masks, if any) cut the object out of each photo, against masks
+    the user trusts (white = object, same stems as the photos): per photo and mean IoU, precision and recall.
+
+    The mesh is rendered into every photo that has a mask in `masks_dir`, in the normalized frame with the scene's
+    cameras; the true masks are undistorted like the photos, so both are pinhole images of the same camera."""
+    from recon.geometry.raster import rasterize
+    from recon.geometry.color import project
+    from recon.images import IMAGE_SUFFIXES, read_mask, undistort
+
+    scene = load_scene(scene_dir / SCENE_FOLDER)
+    vertices, faces, _ = our_mesh_in_scene_frame(scene_dir)
+    truth = {p.stem: p for p in sorted(masks_dir.iterdir()) if p.suffix.lower() in IMAGE_SUFFIXES} if masks_dir.is_dir() else {}
+    rows: dict[str, dict[str, float]] = {}
+    for frame in scene.frames:
+        if frame.stem not in truth:
+            continue
+        scale = min(1.0, MASK_EVAL_SIDE / max(frame.w, frame.h))
+        w, h = max(1, round(frame.w * scale)), max(1, round(frame.h * scale))
+        intr = (frame.fl_x * w / frame.w, frame.fl_y * h / frame.h, frame.cx * w / frame.w, frame.cy * h / frame.h)
+
+        def pinhole(path: Path) -> np.ndarray:
+            return undistort(read_mask(path, (w, h)), *intr, frame.distortion, frame.camera_model) >= 0.5
+
+        true = pinhole(truth[frame.stem])
+        xy, z = project(vertices, frame.c2w, np.asarray(intr))
+        mesh = rasterize(xy, z, faces, (h, w))[0] >= 0
+        row = _overlap(mesh, true)
+        if frame.mask_path and Path(frame.mask_path).is_file():  # the masks the scene trained with
+            row.update({f"masks_{k}": v for k, v in _overlap(pinhole(Path(frame.mask_path)), true).items()})
+        rows[frame.name] = row
+    if not rows:
+        raise ReconError(f"No mask in {masks_dir} has the name of a photo of {scene_dir}. Give masks named like the photos.")
+    keys = next(iter(rows.values())).keys()
+    return {"views": rows, **{f"mean_{k}": float(np.mean([r[k] for r in rows.values() if k in r])) for k in keys},
+            "min_iou": float(min(r["iou"] for r in rows.values()))}
+
+
+def _overlap(found: np.ndarray, true: np.ndarray) -> dict[str, float]:
+    both = float((found & true).sum())
+    return {"iou": both / max(float((found | true).sum()), 1.0), "precision": both / max(float(found.sum()), 1.0),
+            "recall": both / max(float(true.sum()), 1.0)}
