@@ -119,8 +119,15 @@ class TrainConfig:
     device: str = "auto"
     """auto (CUDA when present), cpu, cuda or cuda:K."""
     adjusted: str = ""
-    """Set by a preset's [no_gpu] table when no GPU is found: what it changed and why (printed with the train
-    stage's reasons)."""
+    """Set by a preset's [no_gpu] table when no GPU is found, or by `device_sizing` on a GPU: what it changed and
+    why (printed with the train stage's reasons)."""
+    device_sizing: Literal["auto", "off"] = "auto"
+    """auto: on CUDA, the grid models' rays per step, grid resolutions and (with a budget) step cap grow with the
+    GPU's memory (`device_sizing`; a preset's values are sized for a CPU); --set values are kept. off: the preset's
+    values on any device."""
+    compile: Literal["auto", "on", "off"] = "auto"
+    """torch.compile of the fast model's per-sample networks (recon/nerf/compiled.py): auto: on CUDA only (on a
+    CPU the C marcher and fused torch kernels are faster than compiled ones, and compiling costs a minute)."""
     precision: Literal["fp32", "bf16"] = "fp32"
     """bf16: the networks' matrix math in bfloat16 (autocast; volume rendering stays fp32). Faster on GPUs and
     CPUs with AMX/AVX512-BF16, slower on older CPUs."""
@@ -267,8 +274,83 @@ def load_config(preset: str | None = None, overrides: list[str] | None = None) -
             f"({path.name} [no_gpu]{'; ' + why if why else ''}); --set any of them to change it"
         )
         _apply_overrides(config, overrides)
+    if config.train.device_sizing == "auto" and _gpu_training(config.train.device):
+        from recon.nerf.device import cuda_memory
+
+        found = cuda_memory(config.train.device)
+        if found is not None:
+            config, why = device_sizing(config, *found, keep=_override_keys(overrides))
+            config.train.adjusted = why or config.train.adjusted
     validate(config)
     return config
+
+
+GPU_TIERS: tuple[tuple[float, int, float, int], ...] = (
+    (40.0, 8, 1.5, 8),
+    (16.0, 4, 1.25, 4),
+    (6.0, 2, 1.0, 2),
+)
+"""(at least this many GiB of GPU memory, rays per step ×, grid resolution ×, step cap ×) for the grid models.
+A preset's 4,096 rays a step leave a GPU launch-bound (an H200 ran the fast preset at 26 ms a step, 157k rays/s):
+more rays per step cost little more time per step; finer grids cost memory, which a large card has."""
+GPU_GRID_MEMORY_FRACTION = 0.25
+"""The sized grids' training memory (parameters, gradients, Adam moments) stays below this share of the GPU's."""
+
+
+def _override_keys(overrides: list[str] | None) -> frozenset[str]:
+    """The dotted keys a --set list names."""
+    return frozenset(item.partition("=")[0].strip() for item in overrides or [])
+
+
+def device_sizing(config: RunConfig, memory_bytes: int, name: str,
+                  keep: frozenset[str] = frozenset()) -> tuple[RunConfig, str]:
+    """(config sized to a CUDA device of `memory_bytes`, what changed and why; "" when nothing did).
+
+    Only the grid models (fast, surface) are sized: the classic preset's values are already the paper's GPU
+    values. Rays per step (and depth rays) and grid resolutions grow with the card's memory (`GPU_TIERS`); with a
+    time budget the step cap, evaluation and checkpoint periods grow too, so the same minutes run the steps the
+    card can take. Keys in `keep` (the user's --set) are left as they are."""
+    train = config.train
+    tier = next((t for t in GPU_TIERS if memory_bytes >= t[0] * 2**30), None)
+    if train.model not in ("auto", "fast", "surface") or tier is None:
+        return config, ""
+    _, rays_x, grid_x, steps_x = tier
+    sized = dataclasses.replace(config, train=dataclasses.replace(
+        train, fast=dataclasses.replace(train.fast), surface=dataclasses.replace(train.surface)))
+    changes: list[str] = []
+
+    def scale(dotted: str, factor: float, multiple: int = 1, cap: int = 2**31) -> None:
+        if dotted in keep or factor == 1:
+            return
+        *path, key = dotted.split(".")
+        target = sized
+        for part in path:
+            target = getattr(target, part)
+        old = getattr(target, key)
+        new = min(cap, max(multiple, int(round(old * factor / multiple)) * multiple))
+        if new != old:
+            setattr(target, key, new)
+            changes.append(f"{dotted}={old}→{new}")
+
+    scale("train.batch_rays", rays_x)
+    scale("train.depth_rays", rays_x)
+    if train.budget:
+        for key in ("train.steps", "train.eval_every", "train.checkpoint_every"):
+            scale(key, steps_x)
+    grids = (("train.fast.density_res", "train.fast.feature_res", "train.fast.occupancy_res")
+             if train.model != "surface" else ("train.surface.sdf_res", "train.surface.feature_res"))
+    before = list(changes)
+    for key in grids:
+        scale(key, grid_x, 16, MAX_GRID_RES if "occupancy" not in key else 512)
+    grid_bytes = sum(need for keys, _, need in implied_memory(sized) if keys.startswith("train."))
+    if grid_bytes > GPU_GRID_MEMORY_FRACTION * memory_bytes:  # the card cannot hold finer grids: keep the preset's
+        sized.train.fast, sized.train.surface = train.fast, train.surface
+        changes = before
+    if not changes:
+        return config, ""
+    return sized, (f"GPU sizing ({name}, {memory_bytes / 2**30:.0f} GiB; train.device_sizing=off keeps the preset's "
+                   f"CPU-sized values): {', '.join(changes)} — 4,096 rays a step leave a GPU waiting on kernel "
+                   f"launches, and the same minutes buy more steps there")
 
 
 def _apply_overrides(config: RunConfig, overrides: list[str] | None) -> None:

@@ -5,6 +5,7 @@ import os
 from pathlib import Path
 
 import pytest
+import torch
 from hypothesis import settings
 
 os.environ.setdefault("COLUMNS", "400")  # rich must not wrap the error messages tests look for
@@ -16,6 +17,16 @@ settings.register_profile("long", max_examples=300, deadline=None, print_blob=Tr
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = REPO.parent / "shared" / "data"
+
+
+DEVICES = ["cpu", *(["cuda"] if torch.cuda.is_available() else [])]
+"""What device-parametrized tests run on: the CPU always, CUDA where present (a GPU machine runs the same checks)."""
+
+
+@pytest.fixture(params=DEVICES)
+def device(request: pytest.FixtureRequest) -> torch.device:
+    """Each of `DEVICES` in turn: a test taking `device` runs once per device."""
+    return torch.device(request.param)
 
 
 @pytest.fixture

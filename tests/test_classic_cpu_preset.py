@@ -32,8 +32,9 @@ def test_classic_on_gpu_keeps_the_preset_and_set_wins_on_cpu() -> None:
 
 
 def test_other_presets_are_unchanged_on_cpu() -> None:
-    cpu, gpu = load_config("fast", ["train.device=cpu"]), load_config("fast", ["train.device=cuda"])
-    gpu.train.device = "cpu"
+    cpu = load_config("fast", ["train.device=cpu"])
+    gpu = load_config("fast", ["train.device=cuda", "train.device_sizing=off"])  # sizing: tests/test_devices.py
+    gpu.train.device, gpu.train.device_sizing = "cpu", "auto"
     assert cpu == gpu and cpu.train.adjusted == ""
 
 

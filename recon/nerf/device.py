@@ -6,7 +6,7 @@ from pathlib import Path
 
 import torch
 
-__all__ = ["cpu_threads", "physical_cores", "select_device"]
+__all__ = ["cpu_threads", "cuda_memory", "physical_cores", "select_device"]
 
 
 def physical_cores() -> int:
@@ -65,3 +65,18 @@ def select_device(preference: str = "auto") -> torch.device:
         torch.set_num_threads(cpu_threads())
         return torch.device("cpu")
     raise ValueError(f"unknown device {preference!r}: use 'auto', 'cpu', 'cuda' or 'cuda:K'")
+
+
+def cuda_memory(preference: str = "auto") -> tuple[int, str] | None:
+    """(total memory in bytes, name) of the CUDA device `preference` names ("auto", "cuda" or "cuda:K"), or None
+    when it names the CPU, CUDA is absent or K is out of range: what `recon.config.device_sizing` sizes a preset to."""
+    pref = preference.strip().lower()
+    if pref not in ("auto", "cuda") and not pref.startswith("cuda:"):
+        return None
+    if not torch.cuda.is_available():
+        return None
+    index = int(pref.partition(":")[2] or torch.cuda.current_device())
+    if index >= torch.cuda.device_count():
+        return None
+    props = torch.cuda.get_device_properties(index)
+    return int(props.total_memory), str(props.name)

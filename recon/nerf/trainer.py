@@ -288,7 +288,9 @@ def train(
             if refine_poses:
                 terms["pose"] = pose_refine.regularizer()
             loss = sum(terms.values())
-            loss_v = float(loss.detach())
+            # one host read for both numbers, before backward: on CUDA a read after opt.step() would wait for the
+            # whole step and leave the GPU idle while the next batch is prepared
+            loss_v, rgb_mse = torch.stack([loss.detach().float(), terms["rgb"].detach()]).tolist()
             if not math.isfinite(loss_v):
                 raise TrainingDiverged(
                     step, _diagnose(out, terms),
@@ -305,7 +307,7 @@ def train(
                 pose_opt.step()
                 pose_refine.hold_frame()
             done = step + 1
-            psnr_v = float(mse_to_psnr(terms["rgb"].detach()))
+            psnr_v = float(mse_to_psnr(torch.tensor(rgb_mse, dtype=torch.float32)))  # as from the float32 loss
             stall.observe(done, psnr_v, cur_lr)
             if history_every and done % history_every == 0:
                 history.append((done, loss_v, psnr_v))

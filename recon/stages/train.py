@@ -235,6 +235,12 @@ def run(ctx: StageContext) -> dict:
     if start_sdf is not None:
         model.set_initial_sdf(start_sdf)
     model = model.to(device)
+    if kind == "fast":
+        from recon.nerf.compiled import compile_color_network, compile_wanted
+
+        if compile_wanted(cfg.compile, device)[0]:  # on a CPU with train.compile=auto nothing changes, nothing is said
+            reasons.append(compile_color_network(model, device, cfg.compile))
+            ctx.report.info(f"model: {reasons[-1]}")
     images, c2w, intr, near_far = view_tensors(views, device)
     depth_prior, depth_why = depth_prior_for(cfg, kind, scene, train_frames, views, kwargs, aabb, near_far, device)
     if depth_why:

@@ -1,0 +1,239 @@
+"""The same closed-form checks on every device (`device` fixture: the CPU, and CUDA where present) for rays,
+compositing, grid reads and training steps; the GPU sizing of presets (`recon.config.device_sizing`); and the
+compiled colour network against its eager reference (`recon.nerf.compiled`)."""
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+
+import pytest
+import torch
+
+from recon.config import GPU_TIERS, device_sizing, load_config
+from recon.nerf.compiled import compile_color_network, compile_wanted
+from recon.nerf.fast import FastConfig, FastModel
+from recon.nerf.fitting import RayBatcher
+from recon.nerf.grid import DenseGrid, MultiDenseGrid
+from recon.nerf.rays import camera_rays, pixel_rays, ray_aabb
+from recon.nerf.render import render_packed, render_weights_packed
+from recon.nerf.trainer import train
+
+GiB = 2**30
+TINY = dict(density_res=24, feature_res=16, feature_dim=4, occupancy_res=8, occupancy_warmup=4,
+            occupancy_every=2, mlp_width=16, mlp_layers=1)
+
+
+# ----------------------------------------------------------------------------- rays
+def test_camera_rays_are_unit_and_the_centre_ray_looks_down_minus_z(device: torch.device) -> None:
+    c2w = torch.eye(4, device=device)
+    c2w[:3, 3] = torch.tensor([1.0, 2.0, 3.0])
+    o, d = camera_rays(c2w, 10.0, 10.0, 2.0, 2.0, 4, 4)
+    assert o.device.type == device.type and d.shape == (4, 4, 3)
+    torch.testing.assert_close(d.norm(dim=-1), torch.ones(4, 4, device=device))
+    # the pixel whose centre is 0.5 px right of and below the principal point: direction (0.05, -0.05, -1), normalized
+    torch.testing.assert_close(d[2, 2], torch.nn.functional.normalize(torch.tensor([0.05, -0.05, -1.0], device=device), dim=0))
+    torch.testing.assert_close(o[3, 1], torch.tensor([1.0, 2.0, 3.0], device=device))
+
+
+def test_pixel_rays_and_box_entry_match_the_geometry(device: torch.device) -> None:
+    n = 5
+    c2w = torch.eye(4, device=device).expand(n, 4, 4).clone()
+    c2w[:, 2, 3] = 3.0  # cameras at z = 3 looking down -Z at the unit box
+    f = torch.full((n,), 100.0, device=device)
+    c = torch.zeros(n, device=device)
+    px = torch.linspace(-20.0, 20.0, n, device=device)  # slopes x / f in [-0.2, 0.2]: in through the top, out the bottom
+    o, d = pixel_rays(c2w, f, f, c, c, px, torch.zeros(n, device=device))
+    t0, t1, hit = ray_aabb(o, d, torch.tensor([[-1.0] * 3, [1.0] * 3], device=device))
+    assert bool(hit.all())
+    torch.testing.assert_close(t0 * -d[:, 2], torch.full((n,), 2.0, device=device))  # enters the top face z = 1
+    torch.testing.assert_close(t1 * -d[:, 2], torch.full((n,), 4.0, device=device))  # leaves the bottom face z = -1
+
+
+# ----------------------------------------------------------------------------- compositing
+def test_packed_compositing_of_a_constant_density_is_beer_lambert(device: torch.device) -> None:
+    """Ray r has 10 samples (ray 1 none) of density r + 1, intervals of 0.1: T_i = exp(-σ 0.1 i), opacity 1 - exp(-σ)."""
+    counts = torch.tensor([10, 0, 10, 10], device=device)
+    ri = torch.repeat_interleave(torch.arange(4, device=device), counts)
+    sigma = (ri + 1).float()
+    delta = torch.full_like(sigma, 0.1)
+    i = torch.cat([torch.arange(int(c), device=device) for c in counts.cpu()]).float()
+    w, trans = render_weights_packed(sigma, delta, ri, 4)
+    torch.testing.assert_close(trans, torch.exp(-sigma * 0.1 * i))
+    out = render_packed(sigma, torch.full((ri.shape[0], 3), 0.25, device=device), 0.1 * (i + 0.5), delta, ri, 4,
+                        torch.ones(3, device=device))
+    opacity = 1 - torch.exp(-torch.tensor([1.0, 0.0, 3.0, 4.0], device=device))
+    torch.testing.assert_close(out["opacity"], opacity)
+    torch.testing.assert_close(out["rgb"], (0.25 * opacity + (1 - opacity))[:, None].expand(4, 3))
+
+
+# ----------------------------------------------------------------------------- grids
+def test_dense_grids_reproduce_a_linear_field_and_its_gradient(device: torch.device) -> None:
+    """Trilinear interpolation is exact on a linear function of the vertices, and d(read)/d(table) sums to 1."""
+    res = 9
+    lin = torch.linspace(0, 1, res, device=device)
+    gx, gy, gz = torch.meshgrid(lin, lin, lin, indexing="ij")
+    field = (1.0 + 2.0 * gx - 3.0 * gy + 0.5 * gz).reshape(-1, 1)
+    grid = DenseGrid(res, 2).to(device)
+    with torch.no_grad():
+        grid.table.copy_(torch.cat([field, 2 * field], dim=1))
+    x = torch.rand(200, 3, generator=torch.Generator().manual_seed(0)).to(device)
+    expect = 1.0 + 2.0 * x[:, 0] - 3.0 * x[:, 1] + 0.5 * x[:, 2]
+    out = grid(x)
+    torch.testing.assert_close(out, torch.stack([expect, 2 * expect], dim=1), rtol=1e-5, atol=1e-5)
+    out[:, 0].sum().backward()
+    assert float(grid.table.grad[:, 0].sum()) == pytest.approx(200.0, rel=1e-5)
+    levels = MultiDenseGrid(17, 1, levels=2).to(device)  # one channel: the grid_sample path, summed over levels
+    with torch.no_grad():
+        for g in levels.grids:
+            lg = torch.linspace(0, 1, g.res, device=device)
+            g.table.copy_(lg[:, None, None].expand(g.res, g.res, g.res).reshape(-1, 1))
+    torch.testing.assert_close(levels(x)[:, 0], 2 * x[:, 0], rtol=1e-5, atol=1e-5)
+
+
+# ----------------------------------------------------------------------------- a training step
+def _ball_batcher(device: torch.device, size: int = 16, views: int = 6) -> RayBatcher:
+    """Views of a red ball of radius 0.5 at the origin on white (its silhouette drawn in closed form)."""
+    angles = torch.arange(views) * 2 * math.pi / views
+    c2w = []
+    for a in angles:
+        eye = torch.tensor([3 * math.cos(a), 3 * math.sin(a), 0.6])
+        back = eye / eye.norm()
+        right = torch.nn.functional.normalize(torch.linalg.cross(torch.tensor([0.0, 0.0, 1.0]), back), dim=0)
+        m = torch.eye(4)
+        m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = right, torch.linalg.cross(back, right), back, eye
+        c2w.append(m)
+    c2w = torch.stack(c2w)
+    f = 1.2 * size
+    intr = torch.tensor([[f, f, size / 2, size / 2]]).expand(views, 4).contiguous()
+    images = []
+    for m in c2w:
+        o, d = camera_rays(m, f, f, size / 2, size / 2, size, size)
+        closest = (o - (o * d).sum(-1, keepdim=True) * d).norm(dim=-1)
+        images.append(torch.where((closest < 0.5)[..., None], torch.tensor([1.0, 0.1, 0.1]), torch.ones(3)))
+    return RayBatcher(torch.stack(images), c2w, intr, aabb=torch.tensor([[-1.0] * 3, [1.0] * 3]), device=device)
+
+
+def test_training_steps_fit_a_ball_on_every_device(device: torch.device) -> None:
+    torch.manual_seed(0)
+    model = FastModel(FastConfig(aabb=((-1.0,) * 3, (1.0,) * 3), **TINY)).to(device)
+    result = train(model, _ball_batcher(device), steps=20, lr=1e-2, batch_rays=256, history_every=5)
+    first, last = result["history"][0][2], result["history"][-1][2]
+    assert math.isfinite(result["loss"]) and last > first + 3.0, result["history"]
+    assert model.density_grid.grids[0].table.device.type == device.type
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA: compares a CUDA training step with the CPU's")
+def test_a_cuda_training_step_agrees_with_the_cpu() -> None:
+    """One step from the same weights on the same rays: the same loss and the same grid update, to float tolerance."""
+    results = {}
+    for name in ("cpu", "cuda"):
+        dev = torch.device(name)
+        torch.manual_seed(0)
+        model = FastModel(FastConfig(aabb=((-1.0,) * 3, (1.0,) * 3), **TINY)).to(dev)
+        out = train(model, _ball_batcher(dev), steps=1, lr=1e-2, batch_rays=256)
+        results[name] = (out["loss"], model.color_grid.table.detach().cpu())
+    assert results["cuda"][0] == pytest.approx(results["cpu"][0], rel=1e-3)
+    torch.testing.assert_close(results["cuda"][1], results["cpu"][1], rtol=1e-3, atol=1e-5)
+
+
+# ----------------------------------------------------------------------------- compiled colour network
+def test_compile_is_on_for_cuda_only_unless_asked() -> None:
+    assert not compile_wanted("auto", torch.device("cpu"))[0]
+    assert compile_wanted("auto", torch.device("cuda"))[0]
+    assert compile_wanted("on", torch.device("cpu"))[0] and not compile_wanted("off", torch.device("cuda"))[0]
+    model = FastModel(FastConfig(**TINY))
+    assert "off on cpu" in compile_color_network(model, torch.device("cpu"), "auto")
+    assert "forward" not in vars(model.color_mlp)
+
+
+def test_compiled_color_network_matches_its_eager_reference_and_keeps_the_weights() -> None:
+    """aot_eager traces the graph inductor would build kernels from, without building them (fast on a CPU)."""
+    torch.manual_seed(0)
+    model = FastModel(FastConfig(**TINY))
+    keys = list(model.state_dict())
+    f = torch.rand(33, model.color_mlp[0].in_features)
+    eager = model.color_mlp(f)
+    graphs = []
+
+    def counting(graph: torch.fx.GraphModule, example_inputs: list) -> Callable[..., list]:
+        graphs.append(graph)
+        return torch._dynamo.backends.debugging.aot_eager(graph, example_inputs)
+
+    why = compile_color_network(model, torch.device("cpu"), "on", backend=counting)
+    assert "eager network is its reference" in why and len(graphs) == 1  # the no-grad probe's graph
+    torch.testing.assert_close(model.color_mlp(f), eager)
+    torch.testing.assert_close(model.color_mlp(f[:5]), eager[:5])
+    with torch.no_grad():
+        torch.testing.assert_close(model.color_mlp(f[:9]), eager[:9])
+    assert len(graphs) == 2  # one graph with gradients, one without, whatever the sample count
+    assert list(model.state_dict()) == keys
+
+
+def test_a_compiled_network_that_disagrees_with_its_reference_is_dropped() -> None:
+    def miscompiled(graph: torch.fx.GraphModule, example_inputs: list) -> Callable[..., list]:
+        return lambda *args: [out + 0.1 for out in graph(*args)]
+
+    model = FastModel(FastConfig(**TINY))
+    why = compile_color_network(model, torch.device("cpu"), "on", backend=miscompiled)
+    assert why.startswith("torch.compile: failed (AssertionError") and "stays eager" in why
+    assert "forward" not in vars(model.color_mlp)
+
+
+# ----------------------------------------------------------------------------- GPU sizing of presets
+@pytest.mark.parametrize("preset", ["fast", "balanced", "quality", "surface"])
+def test_a_large_gpu_gets_more_rays_finer_grids_and_a_higher_step_cap(preset: str) -> None:
+    base = load_config(preset, ["train.device=cpu"])
+    sized, why = device_sizing(base, 80 * GiB, "Test GPU")
+    _, rays_x, grid_x, steps_x = GPU_TIERS[0]
+    assert sized.train.batch_rays == rays_x * base.train.batch_rays
+    assert sized.train.steps == steps_x * base.train.steps and sized.train.budget == base.train.budget
+    res = ("fast", "density_res") if preset != "surface" else ("surface", "sdf_res")
+    before, after = getattr(getattr(base.train, res[0]), res[1]), getattr(getattr(sized.train, res[0]), res[1])
+    assert after % 16 == 0 and abs(after - grid_x * before) <= 8
+    assert why.startswith("GPU sizing (Test GPU, 80 GiB") and f"train.batch_rays={base.train.batch_rays}→" in why
+    assert base == load_config(preset, ["train.device=cpu"])  # the preset itself is untouched
+
+
+def test_sizing_grows_with_memory_and_leaves_small_gpus_classic_and_set_values_alone() -> None:
+    base = load_config("fast", ["train.device=cpu"])
+    rays = [device_sizing(base, gib * GiB, "g")[0].train.batch_rays for gib in (4, 8, 24, 80)]
+    assert rays == [4096, 8192, 16384, 32768]
+    assert device_sizing(base, 4 * GiB, "small") == (base, "")
+    classic = load_config("classic", ["train.device=cuda"])
+    assert device_sizing(classic, 80 * GiB, "g") == (classic, "")
+    kept, why = device_sizing(base, 80 * GiB, "g", keep=frozenset({"train.batch_rays", "train.fast.density_res"}))
+    assert kept.train.batch_rays == 4096 and kept.train.fast.density_res == 160 and kept.train.fast.feature_res > 128
+    assert "train.batch_rays" not in why
+    budgetless = load_config("fast", ["train.device=cpu", "train.budget="])
+    assert device_sizing(budgetless, 80 * GiB, "g")[0].train.steps == budgetless.train.steps  # a cap only with a budget
+
+
+def test_grids_stay_the_presets_when_the_card_could_not_hold_them() -> None:
+    huge = load_config("fast", ["train.device=cpu", "train.fast.feature_res=256"])  # 3.2 GiB to train; 320³: 6.3
+    sized, why = device_sizing(huge, 16 * GiB, "g")
+    assert sized.train.fast == huge.train.fast and sized.train.batch_rays == 4 * 4096
+    assert "feature_res" not in why
+
+
+def test_load_config_sizes_presets_on_cuda_and_set_wins(monkeypatch: pytest.MonkeyPatch) -> None:
+    import recon.nerf.device as device_module
+
+    monkeypatch.setattr(device_module, "cuda_memory", lambda pref: (80 * GiB, "Fake H100"))
+    sized = load_config("fast", ["train.device=cuda"])
+    assert sized.train.batch_rays == 32768 and sized.train.adjusted.startswith("GPU sizing (Fake H100")
+    user = load_config("fast", ["train.device=cuda", "train.batch_rays=8192"])
+    assert user.train.batch_rays == 8192 and user.train.steps == sized.train.steps
+    assert load_config("fast", ["train.device=cuda", "train.device_sizing=off"]).train.batch_rays == 4096
+    cpu = load_config("fast", ["train.device=cpu"])
+    assert cpu.train.batch_rays == 4096 and cpu.train.adjusted == ""
+
+
+def test_cuda_memory_is_none_for_the_cpu() -> None:
+    from recon.nerf.device import cuda_memory
+
+    assert cuda_memory("cpu") is None
+    if not torch.cuda.is_available():
+        assert cuda_memory("auto") is None and cuda_memory("cuda:0") is None
+    else:
+        memory, name = cuda_memory("cuda")
+        assert memory > 0 and name
