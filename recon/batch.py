@@ -397,10 +397,11 @@ def run_batch(
     require_ray()
     config = load_config(preset, overrides)  # a bad option fails here, before Ray starts
     captures = expand_inputs(inputs)
+    adopt_unrecorded_batch(out)
     owned = claim_folder(out, "batch", [c.source for c in captures if not c.error])
     renamed = place_captures(captures, owned)
-    owned.save(REPORT_FILES)  # before any capture runs: a re-run after a crash finds every capture's folder
     prepare_scene_dir(owned.path)
+    owned.save(REPORT_FILES)  # before any capture runs: a re-run after a crash finds every capture's folder
     ray = start_ray(address)
     resources = task_resources(config, ray.cluster_resources(), cpus_per_capture)
     nodes = [n["Resources"] for n in ray.nodes() if n.get("Alive")]
@@ -463,6 +464,27 @@ def run_batch(
     result["earlier"] = earlier_records(out, {c.name for c in captures})
     write_batch_reports(out, result)
     return result
+
+
+def adopt_unrecorded_batch(out: Path) -> None:
+    """Give a batch folder from before batches kept a record (`.recon-batch.json`) its record, read from its batch.json.
+
+    Only a folder that holds nothing but batch.md, batch.json and the capture folders that batch.json names (each
+    inside OUT) is taken as recon's; anything else stays a folder `claim_folder` refuses.
+    """
+    owned = OwnedFolder(out, "batch")
+    if not out.is_dir() or owned.marker.exists():
+        return
+    try:
+        previous = read_json(out / "batch.json")
+        rows = [r for r in previous.get("captures", []) if isinstance(r, dict)]
+        captures = {r["name"]: r["source"] for r in rows
+                    if isinstance(r.get("name"), str) and isinstance(r.get("source"), str) and Path(r.get("folder", "")).parent == out}
+    except (OSError, ValueError, AttributeError, TypeError):
+        return
+    if {p.name for p in out.iterdir()} <= set(REPORT_FILES) | set(captures):
+        owned.record["captures"] = captures
+        owned.save(REPORT_FILES)
 
 
 def earlier_records(out: Path, names: set[str]) -> list[dict[str, Any]]:

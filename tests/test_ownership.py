@@ -72,3 +72,21 @@ def test_batch_captures_keep_their_folders_and_a_taken_name_gets_the_next(tmp_pa
     assert [x.name for x in captures] == ["shoe-3", "shoe", "shoe-4"]  # a keeps its folder; shoe-2 is not recon's
     assert notes[0] == f"{b} → {out / 'shoe-3'}: {out / 'shoe'} holds {a}"
     assert owned.record["captures"] == {"shoe": str(a), "shoe-3": str(b), "shoe-4": str(c)}
+
+
+def test_a_batch_folder_from_before_records_is_taken_only_when_it_holds_nothing_else(tmp_path: Path) -> None:
+    from recon.batch import adopt_unrecorded_batch
+
+    out = tmp_path / "batch"
+    (out / "shoe").mkdir(parents=True)
+    (out / "shoe" / "manifest.json").write_text("{}")
+    (out / "batch.md").write_text("# recon batch")
+    (out / "batch.json").write_text(json.dumps({"captures": [{"name": "shoe", "source": "/x/shoe", "folder": str(out / "shoe")}]}))
+    (out / "notes.txt").write_text("mine")
+    adopt_unrecorded_batch(out)
+    with pytest.raises(InputError, match="notes.txt"):
+        claim_folder(out, "batch")
+    (out / "notes.txt").unlink()
+    adopt_unrecorded_batch(out)
+    owned = claim_folder(out, "batch")
+    assert owned.record["captures"] == {"shoe": "/x/shoe"} and owned.files == {"batch.md", "batch.json"}
