@@ -4,7 +4,11 @@ Ray does the scheduling: every capture is a task that asks for the CPUs, GPU and
 Ray packs as many captures onto each node as fit. A task runs `Pipeline.run` into `OUT/<capture name>/`
 exactly as `recon run` would, so a re-run batch (or a task Ray retries after its worker died) resumes each
 capture from its cache. A capture that fails records its error and the others go on; `OUT/batch.md` and
-`OUT/batch.json` sum up every capture at the end.
+`OUT/batch.json` sum up this batch's captures, then those only earlier batches into OUT ran.
+
+OUT follows recon's ownership rule (`recon.ownership`): its `.recon-batch.json` records which capture each folder
+holds, so a capture keeps its folder across batches and another capture of the same name gets name-2 instead of
+replacing it.
 """
 from __future__ import annotations
 
@@ -303,7 +307,7 @@ def start_ray(address: str | None) -> Any:
 
     Workers get this recon on their PYTHONPATH (on a cluster: a path all nodes see, like the outputs) and
     OMP_WAIT_POLICY=PASSIVE; Ray itself sets OMP_NUM_THREADS to each task's CPUs, which recon's torch honors.
-    A Ray started here listens on loopback only (`_start_local_ray`): joining a cluster is always explicit.
+    A Ray started here listens on loopback only (`_init_on_loopback`): joining a cluster is always explicit.
     """
     import logging
 
