@@ -398,11 +398,13 @@ def run_batch(
     A capture's ReconError is recorded and the others go on; a worker that dies is retried by Ray up to
     `retries` times (each retry resumes from the capture's cache).
     """
+    from recon.stages import scene_parts
+
     require_ray()
     config = load_config(preset, overrides)  # a bad option fails here, before Ray starts
     captures = expand_inputs(inputs)
     adopt_unrecorded_batch(out)
-    owned = claim_folder(out, "batch", [c.source for c in captures if not c.error])
+    owned = claim_folder(out, "batch", scene_parts, [c.source for c in captures if not c.error])
     renamed = place_captures(captures, owned)
     prepare_scene_dir(owned.path)
     owned.save(REPORT_FILES)  # before any capture runs: a re-run after a crash finds every capture's folder

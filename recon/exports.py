@@ -80,7 +80,9 @@ def export_scene(scene_dir: Path, fmt: ExportFormat, out: Path, frame: ExportFra
     if fmt not in FORMATS:
         raise ReconError(f"--format must be one of {', '.join(FORMATS)}; got '{fmt}'.")
     scene = scene_in_frame(scene_dir, frame)
-    owned = claim_folder(out, "export")
+    from recon.stages import scene_parts
+
+    owned = claim_folder(out, "export", scene_parts)
     with owned.staging() as tmp:
         if fmt == "points":
             written = [write_points_ply(scene, tmp / POINTS_FILE)]

@@ -89,8 +89,9 @@ def render_path(scene_dir: Path, kind: PathKind, out_dir: Path, frames: int = 60
     whose files recon replaces while a file of the user's in the way is refused before anything renders.
     """
     from recon.plots import depth_to_color
+    from recon.stages import scene_parts
 
-    owned = claim_folder(out_dir, "render")
+    owned = claim_folder(out_dir, "render", scene_parts)
     owned.check_free(render_names(load_scene(scene_dir / "02_scene"), kind, frames, depth))
     scene, model, meta, aabb = _trained(scene_dir, device)
     background = np.asarray(meta["background"], dtype=np.float32)

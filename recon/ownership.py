@@ -11,7 +11,7 @@ from __future__ import annotations
 import contextlib
 import os
 import shutil
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Collection, Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -76,30 +76,25 @@ def overlap_reason(resolved: Path, source: Path) -> str | None:
     return None
 
 
-def scene_part_reason(resolved: Path) -> str | None:
+def scene_part_reason(resolved: Path, scene_parts: Callable[[], Collection[str]]) -> str | None:
     """Why `resolved` lies inside a part of a scene recon manages (a stage folder, its logs, its scratch), else None.
 
-    A scene is a folder with a manifest.json above `resolved`; what recon makes at its top level is listed by the
-    runner and the stages (imported only when a scene is found, so a plain --out pays nothing for them). The scene
-    folder itself is not refused here: it is a non-empty folder with recon's record of a run, which only `recon run`
-    may write into.
+    A scene is a folder with a manifest.json above `resolved`; `scene_parts()` names what recon makes at its top
+    level (`recon.stages.scene_parts`: called only when a scene is found, so a plain --out never loads the stages).
+    The scene folder itself is not refused here: it is a non-empty folder with recon's record of a run, which only
+    `recon run` may write into.
     """
     for scene in resolved.parents:
         if not (scene / "manifest.json").is_file():
             continue
-        from recon.pipeline import RECON_NAMES
-        from recon.stages import STAGES
-
         top = resolved.relative_to(scene).parts[0]
-        if top in {s.folder for s in STAGES}:
-            return f"inside the stage folder {scene / top} of the scene {scene}, which recon replaces whole when the stage re-runs"
-        if top in RECON_NAMES:
-            return f"inside {scene / top}, which recon keeps for the scene {scene}"
-        return None
+        if top not in scene_parts():
+            return None
+        return f"inside {scene / top}, a part of the scene {scene} that recon replaces or cleans up when it runs"
     return None
 
 
-def _problem(resolved: Path, inputs: Sequence[Path]) -> str | None:
+def _problem(resolved: Path, inputs: Sequence[Path], scene_parts: Callable[[], Collection[str]]) -> str | None:
     why = forbidden_reason(resolved)
     if why:
         return f"it is {why}"
@@ -107,7 +102,7 @@ def _problem(resolved: Path, inputs: Sequence[Path]) -> str | None:
         relation = overlap_reason(resolved, source)
         if relation:
             return f"it {relation} {source}, and recon never writes among its inputs (nor puts them among its outputs)"
-    why = scene_part_reason(resolved)
+    why = scene_part_reason(resolved, scene_parts)
     if why:
         return f"it is {why}"
     return None
@@ -227,7 +222,8 @@ def _read_record(marker: Path, folder: Path) -> tuple[set[str], dict[str, Any]]:
     return set(files), record
 
 
-def claim_folder(out: Path, kind: str, inputs: Sequence[Path] = (), option: str = "--out") -> OwnedFolder:
+def claim_folder(out: Path, kind: str, scene_parts: Callable[[], Collection[str]], inputs: Sequence[Path] = (),
+                 option: str = "--out") -> OwnedFolder:
     """Check that recon may write `kind` output into `out`, and read what it wrote there before; writes nothing.
 
     Refused (InputError): a link that loops or leads nowhere, the root, the home folder or above, a folder that
@@ -237,7 +233,7 @@ def claim_folder(out: Path, kind: str, inputs: Sequence[Path] = (), option: str 
     resolved = resolve_path(out, option)
     what = KIND_WORDS.get(kind, f"recon's {kind}")
     sources = [resolve_path(Path(p), "The input") for p in inputs]
-    why = _problem(resolved, sources)
+    why = _problem(resolved, sources, scene_parts)
     if why:
         raise InputError(f"Refusing to write {what} into {out}: {why}. Give {option} a new folder elsewhere.")
     if os.path.lexists(resolved) and not resolved.is_dir():

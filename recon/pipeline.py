@@ -219,7 +219,7 @@ def check_scene_dir(scene_dir: Path, source: Path | None, stage_folders: list[st
             f"Refusing to use {scene_dir} as the output folder: it is {why}, and recon would write its scene files "
             f"there. Give --out a new folder, e.g. --out {Path.home() / 'recon-scene'}."
         )
-    why = scene_part_reason(resolved)
+    why = scene_part_reason(resolved, lambda: RECON_NAMES | set(stage_folders))
     if why:
         raise ReconError(f"Refusing to use {scene_dir} as the output folder: it is {why}. Give --out a folder outside it.")
     if source is not None:

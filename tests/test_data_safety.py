@@ -468,11 +468,12 @@ def test_batch_out_may_not_be_the_photos_home_or_a_users_folder(capture: Path, t
     assert snapshot(out) == before
 
 
-def test_export_and_render_never_write_into_a_stage_folder(trained: Path) -> None:
+def test_export_and_render_never_write_into_a_stage_folder(tiny: Path, trained: Path) -> None:
     """`recon export --out SCENE/03_field/x` or `recon render --out SCENE/04_mesh` corrupted the stage, which then re-ran."""
     before = snapshot(trained)
-    assert_refused(*recon("export", trained, "--out", trained / "03_field" / "x"), "inside the stage folder", "03_field")
-    assert_refused(*recon("render", trained, "--out", trained / "02_scene", "--frames", "1"), "inside the stage folder")
+    assert_refused(*recon("run", tiny, "--out", trained / "03_field" / "nested", *QUICK), f"inside {trained / '03_field'}")
+    assert_refused(*recon("export", trained, "--out", trained / "03_field" / "x"), f"inside {trained / '03_field'}, a part of the scene")
+    assert_refused(*recon("render", trained, "--out", trained / "02_scene", "--frames", "1"), f"inside {trained / '02_scene'}, a part")
     assert_refused(*recon("render", trained, "--out", trained, "--frames", "1"), "it holds a recon scene, not a recon render")
     assert snapshot(trained) == before
 

@@ -1,7 +1,7 @@
 """The pipeline's stages, in order. Each module is thin: it wires config and artifacts to the libraries."""
 from __future__ import annotations
 
-from recon.pipeline import Pipeline, Stage
+from recon.pipeline import RECON_NAMES, Pipeline, Stage
 from recon.stages import mesh, normalize, poses, train
 
 STAGES: list[Stage] = [poses.STAGE, normalize.STAGE, train.STAGE, mesh.STAGE]
@@ -9,3 +9,9 @@ STAGES: list[Stage] = [poses.STAGE, normalize.STAGE, train.STAGE, mesh.STAGE]
 
 def default_pipeline() -> Pipeline:
     return Pipeline(STAGES)
+
+
+def scene_parts() -> frozenset[str]:
+    """What recon makes at the top of a scene folder (stage folders, manifest, lock, logs, scratch): no other
+    output of recon may be written inside them (`recon.ownership`)."""
+    return RECON_NAMES | {s.folder for s in STAGES}
