@@ -386,7 +386,9 @@ MIN_CAMERAS_TO_JUDGE = 5
 """Medians of fewer cameras say too little about what the rest agree on: nothing is left out below this."""
 
 
-def pose_outliers(names: list[str], centres: np.ndarray, points_seen: np.ndarray, errors_px: np.ndarray) -> dict[str, str]:
+def pose_outliers(
+    names: list[str], centres: np.ndarray, points_seen: np.ndarray, errors_px: np.ndarray
+) -> dict[str, str]:
     """The cameras whose pose disagrees with the rest, each with the reason in a sentence.
 
     names: (N,); centres: (N, 3) camera centres, any similarity frame; points_seen: (N,) sparse points each

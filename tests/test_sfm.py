@@ -366,7 +366,8 @@ def test_a_camera_moved_far_off_a_real_model_is_deregistered(sample_poses: tuple
     pose = image.cam_from_world()
     centre = middle + 7 * spread * (centres[3] - middle) / np.linalg.norm(centres[3] - middle)
     rotation = pose.rotation.matrix()
-    model.frame(image.frame_id).set_cam_from_world(image.camera_id, pycolmap.Rigid3d(np.hstack([rotation, (-rotation @ centre)[:, None]])))
+    moved = pycolmap.Rigid3d(np.hstack([rotation, (-rotation @ centre)[:, None]]))
+    model.frame(image.frame_id).set_cam_from_world(image.camera_id, moved)
     observations = image.num_points3D
     points_before = model.num_points3D()
     out = leave_out_outliers(model)

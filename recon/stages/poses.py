@@ -245,7 +245,8 @@ def _structure_from_motion(ctx: StageContext, photos: list[Path] | None = None) 
         first, last = result.attempts[0], result.attempts[-1]
         helped = "helped" if last["registered"] > first["registered"] else "did not help"
         ctx.report.info(
-            f"registration retry: the first pass ({first['settings']}) registered {first['registered']}/{len(names)} photos; "
+            f"registration retry: the first pass ({first['settings']}) registered "
+            f"{first['registered']}/{len(names)} photos; "
             f"retried with {last['settings']}: {last['registered']}/{len(names)} ({helped})"
         )
     ref = result.refinement
