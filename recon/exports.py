@@ -80,9 +80,7 @@ def export_scene(scene_dir: Path, fmt: ExportFormat, out: Path, frame: ExportFra
     if fmt not in FORMATS:
         raise ReconError(f"--format must be one of {', '.join(FORMATS)}; got '{fmt}'.")
     scene = scene_in_frame(scene_dir, frame)
-    from recon.stages import scene_parts
-
-    owned = claim_folder(out, "export", scene_parts)
+    owned = claim_folder(out, "export", _scene_parts)
     with owned.staging() as tmp:
         if fmt == "points":
             written = [write_points_ply(scene, tmp / POINTS_FILE)]
@@ -96,6 +94,14 @@ def export_scene(scene_dir: Path, fmt: ExportFormat, out: Path, frame: ExportFra
         owned.record = {"format": fmt, "frame": frame, "scene": str(scene_dir.resolve()), "cameras": len(scene.frames)}
         owned.replace_with(tmp)
     return [out / p.relative_to(tmp) for p in written]
+
+
+def _scene_parts() -> frozenset[str]:
+    """`recon.stages.scene_parts`, loaded only when --out lies inside a scene: the stages load torch (~7 s cold),
+    which an export otherwise never needs."""
+    from recon.stages import scene_parts
+
+    return scene_parts()
 
 
 def export_names(scene: Scene) -> list[str]:
