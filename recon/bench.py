@@ -189,6 +189,16 @@ def run_bench(
             row["chamfer_rel"] = acc.get("chamfer_l1_rel")
             row["fscore_05pct"] = acc.get("fscore@0.005")
             row["normal_consistency"] = acc.get("normal_consistency")
+            row["pose_residual_rms_rel"] = acc.get("alignment", {}).get("residual_rms_rel")
+            if (gt.parent / "masks").is_dir():  # true object masks beside the truth: score the cut-outs too
+                from recon.mesh_eval import silhouette_iou
+
+                cut = silhouette_iou(scene, gt.parent / "masks")
+                row["capture"] = json.loads((scene / "02_scene" / "scene.json").read_text()).get("capture")
+                for key, name in (("mean_iou", "silhouette_iou"), ("min_iou", "silhouette_iou_min"),
+                                  ("mean_masks_iou", "masks_iou"), ("min_masks_iou", "masks_iou_min")):
+                    if key in cut:
+                        row[name] = round(cut[key], 4)
         rows.append(row)
         write_results(rows, out_dir, data)
     return rows

@@ -300,11 +300,11 @@ def eval_(
             result = silhouette_iou(scene, gt_masks)
             target.mkdir(parents=True, exist_ok=True)
             write_json_atomic(target / "silhouette_iou.json", result)
-            line = (f"mesh silhouette vs {gt_masks}: IoU {result['mean_iou']:.3f} (least {result['min_iou']:.3f}), "
-                    f"precision {result['mean_precision']:.3f}, recall {result['mean_recall']:.3f} over {len(result['views'])} photos")
-            if "mean_masks_iou" in result:
-                line += f"; the scene's masks: IoU {result['mean_masks_iou']:.3f}"
-            out_console.print(line + f" — {target / 'silhouette_iou.json'}", markup=False)
+            parts = [f"{what} IoU {result[f'mean_{key}iou']:.3f} (least {result[f'min_{key}iou']:.3f}), precision "
+                     f"{result[f'mean_{key}precision']:.3f}, recall {result[f'mean_{key}recall']:.3f}"
+                     for what, key in (("mesh silhouette", ""), ("the scene's masks", "masks_")) if f"mean_{key}iou" in result]
+            out_console.print(f"against {gt_masks} over {len(result['views'])} photos: " + "; ".join(parts)
+                              + f" — {target / 'silhouette_iou.json'}", markup=False)
         if gt_mesh is not None:
             from recon.mesh_eval import compare_to_gt, format_comparison
             from recon.atomic import write_json_atomic

@@ -216,7 +216,7 @@ MASK_EVAL_SIDE = 800
 
 
 def silhouette_iou(scene_dir: Path, masks_dir: Path) -> dict[str, Any]:
-    """How well the scene's mesh (and its automatic masks, if any) cut the object out of each photo, against masks
+    """How well the scene's mesh (once meshed) and its masks (if any) cut the object out of each photo, against masks
     the user trusts (white = object, same stems as the photos): per photo and mean IoU, precision and recall.
 
     The mesh is rendered into every photo that has a mask in `masks_dir`, in the normalized frame with the scene's
@@ -226,7 +226,8 @@ def silhouette_iou(scene_dir: Path, masks_dir: Path) -> dict[str, Any]:
     from recon.images import IMAGE_SUFFIXES, read_mask, undistort
 
     scene = load_scene(scene_dir / SCENE_FOLDER)
-    vertices, faces, _ = our_mesh_in_scene_frame(scene_dir)
+    meshed = (scene_dir / MESH_FOLDER / "mesh_report.json").is_file()
+    vertices, faces, _ = our_mesh_in_scene_frame(scene_dir) if meshed else (None, None, None)
     truth = {p.stem: p for p in sorted(masks_dir.iterdir()) if p.suffix.lower() in IMAGE_SUFFIXES} if masks_dir.is_dir() else {}
     rows: dict[str, dict[str, float]] = {}
     for frame in scene.frames:
@@ -240,17 +241,20 @@ def silhouette_iou(scene_dir: Path, masks_dir: Path) -> dict[str, Any]:
             return undistort(read_mask(path, (w, h)), *intr, frame.distortion, frame.camera_model) >= 0.5
 
         true = pinhole(truth[frame.stem])
-        xy, z = project(vertices, frame.c2w, np.asarray(intr))
-        mesh = rasterize(xy, z, faces, (h, w))[0] >= 0
-        row = _overlap(mesh, true)
+        row: dict[str, float] = {}
+        if meshed:
+            xy, z = project(vertices, frame.c2w, np.asarray(intr))
+            row = _overlap(rasterize(xy, z, faces, (h, w))[0] >= 0, true)
         if frame.mask_path and Path(frame.mask_path).is_file():  # the masks the scene trained with
             row.update({f"masks_{k}": v for k, v in _overlap(pinhole(Path(frame.mask_path)), true).items()})
         rows[frame.name] = row
     if not rows:
         raise ReconError(f"No mask in {masks_dir} has the name of a photo of {scene_dir}. Give masks named like the photos.")
-    keys = next(iter(rows.values())).keys()
+    keys = sorted({k for r in rows.values() for k in r})
+    if not keys:
+        raise ReconError(f"{scene_dir} has neither a mesh nor masks to score: run recon on it first.")
     return {"views": rows, **{f"mean_{k}": float(np.mean([r[k] for r in rows.values() if k in r])) for k in keys},
-            "min_iou": float(min(r["iou"] for r in rows.values()))}
+            **{f"min_{k}": float(min(r[k] for r in rows.values() if k in r)) for k in keys if k.endswith("iou")}}
 
 
 def _overlap(found: np.ndarray, true: np.ndarray) -> dict[str, float]:

@@ -181,3 +181,10 @@ def test_recon_eval_gt_masks_scores_the_mesh_silhouette(tmp_path) -> None:
     for name, mask in truth.items():
         Image.fromarray(np.roll(mask, 25, axis=1).astype(np.uint8) * 255).save(moved / f"{name[:-4]}.png")
     assert silhouette_iou(tmp_path, moved)["mean_iou"] < result["mean_iou"] - 0.3
+    import shutil
+
+    from recon.errors import ReconError
+
+    shutil.rmtree(mesh_dir)  # before the mesh stage only the scene's own masks can be scored, and this scene has none
+    with pytest.raises(ReconError, match="neither a mesh nor masks"):
+        silhouette_iou(tmp_path, masks)
