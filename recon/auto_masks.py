@@ -28,6 +28,8 @@ GROUND_BAND = 0.02
 """Sparse points within this fraction of the region's size of the support plane are the plane's (background)."""
 SEED_RADIUS = 0.004
 """Seed discs around projected sparse points, as a fraction of the photo's diagonal."""
+MIN_PIECE = 0.02
+"""Pieces of a cut smaller than this fraction of its largest seeded piece are dropped (a stray point's seed disc)."""
 MAX_SPECK = 2e-4
 """Enclosed background pieces smaller than this fraction of the photo are noise in the cut and become object."""
 HULL_RES = 96
@@ -214,11 +216,15 @@ def _grabcut(cv2, photo: np.ndarray, fg: np.ndarray, bg: np.ndarray, box_uv: np.
 def _keep_seeded_pieces(cv2, cut: np.ndarray, fg: np.ndarray) -> np.ndarray:
     """The connected pieces of the cut that hold an object seed, with pinholes (enclosed specks under
     MAX_SPECK of the photo) filled; larger enclosed background — a handle's opening — stays background."""
-    _, labels = cv2.connectedComponents(cut.astype(np.uint8), connectivity=8)
+    _, labels, pieces, _ = cv2.connectedComponentsWithStats(cut.astype(np.uint8), connectivity=8)
     h, w = cut.shape
     px = np.clip(np.round(fg).astype(np.int64), 0, [w - 1, h - 1])
     seeded = np.unique(labels[px[:, 1], px[:, 0]])
-    keep = np.isin(labels, seeded[seeded > 0])
+    seeded = seeded[seeded > 0]
+    if len(seeded):  # a stray point's lone seed disc is no piece of the object
+        area = pieces[seeded, cv2.CC_STAT_AREA]
+        seeded = seeded[area >= MIN_PIECE * area.max()]
+    keep = np.isin(labels, seeded)
     count, holes, stats, _ = cv2.connectedComponentsWithStats((~keep).astype(np.uint8), connectivity=4)
     border = np.unique(np.concatenate([holes[0], holes[-1], holes[:, 0], holes[:, -1]]))
     small = np.flatnonzero(stats[:, cv2.CC_STAT_AREA] < MAX_SPECK * h * w)
