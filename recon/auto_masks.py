@@ -200,7 +200,7 @@ def _grabcut(cv2, photo: np.ndarray, fg: np.ndarray, bg: np.ndarray, box_uv: np.
         return np.zeros((h, w), bool)
     hull = cv2.convexHull(np.round(fg).astype(np.int32))
     cv2.fillConvexPoly(label, hull, int(cv2.GC_PR_FGD))
-    radius = max(1, int(round(SEED_RADIUS * np.hypot(w, h))))
+    radius = max(1, round(SEED_RADIUS * float(np.hypot(w, h))))
     for u, v in np.round(bg).astype(np.int32):
         cv2.circle(label, (int(u), int(v)), radius, int(cv2.GC_BGD), -1)
     for u, v in np.round(fg).astype(np.int32):
@@ -225,7 +225,7 @@ def _keep_seeded_pieces(cv2, cut: np.ndarray, fg: np.ndarray) -> np.ndarray:
         area = pieces[seeded, cv2.CC_STAT_AREA]
         seeded = seeded[area >= MIN_PIECE * area.max()]
     keep = np.isin(labels, seeded)
-    count, holes, stats, _ = cv2.connectedComponentsWithStats((~keep).astype(np.uint8), connectivity=4)
+    _, holes, stats, _ = cv2.connectedComponentsWithStats((~keep).astype(np.uint8), connectivity=4)
     border = np.unique(np.concatenate([holes[0], holes[-1], holes[:, 0], holes[:, -1]]))
     small = np.flatnonzero(stats[:, cv2.CC_STAT_AREA] < MAX_SPECK * h * w)
     return keep | np.isin(holes, np.setdiff1d(small, border))
@@ -263,7 +263,7 @@ def _silhouette(cv2, hull_pts: np.ndarray, cell: float, c2w: np.ndarray, intr: n
     gap = int(np.ceil(spacing))  # close the gaps between splatted vertices, then grow by half a cell
     closing = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * gap + 1, 2 * gap + 1))
     out = cv2.morphologyEx(out.astype(np.uint8), cv2.MORPH_CLOSE, closing)
-    half = int(round(0.5 * spacing))
+    half = round(0.5 * spacing)
     if half > 0:
         out = cv2.dilate(out, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * half + 1, 2 * half + 1)))
     return out.astype(bool)

@@ -19,7 +19,7 @@ import trimesh
 from recon.atomic import read_json
 from recon.errors import ReconError
 from recon.geometry.compare import chamfer_fscore, fit_sim3_robust, icp_sim3, sample_surface
-from recon.scene import Scene, load_scene, parse_frames
+from recon.scene import Frame, Scene, load_scene, parse_frames
 
 SCENE_FOLDER = "02_scene"
 MESH_FOLDER = "04_mesh"
@@ -221,8 +221,8 @@ def silhouette_iou(scene_dir: Path, masks_dir: Path) -> dict[str, Any]:
 
     The mesh is rendered into every photo that has a mask in `masks_dir`, in the normalized frame with the scene's
     cameras; the true masks are undistorted like the photos, so both are pinhole images of the same camera."""
-    from recon.geometry.raster import rasterize
     from recon.geometry.color import project
+    from recon.geometry.raster import rasterize
     from recon.images import IMAGE_SUFFIXES, read_mask, undistort
 
     scene = load_scene(scene_dir / SCENE_FOLDER)
@@ -237,8 +237,8 @@ def silhouette_iou(scene_dir: Path, masks_dir: Path) -> dict[str, Any]:
         w, h = max(1, round(frame.w * scale)), max(1, round(frame.h * scale))
         intr = (frame.fl_x * w / frame.w, frame.fl_y * h / frame.h, frame.cx * w / frame.w, frame.cy * h / frame.h)
 
-        def pinhole(path: Path) -> np.ndarray:
-            return undistort(read_mask(path, (w, h)), *intr, frame.distortion, frame.camera_model) >= 0.5
+        def pinhole(path: Path, frame: Frame = frame, size: tuple[int, int] = (w, h), intr: tuple = intr) -> np.ndarray:
+            return undistort(read_mask(path, size), *intr, frame.distortion, frame.camera_model) >= 0.5
 
         true = pinhole(truth[frame.stem])
         row: dict[str, float] = {}

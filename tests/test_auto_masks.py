@@ -3,6 +3,8 @@ of cameras, with sparse points sampled on the ball and the table. The cut must m
 across photos, and say it is unsure when the photos do not fit their cameras."""
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -103,7 +105,7 @@ def test_the_other_photos_veto_what_one_cut_takes_from_the_table() -> None:
     """Paint a strip of the ball's texture on the table under the ball in one photo: its cut takes the strip, the
     hull the other photos carve leaves it out of the mask, and that photo's agreement says so."""
     scene, photos, truth = _scene()
-    name = sorted(photos)[0]
+    name = min(photos)
     ys, xs = np.nonzero(truth[name])
     top, bottom, left, right = ys.min(), ys.max() + 1, xs.min(), xs.max()
     photos[name] = photos[name].copy()
@@ -188,3 +190,50 @@ def test_recon_eval_gt_masks_scores_the_mesh_silhouette(tmp_path) -> None:
     shutil.rmtree(mesh_dir)  # before the mesh stage only the scene's own masks can be scored, and this scene has none
     with pytest.raises(ReconError, match="neither a mesh nor masks"):
         silhouette_iou(tmp_path, masks)
+
+
+def test_the_normalize_stage_masks_an_object_on_a_table_and_trains_it_bounded(tmp_path) -> None:
+    """Through the stage: the photos on disk, SfM-like points, no masks. normalize writes the masks and their
+    contact sheet, points every frame at its mask, and the scene becomes a masked object capture; with
+    normalize.masks=off it stays unbounded and unmasked."""
+    from PIL import Image
+
+    from recon.config import NormalizeConfig, load_config
+    from recon.pipeline import StageContext
+    from recon.progress import Reporter
+    from recon.scene import load_scene
+    from recon.stages import normalize as stage
+
+    scene, photos, truth = _scene(12)
+    (tmp_path / "photos").mkdir()
+    for f in scene.frames:
+        Image.fromarray(np.round(photos[f.name] * 255).astype(np.uint8)).save(tmp_path / "photos" / f.name)
+        f.file_path = str(tmp_path / "photos" / f.name)
+    scene.capture, scene.region, scene.ground = None, None, None  # what the poses stage hands over
+    (tmp_path / "01_poses").mkdir()
+    scene.save(tmp_path / "01_poses")
+
+    def run(masks: str) -> tuple[dict, Path]:
+        out = tmp_path / f".tmp-02_scene-{masks}"
+        out.mkdir()
+        ctx = StageContext(name="normalize", folder=f"02_scene_{masks}", out=out, work=tmp_path / "work",
+                           inputs={"poses": tmp_path / "01_poses"}, config=NormalizeConfig(masks=masks),
+                           run_config=load_config(None, []), source=None, scene_dir=tmp_path,
+                           report=Reporter(quiet=True))
+        summary = stage.run(ctx)
+        out.rename(tmp_path / ctx.folder)
+        return summary, tmp_path / ctx.folder
+
+    summary, folder = run("auto")
+    result = load_scene(folder)
+    assert summary["auto_masks"] == 12 and result.capture == "object" and result.has_alpha
+    assert "automatic object masks" in result.notes["masks"]
+    assert (folder / "masks.png").is_file()
+    for f in result.frames:
+        mask = np.asarray(Image.open(f.mask_path)) > 127
+        assert Path(f.mask_path).parent == folder / "masks"
+        assert _iou(mask, truth[f.name]) > 0.85
+    summary, folder = run("off")
+    result = load_scene(folder)
+    assert summary["auto_masks"] == 0 and result.capture == "unbounded" and not result.has_alpha
+    assert not (folder / "masks").exists()

@@ -7,12 +7,16 @@ from pathlib import Path
 import numpy as np
 
 from recon.auto_masks import object_on_background, segment_object
-from recon.images import save_image
+from recon.images import read_image, save_image
 from recon.normalization import normalize
 from recon.pipeline import Stage, StageContext
+from recon.plots import mask_overview
 from recon.scene import Scene, load_scene
 
 MASK_FOLDER = "masks"
+OVERVIEW = 12
+"""The masks' contact sheet (02_scene/masks.png) shows this many photos, spread over the capture."""
+OVERVIEW_SIDE = 240
 
 
 def run(ctx: StageContext) -> dict:
@@ -48,12 +52,12 @@ def _auto_masks(ctx: StageContext, source: Scene, scene: Scene) -> tuple[int, st
         found = segment_object(scene, progress=bar.advance)
     final = ctx.scene_dir / ctx.folder / MASK_FOLDER  # where the masks live once the stage folder is sealed
     if not found.confident:
-        _write(ctx.out / "masks_unsure", found.masks)  # for a look; not used
+        _write(ctx.out / "masks_unsure", found.masks, scene)  # for a look; not used
         return 0, (
             f"{found.reason}: kept the photos unmasked, so the table and room are modelled too (contracted). "
             f"Give the photos a masks/ folder (white = object) to mesh the object alone"
         )
-    _write(ctx.out / MASK_FOLDER, found.masks)
+    _write(ctx.out / MASK_FOLDER, found.masks, scene)
     for frame in source.frames:
         frame.mask_path = str(final / f"{Path(frame.file_path).stem}.png")
     source.has_alpha = True
@@ -63,10 +67,16 @@ def _auto_masks(ctx: StageContext, source: Scene, scene: Scene) -> tuple[int, st
     )
 
 
-def _write(folder: Path, masks: dict[str, np.ndarray]) -> None:
+def _write(folder: Path, masks: dict[str, np.ndarray], scene: Scene) -> None:
+    """Each mask as a PNG (white = object) named like its photo, and a contact sheet of up to OVERVIEW photos
+    beside the folder (`<folder>.png`) with their background dimmed."""
     folder.mkdir(parents=True, exist_ok=True)
     for name, mask in masks.items():
         save_image(folder / f"{Path(name).stem}.png", mask.astype(np.float32)[..., None])
+    frames = [f for f in scene.frames if f.name in masks]
+    shown = [frames[i] for i in np.linspace(0, len(frames) - 1, min(OVERVIEW, len(frames))).round().astype(int)]
+    photos = [read_image(scene.image_path(f), max_side=OVERVIEW_SIDE) for f in shown]
+    mask_overview(photos, [masks[f.name] for f in shown], folder.with_suffix(".png"))
 
 
 # version 5: an object on a background without masks gets automatic masks (normalize.masks=auto)
