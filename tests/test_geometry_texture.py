@@ -225,3 +225,14 @@ def test_mesh_stage_writes_the_textured_mesh_and_compares_it_in_the_held_out_vie
     assert glb.visual.material.baseColorTexture.size == (128, 128) and len(glb.faces) == textured["faces"]
     for name in ("preview_textured.png", "texture_compare.png"):
         assert (out / name).stat().st_size > 0
+
+
+def test_a_crash_in_the_unwrap_process_is_an_error_not_the_end_of_the_run() -> None:
+    """xatlas segfaults on some meshes: it runs in a process of its own, and its death is a RuntimeError the mesh
+    stage turns into a skipped textured copy."""
+    import pytest
+
+    from recon.geometry.atlas_child import in_child
+
+    with pytest.raises(RuntimeError, match="signal 11"):
+        in_child("crash")

@@ -17,9 +17,9 @@ from typing import Callable
 
 import numpy as np
 import trimesh
-import xatlas
 from scipy.ndimage import distance_transform_edt
 
+from recon.geometry.atlas_child import in_child
 from recon.geometry.clean import decimate
 from recon.geometry.raster import interpolate, rasterize, uv_to_pixels
 
@@ -68,22 +68,15 @@ def unwrap(
     centre, mean_area = verts[used].mean(axis=0), float(areas[usable].mean())
     scaled = np.ascontiguousarray((verts - centre) / math.sqrt(mean_area), np.float32)  # mean face area 1
     scaled[~np.isfinite(scaled).all(axis=1)] = np.nan  # xatlas leaves out faces with a NaN corner (not with inf)
-    atlas = xatlas.Atlas()
-    atlas.add_mesh(scaled, tris)
-    charts = xatlas.ChartOptions()
-    charts.max_chart_area = float(areas[usable].sum() / mean_area) / CHARTS_PER_ATLAS
-    charts.max_iterations = 0
-    pack = xatlas.PackOptions()
-    pack.resolution = int(size)  # xatlas picks its texel density to about fit: its atlas may be larger; uv are fractions
-    pack.padding = int(padding)
-    pack.bilinear = True
-    atlas.generate(chart_options=charts, pack_options=pack)
-    if atlas.atlas_count != 1:
+    max_chart_area = float(areas[usable].sum() / mean_area) / CHARTS_PER_ATLAS
+    atlases, charts, source, new_faces, uv = in_child("xatlas_unwrap", scaled, tris, max_chart_area, int(size),
+                                                      int(padding))
+    if atlases != 1:
         left_out = int((areas[usable] / mean_area <= XATLAS_AREA_EPSILON).sum()) + int((~usable).sum())
-        raise ValueError(f"xatlas made {atlas.atlas_count} atlases ({atlas.chart_count} charts) for a {size}² texture of "
+        raise ValueError(f"xatlas made {atlases} atlases ({charts} charts) for a {size}² texture of "
                          f"{len(tris):,} faces, {left_out:,} of them degenerate")
-    source, new_faces, uv = atlas[0]
     return np.asarray(source, np.int64), np.asarray(new_faces, np.int64), np.asarray(uv, np.float64)
+
 
 
 def texel_samples(
