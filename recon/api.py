@@ -182,7 +182,8 @@ class Field:
         side = max_side or self.meta.get("max_side") or max(frame.w, frame.h)
         s = min(1.0, side / max(frame.w, frame.h))
         w, h = max(1, round(frame.w * s)), max(1, round(frame.h * s))
-        return self.render(frame.c2w, frame.fl_x * w / frame.w, w, h, frame.fl_y * h / frame.h, frame.cx * w / frame.w, frame.cy * h / frame.h)
+        fl_x, fl_y, cx, cy = frame.intrinsics_at(w, h)
+        return self.render(frame.c2w, fl_x, w, h, fl_y, cx, cy)
 
 
 def load_field(scene: str | Path, device: str = "auto") -> Field:

@@ -18,6 +18,7 @@ from scipy.ndimage import binary_erosion
 from recon.geometry.color import project
 from recon.geometry.visual_hull import carve
 from recon.images import read_image, undistort
+from recon.normalization import box_corners
 from recon.scene import Frame, Scene
 
 SEGMENT_SIDE = 640
@@ -97,8 +98,7 @@ def segment_object(scene: Scene, load_photo: PhotoLoader | None = None, side: in
     for frame in scene.frames:
         photo = np.asarray(load(frame), np.float32)[..., :3]
         h, w = photo.shape[:2]
-        sx, sy = w / frame.w, h / frame.h
-        intr = np.array([frame.fl_x * sx, frame.fl_y * sy, frame.cx * sx, frame.cy * sy])
+        intr = np.array(frame.intrinsics_at(w, h))
         pinhole = undistort(photo, *intr, frame.distortion, frame.camera_model)
         seen = scene.point_visibility.get(frame.name)
         seen = np.arange(len(points)) if seen is None else np.asarray(seen, np.int64)
@@ -106,7 +106,7 @@ def segment_object(scene: Scene, load_photo: PhotoLoader | None = None, side: in
         # background points only where the photo sees them (a hidden table point may lie behind the object)
         fg = _visible_uv(points[object_pts], frame.c2w, intr, w, h)
         bg = _visible_uv(points[seen[background_pts[seen]]], frame.c2w, intr, w, h)
-        box_uv = _visible_uv(_corners(grown), frame.c2w, intr, w, h, clip=False)
+        box_uv = _visible_uv(box_corners(grown), frame.c2w, intr, w, h, clip=False)
         cuts.append(_grabcut(cv2, pinhole, fg, bg, box_uv))
         edges.append(_edges(cv2, pinhole))
         if progress is not None:
@@ -171,10 +171,6 @@ def _label_points(points: np.ndarray, region: np.ndarray, grown: np.ndarray,
         height = safe @ np.asarray(ground[:3], np.float64) - float(ground[3])
         on_plane = finite & (height < band)
     return inside & ~on_plane, outside | on_plane
-
-
-def _corners(box: np.ndarray) -> np.ndarray:
-    return np.array([[box[i, 0], box[j, 1], box[k, 2]] for i in (0, 1) for j in (0, 1) for k in (0, 1)])
 
 
 def _visible_uv(points: np.ndarray, c2w: np.ndarray, intr: np.ndarray, w: int, h: int, clip: bool = True) -> np.ndarray:

@@ -8,6 +8,7 @@ speed numbers from different commits, machines or loads are not comparable. A be
 """
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import platform
@@ -87,12 +88,10 @@ def _load_average() -> list[float] | None:
 
 def _cpu_model() -> str:
     """The CPU's model name where the OS says it (Linux), else its architecture."""
-    try:
+    with contextlib.suppress(OSError):  # no /proc (not Linux): the architecture below
         for line in Path("/proc/cpuinfo").read_text().splitlines():
             if line.startswith("model name"):
                 return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
     return platform.processor() or platform.machine()
 
 

@@ -221,9 +221,8 @@ def silhouette_iou(scene_dir: Path, masks_dir: Path) -> dict[str, Any]:
 
     The mesh is rendered into every photo that has a mask in `masks_dir`, in the normalized frame with the scene's
     cameras; the true masks are undistorted like the photos, so both are pinhole images of the same camera."""
-    from recon.geometry.color import project
-    from recon.geometry.raster import rasterize
-    from recon.images import IMAGE_SUFFIXES, read_mask, undistort
+    from recon.geometry.raster import mesh_depth
+    from recon.images import IMAGE_SUFFIXES
 
     scene = load_scene(scene_dir / SCENE_FOLDER)
     meshed = (scene_dir / MESH_FOLDER / "mesh_report.json").is_file()
@@ -235,18 +234,12 @@ def silhouette_iou(scene_dir: Path, masks_dir: Path) -> dict[str, Any]:
             continue
         scale = min(1.0, MASK_EVAL_SIDE / max(frame.w, frame.h))
         w, h = max(1, round(frame.w * scale)), max(1, round(frame.h * scale))
-        intr = (frame.fl_x * w / frame.w, frame.fl_y * h / frame.h, frame.cx * w / frame.w, frame.cy * h / frame.h)
-
-        def pinhole(path: Path, frame: Frame = frame, size: tuple[int, int] = (w, h), intr: tuple = intr) -> np.ndarray:
-            return undistort(read_mask(path, size), *intr, frame.distortion, frame.camera_model) >= 0.5
-
-        true = pinhole(truth[frame.stem])
+        true = _pinhole_mask(truth[frame.stem], frame, w, h)
         row: dict[str, float] = {}
         if meshed:
-            xy, z = project(vertices, frame.c2w, np.asarray(intr))
-            row = _overlap(rasterize(xy, z, faces, (h, w))[0] >= 0, true)
+            row = _overlap(np.isfinite(mesh_depth(vertices, faces, frame.c2w, frame.intrinsics_at(w, h), (h, w))), true)
         if frame.mask_path and Path(frame.mask_path).is_file():  # the masks the scene trained with
-            row.update({f"masks_{k}": v for k, v in _overlap(pinhole(Path(frame.mask_path)), true).items()})
+            row.update({f"masks_{k}": v for k, v in _overlap(_pinhole_mask(Path(frame.mask_path), frame, w, h), true).items()})
         rows[frame.name] = row
     if not rows:
         raise ReconError(f"No mask in {masks_dir} has the name of a photo of {scene_dir}. Give masks named like the photos.")
@@ -255,6 +248,13 @@ def silhouette_iou(scene_dir: Path, masks_dir: Path) -> dict[str, Any]:
         raise ReconError(f"{scene_dir} has neither a mesh nor masks to score: run recon on it first.")
     return {"views": rows, **{f"mean_{k}": float(np.mean([r[k] for r in rows.values() if k in r])) for k in keys},
             **{f"min_{k}": float(min(r[k] for r in rows.values() if k in r)) for k in keys if k.endswith("iou")}}
+
+
+def _pinhole_mask(path: Path, frame: Frame, w: int, h: int) -> np.ndarray:
+    """A mask (white = object) at w × h with the photo's lens distortion removed, as bool."""
+    from recon.images import read_mask, undistort
+
+    return undistort(read_mask(path, (w, h)), *frame.intrinsics_at(w, h), frame.distortion, frame.camera_model) >= 0.5
 
 
 def _overlap(found: np.ndarray, true: np.ndarray) -> dict[str, float]:

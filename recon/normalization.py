@@ -192,11 +192,16 @@ def _distance_range(c2w: np.ndarray, points: np.ndarray, percentile: float) -> t
     return float(np.percentile(dist, percentile)), float(np.percentile(dist, 100 - percentile))
 
 
+def box_corners(box: np.ndarray) -> np.ndarray:
+    """The 8 corners (8, 3) of an axis-aligned box (2, 3)."""
+    return np.array([[box[i, 0], box[j, 1], box[k, 2]] for i in (0, 1) for j in (0, 1) for k in (0, 1)])
+
+
 def _box_distance_range(c2w: np.ndarray, aabb: np.ndarray) -> tuple[float, float]:
     """near/far (`recon.scene.RAY_DISTANCE`) bounding every ray's segment inside the box: the distance from the camera
     centre to the box (0 inside it) and to its farthest corner (a box's farthest point is a corner)."""
     origin = c2w[:3, 3]
-    corners = np.array([[aabb[i, 0], aabb[j, 1], aabb[k, 2]] for i in (0, 1) for j in (0, 1) for k in (0, 1)])
+    corners = box_corners(aabb)
     near = float(np.linalg.norm(origin - np.clip(origin, aabb[0], aabb[1])))
     return near, float(np.linalg.norm(corners - origin, axis=1).max())
 

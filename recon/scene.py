@@ -90,6 +90,11 @@ class Frame:
     def center(self) -> np.ndarray:
         return self.c2w[:3, 3]
 
+    def intrinsics_at(self, w: int, h: int) -> tuple[float, float, float, float]:
+        """(fl_x, fl_y, cx, cy) in pixels of this photo resampled to w × h."""
+        sx, sy = w / self.w, h / self.h
+        return self.fl_x * sx, self.fl_y * sy, self.cx * sx, self.cy * sy
+
 
 @dataclass
 class Scene:

@@ -40,8 +40,7 @@ def load_view(scene: Scene, frame: Frame, max_side: int, keep_alpha: bool) -> Vi
     h, w = image.shape[:2]
     if frame.mask_path:  # the mask becomes the alpha channel: what it calls background trains as background
         image = np.concatenate([image[..., :3], read_mask(Path(frame.mask_path), (w, h))[..., None]], axis=-1)
-    sx, sy = w / frame.w, h / frame.h
-    fl_x, fl_y, cx, cy = frame.fl_x * sx, frame.fl_y * sy, frame.cx * sx, frame.cy * sy
+    fl_x, fl_y, cx, cy = frame.intrinsics_at(w, h)
     image = undistort(image, fl_x, fl_y, cx, cy, frame.distortion, frame.camera_model)
     if not keep_alpha:
         image = image[..., :3]

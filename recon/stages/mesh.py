@@ -44,6 +44,7 @@ from recon.geometry.extract import (
     marching_cubes,
 )
 from recon.geometry.preview import preview_camera, write_mesh_previews
+from recon.normalization import box_corners
 from recon.geometry.raster import mesh_depth, render_mesh
 from recon.geometry.texture import TexturedMesh, make_textured_mesh
 from recon.pipeline import Stage, StageContext
@@ -112,8 +113,7 @@ def mesh_region(scene: Scene, aabb: np.ndarray, cfg: MeshConfig) -> tuple[np.nda
         box = region + np.stack([-size, size]) * REGION_MARGIN
         why = "the object the cameras look at (normalize's object region, +10%; --set mesh.region=all meshes everything)"
     else:
-        lo, hi = np.asarray(choice, np.float64)
-        corners = np.array([[(lo, hi)[i][0], (lo, hi)[j][1], (lo, hi)[k][2]] for i in (0, 1) for j in (0, 1) for k in (0, 1)])
+        corners = box_corners(np.asarray(choice, np.float64))
         T = scene.world_from_source
         mapped = corners @ T[:3, :3].T + T[:3, 3]
         box = np.stack([mapped.min(axis=0), mapped.max(axis=0)])
