@@ -179,7 +179,7 @@ class MeshConfig:
     iso: float = 0.0
     """Density iso-level; 0: automatic (one cell of thickness is `iso_opacity` opaque)."""
     iso_opacity: float = 0.0
-    """Opacity of one cell of material at the automatic iso-level; 0: 0.35 (the mesh stage's ISO_OPACITY), or 0.25
+    """Opacity of one cell of material at the automatic iso-level; 0: 0.35 (`recon.field_mesh.ISO_OPACITY`), or 0.25
     when masks trained the background empty (the masks already carve the object, so the level can be lower and close
     the holes an undertrained field leaves)."""
     min_component_fraction: float = 0.05
@@ -189,7 +189,7 @@ class MeshConfig:
     fill_cavities: int = 0
     """Fill the empty space the density field's material encloses before marching cubes, after closing holes up to
     about twice this many cells wide (0: off; the density presets: 4). Not on the whole box of an unbounded scene;
-    see `recon.geometry.extract.fill_enclosed` and `recon.stages.mesh.hollow_fill_applies`. Why: a density field is a
+    see `recon.geometry.extract.fill_enclosed` and `recon.mesh_plan.hollow_fill_applies`. Why: a density field is a
     shell whose inner walls show through its pits, and the hidden-face test keeps them; filling removes them."""
     target_faces: int = 300000
     """Decimate to this many faces (0: keep all)."""
@@ -197,8 +197,18 @@ class MeshConfig:
     """Remove faces that no photo sees (depth-tested against the field's rendered depth): the walls and
     islands marching cubes finds inside a soft, unconstrained interior; they cost most of the mesh's precision.
     Off, the mesh is closed where the field is, but full of inner walls."""
+    mask_keep_fraction: float = 0.5
+    """With masks, a vertex stays when it falls inside the object's mask in at least this fraction of the photos
+    that have it in frame (below 1: room for a pixel of mask edge; lower it when imperfect masks bite into the mesh)."""
     color: Literal["photos", "field"] = "photos"
     """Per-vertex color: baked from the photos (depth-tested), or queried from the field."""
+    cpu_bake_views: int = 0
+    """On the CPU the mesh is checked (hidden faces, masks) and colored against at most this many training photos,
+    spread evenly, each costing a render of the field's depth; 0: 24 for the grid models, 6 for the classic NeRF
+    (which renders about a hundred times slower). A GPU uses every training photo."""
+    cpu_depth_side: int = 0
+    """On the CPU those depth renders are at most this many pixels on the longest side (upsampled to the photo);
+    0: 200 for the grid models, 64 for the classic NeRF. A GPU renders them at training size."""
     frame: Literal["normalized", "source"] = "normalized"
     """Export in our normalized frame (+Z up, box ≈ [-1, 1]³) or back in the source (COLMAP/import) frame."""
     real_size: float = 0.0
@@ -206,9 +216,16 @@ class MeshConfig:
     region: str = "auto"
     """What to mesh. auto: the object the cameras look at (normalize's object region, when it found one);
     all: the whole scene box; or an explicit box "xmin,ymin,zmin,xmax,ymax,zmax" in the source frame."""
+    region_margin: float = 0.1
+    """mesh.region=auto grows normalize's object region (percentiles of the sparse points) by this fraction of its
+    size on each side; raise it when the object is cut off at the region's faces."""
     keep_ground: bool = False
     """Keep the ground plane the object stands on, or the wall it hangs on (normalize finds either by RANSAC); by
     default it is cut away."""
+    ground_margin_cells: float = 2.0
+    """Faces up to this many surface cells (the mesh cell, or the field's voxel when coarser) above the ground (or in
+    front of the wall) are cut with it: the field makes a table top a layer about a voxel thick. Lower it when the
+    object's base is cut, raise it when a layer of table stays."""
     texture_faces: int = 50000
     """Also write mesh_textured.glb/.obj: the mesh decimated to this many faces, UV-unwrapped, its color
     baked into a texture (0: no textured mesh)."""
@@ -529,6 +546,11 @@ BOUNDS: dict[str, Bound] = {
     "mesh.min_component_fraction": _range(0, 1),
     "mesh.smooth_iters": _range(0, 10000),
     "mesh.fill_cavities": _range(0, 256),
+    "mesh.mask_keep_fraction": _range(0, 1),
+    "mesh.cpu_bake_views": _range(1, 10**5, off=0, off_means="automatic"),
+    "mesh.cpu_depth_side": _range(8, 16384, off=0, off_means="automatic"),
+    "mesh.region_margin": _range(0, 10),
+    "mesh.ground_margin_cells": _range(0, 100),
     "mesh.target_faces": _range(4, 10**8, off=0, off_means="keep all"),
     "mesh.real_size": _range(0, 1e9),
     "mesh.texture_faces": _range(4, 150000, off=0, off_means="no textured mesh"),

@@ -29,8 +29,9 @@ PACKAGE = "recon"
 LIBRARY_PACKAGES = ("recon.nerf", "recon.geometry")
 """Every module below these is library: tensors and meshes in, tensors and meshes out."""
 LIBRARY_MODULES = ("recon.scene", "recon.colmap", "recon.camera", "recon.images", "recon.views", "recon.atomic",
-                   "recon.errors", "recon.metrics")
-"""The scene contract and what it is read with: the scene file, COLMAP models, camera math, photos, views."""
+                   "recon.errors", "recon.metrics", "recon.field_mesh", "recon.mesh_views", "recon.mesh_plan")
+"""The scene contract and what it is read with: the scene file, COLMAP models, camera math, photos, views; and the
+mesh's library: a field's surface as a mesh, the field and mesh in the photos' views, the mesh stage's decisions."""
 RUNNERS = ("recon.stages", "recon.pipeline", "recon.cli", "recon.api", "recon.batch", "recon.bench",
            "recon.profiling", "recon.viewer")
 """What runs the library: a library module importing one of these would make the layers a circle."""

@@ -97,7 +97,7 @@ def test_object_pixels_from_rendered_depth_match_the_mesh_of_the_object():
 
 
 def test_mesh_stage_coherence_uses_masks_or_the_region_above_the_ground():
-    from recon.stages.mesh import coherence
+    from recon.mesh_views import coherence
     from recon.views import View
 
     c2w, intr, hw = _camera_above(2.0)
@@ -136,7 +136,7 @@ def test_mesh_stage_coherence_uses_masks_or_the_region_above_the_ground():
 def test_transparent_pixels_are_not_object_when_the_region_is_the_scene_box():
     """A transparent ray's rendered depth is its exit from the scene box (the models put the remainder there), which
     lies on the region's boundary when the region is the box: only the field's opacity tells it from a surface."""
-    from recon.stages.mesh import coherence
+    from recon.mesh_views import coherence
     from recon.views import View
 
     c2w, intr, hw = _camera_above(2.0)

@@ -19,7 +19,8 @@ from recon.geometry.raster import interpolate, rasterize, render_mesh
 from recon.geometry.texture import XATLAS_AREA_EPSILON, make_textured_mesh, pad_texture, texel_samples, unwrap
 from recon.progress import Reporter
 from recon.scene import look_at
-from recon.stages import mesh as mesh_stage
+from recon.field_mesh import extract_mesh
+from recon.mesh_views import bake_colors, compare_in_views, mesh_depths, texture_mesh
 from recon.views import View, render_view
 from tests.test_mesh_stage import AABB, BACKGROUND, CENTRE, SoftSphere, _run_stage, _scene_dir
 
@@ -168,20 +169,20 @@ def test_texture_baked_from_photos_matches_held_out_photos_and_fills_what_no_pho
     held_out = photos(model, [(18.0, 30.0), (200.0, 25.0)])
     aabb_t = torch.tensor(AABB, dtype=torch.float32)
     quiet = Reporter(quiet=True)
-    vertices, faces, _ = mesh_stage.extract_mesh(model, aabb_t, (97, 97, 97), MeshConfig(), quiet)
-    depths = mesh_stage.mesh_depths(vertices, faces, train)  # occlusion by the mesh itself, as the stage bakes
+    vertices, faces, _ = extract_mesh(model, aabb_t, (97, 97, 97), MeshConfig(), quiet)
+    depths = mesh_depths(vertices, faces, train)  # occlusion by the mesh itself, as the stage bakes
     normals = trimesh.Trimesh(vertices, faces, process=False).vertex_normals
     fill = torch.tensor([0.9, 0.1, 0.9])
     model.radiance = lambda x, d: fill.expand(x.shape[0], 3)  # type: ignore[method-assign]  # the field's fill color
-    colors, _ = mesh_stage.bake_colors(model, train, depths, vertices, normals)
+    colors, _ = bake_colors(model, train, depths, vertices, normals)
 
     cfg = MeshConfig(texture_faces=1500, texture_size=256)
-    textured = mesh_stage.texture_mesh(model, cfg, train, depths, vertices, faces, quiet)
+    textured = texture_mesh(model, cfg, train, depths, vertices, faces, quiet)
     assert textured.info["faces"] <= 1500 and textured.info["unseen_from_field"] > 0
     # vertex colors on the same 1500-face mesh: what the texture replaces
-    low_colors, _ = mesh_stage.bake_colors(model, train, depths, textured.vertices, textured.normals)
+    low_colors, _ = bake_colors(model, train, depths, textured.vertices, textured.normals)
 
-    dense, strips = mesh_stage.compare_in_views(held_out, BACKGROUND, (vertices, faces, colors), textured, quiet, low_colors)
+    dense, strips = compare_in_views(held_out, BACKGROUND, (vertices, faces, colors), textured, quiet, low_colors)
     tex_db, dense_db, coarse_db = dense["psnr_textured_covered"], dense["psnr_vertex_colors_covered"], dense["psnr_light_vertex_colors_covered"]
     assert tex_db > dense_db - 1.0  # 1.5k faces + 256² texels ≈ the colors of the 33k-face mesh
     assert tex_db > coarse_db + 3.0  # and far better than vertex colors on the same light mesh

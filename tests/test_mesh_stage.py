@@ -28,6 +28,8 @@ from recon.normalization import similarity, transform_c2w
 from recon.pipeline import StageContext
 from recon.progress import Reporter
 from recon.scene import Frame, Scene, spread_evenly
+from recon import field_mesh, mesh_plan, mesh_views
+from recon.geometry.export import export_transform
 from recon.stages import mesh as mesh_stage
 from recon.views import View, pixel_footprint, render_view
 from tests.test_scene import look_at
@@ -96,8 +98,8 @@ def test_pixel_footprint_and_training_focal_closed_form() -> None:
     fp, dist = pixel_footprint(AABB, centres, np.array([400.0, 400.0, 400.0]))
     assert dist == pytest.approx(4.0) and fp == pytest.approx(0.01)
     frame = Frame("a.jpg", np.eye(4), 1000.0, 1000.0, 400.0, 300.0, 800, 600)
-    assert mesh_stage.training_focal(frame, 400) == pytest.approx(500.0)  # photo halved to 400 px
-    assert mesh_stage.training_focal(frame, 2000) == pytest.approx(1000.0)  # never upscaled
+    assert mesh_plan.training_focal(frame, 400) == pytest.approx(500.0)  # photo halved to 400 px
+    assert mesh_plan.training_focal(frame, 2000) == pytest.approx(1000.0)  # never upscaled
 
 
 def test_resolution_follows_footprint_and_is_capped_by_max_and_memory() -> None:
@@ -118,11 +120,11 @@ def test_resolution_follows_footprint_and_is_capped_by_max_and_memory() -> None:
 @pytest.mark.parametrize(("coarse_to_fine", "nodes", "mode"), [(False, 65, "dense"), (True, 65, "dense"), (True, 161, "coarse-to-fine")])
 def test_extracted_surface_is_the_analytic_iso_sphere(coarse_to_fine: bool, nodes: int, mode: str) -> None:
     cell = 2.0 / (nodes - 1)
-    iso = -math.log(1 - mesh_stage.ISO_OPACITY) / cell  # one cell of this σ is ISO_OPACITY opaque
+    iso = -math.log(1 - field_mesh.ISO_OPACITY) / cell  # one cell of this σ is ISO_OPACITY opaque
     model = SoftSphere(amplitude=2 * iso, width=0.05)  # the auto iso sits at the profile's inflection
     shape = (nodes,) * 3
     cfg = MeshConfig(coarse_to_fine=coarse_to_fine)
-    v, f, info = mesh_stage.extract_mesh(model, torch.tensor(AABB, dtype=torch.float32), shape, cfg, Reporter(quiet=True))
+    v, f, info = field_mesh.extract_mesh(model, torch.tensor(AABB, dtype=torch.float32), shape, cfg, Reporter(quiet=True))
     assert info["mode"] == mode  # 65 nodes: a 64-node coarse grid would refine nothing
     assert info["iso"] == pytest.approx(iso, rel=1e-6)
     r_iso = model.radius_at(info["iso"])
@@ -139,7 +141,7 @@ def test_extracted_surface_is_the_analytic_iso_sphere(coarse_to_fine: bool, node
 
 def test_explicit_iso_is_used_as_given() -> None:
     model = SoftSphere(amplitude=400.0, width=0.05)
-    v, _, info = mesh_stage.extract_mesh(
+    v, _, info = field_mesh.extract_mesh(
         model, torch.tensor(AABB, dtype=torch.float32), (49, 49, 49), MeshConfig(iso=200.0), Reporter(quiet=True)
     )
     assert info["iso"] == 200.0 and "set by caller" in info["iso_reason"]
@@ -162,7 +164,7 @@ def test_fill_cavities_removes_the_inner_wall_of_a_hollow_field() -> None:
     aabb = torch.tensor(AABB, dtype=torch.float32)
     walls = {}
     for k in (0, 3):
-        v, _, info = mesh_stage.extract_mesh(model, aabb, (81, 81, 81), MeshConfig(iso=200.0, fill_cavities=k),
+        v, _, info = field_mesh.extract_mesh(model, aabb, (81, 81, 81), MeshConfig(iso=200.0, fill_cavities=k),
                                              Reporter(quiet=True))
         walls[k] = float((np.linalg.norm(v - CENTRE, axis=1) < 0.5).mean())
         assert ("fill" in info) == (k > 0)
@@ -175,25 +177,25 @@ def test_a_field_without_surface_fails_with_advice() -> None:
     model = SoftSphere(amplitude=400.0, width=0.05)
     model.density = lambda x: torch.full((x.shape[0],), 3.0)  # type: ignore[method-assign]
     with pytest.raises(Exception, match="No surface could be extracted"):
-        mesh_stage.extract_mesh(model, torch.tensor(AABB, dtype=torch.float32), (17, 17, 17), MeshConfig(), Reporter(quiet=True))
+        field_mesh.extract_mesh(model, torch.tensor(AABB, dtype=torch.float32), (17, 17, 17), MeshConfig(), Reporter(quiet=True))
 
 
 # ---------------------------------------------------------------------------------------- colors
 def test_colors_baked_from_rendered_photos_match_the_analytic_color() -> None:
     model = SoftSphere(amplitude=3000.0, width=0.004, samples=384)
     views = ring_views(model)
-    v, f, info = mesh_stage.extract_mesh(
+    v, f, info = field_mesh.extract_mesh(
         model, torch.tensor(AABB, dtype=torch.float32), (97, 97, 97), MeshConfig(), Reporter(quiet=True)
     )
     normals = trimesh.Trimesh(v, f, process=False).vertex_normals
-    depths = mesh_stage.mesh_depths(v, f, views)
-    colors, bake = mesh_stage.bake_colors(model, views, depths, v, normals)
+    depths = mesh_views.mesh_depths(v, f, views)
+    colors, bake = mesh_views.bake_colors(model, views, depths, v, normals)
     err = np.abs(colors - sphere_color(v.astype(np.float64))).max(axis=1)
     assert bake["views"] == 8 and bake["seen"] > 0.9 * len(v)  # the depth test keeps the visible surface
     assert np.median(err) < 0.02 and np.percentile(err, 95) < 0.06
     # the photos, not the fallback, made the colors: a field with wrong colors bakes the same
     model.radiance = lambda x, d: torch.zeros(x.shape[0], 3)  # type: ignore[method-assign]
-    colors_2, _ = mesh_stage.bake_colors(model, views, depths, v, normals)
+    colors_2, _ = mesh_views.bake_colors(model, views, depths, v, normals)
     seen = np.any(colors_2 > 0, axis=1)
     np.testing.assert_allclose(colors_2[seen], colors[seen], atol=1e-6)
 
@@ -202,7 +204,7 @@ def test_depth_is_rendered_small_and_upsampled_to_the_view() -> None:
     model = SoftSphere(amplitude=3000.0, width=0.004, samples=128)
     view = ring_views(model, n=1, size=40)[0]
     full = render_view(model, view, torch.tensor(AABB, dtype=torch.float32), BACKGROUND)["depth"]
-    small = mesh_stage.render_depth(model, view, torch.tensor(AABB, dtype=torch.float32), BACKGROUND, max_side=20)
+    small = mesh_views.render_depth(model, view, torch.tensor(AABB, dtype=torch.float32), BACKGROUND, max_side=20)
     assert small.shape == full.shape
     assert np.median(np.abs(small - full)) < 0.02  # equal away from the silhouette
 
@@ -217,11 +219,11 @@ def test_export_transform_source_frame_and_real_size() -> None:
     w2s = similarity(2.5, np.eye(3), np.array([1.0, 2.0, 3.0]))  # world_from_source
     s2w = np.linalg.inv(w2s)
     v = np.array([[0.0, 0, 0], [0.5, 0.2, 0.1]])
-    t, _ = mesh_stage.export_transform(v, "normalized", s2w, 0.0)
+    t, _ = export_transform(v, "normalized", s2w, 0.0)
     assert t is None
-    t, _ = mesh_stage.export_transform(v, "source", s2w, 0.0)
+    t, _ = export_transform(v, "source", s2w, 0.0)
     np.testing.assert_allclose(t, s2w)
-    t, why = mesh_stage.export_transform(v, "source", s2w, 2.0)
+    t, why = export_transform(v, "source", s2w, 2.0)
     mapped = v @ t[:3, :3].T + t[:3, 3]
     assert np.ptp(mapped, axis=0).max() == pytest.approx(2.0) and "scaled" in why
 
@@ -360,7 +362,7 @@ def test_hidden_walls_inside_a_soft_field_are_removed_and_the_visible_surface_ke
     model = SoftSphere(amplitude=3000.0, width=0.004, samples=384)
     views = ring_views(model)
     aabb_t = torch.tensor(AABB, dtype=torch.float32)
-    depths = mesh_stage.render_depths(model, views, aabb_t, BACKGROUND, None, Reporter(quiet=True))
+    depths = mesh_views.render_depths(model, views, aabb_t, BACKGROUND, None, Reporter(quiet=True))
     n = 65
     grid = density_grid(model.density, aabb_t, n)
     level = 0.5 * float(grid.max())
@@ -374,7 +376,7 @@ def test_hidden_walls_inside_a_soft_field_are_removed_and_the_visible_surface_ke
     kept_all = clean_mesh(vertices, faces, AABB)[0]
     outer = np.linalg.norm(kept_all - CENTRE, axis=1) > 0.5
     assert (~outer).mean() > 0.2  # without the visibility test the inner wall and the island stay
-    seen_fn = mesh_stage.see_with_views(views, depths, 2 * cell)
+    seen_fn = mesh_views.see_with_views(views, depths, 2 * cell)
     kept, _, report = clean_mesh(vertices, faces, AABB, seen_fn=seen_fn)
     radius = np.linalg.norm(kept - CENTRE, axis=1)
     assert np.abs(radius - model.radius_at(level)).max() < cell
@@ -387,22 +389,86 @@ def test_hollow_fill_runs_for_objects_and_not_on_a_whole_unbounded_scene() -> No
 
     found, none = SimpleNamespace(region=[[0, 0, 0], [1, 1, 1]]), SimpleNamespace(region=None)
     cfg = MeshConfig(fill_cavities=4)
-    assert mesh_stage.hollow_fill_applies(none, cfg, bounded=True)[0]  # an object capture: the box is the object's
-    assert mesh_stage.hollow_fill_applies(found, cfg, bounded=False)[0]  # the object region of a scene
-    assert mesh_stage.hollow_fill_applies(none, MeshConfig(fill_cavities=4, region="-1,-1,-1,1,1,1"), bounded=False)[0]
-    applies, why = mesh_stage.hollow_fill_applies(none, cfg, bounded=False)
+    assert mesh_plan.hollow_fill_applies(none, cfg, bounded=True)[0]  # an object capture: the box is the object's
+    assert mesh_plan.hollow_fill_applies(found, cfg, bounded=False)[0]  # the object region of a scene
+    assert mesh_plan.hollow_fill_applies(none, MeshConfig(fill_cavities=4, region="-1,-1,-1,1,1,1"), bounded=False)[0]
+    applies, why = mesh_plan.hollow_fill_applies(none, cfg, bounded=False)
     assert not applies and "whole scene box" in why
-    assert not mesh_stage.hollow_fill_applies(found, MeshConfig(fill_cavities=4, region="all"), bounded=False)[0]
-    assert not mesh_stage.hollow_fill_applies(found, MeshConfig(fill_cavities=0), bounded=True)[0]
+    assert not mesh_plan.hollow_fill_applies(found, MeshConfig(fill_cavities=4, region="all"), bounded=False)[0]
+    assert not mesh_plan.hollow_fill_applies(found, MeshConfig(fill_cavities=0), bounded=True)[0]
 
 
 def test_iso_opacity_is_lower_with_masks_unless_set() -> None:
-    choose = mesh_stage.capture_iso_opacity
+    choose = mesh_plan.capture_iso_opacity
     assert choose(MeshConfig(), masked=False)[0] == 0.0  # 0: the stage's ISO_OPACITY
     opacity, why = choose(MeshConfig(), masked=True)
-    assert opacity == mesh_stage.MASKED_ISO_OPACITY < mesh_stage.ISO_OPACITY and "masks" in why
+    assert opacity == mesh_plan.MASKED_ISO_OPACITY < field_mesh.ISO_OPACITY and "masks" in why
     assert choose(MeshConfig(iso_opacity=0.6), masked=True)[0] == 0.6
     assert choose(MeshConfig(iso=3.0), masked=True)[0] == 0.0  # an explicit level wins
+
+
+# ---------------------------------------------------------------------------------------- the plan
+PLAN_META = {"aabb": AABB.tolist(), "bounded": True, "max_side": 64, "kind": "fast"}
+
+
+def _capture(masks: bool, **scene: object) -> Scene:
+    """Six 64-px photos on a ring (the last held out), with masks or without: a scene to plan, no files needed."""
+    frames = [Frame(f"v{i}.png", look_at(3.0 * np.array([math.cos(a), math.sin(a), 0.5]), np.zeros(3)),
+                    128.0, 128.0, 32.0, 32.0, 64, 64, split="test" if i == 5 else "train",
+                    mask_path=f"v{i}_mask.png" if masks else None)
+              for i, a in enumerate(np.linspace(0, 2 * math.pi, 6, endpoint=False))]
+    return Scene(frames=frames, aabb=AABB, **scene)  # type: ignore[arg-type]
+
+
+def test_plan_lowers_the_iso_opacity_for_a_masked_capture_and_says_why() -> None:
+    cfg = MeshConfig(resolution=65)
+    plain = mesh_plan.plan_mesh(cfg, _capture(masks=False), PLAN_META, on_cpu=True, voxel=0.0)
+    assert not plain.masked and plain.extraction.iso_opacity == field_mesh.ISO_OPACITY and plain.iso_why == ""
+    masked = mesh_plan.plan_mesh(cfg, _capture(masks=True), PLAN_META, on_cpu=True, voxel=0.0)
+    assert masked.masked and masked.extraction.iso_opacity == mesh_plan.MASKED_ISO_OPACITY
+    assert "masks trained the background empty" in masked.iso_why
+    # the reasons print in the stage's order: region, resolution, then the iso opacity
+    assert masked.notes == [f"mesh region: {masked.region_why}", f"resolution: {masked.resolution_why}", masked.iso_why]
+    assert masked.shape == (65, 65, 65) and "mesh.resolution=65" in masked.resolution_why
+    chosen = mesh_plan.plan_mesh(MeshConfig(resolution=65, iso_opacity=0.5), _capture(masks=True), PLAN_META,
+                                 on_cpu=True, voxel=0.0)
+    assert chosen.extraction.iso_opacity == 0.5 and chosen.iso_why == ""  # the user's setting wins
+    surface = mesh_plan.plan_mesh(cfg, _capture(masks=True), {**PLAN_META, "kind": "surface"}, on_cpu=True, voxel=0.0)
+    assert surface.zero_set and surface.extraction is cfg and surface.hidden_tolerance is None  # no iso to choose
+
+
+def test_plan_crops_to_the_object_region_cuts_the_ground_and_says_why() -> None:
+    region, ground = np.array([[-0.5] * 3, [0.5] * 3]), np.array([0.0, 0.0, 1.0, -0.5])
+    scene = _capture(masks=False, region=region, ground=ground)
+    plan = mesh_plan.plan_mesh(MeshConfig(resolution=65), scene, PLAN_META, on_cpu=True, voxel=0.0)
+    np.testing.assert_allclose(plan.region, [[-0.6] * 3, [0.6] * 3])  # the region +10% on each side
+    assert "normalize's object region, +10%" in plan.region_why and "ground plane is cut away" in plan.region_why
+    np.testing.assert_allclose(plan.ground, ground)
+    assert plan.cell == pytest.approx(1.2 / 64) and plan.ground_margin == pytest.approx(2 * plan.cell)
+    coarse = mesh_plan.plan_mesh(MeshConfig(resolution=65), scene, PLAN_META, on_cpu=True, voxel=0.05)
+    assert coarse.cell == 0.05 and coarse.hidden_tolerance == pytest.approx(0.05)  # the field's voxel is coarser
+    wide = mesh_plan.plan_mesh(MeshConfig(resolution=65, region_margin=0.5, keep_ground=True), scene, PLAN_META,
+                               on_cpu=True, voxel=0.0)
+    np.testing.assert_allclose(wide.region, AABB)  # +50%, clipped to the scene box
+    assert wide.ground is None and "+50%" in wide.region_why and "ground plane is kept" in wide.region_why
+    everything = mesh_plan.plan_mesh(MeshConfig(resolution=65, region="all"), scene, PLAN_META, on_cpu=True, voxel=0.0)
+    assert everything.ground is None and everything.region_why == "the whole scene box (mesh.region=all)"
+
+
+def test_plan_picks_the_photos_to_check_and_color_against() -> None:
+    scene = _capture(masks=False)
+    cpu = mesh_plan.plan_mesh(MeshConfig(resolution=65), scene, PLAN_META, on_cpu=True, voxel=0.0)
+    assert len(cpu.view_frames) == 5 and cpu.depth_side == 200 and cpu.views_why == "5 of 5 training views, depth rendered at ≤ 200 px"
+    assert [f.name for f in cpu.held_out_frames] == ["v5.png"] and cpu.held_out_why == "1 of 1"
+    few = mesh_plan.plan_mesh(MeshConfig(resolution=65, cpu_bake_views=2, cpu_depth_side=32), scene,
+                              {**PLAN_META, "kind": "classic"}, on_cpu=True, voxel=0.0)
+    assert [f.name for f in few.view_frames] == ["v0.png", "v4.png"] and few.depth_side == 32
+    assert "2 of 5 training views (spread evenly; at most 2 on the CPU for the classic model" in few.views_why
+    gpu = mesh_plan.plan_mesh(MeshConfig(resolution=65), scene, PLAN_META, on_cpu=False, voxel=0.0)
+    assert len(gpu.view_frames) == 5 and gpu.depth_side is None
+    field = mesh_plan.plan_mesh(MeshConfig(resolution=65, color="field", drop_hidden=False, texture_faces=0), scene,
+                                PLAN_META, on_cpu=True, voxel=0.0)
+    assert not field.uses_views and field.view_frames == [] and not field.texture and field.held_out_frames == []
 
 
 def test_bake_depths_are_the_mesh_z_buffer_without_its_silhouette_rim() -> None:
@@ -411,7 +477,7 @@ def test_bake_depths_are_the_mesh_z_buffer_without_its_silhouette_rim() -> None:
     square = np.array([[-1.0, -1.0, -4.0], [1.0, -1.0, -4.0], [1.0, 1.0, -4.0], [-1.0, 1.0, -4.0]])
     faces = np.array([[0, 1, 2], [0, 2, 3]])
     view = View("v", np.zeros((64, 64, 3), np.uint8), np.eye(4), (50.0, 50.0, 32.0, 32.0), 0.1, 10.0)
-    (z,) = mesh_stage.mesh_depths(square, faces, [view])
+    (z,) = mesh_views.mesh_depths(square, faces, [view])
     covered = np.zeros((64, 64), bool)
     covered[19:45, 19:45] = True
     inner = np.zeros_like(covered)
@@ -420,7 +486,7 @@ def test_bake_depths_are_the_mesh_z_buffer_without_its_silhouette_rim() -> None:
     assert np.allclose(full[covered], 4.0) and np.all(np.isinf(full[~covered]))
     assert np.all(np.isinf(z[~inner])) and np.allclose(z[inner], 4.0)
     # a vertex in the middle is seen at its depth; one behind the square (a hidden one) is not
-    _, info = mesh_stage.bake_colors(SoftSphere(400.0, 0.05), [view], [z], np.array([[0.0, 0.0, -4.0], [0.0, 0.0, -6.0]]),
+    _, info = mesh_views.bake_colors(SoftSphere(400.0, 0.05), [view], [z], np.array([[0.0, 0.0, -4.0], [0.0, 0.0, -6.0]]),
                                      np.array([[0.0, 0.0, 1.0], [0.0, 0.0, 1.0]]), depth_tol=0.05)
     assert info["seen"] == 1 and info["unseen_from_field"] == 1
 
@@ -435,7 +501,7 @@ def test_a_failed_textured_mesh_still_delivers_the_vertex_colored_mesh_and_says_
     if fails == "unwrap":
         def broken(*args, **kwargs):
             raise ValueError("xatlas made no UV charts")
-        monkeypatch.setattr(mesh_stage, "make_textured_mesh", broken)
+        monkeypatch.setattr(mesh_views, "make_textured_mesh", broken)
     else:
         real_export = mesh_stage.export_textured_mesh
 

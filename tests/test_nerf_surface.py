@@ -18,7 +18,7 @@ from recon.nerf.fitting import RayBatcher
 from recon.nerf.trainer import train
 from recon.progress import Reporter
 from recon.scene import look_at
-from recon.stages import mesh as mesh_stage
+from recon.field_mesh import extract_zero_set
 
 BOX = ((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0))
 
@@ -149,7 +149,7 @@ class _Sphere(torch.nn.Module):
 def test_analytic_sphere_sdf_meshes_at_its_radius_closed(nodes: int, mode: str) -> None:
     centre, radius = (0.1, -0.05, 0.02), 0.55
     aabb = torch.tensor(BOX)
-    v, f, info = mesh_stage.extract_zero_set(_Sphere(centre, radius), aabb, (nodes,) * 3, MeshConfig(), Reporter(quiet=True))
+    v, f, info = extract_zero_set(_Sphere(centre, radius), aabb, (nodes,) * 3, MeshConfig(), Reporter(quiet=True))
     assert info["mode"] == mode and info["iso"] == 0.0
     cell = 2.0 / (nodes - 1)
     r = np.linalg.norm(v - np.asarray(centre), axis=1)
@@ -161,7 +161,7 @@ def test_analytic_sphere_sdf_meshes_at_its_radius_closed(nodes: int, mode: str) 
 
 def test_zero_set_is_closed_where_the_object_leaves_the_box() -> None:
     """A sphere cut by the box: the box faces close the mesh instead of leaving a hole."""
-    v, f, _ = mesh_stage.extract_zero_set(_Sphere((0.0, 0.0, -0.8), 0.6), torch.tensor(BOX), (49,) * 3, MeshConfig(), Reporter(quiet=True))
+    v, f, _ = extract_zero_set(_Sphere((0.0, 0.0, -0.8), 0.6), torch.tensor(BOX), (49,) * 3, MeshConfig(), Reporter(quiet=True))
     mesh = trimesh.Trimesh(v, f)
     assert mesh.is_watertight and float(v[:, 2].min()) < -0.95
 

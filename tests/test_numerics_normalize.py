@@ -16,7 +16,7 @@ from recon.config import NormalizeConfig
 from recon.errors import InputError
 from recon.normalization import normalize, similarity, transform_c2w
 from recon.scene import look_at, Frame, Scene, load_scene
-from recon.stages.mesh import export_transform
+from recon.geometry.export import export_transform
 
 
 

@@ -12,10 +12,11 @@ import pytest
 import trimesh
 from PIL import Image
 
+from recon.config import MeshConfig
 from recon.errors import InputError
 from recon.images import save_image
+from recon.mesh_views import inside_masks
 from recon.scene import Frame, Scene, find_masks, import_transforms, look_at
-from recon.stages.mesh import inside_masks
 from recon.views import View, load_view
 
 REPO = Path(__file__).resolve().parents[1]
@@ -77,7 +78,7 @@ def test_mesh_keeps_only_what_the_masks_call_object() -> None:
         ok = (u >= 0) & (u < w) & (r >= 0) & (r < h)
         img[r[ok], u[ok], 3] = 255
         views.append(View(f"v{i}", img, c2w, (fl, fl, w / 2, h / 2), 0.1, 5.0))
-    keep = inside_masks(views)
+    keep = inside_masks(views, MeshConfig().mask_keep_fraction)
     assert keep(ball.vertices).mean() > 0.99
     framed_table = table.vertices  # the table's corners are seen outside the silhouette
     assert not keep(framed_table).any()

@@ -13,7 +13,7 @@ from recon.normalization import normalize
 from recon.config import NormalizeConfig
 from recon.region import fit_ground_plane, object_region
 from recon.scene import Frame, Scene, look_at
-from recon.stages.mesh import mesh_region
+from recon.mesh_plan import mesh_region
 
 W, H, FL = 320, 240, 300.0
 TABLE_Z = -0.3

@@ -27,6 +27,7 @@ from trimesh.exchange.obj import export_obj
 from trimesh.visual.material import PBRMaterial
 
 from recon.atomic import write_bytes_atomic
+from recon.errors import ReconError
 
 # Rotation −90° about X: (x, y, z) → (x, z, −y); scene +Z up becomes +Y up.
 Z_UP_TO_Y_UP = np.array([[1, 0, 0, 0], [0, 0, 1, 0], [0, -1, 0, 0], [0, 0, 0, 1]], np.float64)
@@ -48,6 +49,42 @@ def apply_transform(
         raise ValueError(f"transform must be a 4x4 affine matrix with last row [0, 0, 0, 1], got {t.tolist()}")
     out = np.asarray(vertices, np.float64) @ t[:3, :3].T + t[:3, 3]
     return out, (faces[:, ::-1] if np.linalg.det(t[:3, :3]) < 0 else faces)
+
+
+def export_transform(
+    vertices: np.ndarray, frame: str, source_from_world: np.ndarray, real_size: float
+) -> tuple[np.ndarray | None, str]:
+    """4×4 scene → output-frame transform (None: identity) and its description.
+
+    frame "normalized" keeps our frame, "source" maps back with ``source_from_world`` (the exact
+    inverse normalization similarity). ``real_size > 0`` then scales about the frame's origin so
+    the largest bounding-box side of vertices (V, 3) is ``real_size`` units.
+    """
+    if frame not in ("normalized", "source"):
+        raise ReconError(f"mesh.frame must be 'normalized' or 'source', got '{frame}'.")
+    transform = np.asarray(source_from_world, np.float64) if frame == "source" else np.eye(4)
+    why = "source frame (inverse of the normalization similarity)" if frame == "source" else "normalized scene frame (+Z up)"
+    if real_size > 0:
+        mapped = np.asarray(vertices, np.float64) @ transform[:3, :3].T + transform[:3, 3]
+        side = float(np.ptp(mapped, axis=0).max())
+        if side <= 0:
+            raise ReconError("The mesh has no extent; mesh.real_size cannot scale it.")
+        transform = np.diag([real_size / side] * 3 + [1.0]) @ transform
+        why += f", scaled ×{real_size / side:.6g} so the largest side is {real_size:g} units"
+    return (None if np.allclose(transform, np.eye(4)) else transform), why
+
+
+def export_record(frame: str, why: str, transform: np.ndarray | None, paths: dict[str, Path]) -> dict:
+    """The mesh report's "export": the frame and why (`export_transform`), the transform `export_mesh` applied, the
+    files it wrote and each one's axes."""
+    return {
+        "frame": frame,
+        "reason": why,
+        "transform": (transform if transform is not None else np.eye(4)).tolist(),
+        "transform_note": "maps the normalized scene frame (+Z up) to the exported frame, before the up-axis change",
+        "files": {k: p.name for k, p in paths.items()},
+        "axes": {"glb": "+Y up (scene +Z rotated -90° about X)", "obj": "+Y up", "ply": "+Z up (the exported frame itself)"},
+    }
 
 
 def glb_bytes(vertices: np.ndarray, faces: np.ndarray, colors_linear: np.ndarray, normals: np.ndarray) -> bytes:

@@ -51,6 +51,16 @@ def grid_spacing(aabb: np.ndarray | torch.Tensor, resolution: int | tuple[int, i
     return (box[1] - box[0]) / (np.asarray(_as_resolution(resolution), np.float64) - 1)
 
 
+def surface_cell(aabb: np.ndarray | torch.Tensor, shape: tuple[int, int, int], voxel: float) -> tuple[float, str]:
+    """The finest layer thickness the mesh can trust (scene units) and why: the mesh grid's cell, or the
+    field's own voxel (``voxel``: `voxel_size` of grid models, 0 for others) when that is coarser — a field cannot
+    make material thinner than its voxel opaque, so an iso-level from a finer mesh cell would cut holes in its shell."""
+    cell = float(grid_spacing(aabb, shape).max())
+    if voxel > cell:
+        return voxel, f"the field's voxel {voxel:.4g} (coarser than the mesh cell {cell:.4g})"
+    return cell, f"the mesh cell {cell:.4g}"
+
+
 def _device_of(aabb: np.ndarray | torch.Tensor, device: torch.device | str | None) -> torch.device:
     if device is not None:
         return torch.device(device)

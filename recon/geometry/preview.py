@@ -1,6 +1,7 @@
 """A quick look at a colored mesh without OpenGL: rasterized, Lambert-shaded, from two sides.
 
-The mesh stage writes `preview_front.png` and `preview_side.png` with it.
+The mesh stage writes `preview_front.png` and `preview_side.png` with it, and `preview_textured.png` (unlit) of
+the textured mesh.
 """
 from __future__ import annotations
 
@@ -12,7 +13,8 @@ import numpy as np
 import trimesh
 
 from recon.geometry.color import project
-from recon.geometry.raster import interpolate, rasterize
+from recon.geometry.raster import interpolate, rasterize, render_mesh
+from recon.geometry.texture import TexturedMesh
 from recon.scene import look_at
 
 
@@ -84,3 +86,12 @@ def write_mesh_previews(vertices: np.ndarray, faces: np.ndarray, colors: np.ndar
         Image.fromarray(render_preview(vertices, faces, colors, azimuth_deg=az)).save(folder / name)
         names.append(name)
     return names
+
+
+def preview_textured(textured: TexturedMesh, size: int = 512, azimuth_deg: float = 0.0, elevation_deg: float = 20.0) -> np.ndarray:
+    """Unlit render (size, size, 3) in [0, 1] of the textured mesh on white, from `render_preview`'s camera
+    (`preview_camera`; azimuth 0: from -Y, 20° up), the whole mesh in view."""
+    c2w, intrinsics = preview_camera(textured.vertices, size, azimuth_deg, elevation_deg)
+    rgb, _ = render_mesh(textured.vertices, textured.faces, c2w, intrinsics, (size, size),
+                         uv=textured.uv, texture=textured.texture)
+    return rgb
