@@ -2,15 +2,21 @@
 
     python benchmarks/gpu_check.py --out /tmp/gpu_check                 # ≤ 8 min on an H100/H200
     python benchmarks/gpu_check.py --out /tmp/gpu_check --set train.device_sizing=off --set train.compile=off
-    python benchmarks/gpu_check.py --out /tmp/smoke --smoke              # minutes on a CPU: that it runs
+    python benchmarks/gpu_check.py --out /tmp/smoke --smoke              # ≤ 2 min on a CPU: that it runs
 
 Runs the real pipeline (poses imported from transforms_*.json, normalize, train, mesh) with the preset as
 `recon run --preset` would, then prints one table and writes gpu_check.json (with the commit and machine, as every
 record in benchmarks/results/): training steps and rays/s, held-out PSNR over the test views (all 200 unless
 --test-views), render milliseconds per 400² view (timed after a warm-up, the device synchronized), the mesh stage's
 seconds, and the CPU-vs-device agreement: the trained field rendered on the CPU and on the device for the same
-views, as the PSNR of one render against the other (the CPU's C marcher against CUDA's torch path; 40 dB and up
-means the two paths draw the same image). A check measures; it asserts nothing.
+views, as the PSNR of one render against the other (the CPU's C marcher against CUDA's torch or Triton path; 40 dB
+and up means the two paths draw the same image). A check measures; it asserts nothing.
+
+On CUDA it trains twice, A/B, with the same settings: `train.fast.kernels=torch` (all stages) and
+`train.fast.kernels=triton` (the train stage: recon/nerf/kernels.py's fused compositing and grid reads), one column
+each, after timing each kernel against its torch reference at the preset's batch size (which also compiles them
+before training). `train.fast.kernels=auto` stays on torch until such a record shows the kernels faster at the same
+PSNR (recon.nerf.kernels.MEASURED_FASTER). On a CPU only the torch column runs (the kernels are CUDA-only).
 """
 from __future__ import annotations
 
@@ -26,11 +32,17 @@ import numpy as np
 import torch
 
 REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))  # measure this checkout's recon (its commit is the one recorded), not another install
 LEGO_HALF = REPO.parent / "shared" / "data" / "nerf_synthetic_lego_half"
 
-SMOKE = ["train.budget=5s", "train.max_side=100", "train.eval_every=0", "mesh.max_resolution=64",
-         "mesh.texture_faces=0"]
-"""--smoke: a few seconds of training on 100-px photos and a 64³ mesh: that every part runs, not what it measures."""
+SMOKE = ["train.budget=5s", "train.max_side=50", "train.eval_every=0", "train.appearance=off",
+         "train.fast.max_samples=32", "mesh.max_resolution=32", "mesh.texture_faces=0"]
+"""--smoke: a few seconds of training on 50-px photos and a 32³ mesh: that every part runs, not what it measures.
+A field trained for seconds is still fog: every ray marches to its sample cap, and each render (the final
+evaluation, the timing, the mesh stage's depth maps of its baking views) pays that cap; 32 samples a ray keep them
+to seconds on a CPU. The appearance check (feature matching between photos) is skipped: the Lego's exposure is
+constant."""
+KERNELS = ("torch", "triton")
 
 
 def _sync(device: torch.device) -> None:
@@ -75,8 +87,85 @@ def device_agreement(field: Path, views: list[Any], device: torch.device) -> dic
             "max_abs_diff": round(diff, 4)}
 
 
-def run_check(args: argparse.Namespace) -> dict[str, Any]:
-    from recon.bench import provenance
+def _timed_ms(fn: Any, device: torch.device, repeats: int = 20) -> float:
+    """Milliseconds per call of `fn()` on `device`, after three warm-up calls (allocation, compilation)."""
+    for _ in range(3):
+        fn()
+    _sync(device)
+    t0 = time.perf_counter()
+    for _ in range(repeats):
+        fn()
+    _sync(device)
+    return 1000.0 * (time.perf_counter() - t0) / repeats
+
+
+def kernel_timings(config: Any, device: torch.device) -> dict[str, Any]:
+    """Each Triton kernel against its torch reference, forward and backward, at the preset's batch (its rays, ~48
+    samples a ray, the density levels and feature grid of its resolutions): milliseconds per call and the largest
+    difference of the forward outputs. Run before training, it also compiles the kernels the Triton run uses."""
+    if device.type != "cuda":
+        return {"skipped": f"the Triton kernels run on CUDA only (this device: {device.type})"}
+    from recon.nerf import kernels as K
+    from recon.nerf.grid import trilinear_levels_torch
+    from recon.nerf.render import accumulate_packed
+
+    ok, why = K.triton_status()
+    if not ok:
+        return {"skipped": why}
+    fast = config.train.fast
+    gen = torch.Generator(device=device).manual_seed(0)
+    rays = config.train.batch_rays
+    counts = torch.randint(0, 97, (rays,), device=device, generator=gen)
+    ri = torch.repeat_interleave(torch.arange(rays, device=device), counts)
+    m = int(ri.shape[0])
+    sigma = torch.rand(m, device=device, generator=gen) * 50.0
+    delta = torch.full((m,), 0.01, device=device)
+    t = torch.rand(m, device=device, generator=gen) + 2.0
+    rgb = torch.rand(m, 3, device=device, generator=gen)
+    weights = torch.rand(m, device=device, generator=gen) / 48.0
+    x01 = torch.rand(m, 3, device=device, generator=gen)
+    density_res = [max(16, int(round((fast.density_res - 1) / 2**k)) + 1) for k in range(fast.density_levels)]
+    density = [torch.randn(r**3, 1, device=device, generator=gen) for r in sorted(set(density_res))]
+    features = [torch.randn(fast.feature_res**3, fast.feature_dim, device=device, generator=gen)]
+
+    def composite(fn: Any) -> Any:
+        s = sigma.clone().requires_grad_()
+        out = fn(s, delta, t, ri, rays)
+        (out[0].sum() + out[2].sum() + out[3].sum()).backward()
+        return out
+
+    def colour(fn: Any) -> Any:
+        w, c = weights.clone().requires_grad_(), rgb.clone().requires_grad_()
+        out = fn(w, c, ri, rays)
+        out.sum().backward()
+        return out
+
+    def grid(fn: Any, tables: list[torch.Tensor]) -> Any:
+        params = [tb.clone().requires_grad_() for tb in tables]
+        out = fn(x01, params, [round(tb.shape[0] ** (1 / 3)) for tb in tables])
+        out.sum().backward()
+        return out
+
+    cases = {
+        f"compositing ({m:,} samples)": (lambda: composite(K.composite_packed_torch),
+                                          lambda: composite(K.composite_packed_triton)),
+        "colour sums": (lambda: colour(accumulate_packed), lambda: colour(K.accumulate_packed_triton)),
+        f"density read ({'+'.join(f'{r}³' for r in sorted(set(density_res)))})": (
+            lambda: grid(trilinear_levels_torch, density), lambda: grid(K.trilinear_levels_triton, density)),
+        f"feature read ({fast.feature_res}³×{fast.feature_dim})": (
+            lambda: grid(trilinear_levels_torch, features), lambda: grid(K.trilinear_levels_triton, features)),
+    }
+    result: dict[str, Any] = {"triton": why}
+    for name, (reference, fused) in cases.items():
+        a, b = (torch.cat([x.detach().flatten() for x in (out if isinstance(out, tuple) else (out,))])
+                for out in (reference(), fused()))
+        result[name] = {"torch_ms": round(_timed_ms(reference, device), 3),
+                        "triton_ms": round(_timed_ms(fused, device), 3), "max_abs_diff": float((a - b).abs().max())}
+    return result
+
+
+def run_one(args: argparse.Namespace, kernels: str, until: str | None) -> tuple[dict[str, Any], Any, Any]:
+    """One pipeline run with train.fast.kernels=`kernels` (until the stage `until`, all when None): its column."""
     from recon.config import load_config
     from recon.nerf.device import select_device
     from recon.progress import Reporter
@@ -84,17 +173,19 @@ def run_check(args: argparse.Namespace) -> dict[str, Any]:
     from recon.stages import default_pipeline
     from recon.views import load_views
 
-    overrides = [*(SMOKE if args.smoke else []), f"train.final_eval_views={args.test_views}", *args.set]
+    overrides = [*(SMOKE if args.smoke else []), f"train.final_eval_views={args.test_views}",
+                 f"train.fast.kernels={kernels}", *args.set]
     if args.budget:
         overrides.append(f"train.budget={args.budget}")
     config = load_config(args.preset, overrides)
     device = select_device(config.train.device)
-    scene = args.out / f"lego-{args.preset}"
+    scene = args.out / f"lego-{args.preset}-{kernels}"
     if scene.exists() and not args.keep:
         shutil.rmtree(scene)
     report = Reporter(quiet=args.quiet)
     t0 = time.perf_counter()
-    outcomes = default_pipeline().run(scene, config, report, source=args.data.resolve(), preset=args.preset)
+    outcomes = default_pipeline().run(scene, config, report, source=args.data.resolve(), preset=args.preset,
+                                      until_stage=until)
     wall = time.perf_counter() - t0
     metrics = json.loads((scene / "03_field" / "metrics.json").read_text())
     stage_s = {o.name: round(o.wall_s, 1) for o in outcomes}
@@ -102,17 +193,10 @@ def run_check(args: argparse.Namespace) -> dict[str, Any]:
     tests = normalized.split("test") or normalized.split("val")
     timing_views = load_views(normalized, spread_evenly(tests, args.render_views + 1), config.train.max_side)
     agree_views = load_views(normalized, spread_evenly(tests, args.agreement_views), config.train.max_side)
-    row = {
-        "name": args.preset,
-        "data": str(args.data),
+    column = {
+        "kernels": next((r for r in metrics["reasons"] if "kernels:" in r), f"train.fast.kernels={kernels}"),
         "overrides": overrides,
-        "date": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
-        **provenance(),
-        "device": str(device),
-        "device_name": torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu",
-        "sizing": config.train.adjusted,
         "steps": metrics["steps"],
-        "batch_rays": config.train.batch_rays,
         "train_time_s": metrics["train_time_s"],
         "rays_per_s": metrics["rays_per_s"],
         "ms_per_step": round(1000.0 * metrics["train_time_s"] / max(1, metrics["steps"]), 2),
@@ -127,26 +211,79 @@ def run_check(args: argparse.Namespace) -> dict[str, Any]:
         "cpu_vs_device": device_agreement(scene / "03_field", agree_views, device),
         "reasons": metrics["reasons"],
     }
-    return row
+    return column, config, device
+
+
+def run_check(args: argparse.Namespace) -> dict[str, Any]:
+    from recon.bench import provenance
+    from recon.config import load_config
+    from recon.nerf.device import select_device
+
+    t0 = time.perf_counter()
+    probe = load_config(args.preset, [*(SMOKE if args.smoke else []), *args.set])
+    device = select_device(probe.train.device)
+    timings = kernel_timings(probe, device) if "triton" in args.kernels else {"skipped": "--kernels torch"}
+    runs: dict[str, Any] = {}
+    skipped: dict[str, str] = {}
+    config = probe
+    for kernels in args.kernels:
+        if kernels == "triton" and device.type != "cuda":
+            skipped[kernels] = f"not run: the Triton kernels run on CUDA only (this device: {device.type})"
+            continue
+        # the mesh stage once (its seconds are the torch run's); the other run stops after training
+        until = None if not runs else "train"
+        runs[kernels], config, device = run_one(args, kernels, until)
+    return {
+        "name": args.preset,
+        "data": str(args.data),
+        "date": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+        **provenance(),
+        "device": str(device),
+        "device_name": torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu",
+        "sizing": config.train.adjusted,
+        "batch_rays": config.train.batch_rays,
+        "kernel_timings": timings,
+        "runs": runs,
+        "not_run": skipped,
+        "wall_s": round(time.perf_counter() - t0, 1),
+    }
 
 
 def table(row: dict[str, Any]) -> str:
-    """The check's one table (Markdown)."""
-    agree = row["cpu_vs_device"]
-    agreement = (agree["skipped"] if "skipped" in agree else
-                 f"{agree['psnr_min_db']:.1f} dB min / {agree['psnr_mean_db']:.1f} dB mean over {agree['views']} views")
-    cells = [
-        ("device", f"{row['device']} ({row['device_name']})"),
-        ("preset", f"{row['name']}: {row['batch_rays']:,} rays/step"),
-        ("steps", f"{row['steps']:,} in {row['train_time_s']:.0f} s ({row['ms_per_step']:.1f} ms/step)"),
-        ("rays/s", f"{row['rays_per_s']:,.0f}"),
-        ("test PSNR", f"{row['psnr']:.2f} dB, SSIM {row['ssim']:.3f} over {row['test_views']} views"),
-        ("render", f"{row['render_ms_per_view']:.0f} ms per {row['render_size'][1]}×{row['render_size'][0]} view"),
-        ("mesh stage", f"{row['mesh_stage_s']} s"),
-        ("CPU vs device", agreement),
-        ("wall", f"{row['wall_s']:.0f} s (all stages)"),
+    """The check's one table (Markdown): a column per kernels setting run, the kernels' timings below."""
+    runs = row["runs"]
+    names = list(runs)
+
+    def agreement(agree: dict[str, Any]) -> str:
+        return (agree["skipped"] if "skipped" in agree else
+                f"{agree['psnr_min_db']:.1f} dB min / {agree['psnr_mean_db']:.1f} dB mean over {agree['views']} views")
+
+    measures: list[tuple[str, Any]] = [
+        ("steps", lambda r: f"{r['steps']:,} in {r['train_time_s']:.0f} s ({r['ms_per_step']:.1f} ms/step)"),
+        ("rays/s", lambda r: f"{r['rays_per_s']:,.0f}"),
+        ("test PSNR", lambda r: f"{r['psnr']:.2f} dB, SSIM {r['ssim']:.3f} over {r['test_views']} views"),
+        ("render", lambda r: f"{r['render_ms_per_view']:.0f} ms per {r['render_size'][1]}×{r['render_size'][0]} view"),
+        ("mesh stage", lambda r: "not run (training only)" if r["mesh_stage_s"] is None else f"{r['mesh_stage_s']} s"),
+        ("CPU vs device", lambda r: agreement(r["cpu_vs_device"])),
+        ("wall", lambda r: f"{r['wall_s']:.0f} s (its stages)"),
     ]
-    return "\n".join(["| measure | value |", "|---|---|", *(f"| {k} | {v} |" for k, v in cells)])
+    lines = [f"device {row['device']} ({row['device_name']}); preset {row['name']}: {row['batch_rays']:,} rays/step; "
+             f"check {row['wall_s']:.0f} s in all",
+             "",
+             "| measure | " + " | ".join(f"train.fast.kernels={n}" for n in names) + " |",
+             "|---|" + "---|" * len(names)]
+    lines += [f"| {label} | " + " | ".join(cell(runs[n]) for n in names) + " |" for label, cell in measures]
+    timings = row["kernel_timings"]
+    for name, t in timings.items():
+        if isinstance(t, dict):
+            ratio = t["torch_ms"] / t["triton_ms"] if t["triton_ms"] else float("inf")
+            lines.append(f"| kernel: {name}, fwd+bwd | torch {t['torch_ms']:.2f} ms | Triton {t['triton_ms']:.2f} ms "
+                         f"({ratio:.1f}×, max diff {t['max_abs_diff']:.1e}) |"
+                         + " |" * (len(names) - 2))
+    notes = [f"{k}: {v}" for k, v in row["not_run"].items()]
+    if "skipped" in timings:
+        notes.append(f"kernel timings: {timings['skipped']}")
+    return "\n".join(lines + ([""] + notes if notes else []))
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -154,15 +291,23 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, required=True, help="folder for the scene, gpu_check.json and gpu_check.md")
     parser.add_argument("--data", type=Path, default=LEGO_HALF, help="a NeRF-synthetic folder (default: the half-res Lego)")
     parser.add_argument("--preset", default="fast")
-    parser.add_argument("--budget", default="90s", help="training budget (the issue's runs: 90s); '' keeps the preset's")
+    parser.add_argument("--budget", default="60s",
+                        help="training budget of each run (issue 37's target: 33 dB in 60 s); '' keeps the preset's")
+    parser.add_argument("--kernels", default="torch,triton",
+                        help="train.fast.kernels settings to run, comma-separated (triton runs on CUDA only)")
     parser.add_argument("--test-views", type=int, default=0, help="held-out views scored (0: all)")
     parser.add_argument("--render-views", type=int, default=10, help="views timed for render ms/view")
     parser.add_argument("--agreement-views", type=int, default=3, help="views rendered on both the CPU and the device")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="a config override, as recon --set")
-    parser.add_argument("--smoke", action="store_true", help="tiny run (5 s budget, 100-px photos, 64³ mesh): that it runs")
+    parser.add_argument("--smoke", action="store_true",
+                        help="tiny run (5 s budget, 50-px photos, 32 samples a ray, 32³ mesh): that it runs")
     parser.add_argument("--keep", action="store_true", help="reuse the scene folder's cached stages")
     parser.add_argument("--quiet", action="store_true", help="only warnings and errors while the pipeline runs")
     args = parser.parse_args(argv)
+    args.kernels = [k.strip() for k in args.kernels.split(",") if k.strip()]
+    if not args.kernels or any(k not in KERNELS for k in args.kernels):
+        print(f"error: --kernels takes {', '.join(KERNELS)} (comma-separated), got {args.kernels}", file=sys.stderr)
+        return 2
     if not (args.data / "transforms_train.json").is_file():
         print(f"error: {args.data} has no transforms_train.json: pass --data with a NeRF-synthetic folder", file=sys.stderr)
         return 2

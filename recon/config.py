@@ -120,7 +120,8 @@ class TrainConfig:
     """auto (CUDA when present), cpu, cuda or cuda:K."""
     adjusted: str = ""
     """Set by a preset's [no_gpu] table when no GPU is found, or by `device_sizing` on a GPU: what it changed and
-    why (printed with the train stage's reasons)."""
+    why, and on a GPU which kernels the fast model runs (train.fast.kernels) (printed with the train stage's
+    reasons)."""
     device_sizing: Literal["auto", "off"] = "auto"
     """auto: on CUDA, the grid models' rays per step, grid resolutions and (with a budget) step cap grow with the
     GPU's memory (`device_sizing`; a preset's values are sized for a CPU); --set values are kept. off: the preset's
@@ -298,6 +299,9 @@ def load_config(preset: str | None = None, overrides: list[str] | None = None) -
         if found is not None:
             config, why = device_sizing(config, *found, keep=_override_keys(overrides))
             config.train.adjusted = why or config.train.adjusted
+    kernels = _kernels_reason(config)
+    if kernels:
+        config.train.adjusted = "; ".join(filter(None, (config.train.adjusted, kernels)))
     validate(config)
     return config
 
@@ -384,6 +388,20 @@ def _flatten(table: dict[str, Any], prefix: str = "") -> list[tuple[str, Any]]:
     for key, value in table.items():
         out += _flatten(value, f"{prefix}{key}.") if isinstance(value, dict) else [(f"{prefix}{key}", value)]
     return out
+
+
+def _kernels_reason(config: RunConfig) -> str:
+    """The fast model's kernels (train.fast.kernels: Triton or torch) in a sentence, for a run on a GPU or one that
+    asks for Triton on a CPU; "" otherwise (a CPU run with the default says nothing: nothing changes there)."""
+    train = config.train
+    if train.model not in ("auto", "fast"):
+        return ""
+    gpu = _gpu_training(train.device)
+    if not gpu and train.fast.kernels != "triton":
+        return ""
+    from recon.nerf.kernels import kernels_choice
+
+    return kernels_choice(train.fast.kernels, "cuda" if gpu else "cpu")[1]
 
 
 def _gpu_training(device: str) -> bool:

@@ -179,6 +179,31 @@ def test_a_compiled_network_that_disagrees_with_its_reference_is_dropped() -> No
     assert "forward" not in vars(model.color_mlp)
 
 
+# ----------------------------------------------------------------------------- Triton kernels: the switch
+# (the kernels against their torch references: tests/test_triton_kernels.py)
+def test_kernels_auto_stays_on_torch_until_measured_and_a_cpu_never_uses_triton() -> None:
+    from recon.nerf import kernels
+
+    use, why = kernels.kernels_choice("auto", "cuda")
+    assert use is kernels.MEASURED_FASTER
+    if not kernels.MEASURED_FASTER:
+        assert why.startswith("kernels: torch") and "until a GPU check measures the Triton kernels faster" in why
+    assert kernels.kernels_choice("torch", "cuda") == (False, "kernels: torch (train.fast.kernels=torch)")
+    assert not kernels.kernels_choice("triton", "cpu")[0] and "CUDA only" in kernels.kernels_choice("triton", "cpu")[1]
+    cpu = torch.zeros(3)
+    assert not any(kernels.use_triton(s, cpu) for s in ("auto", "torch", "triton"))
+    model = FastModel(FastConfig(**TINY, kernels="triton"))
+    assert {g.kernels for g in model.modules() if isinstance(g, (DenseGrid, MultiDenseGrid))} == {"triton"}
+
+
+def test_the_kernels_choice_is_said_on_a_gpu_and_when_triton_is_asked_for_on_a_cpu() -> None:
+    assert "kernels: torch (train.fast.kernels=auto" in load_config("fast", ["train.device=cuda"]).train.adjusted
+    asked = load_config("fast", ["train.device=cpu", "train.fast.kernels=triton"]).train.adjusted
+    assert asked == "kernels: torch on the cpu (train.fast.kernels=triton: the Triton kernels run on CUDA only)"
+    assert load_config("fast", ["train.device=cpu"]).train.adjusted == ""
+    assert "kernels" not in load_config("classic", ["train.device=cuda"]).train.adjusted
+
+
 # ----------------------------------------------------------------------------- GPU sizing of presets
 @pytest.mark.parametrize("preset", ["fast", "balanced", "quality", "surface"])
 def test_a_large_gpu_gets_more_rays_finer_grids_and_a_higher_step_cap(preset: str) -> None:

@@ -12,7 +12,8 @@ Design (DVGO-like, tuned for a small CPU; runs unchanged on CUDA):
   termination in a no-grad pre-pass), ordered along each ray (grids read ordered points faster).
   In a bounded scene rays are clipped to the box around the occupied cells once the grid is warm. On the CPU
   rays march in C (:mod:`recon.nerf.native`: the same samples as the torch path, faster; bounded and contracted
-  steps), and rendering composites there too.
+  steps), and rendering composites there too. On CUDA, ``kernels="triton"`` composites the packed samples and
+  reads the dense grids in fused Triton kernels (:mod:`recon.nerf.kernels`; the torch code is their reference).
 
 Coordinates: world = normalized scene frame. Bounded scenes map the ``aabb`` onto the grids'
 unit cube; unbounded ones contract (:mod:`recon.nerf.contraction`) into [-2, 2]^3 first.
@@ -43,6 +44,7 @@ from torch import Tensor, nn
 from recon.nerf.model_config import FastConfig, GridKind
 from recon.nerf.contraction import contract
 from recon.nerf.grid import DenseGrid, HashGrid, MultiDenseGrid, VMGrid, resample_dense
+from recon.nerf.kernels import accumulate_packed_triton, composite_packed_triton, use_triton
 from recon.nerf.native import DenseDensity, march_dense_native, march_render_native
 from recon.nerf.occupancy import OccupancyGrid, density_threshold, march, march_front_to_back
 from recon.nerf.rays import ray_aabb
@@ -244,6 +246,9 @@ class FastModel(RadianceModel):
         self.register_buffer("march_box", aabb.clone())
         self.register_buffer("shrunk", torch.zeros((), dtype=torch.bool))
         self.register_buffer("step", torch.zeros((), dtype=torch.long))
+        for grid in (*self.density_grid.modules(), *self.color_grid.modules()):
+            if isinstance(grid, (DenseGrid, MultiDenseGrid)):
+                grid.kernels = cfg.kernels  # their CUDA reads (recon.nerf.kernels); a CPU reads in torch or C
 
     @property
     def voxel_size(self) -> float:
@@ -366,8 +371,12 @@ class FastModel(RadianceModel):
             u = self._unit(rays_o[ri] + rays_d[ri] * mid[:, None]).clamp(0.0, 1.0)
             evaluated[0] += int(ri.shape[0])
             sigma = self._sigma_unit(u)
-        weights, _ = render_weights_packed(sigma, delta, ri, n)
-        opacity = accumulate_packed(weights, None, ri, n)
+        fused = use_triton(cfg.kernels, sigma, delta)  # CUDA and train.fast.kernels: one kernel (recon.nerf.kernels)
+        if fused:
+            weights, _, opacity, depth_sum = composite_packed_triton(sigma, delta, mid, ri, n)
+        else:
+            weights, _ = render_weights_packed(sigma, delta, ri, n)
+            opacity = accumulate_packed(weights, None, ri, n)
         if cfg.color_min_weight > 0:
             sel = (weights.detach() > cfg.color_min_weight).nonzero().squeeze(-1)
             ri_c, w_c = ri[sel], weights[sel]
@@ -378,8 +387,12 @@ class FastModel(RadianceModel):
         rgb_s = self._rgb_unit(u_c, rays_d[ri_c])
         bg = self._background(background, rays_d, training)
         remainder = (1.0 - opacity).clamp_min(0.0)
-        rgb = accumulate_packed(w_c, rgb_s, ri_c, n) + remainder[:, None] * bg
-        depth = accumulate_packed(weights, mid, ri, n) + remainder * far
+        if fused:
+            rgb = accumulate_packed_triton(w_c, rgb_s.float(), ri_c, n) + remainder[:, None] * bg
+            depth = depth_sum + remainder * far
+        else:
+            rgb = accumulate_packed(w_c, rgb_s, ri_c, n) + remainder[:, None] * bg
+            depth = accumulate_packed(weights, mid, ri, n) + remainder * far
         out: dict[str, Any] = {"rgb": rgb, "depth": depth, "opacity": opacity, "background": bg,
                                "num_samples": int(ri.shape[0]), "density_evals": evaluated[0]}
         reg = self._regularizers(weights, mid, delta, ri, n, opacity)

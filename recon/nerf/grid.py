@@ -6,7 +6,9 @@ scene box, or the contracted [-2, 2]^3 box, onto it), and return features ``(M, 
 
 Every encoder stores its values as a channels-last table ``(rows, C)`` and interpolates with one call of
 :func:`gather_interp` (``F.embedding_bag`` forward, ``index_add_`` backward), except scalar dense grids,
-which use ``F.grid_sample`` on a view of the same storage: no custom CUDA, runs anywhere, CPU and GPU.
+which use ``F.grid_sample`` on a view of the same storage: no custom CUDA, runs anywhere, CPU and GPU. (Dense grids
+read on a CPU in C where no point gradient is needed, :mod:`recon.nerf.native`; on CUDA in a Triton kernel when the
+fast model's ``kernels`` asks, :mod:`recon.nerf.kernels`.)
 Plain reference implementations (:func:`trilinear_reference`, :func:`hash_reference`) are slow
 per-corner loops that the tests compare the fast path against.
 
@@ -30,6 +32,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from recon.nerf.kernels import trilinear_levels_triton, use_triton
 from recon.nerf.native import native_grid_ok, trilinear_backward_native, trilinear_features_native
 
 _PRIMES = (1, 2654435761, 805459861)  # instant-ngp spatial hash (Teschner et al. 2003 / Müller et al. 2022)
@@ -160,6 +163,9 @@ class DenseGrid(nn.Module):
         self.res, self.channels = int(res), int(channels)
         self.table = nn.Parameter(torch.randn(self.res**3, self.channels) * init_std)
         self._grad_buffer: Tensor | None = None  # see _NativeTrilinear
+        # train.fast.kernels, set by the fast model: "triton" (or "auto", once measured) reads CUDA points in a Triton
+        # kernel (recon.nerf.kernels.use_triton decides); "torch" never
+        self.kernels = "torch"
 
     @property
     def out_dim(self) -> int:
@@ -176,6 +182,8 @@ class DenseGrid(nn.Module):
         3x faster than building corner indices for a scalar grid); more channels use the channels-last
         gather, whose backward was 2.3x faster than grid_sample's at 12 channels.
         """
+        if self.kernels != "torch" and not x01.requires_grad and use_triton(self.kernels, x01, self.table):
+            return trilinear_levels_triton(x01, [self.table], [self.res])  # CUDA only: the CPU takes the paths below
         if not x01.requires_grad and native_grid_ok(x01, self.table):  # no gradient to the points needed: in C
             if torch.is_grad_enabled() and self.table.requires_grad:
                 return _NativeTrilinear.apply(self.table, x01, self)
@@ -229,6 +237,7 @@ class MultiDenseGrid(nn.Module):
         self.resolutions = resolutions
         self.channels = int(channels)
         self.grids = nn.ModuleList(DenseGrid(r, channels, init_std) for r in resolutions)
+        self.kernels = "torch"  # as DenseGrid.kernels; the Triton kernel reads every level in one pass over the points
 
     @property
     def out_dim(self) -> int:
@@ -236,6 +245,9 @@ class MultiDenseGrid(nn.Module):
 
     def forward(self, x01: Tensor) -> Tensor:
         """x01: (M, 3) in [0, 1] -> (M, C), the sum over levels."""
+        tables = [g.table for g in self.grids] if self.kernels != "torch" else []
+        if tables and not x01.requires_grad and use_triton(self.kernels, x01, *tables):
+            return trilinear_levels_triton(x01, tables, self.resolutions)  # CUDA only: the CPU takes the paths below
         native = not x01.requires_grad and native_grid_ok(x01, self.grids[0].table)  # then each level reads in C
         if self.channels == 1 and not native:  # one coordinate transform for every level
             g = grid_sample_coords(x01, self.grids[0].table.dtype)
@@ -251,6 +263,23 @@ class MultiDenseGrid(nn.Module):
     def tv_loss(self, n: int = 65536) -> Tensor:
         """Sum of the levels' sampled TV losses."""
         return sum(g.tv_loss(n) for g in self.grids)
+
+
+def trilinear_levels_torch(x01: Tensor, tables: list[Tensor], resolutions: list[int]) -> Tensor:
+    """Sum over levels of the trilinear read of table ``(R³, C)`` at x01 (M, 3) -> (M, C), as :class:`DenseGrid` reads
+    in torch (one channel: ``grid_sample``; more: the gather): the reference of
+    :func:`recon.nerf.kernels.trilinear_levels_triton`, which reads them all in one pass on CUDA."""
+    out = None
+    for table, r in zip(tables, resolutions, strict=True):
+        if table.shape[1] == 1:
+            g = grid_sample_coords(x01, table.dtype)
+            level = F.grid_sample(table.view(1, 1, r, r, r), g, mode="bilinear", align_corners=True).view(-1, 1)
+        else:
+            i0, frac = axis_cells(x01, r)
+            level = gather_interp(table, corner_rows(i0, r), corner_weights(frac))
+        out = level if out is None else out + level
+    assert out is not None
+    return out
 
 
 class VMGrid(nn.Module):

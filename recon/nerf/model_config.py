@@ -87,6 +87,10 @@ class FastConfig:
     CPU_NERF_NOTES lesson 3). 0 = never."""
     shrink_margin: float = 0.05
     """Margin added around the occupied box before shrinking, as a fraction of the scene box's extent."""
+    kernels: Literal["auto", "torch", "triton"] = "auto"
+    """On CUDA: "triton" composites the packed samples and reads the dense grids in fused Triton kernels
+    (`recon.nerf.kernels`, where triton imports), "torch" in torch; "auto" stays on torch until a GPU check measures
+    the kernels faster (docs/gpu.md). A CPU always runs the torch code (and the C marcher)."""
 
 
 @dataclass

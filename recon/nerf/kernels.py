@@ -1,0 +1,264 @@
+"""Fused Triton kernels for the fast model's CUDA hot path, each beside the torch code it replaces (its reference).
+
+On a GPU the fast model's step is launch-bound (docs/gpu.md): compositing packed samples costs ~15 small torch
+kernels (clamps, a float64 cumulative sum, the per-ray offsets' gather, exp, expm1, an index_add per sum), and a
+three-level density read three ``grid_sample`` calls and their coordinate transform. Here each is one kernel
+forward and one backward (recon/nerf/triton_kernels.py), wrapped as ``torch.autograd.Function``s:
+
+* :func:`composite_packed_triton` — alpha = -expm1(-σδ), the exclusive transmittance of each ray over its packed
+  samples, the weights, and each ray's opacity and depth sum. Reference: :func:`composite_packed_torch`
+  (:func:`recon.nerf.render.render_weights_packed` and :func:`recon.nerf.render.accumulate_packed`).
+* :func:`accumulate_packed_triton` — per-ray weighted sums of packed values (the colours), a segmented sum without
+  atomics. Reference: :func:`recon.nerf.render.accumulate_packed`.
+* :func:`trilinear_levels_triton` — the sum of dense grids' trilinear reads at the same points (the density levels,
+  or one feature grid), the tables' gradients by atomic adds. Reference: :func:`recon.nerf.grid.trilinear_levels_torch`
+  (the torch reads of :class:`recon.nerf.grid.DenseGrid`).
+
+They run only where ``train.fast.kernels`` asks for them (:func:`kernels_choice`), triton imports and the tensors
+are float32 on CUDA; everywhere else the torch code runs unchanged, so CPU results stay bit-identical. Callers pass
+what the marcher gives: ray indices sorted ascending (not re-checked here: the check costs host syncs); points that
+need no gradient (pose refinement's do, and keep the torch reads). Numerics: float32 sums along each ray in sample
+order; the float64 reference differs by ~1e-6 relative. tests/test_triton_kernels.py holds each kernel to its
+reference, forward and gradients, compiled on CUDA and under Triton's interpreter on a CPU.
+"""
+from __future__ import annotations
+
+from functools import lru_cache
+from types import ModuleType
+from typing import Literal
+
+import torch
+from torch import Tensor
+
+from recon.nerf.render import SIGMA_MAX, TAU_MAX, accumulate_packed, render_weights_packed
+
+__all__ = ["MEASURED_FASTER", "KERNEL_DEVICES", "KernelSetting", "kernels_choice", "triton_status", "use_triton",
+           "composite_packed_torch", "composite_packed_triton", "accumulate_packed_triton",
+           "trilinear_levels_triton", "ray_offsets"]
+
+KernelSetting = Literal["auto", "torch", "triton"]
+
+MEASURED_FASTER = False
+"""Whether a GPU check (benchmarks/gpu_check.py, its record in benchmarks/results/) has measured training with the
+Triton kernels faster than with the torch code at the same PSNR. ``train.fast.kernels=auto`` uses them only then."""
+
+COMPOSITE_BLOCK = 64
+"""Samples a compositing program reads at a time (rays have tens to hundreds of samples)."""
+ACCUMULATE_BLOCK = 64
+KERNEL_DEVICES: tuple[str, ...] = ("cuda",)
+"""Devices whose tensors the kernels take. Under Triton's interpreter (TRITON_INTERPRET=1) they run on CPU tensors
+too: tests/test_triton_kernels.py adds "cpu" there to run the fast model through them; nothing else does."""
+GRID_BLOCK = 128
+"""Points a grid-read program reads at a time."""
+MAX_LEVELS = 4
+"""Grid levels one launch reads (more are summed over launches)."""
+
+
+@lru_cache(maxsize=1)
+def _jit() -> ModuleType:
+    from recon.nerf import triton_kernels
+
+    return triton_kernels
+
+
+@lru_cache(maxsize=1)
+def triton_status() -> tuple[bool, str]:
+    """(triton imports?, its version or why not). Imports triton, once."""
+    try:
+        import triton
+    except Exception as exc:  # not installed, or a build that fails to load: the torch code runs
+        first = str(exc).splitlines()[0][:120] if str(exc) else ""
+        return False, f"triton does not import ({type(exc).__name__}: {first})"
+    return True, f"triton {triton.__version__}"
+
+
+def kernels_choice(setting: KernelSetting, device_type: str) -> tuple[bool, str]:
+    """(use the Triton kernels?, why, in one sentence) for ``train.fast.kernels=setting`` on a ``device_type``
+    ("cpu", "cuda") device."""
+    if setting == "torch":
+        return False, "kernels: torch (train.fast.kernels=torch)"
+    if device_type != "cuda":
+        return False, (f"kernels: torch on the {device_type} (train.fast.kernels={setting}: the Triton kernels run on "
+                       "CUDA only)")
+    if setting == "auto" and not MEASURED_FASTER:
+        return False, ("kernels: torch (train.fast.kernels=auto stays on the torch path until a GPU check measures the "
+                       "Triton kernels faster; train.fast.kernels=triton uses them)")
+    ok, why = triton_status()
+    if not ok:
+        return False, f"kernels: torch (train.fast.kernels={setting}, but {why})"
+    return True, (f"kernels: Triton compositing and dense-grid reads on CUDA (train.fast.kernels={setting}, {why}); "
+                  "the torch code is their reference")
+
+
+@lru_cache(maxsize=4)
+def _cuda_choice(setting: str) -> bool:
+    return kernels_choice(setting, "cuda")[0]  # type: ignore[arg-type]
+
+
+def use_triton(setting: str, *tensors: Tensor) -> bool:
+    """Run the Triton kernels on these tensors? Only for a setting that wants them and float32 CUDA tensors (False on
+    a CPU before anything is imported or looked up: the CPU path is the torch code, unchanged)."""
+    if setting == "torch" or not all(t.device.type in KERNEL_DEVICES and t.dtype == torch.float32 for t in tensors):
+        return False
+    return _cuda_choice(setting)
+
+
+def ray_offsets(ray_indices: Tensor, n_rays: int) -> Tensor:
+    """(N + 1,) int64: ray r's samples are ``offsets[r]:offsets[r + 1]`` of sorted ``ray_indices (M,)``."""
+    rays = torch.arange(n_rays + 1, device=ray_indices.device, dtype=ray_indices.dtype)
+    return torch.searchsorted(ray_indices, rays)
+
+
+def _check_1d(name: str, x: Tensor, m: int) -> None:
+    if x.shape != (m,):
+        raise ValueError(f"{name} must have shape ({m},), got {tuple(x.shape)}")
+
+
+# ----------------------------------------------------------------------------- packed compositing
+def composite_packed_torch(sigma: Tensor, delta: Tensor, t: Tensor, ray_indices: Tensor,
+                           n_rays: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """The reference: weights (M,), transmittance (M,), opacity (N,) and depth sum (N,) ``sum_i w_i t_i`` of packed
+    samples ``sigma, delta, t (M,)`` (ray_indices (M,) sorted), by render_weights_packed and accumulate_packed."""
+    weights, transmittance = render_weights_packed(sigma, delta, ray_indices, n_rays)
+    opacity = accumulate_packed(weights, None, ray_indices, n_rays)
+    depth = accumulate_packed(weights, t, ray_indices, n_rays)
+    return weights, transmittance, opacity, depth
+
+
+class _CompositePacked(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, sigma: Tensor, delta: Tensor, t: Tensor, ray_indices: Tensor,  # type: ignore[override]
+                n_rays: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        offsets = ray_offsets(ray_indices, n_rays)
+        weights, trans = torch.empty_like(sigma), torch.empty_like(sigma)
+        opacity, depth = sigma.new_empty(n_rays), sigma.new_empty(n_rays)
+        if n_rays:
+            _jit().composite_fwd[(n_rays,)](sigma, delta, t, offsets, weights, trans, opacity, depth,
+                                             SIGMA_MAX=SIGMA_MAX, TAU_MAX=TAU_MAX, BLOCK=COMPOSITE_BLOCK)
+        ctx.save_for_backward(sigma, delta, t, offsets, weights, trans)
+        ctx.set_materialize_grads(False)
+        return weights, trans, opacity, depth
+
+    @staticmethod
+    def backward(ctx, g_w: Tensor | None, g_trans: Tensor | None, g_op: Tensor | None,  # type: ignore[override]
+                 g_dep: Tensor | None) -> tuple[Tensor | None, ...]:
+        sigma, delta, t, offsets, weights, trans = ctx.saved_tensors
+        n = offsets.shape[0] - 1
+        g_sigma, g_delta, g_t = torch.empty_like(sigma), torch.empty_like(sigma), torch.empty_like(sigma)
+        zeros = sigma.new_zeros(n)
+        if n:
+            _jit().composite_bwd[(n,)](
+                sigma, delta, t, offsets, weights, trans,
+                g_w.contiguous() if g_w is not None else sigma, g_trans.contiguous() if g_trans is not None else sigma,
+                g_op.contiguous() if g_op is not None else zeros, g_dep.contiguous() if g_dep is not None else zeros,
+                g_sigma, g_delta, g_t, SIGMA_MAX=SIGMA_MAX, TAU_MAX=TAU_MAX, BLOCK=COMPOSITE_BLOCK,
+                HAS_GW=g_w is not None, HAS_GT=g_trans is not None)
+        else:
+            g_sigma.zero_(), g_delta.zero_(), g_t.zero_()
+        need = ctx.needs_input_grad
+        return g_sigma if need[0] else None, g_delta if need[1] else None, g_t if need[2] else None, None, None
+
+
+def composite_packed_triton(sigma: Tensor, delta: Tensor, t: Tensor, ray_indices: Tensor,
+                            n_rays: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """:func:`composite_packed_torch` in one kernel forward (one program per ray) and one backward.
+
+    sigma (M,) densities, delta (M,) interval lengths, t (M,) sample depths, all float32; ray_indices (M,) long,
+    sorted ascending (rays may have no samples); differentiable in sigma, delta and t.
+    Returns weights (M,), transmittance (M,), opacity (N,), depth sum (N,)."""
+    m = sigma.shape[0]
+    for name, x in (("sigma", sigma), ("delta", delta), ("t", t), ("ray_indices", ray_indices)):
+        _check_1d(name, x, m)
+    return _CompositePacked.apply(sigma.contiguous(), delta.contiguous(), t.contiguous(), ray_indices.contiguous(),
+                                  n_rays)
+
+
+# ----------------------------------------------------------------------------- per-ray weighted sums
+class _AccumulatePacked(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, weights: Tensor, values: Tensor, ray_indices: Tensor, n_rays: int) -> Tensor:  # type: ignore[override]
+        c = values.shape[1]
+        offsets = ray_offsets(ray_indices, n_rays)
+        out = values.new_empty(n_rays, c)
+        if n_rays:
+            _jit().accumulate_fwd[(n_rays,)](weights, values, offsets, out, C=c, CP=max(2, 1 << (c - 1).bit_length()),
+                                              BLOCK=ACCUMULATE_BLOCK)
+        ctx.save_for_backward(weights, values, ray_indices)
+        return out
+
+    @staticmethod
+    def backward(ctx, g: Tensor) -> tuple[Tensor | None, ...]:  # type: ignore[override]
+        weights, values, ray_indices = ctx.saved_tensors
+        m, c = values.shape
+        g_w, g_v = torch.empty_like(weights), torch.empty_like(values)
+        if m:
+            _jit().accumulate_bwd[(-(-m // ACCUMULATE_BLOCK),)](
+                weights, values, ray_indices, g.contiguous(), g_w, g_v, m, C=c,
+                CP=max(2, 1 << (c - 1).bit_length()), BLOCK=ACCUMULATE_BLOCK)
+        need = ctx.needs_input_grad
+        return g_w if need[0] else None, g_v if need[1] else None, None, None
+
+
+def accumulate_packed_triton(weights: Tensor, values: Tensor, ray_indices: Tensor, n_rays: int) -> Tensor:
+    """:func:`recon.nerf.render.accumulate_packed` with values: ``out[r] = sum_{i: ray(i)=r} w_i * v_i``, one program
+    per ray. weights (M,) float32, values (M, C) -> (N, C) or (M,) -> (N,); ray_indices (M,) sorted ascending.
+    Differentiable in weights and values."""
+    m = weights.shape[0]
+    _check_1d("weights", weights, m)
+    _check_1d("ray_indices", ray_indices, m)
+    if values.shape[:1] != (m,) or values.dim() not in (1, 2):
+        raise ValueError(f"values must have shape ({m},) or ({m}, C), got {tuple(values.shape)}")
+    flat = values.dim() == 1
+    out = _AccumulatePacked.apply(weights.contiguous(), (values[:, None] if flat else values).contiguous(),
+                                  ray_indices.contiguous(), n_rays)
+    return out[:, 0] if flat else out
+
+
+# ----------------------------------------------------------------------------- dense grids' trilinear reads
+class _TrilinearLevels(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, x01: Tensor, resolutions: tuple[int, ...], *tables: Tensor) -> Tensor:  # type: ignore[override]
+        m, c = x01.shape[0], tables[0].shape[1]
+        out = tables[0].new_empty(m, c)
+        if m:
+            t, r = [*tables, *tables[:1] * (MAX_LEVELS - len(tables))], [*resolutions, *resolutions[:1] * MAX_LEVELS]
+            _jit().trilinear_fwd[(-(-m // GRID_BLOCK),)](x01, out, m, *t, *r[:MAX_LEVELS], LEVELS=len(tables), C=c,
+                                                          CP=max(2, 1 << (c - 1).bit_length()), BLOCK=GRID_BLOCK)
+        ctx.save_for_backward(x01, *tables)
+        ctx.resolutions = resolutions
+        return out
+
+    @staticmethod
+    def backward(ctx, g: Tensor) -> tuple[Tensor | None, ...]:  # type: ignore[override]
+        x01, *tables = ctx.saved_tensors
+        need = ctx.needs_input_grad[2:]
+        grads = [torch.zeros_like(t) for t in tables]
+        m, c = x01.shape[0], tables[0].shape[1]
+        if m and any(need):
+            r = [*ctx.resolutions, *ctx.resolutions[:1] * MAX_LEVELS]
+            gs = [*grads, *grads[:1] * (MAX_LEVELS - len(grads))]
+            _jit().trilinear_bwd[(-(-m // GRID_BLOCK),)](x01, g.contiguous(), m, *gs, *r[:MAX_LEVELS],
+                                                          LEVELS=len(tables), C=c, CP=max(2, 1 << (c - 1).bit_length()),
+                                                          BLOCK=GRID_BLOCK)
+        return (None, None, *(gr if n else None for gr, n in zip(grads, need)))
+
+
+def trilinear_levels_triton(x01: Tensor, tables: list[Tensor], resolutions: list[int]) -> Tensor:
+    """:func:`recon.nerf.grid.trilinear_levels_torch` in one kernel per four levels: x01 (M, 3) float32 in the unit
+    cube (no gradient to the points), tables (R_k³, C) float32 -> (M, C); differentiable in the tables."""
+    if not tables or len(tables) != len(resolutions):
+        raise ValueError(f"one resolution per table, at least one table (got {len(tables)} and {len(resolutions)})")
+    if x01.dim() != 2 or x01.shape[1] != 3:
+        raise ValueError(f"x01 must have shape (M, 3), got {tuple(x01.shape)}")
+    c = tables[0].shape[1]
+    for t, r in zip(tables, resolutions, strict=True):
+        if t.shape != (r**3, c) or not t.is_contiguous():
+            raise ValueError(f"a level of {r} vertices per side needs a contiguous ({r**3}, {c}) table, "
+                             f"got {tuple(t.shape)}")
+    x01 = x01.detach().contiguous()
+    out = None
+    for k in range(0, len(tables), MAX_LEVELS):
+        part = _TrilinearLevels.apply(x01, tuple(resolutions[k:k + MAX_LEVELS]), *tables[k:k + MAX_LEVELS])
+        out = part if out is None else out + part
+    assert out is not None
+    return out

@@ -1,0 +1,257 @@
+"""The @triton.jit kernels behind :mod:`recon.nerf.kernels` (which launches them, wraps them as autograd functions
+and keeps their torch references). Importing this module imports triton; nothing else in recon does.
+
+Layouts (float32, contiguous):
+* packed samples: ``sigma, delta, t (M,)``, ray ``r``'s samples at ``offsets[r]:offsets[r + 1]`` (``offsets (N + 1,)``
+  int64, from sorted ray indices);
+* grids: a level's table ``(R³, C)``, row of vertex ``(i, j, k)`` = ``(i * R + j) * R + k``; points ``x01 (M, 3)`` in
+  the unit cube, "align corners" (vertex 0 at 0, vertex R - 1 at 1), as :class:`recon.nerf.grid.DenseGrid`.
+
+min, max and clamp propagate NaN (a diverged network) as torch's clamp does, so the trainer's guard sees it.
+Under ``TRITON_INTERPRET=1`` (set before triton is imported) the same kernels run on CPU tensors with numpy: that
+is how tests/test_triton_kernels.py checks them on a machine without a GPU.
+"""
+from __future__ import annotations
+
+import triton
+import triton.language as tl
+
+
+@triton.jit
+def _optical_thickness(sigma, delta, SIGMA_MAX: tl.constexpr, TAU_MAX: tl.constexpr):
+    """tau = clamp(clamp(sigma, 0, SIGMA_MAX) * max(delta, 0), 0, TAU_MAX): render.optical_thickness."""
+    s = tl.clamp(sigma, 0.0, SIGMA_MAX, propagate_nan=tl.PropagateNan.ALL)
+    d = tl.maximum(delta, 0.0, propagate_nan=tl.PropagateNan.ALL)
+    return tl.clamp(s * d, 0.0, TAU_MAX, propagate_nan=tl.PropagateNan.ALL)
+
+
+@triton.jit
+def _alpha(tau):
+    """1 - exp(-tau) = -expm1(-tau) for tau >= 0: its Taylor series below 0.5 (1 - exp would cancel there; triton
+    has no expm1 that runs both compiled and interpreted), 1 - exp(-tau) above. Relative error ~1e-7."""
+    series = tau * (1.0 - tau * 0.5 * (1.0 - tau * (1.0 / 3.0) * (1.0 - tau * 0.25 * (1.0 - tau * 0.2 * (
+        1.0 - tau * (1.0 / 6.0) * (1.0 - tau * (1.0 / 7.0) * (1.0 - tau * 0.125)))))))
+    return tl.where(tau < 0.5, series, 1.0 - tl.exp(-tau))
+
+
+# ----------------------------------------------------------------------------- packed compositing
+@triton.jit
+def composite_fwd(sigma, delta, t, offsets, weights, trans, opacity, depth,
+                  SIGMA_MAX: tl.constexpr, TAU_MAX: tl.constexpr, BLOCK: tl.constexpr):
+    """One program per ray, its samples front to back in chunks of BLOCK: T_i = exp(-sum_{j<i} tau_j),
+    w_i = T_i * alpha_i; the ray's opacity sum w_i and depth sum w_i t_i.
+
+    The exclusive sum is a cumulative sum of the previous samples' taus (loaded shifted by one), not an inclusive
+    sum minus tau_i: after an opaque sample that subtraction would lose the earlier taus to rounding."""
+    ray = tl.program_id(0)
+    start = tl.load(offsets + ray)
+    end = tl.load(offsets + ray + 1)
+    carry = tl.zeros([], dtype=tl.float32)  # optical depth of the ray's samples before this chunk
+    op = tl.zeros([], dtype=tl.float32)
+    dep = tl.zeros([], dtype=tl.float32)
+    for s in range(start, end, BLOCK):
+        i = s + tl.arange(0, BLOCK)
+        m = i < end
+        tau = _optical_thickness(tl.load(sigma + i, mask=m, other=0.0), tl.load(delta + i, mask=m, other=0.0),
+                                 SIGMA_MAX, TAU_MAX)
+        prev = m & (i > s)
+        tau_prev = _optical_thickness(tl.load(sigma + i - 1, mask=prev, other=0.0),
+                                      tl.load(delta + i - 1, mask=prev, other=0.0), SIGMA_MAX, TAU_MAX)
+        tr = tl.exp(-(carry + tl.cumsum(tau_prev, 0)))
+        w = tr * _alpha(tau)
+        tl.store(trans + i, tr, mask=m)
+        tl.store(weights + i, w, mask=m)
+        carry += tl.sum(tau, 0)
+        w = tl.where(m, w, 0.0)
+        op += tl.sum(w, 0)
+        dep += tl.sum(w * tl.load(t + i, mask=m, other=0.0), 0)
+    tl.store(opacity + ray, op)
+    tl.store(depth + ray, dep)
+
+
+@triton.jit
+def composite_bwd(sigma, delta, t, offsets, weights, trans, g_w, g_trans, g_op, g_dep, g_sigma, g_delta, g_t,
+                  SIGMA_MAX: tl.constexpr, TAU_MAX: tl.constexpr, BLOCK: tl.constexpr,
+                  HAS_GW: tl.constexpr, HAS_GT: tl.constexpr):
+    """Gradients of composite_fwd, one program per ray, its samples back to front.
+
+    With G_i = dL/dw_i + dL/dopacity + dL/ddepth * t_i (the dL/dw each sample gets in all) and
+    x_i = G_i w_i + dL/dT_i T_i (dw_i/dtau_k = -w_i and dT_i/dtau_k = -T_i for every earlier sample k):
+        dL/dtau_k = G_k T_k exp(-tau_k) - sum_{i > k} x_i
+    then through the clamps of the optical thickness as torch's clamp passes gradients (inside its closed range).
+    The later samples' sum is a reverse cumulative sum of x loaded shifted by one (no subtraction)."""
+    ray = tl.program_id(0)
+    start = tl.load(offsets + ray)
+    end = tl.load(offsets + ray + 1)
+    gop = tl.load(g_op + ray)
+    gdep = tl.load(g_dep + ray)
+    carry = tl.zeros([], dtype=tl.float32)  # sum of x over the ray's samples after this chunk
+    chunks = tl.cdiv(end - start, BLOCK)
+    for c in range(0, chunks):
+        s = start + (chunks - 1 - c) * BLOCK
+        i = s + tl.arange(0, BLOCK)
+        m = i < end
+        j = i + 1
+        mj = j < end
+        g_next = gop + gdep * tl.load(t + j, mask=mj, other=0.0)
+        if HAS_GW:
+            g_next += tl.load(g_w + j, mask=mj, other=0.0)
+        x_next = g_next * tl.load(weights + j, mask=mj, other=0.0)
+        if HAS_GT:
+            x_next += tl.load(g_trans + j, mask=mj, other=0.0) * tl.load(trans + j, mask=mj, other=0.0)
+        later = carry + tl.cumsum(x_next, 0, reverse=True)
+        carry += tl.sum(x_next, 0)
+
+        sg = tl.load(sigma + i, mask=m, other=0.0)
+        d = tl.load(delta + i, mask=m, other=0.0)
+        sc = tl.clamp(sg, 0.0, SIGMA_MAX, propagate_nan=tl.PropagateNan.ALL)
+        dc = tl.maximum(d, 0.0, propagate_nan=tl.PropagateNan.ALL)
+        prod = sc * dc
+        tau = tl.clamp(prod, 0.0, TAU_MAX, propagate_nan=tl.PropagateNan.ALL)
+        g = gop + gdep * tl.load(t + i, mask=m, other=0.0)
+        if HAS_GW:
+            g += tl.load(g_w + i, mask=m, other=0.0)
+        g_tau = g * tl.load(trans + i, mask=m, other=0.0) * tl.exp(-tau) - later
+        g_tau = tl.where((prod >= 0.0) & (prod <= TAU_MAX), g_tau, 0.0)
+        tl.store(g_sigma + i, tl.where((sg >= 0.0) & (sg <= SIGMA_MAX), g_tau * dc, 0.0), mask=m)
+        tl.store(g_delta + i, tl.where(d >= 0.0, g_tau * sc, 0.0), mask=m)
+        tl.store(g_t + i, gdep * tl.load(weights + i, mask=m, other=0.0), mask=m)
+
+
+# ----------------------------------------------------------------------------- per-ray weighted sums
+@triton.jit
+def accumulate_fwd(w, v, offsets, out, C: tl.constexpr, CP: tl.constexpr, BLOCK: tl.constexpr):
+    """out[r, :] = sum of w_i v_i[:] over ray r's samples: one program per ray, a segmented sum (no atomics, the
+    same result every run). v (M, C), out (N, C); CP = C rounded up to a power of two."""
+    ray = tl.program_id(0)
+    start = tl.load(offsets + ray)
+    end = tl.load(offsets + ray + 1)
+    cols = tl.arange(0, CP)
+    cm = cols < C
+    acc = tl.zeros([CP], dtype=tl.float32)
+    for s in range(start, end, BLOCK):
+        i = s + tl.arange(0, BLOCK)
+        m = i < end
+        wi = tl.load(w + i, mask=m, other=0.0)
+        vi = tl.load(v + i[:, None] * C + cols[None, :], mask=m[:, None] & cm[None, :], other=0.0)
+        acc += tl.sum(wi[:, None] * vi, 0)
+    tl.store(out + ray.to(tl.int64) * C + cols, acc, mask=cm)
+
+
+@triton.jit
+def accumulate_bwd(w, v, ray_indices, g_out, g_w, g_v, M, C: tl.constexpr, CP: tl.constexpr, BLOCK: tl.constexpr):
+    """dL/dw_i = <dL/dout[r_i], v_i>, dL/dv_i = dL/dout[r_i] w_i: one program per BLOCK samples."""
+    i = tl.program_id(0).to(tl.int64) * BLOCK + tl.arange(0, BLOCK)
+    m = i < M
+    cols = tl.arange(0, CP)
+    mm = m[:, None] & (cols < C)[None, :]
+    r = tl.load(ray_indices + i, mask=m, other=0)
+    g = tl.load(g_out + r[:, None] * C + cols[None, :], mask=mm, other=0.0)
+    vi = tl.load(v + i[:, None] * C + cols[None, :], mask=mm, other=0.0)
+    tl.store(g_w + i, tl.sum(g * vi, 1), mask=m)
+    tl.store(g_v + i[:, None] * C + cols[None, :], g * tl.load(w + i, mask=m, other=0.0)[:, None], mask=mm)
+
+
+# ----------------------------------------------------------------------------- dense grids' trilinear reads
+@triton.jit
+def _cell(p, R):
+    """Lower vertex (int64, in [0, R - 2]) and fraction of unit coordinates p in a grid of R vertices per side, as
+    grid.axis_cells: clamped to [0, 1]; a NaN reads vertex 0 with a NaN fraction (the output stays NaN)."""
+    pos = tl.clamp(p, 0.0, 1.0, propagate_nan=tl.PropagateNan.ALL) * (R - 1)
+    lo = tl.minimum(tl.maximum(tl.floor(tl.where(pos == pos, pos, 0.0)), 0.0), R - 2.0)
+    return lo.to(tl.int64), pos - lo
+
+
+@triton.jit
+def _corner_read(acc, table, R, ix, iy, iz, w, pm, cols, cm, C: tl.constexpr):
+    row = (ix * R + iy) * R + iz
+    vals = tl.load(table + row[:, None] * C + cols[None, :], mask=pm[:, None] & cm[None, :], other=0.0)
+    return acc + w[:, None] * vals
+
+
+@triton.jit
+def _level_read(acc, table, R, px, py, pz, pm, cols, cm, C: tl.constexpr):
+    ix, fx = _cell(px, R)
+    iy, fy = _cell(py, R)
+    iz, fz = _cell(pz, R)
+    gx = 1.0 - fx
+    gy = 1.0 - fy
+    gz = 1.0 - fz
+    acc = _corner_read(acc, table, R, ix, iy, iz, gx * gy * gz, pm, cols, cm, C)
+    acc = _corner_read(acc, table, R, ix, iy, iz + 1, gx * gy * fz, pm, cols, cm, C)
+    acc = _corner_read(acc, table, R, ix, iy + 1, iz, gx * fy * gz, pm, cols, cm, C)
+    acc = _corner_read(acc, table, R, ix, iy + 1, iz + 1, gx * fy * fz, pm, cols, cm, C)
+    acc = _corner_read(acc, table, R, ix + 1, iy, iz, fx * gy * gz, pm, cols, cm, C)
+    acc = _corner_read(acc, table, R, ix + 1, iy, iz + 1, fx * gy * fz, pm, cols, cm, C)
+    acc = _corner_read(acc, table, R, ix + 1, iy + 1, iz, fx * fy * gz, pm, cols, cm, C)
+    acc = _corner_read(acc, table, R, ix + 1, iy + 1, iz + 1, fx * fy * fz, pm, cols, cm, C)
+    return acc
+
+
+@triton.jit
+def trilinear_fwd(x, out, M, t0, t1, t2, t3, r0, r1, r2, r3,
+                  LEVELS: tl.constexpr, C: tl.constexpr, CP: tl.constexpr, BLOCK: tl.constexpr):
+    """out (M, C) = the sum over LEVELS (1..4) grids t0..t3 of r0..r3 vertices per side of their trilinear reads at
+    x (M, 3): one pass over the points for every level (the torch path reads each level separately)."""
+    i = tl.program_id(0).to(tl.int64) * BLOCK + tl.arange(0, BLOCK)
+    pm = i < M
+    px = tl.load(x + i * 3, mask=pm, other=0.0)
+    py = tl.load(x + i * 3 + 1, mask=pm, other=0.0)
+    pz = tl.load(x + i * 3 + 2, mask=pm, other=0.0)
+    cols = tl.arange(0, CP)
+    cm = cols < C
+    acc = tl.zeros([BLOCK, CP], dtype=tl.float32)
+    acc = _level_read(acc, t0, r0, px, py, pz, pm, cols, cm, C)
+    if LEVELS > 1:
+        acc = _level_read(acc, t1, r1, px, py, pz, pm, cols, cm, C)
+    if LEVELS > 2:
+        acc = _level_read(acc, t2, r2, px, py, pz, pm, cols, cm, C)
+    if LEVELS > 3:
+        acc = _level_read(acc, t3, r3, px, py, pz, pm, cols, cm, C)
+    tl.store(out + i[:, None] * C + cols[None, :], acc, mask=pm[:, None] & cm[None, :])
+
+
+@triton.jit
+def _corner_add(grad, g, R, ix, iy, iz, w, pm, cols, cm, C: tl.constexpr):
+    row = (ix * R + iy) * R + iz
+    tl.atomic_add(grad + row[:, None] * C + cols[None, :], w[:, None] * g, mask=pm[:, None] & cm[None, :])
+
+
+@triton.jit
+def _level_add(grad, g, R, px, py, pz, pm, cols, cm, C: tl.constexpr):
+    ix, fx = _cell(px, R)
+    iy, fy = _cell(py, R)
+    iz, fz = _cell(pz, R)
+    gx = 1.0 - fx
+    gy = 1.0 - fy
+    gz = 1.0 - fz
+    _corner_add(grad, g, R, ix, iy, iz, gx * gy * gz, pm, cols, cm, C)
+    _corner_add(grad, g, R, ix, iy, iz + 1, gx * gy * fz, pm, cols, cm, C)
+    _corner_add(grad, g, R, ix, iy + 1, iz, gx * fy * gz, pm, cols, cm, C)
+    _corner_add(grad, g, R, ix, iy + 1, iz + 1, gx * fy * fz, pm, cols, cm, C)
+    _corner_add(grad, g, R, ix + 1, iy, iz, fx * gy * gz, pm, cols, cm, C)
+    _corner_add(grad, g, R, ix + 1, iy, iz + 1, fx * gy * fz, pm, cols, cm, C)
+    _corner_add(grad, g, R, ix + 1, iy + 1, iz, fx * fy * gz, pm, cols, cm, C)
+    _corner_add(grad, g, R, ix + 1, iy + 1, iz + 1, fx * fy * fz, pm, cols, cm, C)
+
+
+@triton.jit
+def trilinear_bwd(x, g_out, M, g0, g1, g2, g3, r0, r1, r2, r3,
+                  LEVELS: tl.constexpr, C: tl.constexpr, CP: tl.constexpr, BLOCK: tl.constexpr):
+    """The tables' gradients of trilinear_fwd: each point's dL/dout times its corner weights, atomically added to
+    the 8 corners' rows of every level's gradient g0..g3 (zeroed by the caller)."""
+    i = tl.program_id(0).to(tl.int64) * BLOCK + tl.arange(0, BLOCK)
+    pm = i < M
+    px = tl.load(x + i * 3, mask=pm, other=0.0)
+    py = tl.load(x + i * 3 + 1, mask=pm, other=0.0)
+    pz = tl.load(x + i * 3 + 2, mask=pm, other=0.0)
+    cols = tl.arange(0, CP)
+    cm = cols < C
+    g = tl.load(g_out + i[:, None] * C + cols[None, :], mask=pm[:, None] & cm[None, :], other=0.0)
+    _level_add(g0, g, r0, px, py, pz, pm, cols, cm, C)
+    if LEVELS > 1:
+        _level_add(g1, g, r1, px, py, pz, pm, cols, cm, C)
+    if LEVELS > 2:
+        _level_add(g2, g, r2, px, py, pz, pm, cols, cm, C)
+    if LEVELS > 3:
+        _level_add(g3, g, r3, px, py, pz, pm, cols, cm, C)

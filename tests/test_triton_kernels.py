@@ -1,0 +1,217 @@
+"""The Triton kernels (recon.nerf.kernels) against the torch code they replace: forward values and gradients.
+
+Where CUDA is present the kernels run compiled, in this process. Everywhere triton is installed they also run under
+Triton's interpreter (numpy on CPU tensors): TRITON_INTERPRET=1 must be set before triton is imported, so
+`test_kernels_under_the_interpreter` runs this file again in a subprocess with it set; no other test sees the
+variable or an imported triton. Without triton every test here skips. The interpreter is slow (numpy per program),
+so the cases are small: a few hundred samples, rays of 0 to 130 samples (across the kernels' 64-sample chunks).
+"""
+from __future__ import annotations
+
+import importlib.util
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from recon.nerf import kernels
+from recon.nerf.grid import trilinear_levels_torch
+from recon.nerf.kernels import (
+    accumulate_packed_triton,
+    composite_packed_torch,
+    composite_packed_triton,
+    trilinear_levels_triton,
+)
+from recon.nerf.render import accumulate_packed
+
+REPO = Path(__file__).resolve().parents[1]
+HAS_TRITON = importlib.util.find_spec("triton") is not None
+INTERPRETED = os.environ.get("TRITON_INTERPRET") == "1"
+DEVICE = "cpu" if INTERPRETED else "cuda" if torch.cuda.is_available() else None
+
+if not HAS_TRITON:
+    pytest.skip("triton is not installed (it comes with the [test] extra on Linux x86_64)", allow_module_level=True)
+
+
+@pytest.fixture
+def device() -> str:
+    """Where the kernel cases run: CUDA, compiled; the CPU under the interpreter; else they skip (in one line)."""
+    if DEVICE is None:
+        pytest.skip("no CUDA: the kernels run under the interpreter (test_kernels_under_the_interpreter)")
+    return DEVICE
+
+
+# ----------------------------------------------------------------------------- cases
+def _packed(counts: list[int], seed: int = 0, sigma_scale: float = 20.0) -> tuple[torch.Tensor, ...]:
+    g = torch.Generator().manual_seed(seed)
+    ri = torch.repeat_interleave(torch.arange(len(counts)), torch.tensor(counts))
+    m = ri.shape[0]
+    # no density of exactly 0: where every earlier tau of a ray is 0 the reference's float64 running sum minus the
+    # ray's start can round below 0, and its clamp then drops that gradient (the kernel's per-ray sum keeps it)
+    sigma = torch.rand(m, generator=g) * sigma_scale + 1e-3
+    delta = torch.rand(m, generator=g) * 0.1 + 1e-3
+    t = torch.cumsum(delta, 0)
+    return sigma, delta, t, ri
+
+
+def _to(device: str, *xs: torch.Tensor, grad: bool = False) -> list[torch.Tensor]:
+    return [x.to(device).requires_grad_(grad and x.is_floating_point()) for x in xs]
+
+
+def _compare_composite(sigma: torch.Tensor, delta: torch.Tensor, t: torch.Tensor, ri: torch.Tensor, n: int,
+                       rtol: float = 1e-5, atol: float = 1e-6) -> None:
+    """Forward and gradients (to sigma, delta and t, from all four outputs) of the kernel and the reference.
+
+    Gradients within 1e-5 relative, or 1e-6 of the largest: a sample's dL/dtau is its own term minus the later
+    samples' sum, which cancel in float32 (the reference's cumulative sum is float64)."""
+    s, d, tt = _to(DEVICE, sigma, delta, t, grad=True)
+    (r,) = _to(DEVICE, ri)
+    fused = composite_packed_triton(s, d, tt, r, n)
+    s2, d2, t2 = _to(DEVICE, sigma, delta, t, grad=True)
+    reference = composite_packed_torch(s2, d2, t2, r, n)
+    for name, a, b in zip(("weights", "transmittance", "opacity", "depth"), fused, reference, strict=True):
+        torch.testing.assert_close(a, b, rtol=rtol, atol=atol, msg=lambda m, name=name: f"{name}: {m}")
+    g = torch.Generator().manual_seed(1)
+    upstream = [torch.randn(x.shape, generator=g).to(DEVICE) for x in reference]
+    got = torch.autograd.grad(fused, (s, d, tt), upstream)
+    want = torch.autograd.grad(reference, (s2, d2, t2), upstream)
+    for name, a, b in zip(("d sigma", "d delta", "d t"), got, want, strict=True):
+        scale = float(b.abs().max()) if b.numel() else 1.0
+        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-6 * max(1.0, scale),
+                                   msg=lambda m, name=name: f"{name}: {m}")
+
+
+def test_composite_matches_render_weights_packed_over_rays_of_varied_length(device: str) -> None:
+    counts = [0, 3, 0, 0, 64, 1, 65, 130, 2, 0]  # empty rays first, last and in a row; rays across 64-sample chunks
+    for scale in (0.8, 20.0):  # translucent rays (T ~ 0.1 after 130 samples: every chunk counts), then opaque ones
+        sigma, delta, t, ri = _packed(counts, sigma_scale=scale)
+        _compare_composite(sigma, delta, t, ri, len(counts))
+
+
+def test_composite_of_opaque_rays_huge_densities_and_zero_intervals(device: str) -> None:
+    counts = [5, 70, 4, 6]
+    sigma, delta, t, ri = _packed(counts, seed=2)
+    sigma[:5] = 1e12  # clamped to SIGMA_MAX: the first sample takes all the weight
+    sigma[5:75] = 1e4  # every sample opaque (tau 10..1e3): weights 1, 0, 0, ...
+    sigma[76] = float("inf")  # clamped, finite weights
+    delta[75:79] = 0.0  # zero intervals: no opacity, no gradient to sigma
+    delta[80] = -0.5  # a negative interval counts as zero
+    _compare_composite(sigma, delta, t, ri, len(counts))
+    w, _, opacity, _ = composite_packed_triton(*_to(DEVICE, sigma, delta, t, ri), len(counts))
+    assert torch.isfinite(w).all() and opacity[:2].tolist() == pytest.approx([1.0, 1.0])
+    assert float(w[0]) == pytest.approx(1.0) and float(w[1:5].abs().max()) == 0.0
+
+
+def test_composite_of_thin_media_keeps_expm1_accuracy(device: str) -> None:
+    """tau down to 1e-9: alpha = -expm1(-tau) ~ tau, where 1 - exp(-tau) rounds to 0 or to one ulp of 1."""
+    counts = [40, 40]
+    sigma, delta, t, ri = _packed(counts, seed=3)
+    sigma = torch.logspace(-8, 0.5, 80) / delta  # tau from 1e-8 to ~3, across the series' switch at 0.5
+    _compare_composite(sigma, delta, t, ri, len(counts), rtol=2e-6, atol=1e-12)
+
+
+def test_composite_without_samples_and_without_rays(device: str) -> None:
+    empty = torch.zeros(0)
+    w, tr, opacity, depth = composite_packed_triton(*_to(DEVICE, empty, empty, empty, empty.long()), 3)
+    assert w.shape == tr.shape == (0,) and opacity.tolist() == depth.tolist() == [0.0, 0.0, 0.0]
+    assert composite_packed_triton(*_to(DEVICE, empty, empty, empty, empty.long()), 0)[2].shape == (0,)
+
+
+def test_a_nan_density_reaches_the_weights(device: str) -> None:
+    """A diverged network's NaN must show (the trainer's guard names it), not be clamped away."""
+    sigma, delta, t, ri = _packed([4, 4])
+    sigma[1] = float("nan")
+    w, _, opacity, _ = composite_packed_triton(*_to(DEVICE, sigma, delta, t, ri), 2)
+    assert torch.isnan(w[1:4]).all() and torch.isnan(opacity[0]) and torch.isfinite(w[4:]).all()
+
+
+@pytest.mark.parametrize("channels", [3, 1, 0])
+def test_accumulate_matches_index_add(device: str, channels: int) -> None:
+    counts = [0, 2, 65, 0, 7, 0]
+    _, _, _, ri = _packed(counts)
+    g = torch.Generator().manual_seed(4)
+    w = torch.rand(ri.shape[0], generator=g)
+    v = torch.rand(ri.shape[0], channels, generator=g) if channels else torch.rand(ri.shape[0], generator=g)
+    w1, v1, w2, v2 = _to(DEVICE, w, v, w, v, grad=True)
+    (r,) = _to(DEVICE, ri)
+    got, want = accumulate_packed_triton(w1, v1, r, len(counts)), accumulate_packed(w2, v2, r, len(counts))
+    torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-6)
+    up = torch.randn(want.shape, generator=g).to(DEVICE)
+    for a, b in zip(torch.autograd.grad(got, (w1, v1), up), torch.autograd.grad(want, (w2, v2), up), strict=True):
+        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-6)
+
+
+def _points(m: int, seed: int = 5) -> torch.Tensor:
+    g = torch.Generator().manual_seed(seed)
+    x = torch.rand(m, 3, generator=g)
+    x[:8] = torch.tensor([[0, 0, 0], [1, 1, 1], [1, 0, 1], [0, 1, 0.5], [0.5, 1, 0], [-0.2, 0.3, 1.4],
+                          [1e-7, 1 - 1e-7, 0.5], [0.25, 0.5, 0.75]])  # corners, faces, outside (clamped), a vertex
+    return x
+
+
+@pytest.mark.parametrize("channels, resolutions", [(1, [5, 9, 17]), (12, [7]), (2, [3, 4, 5, 6, 7])],
+                         ids=["density-levels", "feature-grid", "five-levels"])
+def test_trilinear_levels_match_the_grids_torch_reads(device: str, channels: int, resolutions: list[int]) -> None:
+    g = torch.Generator().manual_seed(6)
+    tables = [torch.randn(r**3, channels, generator=g) for r in resolutions]
+    x = _points(200).to(DEVICE)
+    mine = [t.to(DEVICE).requires_grad_() for t in tables]
+    ref = [t.to(DEVICE).requires_grad_() for t in tables]
+    got, want = trilinear_levels_triton(x, mine, resolutions), trilinear_levels_torch(x, ref, resolutions)
+    torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-5)
+    up = torch.randn(want.shape, generator=g).to(DEVICE)
+    for a, b in zip(torch.autograd.grad(got, mine, up), torch.autograd.grad(want, ref, up), strict=True):
+        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-5)
+
+
+def test_fast_model_renders_and_trains_the_same_through_the_kernels(device: str,
+                                                                    monkeypatch: pytest.MonkeyPatch) -> None:
+    """One training render of a small fast model, train.fast.kernels=triton against torch from the same weights:
+    the same colours, depths, opacities and grid gradients (on a CPU: under the interpreter, the C marcher's
+    samples for both)."""
+    from recon.nerf.fast import FastConfig, FastModel
+
+    monkeypatch.setattr(kernels, "KERNEL_DEVICES", ("cuda", "cpu") if INTERPRETED else ("cuda",))
+    cfg = dict(density_res=12, feature_res=8, feature_dim=4, density_levels=2, mlp_width=8, occupancy_res=8,
+               occupancy_warmup=0, early_stop_transmittance=0.0, init_alpha=0.3,
+               color_min_weight=0.0)  # every sample coloured: a weight at the threshold can't pick different samples
+    torch.manual_seed(0)
+    reference = FastModel(FastConfig(**cfg, kernels="torch")).to(DEVICE)
+    with torch.no_grad():
+        for p in reference.parameters():
+            p.add_(0.5 * torch.randn_like(p))
+    fused = FastModel(FastConfig(**cfg, kernels="triton")).to(DEVICE)
+    fused.load_state_dict(reference.state_dict())
+    g = torch.Generator().manual_seed(7)
+    toward = torch.randn(6, 3, generator=g) * 0.2 + torch.tensor([0.0, 0.0, -1.0])
+    rays_d = torch.nn.functional.normalize(toward, dim=-1)
+    rays_o = torch.tensor([0.0, 0.0, 2.5]) + 0.3 * torch.randn(6, 3, generator=g)
+    rays = [x.to(DEVICE) for x in (rays_o, rays_d, torch.full((6,), 0.5), torch.full((6,), 4.5))]
+    outs = []
+    for model in (reference, fused):
+        torch.manual_seed(3)  # the same jitter
+        out = model.render_rays(*rays, training=True, background=torch.ones(3, device=DEVICE))
+        (out["rgb"].square().sum() + out["depth"].sum() + out["opacity"].sum()).backward()
+        outs.append(out)
+    assert outs[0]["num_samples"] == outs[1]["num_samples"] > 0
+    for key in ("rgb", "depth", "opacity"):
+        torch.testing.assert_close(outs[1][key], outs[0][key], rtol=1e-5, atol=1e-5)
+    for (name, a), b in zip(fused.named_parameters(), reference.parameters(), strict=True):
+        torch.testing.assert_close(a.grad, b.grad, rtol=1e-4, atol=1e-5, msg=lambda m, name=name: f"{name}: {m}")
+
+
+# ----------------------------------------------------------------------------- the interpreter run
+@pytest.mark.skipif(INTERPRETED, reason="this is the interpreter run")
+def test_kernels_under_the_interpreter() -> None:
+    """This file again with TRITON_INTERPRET=1 in a fresh process: every kernel case on CPU tensors."""
+    env = {**os.environ, "TRITON_INTERPRET": "1"}
+    run = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-o", "addopts=",
+                          str(Path(__file__).relative_to(REPO))], cwd=REPO, env=env, capture_output=True, text=True,
+                         timeout=600)
+    shown = run.stdout[-6000:] + run.stderr[-3000:]
+    assert run.returncode == 0, shown
+    last = run.stdout.strip().splitlines()[-1]
+    assert " passed" in last and "failed" not in last and "error" not in last, shown
