@@ -4,7 +4,8 @@ against the torch one, measured in one process so that the machine's load cancel
     python benchmarks/unbounded_march.py [--warmup 80] [--rounds 5] [--work DIR]
 
 Builds the fox and the half-size Lego
-(bounded) as `recon bench --profile` builds them (recon.profiling.profile_preset), the fox from its reference poses
+(bounded) as the train stage and `recon bench --profile` build them (recon.model_choice.plan_training and
+build_training: the same model, rays and step pieces), the fox from its reference poses
 with masks off and trained as an unbounded capture (contracted), as the fox is after SfM (without SfM's sparse points
 normalize calls the reference-posed fox an object capture; SfM itself would take most of this script's time), trains
 each ``--warmup`` steps,
@@ -18,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import statistics
 import tempfile
@@ -26,9 +28,7 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import torch
-import torch.nn.functional as F
 
 REPO = Path(__file__).resolve().parents[1]
 FOX = REPO.parent / "shared" / "data" / "fox"
@@ -36,65 +36,47 @@ RESULT = REPO / "benchmarks" / "results" / "unbounded_march.json"
 
 
 def build(data: str, work: Path, overrides: list[str], unbounded: bool = False) -> dict[str, Any]:
-    """The fast preset's model, optimizer and ray batcher on ``data`` as the train stage builds them; ``unbounded``
-    trains the scene as an unbounded capture (contracted) whatever normalize classified it as."""
+    """The fast preset's model, ray batcher and training step on ``data``, planned and built as the train stage plans
+    and builds them (recon.model_choice); ``unbounded`` trains the scene as an unbounded capture (contracted)
+    whatever normalize classified it as."""
     from recon.bench import prepare_scene
     from recon.config import load_config
-    from recon.field import build_model
-    from recon.model_choice import choose_background, key_backdrop_for, model_spec, sky_for, with_sky
-    from recon.nerf.fitting import RayBatcher
-    from recon.nerf.trainer import make_optimizer
+    from recon.model_choice import build_training, plan_training
+    from recon.nerf.trainer import TrainStep
     from recon.progress import Reporter
     from recon.scene import load_scene
-    from recon.views import load_views, view_tensors
+    from recon.views import load_views
 
     config = load_config("fast", overrides)
     scene = load_scene(prepare_scene(data, work, load_config(None, overrides), Reporter()) / "02_scene")
     if unbounded:
         scene.capture = "unbounded"
     cfg = config.train
-    views = load_views(scene, scene.split("train"), cfg.max_side)
-    kind, kwargs, lr, _ = model_spec(cfg, scene, views)
-    views, backdrop, _ = key_backdrop_for(cfg, kind, scene, views)
-    background, random_bg, _ = choose_background(cfg, scene, views, backdrop)
-    sky, _ = sky_for(cfg, kind, scene, scene.split("train"), views)
-    if sky is not None:
-        kwargs = with_sky(kwargs)
-    torch.manual_seed(cfg.seed)
-    model = build_model(kind, kwargs)
-    images, c2w, intr, _ = view_tensors(views, torch.device("cpu"))
-    aabb = torch.tensor(np.asarray(scene.aabb), dtype=torch.float32)
-    batcher = RayBatcher(images, c2w, intr, aabb=aabb, background=torch.tensor(background),
-                         random_background=random_bg, seed=cfg.seed, empty=sky)
-    return {"model": model, "opt": make_optimizer(model, lr), "batcher": batcher, "rays": cfg.batch_rays, "step": 0}
+    plan = plan_training(cfg, scene, load_views(scene, scene.split("train"), cfg.max_side), torch.device("cpu"))
+    setup = build_training(plan, torch.device("cpu"))
+    step = TrainStep(setup.model, setup.batcher, steps=cfg.steps, **setup.step_kwargs)
+    return {"model": setup.model, "batcher": setup.batcher, "take_step": step, "rays": plan.batch_rays, "step": 0,
+            "pieces": [type(p).__name__ for p in setup.step_kwargs["pieces"]]}
 
 
 def train_step(run: dict[str, Any]) -> dict[str, float]:
-    """One Adam step on an MSE loss (as recon.nerf.trainer.train, without its schedule and extras): CPU and wall
-    seconds, samples and density evaluations per ray, the batch's PSNR."""
-    model, opt = run["model"], run["opt"]
+    """One step of the train stage's training (recon.nerf.trainer.TrainStep, its pieces included): CPU and wall
+    seconds, samples and density evaluations per ray of the batch, colored samples per ray (a depth prior's own
+    rays included: the step colors them too), the batch's PSNR."""
+    model = run["model"]
     colored: list[int] = []
     color = type(model)._rgb_unit
     model._rgb_unit = lambda u, d: (colored.append(u.shape[0]), color(model, u, d))[1]  # count the colored samples
     c0, w0 = time.process_time(), time.perf_counter()
-    model.train()
-    if model.step_update(run["step"]):
-        opt.state.clear()
-    batch = run["batcher"].next_batch(run["rays"])
-    out = model.render_rays(batch["rays_o"], batch["rays_d"], batch["near"], batch["far"], training=True,
-                            background=batch["background"])
-    mse = F.mse_loss(out["rgb"].float(), batch["rgb"])
-    loss = mse + out["reg"].float() if "reg" in out else mse
-    opt.zero_grad(set_to_none=True)
-    loss.backward()
-    opt.step()
+    result = run["take_step"](run["step"])
+    cpu_s, wall_s = time.process_time() - c0, time.perf_counter() - w0
     run["step"] += 1
     del model._rgb_unit
-    n = run["rays"]
-    return {"cpu_s": time.process_time() - c0, "wall_s": time.perf_counter() - w0,
+    n, out = run["rays"], result.out
+    return {"cpu_s": cpu_s, "wall_s": wall_s,
             "samples_per_ray": out["num_samples"] / n, "density_evals_per_ray": out["density_evals"] / n,
             "colored_per_ray": sum(colored) / n,
-            "psnr": float(-10 * torch.log10(mse.detach()))}
+            "psnr": float(-10 * math.log10(result.rgb_mse))}
 
 
 def marcher_ab(run: dict[str, Any], repeats: int) -> dict[str, Any]:
@@ -194,6 +176,7 @@ def main() -> None:
         "load_average_start": load_start,
         "load_average_end": [round(x, 2) for x in os.getloadavg()],
         "preset": "fast", "warmup_steps": args.warmup, "rounds": args.rounds,
+        "step_pieces": {"fox": fox["pieces"], "lego": lego["pieces"]},
         "data": {"fox": f"{FOX} (reference poses, normalize.masks=off, trained unbounded: contracted)", "lego": "lego-half (bounded)"},
         "training_steps": steps,
         "fox_step_cpu_torch_over_native": steps["fox_torch"]["cpu_s_per_step_median"]

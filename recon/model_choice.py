@@ -1,15 +1,22 @@
-"""Which model a scene gets, with what settings and background, and why: the train stage's choices, shared with
-`recon bench --profile`, which must build the very model the stage builds."""
+"""Which model a scene gets, with what settings, background and training pieces, and why: the train stage's plan
+(`plan_training`) and what it builds (`build_training`), shared with `recon bench --profile` and the benchmarks,
+which must time the very step the stage trains."""
 from __future__ import annotations
 
-from dataclasses import asdict, replace
+import copy
+from dataclasses import asdict, dataclass, replace
 from typing import Any
 
 import numpy as np
+import torch
 
 from recon.config import TrainConfig
 from recon.errors import ReconError
 from recon.geometry.color import project
+from recon.nerf.appearance import PhotoAppearance, decide, exposure_spread
+from recon.nerf.depth_prior import DepthPrior, sparse_depth_targets
+from recon.nerf.fitting import RayBatcher
+from recon.nerf.pose_refine import PoseRefinement
 from recon.nerf.surface import hull_planes
 from recon.scene import Frame, Scene
 from recon.sky import SKY_MIN_FRACTION, sky_mask
@@ -21,6 +28,7 @@ from recon.views import (
     key_backdrop,
     pixel_footprint,
     plain_backdrop,
+    view_tensors,
 )
 
 BACKDROP_KEY_WHY = (
@@ -238,3 +246,232 @@ def auto_fast_config(base: Any, scene: Scene, footprint: float) -> tuple[Any, li
     cfg = replace(base, aabb=tuple(tuple(float(x) for x in row) for row in aabb), unbounded=unbounded,
                   density_res=density_res, feature_res=feature_res)
     return cfg, reasons
+
+
+SURFACE_DEPTH_WHY = (
+    "the surface model starts from a closed shape, and the photos' colours alone do not open a concavity it has "
+    "closed over (a bowl keeps a lid at its rim); the SfM points' depths say the rays pass through to the floor"
+)
+
+UNBOUNDED_DEPTH_WHY = (
+    "an unbounded capture without masks: where the object's colour matches what lies behind it the photos alone leave "
+    "the surface soft and holed at any depth; the SfM points say at which depth the surface is"
+)
+
+
+def depth_prior_for(cfg: TrainConfig, kind: str, scene: Scene, frames: list[Frame], views: list[View],
+                    kwargs: dict[str, Any]) -> tuple[DepthPrior | None, str]:
+    """The sparse-depth prior (`recon.nerf.depth_prior.DepthPrior`, on the CPU) or None, and why (printed either way).
+
+    auto: on with few photos, for the surface model (`SURFACE_DEPTH_WHY`) and for unbounded captures
+    (`UNBOUNDED_DEPTH_WHY`); off with masks. Its rays are cut to the scene box of an object capture, else to each
+    photo's near/far, as the training rays are."""
+    from recon.normalization import FEW_PHOTOS
+
+    if cfg.depth_prior == "off":
+        return None, "depth prior: off (train.depth_prior=off)"
+    visible = [np.asarray(scene.point_visibility.get(f.name, []), np.int64) for f in frames]
+    n_obs = sum(len(v) for v in visible)
+    few = len(frames) < FEW_PHOTOS
+    if cfg.depth_prior == "auto" and not few and kind != "surface" and scene.capture != "unbounded":
+        return None, (f"depth prior: off ({len(frames)} training photos >= {FEW_PHOTOS} of an object capture: the "
+                      f"photos constrain the geometry; train.depth_prior=on forces it)")
+    if cfg.depth_prior == "auto" and scene.has_alpha:
+        return None, (f"depth prior: off ({len(frames)} training photos, but masks: their silhouettes already constrain "
+                      f"the geometry, and with masks the prior makes the surface lumpy; train.depth_prior=on forces it)")
+    if n_obs == 0:
+        return None, "depth prior: off (the scene has no sparse points seen by the training photos)"
+    scale = float(np.median([v.hw[1] / f.w for f, v in zip(frames, views, strict=True)]))
+    errors = (np.ones(len(scene.points)) if scene.point_errors is None else np.asarray(scene.point_errors)) * scale
+    box = np.asarray(scene.aabb, np.float64)
+    model_cfg = kwargs.get("config", {})
+    res = int(model_cfg.get("density_res") or model_cfg.get("sdf_res") or 128)
+    voxel = float((box[1] - box[0]).max()) / res if scene.capture == "object" else 2.0 / res
+    alpha = [v.image[..., 3] if v.image.shape[-1] == 4 else None for v in views]
+    targets = sparse_depth_targets(
+        scene.points, visible, np.stack([v.c2w for v in views]), np.array([v.intrinsics for v in views]),
+        np.array([[v.hw[1], v.hw[0]] for v in views]), errors, alpha=alpha if scene.has_alpha else None, min_sigma=voxel,
+    )
+    if scene.capture == "object":
+        bounds: dict[str, torch.Tensor] = {"aabb": torch.tensor(box, dtype=torch.float32)}
+    else:
+        bounds = {"near_far": torch.tensor([[v.near, v.far] for v in views], dtype=torch.float32)}
+    prior = DepthPrior(targets, cfg.depth_weight, cfg.depth_rays, seed=cfg.seed, **bounds)
+    if cfg.depth_prior != "auto":
+        why = "train.depth_prior=on"
+    elif kind == "surface":
+        why = SURFACE_DEPTH_WHY
+    elif not few:
+        why = UNBOUNDED_DEPTH_WHY
+    else:
+        why = f"{len(frames)} training photos (< {FEW_PHOTOS}): few views leave the geometry ambiguous"
+    sig = prior.sigma.cpu().numpy() if len(prior) else np.zeros(1)
+    return prior, (f"depth prior: on ({why}): {len(prior):,} depth targets from the SfM points the photos observe "
+                   f"(DS-NeRF; uncertainty from reprojection error and triangulation angle, median {np.median(sig):.3g} "
+                   f"units), {cfg.depth_rays} of them rendered per step, weight {cfg.depth_weight:g}")
+
+
+def choose_appearance(cfg: TrainConfig, kind: str, views: list[View]) -> tuple[bool, str]:
+    """(model the photos' exposure / white balance per photo?, why) — see recon.nerf.appearance."""
+    if kind == "classic" and cfg.appearance != "off":
+        return False, "per-photo appearance off: it is built for the grid models (fast, surface), not the classic MLP"
+    if cfg.appearance == "off":
+        return False, "per-photo appearance off (train.appearance=off)"
+    return decide(cfg.appearance, exposure_spread([v.image for v in views], np.stack([v.c2w for v in views])))
+
+
+POSE_REFINE_WHY = (
+    "it finds the photos SfM misplaced, but has not raised the held-out PSNR or the mesh's fine accuracy "
+    "(docs/real_captures.md)"
+)
+
+
+def choose_pose_refine(cfg: TrainConfig, kind: str) -> tuple[bool, str]:
+    """(learn per-photo camera corrections?, why) — see recon.nerf.pose_refine."""
+    if cfg.pose_refine == "on" and kind == "classic":
+        return False, "pose refinement off: it is built for the grid models (fast, surface), not the classic MLP"
+    if cfg.pose_refine == "on":
+        return True, ("pose refinement on (train.pose_refine=on): each training photo's camera gets a small rotation "
+                      "and shift learned with the field")
+    return False, f"pose refinement off (train.pose_refine=on turns it on; {POSE_REFINE_WHY})"
+
+
+@dataclass
+class TrainPlan:
+    """Everything the train stage decides before it builds anything, and why: `build_training` builds from it, so
+    the stage, `recon bench --profile` and the benchmarks train the very same step."""
+
+    kind: str
+    kwargs: dict[str, Any]
+    """The model's constructor arguments, its start shape and sky settled."""
+    lr: float
+    lr_final: float
+    batch_rays: int
+    seed: int
+    views: list[View]
+    """The training photos, keyed to RGBA when the backdrop key applies."""
+    aabb: np.ndarray | None
+    """The box the rays are cut to (an object capture); None: each photo's near/far (unbounded)."""
+    background: np.ndarray
+    random_background: bool
+    background_why: str
+    sky: list[np.ndarray] | None
+    """Per training photo, its sky pixels, which train as empty space at `sky_weight`."""
+    sky_weight: float
+    start_sdf: np.ndarray | None
+    """The surface model's start shape as an SDF volume (the visual hull), or None."""
+    appearance: bool
+    appearance_why: str
+    pose_refine: bool
+    pose_why: str
+    depth_prior: DepthPrior | None
+    """The sparse-depth prior on the CPU (`build_training` puts a copy on the device), or None."""
+    compile: str | None
+    """train.compile when the fast model's colour network is compiled, else None."""
+    autocast: torch.dtype | None
+    budget_s: float
+    reasons: list[str]
+    """Every choice's reason, in the order they are printed."""
+
+
+def plan_training(cfg: TrainConfig, scene: Scene, views: list[View], device: torch.device) -> TrainPlan:
+    """The train stage's choices for `scene` on `device`; `views`: the training photos (`scene.split("train")`)
+    as `recon.views.load_views` loads them."""
+    from recon.config import parse_duration
+    from recon.nerf.compiled import compile_wanted
+
+    frames = scene.split("train")
+    kind, kwargs, lr, reasons = model_spec(cfg, scene, views)
+    if cfg.adjusted:
+        reasons.insert(0, cfg.adjusted)
+    appearance, appearance_why = choose_appearance(cfg, kind, views)
+    reasons.append(appearance_why)
+    pose_refine, pose_why = choose_pose_refine(cfg, kind)
+    reasons.append(pose_why)
+    views, backdrop, key_why = key_backdrop_for(cfg, kind, scene, views)
+    reasons.append(key_why)
+    start_sdf = None
+    if kind == "surface":
+        kwargs, start_sdf, start_why = surface_start(kwargs, scene, views)
+        reasons.append(start_why)
+    background, random_bg, bg_why = choose_background(cfg, scene, views, backdrop)
+    sky, sky_why = sky_for(cfg, kind, scene, frames, views)
+    reasons.append(sky_why)
+    if sky is not None:
+        kwargs = with_sky(kwargs)
+        bg_why = "the field's sky colour per ray direction (see sky:)"
+    budget_s = parse_duration(cfg.budget)
+    if budget_s:
+        reasons.append(f"time budget {cfg.budget}: at most {cfg.steps} steps, stopping when the budget is spent")
+    if kind == "fast" and device.type == "cpu":
+        from recon.nerf.native import native_status
+
+        reasons.append(f"marcher: {native_status()}")
+    depth_prior, depth_why = depth_prior_for(cfg, kind, scene, frames, views, kwargs)
+    reasons.append(depth_why)
+    return TrainPlan(
+        kind=kind, kwargs=kwargs, lr=lr, lr_final=lr * cfg.lr_decay, batch_rays=cfg.batch_rays, seed=cfg.seed,
+        views=views, aabb=np.asarray(scene.aabb) if scene.capture == "object" else None,
+        background=background, random_background=random_bg, background_why=bg_why, sky=sky, sky_weight=cfg.sky_weight,
+        start_sdf=start_sdf, appearance=appearance, appearance_why=appearance_why, pose_refine=pose_refine,
+        pose_why=pose_why, depth_prior=depth_prior,
+        compile=cfg.compile if kind == "fast" and compile_wanted(cfg.compile, device)[0] else None,
+        autocast=torch.bfloat16 if cfg.precision == "bf16" else None, budget_s=budget_s, reasons=reasons,
+    )
+
+
+@dataclass
+class TrainSetup:
+    """What training needs, built from a `TrainPlan` on a device."""
+
+    model: torch.nn.Module
+    batcher: RayBatcher
+    step_kwargs: dict[str, Any]
+    """`recon.nerf.trainer.train`'s (and `TrainStep`'s) arguments besides the model, the batcher and the step count:
+    rates, rays per step, autocast and the pieces (sky rays, depth prior, appearance, pose refinement, in that order)."""
+    aabb: torch.Tensor | None
+    c2w: torch.Tensor
+    """The training photos' camera-to-world matrices on the device."""
+    appearance: PhotoAppearance | None
+    pose_refine: PoseRefinement | None
+    notes: list[str]
+    """What building said (torch.compile's outcome), printed after the plan's reasons."""
+
+
+def build_training(plan: TrainPlan, device: torch.device) -> TrainSetup:
+    """The model (seeded with the plan's seed, start shape set, colour network compiled when planned), the ray
+    batcher and the step's pieces, on `device`."""
+    from recon.field import build_model
+    from recon.nerf.compiled import compile_color_network
+    from recon.nerf.pieces import Appearance, DepthPriorLoss, EmptyRays, PoseRefine, TrainPiece
+
+    torch.manual_seed(plan.seed)
+    model = build_model(plan.kind, plan.kwargs)
+    if plan.start_sdf is not None:
+        model.set_initial_sdf(plan.start_sdf)
+    model = model.to(device)
+    notes = [compile_color_network(model, device, plan.compile)] if plan.compile else []
+    images, c2w, intr, near_far = view_tensors(plan.views, device)
+    aabb = None if plan.aabb is None else torch.tensor(plan.aabb, dtype=torch.float32, device=device)
+    batcher = RayBatcher(
+        images, c2w, intr, aabb=aabb, near_far=None if aabb is not None else near_far,
+        background=torch.tensor(plan.background), random_background=plan.random_background, seed=plan.seed,
+        device=device, empty=plan.sky,
+    )
+    pieces: list[TrainPiece] = []
+    if plan.sky is not None:
+        pieces.append(EmptyRays(plan.sky_weight))
+    if plan.depth_prior is not None:
+        pieces.append(DepthPriorLoss(copy.copy(plan.depth_prior).to(device)))
+    appearance = None
+    if plan.appearance:
+        appearance = PhotoAppearance(len(plan.views), include_background=not batcher.has_alpha).to(device)
+        pieces.append(Appearance(appearance))
+    pose_refine = None
+    if plan.pose_refine:
+        pose_refine = PoseRefinement(len(plan.views), centres=c2w[:, :3, 3]).to(device)
+        pieces.append(PoseRefine(pose_refine, batcher.aabb))
+    step_kwargs = {"lr": plan.lr, "lr_final": plan.lr_final, "batch_rays": plan.batch_rays, "autocast": plan.autocast,
+                   "pieces": pieces}
+    return TrainSetup(model=model, batcher=batcher, step_kwargs=step_kwargs, aabb=aabb, c2w=c2w,
+                      appearance=appearance, pose_refine=pose_refine, notes=notes)

@@ -16,10 +16,16 @@ import time
 from collections import defaultdict
 from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
+
+if TYPE_CHECKING:
+    from recon.config import TrainConfig
+    from recon.model_choice import TrainPlan, TrainSetup
+    from recon.scene import Scene
+    from recon.views import View
 
 BACKWARD_KINDS = (
     ("GridSampler", "density grid bwd"),
@@ -60,18 +66,28 @@ def machine_limits(seconds: float = 1.0) -> dict[str, float]:
 
 
 @contextlib.contextmanager
-def _labelled(targets: list[tuple[Any, str, str]]) -> Iterator[dict[str, list[int]]]:
-    """Wrap ``owner.name`` in a profiler label for the duration; yields, per function name, the row count
-    (first dimension of the first tensor argument) of every call."""
+def _labelled(targets: list[tuple[Any, ...]]) -> Iterator[dict[str, list[int]]]:
+    """Wrap ``owner.name`` in a profiler label for the duration, per target ``(owner, name, label[, aside])``;
+    yields, per function name, the row count (first dimension of the first tensor argument) of every call. Calls
+    made inside an ``aside`` target (the depth prior's own rays) are left out of the counts: they are not the
+    batch's rays."""
     counts: dict[str, list[int]] = defaultdict(list)
+    aside_depth = [0]
     saved = []
-    for owner, name, label in targets:
+    for owner, name, label, *rest in targets:
         fn = owner.__dict__[name]
         saved.append((owner, name, fn))
 
-        def wrapper(*args: Any, _fn: Callable = fn, _label: str = label, _name: str = name, **kwargs: Any) -> Any:
-            with torch.profiler.record_function(_label):
-                result = _fn(*args, **kwargs)
+        def wrapper(*args: Any, _fn: Callable = fn, _label: str = label, _name: str = name,
+                    _aside: bool = bool(rest and rest[0]), **kwargs: Any) -> Any:
+            aside_depth[0] += _aside
+            try:
+                with torch.profiler.record_function(_label):
+                    result = _fn(*args, **kwargs)
+            finally:
+                aside_depth[0] -= _aside
+            if aside_depth[0]:
+                return result
             first = next((a for a in args if isinstance(a, torch.Tensor)), None)
             rows = None if first is None else int(first.shape[0])
             # the native marchers evaluate the densities of the samples they keep (None: they did not run)
@@ -138,8 +154,9 @@ def attribute(prof: torch.profiler.profile) -> dict[str, float]:
     return dict(parts)
 
 
-def _labels(model: Any, batcher: Any) -> list[tuple[Any, str, str]]:
+def _labels(model: Any) -> list[tuple[Any, ...]]:
     import recon.nerf.fast as fast
+    from recon.nerf.depth_prior import DepthPrior
     from recon.nerf.fitting import RayBatcher
 
     return [
@@ -153,6 +170,7 @@ def _labels(model: Any, batcher: Any) -> list[tuple[Any, str, str]]:
         (fast, "accumulate_packed", "recon:compositing fwd"),
         (type(model), "step_update", "recon:occupancy refresh"),
         (RayBatcher, "next_batch", "recon:ray batch"),
+        (DepthPrior, "__call__", "recon:depth prior fwd (its own rays: march, render, loss)", True),
     ]
 
 
@@ -166,45 +184,20 @@ def _table(parts: dict[str, float], per: int, wall: float, unit: str) -> list[st
     return lines
 
 
-def profile_preset(data: str, preset: str, out_dir: Path, overrides: list[str], report: Any, *,
-                   warmup: int = 200, steps: int = 8, render: bool = True) -> dict[str, Any]:
-    """Profile ``steps`` training steps of ``preset`` after ``warmup`` steps, and one test render; return the numbers
-    and write nothing (the caller writes profile.md)."""
-    from recon.bench import prepare_scene
-    from recon.config import load_config
-    from recon.nerf.evaluate import render_image
-    from recon.nerf.fitting import RayBatcher
+def profile_training(cfg: TrainConfig, scene: Scene, views: list[View], report: Any, *, warmup: int = 200,
+                     steps: int = 8, title: str = "") -> tuple[dict[str, Any], TrainPlan, TrainSetup]:
+    """Plan and build training on the CPU as the train stage does (`recon.model_choice`), train ``warmup`` steps, then
+    profile ``steps`` more: (the numbers, the plan, what was built). ``views``: the training photos."""
+    from recon.model_choice import build_training, plan_training
     from recon.nerf.trainer import train
-    from recon.scene import load_scene
-    from recon.field import build_model
-    from recon.model_choice import choose_background, key_backdrop_for, model_spec, sky_for, with_sky
-    from recon.views import load_views, view_tensors
 
-    config = load_config(preset, overrides)
-    scene_dir = prepare_scene(data, out_dir, load_config(None, overrides), report)
-    cfg = config.train
-    scene = load_scene(scene_dir / "02_scene")
-    views = load_views(scene, scene.split("train"), cfg.max_side, report, "training photos")
-    kind, kwargs, lr, _ = model_spec(cfg, scene, views)
-    views, backdrop, _ = key_backdrop_for(cfg, kind, scene, views)
-    background, random_bg, _ = choose_background(cfg, scene, views, backdrop)
-    sky, _ = sky_for(cfg, kind, scene, scene.split("train"), views)
-    if sky is not None:
-        kwargs = with_sky(kwargs)
-    if kind != "fast":
-        raise ValueError(f"--profile measures the fast grid model; preset {preset} trains '{kind}'")
-    torch.manual_seed(cfg.seed)
-    model = build_model(kind, kwargs)
-    images, c2w, intr, _ = view_tensors(views, torch.device("cpu"))
-    aabb = torch.tensor(np.asarray(scene.aabb), dtype=torch.float32)
-    batcher = RayBatcher(images, c2w, intr, aabb=aabb, background=torch.tensor(background),
-                         random_background=random_bg, seed=cfg.seed,
-                         empty=sky)
-    autocast = torch.bfloat16 if cfg.precision == "bf16" else None
-
+    device = torch.device("cpu")
+    plan = plan_training(cfg, scene, views, device)
+    if plan.kind != "fast":
+        raise ValueError(f"--profile measures the fast grid model; {title or 'this configuration'} trains '{plan.kind}'")
+    setup = build_training(plan, device)
     prof = torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CPU])
     marks: dict[str, float] = {}
-    samples: list[int] = []
 
     def on_step(p: Any) -> None:
         if p.step == warmup:
@@ -214,34 +207,54 @@ def profile_preset(data: str, preset: str, out_dir: Path, overrides: list[str], 
             prof.stop()
             marks["t1"] = time.perf_counter()
 
-    with report.task(f"{preset}: {warmup} warm-up + {steps} profiled steps", total=None):
-        with _labelled(_labels(model, batcher)) as counts:
-            result = train(model, batcher, steps=warmup + steps, lr=lr, lr_final=lr * cfg.lr_decay,
-                           batch_rays=cfg.batch_rays, callbacks=[on_step], autocast=autocast,
-                           empty_weight=cfg.sky_weight)
+    with report.task(f"{title}: {warmup} warm-up + {steps} profiled steps", total=None):
+        with _labelled(_labels(setup.model)) as counts:
+            result = train(setup.model, setup.batcher, steps=warmup + steps, **setup.step_kwargs, callbacks=[on_step])
             samples = counts["render_weights_packed"][-steps:]
             colored = counts["_rgb_unit"][-steps:]
-    wall = marks["t1"] - marks["t0"]
-    step_parts = attribute(prof)
     res: dict[str, Any] = {
-        "preset": preset, "data": data, "warmup": warmup, "steps": steps, "batch_rays": cfg.batch_rays,
-        "wall_s": wall, "parts": step_parts, "train_psnr": result["psnr"],
-        "samples_per_ray": float(np.mean(samples)) / cfg.batch_rays if samples else float("nan"),
-        "colored_per_ray": float(np.mean(colored)) / cfg.batch_rays if colored else float("nan"),
-        "params": sum(p.numel() for p in model.parameters()),
+        "warmup": warmup, "steps": steps, "batch_rays": plan.batch_rays, "wall_s": marks["t1"] - marks["t0"],
+        "parts": attribute(prof), "train_psnr": result["psnr"],
+        "samples_per_ray": float(np.mean(samples)) / plan.batch_rays if samples else float("nan"),
+        "colored_per_ray": float(np.mean(colored)) / plan.batch_rays if colored else float("nan"),
+        "params": sum(p.numel() for p in setup.model.parameters()),
+        "pieces": [type(p).__name__ for p in setup.step_kwargs["pieces"]],
+        "reasons": plan.reasons,
         "top_ops": prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=15),
     }
+    return res, plan, setup
+
+
+def profile_preset(data: str, preset: str, out_dir: Path, overrides: list[str], report: Any, *,
+                   warmup: int = 200, steps: int = 8, render: bool = True) -> dict[str, Any]:
+    """Profile ``steps`` training steps of ``preset`` after ``warmup`` steps, and one test render; return the numbers
+    and write nothing (the caller writes profile.md)."""
+    from recon.bench import prepare_scene
+    from recon.config import load_config
+    from recon.nerf.evaluate import render_image
+    from recon.scene import load_scene
+    from recon.views import load_views
+
+    config = load_config(preset, overrides)
+    scene_dir = prepare_scene(data, out_dir, load_config(None, overrides), report)
+    cfg = config.train
+    scene = load_scene(scene_dir / "02_scene")
+    views = load_views(scene, scene.split("train"), cfg.max_side, report, "training photos")
+    step, plan, setup = profile_training(cfg, scene, views, report, warmup=warmup, steps=steps, title=preset)
+    res: dict[str, Any] = {"preset": preset, "data": data, **step}
     if render:
+        model, aabb, background = setup.model, setup.aabb, torch.tensor(plan.background)
         test = scene.split("test") or scene.split("val") or scene.split("train")
         view = load_views(scene, test[:1], cfg.max_side)[0]
         h, w = view.hw
         c2w_t = torch.tensor(view.c2w, dtype=torch.float32)
-        render_image(model, c2w_t, view.intrinsics, 32, 32, aabb=aabb)  # first-call costs out of the timing
+        box: dict[str, Any] = {"aabb": aabb} if aabb is not None else {"near": view.near, "far": view.far}
+        render_image(model, c2w_t, view.intrinsics, 32, 32, autocast=plan.autocast, **box)  # first-call costs out of the timing
         rprof = torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CPU])
-        with _labelled(_labels(model, batcher)) as rcounts:
+        with _labelled(_labels(model)) as rcounts:
             t0 = time.perf_counter()
             with rprof:
-                render_image(model, c2w_t, view.intrinsics, h, w, aabb=aabb, background=torch.tensor(background))
+                render_image(model, c2w_t, view.intrinsics, h, w, background=background, autocast=plan.autocast, **box)
             rwall = time.perf_counter() - t0
         res["render"] = {"view": view.name, "size": f"{w}×{h}", "wall_s": rwall, "parts": attribute(rprof),
                          "samples": sum(rcounts["_sigma_unit"]) + sum(rcounts["march_dense_native"])
@@ -274,7 +287,8 @@ def markdown(results: list[dict[str, Any]], limits: dict[str, float], load: tupl
             "",
             f"{r['batch_rays']} rays/step, {r['samples_per_ray']:.1f} samples/ray after the marcher, "
             f"{r['colored_per_ray']:.1f} colored/ray, {r['params'] / 1e6:.1f} M parameters, "
-            f"{r['steps'] * r['batch_rays'] / r['wall_s']:,.0f} rays/s while profiled.",
+            f"{r['steps'] * r['batch_rays'] / r['wall_s']:,.0f} rays/s while profiled; the step's pieces (as the train "
+            f"stage plans them): {', '.join(r['pieces']) or 'none'}.",
             "",
             *_table(r["parts"], r["steps"], r["wall_s"], "step"),
             "",

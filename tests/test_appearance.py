@@ -25,6 +25,7 @@ from recon.nerf.fast import FastConfig, FastModel
 from recon.nerf.render import RadianceModel, render_dense
 from recon.nerf.sampling import stratified
 from recon.nerf.fitting import RayBatcher
+from recon.nerf.pieces import Appearance
 from recon.nerf.trainer import train
 
 SAMPLE = Path(__file__).resolve().parents[1] / "fixtures" / "sample"
@@ -118,7 +119,8 @@ def test_first_training_step_is_the_same_with_and_without_appearance() -> None:
     losses = []
     for app in (None, PhotoAppearance(3)):
         b = RayBatcher(images, c2w, intr, aabb=AABB, seed=0)
-        losses.append(train(FixedBall(), b, steps=1, lr=1e-2, batch_rays=64, appearance=app)["loss"])
+        pieces = [] if app is None else [Appearance(app)]
+        losses.append(train(FixedBall(), b, steps=1, lr=1e-2, batch_rays=64, pieces=pieces)["loss"])
     assert losses[0] == losses[1] > 1e-4
 
 
@@ -147,7 +149,7 @@ def test_training_recovers_known_per_photo_gains() -> None:
     photos = clean * gains[:, None, None, :]
     app = PhotoAppearance(4, kind="gain", reg_weight=0.0)  # the pull to the identity would shrink the gains a little
     b = RayBatcher(photos, c2w, intr, aabb=AABB, background=black, drop_missed=False, seed=0)
-    train(FixedBall(), b, steps=120, lr=5e-2, lr_final=5e-3, batch_rays=256, appearance=app)
+    train(FixedBall(), b, steps=120, lr=5e-2, lr_final=5e-3, batch_rays=256, pieces=[Appearance(app)])
     with torch.no_grad():
         got = torch.diagonal(app.matrices(), dim1=1, dim2=2)
     torch.testing.assert_close(got, gains, atol=0.01, rtol=0)

@@ -42,7 +42,7 @@ def test_other_presets_are_unchanged_on_cpu() -> None:
 def test_train_stage_states_the_cpu_settings() -> None:
     import numpy as np
 
-    from recon.stages import train as train_stage
+    from recon.model_choice import model_spec
 
     cfg = load_config("classic", ["train.device=cpu"]).train
 
@@ -50,7 +50,7 @@ def test_train_stage_states_the_cpu_settings() -> None:
         aabb = np.array([[-1.0] * 3, [1.0] * 3])
         capture = "object"
 
-    kind, kwargs, _, reasons = train_stage.model_spec(cfg, _Scene(), [])
+    kind, kwargs, _, reasons = model_spec(cfg, _Scene(), [])
     assert kind == "classic" and (kwargs["n_coarse"], kwargs["n_fine"]) == (32, 32)
     assert "32+32 samples" in reasons[0]
-    assert cfg.adjusted.startswith("no GPU (train.device=cpu)")  # run() prints it first among the reasons
+    assert cfg.adjusted.startswith("no GPU (train.device=cpu)")  # plan_training puts it first among the reasons

@@ -230,7 +230,7 @@ def test_model_choice_names_the_surface_model_and_refuses_it_for_unbounded_scene
     from recon.config import TrainConfig
     from recon.errors import ReconError
     from recon.scene import Scene
-    from recon.stages.train import model_spec
+    from recon.model_choice import model_spec
 
     box = np.array(BOX)
     kind, kwargs, _, reasons = model_spec(TrainConfig(model="surface"), Scene(frames=[], aabb=box, capture="object"), [])

@@ -10,14 +10,15 @@ import torch
 from torch import Tensor, nn
 
 from recon.config import TrainConfig
+from recon.model_choice import choose_pose_refine
 from recon.nerf.pose_refine import PoseRefinement, so3_exp
 from recon.nerf.render import RadianceModel, render_dense
 from recon.nerf.sampling import stratified
 from recon.nerf.evaluate import align_pose, render_image
 from recon.nerf.fitting import RayBatcher
+from recon.nerf.pieces import PoseRefine
 from recon.nerf.trainer import train
 from recon.scene import look_at
-from recon.stages.train import choose_pose_refine
 
 AABB = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
 
@@ -103,7 +104,7 @@ def test_training_turns_a_misplaced_camera_back_and_leaves_the_right_ones() -> N
     batcher = RayBatcher(images, given, intr, aabb=AABB, seed=0)
     before = train(TexturedBall(), batcher, steps=1, lr=1e-3, batch_rays=512)["loss"]
     after = train(TexturedBall(), RayBatcher(images, given, intr, aabb=AABB, seed=0), steps=250, lr=1e-3,
-                  batch_rays=512, pose_refine=refine)["loss"]
+                  batch_rays=512, pieces=[PoseRefine(refine, AABB)])["loss"]
     corrected = refine.corrected_c2w(given.double())[1]
     was, now = _pixel_error(given[1], c2w[1], intr[0]), _pixel_error(corrected, c2w[1], intr[0])
     assert now < 0.2 * was, f"ball points {now:.3f} px off after, {was:.3f} px before"
@@ -146,14 +147,14 @@ def test_a_resumed_run_refines_as_the_uninterrupted_one() -> None:
     given[1, :3, :3] = so3_exp(torch.tensor([[0.0, math.radians(1.0), 0.0]]))[0] @ c2w[1, :3, :3]
     full = PoseRefinement(3, lr=1e-3, every=2, start=0.0)
     train(TexturedBall(), RayBatcher(images, given, intr, aabb=AABB, seed=0), steps=12, lr=1e-3, batch_rays=128,
-          pose_refine=full)
+          pieces=[PoseRefine(full, AABB)])
     first = PoseRefinement(3, lr=1e-3, every=2, start=0.0)
     states = []
     train(TexturedBall(), RayBatcher(images, given, intr, aabb=AABB, seed=0), steps=12, lr=1e-3, batch_rays=128,
-          pose_refine=first, callbacks=[lambda p: states.append(p.state_fn()) if p.step == 5 else None])
+          pieces=[PoseRefine(first, AABB)], callbacks=[lambda p: states.append(p.state_fn()) if p.step == 5 else None])
     resumed = PoseRefinement(3, lr=1e-3, every=2, start=0.0)
     train(TexturedBall(), RayBatcher(images, given, intr, aabb=AABB, seed=0), steps=12, lr=1e-3, batch_rays=128,
-          pose_refine=resumed, state=states[0])
+          pieces=[PoseRefine(resumed, AABB)], state=states[0])
     assert float(full.rotation.detach().abs().max()) > 0.0
     torch.testing.assert_close(resumed.rotation, full.rotation)
     torch.testing.assert_close(resumed.translation, full.translation)

@@ -11,6 +11,7 @@ import torch
 from recon.nerf.depth_prior import DepthPrior, depth_loss, sparse_depth_targets, triangulation_angles
 from recon.nerf.fast import FastConfig, FastModel
 from recon.nerf.fitting import RayBatcher
+from recon.nerf.pieces import DepthPriorLoss
 from recon.nerf.trainer import train
 from recon.scene import look_at
 
@@ -94,7 +95,7 @@ def test_field_trained_with_the_depth_prior_puts_its_surface_at_the_points() -> 
                              aabb=aabb, background=(0.0, 0.0, 0.0))
         prior = DepthPrior(targets, weight, 64, aabb=aabb)
         assert len(prior) == len(targets) == 120
-        train(model, batcher, steps=60, lr=3e-2, batch_rays=256, extra_loss=prior)
+        train(model, batcher, steps=60, lr=3e-2, batch_rays=256, pieces=[DepthPriorLoss(prior)])
         with torch.no_grad():
             near, far, _ = __import__("recon.nerf.rays", fromlist=["ray_aabb"]).ray_aabb(prior.rays_o, prior.rays_d, aabb)
             out = model.render_rays(prior.rays_o, prior.rays_d, near, far, training=False)
@@ -137,17 +138,15 @@ def test_depth_prior_is_switched_on_by_few_views_and_says_why(n_views: int, mode
                                                              capture: str, on: bool) -> None:
     from dataclasses import replace
 
-    from recon.stages.train import depth_prior_for
+    from recon.model_choice import depth_prior_for
 
     cfg, scene, frames, views = _scene_with_points(n_views)
     cfg, scene = replace(cfg, depth_prior=mode), replace(scene, capture=capture)
     if masks:  # photos with masks: alpha 255 everywhere (all object), so every point stays a target when forced on
         scene.has_alpha = True
         views = [replace(v, image=np.concatenate([v.image, np.full(v.image.shape[:2] + (1,), 255, np.uint8)], -1)) for v in views]
-    aabb = torch.tensor(scene.aabb, dtype=torch.float32)
     model_cfg = {"sdf_res": 64} if kind == "surface" else {"density_res": 64}
-    prior, why = depth_prior_for(cfg, kind, scene, frames, views, {"config": model_cfg}, aabb,
-                                 torch.tensor([[1.0, 5.0]] * n_views), torch.device("cpu"))
+    prior, why = depth_prior_for(cfg, kind, scene, frames, views, {"config": model_cfg})
     assert (prior is not None) == on and why.startswith(f"depth prior: {'on' if on else 'off'}")
     if mode == "auto" and kind == "surface" and on:
         assert "surface model" in why and "concavity" in why  # the model decided it, whatever the photo count

@@ -12,6 +12,7 @@ from recon.config import TrainConfig
 from recon.model_choice import sky_for
 from recon.nerf.fast import FastConfig, FastModel, SkyColor
 from recon.nerf.fitting import RayBatcher
+from recon.nerf.pieces import EmptyRays
 from recon.nerf.trainer import train
 from recon.scene import Frame, Scene, look_at
 from recon.sky import SKY_POINT_MARGIN, sky_mask
@@ -170,7 +171,7 @@ def test_without_a_sky_the_field_paints_the_sky_into_its_density_and_with_it_sta
     model = FastModel(cfg)
     empty = [torch.ones(im.shape[:2], dtype=torch.bool) for im in images] if sky else None
     batcher = RayBatcher(images, c2w, intr, near_far=torch.tensor([0.05, 1e3]), empty=empty, seed=0)
-    result = train(model, batcher, steps=150, lr=2e-2, batch_rays=256, empty_weight=0.1 if sky else 0.0)
+    result = train(model, batcher, steps=150, lr=2e-2, batch_rays=256, pieces=[EmptyRays(0.1)] if sky else [])
     model.eval()
     batch = batcher.next_batch(512)
     with torch.no_grad():

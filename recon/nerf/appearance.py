@@ -10,7 +10,8 @@ lighting that changes across the scene, which photos of one object taken minutes
 
 Three things live here and nowhere else:
 
-* :class:`PhotoAppearance`, the trainable transforms (applied to rendered rays by :func:`recon.nerf.trainer.train`);
+* :class:`PhotoAppearance`, the trainable transforms (applied to the rendered rays in training by the piece
+  :class:`recon.nerf.pieces.Appearance`);
 * :func:`fit_affine`, the same transform fitted in closed form (ridge least squares towards the identity):
   held-out photos get theirs from their LEFT half and are scored on their RIGHT half (NeRF-W's protocol,
   :func:`recon.nerf.evaluate.held_out_right_half`), so the test pixels never shape what scores them;

@@ -9,7 +9,8 @@ field's rendered depth against them.
 * :func:`sparse_depth_targets` — per-photo rays through the points it observes, target distance
   along the unit ray and its standard deviation from the reprojection error and triangulation angle.
 * :func:`depth_loss` — robust, uncertainty-weighted loss on the rendered (expected) depth.
-* :class:`DepthPrior` — a ``train(extra_loss=...)`` callable that renders a few target rays per step.
+* :class:`DepthPrior` — a callable that renders a few target rays per step; training takes it as the
+  piece :class:`recon.nerf.pieces.DepthPriorLoss`.
 
 Frames and units: OpenGL ``c2w`` (camera looks down -Z), intrinsics in pixels of the training images,
 distances along unit-length rays in scene units (`recon.scene.RAY_DISTANCE`).
@@ -149,8 +150,8 @@ def depth_loss(depth: Tensor, target: Tensor, sigma: Tensor) -> Tensor:
 
 
 class DepthPrior:
-    """``train(extra_loss=...)`` term: each step, renders ``rays`` of the depth targets and returns
-    ``{"depth": weight · depth_loss}``.
+    """The term of the training piece :class:`recon.nerf.pieces.DepthPriorLoss`: each step, renders ``rays`` of
+    the depth targets and returns ``{"depth": weight · depth_loss}``.
 
     Rays are drawn from a generator seeded by (seed, step), so a resumed run draws the same ones. near/far
     come from the box (bounded scenes) or the photo's own near/far (``near_far`` (V, 2)); targets outside

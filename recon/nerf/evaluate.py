@@ -62,7 +62,7 @@ def render_image(
         c2w: (4, 4) or (3, 4) camera-to-world (OpenGL); intrinsics: fl_x, fl_y, cx, cy (pixels).
         aabb: (2, 3) scene box giving near/far per ray (rays missing it show the background
             without running the model); or give ``near`` and ``far`` distances.
-        autocast: mixed-precision dtype for the model (see :func:`recon.nerf.trainer.train`), or None.
+        autocast: mixed-precision dtype for the model (see :class:`recon.nerf.trainer.TrainStep`), or None.
 
     Returns dict: rgb (h, w, 3), depth (h, w) (0 where the ray misses the box), opacity (h, w).
     """

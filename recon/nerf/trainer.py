@@ -1,11 +1,12 @@
 """A pure training loop for any :class:`~recon.nerf.render.RadianceModel` (no files, no configs).
 
-Pieces:
-
-* :func:`train` runs Adam + MSE with an exponential learning-rate decay, calls callbacks after
-  every step (checkpointing, evaluation, logging are the caller's business), and stops with
-  :class:`TrainingDiverged` on a non-finite loss. A run resumed from :meth:`TrainProgress.state_dict`
-  continues exactly as the uninterrupted run would (same batches, same jitter, same updates).
+* :class:`TrainStep` is one step: Adam on the colour MSE plus the model's regularizer and the terms of the step's
+  pieces (:mod:`recon.nerf.pieces`: sky rays, the depth prior, per-photo appearance, pose refinement), with an
+  exponential learning-rate decay.
+* :func:`train` loops over it, calls callbacks after every step (checkpointing, evaluation, logging are the
+  caller's business), and stops with :class:`TrainingDiverged` on a non-finite loss. A run resumed from
+  :meth:`TrainProgress.state_dict` continues exactly as the uninterrupted run would (same batches, same jitter,
+  same updates).
 
 Its rays come from a :class:`recon.nerf.fitting.RayBatcher`. Reading a trained field (rendering a camera, scoring
 held-out photos) is :mod:`recon.nerf.evaluate`'s: nothing that only uses a field imports this module.
@@ -16,8 +17,9 @@ import copy
 import math
 import time
 import warnings
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
-from typing import Any, Callable, Iterable
+from typing import Any
 
 import torch
 import torch.nn.functional as F
@@ -25,11 +27,13 @@ from torch import Tensor
 
 from ..metrics import mse_to_psnr
 from .fitting import RayBatcher, lr_at
-from .pose_refine import PoseRefinement
+from .pieces import StepInfo, TrainPiece, mixed_precision
 from .render import RadianceModel
 
 __all__ = [
+    "StepResult",
     "TrainProgress",
+    "TrainStep",
     "TrainingDiverged",
     "TrainingInterrupted",
     "make_optimizer",
@@ -148,6 +152,108 @@ def _diagnose(out: dict[str, Any], loss_terms: dict[str, Tensor]) -> str:
     return cause
 
 
+@dataclass
+class StepResult:
+    """One step's loss, its colour MSE (PSNR is reported from it), the learning rate and the rendered output."""
+
+    loss: float
+    rgb_mse: float
+    lr: float
+    out: dict[str, Any]
+
+
+class TrainStep:
+    """One optimization step of :func:`train`, callable step by step: the rate schedule, a batch, the pieces'
+    hooks, the render under autocast, the loss and the updates.
+
+    :func:`train` loops over it; a benchmark that times single steps calls it directly, so what it times is the
+    step the train stage runs. Loss: MSE of the rendered rgb against the targets, plus the MSE of every ``aux_rgb``
+    prediction (e.g. the coarse network), the model's already-weighted ``reg`` term, then each piece's terms in the
+    pieces' order (:mod:`recon.nerf.pieces`). The learning rate decays exponentially from ``lr`` to ``lr_final``
+    (per group, relative to each group's own starting rate). Each step calls ``model.step_update(step)`` first, then
+    renders with ``training=True``.
+
+    Args:
+        autocast: e.g. ``torch.bfloat16`` to run the model's matmuls in mixed precision (``torch.autocast``);
+            ~2x faster MLPs on CPUs with AMX/AVX512-BF16. Losses, and volume rendering in models that cast their
+            network outputs to float32, stay in float32.
+    """
+
+    def __init__(self, model: RadianceModel, batcher: RayBatcher, *, steps: int, lr: float,
+                 lr_final: float | None = None, batch_rays: int = 4096, pieces: Sequence[TrainPiece] = (),
+                 autocast: torch.dtype | None = None) -> None:
+        self.model, self.batcher, self.steps, self.lr, self.lr_final = model, batcher, steps, lr, lr_final
+        self.batch_rays, self.pieces, self.autocast = batch_rays, list(pieces), autocast
+        self.opt = make_optimizer(model, lr)
+        for piece in self.pieces:
+            piece.attach(self.opt, lr)
+
+    def __call__(self, step: int, fraction: float | None = None) -> StepResult:
+        """Take step ``step`` (from 0); ``fraction``: the share of a time budget spent, which then sets the rate.
+
+        Raises TrainingDiverged on a NaN/inf loss, before anything is updated."""
+        model, opt = self.model, self.opt
+        cur_lr = lr_at(step, self.steps, self.lr, self.lr_final, fraction)
+        for g in opt.param_groups:
+            g["lr"] = g["initial_lr"] * cur_lr / self.lr
+        model.train()
+        if model.step_update(step):
+            opt.state.clear()  # grids were re-sampled: old Adam moments point at other places
+        at = StepInfo(step, self.steps, fraction, self.autocast)
+        batch = self.batcher.next_batch(self.batch_rays)
+        for piece in self.pieces:
+            batch = piece.before_render(batch, at)
+        with mixed_precision(batch["rgb"].device.type, self.autocast):
+            out = model.render_rays(batch["rays_o"], batch["rays_d"], batch["near"], batch["far"],
+                                    training=True, background=batch["background"])
+        for piece in self.pieces:
+            out = piece.after_render(out, batch)
+        terms = {"rgb": F.mse_loss(out["rgb"].float(), batch["rgb"])}
+        for i, aux in enumerate(out.get("aux_rgb", [])):
+            terms[f"aux_rgb[{i}]"] = F.mse_loss(aux.float(), batch["rgb"])
+        if "reg" in out:
+            terms["reg"] = out["reg"].float()
+        for piece in self.pieces:
+            terms.update(piece.loss_terms(model, out, batch, at))
+        loss = sum(terms.values())
+        # one host read for both numbers, before backward: on CUDA a read after opt.step() would wait for the
+        # whole step and leave the GPU idle while the next batch is prepared
+        loss_v, rgb_mse = torch.stack([loss.detach().float(), terms["rgb"].detach()]).tolist()
+        if not math.isfinite(loss_v):
+            raise TrainingDiverged(
+                step, _diagnose(out, terms),
+                f"Lower the learning rate (now {cur_lr:.3g}; try {cur_lr / 3:.3g}) and resume from the "
+                "last checkpoint taken before this step; if it recurs at the same step, check the "
+                "input images and poses for NaN or extreme values.",
+            )
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        for piece in self.pieces:
+            piece.after_step(at)
+        return StepResult(loss_v, rgb_mse, cur_lr, out)
+
+    def state_dict(self) -> dict[str, Any]:
+        """Model, optimizer, batcher position, RNG and the pieces' own entries (copies: training goes on)."""
+        state = {
+            "model": {k: v.detach().clone() for k, v in self.model.state_dict().items()},
+            "optimizer": copy.deepcopy(self.opt.state_dict()),
+            "batcher": self.batcher.state_dict(),
+            "rng": _rng_state(),
+        }
+        for piece in self.pieces:
+            state.update(piece.state_dict())
+        return state
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.model.load_state_dict(state["model"])
+        for piece in self.pieces:
+            piece.load_state_dict(state)
+        self.opt.load_state_dict(state["optimizer"])
+        self.batcher.load_state_dict(state["batcher"])
+        _set_rng_state(state["rng"])
+
+
 def train(
     model: RadianceModel,
     batcher: RayBatcher,
@@ -156,6 +262,7 @@ def train(
     lr: float,
     lr_final: float | None = None,
     batch_rays: int = 4096,
+    pieces: Sequence[TrainPiece] = (),
     eval_fn: Callable[[RadianceModel, int], dict[str, float]] | None = None,
     eval_every: int = 0,
     callbacks: Iterable[Callable[[TrainProgress], None]] = (),
@@ -164,45 +271,22 @@ def train(
     autocast: torch.dtype | None = None,
     budget_s: float = 0.0,
     spent_s: float = 0.0,
-    extra_loss: Callable[[RadianceModel, int], dict[str, Tensor]] | None = None,
-    appearance: torch.nn.Module | None = None,
-    pose_refine: PoseRefinement | None = None,
-    empty_weight: float = 0.0,
 ) -> dict[str, Any]:
-    """Optimize ``model`` on ``batcher``'s rays for ``steps`` steps (or the rest of them after a resume).
+    """Optimize ``model`` on ``batcher``'s rays for ``steps`` steps (or the rest of them after a resume), each step a
+    :class:`TrainStep` (loss, schedule, ``pieces``, ``autocast``: see there).
 
-    Loss: MSE of the rendered rgb against the targets, plus the MSE of every ``aux_rgb``
-    prediction (e.g. the coarse network) and the model's already-weighted ``reg`` term.
-    PSNR is reported from the main rgb MSE. The learning rate decays exponentially from ``lr``
-    to ``lr_final`` (per group, relative to each group's own starting rate).
-
-    Each step calls ``model.step_update(step)`` first, then renders with ``training=True``.
-    ``eval_fn(model, step)`` runs every ``eval_every`` steps (and after the last step) under
-    ``no_grad`` in eval mode; its metrics reach the callbacks. Callbacks run after every step.
+    ``eval_fn(model, step)`` runs every ``eval_every`` steps (and after the last step) under ``no_grad`` in eval
+    mode; its metrics reach the callbacks. Callbacks run after every step.
 
     Args:
-        state: a dict from :meth:`TrainProgress.state_dict` to resume from; model and batcher
+        pieces: the parts of the step beyond the colour loss (:mod:`recon.nerf.pieces`: sky rays trained empty,
+            the sparse-depth prior, per-photo appearance, pose refinement), their terms summed in this order.
+        state: a dict from :meth:`TrainProgress.state_dict` to resume from; model, batcher and pieces
             must be constructed as for the original run.
         history_every: record (step, loss, psnr) every this many steps in the result.
         budget_s: > 0: stop once this much training time (evaluation excluded; ``spent_s`` of it
             already used before a resume) is spent; the learning rate then decays with the
             fraction of the budget used, so a budget-bound run still ends at ``lr_final``.
-        autocast: e.g. ``torch.bfloat16`` to run the model's matmuls in mixed precision
-            (``torch.autocast``); ~2x faster MLPs on CPUs with AMX/AVX512-BF16. Losses, and volume
-            rendering in models that cast their network outputs to float32, stay in float32.
-        extra_loss: ``(model, step) -> {name: loss}`` terms added to the loss each step (e.g. the sparse-depth
-            prior of :mod:`recon.nerf.depth_prior`); it renders its own rays. Must be deterministic in the step
-            for resumes to repeat the run.
-        appearance: per-photo colour transforms (:class:`recon.nerf.appearance.PhotoAppearance`):
-            ``appearance(out, batch["image"])`` replaces the rendered rgb before the loss, its
-            ``regularizer()`` joins the loss and its parameters are optimized at ``lr``.
-        pose_refine: per-photo camera corrections (:class:`recon.nerf.pose_refine.PoseRefinement`): each batch's
-            rays are cast from the corrected cameras, its ``regularizer()`` joins the loss and its parameters are
-            optimized by their own Adam at ``pose_refine.lr`` on the steps ``pose_refine.learns_at``, each update
-            followed by ``pose_refine.hold_frame()``.
-        empty_weight: with a batcher given ``empty`` masks (ignored without them): adds ``empty_weight`` × the
-            mean over the batch of the sky rays' opacity (L1: a blob coloured like the sky costs the colour loss
-            almost nothing).
 
     Returns a summary dict: step, loss, psnr, rays_per_s, elapsed_s, history, metrics (last eval).
 
@@ -210,37 +294,16 @@ def train(
         TrainingDiverged: on a NaN/inf loss, naming the step and suggesting a lower rate.
         TrainingInterrupted: on Ctrl-C, carrying a resumable state of the finished steps.
     """
-    opt = make_optimizer(model, lr)
-    if appearance is not None:
-        opt.add_param_group({"params": list(appearance.parameters()), "lr": lr, "initial_lr": lr})
-    if pose_refine is not None:
-        # its own Adam at a fixed small rate: the field's rate schedule would turn cameras 1,000x too fast
-        pose_opt = torch.optim.Adam(pose_refine.parameters(), lr=pose_refine.lr)
+    take_step = TrainStep(model, batcher, steps=steps, lr=lr, lr_final=lr_final, batch_rays=batch_rays,
+                          pieces=pieces, autocast=autocast)
     start = 0
     if state is not None:
-        model.load_state_dict(state["model"])
-        if appearance is not None:
-            appearance.load_state_dict(state["appearance"])
-        if pose_refine is not None:
-            pose_refine.load_state_dict(state["pose_refine"])
-            pose_opt.load_state_dict(state["pose_optimizer"])
-        opt.load_state_dict(state["optimizer"])
-        batcher.load_state_dict(state["batcher"])
-        _set_rng_state(state["rng"])
+        take_step.load_state_dict(state)
         start = int(state["step"])
     done = start
 
     def snapshot() -> dict[str, Any]:
-        return {
-            "step": done,
-            "model": {k: v.detach().clone() for k, v in model.state_dict().items()},
-            "optimizer": copy.deepcopy(opt.state_dict()),
-            "batcher": batcher.state_dict(),
-            "rng": _rng_state(),
-            **({"appearance": {k: v.detach().clone() for k, v in appearance.state_dict().items()}} if appearance is not None else {}),
-            **({"pose_refine": {k: v.detach().clone() for k, v in pose_refine.state_dict().items()},
-                "pose_optimizer": copy.deepcopy(pose_opt.state_dict())} if pose_refine is not None else {}),
-        }
+        return {"step": done, **take_step.state_dict()}
 
     history: list[tuple[int, float, float]] = []
     metrics: dict[str, float] | None = None
@@ -257,57 +320,10 @@ def train(
                 if used >= budget_s:
                     break
                 fraction = used / budget_s
-            cur_lr = lr_at(step, steps, lr, lr_final, fraction)
-            for g in opt.param_groups:
-                g["lr"] = g["initial_lr"] * cur_lr / lr
-            model.train()
-            if model.step_update(step):
-                opt.state.clear()  # grids were re-sampled: old Adam moments point at other places
-            batch = batcher.next_batch(batch_rays)
-            refine_poses = pose_refine is not None and pose_refine.learns_at(step, steps, fraction)
-            if pose_refine is not None:
-                with torch.set_grad_enabled(refine_poses):
-                    batch = pose_refine.correct_batch(batch, batcher.aabb)
-            with torch.autocast(batch["rgb"].device.type, dtype=autocast or torch.bfloat16, enabled=autocast is not None):
-                out = model.render_rays(batch["rays_o"], batch["rays_d"], batch["near"], batch["far"],
-                                        training=True, background=batch["background"])
-            if appearance is not None:
-                out = {**out, "rgb": appearance(out, batch["image"])}
-            terms = {"rgb": F.mse_loss(out["rgb"].float(), batch["rgb"])}
-            for i, aux in enumerate(out.get("aux_rgb", [])):
-                terms[f"aux_rgb[{i}]"] = F.mse_loss(aux.float(), batch["rgb"])
-            if "reg" in out:
-                terms["reg"] = out["reg"].float()
-            if empty_weight > 0 and "empty" in batch:  # sky pixels: whatever the field holds on their rays is wrong
-                terms["empty"] = empty_weight * (out["opacity"].float() * batch["empty"]).mean()
-            if extra_loss is not None:
-                with torch.autocast(batch["rgb"].device.type, dtype=autocast or torch.bfloat16, enabled=autocast is not None):
-                    terms.update({k: v.float() for k, v in extra_loss(model, step).items()})
-            if appearance is not None:
-                terms["appearance"] = appearance.regularizer()
-            if refine_poses:
-                terms["pose"] = pose_refine.regularizer()
-            loss = sum(terms.values())
-            # one host read for both numbers, before backward: on CUDA a read after opt.step() would wait for the
-            # whole step and leave the GPU idle while the next batch is prepared
-            loss_v, rgb_mse = torch.stack([loss.detach().float(), terms["rgb"].detach()]).tolist()
-            if not math.isfinite(loss_v):
-                raise TrainingDiverged(
-                    step, _diagnose(out, terms),
-                    f"Lower the learning rate (now {cur_lr:.3g}; try {cur_lr / 3:.3g}) and resume from the "
-                    "last checkpoint taken before this step; if it recurs at the same step, check the "
-                    "input images and poses for NaN or extreme values.",
-                )
-            opt.zero_grad(set_to_none=True)
-            if refine_poses:
-                pose_opt.zero_grad(set_to_none=True)
-            loss.backward()
-            opt.step()
-            if refine_poses:
-                pose_opt.step()
-                pose_refine.hold_frame()
+            result = take_step(step, fraction)
+            loss_v, cur_lr = result.loss, result.lr
             done = step + 1
-            psnr_v = float(mse_to_psnr(torch.tensor(rgb_mse, dtype=torch.float32)))  # as from the float32 loss
+            psnr_v = float(mse_to_psnr(torch.tensor(result.rgb_mse, dtype=torch.float32)))  # as from the float32 loss
             stall.observe(done, psnr_v, cur_lr)
             if history_every and done % history_every == 0:
                 history.append((done, loss_v, psnr_v))

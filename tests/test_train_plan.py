@@ -1,0 +1,70 @@
+"""One plan for training (recon.model_choice.plan_training) and one way to build it (build_training): the train
+stage, `recon bench --profile` and the benchmarks time and run the same step, pieces included."""
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import numpy as np
+import torch
+
+from recon.config import TrainConfig
+from recon.model_choice import build_training, plan_training
+from recon.nerf.pieces import DepthPriorLoss
+from recon.profiling import profile_training
+from recon.progress import Reporter
+from recon.scene import Frame, Scene, look_at
+from recon.views import View
+
+W, H, FL = 16, 12, 14.0
+CPU = torch.device("cpu")
+
+
+def _unbounded_without_masks(n_views: int = 24) -> tuple[TrainConfig, Scene, list[View]]:
+    """An unbounded capture without masks whose sparse points every photo sees: train.depth_prior=auto turns the
+    prior on (whatever the photo count), so the step renders the prior's rays too."""
+    frames, views = [], []
+    for i in range(n_views):
+        a = 2 * math.pi * i / n_views
+        c2w = look_at(np.array([3.0 * math.cos(a), 3.0 * math.sin(a), 1.0]), np.zeros(3))
+        frames.append(Frame(f"/p/{i:02d}.jpg", c2w, FL, FL, W / 2, H / 2, W, H, split="train"))
+        views.append(View(f"{i:02d}", np.full((H, W, 3), 128, np.uint8), c2w, (FL, FL, W / 2, H / 2), 1.0, 5.0))
+    points = np.random.default_rng(0).uniform(-0.3, 0.3, (40, 3))
+    scene = Scene(frames=frames, points=points, point_visibility={f.name: np.arange(40) for f in frames},
+                  point_errors=np.full(40, 0.8), aabb=np.array([[-1.0] * 3, [1.0] * 3]), capture="unbounded")
+    return replace(TrainConfig(), batch_rays=128), scene, views
+
+
+def test_the_profiler_times_the_step_the_stage_plans_depth_prior_included() -> None:
+    cfg, scene, views = _unbounded_without_masks()
+    plan = plan_training(cfg, scene, views, CPU)  # what the train stage calls
+    assert plan.reasons[-1].startswith("depth prior: on (an unbounded capture without masks")
+    step, profiled_plan, setup = profile_training(cfg, scene, views, Reporter(quiet=True), warmup=2, steps=1,
+                                                  title="unbounded")
+    assert profiled_plan.reasons == step["reasons"] == plan.reasons
+    assert step["pieces"] == ["DepthPriorLoss"]
+    assert any(isinstance(p, DepthPriorLoss) for p in setup.step_kwargs["pieces"])
+    depth_part = next(part for part in step["parts"] if part.startswith("depth prior"))
+    assert step["parts"][depth_part] > 0  # the profiled step ran the prior's rays, and its time is shown apart
+
+
+def test_an_unbounded_plan_cuts_rays_to_each_photos_near_far_and_builds_the_same_model_twice() -> None:
+    cfg, scene, views = _unbounded_without_masks()
+    plan = plan_training(replace(cfg, adjusted="no GPU: the CPU's settings"), scene, views, CPU)
+    assert plan.reasons[0] == "no GPU: the CPU's settings" and plan.aabb is None
+    first, second = build_training(plan, CPU), build_training(plan, CPU)
+    assert first.aabb is None and first.batcher.near_far is not None
+    assert first.step_kwargs["lr"] == plan.lr and first.step_kwargs["lr_final"] == plan.lr_final
+    for a, b in zip(first.model.state_dict().values(), second.model.state_dict().values(), strict=True):
+        assert torch.equal(a, b)  # seeded from the plan: the profiler's model is the stage's
+    prior = first.step_kwargs["pieces"][0].prior
+    assert prior is not plan.depth_prior and torch.equal(prior.depth, plan.depth_prior.depth)
+
+
+def test_an_object_capture_plan_keeps_its_box() -> None:
+    cfg, scene, views = _unbounded_without_masks(8)
+    plan = plan_training(cfg, replace(scene, capture="object"), views, CPU)
+    np.testing.assert_array_equal(plan.aabb, scene.aabb)
+    setup = build_training(plan, CPU)
+    torch.testing.assert_close(setup.aabb, torch.tensor(scene.aabb, dtype=torch.float32))
+    assert setup.batcher.near_far is None
