@@ -11,9 +11,11 @@ run to benchmarks/results/same_results.json, keyed by the commit, so two commits
 from __future__ import annotations
 
 import argparse
+import datetime
 import hashlib
 import json
 import os
+import platform
 import subprocess
 import sys
 import tempfile
@@ -42,15 +44,29 @@ def mesh_counts(ply: Path) -> tuple[int, int]:
     return len(mesh.vertices), len(mesh.faces)
 
 
+def _git(*args: str) -> str:
+    return subprocess.run(["git", *args], cwd=ROOT, capture_output=True, text=True).stdout.strip()
+
+
+def provenance() -> dict:
+    """Commit, machine and load (what benchmarks/README.md asks of every record), without importing recon: the script
+    runs unchanged against any commit's tree."""
+    import torch
+
+    return {"commit": _git("rev-parse", "HEAD"), "uncommitted_changes": bool(_git("status", "--porcelain", "--untracked-files=no")),
+            "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+            "machine": {"cpu_count": os.cpu_count(), "system": platform.system(), "python": platform.python_version(),
+                        "torch": torch.__version__},
+            "load_average_start": [round(x, 2) for x in os.getloadavg()]}
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--steps", type=int, default=300)
     parser.add_argument("--check", action="store_true", help="exit 1 unless all rows of the record agree")
     args = parser.parse_args()
     env = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True).stdout.strip()
-    dirty = bool(subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=ROOT, capture_output=True,
-                                text=True).stdout.strip())
+    where = provenance()
     with tempfile.TemporaryDirectory() as tmp:
         scene = Path(tmp) / "scene"
         cmd = [sys.executable, "-c", "from recon.cli import main; main()", "run", str(ROOT / "fixtures/sample/images"),
@@ -58,8 +74,9 @@ def main() -> int:
                "--set", "train.seed=0", "--set", "poses.num_threads=1"]
         subprocess.run(cmd, check=True, env=env, cwd=ROOT)
         vertices, faces = mesh_counts(scene / "04_mesh" / "mesh.ply")
-        row = {"commit": commit + ("-dirty" if dirty else ""), "steps": args.steps, "threads": 1,
-               "field_sha256": field_checksum(scene / "03_field" / "field.pt"),
+        metrics = json.loads((scene / "03_field" / "metrics.json").read_text())
+        row = {**where, "steps": metrics["steps"], "threads": 1, "rays_per_s": metrics["rays_per_s"],
+               "psnr": metrics["test"]["psnr"], "field_sha256": field_checksum(scene / "03_field" / "field.pt"),
                "mesh_vertices": vertices, "mesh_faces": faces}
     rows = json.loads(RECORD.read_text()) if RECORD.exists() else []
     rows.append(row)
