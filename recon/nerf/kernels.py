@@ -42,12 +42,14 @@ MEASURED_FASTER = False
 """Whether a GPU check (benchmarks/gpu_check.py, its record in benchmarks/results/) has measured training with the
 Triton kernels faster than with the torch code at the same PSNR. ``train.fast.kernels=auto`` uses them only then."""
 
-COMPOSITE_BLOCK = 64
-"""Samples a compositing program reads at a time (rays have tens to hundreds of samples)."""
-ACCUMULATE_BLOCK = 64
 KERNEL_DEVICES: tuple[str, ...] = ("cuda",)
 """Devices whose tensors the kernels take. Under Triton's interpreter (TRITON_INTERPRET=1) they run on CPU tensors
 too: tests/test_triton_kernels.py adds "cpu" there to run the fast model through them; nothing else does."""
+
+COMPOSITE_BLOCK = 64
+"""Samples a compositing or colour-sum program reads at a time (rays have tens to hundreds of samples); a first
+guess, not tuned on a GPU yet, like GRID_BLOCK."""
+ACCUMULATE_BLOCK = 64
 GRID_BLOCK = 128
 """Points a grid-read program reads at a time."""
 MAX_LEVELS = 4
