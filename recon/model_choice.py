@@ -7,9 +7,9 @@ from typing import Any
 
 import numpy as np
 
+from recon.camera import pixel_footprint, project
 from recon.config import TrainConfig
 from recon.errors import ReconError
-from recon.geometry.color import project
 from recon.nerf.surface import hull_planes
 from recon.scene import Frame, Scene
 from recon.sky import SKY_MIN_FRACTION, sky_mask
@@ -19,7 +19,6 @@ from recon.views import (
     View,
     border_color,
     key_backdrop,
-    pixel_footprint,
     plain_backdrop,
 )
 

@@ -13,7 +13,9 @@ The rules:
   (`RUNNERS`: stages, the pipeline, the CLI, the Python API, batch, bench, profiling, the viewer);
 * no stage imports another stage (they meet through the scene folder's files, wired by `recon.stages`);
 * only the train stage and the profiler import the training loop (`recon.nerf.trainer`): rendering and scoring a
-  trained field live in `recon.nerf.evaluate`.
+  trained field live in `recon.nerf.evaluate`;
+* the camera math (`recon.camera`) imports nothing of recon but its errors: everything that projects or casts rays
+  builds on it, so it sits at the bottom.
 """
 from __future__ import annotations
 
@@ -38,6 +40,9 @@ STAGES = "recon.stages"
 TRAINER = "recon.nerf.trainer"
 TRAINER_IMPORTERS = frozenset({"recon.stages.train", "recon.profiling"})
 """Who may import the training loop: the stage that trains and the profiler that times training steps."""
+CAMERA = "recon.camera"
+CAMERA_IMPORTS = frozenset({"recon.errors"})
+"""All of recon that the camera math may import."""
 
 Graph = dict[str, dict[str, int]]
 """module -> {imported recon module: line of its first import}."""
@@ -162,6 +167,8 @@ def layering_violations(graph: Mapping[str, Mapping[str, int]]) -> list[str]:
             if target == TRAINER and module not in TRAINER_IMPORTERS:
                 found.append(f"{where} (only {', '.join(sorted(TRAINER_IMPORTERS))} import the training loop; "
                              f"render and score with recon.nerf.evaluate)")
+            if module == CAMERA and target not in CAMERA_IMPORTS:
+                found.append(f"{where} (the camera math imports nothing of recon but {', '.join(sorted(CAMERA_IMPORTS))})")
     return found
 
 
@@ -206,9 +213,11 @@ def test_layering_rules_catch_each_kind_of_violation() -> None:
         "recon.stages.mesh": {"recon.stages.train": 5, "recon.nerf.trainer": 6},
         "recon.stages.train": {"recon.nerf.trainer": 7, "recon.pipeline": 1},
         "recon.cli": {"recon.stages": 2, "recon.pipeline": 2},
+        "recon.camera": {"recon.errors": 1, "recon.scene": 4},
     }
     found = layering_violations(bad)
     assert [v.split(" (")[0] for v in found] == [
+        "recon.camera:4 imports recon.scene",
         "recon.nerf.fast:3 imports recon.pipeline",
         "recon.scene:9 imports recon.stages.poses",
         "recon.stages.mesh:6 imports recon.nerf.trainer",

@@ -12,13 +12,12 @@ import pytest
 import torch
 import trimesh
 
+from recon.camera import look_at, project
 from recon.config import MeshConfig
 from recon.geometry.export import Z_UP_TO_Y_UP, export_textured_mesh
-from recon.geometry.color import project
 from recon.geometry.raster import interpolate, rasterize, render_mesh
 from recon.geometry.texture import XATLAS_AREA_EPSILON, make_textured_mesh, pad_texture, texel_samples, unwrap
 from recon.progress import Reporter
-from recon.scene import look_at
 from recon.stages import mesh as mesh_stage
 from recon.views import View, render_view
 from tests.test_mesh_stage import AABB, BACKGROUND, CENTRE, SoftSphere, _run_stage, _scene_dir

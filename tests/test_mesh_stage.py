@@ -29,7 +29,8 @@ from recon.pipeline import StageContext
 from recon.progress import Reporter
 from recon.scene import Frame, Scene, spread_evenly
 from recon.stages import mesh as mesh_stage
-from recon.views import View, pixel_footprint, render_view
+from recon.camera import pixel_footprint
+from recon.views import View, render_view
 from tests.test_scene import look_at
 
 CENTRE = np.array([0.1, -0.05, 0.05])

@@ -16,7 +16,7 @@ from recon.nerf.sampling import stratified
 from recon.nerf.evaluate import align_pose, render_image
 from recon.nerf.fitting import RayBatcher
 from recon.nerf.trainer import train
-from recon.scene import look_at
+from recon.camera import look_at
 from recon.stages.train import choose_pose_refine
 
 AABB = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])

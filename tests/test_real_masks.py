@@ -12,9 +12,10 @@ import pytest
 import trimesh
 from PIL import Image
 
+from recon.camera import look_at
 from recon.errors import InputError
 from recon.images import save_image
-from recon.scene import Frame, Scene, find_masks, import_transforms, look_at
+from recon.scene import Frame, Scene, find_masks, import_transforms
 from recon.stages.mesh import inside_masks
 from recon.views import View, load_view
 

@@ -11,9 +11,8 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from recon.geometry.color import project
+from recon.camera import look_at, project
 from recon.geometry.raster import interpolate, rasterize
-from recon.scene import look_at
 
 
 def look_rotation(azimuth_deg: float, elevation_deg: float) -> np.ndarray:

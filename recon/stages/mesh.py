@@ -50,7 +50,8 @@ from recon.geometry.texture import TexturedMesh, make_textured_mesh
 from recon.pipeline import Stage, StageContext
 from recon.region import support_kind
 from recon.scene import Frame, Scene, load_scene, spread_evenly
-from recon.views import View, load_views, pixel_footprint, render_view, target_rgb
+from recon.camera import pixel_footprint
+from recon.views import View, load_views, render_view, target_rgb
 
 REPORT_FILE = "mesh_report.json"
 MESH_STEM = "mesh"
