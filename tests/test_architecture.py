@@ -16,6 +16,9 @@ The rules:
   trained field live in `recon.nerf.evaluate`;
 * the camera math (`recon.camera`) imports nothing of recon but its errors: everything that projects or casts rays
   builds on it, so it sits at the bottom.
+
+The tests follow one rule of their own: no test module imports another (shared helpers live in helper modules such as
+`tests/ball_scene.py`), so running, editing or moving one test file never drags another one's tests along.
 """
 from __future__ import annotations
 
@@ -43,6 +46,7 @@ TRAINER_IMPORTERS = frozenset({"recon.stages.train", "recon.profiling"})
 CAMERA = "recon.camera"
 CAMERA_IMPORTS = frozenset({"recon.errors"})
 """All of recon that the camera math may import."""
+TESTS = "tests"
 
 Graph = dict[str, dict[str, int]]
 """module -> {imported recon module: line of its first import}."""
@@ -172,6 +176,16 @@ def layering_violations(graph: Mapping[str, Mapping[str, int]]) -> list[str]:
     return found
 
 
+def is_test_module(module: str) -> bool:
+    return module.rpartition(".")[2].startswith("test_")
+
+
+def imports_between_tests(graph: Mapping[str, Mapping[str, int]]) -> list[str]:
+    """Every import of a test module by another test module, as 'module:line imports target'."""
+    return [f"{module}:{line} imports {target}" for module, edges in sorted(graph.items()) if is_test_module(module)
+            for target, line in sorted(edges.items()) if is_test_module(target)]
+
+
 def _describe(graph: Mapping[str, Mapping[str, int]], cycle: list[str]) -> str:
     return " -> ".join(f"{a} (line {graph[a][b]})" for a, b in zip(cycle, cycle[1:])) + f" -> {cycle[-1]}"
 
@@ -225,6 +239,17 @@ def test_layering_rules_catch_each_kind_of_violation() -> None:
     ]
 
 
+def test_test_import_rule_catches_a_test_importing_a_test(tmp_path: Path) -> None:
+    files = _write_package(tmp_path, {
+        "pkg/helpers.py": "",
+        "pkg/test_a.py": "from pkg.helpers import x\nfrom pkg import test_b\n",
+        "pkg/test_b.py": "def f():\n    from pkg.test_a import thing\n",
+        "pkg/test_c.py": "import pkg.helpers\n",
+    })
+    graph = import_graph(files, "pkg")
+    assert imports_between_tests(graph) == ["pkg.test_a:2 imports pkg.test_b", "pkg.test_b:2 imports pkg.test_a"]
+
+
 # ----------------------------------------------------------------------------- recon itself
 def test_graph_sees_recon(graph: Graph) -> None:
     """The walk reaches the whole package and its lazy imports (else the rules below would pass on nothing)."""
@@ -241,3 +266,11 @@ def test_no_import_cycles(graph: Graph) -> None:
 def test_layering(graph: Graph) -> None:
     found = layering_violations(graph)
     assert not found, "layering broken:\n" + "\n".join(found)
+
+
+# ----------------------------------------------------------------------------- the tests themselves
+def test_no_test_module_imports_another() -> None:
+    graph = import_graph(module_files(ROOT, TESTS), TESTS)
+    assert "tests.test_architecture" in graph and "tests.ball_scene" in graph  # the walk reached the tests
+    found = imports_between_tests(graph)
+    assert not found, "test modules importing test modules (move the shared helpers to a helper module):\n" + "\n".join(found)
