@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.ndimage import binary_erosion
 
-from recon.geometry.color import project
+from recon.camera import intrinsic_matrix, pixel_centres, project
 from recon.geometry.visual_hull import carve
 from recon.images import read_image, undistort
 from recon.normalization import box_corners
@@ -272,8 +272,8 @@ def _to_photo_pixels(cv2, mask: np.ndarray, frame: Frame, intr: np.ndarray) -> n
     if not any(abs(d) > 0 for d in frame.distortion) and frame.camera_model != "OPENCV_FISHEYE":
         return cv2.resize(soft, (frame.w, frame.h), interpolation=cv2.INTER_LINEAR) >= 0.5
     # where each photo pixel lands in the pinhole image: undistort the pixel grid (at full size), then scale
-    u, v = np.meshgrid(np.arange(frame.w, dtype=np.float64) + 0.5, np.arange(frame.h, dtype=np.float64) + 0.5)
-    K = np.array([[frame.fl_x, 0, frame.cx], [0, frame.fl_y, frame.cy], [0, 0, 1]])
+    u, v = pixel_centres(frame.w, frame.h)
+    K = intrinsic_matrix(frame.fl_x, frame.fl_y, frame.cx, frame.cy)
     pts = np.stack([u.ravel(), v.ravel()], axis=-1)[:, None, :]
     if frame.camera_model == "OPENCV_FISHEYE":
         flat = cv2.fisheye.undistortPoints(pts, K, np.asarray(frame.distortion, np.float64), P=K)

@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from recon.camera import opencv_w2c_to_opengl_c2w
 from recon.errors import InputError
 
 if TYPE_CHECKING:  # pycolmap is imported when a model is read: loading options (recon.config) must not pay for it
@@ -28,22 +29,6 @@ LENS_MODELS = {
 }
 """transforms.json / COLMAP camera_model -> the lens recon undistorts it as. Pinhole and radial models are
 radial-tangential with some terms zero; a fisheye is OpenCV's equidistant model (k1..k4)."""
-
-
-def opencv_w2c_to_opengl_c2w(cam_from_world: np.ndarray) -> np.ndarray:
-    """World->camera [R|t] in OpenCV axes (3, 4) -> camera-to-world (4, 4) in OpenGL axes.
-
-    Inverts the rigid transform (R^T, -R^T t) and flips the camera's Y and Z axes, so that the
-    camera looks down -Z with +Y up. The world frame is unchanged.
-    """
-    w2c = np.asarray(cam_from_world, dtype=np.float64)
-    if w2c.shape != (3, 4):
-        raise ValueError(f"cam_from_world must be (3, 4), got {w2c.shape}")
-    rot, trans = w2c[:, :3], w2c[:, 3]
-    c2w = np.eye(4)
-    c2w[:3, :3] = rot.T
-    c2w[:3, 3] = -rot.T @ trans
-    return c2w @ np.diag([1.0, -1.0, -1.0, 1.0])
 
 
 def camera_params_to_intrinsics(model_name: str, params: np.ndarray) -> dict[str, float]:

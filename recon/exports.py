@@ -22,6 +22,7 @@ from typing import Any, Literal
 import numpy as np
 
 from recon.atomic import write_json_atomic
+from recon.camera import opengl_c2w_to_opencv_w2c
 from recon.errors import ReconError
 from recon.ownership import claim_folder, marker_name
 from recon.scene import Frame, Scene, load_scene
@@ -32,8 +33,6 @@ FORMATS: tuple[str, ...] = ("nerfstudio", "colmap", "points")
 FRAMES: tuple[str, ...] = ("normalized", "source")
 MARKER = marker_name("export")
 POINTS_FILE = "points.ply"
-OPENGL_TO_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])
-"""Flips a camera's Y and Z axes: OpenGL (looks down -Z, +Y up) ↔ OpenCV (looks down +Z, +Y down)."""
 
 
 def scene_in_frame(scene_dir: Path, frame: ExportFrame) -> Scene:
@@ -192,7 +191,7 @@ def write_colmap_text(scene: Scene, frames: list[Frame], names: list[str], folde
             camera = pycolmap.Camera(model="PINHOLE", width=frame.w, height=frame.h,
                                      params=[frame.fl_x, frame.fl_y, frame.cx, frame.cy], camera_id=camera_ids[key])
             rec.add_camera_with_trivial_rig(camera)
-        w2c = np.linalg.inv(np.asarray(frame.c2w, np.float64) @ OPENGL_TO_OPENCV)
+        w2c = opengl_c2w_to_opencv_w2c(frame.c2w)
         pose = pycolmap.Rigid3d(pycolmap.Rotation3d(w2c[:3, :3]), w2c[:3, 3])
         rec.add_image_with_trivial_frame(pycolmap.Image(name=name, camera_id=camera_ids[key], image_id=i), pose)
     colors = np.asarray(scene.point_colors, np.uint8).reshape(-1, 3)

@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image, ImageOps, UnidentifiedImageError
 
+from recon.camera import intrinsic_matrix
 from recon.errors import InputError
 
 IMAGE_SUFFIXES = {".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".webp"}
@@ -237,7 +238,7 @@ def undistort(
         return image
     import cv2
 
-    K = np.array([[fl_x, 0, cx], [0, fl_y, cy], [0, 0, 1]], dtype=np.float64)
+    K = intrinsic_matrix(fl_x, fl_y, cx, cy)
     h, w = image.shape[:2]
     coeffs = np.asarray(dist, dtype=np.float64)
     if model == "OPENCV_FISHEYE":

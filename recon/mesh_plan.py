@@ -21,7 +21,7 @@ from recon.geometry.extract import choose_resolution, surface_cell
 from recon.normalization import box_corners
 from recon.region import support_kind
 from recon.scene import Frame, Scene, spread_evenly
-from recon.views import pixel_footprint
+from recon.camera import pixel_footprint
 
 MASKED_ISO_OPACITY = 0.25
 """ISO_OPACITY with masks: the masked-out pixels trained the space around the object empty, so a lower level cannot

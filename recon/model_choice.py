@@ -10,9 +10,9 @@ from typing import Any
 import numpy as np
 import torch
 
+from recon.camera import pixel_footprint, project
 from recon.config import TrainConfig
 from recon.errors import ReconError
-from recon.geometry.color import project
 from recon.nerf.appearance import PhotoAppearance, decide, exposure_spread
 from recon.nerf.depth_prior import DepthPrior, sparse_depth_targets
 from recon.nerf.fitting import RayBatcher
@@ -26,7 +26,6 @@ from recon.views import (
     View,
     border_color,
     key_backdrop,
-    pixel_footprint,
     plain_backdrop,
     view_tensors,
 )

@@ -11,12 +11,13 @@ from typing import Any, Literal
 import numpy as np
 import torch
 
+from recon.camera import look_at
 from recon.errors import ReconError
 from recon.field import load_field
 from recon.images import save_image
 from recon.atomic import write_json_atomic
 from recon.ownership import claim_folder
-from recon.scene import Scene, load_scene, look_at, spread_evenly
+from recon.scene import Scene, load_scene, spread_evenly
 from recon.views import View, evaluate, load_views, render_view, write_previews
 
 PathKind = Literal["orbit", "spiral", "train", "test"]

@@ -14,6 +14,8 @@ from typing import Callable
 
 import numpy as np
 
+from recon.camera import project
+
 IN_VIEW_FRACTION = 0.8
 """A sparse point belongs to the object region when at least this fraction of the cameras has it in frame."""
 GROUND_MAX_TILT_DEG = 25.0
@@ -46,13 +48,9 @@ def in_view_fraction(points: np.ndarray, c2ws: np.ndarray, intrinsics: np.ndarra
     """Fraction of the cameras whose image contains each point, in front of the camera. points (N, 3);
     c2ws (K, 4, 4) OpenGL; intrinsics (K, 4) fl_x, fl_y, cx, cy; sizes (K, 2) w, h (pixels)."""
     count = np.zeros(len(points))
-    for c2w, (fx, fy, cx, cy), (w, h) in zip(c2ws, intrinsics, sizes, strict=True):
-        local = (points - c2w[:3, 3]) @ c2w[:3, :3]
-        z = -local[:, 2]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            u = cx + fx * local[:, 0] / z
-            v = cy - fy * local[:, 1] / z
-        count += (z > 0) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+    for c2w, intr, (w, h) in zip(c2ws, intrinsics, sizes, strict=True):
+        uv, z = project(points, c2w, intr)
+        count += (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
     return count / max(len(c2ws), 1)
 
 

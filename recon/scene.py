@@ -187,20 +187,6 @@ class Scene:
         )
 
 
-def look_at(eye: np.ndarray, target: np.ndarray, up: tuple[float, float, float] = (0.0, 0.0, 1.0)) -> np.ndarray:
-    """OpenGL camera-to-world (4, 4) at `eye` looking at `target`, level with `up` (no roll)."""
-    eye = np.asarray(eye, dtype=np.float64)
-    back = eye - np.asarray(target, dtype=np.float64)
-    back /= np.linalg.norm(back)
-    right = np.cross(up, back)
-    if np.linalg.norm(right) < 1e-9:  # looking straight along `up`: any level heading will do
-        right = np.cross((0.0, 1.0, 0.0), back)
-    right /= np.linalg.norm(right)
-    c2w = np.eye(4)
-    c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = right, np.cross(back, right), back, eye
-    return c2w
-
-
 def _shared_intrinsics(frames: list[Frame]) -> dict[str, Any]:
     keys = INTRINSIC_KEYS
     if not frames:

@@ -17,8 +17,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from recon.camera import flip_camera_axes
 from recon.errors import ReconError
-from recon.exports import OPENGL_TO_OPENCV as _FLIP
 
 if TYPE_CHECKING:
     import viser
@@ -26,8 +26,6 @@ if TYPE_CHECKING:
     from recon.api import Field
     from recon.scene import Scene
 
-OPENGL_TO_OPENCV = _FLIP[:3, :3]
-"""Camera axes: OpenGL (recon: looks down -Z, +Y up) ↔ OpenCV (viser: looks down +Z, +Y down)."""
 LEVELS = (64, 160)
 """Long sides of the progressive renders before the final one (pixels)."""
 PHOTO_SIDE = 128
@@ -63,7 +61,7 @@ def viewer_c2w(wxyz_: np.ndarray, position: np.ndarray) -> np.ndarray:
 
     w, x, y, z = np.asarray(wxyz_, np.float64)
     c2w = np.eye(4)
-    c2w[:3, :3] = Rotation.from_quat([x, y, z, w]).as_matrix() @ OPENGL_TO_OPENCV
+    c2w[:3, :3] = flip_camera_axes(Rotation.from_quat([x, y, z, w]).as_matrix())
     c2w[:3, 3] = position
     return c2w
 
@@ -274,7 +272,7 @@ def add_cameras(server: viser.ViserServer, scene: Scene) -> list[Any]:
         handles.append(server.scene.add_camera_frustum(
             f"/cameras/{i:04d}", fov=float(2 * np.arctan(0.5 * f.h / f.fl_y)), aspect=f.w / f.h, scale=0.08 * extent,
             color=colors.get(f.split or "train", colors["train"]), image=photo,
-            wxyz=wxyz(f.c2w[:3, :3] @ OPENGL_TO_OPENCV), position=f.center,
+            wxyz=wxyz(flip_camera_axes(f.c2w[:3, :3])), position=f.center,
         ))
     return handles
 

@@ -100,17 +100,6 @@ def key_backdrop(image: np.ndarray, color: np.ndarray, tolerance: float = BACKDR
     return np.round(np.clip(np.concatenate([rgb, a], axis=-1), 0.0, 1.0) * 255).astype(np.uint8)
 
 
-def pixel_footprint(aabb: np.ndarray, centres: np.ndarray, focals: np.ndarray) -> tuple[float, float]:
-    """World size of one training pixel at the cameras' median distance to the box centre.
-
-    aabb: (2, 3) scene box; centres: (K, 3) camera centres (scene frame); focals: (K,) pixels.
-    Returns ``(footprint, median distance)`` in scene units. Used to size the field's grids and the mesh grid.
-    """
-    box = np.asarray(aabb, np.float64)
-    dist = float(np.median(np.linalg.norm(np.asarray(centres, np.float64) - box.mean(axis=0), axis=1)))
-    return dist / float(np.median(focals)), dist
-
-
 def render_view(model: torch.nn.Module, view: View, aabb: torch.Tensor | None, background: np.ndarray, chunk: int | None = None,
                 autocast: torch.dtype | None = None) -> dict[str, np.ndarray]:
     """Render a view at its resolution → numpy rgb (H, W, 3), depth (H, W), opacity (H, W)."""

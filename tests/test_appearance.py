@@ -3,7 +3,6 @@ known gains, and a held-out protocol whose scored pixels never shape the transfo
 from __future__ import annotations
 
 import json
-import math
 from pathlib import Path
 
 import numpy as np
@@ -27,6 +26,7 @@ from recon.nerf.sampling import stratified
 from recon.nerf.fitting import RayBatcher
 from recon.nerf.pieces import Appearance
 from recon.nerf.trainer import train
+from tests.ball_scene import ring_cameras
 
 SAMPLE = Path(__file__).resolve().parents[1] / "fixtures" / "sample"
 AABB = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
@@ -54,18 +54,8 @@ class FixedBall(RadianceModel):
         return out
 
 
-def _look_at(eye: Tensor) -> Tensor:
-    back = eye / eye.norm()
-    right = torch.linalg.cross(torch.tensor([0.0, 0.0, 1.0]), back)
-    right = right / right.norm()
-    c2w = torch.eye(4)
-    c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = right, torch.linalg.cross(back, right), back, eye
-    return c2w
-
-
 def _cameras(n: int, size: int) -> tuple[Tensor, Tensor]:
-    angles = torch.arange(n) * 2 * math.pi / n
-    c2w = torch.stack([_look_at(torch.stack([3 * torch.cos(a), 3 * torch.sin(a), torch.tensor(0.8)])) for a in angles])
+    c2w = ring_cameras(n)
     f = size * 1.2
     return c2w, torch.tensor([[f, f, size / 2, size / 2]]).expand(n, 4).contiguous()
 

@@ -13,7 +13,12 @@ The rules:
   (`RUNNERS`: stages, the pipeline, the CLI, the Python API, batch, bench, profiling, the viewer);
 * no stage imports another stage (they meet through the scene folder's files, wired by `recon.stages`);
 * only the train stage and the profiler import the training loop (`recon.nerf.trainer`): rendering and scoring a
-  trained field live in `recon.nerf.evaluate`.
+  trained field live in `recon.nerf.evaluate`;
+* the camera math (`recon.camera`) imports nothing of recon but its errors: everything that projects or casts rays
+  builds on it, so it sits at the bottom.
+
+The tests follow one rule of their own: no test module imports another (shared helpers live in helper modules such as
+`tests/ball_scene.py`), so running, editing or moving one test file never drags another one's tests along.
 """
 from __future__ import annotations
 
@@ -39,6 +44,10 @@ STAGES = "recon.stages"
 TRAINER = "recon.nerf.trainer"
 TRAINER_IMPORTERS = frozenset({"recon.stages.train", "recon.profiling"})
 """Who may import the training loop: the stage that trains and the profiler that times training steps."""
+CAMERA = "recon.camera"
+CAMERA_IMPORTS = frozenset({"recon.errors"})
+"""All of recon that the camera math may import."""
+TESTS = "tests"
 
 Graph = dict[str, dict[str, int]]
 """module -> {imported recon module: line of its first import}."""
@@ -163,7 +172,19 @@ def layering_violations(graph: Mapping[str, Mapping[str, int]]) -> list[str]:
             if target == TRAINER and module not in TRAINER_IMPORTERS:
                 found.append(f"{where} (only {', '.join(sorted(TRAINER_IMPORTERS))} import the training loop; "
                              f"render and score with recon.nerf.evaluate)")
+            if module == CAMERA and target not in CAMERA_IMPORTS:
+                found.append(f"{where} (the camera math imports nothing of recon but {', '.join(sorted(CAMERA_IMPORTS))})")
     return found
+
+
+def is_test_module(module: str) -> bool:
+    return module.rpartition(".")[2].startswith("test_")
+
+
+def imports_between_tests(graph: Mapping[str, Mapping[str, int]]) -> list[str]:
+    """Every import of a test module by another test module, as 'module:line imports target'."""
+    return [f"{module}:{line} imports {target}" for module, edges in sorted(graph.items()) if is_test_module(module)
+            for target, line in sorted(edges.items()) if is_test_module(target)]
 
 
 def _describe(graph: Mapping[str, Mapping[str, int]], cycle: list[str]) -> str:
@@ -207,14 +228,27 @@ def test_layering_rules_catch_each_kind_of_violation() -> None:
         "recon.stages.mesh": {"recon.stages.train": 5, "recon.nerf.trainer": 6},
         "recon.stages.train": {"recon.nerf.trainer": 7, "recon.pipeline": 1},
         "recon.cli": {"recon.stages": 2, "recon.pipeline": 2},
+        "recon.camera": {"recon.errors": 1, "recon.scene": 4},
     }
     found = layering_violations(bad)
     assert [v.split(" (")[0] for v in found] == [
+        "recon.camera:4 imports recon.scene",
         "recon.nerf.fast:3 imports recon.pipeline",
         "recon.scene:9 imports recon.stages.poses",
         "recon.stages.mesh:6 imports recon.nerf.trainer",
         "recon.stages.mesh:5 imports recon.stages.train",
     ]
+
+
+def test_test_import_rule_catches_a_test_importing_a_test(tmp_path: Path) -> None:
+    files = _write_package(tmp_path, {
+        "pkg/helpers.py": "",
+        "pkg/test_a.py": "from pkg.helpers import x\nfrom pkg import test_b\n",
+        "pkg/test_b.py": "def f():\n    from pkg.test_a import thing\n",
+        "pkg/test_c.py": "import pkg.helpers\n",
+    })
+    graph = import_graph(files, "pkg")
+    assert imports_between_tests(graph) == ["pkg.test_a:2 imports pkg.test_b", "pkg.test_b:2 imports pkg.test_a"]
 
 
 # ----------------------------------------------------------------------------- recon itself
@@ -233,3 +267,11 @@ def test_no_import_cycles(graph: Graph) -> None:
 def test_layering(graph: Graph) -> None:
     found = layering_violations(graph)
     assert not found, "layering broken:\n" + "\n".join(found)
+
+
+# ----------------------------------------------------------------------------- the tests themselves
+def test_no_test_module_imports_another() -> None:
+    graph = import_graph(module_files(ROOT, TESTS), TESTS)
+    assert "tests.test_architecture" in graph and "tests.ball_scene" in graph  # the walk reached the tests
+    found = imports_between_tests(graph)
+    assert not found, "test modules importing test modules (move the shared helpers to a helper module):\n" + "\n".join(found)

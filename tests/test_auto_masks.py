@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from recon.auto_masks import object_on_background, segment_object
-from recon.scene import Frame, Scene, look_at
+from recon.camera import look_at
+from recon.scene import Frame, Scene
 
 W, H, FOCAL = 160, 120, 150.0
 BALL_C, BALL_R = np.array([0.0, 0.0, 0.3]), 0.3

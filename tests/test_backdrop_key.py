@@ -106,7 +106,7 @@ def test_a_white_ball_on_a_white_backdrop_survives_without_the_key_and_vanishes_
     from recon.nerf.surface import SurfaceConfig, SurfaceModel
     from recon.nerf.fitting import RayBatcher
     from recon.nerf.trainer import train
-    from recon.scene import look_at
+    from recon.camera import look_at
 
     torch.manual_seed(0)
     n, size, fl = 6, 16, 20.0

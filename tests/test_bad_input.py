@@ -38,7 +38,8 @@ from recon.config import (
 from recon.errors import ConfigError, InputError
 from recon.images import read_image
 from recon.pipeline import MANIFEST_VERSION
-from recon.scene import look_at, Scene, import_npz, import_transforms, load_scene
+from recon.camera import look_at
+from recon.scene import Scene, import_npz, import_transforms, load_scene
 
 REPO = Path(__file__).resolve().parents[1]
 SAMPLE = REPO / "fixtures" / "sample"

@@ -20,9 +20,9 @@ from hypothesis import strategies as st
 from PIL import Image
 from typer.testing import CliRunner
 
+from recon.camera import look_at
 from recon.cli import app
 from recon.config import RunConfig
-from recon.scene import look_at
 
 runner = CliRunner()
 

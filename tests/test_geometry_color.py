@@ -3,12 +3,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from recon.scene import look_at as scene_look_at
+from recon.camera import look_at as camera_look_at
 import pytest
 import torch
 import trimesh
 
-from recon.geometry.color import colors_from_field, colors_from_photos, project, sample_bilinear
+from recon.camera import project
+from recon.geometry.color import colors_from_field, colors_from_photos, sample_bilinear
 
 RADIUS, W, H, F = 0.5, 192, 160, 180.0
 INTR = np.array([F, F, W / 2, H / 2])
@@ -21,7 +22,7 @@ def texture(p: np.ndarray) -> np.ndarray:
 
 def look_at(eye: np.ndarray) -> np.ndarray:
     """OpenGL c2w of a camera at eye looking at the origin."""
-    return scene_look_at(eye, np.zeros(3))
+    return camera_look_at(eye, np.zeros(3))
 
 
 def render(c2w: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -12,17 +12,16 @@ import pytest
 import torch
 import trimesh
 
+from recon.camera import look_at, project
 from recon.config import MeshConfig
 from recon.geometry.export import Z_UP_TO_Y_UP, export_textured_mesh
-from recon.geometry.color import project
 from recon.geometry.raster import interpolate, rasterize, render_mesh
 from recon.geometry.texture import XATLAS_AREA_EPSILON, make_textured_mesh, pad_texture, texel_samples, unwrap
 from recon.progress import Reporter
-from recon.scene import look_at
 from recon.field_mesh import extract_mesh
 from recon.mesh_views import bake_colors, compare_in_views, mesh_depths, texture_mesh
 from recon.views import View, render_view
-from tests.test_mesh_stage import AABB, BACKGROUND, CENTRE, SoftSphere, _run_stage, _scene_dir
+from tests.analytic_sphere import AABB, BACKGROUND, CENTRE, SoftSphere, run_mesh_stage, write_scene_dir
 
 
 def smooth_color(p: np.ndarray, n: np.ndarray | None = None) -> np.ndarray:
@@ -206,14 +205,14 @@ def test_mesh_stage_writes_the_textured_mesh_and_compares_it_in_the_held_out_vie
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     model = SoftSphere(amplitude=3000.0, width=0.004, samples=192)
-    scene_dir = _scene_dir(tmp_path, model, np.eye(4), kind="transforms")
+    scene_dir = write_scene_dir(tmp_path, model, np.eye(4), kind="transforms")
     scene_json = scene_dir / "02_scene" / "scene.json"
     doc = json.loads(scene_json.read_text())
     for frame in doc["frames"][::3]:
         frame["split"] = "test"  # 2 of the 6 photos held out
     scene_json.write_text(json.dumps(doc))
     cfg = MeshConfig(resolution=49, target_faces=4000, texture_faces=800, texture_size=128)
-    summary, out = _run_stage(scene_dir, model, cfg, monkeypatch)
+    summary, out = run_mesh_stage(scene_dir, model, cfg, monkeypatch)
     textured = json.loads((out / "mesh_report.json").read_text())["textured"]
     assert textured["faces"] <= 800 and textured["texture_size"] == 128
     assert sorted(textured["files"].values()) == ["mesh_textured.glb", "mesh_textured.mtl", "mesh_textured.obj", "mesh_textured.png"]

@@ -11,10 +11,9 @@ import numpy as np
 import pytest
 import torch
 import trimesh
-from PIL import Image
-from torch import Tensor, nn
+from torch import Tensor
 
-from recon.config import MeshConfig, RunConfig
+from recon.config import MeshConfig
 from recon.geometry.compare import chamfer_fscore
 from recon.geometry.export import Z_UP_TO_Y_UP
 from recon.geometry.clean import clean_mesh
@@ -22,75 +21,16 @@ from recon.geometry.extract import choose_resolution, density_grid, grid_spacing
 from recon.geometry.preview import render_preview
 from recon.geometry.raster import mesh_depth
 from recon.mesh_eval import compare_to_gt, format_comparison
-from recon.nerf.render import RadianceModel, render_dense
-from recon.nerf.sampling import stratified
 from recon.normalization import similarity, transform_c2w
-from recon.pipeline import StageContext
 from recon.progress import Reporter
 from recon.scene import Frame, Scene, spread_evenly
 from recon import field_mesh, mesh_plan, mesh_views
 from recon.geometry.export import export_transform
 from recon.stages import mesh as mesh_stage
-from recon.views import View, pixel_footprint, render_view
-from tests.test_scene import look_at
-
-CENTRE = np.array([0.1, -0.05, 0.05])
-R0 = 0.6
-AABB = np.array([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
-BACKGROUND = np.ones(3, np.float32)
-
-
-def sphere_color(x: np.ndarray | Tensor):
-    """Analytic albedo: depends only on the direction from the centre, (N, 3) in [0.1, 0.9]."""
-    if isinstance(x, Tensor):
-        d = x - torch.as_tensor(CENTRE, dtype=x.dtype, device=x.device)
-        return 0.5 + 0.4 * d / d.norm(dim=-1, keepdim=True).clamp_min(1e-9)
-    d = x - CENTRE
-    return 0.5 + 0.4 * d / np.maximum(np.linalg.norm(d, axis=-1, keepdims=True), 1e-9)
-
-
-class SoftSphere(RadianceModel):
-    """σ = A · sigmoid((R0 − r) / W): iso-surface σ = L at r = R0 − W · logit(L / A) exactly."""
-
-    def __init__(self, amplitude: float, width: float, samples: int = 256) -> None:
-        super().__init__()
-        self.amplitude, self.width, self.samples = amplitude, width, samples
-        self.dummy = nn.Parameter(torch.zeros(()))  # render_view finds the device through parameters()
-
-    def radius_at(self, level: float) -> float:
-        p = level / self.amplitude
-        return R0 - self.width * math.log(p / (1 - p))
-
-    def density(self, x: Tensor) -> Tensor:
-        r = (x - torch.as_tensor(CENTRE, dtype=x.dtype, device=x.device)).norm(dim=-1)
-        return self.amplitude * torch.sigmoid((R0 - r) / self.width)
-
-    def radiance(self, x: Tensor, d: Tensor) -> Tensor:
-        return sphere_color(x)
-
-    def render_rays(self, rays_o, rays_d, near, far, *, training, background):
-        t = stratified(near, far, self.samples, jitter=False)
-        x = rays_o[:, None] + t[..., None] * rays_d[:, None]
-        sigma = self.density(x.reshape(-1, 3)).view(t.shape)
-        rgb = self.radiance(x.reshape(-1, 3), None).view(*t.shape, 3)
-        return render_dense(sigma, rgb, t, far, background)
-
-
-def ring_views(model: SoftSphere, n: int = 8, size: int = 64) -> list[View]:
-    """n photos of the analytic field rendered from a ring (two heights) at distance 3; the sphere fills
-    ~85 % of the width, a pixel is ~0.023 units at the sphere (the depth test's tolerance is ~0.02)."""
-    views = []
-    focal = 2.0 * size
-    for i in range(n):
-        az = 2 * math.pi * (i + 0.3) / n
-        el = math.radians(35 if i % 2 else -20)
-        eye = 3.0 * np.array([math.cos(az) * math.cos(el), math.sin(az) * math.cos(el), math.sin(el)])
-        blank = View(f"v{i:02d}", np.zeros((size, size, 3), np.uint8), look_at(eye, np.zeros(3)), (focal, focal, size / 2, size / 2), 0.0, 0.0)
-        rgb = render_view(model, blank, torch.tensor(AABB, dtype=torch.float32), BACKGROUND)["rgb"]
-        blank.image[:] = np.round(np.clip(rgb, 0, 1) * 255).astype(np.uint8)
-        views.append(blank)
-    return views
-
+from recon.camera import look_at, pixel_footprint
+from recon.views import View, render_view
+from tests.analytic_sphere import (AABB, BACKGROUND, CENTRE, R0, SoftSphere, ring_views, run_mesh_stage as _run_stage,
+                                   sphere_color, write_scene_dir as _scene_dir)
 
 # ---------------------------------------------------------------------------------------- resolution
 def test_pixel_footprint_and_training_focal_closed_form() -> None:
@@ -246,35 +186,6 @@ def test_preview_shows_the_colored_shaded_mesh_from_the_right_side() -> None:
 
 
 # ---------------------------------------------------------------------------------------- the stage, end to end
-def _scene_dir(tmp_path: Path, model: SoftSphere, world_from_source: np.ndarray, kind: str) -> Path:
-    """A scene folder with a normalized scene of photos of the analytic field (no 03_field: load_field is patched)."""
-    scene_dir = tmp_path / "scene"
-    (scene_dir / "02_scene").mkdir(parents=True)
-    photos = tmp_path / "photos"
-    photos.mkdir()
-    frames = []
-    for view in ring_views(model, n=6, size=64):
-        path = photos / f"{view.name}.png"
-        Image.fromarray(view.image).save(path)
-        fx, fy, cx, cy = view.intrinsics
-        frames.append(Frame(str(path), view.c2w, fx, fy, cx, cy, 64, 64, split="train", near=1.0, far=5.0))
-    Scene(frames=frames, aabb=AABB, capture="object", world_from_source=world_from_source, source_kind=kind).save(scene_dir / "02_scene")
-    (scene_dir / "manifest.json").write_text(json.dumps({"version": 1, "source": str(photos), "stages": {}}))
-    return scene_dir
-
-
-def _run_stage(scene_dir: Path, model: SoftSphere, cfg: MeshConfig, monkeypatch: pytest.MonkeyPatch) -> tuple[dict, Path]:
-    meta = {"aabb": AABB.tolist(), "bounded": True, "background": BACKGROUND.tolist(), "max_side": 64, "kind": "analytic"}
-    monkeypatch.setattr(mesh_stage, "load_field", lambda folder, device="cpu": (model, meta))
-    out = scene_dir / "04_mesh"
-    out.mkdir()
-    ctx = StageContext(
-        name="mesh", folder="04_mesh", out=out, work=scene_dir / ".work", inputs={"normalize": scene_dir / "02_scene", "train": scene_dir / "03_field"},
-        config=cfg, run_config=RunConfig(mesh=cfg), source=None, scene_dir=scene_dir, report=Reporter(quiet=True),
-    )
-    return mesh_stage.run(ctx), out
-
-
 def test_stage_writes_reloadable_meshes_report_and_previews_and_gt_comparison_is_exact(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:

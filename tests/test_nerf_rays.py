@@ -6,19 +6,13 @@ import math
 import pytest
 import torch
 
+from recon.camera import look_at
 from recon.nerf.rays import camera_rays, pixel_rays, ray_aabb
 
 
-def _look_at(eye: torch.Tensor, target: torch.Tensor, up=(0.0, 0.0, 1.0)) -> torch.Tensor:
-    """OpenGL c2w: columns are camera +X (right), +Y (up), +Z (backwards), position."""
-    back = eye - target
-    back = back / back.norm()
-    right = torch.linalg.cross(torch.tensor(up, dtype=eye.dtype), back)
-    right = right / right.norm()
-    upv = torch.linalg.cross(back, right)
-    c2w = torch.eye(4, dtype=eye.dtype)
-    c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = right, upv, back, eye
-    return c2w
+def _look_at(eye: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """OpenGL c2w (`recon.camera.look_at`) as a tensor of eye's dtype."""
+    return torch.as_tensor(look_at(eye.numpy(), target.numpy()), dtype=eye.dtype)
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])

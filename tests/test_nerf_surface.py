@@ -17,7 +17,7 @@ from recon.nerf.surface import SurfaceConfig, SurfaceModel, eikonal_loss, neus_t
 from recon.nerf.fitting import RayBatcher
 from recon.nerf.trainer import train
 from recon.progress import Reporter
-from recon.scene import look_at
+from recon.camera import look_at
 from recon.field_mesh import extract_zero_set
 
 BOX = ((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0))

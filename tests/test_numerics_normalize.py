@@ -15,7 +15,8 @@ from hypothesis import strategies as st
 from recon.config import NormalizeConfig
 from recon.errors import InputError
 from recon.normalization import normalize, similarity, transform_c2w
-from recon.scene import look_at, Frame, Scene, load_scene
+from recon.camera import look_at
+from recon.scene import Frame, Scene, load_scene
 from recon.geometry.export import export_transform
 
 

@@ -12,15 +12,15 @@ from torch import Tensor
 from recon.nerf.render import RadianceModel
 from recon.nerf.fitting import RayBatcher
 from recon.nerf.trainer import TrainingDiverged, train
-from tests.test_trainer import AABB, _scene, _tiny_model
+from tests.ball_scene import AABB, ball_views, tiny_model
 
 DEFAULT_LR = 5e-4  # the classic model's default (recon/stages/train.py: model_spec)
 
 
 @pytest.mark.parametrize("factor", [0.1, 10.0])
 def test_learning_rate_10x_off_the_default_stays_finite(factor: float) -> None:
-    images, c2w, intr = _scene(4, 12)
-    model = _tiny_model()
+    images, c2w, intr = ball_views(4, 12)
+    model = tiny_model()
     out = train(model, RayBatcher(images, c2w, intr, aabb=AABB, seed=0), steps=40, lr=DEFAULT_LR * factor,
                 batch_rays=128, history_every=10)
     assert math.isfinite(out["loss"]) and math.isfinite(out["psnr"])
@@ -51,8 +51,8 @@ class NaNAt(RadianceModel):
 
 
 def test_nan_mid_run_stops_at_that_step_naming_the_cause_and_keeps_the_last_good_state() -> None:
-    images, c2w, intr = _scene(2, 8)
-    model = NaNAt(_tiny_model(), bad_step=7)
+    images, c2w, intr = ball_views(2, 8)
+    model = NaNAt(tiny_model(), bad_step=7)
     seen: list[int] = []
     with pytest.raises(TrainingDiverged) as info:
         train(model, RayBatcher(images, c2w, intr, aabb=AABB), steps=20, lr=1e-3, batch_rays=32,
@@ -65,7 +65,7 @@ def test_nan_mid_run_stops_at_that_step_naming_the_cause_and_keeps_the_last_good
 
 
 def test_learning_rate_far_too_high_is_reported_not_silent() -> None:
-    images, c2w, intr = _scene(4, 12)
+    images, c2w, intr = ball_views(4, 12)
     with pytest.warns(UserWarning, match="learning rate"):
-        train(_tiny_model(), RayBatcher(images, c2w, intr, aabb=AABB, seed=0), steps=40, lr=DEFAULT_LR * 1000,
+        train(tiny_model(), RayBatcher(images, c2w, intr, aabb=AABB, seed=0), steps=40, lr=DEFAULT_LR * 1000,
               batch_rays=128, history_every=10)

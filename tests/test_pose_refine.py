@@ -18,7 +18,7 @@ from recon.nerf.evaluate import align_pose, render_image
 from recon.nerf.fitting import RayBatcher
 from recon.nerf.pieces import PoseRefine
 from recon.nerf.trainer import train
-from recon.scene import look_at
+from recon.camera import look_at
 
 AABB = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
 

@@ -8,12 +8,12 @@ import numpy as np
 import pytest
 import torch
 
+from recon.camera import look_at
 from recon.nerf.depth_prior import DepthPrior, depth_loss, sparse_depth_targets, triangulation_angles
 from recon.nerf.fast import FastConfig, FastModel
 from recon.nerf.fitting import RayBatcher
 from recon.nerf.pieces import DepthPriorLoss
 from recon.nerf.trainer import train
-from recon.scene import look_at
 
 W, H, FL = 64, 48, 60.0
 

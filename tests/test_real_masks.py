@@ -16,7 +16,8 @@ from recon.config import MeshConfig
 from recon.errors import InputError
 from recon.images import save_image
 from recon.mesh_views import inside_masks
-from recon.scene import Frame, Scene, find_masks, import_transforms, look_at
+from recon.camera import look_at
+from recon.scene import find_masks, import_transforms
 from recon.views import View, load_view
 
 REPO = Path(__file__).resolve().parents[1]

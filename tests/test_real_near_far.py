@@ -8,10 +8,11 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from recon.camera import look_at
 from recon.config import NormalizeConfig
 from recon.nerf.rays import camera_rays, ray_aabb
 from recon.normalization import _box_distance_range, _distance_range, normalize
-from recon.scene import Frame, Scene, look_at
+from recon.scene import Frame, Scene
 
 W, H, FL = 320, 240, 160.0  # a wide lens: the corner ray is 51° off-axis
 

@@ -12,7 +12,8 @@ from recon.geometry.clean import clean_mesh, cut_below_plane
 from recon.normalization import normalize
 from recon.config import NormalizeConfig
 from recon.region import fit_ground_plane, object_region
-from recon.scene import Frame, Scene, look_at
+from recon.camera import look_at
+from recon.scene import Frame, Scene
 from recon.mesh_plan import mesh_region
 
 W, H, FL = 320, 240, 300.0

@@ -10,7 +10,8 @@ import pytest
 from recon.config import NormalizeConfig
 from recon.errors import InputError
 from recon.normalization import normalize, rotation_between, similarity, transform_c2w
-from recon.scene import look_at, Frame, Scene, detect_source, import_nerf_synthetic, import_npz, import_transforms, load_scene
+from recon.camera import look_at
+from recon.scene import Frame, Scene, detect_source, import_nerf_synthetic, import_npz, import_transforms, load_scene
 
 
 

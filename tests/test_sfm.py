@@ -21,7 +21,8 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from recon.colmap import camera_params_to_intrinsics, opencv_w2c_to_opengl_c2w
+from recon.camera import opencv_w2c_to_opengl_c2w
+from recon.colmap import camera_params_to_intrinsics
 from recon.errors import ReconError
 from recon.sfm import (
     ATTEMPTS,

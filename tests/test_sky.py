@@ -8,13 +8,14 @@ import numpy as np
 import pytest
 import torch
 
+from recon.camera import look_at
 from recon.config import TrainConfig
 from recon.model_choice import sky_for
 from recon.nerf.fast import FastConfig, FastModel, SkyColor
 from recon.nerf.fitting import RayBatcher
 from recon.nerf.pieces import EmptyRays
 from recon.nerf.trainer import train
-from recon.scene import Frame, Scene, look_at
+from recon.scene import Frame, Scene
 from recon.sky import SKY_POINT_MARGIN, sky_mask
 from recon.views import View
 

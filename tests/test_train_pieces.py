@@ -16,7 +16,7 @@ from recon.nerf.pose_refine import PoseRefinement
 from recon.nerf.render import RadianceModel, render_dense
 from recon.nerf.sampling import stratified
 from recon.nerf.trainer import TrainStep, train
-from recon.scene import look_at
+from recon.camera import look_at
 
 AABB = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
 AT = StepInfo(step=0, steps=10, fraction=None, autocast=None)

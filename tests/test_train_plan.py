@@ -13,7 +13,8 @@ from recon.model_choice import build_training, plan_training
 from recon.nerf.pieces import DepthPriorLoss
 from recon.profiling import profile_training
 from recon.progress import Reporter
-from recon.scene import Frame, Scene, look_at
+from recon.camera import look_at
+from recon.scene import Frame, Scene
 from recon.views import View
 
 W, H, FL = 16, 12, 14.0

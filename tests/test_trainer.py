@@ -5,61 +5,11 @@ import math
 
 import pytest
 import torch
-from torch import Tensor
 
-from recon.nerf.classic import ClassicModel
-from recon.nerf.render import RadianceModel, render_dense
-from recon.nerf.sampling import stratified
 from recon.nerf.evaluate import render_image
 from recon.nerf.fitting import RayBatcher, lr_at
 from recon.nerf.trainer import TrainingDiverged, train
-
-AABB = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
-COLOR = torch.tensor([0.9, 0.2, 0.1])
-
-
-class Ball(RadianceModel):
-    """Ground truth: a red ball of radius 0.6 and density 30 at the origin; nothing to train."""
-
-    def __init__(self) -> None:
-        super().__init__()
-        self.register_buffer("color", COLOR.clone())
-
-    def density(self, x: Tensor) -> Tensor:
-        return 30.0 * (x.norm(dim=-1) < 0.6).to(x.dtype)
-
-    def radiance(self, x: Tensor, d: Tensor) -> Tensor:
-        return self.color.expand(x.shape[0], 3)
-
-    def render_rays(self, rays_o, rays_d, near, far, *, training, background):
-        t = stratified(near, far, 128, jitter=False)
-        x = rays_o[:, None] + t[..., None] * rays_d[:, None]
-        sigma = self.density(x.reshape(-1, 3)).view(t.shape)
-        rgb = self.color.expand(*t.shape, 3)
-        return render_dense(sigma, rgb, t, far, background)
-
-
-def _look_at(eye: Tensor) -> Tensor:
-    back = eye / eye.norm()
-    right = torch.linalg.cross(torch.tensor([0.0, 0.0, 1.0]), back)
-    right = right / right.norm()
-    c2w = torch.eye(4)
-    c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = right, torch.linalg.cross(back, right), back, eye
-    return c2w
-
-
-def _scene(n_views: int = 4, size: int = 12) -> tuple[Tensor, Tensor, Tensor]:
-    angles = torch.arange(n_views) * 2 * math.pi / n_views
-    c2w = torch.stack([_look_at(torch.stack([3 * torch.cos(a), 3 * torch.sin(a), torch.tensor(0.8)])) for a in angles])
-    f = size * 1.2
-    intr = torch.tensor([[f, f, size / 2, size / 2]]).expand(n_views, 4).contiguous()
-    images = torch.stack([render_image(Ball(), c, intr[0], size, size, aabb=AABB)["rgb"] for c in c2w])
-    return images, c2w, intr
-
-
-def _tiny_model(seed: int = 0) -> ClassicModel:
-    torch.manual_seed(seed)
-    return ClassicModel(AABB, n_coarse=24, n_fine=0, pos_freqs=3, dir_freqs=1, depth=2, width=32, skip=0)
+from tests.ball_scene import AABB, COLOR, ball_views as _scene, tiny_model as _tiny_model
 
 
 def test_ground_truth_renders_the_ball() -> None:

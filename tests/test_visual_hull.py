@@ -9,11 +9,12 @@ import numpy as np
 import pytest
 import torch
 
+from recon.camera import look_at
 from recon.errors import ReconError
 from recon.geometry.visual_hull import carve, visual_hull_sdf
 from recon.model_choice import surface_start
 from recon.nerf.surface import SurfaceConfig, SurfaceModel
-from recon.scene import Scene, look_at
+from recon.scene import Scene
 from recon.views import View
 
 BOX = np.array([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])

@@ -23,8 +23,8 @@ from typing import Callable, Sequence
 import numpy as np
 import trimesh
 
+from recon.camera import image_rays, project
 from recon.geometry.clean import component_areas
-from recon.geometry.color import project
 from recon.geometry.raster import mesh_depth
 
 __all__ = ["largest_piece", "depth_points", "object_pixels", "mesh_zbuffers", "projected_coverage", "point_agreement"]
@@ -41,14 +41,10 @@ def largest_piece(vertices: np.ndarray, faces: np.ndarray) -> dict:
 
 def depth_points(c2w: np.ndarray, intrinsics: Sequence[float], depth: np.ndarray) -> np.ndarray:
     """World points (H, W, 3) at distance ``depth`` (H, W) along the unit rays through the pixel centres of an
-    OpenGL camera (the convention of `recon.nerf.rays.camera_rays` and of the fields' rendered depth)."""
+    OpenGL camera (`recon.camera.image_rays`, the rays the fields render their depth along)."""
     h, w = depth.shape
-    fx, fy, cx, cy = (float(v) for v in intrinsics)
-    j, i = np.meshgrid(np.arange(h) + 0.5, np.arange(w) + 0.5, indexing="ij")
-    d_cam = np.stack([(i - cx) / fx, -(j - cy) / fy, -np.ones_like(i)], axis=-1)
-    d = d_cam @ np.asarray(c2w, np.float64)[:3, :3].T
-    d /= np.linalg.norm(d, axis=-1, keepdims=True)
-    return np.asarray(c2w, np.float64)[:3, 3] + d * np.asarray(depth, np.float64)[..., None]
+    o, d = image_rays(np.asarray(c2w, np.float64), *(float(v) for v in intrinsics), w, h)
+    return o + d * np.asarray(depth, np.float64)[..., None]
 
 
 def object_pixels(

@@ -14,6 +14,8 @@ import torch
 from scipy.ndimage import maximum_filter, minimum_filter
 from scipy.spatial import cKDTree
 
+from recon.camera import project
+
 RadianceFn = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
 """``radiance_fn(x: (M, 3), d: (M, 3) unit view directions) -> (M, 3)`` RGB in [0, 1]."""
 
@@ -41,25 +43,6 @@ def colors_from_field(
             d = torch.from_numpy(dirs[s : s + chunk]).to(device)
             out[s : s + chunk] = radiance_fn(x, d).reshape(-1, 3).float().cpu().numpy()
     return np.clip(out, 0.0, 1.0)
-
-
-def project(
-    points: np.ndarray, c2w: np.ndarray, intrinsics: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """Project world points into an OpenGL camera.
-
-    points: (N, 3) scene frame; c2w: (4, 4); intrinsics: (4,) fx, fy, cx, cy in pixels.
-    Returns ``uv (N, 2)`` continuous pixel coordinates (x right, y down; pixel centres at +0.5) and
-    ``z (N,)`` depth along the optical axis (positive in front of the camera).
-    """
-    rot, t = c2w[:3, :3], c2w[:3, 3]
-    cam = (points - t) @ rot  # (N, 3) camera frame: rows are R^T (p - t)
-    z = -cam[:, 2]
-    safe = np.where(np.abs(z) > 1e-12, z, 1e-12)
-    fx, fy, cx, cy = intrinsics
-    u = cx + fx * cam[:, 0] / safe
-    v = cy - fy * cam[:, 1] / safe
-    return np.stack([u, v], axis=-1), z
 
 
 def sample_bilinear(image: np.ndarray, uv: np.ndarray) -> np.ndarray:

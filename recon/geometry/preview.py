@@ -12,10 +12,9 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from recon.geometry.color import project
+from recon.camera import look_at, project
 from recon.geometry.raster import interpolate, rasterize, render_mesh
 from recon.geometry.texture import TexturedMesh
-from recon.scene import look_at
 
 
 def look_rotation(azimuth_deg: float, elevation_deg: float) -> np.ndarray:

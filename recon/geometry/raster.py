@@ -17,7 +17,8 @@ from typing import Sequence
 
 import numpy as np
 
-from recon.geometry.color import project, sample_bilinear
+from recon.camera import project
+from recon.geometry.color import sample_bilinear
 
 CANDIDATES_PER_CHUNK = 2**22
 """Pixel-triangle candidates (bounding-box pixels) tested at once: bounds memory to a few hundred MB."""

@@ -13,7 +13,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from recon.geometry.color import project
+from recon.camera import project
 
 __all__ = ["carve", "visual_hull_sdf"]
 

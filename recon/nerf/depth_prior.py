@@ -25,6 +25,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from recon.camera import project
+
 from .rays import ray_aabb
 from .render import RadianceModel
 
@@ -114,11 +116,8 @@ def sparse_depth_targets(
             continue
         fx, fy, cx, cy = np.asarray(intrinsics[v], np.float64)
         w, h = np.asarray(sizes[v])
-        local = (pts[idx] - c2w[v, :3, 3]) @ c2w[v, :3, :3]
-        z = -local[:, 2]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            u = cx + fx * local[:, 0] / z
-            r = cy - fy * local[:, 1] / z
+        uv, z = project(pts[idx], c2w[v], (fx, fy, cx, cy))
+        u, r = uv[:, 0], uv[:, 1]
         ok = (z > 1e-9) & (u >= 0) & (u < w) & (r >= 0) & (r < h)
         if alpha is not None and alpha[v] is not None:
             a = alpha[v]

@@ -1,27 +1,18 @@
-"""Camera rays for a pinhole camera, and ray / box intersection.
+"""Camera rays for the fields (torch), and ray / box intersection.
 
-Conventions (shared by the whole project):
-
-* ``c2w`` is camera-to-world, OpenGL style: the camera looks down its -Z axis, +Y is up, +X right.
-* Pixel (i, j) = (column, row) has its centre at (i + 0.5, j + 0.5); row 0 is the TOP of the image.
-* Intrinsics ``fl_x, fl_y, cx, cy`` are in pixels.
-* Rays are PINHOLE: lens distortion is removed from the images beforehand (the stages undistort).
-* ``rays_d`` is UNIT length, so a distance ``t`` along a ray is in world units:
-  ``x = rays_o + t * rays_d``.
+The conventions (OpenGL ``c2w``, pixel centres at +0.5, intrinsics in pixels, UNIT directions so that ``t`` is in
+world units) and the pixel -> ray math live in `recon.camera`; this module checks the shapes the training and
+rendering loops hand it. Rays are PINHOLE: the stages undistort the photos beforehand.
 """
 from __future__ import annotations
 
 import torch
 from torch import Tensor
 
+from recon.camera import image_rays
+from recon.camera import pixel_rays as _pixel_rays
+
 __all__ = ["camera_rays", "pixel_rays", "ray_aabb"]
-
-
-def _directions_camera(px: Tensor, py: Tensor, fl_x, fl_y, cx, cy) -> Tensor:
-    """Camera-frame directions (..., 3), not normalized, for pixel coordinates px, py (pixels, centres)."""
-    x = (px - cx) / fl_x
-    y = -(py - cy) / fl_y  # image rows grow downwards, camera +Y is up
-    return torch.stack([x, y, -torch.ones_like(x)], dim=-1)  # camera looks down -Z
 
 
 def camera_rays(
@@ -40,16 +31,7 @@ def camera_rays(
     """
     if c2w.shape not in ((4, 4), (3, 4)):
         raise ValueError(f"c2w must have shape (4, 4) or (3, 4), got {tuple(c2w.shape)}")
-    j, i = torch.meshgrid(
-        torch.arange(h, device=c2w.device, dtype=c2w.dtype) + 0.5,
-        torch.arange(w, device=c2w.device, dtype=c2w.dtype) + 0.5,
-        indexing="ij",
-    )
-    d_cam = _directions_camera(i, j, fl_x, fl_y, cx, cy)
-    d = d_cam @ c2w[:3, :3].T
-    d = d / torch.linalg.vector_norm(d, dim=-1, keepdim=True)
-    o = c2w[:3, 3].expand(h, w, 3)
-    return o, d
+    return image_rays(c2w, fl_x, fl_y, cx, cy, w, h)
 
 
 def pixel_rays(
@@ -72,10 +54,7 @@ def pixel_rays(
     for name, v in (("fl_x", fl_x), ("fl_y", fl_y), ("cx", cx), ("cy", cy), ("px", px), ("py", py)):
         if v.shape != (n,):
             raise ValueError(f"{name} must have shape ({n},), got {tuple(v.shape)}")
-    d_cam = _directions_camera(px, py, fl_x, fl_y, cx, cy)
-    d = torch.einsum("nij,nj->ni", c2w[:, :3, :3], d_cam)
-    d = d / torch.linalg.vector_norm(d, dim=-1, keepdim=True)
-    return c2w[:, :3, 3], d
+    return _pixel_rays(c2w, fl_x, fl_y, cx, cy, px, py)
 
 
 def ray_aabb(rays_o: Tensor, rays_d: Tensor, aabb: Tensor) -> tuple[Tensor, Tensor, Tensor]:
