@@ -52,8 +52,8 @@ def _sync(device: torch.device) -> None:
 
 def render_timing(field: Path, views: list[Any], device: torch.device) -> float:
     """Milliseconds per view to render `views` on `device` (one warm-up render first: allocation, compilation)."""
+    from recon.evaluation.views import render_view
     from recon.field import load_field
-    from recon.views import render_view
 
     model, meta = load_field(field, device)
     aabb = torch.tensor(meta["aabb"], dtype=torch.float32, device=device) if meta.get("bounded") else None
@@ -70,9 +70,9 @@ def render_timing(field: Path, views: list[Any], device: torch.device) -> float:
 def device_agreement(field: Path, views: list[Any], device: torch.device) -> dict[str, Any]:
     """The same trained field rendered on the CPU and on `device`: PSNR of one render against the other (min, mean)
     and the largest pixel difference; skipped when `device` is the CPU."""
+    from recon.evaluation.metrics import psnr
+    from recon.evaluation.views import render_view
     from recon.field import load_field
-    from recon.metrics import psnr
-    from recon.views import render_view
 
     if device.type == "cpu":
         return {"skipped": "the device is the CPU: nothing to compare with"}
@@ -166,12 +166,12 @@ def kernel_timings(config: Any, device: torch.device) -> dict[str, Any]:
 
 def run_one(args: argparse.Namespace, kernels: str, until: str | None) -> tuple[dict[str, Any], Any, Any]:
     """One pipeline run with train.fast.kernels=`kernels` (until the stage `until`, all when None): its column."""
+    from recon.app.progress import Reporter
+    from recon.capture.scene import load_scene, spread_evenly
     from recon.config import load_config
+    from recon.evaluation.views import load_views
     from recon.nerf.device import select_device
-    from recon.progress import Reporter
-    from recon.scene import load_scene, spread_evenly
     from recon.stages import default_pipeline
-    from recon.views import load_views
 
     overrides = [*(SMOKE if args.smoke else []), f"train.final_eval_views={args.test_views}",
                  f"train.fast.kernels={kernels}", *args.set]
@@ -215,7 +215,7 @@ def run_one(args: argparse.Namespace, kernels: str, until: str | None) -> tuple[
 
 
 def run_check(args: argparse.Namespace) -> dict[str, Any]:
-    from recon.bench import provenance
+    from recon.app.bench import provenance
     from recon.config import load_config
     from recon.nerf.device import select_device
 

@@ -69,7 +69,7 @@ def main() -> int:
     where = provenance()
     with tempfile.TemporaryDirectory() as tmp:
         scene = Path(tmp) / "scene"
-        cmd = [sys.executable, "-c", "from recon.cli import main; main()", "run", str(ROOT / "fixtures/sample/images"),
+        cmd = [sys.executable, "-c", "from recon.app.cli import main; main()", "run", str(ROOT / "fixtures/sample/images"),
                "--out", str(scene), "--preset", "fast", "--set", f"train.steps={args.steps}", "--set", "train.budget=",
                "--set", "train.seed=0", "--set", "poses.num_threads=1"]
         subprocess.run(cmd, check=True, env=env, cwd=ROOT)

@@ -4,13 +4,13 @@ against the torch one, measured in one process so that the machine's load cancel
     python benchmarks/unbounded_march.py [--warmup 80] [--rounds 5] [--work DIR]
 
 Builds the fox and the half-size Lego
-(bounded) as the train stage and `recon bench --profile` build them (recon.model_choice.plan_training and
+(bounded) as the train stage and `recon bench --profile` build them (recon.plans.training.plan_training and
 build_training: the same model, rays and step pieces), the fox from its reference poses
 with masks off and trained as an unbounded capture (contracted), as the fox is after SfM (without SfM's sparse points
 normalize calls the reference-posed fox an object capture; SfM itself would take most of this script's time), trains
 each ``--warmup`` steps,
 then alternates, round by round, one fox step with the native marcher, one fox step with the torch marcher
-(recon.profiling.reference_marching) and one Lego step, recording each step's process CPU time and wall time,
+(recon.app.profiling.reference_marching) and one Lego step, recording each step's process CPU time and wall time,
 samples, density evaluations and colored samples per ray. Then the two marchers alone, alternately, on the same fox rays (no
 gradients): candidates, occupied candidates and kept samples per ray, and CPU time. Writes
 benchmarks/results/unbounded_march.json.
@@ -37,15 +37,15 @@ RESULT = REPO / "benchmarks" / "results" / "unbounded_march.json"
 
 def build(data: str, work: Path, overrides: list[str], unbounded: bool = False) -> dict[str, Any]:
     """The fast preset's model, ray batcher and training step on ``data``, planned and built as the train stage plans
-    and builds them (recon.model_choice); ``unbounded`` trains the scene as an unbounded capture (contracted)
+    and builds them (recon.plans.training); ``unbounded`` trains the scene as an unbounded capture (contracted)
     whatever normalize classified it as."""
-    from recon.bench import prepare_scene
+    from recon.app.bench import prepare_scene
+    from recon.app.progress import Reporter
+    from recon.capture.scene import load_scene
     from recon.config import load_config
-    from recon.model_choice import build_training, plan_training
+    from recon.evaluation.views import load_views
     from recon.nerf.trainer import TrainStep
-    from recon.progress import Reporter
-    from recon.scene import load_scene
-    from recon.views import load_views
+    from recon.plans.training import build_training, plan_training
 
     config = load_config("fast", overrides)
     scene = load_scene(prepare_scene(data, work, load_config(None, overrides), Reporter()) / "02_scene")
@@ -150,9 +150,9 @@ def main() -> None:
     parser.add_argument("--rounds", type=int, default=5, help="measured rounds (fox native, fox torch, Lego)")
     parser.add_argument("--work", type=Path, default=None, help="folder for the prepared scenes (default: a temp dir)")
     args = parser.parse_args()
+    from recon.app.bench import provenance
+    from recon.app.profiling import reference_marching
     from recon.atomic import write_json_atomic
-    from recon.bench import provenance
-    from recon.profiling import reference_marching
 
     work = args.work or Path(tempfile.mkdtemp(prefix="recon-unbounded-march-"))
     load_start = [round(x, 2) for x in os.getloadavg()]

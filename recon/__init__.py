@@ -1,6 +1,6 @@
 """recon: photos → camera poses → neural radiance field → colored mesh.
 
-The Python API (see recon/api.py): `recon.run(photos, out=..., preset=...)` → `RunResult`;
+The Python API (see recon/app/api.py): `recon.run(photos, out=..., preset=...)` → `RunResult`;
 `recon.load_field(scene)` → a `Field` that renders cameras. Errors are `recon.errors` classes.
 Importing recon is light: torch and the pipeline load on first use.
 """
@@ -18,7 +18,7 @@ _API = {"run", "load_field", "RunResult", "StageResult", "Field", "Render"}
 
 def __getattr__(name: str) -> Any:
     if name in _API:
-        from recon import api
+        from recon.app import api
 
         return getattr(api, name)
     raise AttributeError(f"module 'recon' has no attribute '{name}'")

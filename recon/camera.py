@@ -8,7 +8,7 @@ Conventions (shared by the whole project):
   the TOP of the image.
 * Intrinsics ``fl_x, fl_y, cx, cy`` are in pixels. Cameras are pinholes unless a ``distortion`` is given: OpenCV's
   radial-tangential coefficients ``(k1, k2, p1, p2[, k3])`` on normalized image coordinates (x right, y down).
-  Photos are undistorted with OpenCV itself (`recon.images.undistort`, fisheyes included); the numpy lens here
+  Photos are undistorted with OpenCV itself (`recon.capture.images.undistort`, fisheyes included); the numpy lens here
   serves what renders or checks distorted pixels without OpenCV (the tabletop fixture, tests).
 * Ray directions are UNIT length, so a distance ``t`` along a ray is in world units: ``x = o + t * d``.
   ``z`` (depth) is the distance along the optical axis, positive in front of the camera.

@@ -20,9 +20,9 @@ from typing import Any, Literal
 
 import numpy as np
 
+from recon.capture.sfm import SfmOptions
 from recon.errors import ConfigError
 from recon.nerf.model_config import FastConfig, GridKind, SurfaceConfig
-from recon.sfm import SfmOptions
 
 PIPELINES_DIR = Path(__file__).resolve().parent.parent / "pipelines"
 
@@ -63,7 +63,7 @@ class NormalizeConfig:
     """Every Nth photo, offset by half of it, is held out for validation; 0: none."""
     masks: Literal["auto", "off"] = "auto"
     """auto: an object capture without masks that shows a lot of table and room gets object masks cut from its
-    photos (`recon.auto_masks`, written to 02_scene/masks/) when they agree across photos; off: never."""
+    photos (`recon.capture.auto_masks`, written to 02_scene/masks/) when they agree across photos; off: never."""
 
 
 @dataclass
@@ -120,8 +120,7 @@ class TrainConfig:
     """auto (CUDA when present), cpu, cuda or cuda:K."""
     adjusted: str = ""
     """Set by a preset's [no_gpu] table when no GPU is found, or by `device_sizing` on a GPU: what it changed and
-    why, and on a GPU which kernels the fast model runs (train.fast.kernels) (printed with the train stage's
-    reasons)."""
+    why (printed first among the train stage's reasons)."""
     device_sizing: Literal["auto", "off"] = "auto"
     """auto: on CUDA, the grid models' rays per step, grid resolutions and (with a budget) step cap grow with the
     GPU's memory (`device_sizing`; a preset's values are sized for a CPU); --set values are kept. off: the preset's
@@ -146,10 +145,10 @@ class TrainConfig:
     of matched points differ between neighbouring photos (recon/nerf/appearance.py); the mesh uses the neutral one."""
     backdrop_key: Literal["auto", "on", "off"] = "auto"
     """Photos on a plain backdrop (a light box, a studio sweep): train the pixels of the backdrop's colour as empty
-    space, as masks would (recon.views.key_backdrop). auto: on for the surface model of an object capture without
+    space, as masks would (recon.evaluation.views.key_backdrop). auto: on for the surface model of an object capture without
     masks whose photos' borders are plain; the density models keep the photos as they are."""
     sky: Literal["auto", "on", "off"] = "auto"
-    """A sky behind an unbounded scene (recon/sky.py): the fast field gets a colour per ray direction behind it,
+    """A sky behind an unbounded scene (recon/capture/sky.py): the fast field gets a colour per ray direction behind it,
     and the photos' clear-sky pixels (smooth, blue, no SfM point near) train as empty space. auto: on when at
     least 1% of the training pixels are sky, for an unbounded capture without masks."""
     sky_weight: float = 0.1
@@ -180,7 +179,7 @@ class MeshConfig:
     iso: float = 0.0
     """Density iso-level; 0: automatic (one cell of thickness is `iso_opacity` opaque)."""
     iso_opacity: float = 0.0
-    """Opacity of one cell of material at the automatic iso-level; 0: 0.35 (`recon.field_mesh.ISO_OPACITY`), or 0.25
+    """Opacity of one cell of material at the automatic iso-level; 0: 0.35 (`recon.meshing.extraction.ISO_OPACITY`), or 0.25
     when masks trained the background empty (the masks already carve the object, so the level can be lower and close
     the holes an undertrained field leaves)."""
     min_component_fraction: float = 0.05
@@ -190,7 +189,7 @@ class MeshConfig:
     fill_cavities: int = 0
     """Fill the empty space the density field's material encloses before marching cubes, after closing holes up to
     about twice this many cells wide (0: off; the density presets: 4). Not on the whole box of an unbounded scene;
-    see `recon.geometry.extract.fill_enclosed` and `recon.mesh_plan.hollow_fill_applies`. Why: a density field is a
+    see `recon.geometry.extract.fill_enclosed` and `recon.plans.mesh.hollow_fill_applies`. Why: a density field is a
     shell whose inner walls show through its pits, and the hidden-face test keeps them; filling removes them."""
     target_faces: int = 300000
     """Decimate to this many faces (0: keep all)."""
@@ -299,9 +298,6 @@ def load_config(preset: str | None = None, overrides: list[str] | None = None) -
         if found is not None:
             config, why = device_sizing(config, *found, keep=_override_keys(overrides))
             config.train.adjusted = why or config.train.adjusted
-    kernels = _kernels_reason(config)
-    if kernels:
-        config.train.adjusted = "; ".join(filter(None, (config.train.adjusted, kernels)))
     validate(config)
     return config
 
@@ -388,20 +384,6 @@ def _flatten(table: dict[str, Any], prefix: str = "") -> list[tuple[str, Any]]:
     for key, value in table.items():
         out += _flatten(value, f"{prefix}{key}.") if isinstance(value, dict) else [(f"{prefix}{key}", value)]
     return out
-
-
-def _kernels_reason(config: RunConfig) -> str:
-    """The fast model's kernels (train.fast.kernels: Triton or torch) in a sentence, for a run on a GPU or one that
-    asks for Triton on a CPU; "" otherwise (a CPU run with the default says nothing: nothing changes there)."""
-    train = config.train
-    if train.model not in ("auto", "fast"):
-        return ""
-    gpu = _gpu_training(train.device)
-    if not gpu and train.fast.kernels != "triton":
-        return ""
-    from recon.nerf.kernels import kernels_choice
-
-    return kernels_choice(train.fast.kernels, "cuda" if gpu else "cpu")[1]
 
 
 def _gpu_training(device: str) -> bool:

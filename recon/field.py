@@ -10,8 +10,8 @@ from typing import Any
 
 import torch
 
-from recon.errors import ReconError
 from recon.atomic import atomic_open, interrupts_deferred
+from recon.errors import ReconError
 
 FIELD_FILE = "field.pt"
 FIELD_FORMAT = 1

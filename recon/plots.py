@@ -69,7 +69,7 @@ def training_curves(history: Sequence[dict], evals: Sequence[dict], path: Path, 
 
 def comparison_panel(render: np.ndarray, photo: np.ndarray | None, depth_rgb: np.ndarray | None, path: Path, caption: str = "") -> None:
     """Side by side: photo | render | depth, saved as one PNG (no axes, pixel-exact)."""
-    from recon.images import save_image
+    from recon.capture.images import save_image
 
     tiles = [t for t in (photo, render, depth_rgb) if t is not None]
     h = max(t.shape[0] for t in tiles)

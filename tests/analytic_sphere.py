@@ -15,15 +15,15 @@ import torch
 from PIL import Image
 from torch import Tensor, nn
 
+from recon.app.progress import Reporter
 from recon.camera import look_at
+from recon.capture.scene import Frame, Scene
 from recon.config import MeshConfig, RunConfig
+from recon.evaluation.views import View, render_view
 from recon.nerf.render import RadianceModel, render_dense
 from recon.nerf.sampling import stratified
-from recon.pipeline import StageContext
-from recon.progress import Reporter
-from recon.scene import Frame, Scene
+from recon.runner.pipeline import StageContext
 from recon.stages import mesh as mesh_stage
-from recon.views import View, render_view
 
 CENTRE = np.array([0.1, -0.05, 0.05])
 R0 = 0.6

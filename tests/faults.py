@@ -9,7 +9,6 @@ import sys
 import time
 from pathlib import Path
 
-
 REPO = Path(__file__).resolve().parents[1]
 STAGE_FOLDERS = {"poses": "01_poses", "normalize": "02_scene", "train": "03_field", "mesh": "04_mesh"}
 TINY = [
@@ -31,7 +30,7 @@ def make_capture(folder: Path, views: int = 8, size: int = 64) -> Path:
 
 
 def cli_args(source: Path, scene: Path, *extra: str, settings: list[str] | None = None) -> list[str]:
-    args = [sys.executable, "-m", "recon.cli", "run", str(source), "--out", str(scene)]
+    args = [sys.executable, "-m", "recon.app.cli", "run", str(source), "--out", str(scene)]
     for item in TINY if settings is None else settings:
         args += ["--set", item]
     return args + list(extra)

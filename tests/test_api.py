@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 import recon
-from recon.metrics import psnr
+from recon.evaluation.metrics import psnr
 from tests.assets_scene import TINY, tiny_scene
 
 
@@ -21,7 +21,7 @@ def built(tmp_path_factory: pytest.TempPathFactory):
 
 def test_import_recon_is_light() -> None:
     """`import recon` must not pull torch or the pipeline (they load on the first call)."""
-    out = subprocess.run([sys.executable, "-c", "import sys, recon; print('torch' in sys.modules, 'recon.pipeline' in sys.modules)"],
+    out = subprocess.run([sys.executable, "-c", "import sys, recon; print('torch' in sys.modules, 'recon.runner.pipeline' in sys.modules)"],
                          capture_output=True, text=True, check=True, cwd=Path(__file__).resolve().parents[1]).stdout
     assert out.split() == ["False", "False"]
     assert callable(recon.run) and callable(recon.load_field)
@@ -65,7 +65,7 @@ def test_load_field_renders_a_photo_camera_like_the_train_stage(built) -> None:
     """The held-out render through the API scores the PSNR the train stage recorded for the same view."""
     import json
 
-    from recon.images import read_image, undistort
+    from recon.capture.images import read_image, undistort
 
     scene = built[1]
     field = recon.load_field(scene, device="cpu")

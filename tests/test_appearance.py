@@ -21,10 +21,10 @@ from recon.nerf.appearance import (
 )
 from recon.nerf.evaluate import held_out_right_half, left_right_split, render_image
 from recon.nerf.fast import FastConfig, FastModel
-from recon.nerf.render import RadianceModel, render_dense
-from recon.nerf.sampling import stratified
 from recon.nerf.fitting import RayBatcher
 from recon.nerf.pieces import Appearance
+from recon.nerf.render import RadianceModel, render_dense
+from recon.nerf.sampling import stratified
 from recon.nerf.trainer import train
 from tests.ball_scene import ring_cameras
 

@@ -9,8 +9,8 @@ out (every module would otherwise depend on `recon/__init__`, which loads the AP
 The rules:
 
 * no import cycle;
-* the library layer (`LIBRARY`: the radiance fields, mesh geometry and the scene contract) imports no runner
-  (`RUNNERS`: stages, the pipeline, the CLI, the Python API, batch, bench, profiling, the viewer);
+* the library layer (`recon.capture`, `recon.nerf`, `recon.evaluation`, `recon.meshing`, `recon.geometry` and the
+  shared modules beside them) imports nothing above it (`recon.plans`, `recon.stages`, `recon.runner`, `recon.app`);
 * no stage imports another stage (they meet through the scene folder's files, wired by `recon.stages`);
 * only the train stage and the profiler import the training loop (`recon.nerf.trainer`): rendering and scoring a
   trained field live in `recon.nerf.evaluate`;
@@ -31,18 +31,17 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGE = "recon"
 
-LIBRARY_PACKAGES = ("recon.nerf", "recon.geometry")
-"""Every module below these is library: tensors and meshes in, tensors and meshes out."""
-LIBRARY_MODULES = ("recon.scene", "recon.colmap", "recon.camera", "recon.images", "recon.views", "recon.atomic",
-                   "recon.errors", "recon.metrics", "recon.field_mesh", "recon.mesh_views", "recon.mesh_plan")
-"""The scene contract and what it is read with: the scene file, COLMAP models, camera math, photos, views; and the
-mesh's library: a field's surface as a mesh, the field and mesh in the photos' views, the mesh stage's decisions."""
-RUNNERS = ("recon.stages", "recon.pipeline", "recon.cli", "recon.api", "recon.batch", "recon.bench",
-           "recon.profiling", "recon.viewer")
-"""What runs the library: a library module importing one of these would make the layers a circle."""
+LIBRARY_PACKAGES = ("recon.capture", "recon.nerf", "recon.evaluation", "recon.meshing", "recon.geometry")
+"""The library: photos and the scene contract in; fields, renders and meshes out. Tensors, arrays and files."""
+LIBRARY_MODULES = ("recon.camera", "recon.config", "recon.atomic", "recon.errors", "recon.field", "recon.plots")
+"""Shared by the whole library: camera math, the typed options (each layer reads its slice), careful file writes,
+user-facing errors, a field on disk, PNG plots."""
+RUNNERS = ("recon.plans", "recon.stages", "recon.runner", "recon.app")
+"""Above the library: what each stage decides (plans), the stages, the runner and the faces (CLI, API, batch, bench,
+profiling, viewer). A library module importing one of these would make the layers a circle."""
 STAGES = "recon.stages"
 TRAINER = "recon.nerf.trainer"
-TRAINER_IMPORTERS = frozenset({"recon.stages.train", "recon.profiling"})
+TRAINER_IMPORTERS = frozenset({"recon.stages.train", "recon.app.profiling"})
 """Who may import the training loop: the stage that trains and the profiler that times training steps."""
 CAMERA = "recon.camera"
 CAMERA_IMPORTS = frozenset({"recon.errors"})
@@ -223,18 +222,20 @@ def test_graph_counts_lazy_relative_and_submodule_imports(tmp_path: Path) -> Non
 
 def test_layering_rules_catch_each_kind_of_violation() -> None:
     bad = {
-        "recon.nerf.fast": {"recon.pipeline": 3},
-        "recon.scene": {"recon.stages.poses": 9},
+        "recon.nerf.fast": {"recon.runner.pipeline": 3},
+        "recon.capture.scene": {"recon.stages.poses": 9},
+        "recon.meshing.photos": {"recon.plans.mesh": 2, "recon.geometry.raster": 1},
         "recon.stages.mesh": {"recon.stages.train": 5, "recon.nerf.trainer": 6},
-        "recon.stages.train": {"recon.nerf.trainer": 7, "recon.pipeline": 1},
-        "recon.cli": {"recon.stages": 2, "recon.pipeline": 2},
-        "recon.camera": {"recon.errors": 1, "recon.scene": 4},
+        "recon.stages.train": {"recon.nerf.trainer": 7, "recon.runner.pipeline": 1},
+        "recon.app.cli": {"recon.stages": 2, "recon.runner.pipeline": 2},
+        "recon.camera": {"recon.errors": 1, "recon.capture.scene": 4},
     }
     found = layering_violations(bad)
     assert [v.split(" (")[0] for v in found] == [
-        "recon.camera:4 imports recon.scene",
-        "recon.nerf.fast:3 imports recon.pipeline",
-        "recon.scene:9 imports recon.stages.poses",
+        "recon.camera:4 imports recon.capture.scene",
+        "recon.capture.scene:9 imports recon.stages.poses",
+        "recon.meshing.photos:2 imports recon.plans.mesh",
+        "recon.nerf.fast:3 imports recon.runner.pipeline",
         "recon.stages.mesh:6 imports recon.nerf.trainer",
         "recon.stages.mesh:5 imports recon.stages.train",
     ]
@@ -254,7 +255,7 @@ def test_test_import_rule_catches_a_test_importing_a_test(tmp_path: Path) -> Non
 # ----------------------------------------------------------------------------- recon itself
 def test_graph_sees_recon(graph: Graph) -> None:
     """The walk reaches the whole package and its lazy imports (else the rules below would pass on nothing)."""
-    assert {"recon", "recon.nerf.trainer", "recon.nerf.evaluate", "recon.stages.train", "recon.colmap"} <= set(graph)
+    assert {"recon", "recon.nerf.trainer", "recon.nerf.evaluate", "recon.stages.train", "recon.capture.colmap"} <= set(graph)
     assert TRAINER in graph["recon.stages.train"]  # imported inside the stage's run function
     assert len(graph) >= 60 and sum(map(len, graph.values())) >= 200
 

@@ -8,9 +8,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from recon.auto_masks import object_on_background, segment_object
 from recon.camera import look_at
-from recon.scene import Frame, Scene
+from recon.capture.auto_masks import object_on_background, segment_object
+from recon.capture.scene import Frame, Scene
 
 W, H, FOCAL = 160, 120, 150.0
 BALL_C, BALL_R = np.array([0.0, 0.0, 0.3]), 0.3
@@ -132,8 +132,8 @@ def test_masks_come_back_in_the_photos_distorted_pixels() -> None:
     the pinhole cut back."""
     import cv2
 
-    from recon.auto_masks import _to_photo_pixels
-    from recon.images import undistort
+    from recon.capture.auto_masks import _to_photo_pixels
+    from recon.capture.images import undistort
 
     frame = Frame("a.png", np.eye(4), FOCAL, FOCAL, W / 2, H / 2, W, H, k1=-0.3, k2=0.05)
     pinhole = np.zeros((H, W), bool)
@@ -162,7 +162,7 @@ def test_recon_eval_gt_masks_scores_the_mesh_silhouette(tmp_path) -> None:
     import trimesh
     from PIL import Image
 
-    from recon.mesh_eval import silhouette_iou
+    from recon.evaluation.mesh_eval import silhouette_iou
 
     scene, _, truth = _scene(4)
     scene.capture = "object"
@@ -199,10 +199,10 @@ def test_the_normalize_stage_masks_an_object_on_a_table_and_trains_it_bounded(tm
     normalize.masks=off it stays unbounded and unmasked."""
     from PIL import Image
 
+    from recon.app.progress import Reporter
+    from recon.capture.scene import load_scene
     from recon.config import NormalizeConfig, load_config
-    from recon.pipeline import StageContext
-    from recon.progress import Reporter
-    from recon.scene import load_scene
+    from recon.runner.pipeline import StageContext
     from recon.stages import normalize as stage
 
     scene, photos, truth = _scene(12)

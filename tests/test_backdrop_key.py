@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from recon.capture.scene import Scene
 from recon.config import TrainConfig
-from recon.model_choice import choose_background, key_backdrop_for
-from recon.scene import Scene
-from recon.views import BACKDROP_TOLERANCE, View, key_backdrop, plain_backdrop
+from recon.evaluation.views import BACKDROP_TOLERANCE, View, key_backdrop, plain_backdrop
+from recon.plans.training import choose_background, key_backdrop_for
 
 RNG = np.random.default_rng(0)
 
@@ -103,10 +103,10 @@ def test_a_white_ball_on_a_white_backdrop_survives_without_the_key_and_vanishes_
 
     import torch
 
-    from recon.nerf.surface import SurfaceConfig, SurfaceModel
-    from recon.nerf.fitting import RayBatcher
-    from recon.nerf.trainer import train
     from recon.camera import look_at
+    from recon.nerf.fitting import RayBatcher
+    from recon.nerf.surface import SurfaceConfig, SurfaceModel
+    from recon.nerf.trainer import train
 
     torch.manual_seed(0)
     n, size, fl = 6, 16, 20.0

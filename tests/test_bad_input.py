@@ -26,7 +26,10 @@ from hypothesis import strategies as st
 from PIL import Image
 from typer.testing import CliRunner
 
-from recon.cli import app
+from recon.app.cli import app
+from recon.camera import look_at
+from recon.capture.images import read_image
+from recon.capture.scene import Scene, import_npz, import_transforms, load_scene
 from recon.config import (
     BOUNDS,
     TEXTURE_BAKE_BYTES_PER_TEXEL,
@@ -36,10 +39,7 @@ from recon.config import (
     machine_memory_bytes,
 )
 from recon.errors import ConfigError, InputError
-from recon.images import read_image
-from recon.pipeline import MANIFEST_VERSION
-from recon.camera import look_at
-from recon.scene import Scene, import_npz, import_transforms, load_scene
+from recon.runner.pipeline import MANIFEST_VERSION
 
 REPO = Path(__file__).resolve().parents[1]
 SAMPLE = REPO / "fixtures" / "sample"
@@ -538,17 +538,17 @@ def test_video_frames_over_the_pixel_limit_are_refused_from_the_header(tmp_path:
     """A tiny clip against a limit lowered below its frames: refused with the header's size, as 16000² would be."""
     import cv2
 
-    import recon.video
+    import recon.capture.video
 
     clip = tmp_path / "clip.mp4"
     writer = cv2.VideoWriter(str(clip), cv2.VideoWriter_fourcc(*"mp4v"), 10, (96, 64))
     for i in range(3):
         writer.write(np.full((64, 96, 3), 40 * i, np.uint8))
     writer.release()
-    assert recon.video.probe(clip).width == 96
-    monkeypatch.setattr(recon.video, "MAX_PIXELS", 96 * 64 - 1)
+    assert recon.capture.video.probe(clip).width == 96
+    monkeypatch.setattr(recon.capture.video, "MAX_PIXELS", 96 * 64 - 1)
     with pytest.raises(InputError, match=r"clip.mp4 is 96×64 px"):
-        recon.video.probe(clip)
+        recon.capture.video.probe(clip)
 
 
 def test_symlink_loop_as_the_photos_folder(tmp_path: Path) -> None:

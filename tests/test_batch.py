@@ -21,11 +21,11 @@ from pathlib import Path
 
 import pytest
 
-from tests import faults
-from recon.batch import Resources, capture_name, expand_inputs, run_batch, task_resources
+from recon.app.batch import Resources, capture_name, expand_inputs, run_batch, task_resources
+from recon.app.progress import Reporter
 from recon.config import load_config
 from recon.errors import InputError
-from recon.progress import Reporter
+from tests import faults
 
 TINY = faults.TINY
 SETTINGS = [f"--set={s}" for s in TINY]
@@ -87,7 +87,7 @@ def test_torch_threads_follow_omp_num_threads(monkeypatch: pytest.MonkeyPatch) -
 def test_without_ray_batch_says_how_to_install_it(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
     from typer.testing import CliRunner
 
-    from recon.cli import app
+    from recon.app.cli import app
 
     monkeypatch.setitem(sys.modules, "ray", None)  # `import ray` now raises ImportError
     res = CliRunner().invoke(app, ["batch", str(tmp_path), "--out", str(tmp_path / "out")])
@@ -101,7 +101,7 @@ def test_without_ray_batch_says_how_to_install_it(monkeypatch: pytest.MonkeyPatc
 @pytest.fixture(scope="module")
 def ray_address() -> str:
     pytest.importorskip("ray")
-    from recon.batch import start_ray
+    from recon.app.batch import start_ray
 
     ray = start_ray(None)
     yield ray.get_runtime_context().gcs_address
@@ -205,7 +205,7 @@ def test_batch_matches_recon_run_and_reports_the_broken_capture(
 ) -> None:
     from typer.testing import CliRunner
 
-    from recon.cli import app
+    from recon.app.cli import app
 
     out = tmp_path / "out"
     inputs = [str(captures[n]) for n in ("blocks", "broken", "concave")]
@@ -289,7 +289,7 @@ def test_killed_driver_then_rerun_finishes_without_redoing_finished_stages(
 ) -> None:
     out = tmp_path / "out"
     inputs = [str(captures["blocks"]), str(captures["concave"])]
-    args = [sys.executable, "-m", "recon.cli", "batch", *inputs, "--out", str(out), "--address", ray_address, *SETTINGS]
+    args = [sys.executable, "-m", "recon.app.cli", "batch", *inputs, "--out", str(out), "--address", ray_address, *SETTINGS]
     driver = subprocess.Popen(args, env=faults.env(), cwd=faults.REPO, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
         faults.wait_for(lambda: any(_pid_in_train(out / n) for n in ("blocks", "concave")), timeout=240, what="training")

@@ -10,7 +10,7 @@ import pytest
 from PIL import Image
 from typer.testing import CliRunner
 
-from recon.cli import app
+from recon.app.cli import app
 
 runner = CliRunner()
 
@@ -92,7 +92,7 @@ def test_failed_stage_keeps_earlier_complete_stages(tmp_path: Path, shared_data:
 
 def test_real_process_exit_code_and_no_traceback(tmp_path: Path) -> None:
     proc = subprocess.run(
-        [sys.executable, "-m", "recon.cli", "run", str(tmp_path / "missing"), "--out", str(tmp_path / "s")],
+        [sys.executable, "-m", "recon.app.cli", "run", str(tmp_path / "missing"), "--out", str(tmp_path / "s")],
         capture_output=True,
         text=True,
         timeout=120,

@@ -4,8 +4,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from recon.geometry.coherence import (depth_points, largest_piece, mesh_zbuffers, object_pixels, point_agreement,
-                                      projected_coverage)
+from recon.geometry.coherence import (
+    depth_points,
+    largest_piece,
+    mesh_zbuffers,
+    object_pixels,
+    point_agreement,
+    projected_coverage,
+)
 
 
 def _square(cx: float, cy: float, half: float, z: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
@@ -97,8 +103,8 @@ def test_object_pixels_from_rendered_depth_match_the_mesh_of_the_object():
 
 
 def test_mesh_stage_coherence_uses_masks_or_the_region_above_the_ground():
-    from recon.mesh_views import coherence
-    from recon.views import View
+    from recon.evaluation.views import View
+    from recon.meshing.photos import coherence
 
     c2w, intr, hw = _camera_above(2.0)
     h, w = hw
@@ -136,8 +142,8 @@ def test_mesh_stage_coherence_uses_masks_or_the_region_above_the_ground():
 def test_transparent_pixels_are_not_object_when_the_region_is_the_scene_box():
     """A transparent ray's rendered depth is its exit from the scene box (the models put the remainder there), which
     lies on the region's boundary when the region is the box: only the field's opacity tells it from a surface."""
-    from recon.mesh_views import coherence
-    from recon.views import View
+    from recon.evaluation.views import View
+    from recon.meshing.photos import coherence
 
     c2w, intr, hw = _camera_above(2.0)
     h, w = hw

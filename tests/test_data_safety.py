@@ -17,7 +17,7 @@ import pytest
 from PIL import Image
 from typer.testing import CliRunner
 
-from recon.cli import app
+from recon.app.cli import app
 from tests import faults
 
 runner = CliRunner()
@@ -118,7 +118,7 @@ def test_crash_log_goes_to_the_scene_or_user_cache_never_through_a_link(
     capture: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """Case 4: the crash log was /tmp/recon-error.log, written through a symlink planted there."""
-    import recon.cli as cli
+    import recon.app.cli as cli
 
     def boom() -> None:
         raise RuntimeError("a bug")
@@ -211,7 +211,7 @@ def _colmap_model(folder: Path, camera_params: tuple[float, ...] = (50.0, 32.0, 
 
 def test_colmap_binaries_are_size_checked_before_pycolmap_reads_them(tmp_path: Path) -> None:
     """A 4-byte points3D.bin made pycolmap's memory grow without bound (> 8 GB in 27 s)."""
-    from recon.colmap import check_colmap_binaries
+    from recon.capture.colmap import check_colmap_binaries
 
     project = _colmap_model(tmp_path / "project")
     model = project / "sparse" / "0"
@@ -272,8 +272,8 @@ def test_bad_training_options_fail_before_any_stage_runs(capture: Path, tmp_path
 
 
 def test_uint16_npz_images_keep_their_values(tmp_path: Path) -> None:
-    from recon.images import read_image
-    from recon.scene import import_npz
+    from recon.capture.images import read_image
+    from recon.capture.scene import import_npz
 
     images = np.zeros((2, 40, 40, 3), np.uint16)
     images[..., 0] = 65535
@@ -336,7 +336,7 @@ def test_transforms_file_fingerprint_covers_its_images(capture: Path) -> None:
 def test_pycolmap_logs_land_in_the_given_folder(tmp_path: Path) -> None:
     import pycolmap
 
-    from recon.colmap import pycolmap_logging_to
+    from recon.capture.colmap import pycolmap_logging_to
 
     pycolmap_logging_to(tmp_path / "logs")
     pycolmap.logging.error("recon test line")
@@ -354,8 +354,8 @@ def test_same_photo_name_with_two_extensions_is_a_clear_error(tmp_path: Path) ->
 
 
 def test_eval_limit_picks_the_views_training_picks(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    import recon.novel_views as nv
-    from recon.scene import Frame, Scene, spread_evenly
+    import recon.app.novel_views as nv
+    from recon.capture.scene import Frame, Scene, spread_evenly
 
     frames = [Frame(f"v{i}.png", np.eye(4), 10, 10, 5, 5, 10, 10, split="test") for i in range(10)]
     picked: list[str] = []
@@ -375,10 +375,10 @@ def test_eval_limit_picks_the_views_training_picks(tmp_path: Path, monkeypatch: 
 
 
 def test_mesh_stage_uses_train_device(tmp_path: Path) -> None:
+    from recon.app.progress import Reporter
     from recon.config import RunConfig
     from recon.errors import ReconError
-    from recon.pipeline import StageContext
-    from recon.progress import Reporter
+    from recon.runner.pipeline import StageContext
     from recon.stages import mesh
 
     config = RunConfig()
@@ -394,26 +394,26 @@ def test_library_modules_import_no_runner_and_config_no_torch() -> None:
     (through FastConfig) and pycolmap (through SfmOptions), so reading a scene paid for both."""
     import ast
 
-    code = "import sys, recon.scene, recon.config; print(sorted(m for m in ('torch', 'pycolmap', 'recon.pipeline') if m in sys.modules))"
+    code = "import sys, recon.capture.scene, recon.config; print(sorted(m for m in ('torch', 'pycolmap', 'recon.runner.pipeline') if m in sys.modules))"
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=faults.REPO,
                           env=faults.env(), timeout=120)
     assert proc.returncode == 0, proc.stderr
     assert proc.stdout.strip() == "[]"
-    library = ["scene.py", "field.py", "views.py", "atomic.py", "geometry/export.py", "geometry/preview.py", "geometry/extract.py"]
+    library = ["capture/scene.py", "field.py", "evaluation/views.py", "atomic.py", "geometry/export.py", "geometry/preview.py", "geometry/extract.py"]
     for name in library:
         tree = ast.parse((faults.REPO / "recon" / name).read_text())
         imported = {n.module for n in ast.walk(tree) if isinstance(n, ast.ImportFrom) and n.module}
         imported |= {a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names}
-        assert not {m for m in imported if m.startswith(("recon.pipeline", "recon.cli", "recon.stages"))}, name
+        assert not {m for m in imported if m.startswith(("recon.runner.pipeline", "recon.app.cli", "recon.stages"))}, name
 
 
 def test_bench_reruns_poses_and_normalize_only_when_a_preset_changes_them(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """bench ran every preset `--from train`: a preset that changes normalize kept the shared normalize output."""
     import recon.config
     import recon.stages
-    from recon.bench import run_bench
-    from recon.pipeline import Pipeline, Stage
-    from recon.progress import Reporter
+    from recon.app.bench import run_bench
+    from recon.app.progress import Reporter
+    from recon.runner.pipeline import Pipeline, Stage
 
     ran: list[tuple[str, str]] = []
     metrics = {"model": "fast", "steps": 1, "train_time_s": 1.0, "rays_per_s": 1.0, "evals": [],
@@ -515,7 +515,7 @@ def test_rerender_keeps_the_users_files_and_never_overwrites_them(trained: Path,
 
 
 def test_photos_folder_named_masks_is_not_its_own_masks_folder(tmp_path: Path) -> None:
-    from recon.scene import find_masks
+    from recon.capture.scene import find_masks
 
     photos = tmp_path / "masks"
     photos.mkdir()

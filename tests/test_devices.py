@@ -196,14 +196,6 @@ def test_kernels_auto_stays_on_torch_until_measured_and_a_cpu_never_uses_triton(
     assert {g.kernels for g in model.modules() if isinstance(g, (DenseGrid, MultiDenseGrid))} == {"triton"}
 
 
-def test_the_kernels_choice_is_said_on_a_gpu_and_when_triton_is_asked_for_on_a_cpu() -> None:
-    assert "kernels: torch (train.fast.kernels=auto" in load_config("fast", ["train.device=cuda"]).train.adjusted
-    asked = load_config("fast", ["train.device=cpu", "train.fast.kernels=triton"]).train.adjusted
-    assert asked == "kernels: torch on the cpu (train.fast.kernels=triton: the Triton kernels run on CUDA only)"
-    assert load_config("fast", ["train.device=cpu"]).train.adjusted == ""
-    assert "kernels" not in load_config("classic", ["train.device=cuda"]).train.adjusted
-
-
 # ----------------------------------------------------------------------------- GPU sizing of presets
 @pytest.mark.parametrize("preset", ["fast", "balanced", "quality", "surface"])
 def test_a_large_gpu_gets_more_rays_finer_grids_and_a_higher_step_cap(preset: str) -> None:

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 
-from recon.bench import provenance_lines, provenance
+from recon.app.bench import provenance, provenance_lines
 
 REPO = Path(__file__).resolve().parents[1]
 README = REPO / "README.md"

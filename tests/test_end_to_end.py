@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from recon.cli import app
+from recon.app.cli import app
+from recon.capture.scene import load_scene
 from recon.geometry.compare import fit_sim3
-from recon.scene import load_scene
 
 SAMPLE = Path(__file__).resolve().parents[1] / "fixtures" / "sample"
 runner = CliRunner()

@@ -14,10 +14,10 @@ import pytest
 from scipy.spatial.transform import Rotation
 from typer.testing import CliRunner
 
-from recon.cli import app
-from recon.exports import scene_in_frame
-from recon.images import read_image, undistort
-from recon.scene import Frame, detect_source, import_colmap, import_transforms, load_scene
+from recon.app.cli import app
+from recon.app.exports import scene_in_frame
+from recon.capture.images import read_image, undistort
+from recon.capture.scene import Frame, detect_source, import_colmap, import_transforms, load_scene
 from tests.assets_scene import tiny_scene
 
 runner = CliRunner()

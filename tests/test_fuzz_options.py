@@ -20,8 +20,8 @@ from hypothesis import strategies as st
 from PIL import Image
 from typer.testing import CliRunner
 
+from recon.app.cli import app
 from recon.camera import look_at
-from recon.cli import app
 from recon.config import RunConfig
 
 runner = CliRunner()

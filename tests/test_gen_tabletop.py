@@ -146,8 +146,8 @@ def test_photos_are_auto_exposed_white_balanced_and_carry_camera_exif(capture: P
 def test_bench_dataset_is_the_photos_alone_with_the_truth_beside(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """`recon bench --data tabletop_realistic` gets a photos folder with no masks anywhere recon looks for them, and
     compare_to_gt finds the true poses next to the true mesh."""
-    from recon.bench import resolve_dataset
-    from recon.scene import find_masks
+    from recon.app.bench import resolve_dataset
+    from recon.capture.scene import find_masks
 
     monkeypatch.setattr(tt, "BENCH_CAPTURE", {"views": 3, "size": "64x48", "seed": 0, "supersample": 1, "mesh_res": 48})
     monkeypatch.setitem(sys.modules, "_recon_fixture_gen_tabletop", tt)  # the module bench loads, with the tiny size

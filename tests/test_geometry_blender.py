@@ -16,7 +16,6 @@ import sys
 import numpy as np
 import pytest
 import trimesh
-
 from PIL import Image
 
 from recon.geometry.export import export_mesh, export_textured_mesh, srgb_to_linear

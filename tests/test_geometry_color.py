@@ -2,12 +2,11 @@
 from __future__ import annotations
 
 import numpy as np
-
-from recon.camera import look_at as camera_look_at
 import pytest
 import torch
 import trimesh
 
+from recon.camera import look_at as camera_look_at
 from recon.camera import project
 from recon.geometry.color import colors_from_field, colors_from_photos, sample_bilinear
 

@@ -12,15 +12,15 @@ import pytest
 import torch
 import trimesh
 
+from recon.app.progress import Reporter
 from recon.camera import look_at, project
 from recon.config import MeshConfig
+from recon.evaluation.views import View, render_view
 from recon.geometry.export import Z_UP_TO_Y_UP, export_textured_mesh
 from recon.geometry.raster import interpolate, rasterize, render_mesh
 from recon.geometry.texture import XATLAS_AREA_EPSILON, make_textured_mesh, pad_texture, texel_samples, unwrap
-from recon.progress import Reporter
-from recon.field_mesh import extract_mesh
-from recon.mesh_views import bake_colors, compare_in_views, mesh_depths, texture_mesh
-from recon.views import View, render_view
+from recon.meshing.extraction import extract_mesh
+from recon.meshing.photos import bake_colors, compare_in_views, mesh_depths, texture_mesh
 from tests.analytic_sphere import AABB, BACKGROUND, CENTRE, SoftSphere, run_mesh_stage, write_scene_dir
 
 

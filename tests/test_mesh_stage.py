@@ -13,24 +13,27 @@ import torch
 import trimesh
 from torch import Tensor
 
+from recon.app.progress import Reporter
+from recon.camera import look_at, pixel_footprint
+from recon.capture.normalization import similarity, transform_c2w
+from recon.capture.scene import Frame, Scene, spread_evenly
 from recon.config import MeshConfig
-from recon.geometry.compare import chamfer_fscore
-from recon.geometry.export import Z_UP_TO_Y_UP
+from recon.evaluation.mesh_eval import compare_to_gt, format_comparison
+from recon.evaluation.views import View, render_view
 from recon.geometry.clean import clean_mesh
+from recon.geometry.compare import chamfer_fscore
+from recon.geometry.export import Z_UP_TO_Y_UP, export_transform
 from recon.geometry.extract import choose_resolution, density_grid, grid_spacing, marching_cubes
 from recon.geometry.preview import render_preview
 from recon.geometry.raster import mesh_depth
-from recon.mesh_eval import compare_to_gt, format_comparison
-from recon.normalization import similarity, transform_c2w
-from recon.progress import Reporter
-from recon.scene import Frame, Scene, spread_evenly
-from recon import field_mesh, mesh_plan, mesh_views
-from recon.geometry.export import export_transform
+from recon.meshing import extraction as field_mesh
+from recon.meshing import photos as mesh_views
+from recon.plans import mesh as mesh_plan
 from recon.stages import mesh as mesh_stage
-from recon.camera import look_at, pixel_footprint
-from recon.views import View, render_view
-from tests.analytic_sphere import (AABB, BACKGROUND, CENTRE, R0, SoftSphere, ring_views, run_mesh_stage as _run_stage,
-                                   sphere_color, write_scene_dir as _scene_dir)
+from tests.analytic_sphere import AABB, BACKGROUND, CENTRE, R0, SoftSphere, ring_views, sphere_color
+from tests.analytic_sphere import run_mesh_stage as _run_stage
+from tests.analytic_sphere import write_scene_dir as _scene_dir
+
 
 # ---------------------------------------------------------------------------------------- resolution
 def test_pixel_footprint_and_training_focal_closed_form() -> None:

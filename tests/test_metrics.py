@@ -8,7 +8,7 @@ import pytest
 import torch
 from skimage.metrics import structural_similarity
 
-from recon.metrics import mse_to_psnr, psnr, ssim
+from recon.evaluation.metrics import mse_to_psnr, psnr, ssim
 
 
 def test_psnr_closed_form() -> None:

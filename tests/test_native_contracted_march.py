@@ -90,7 +90,7 @@ def test_native_contracted_render_equals_the_torch_render_with_fewer_density_eva
     o, d, tn, tf = _rays(48)
     with torch.inference_mode():
         fast = model.render_rays(o, d, tn, tf, training=False, background=torch.ones(3))
-    from recon.profiling import reference_marching
+    from recon.app.profiling import reference_marching
 
     with torch.inference_mode(), reference_marching():
         ref = model.render_rays(o, d, tn, tf, training=False, background=torch.ones(3))

@@ -78,7 +78,7 @@ def test_native_render_equals_the_torch_render() -> None:
     o, d, tn, tf = _rays(model, 48)
     with torch.inference_mode():
         fast = model.render_rays(o, d, tn, tf, training=False, background=torch.ones(3))
-    from recon.profiling import reference_marching
+    from recon.app.profiling import reference_marching
 
     with torch.inference_mode(), reference_marching():
         ref = model.render_rays(o, d, tn, tf, training=False, background=torch.ones(3))

@@ -1,9 +1,10 @@
 """Scene contraction (L-inf, mip-NeRF 360 form): identity inside, continuous, invertible, monotone."""
 from __future__ import annotations
 
-import torch
 import pytest
-from hypothesis import given, settings, strategies as st
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from recon.nerf.contraction import contract, uncontract
 

@@ -3,8 +3,8 @@ from __future__ import annotations
 
 import math
 
-import torch
 import pytest
+import torch
 
 from recon.nerf.fast import FastConfig, FastModel, distortion_loss_packed, sh_encode
 from recon.nerf.grid import DenseGrid

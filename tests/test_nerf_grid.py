@@ -1,9 +1,9 @@
 """Grid encodings: fast paths against plain references, closed forms, and in-range indices at the box faces."""
 from __future__ import annotations
 
+import pytest
 import torch
 import torch.nn.functional as F
-import pytest
 
 from recon.nerf.grid import (
     DenseGrid,

@@ -3,9 +3,10 @@ from __future__ import annotations
 
 import math
 
-import torch
 import pytest
-from hypothesis import given, settings, strategies as st
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from recon.nerf.grid import trilinear_reference
 from recon.nerf.occupancy import OccupancyGrid, density_threshold, march

@@ -9,16 +9,16 @@ import pytest
 import torch
 import trimesh
 
+from recon.app.progress import Reporter
+from recon.camera import look_at
 from recon.config import MeshConfig
 from recon.field import build_model
+from recon.meshing.extraction import extract_zero_set
+from recon.nerf.fitting import RayBatcher
 from recon.nerf.rays import camera_rays
 from recon.nerf.render import accumulate_packed, render_weights_packed
 from recon.nerf.surface import SurfaceConfig, SurfaceModel, eikonal_loss, neus_tau, sdf_fd_terms
-from recon.nerf.fitting import RayBatcher
 from recon.nerf.trainer import train
-from recon.progress import Reporter
-from recon.camera import look_at
-from recon.field_mesh import extract_zero_set
 
 BOX = ((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0))
 
@@ -227,10 +227,10 @@ def test_normal_agreement_is_one_for_the_same_surface_and_lower_for_a_different_
 
 
 def test_model_choice_names_the_surface_model_and_refuses_it_for_unbounded_scenes() -> None:
+    from recon.capture.scene import Scene
     from recon.config import TrainConfig
     from recon.errors import ReconError
-    from recon.scene import Scene
-    from recon.model_choice import model_spec
+    from recon.plans.training import model_spec
 
     box = np.array(BOX)
     kind, kwargs, _, reasons = model_spec(TrainConfig(model="surface"), Scene(frames=[], aabb=box, capture="object"), [])

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 from PIL import Image
 
+from recon.capture.images import MIN_SIDE, oriented_size, read_image
 from recon.errors import InputError
-from recon.images import MIN_SIDE, oriented_size, read_image
 
 
 def test_8bit_rgb_png_is_exact(tmp_path: Path) -> None:

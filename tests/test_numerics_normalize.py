@@ -12,14 +12,12 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
+from recon.camera import look_at
+from recon.capture.normalization import normalize, similarity, transform_c2w
+from recon.capture.scene import Frame, Scene, load_scene
 from recon.config import NormalizeConfig
 from recon.errors import InputError
-from recon.normalization import normalize, similarity, transform_c2w
-from recon.camera import look_at
-from recon.scene import Frame, Scene, load_scene
 from recon.geometry.export import export_transform
-
-
 
 
 def frame(i: int, c2w: np.ndarray) -> Frame:
@@ -262,7 +260,7 @@ def test_up_cannot_be_told_gives_a_clear_error_and_the_override_works() -> None:
 def test_rotation_between_nearly_opposite_vectors_is_exact(tilt: float) -> None:
     # regression: within ~4.5e-5 rad of opposite, the small tilt was dropped (180° flip only), which tilted the
     # normalized scene of a world rotated by ~180° about a horizontal axis
-    from recon.normalization import rotation_between
+    from recon.capture.normalization import rotation_between
 
     a = np.array([0.0, np.sin(tilt), -np.cos(tilt)])
     b = np.array([0.0, 0.0, 1.0])

@@ -9,8 +9,8 @@ import pytest
 import torch
 from torch import Tensor
 
-from recon.nerf.render import RadianceModel
 from recon.nerf.fitting import RayBatcher
+from recon.nerf.render import RadianceModel
 from recon.nerf.trainer import TrainingDiverged, train
 from tests.ball_scene import AABB, ball_views, tiny_model
 

@@ -1,4 +1,4 @@
-"""recon.ownership and the batch's capture folders: who may write where, and which files recon may replace."""
+"""recon.runner.ownership and the batch's capture folders: who may write where, and which files recon may replace."""
 from __future__ import annotations
 
 import json
@@ -6,9 +6,9 @@ from pathlib import Path
 
 import pytest
 
-from recon.batch import Capture, place_captures
+from recon.app.batch import Capture, place_captures
 from recon.errors import InputError
-from recon.ownership import claim_folder, marker_name
+from recon.runner.ownership import claim_folder, marker_name
 from recon.stages import scene_parts
 
 
@@ -76,7 +76,7 @@ def test_batch_captures_keep_their_folders_and_a_taken_name_gets_the_next(tmp_pa
 
 
 def test_a_batch_folder_from_before_records_is_taken_only_when_it_holds_nothing_else(tmp_path: Path) -> None:
-    from recon.batch import adopt_unrecorded_batch
+    from recon.app.batch import adopt_unrecorded_batch
 
     out = tmp_path / "batch"
     (out / "shoe").mkdir(parents=True)

@@ -10,10 +10,10 @@ from pathlib import Path
 
 import pytest
 
+from recon.app.progress import Reporter
 from recon.config import RunConfig
 from recon.errors import ReconError
-from recon.pipeline import Manifest, Pipeline, Stage, StageContext, scene_lock
-from recon.progress import Reporter
+from recon.runner.pipeline import Manifest, Pipeline, Stage, StageContext, scene_lock
 
 CALLS: list[str] = []
 

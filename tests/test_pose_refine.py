@@ -9,16 +9,16 @@ import pytest
 import torch
 from torch import Tensor, nn
 
+from recon.camera import look_at
 from recon.config import TrainConfig
-from recon.model_choice import choose_pose_refine
-from recon.nerf.pose_refine import PoseRefinement, so3_exp
-from recon.nerf.render import RadianceModel, render_dense
-from recon.nerf.sampling import stratified
 from recon.nerf.evaluate import align_pose, render_image
 from recon.nerf.fitting import RayBatcher
 from recon.nerf.pieces import PoseRefine
+from recon.nerf.pose_refine import PoseRefinement, so3_exp
+from recon.nerf.render import RadianceModel, render_dense
+from recon.nerf.sampling import stratified
 from recon.nerf.trainer import train
-from recon.camera import look_at
+from recon.plans.training import choose_pose_refine
 
 AABB = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
 

@@ -6,7 +6,7 @@ import types
 
 import torch
 
-from recon.profiling import _labelled, attribute
+from recon.app.profiling import _labelled, attribute
 
 
 def test_labels_attribute_time_and_count_rows_then_restore() -> None:

@@ -14,10 +14,10 @@ import cv2
 import numpy as np
 import pytest
 
+from recon.capture.images import save_image
+from recon.capture.scene import Frame, import_colmap, import_transforms, load_scene
 from recon.errors import InputError
-from recon.images import save_image
-from recon.scene import Frame, import_colmap, import_transforms, load_scene
-from recon.views import load_view
+from recon.evaluation.views import load_view
 
 W, H, FL = 320, 240, 200.0
 K = np.array([[FL, 0, W / 2], [0, FL, H / 2], [0, 0, 1]])

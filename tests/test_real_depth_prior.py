@@ -109,9 +109,9 @@ def test_field_trained_with_the_depth_prior_puts_its_surface_at_the_points() -> 
 def _scene_with_points(n_views: int) -> tuple:
     """A Scene of n_views cameras around the origin with 40 sparse points near it that every camera observes,
     and its views (tiny grey images)."""
+    from recon.capture.scene import Frame, Scene
     from recon.config import TrainConfig
-    from recon.scene import Frame, Scene
-    from recon.views import View
+    from recon.evaluation.views import View
 
     frames, views = [], []
     for i in range(n_views):
@@ -138,7 +138,7 @@ def test_depth_prior_is_switched_on_by_few_views_and_says_why(n_views: int, mode
                                                              capture: str, on: bool) -> None:
     from dataclasses import replace
 
-    from recon.model_choice import depth_prior_for
+    from recon.plans.training import depth_prior_for
 
     cfg, scene, frames, views = _scene_with_points(n_views)
     cfg, scene = replace(cfg, depth_prior=mode), replace(scene, capture=capture)
@@ -163,9 +163,9 @@ def test_depth_prior_is_switched_on_by_few_views_and_says_why(n_views: int, mode
 
 
 def test_point_errors_survive_save_load_and_normalize(tmp_path) -> None:
+    from recon.capture.normalization import normalize
+    from recon.capture.scene import load_scene
     from recon.config import NormalizeConfig
-    from recon.normalization import normalize
-    from recon.scene import load_scene
 
     _, scene, _, _ = _scene_with_points(12)
     scene.points[3] = np.nan  # dropped by normalize: the errors must stay aligned with the points

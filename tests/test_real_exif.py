@@ -13,7 +13,7 @@ import numpy as np
 import pycolmap
 from PIL import Image
 
-from recon.sfm import SfmOptions, _image_info, camera_groups, choose_camera, extract
+from recon.capture.sfm import SfmOptions, _image_info, camera_groups, choose_camera, extract
 from recon.stages.poses import prepare_photo
 
 EXIF_IFD = 0x8769
@@ -92,7 +92,7 @@ class FakeModel:
 
 
 def test_dropped_photos_trigger_the_retry_and_the_better_model_wins() -> None:
-    from recon.sfm import ATTEMPTS, register_best
+    from recon.capture.sfm import ATTEMPTS, register_best
 
     tried = []
 
@@ -114,8 +114,8 @@ def test_dropped_photos_trigger_the_retry_and_the_better_model_wins() -> None:
 
 
 def test_few_photos_all_train_and_say_how_psnr_is_measured() -> None:
-    from recon.normalization import FEW_PHOTOS, assign_split
-    from recon.scene import Frame
+    from recon.capture.normalization import FEW_PHOTOS, assign_split
+    from recon.capture.scene import Frame
 
     def frames(n: int) -> list:
         return [Frame(f"/p/{i:02d}.jpg", np.eye(4), 100.0, 100.0, 50.0, 50.0, 100, 100) for i in range(n)]

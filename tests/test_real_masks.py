@@ -12,13 +12,13 @@ import pytest
 import trimesh
 from PIL import Image
 
+from recon.camera import look_at
+from recon.capture.images import save_image
+from recon.capture.scene import find_masks, import_transforms
 from recon.config import MeshConfig
 from recon.errors import InputError
-from recon.images import save_image
-from recon.mesh_views import inside_masks
-from recon.camera import look_at
-from recon.scene import find_masks, import_transforms
-from recon.views import View, load_view
+from recon.evaluation.views import View, load_view
+from recon.meshing.photos import inside_masks
 
 REPO = Path(__file__).resolve().parents[1]
 

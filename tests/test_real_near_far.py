@@ -1,4 +1,4 @@
-"""near/far are distances along unit-length rays (recon.scene.RAY_DISTANCE), not depths along the optical axis.
+"""near/far are distances along unit-length rays (recon.capture.scene.RAY_DISTANCE), not depths along the optical axis.
 
 A corner ray travels depth / cos(angle) to reach the depth the centre ray reaches at `depth`; with axial
 depths used as ray distances, off-axis rays stopped short of the far surface (issue 11, defect 2).
@@ -9,10 +9,10 @@ import numpy as np
 import torch
 
 from recon.camera import look_at
+from recon.capture.normalization import _box_distance_range, _distance_range, normalize
+from recon.capture.scene import Frame, Scene
 from recon.config import NormalizeConfig
 from recon.nerf.rays import camera_rays, ray_aabb
-from recon.normalization import _box_distance_range, _distance_range, normalize
-from recon.scene import Frame, Scene
 
 W, H, FL = 320, 240, 160.0  # a wide lens: the corner ray is 51° off-axis
 

@@ -6,15 +6,14 @@ import numpy as np
 import pytest
 import trimesh
 
-from recon.config import MeshConfig, parse_region
+from recon.camera import look_at
+from recon.capture.normalization import normalize
+from recon.capture.region import fit_ground_plane, object_region
+from recon.capture.scene import Frame, Scene
+from recon.config import MeshConfig, NormalizeConfig, parse_region
 from recon.errors import ConfigError
 from recon.geometry.clean import clean_mesh, cut_below_plane
-from recon.normalization import normalize
-from recon.config import NormalizeConfig
-from recon.region import fit_ground_plane, object_region
-from recon.camera import look_at
-from recon.scene import Frame, Scene
-from recon.mesh_plan import mesh_region
+from recon.plans.mesh import mesh_region
 
 W, H, FL = 320, 240, 300.0
 TABLE_Z = -0.3

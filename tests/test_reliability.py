@@ -1,8 +1,8 @@
 """Crash safety with real processes and signals: SIGKILL anywhere, Ctrl-C, corrupt files, full disk, two writers.
 
-Every run is `python -m recon.cli run` in a subprocess on a tiny synthetic capture (8 views, 64 px,
+Every run is `python -m recon.app.cli run` in a subprocess on a tiny synthetic capture (8 views, 64 px,
 imported poses, 40 training steps). Kill points are the runner's named fault points (RECON_FAULT, see
-`recon.pipeline.fault_point`) — including mid-rename and mid-manifest-write — plus checkpoint writes
+`recon.runner.pipeline.fault_point`) — including mid-rename and mid-manifest-write — plus checkpoint writes
 and seeded random delays inside each stage. After each kill the next `recon run` must finish the job:
 stages recorded as done are never redone, training resumes from its checkpoint, and the final artifacts
 equal an uninterrupted run's (bitwise; training resume is exact).

@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 from typer.testing import CliRunner
 
-from recon.cli import app
+from recon.app.cli import app
 from tests import faults
 
 runner = CliRunner()

@@ -5,10 +5,10 @@ from __future__ import annotations
 import pytest
 import torch
 
+from recon.app.profiling import reference_marching
 from recon.nerf.fast import FastConfig, FastModel
 from recon.nerf.occupancy import march, march_front_to_back
 from recon.nerf.rays import camera_rays
-from recon.profiling import reference_marching
 
 
 def _blob_model(unbounded: bool = False, cone_angle: float = 0.0) -> FastModel:

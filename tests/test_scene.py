@@ -7,13 +7,19 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from recon.camera import look_at
+from recon.capture.normalization import normalize, rotation_between, similarity, transform_c2w
+from recon.capture.scene import (
+    Frame,
+    Scene,
+    detect_source,
+    import_nerf_synthetic,
+    import_npz,
+    import_transforms,
+    load_scene,
+)
 from recon.config import NormalizeConfig
 from recon.errors import InputError
-from recon.normalization import normalize, rotation_between, similarity, transform_c2w
-from recon.camera import look_at
-from recon.scene import Frame, Scene, detect_source, import_nerf_synthetic, import_npz, import_transforms, load_scene
-
-
 
 
 def ring_scene(n: int = 24, radius: float = 4.0, seed: int = 0, with_points: bool = True) -> Scene:

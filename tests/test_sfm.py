@@ -22,9 +22,8 @@ import pytest
 from PIL import Image
 
 from recon.camera import opencv_w2c_to_opengl_c2w
-from recon.colmap import camera_params_to_intrinsics
-from recon.errors import ReconError
-from recon.sfm import (
+from recon.capture.colmap import camera_params_to_intrinsics
+from recon.capture.sfm import (
     ATTEMPTS,
     SMALL_CAPTURE,
     THOROUGH,
@@ -35,6 +34,7 @@ from recon.sfm import (
     pose_outliers,
     run_sfm,
 )
+from recon.errors import ReconError
 
 
 # ----------------------------------------------------------------------------------------------
@@ -301,8 +301,8 @@ def sample_poses(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, str, s
     outlier: (scene folder, what reached descriptor 2, the CLI's output, the photo left out)."""
     from typer.testing import CliRunner
 
-    import recon.sfm
-    from recon.cli import app
+    import recon.capture.sfm
+    from recon.app.cli import app
 
     folder = tmp_path_factory.mktemp("sfm_sample")
     photos = folder / "photos"
@@ -317,7 +317,7 @@ def sample_poses(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, str, s
 
     stderr_file = folder / "stderr.txt"
     with pytest.MonkeyPatch.context() as patch, captured_descriptor_2(stderr_file):
-        patch.setattr(recon.sfm, "pose_outliers", one_outlier)
+        patch.setattr(recon.capture.sfm, "pose_outliers", one_outlier)
         result = CliRunner().invoke(app, ["run", str(photos), "--out", str(folder / "scene"), "--until", "poses", "-q"])
     assert result.exit_code == 0, result.output
     assert len(flagged) == 1
@@ -335,7 +335,7 @@ def test_colmap_output_goes_to_the_scene_log_not_the_terminal(sample_poses: tupl
 def test_a_photo_whose_pose_disagrees_is_left_out_and_named(sample_poses: tuple[Path, str, str, str]) -> None:
     import pycolmap
 
-    from recon.scene import load_scene
+    from recon.capture.scene import load_scene
 
     scene_dir, _, output, flagged = sample_poses
     summary = json.loads((scene_dir / "manifest.json").read_text())["stages"]["poses"]["summary"]
@@ -354,7 +354,7 @@ def test_a_camera_moved_far_off_a_real_model_is_deregistered(sample_poses: tuple
     they no longer fit) is deregistered with its observations, and the reason names the distance."""
     import pycolmap
 
-    from recon.sfm import camera_support, leave_out_outliers
+    from recon.capture.sfm import camera_support, leave_out_outliers
 
     scene_dir, *_ = sample_poses
     model = pycolmap.Reconstruction(str(scene_dir / "01_poses" / "colmap" / "sparse"))

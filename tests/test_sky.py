@@ -9,15 +9,15 @@ import pytest
 import torch
 
 from recon.camera import look_at
+from recon.capture.scene import Frame, Scene
+from recon.capture.sky import SKY_POINT_MARGIN, sky_mask
 from recon.config import TrainConfig
-from recon.model_choice import sky_for
+from recon.evaluation.views import View
 from recon.nerf.fast import FastConfig, FastModel, SkyColor
 from recon.nerf.fitting import RayBatcher
 from recon.nerf.pieces import EmptyRays
 from recon.nerf.trainer import train
-from recon.scene import Frame, Scene
-from recon.sky import SKY_POINT_MARGIN, sky_mask
-from recon.views import View
+from recon.plans.training import sky_for
 
 RNG = np.random.default_rng(0)
 H, W, ROOF = 60, 80, 30

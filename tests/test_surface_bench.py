@@ -5,8 +5,8 @@ from pathlib import Path
 
 import numpy as np
 
-from recon.bench import write_results
-from recon.images import read_image
+from recon.app.bench import write_results
+from recon.capture.images import read_image
 
 
 def _row(name: str, model: str, t: float, f1: float, f05: float, nc: float) -> dict:

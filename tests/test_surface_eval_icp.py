@@ -6,8 +6,8 @@ import math
 import numpy as np
 import trimesh
 
+from recon.evaluation.mesh_eval import format_comparison
 from recon.geometry.compare import icp_sim3, sample_surface
-from recon.mesh_eval import format_comparison
 
 
 def _rot_z(deg: float) -> np.ndarray:

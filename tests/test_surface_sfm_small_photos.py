@@ -2,7 +2,7 @@
 surface model's accuracy on the shipped sample); large ones keep native resolution."""
 from __future__ import annotations
 
-from recon.sfm import ATTEMPTS, SMALL_PHOTO_SIDE, attempts_for
+from recon.capture.sfm import ATTEMPTS, SMALL_PHOTO_SIDE, attempts_for
 
 
 def test_small_photos_extract_at_twice_the_resolution_from_the_first_attempt() -> None:

@@ -9,6 +9,7 @@ import pytest
 import torch
 from torch import Tensor, nn
 
+from recon.camera import look_at
 from recon.nerf.appearance import PhotoAppearance
 from recon.nerf.fitting import RayBatcher
 from recon.nerf.pieces import Appearance, DepthPriorLoss, EmptyRays, PoseRefine, StepInfo, TrainPiece
@@ -16,7 +17,6 @@ from recon.nerf.pose_refine import PoseRefinement
 from recon.nerf.render import RadianceModel, render_dense
 from recon.nerf.sampling import stratified
 from recon.nerf.trainer import TrainStep, train
-from recon.camera import look_at
 
 AABB = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
 AT = StepInfo(step=0, steps=10, fraction=None, autocast=None)

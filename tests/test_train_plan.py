@@ -1,4 +1,4 @@
-"""One plan for training (recon.model_choice.plan_training) and one way to build it (build_training): the train
+"""One plan for training (recon.plans.training.plan_training) and one way to build it (build_training): the train
 stage, `recon bench --profile` and the benchmarks time and run the same step, pieces included."""
 from __future__ import annotations
 
@@ -8,14 +8,14 @@ from dataclasses import replace
 import numpy as np
 import torch
 
-from recon.config import TrainConfig
-from recon.model_choice import build_training, plan_training
-from recon.nerf.pieces import DepthPriorLoss
-from recon.profiling import profile_training
-from recon.progress import Reporter
+from recon.app.profiling import profile_training
+from recon.app.progress import Reporter
 from recon.camera import look_at
-from recon.scene import Frame, Scene
-from recon.views import View
+from recon.capture.scene import Frame, Scene
+from recon.config import TrainConfig
+from recon.evaluation.views import View
+from recon.nerf.pieces import DepthPriorLoss
+from recon.plans.training import build_training, plan_training
 
 W, H, FL = 16, 12, 14.0
 CPU = torch.device("cpu")
@@ -69,3 +69,13 @@ def test_an_object_capture_plan_keeps_its_box() -> None:
     setup = build_training(plan, CPU)
     torch.testing.assert_close(setup.aabb, torch.tensor(scene.aabb, dtype=torch.float32))
     assert setup.batcher.near_far is None
+
+
+def test_the_plan_says_which_kernels_run_on_a_gpu_and_nothing_on_a_default_cpu() -> None:
+    cfg, scene, views = _unbounded_without_masks(8)
+    assert not any(r.startswith("kernels:") for r in plan_training(cfg, scene, views, CPU).reasons)
+    triton_on_cpu = plan_training(replace(cfg, fast=replace(cfg.fast, kernels="triton")), scene, views, CPU)
+    assert [r for r in triton_on_cpu.reasons if r.startswith("kernels:")] == [
+        "kernels: torch on the cpu (train.fast.kernels=triton: the Triton kernels run on CUDA only)"]
+    on_gpu = plan_training(cfg, scene, views, torch.device("cuda"))  # planning touches no CUDA memory
+    assert any(r.startswith("kernels: ") for r in on_gpu.reasons)

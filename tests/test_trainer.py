@@ -9,7 +9,9 @@ import torch
 from recon.nerf.evaluate import render_image
 from recon.nerf.fitting import RayBatcher, lr_at
 from recon.nerf.trainer import TrainingDiverged, train
-from tests.ball_scene import AABB, COLOR, ball_views as _scene, tiny_model as _tiny_model
+from tests.ball_scene import AABB, COLOR
+from tests.ball_scene import ball_views as _scene
+from tests.ball_scene import tiny_model as _tiny_model
 
 
 def test_ground_truth_renders_the_ball() -> None:

@@ -16,12 +16,12 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from recon import video
-from recon.cli import app
+from recon.app.cli import app
+from recon.capture import video
+from recon.capture.scene import detect_source, load_scene
+from recon.capture.sfm import loop_pairs
 from recon.config import load_config
 from recon.errors import InputError
-from recon.scene import detect_source, load_scene
-from recon.sfm import loop_pairs
 from recon.stages import default_pipeline
 
 REPO = Path(__file__).resolve().parents[1]
@@ -227,7 +227,7 @@ ACCEPT = dict(size=(400, 300), fps=15.0, seconds=20.0, pause_s=2.0, supersample=
 def test_video_to_mesh_matches_the_true_surface(pytestconfig: pytest.Config, tmp_path: Path) -> None:
     """`recon run clip.mp4 --preset fast` (1000 training steps: independent of the machine's load) gives a mesh
     with F-score@1% >= 0.85 against the true surface, cameras aligned by the frames' true poses."""
-    from recon.mesh_eval import compare_to_gt
+    from recon.evaluation.mesh_eval import compare_to_gt
 
     folder = Path(pytestconfig.cache.mkdir(f"recon-video-accept-v{gen_video.FORMAT_VERSION}"))
     if not (folder / "video_info.json").is_file():

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from recon import video
+from recon.capture import video
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "fixtures"))
 import gen_video  # noqa: E402

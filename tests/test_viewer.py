@@ -15,8 +15,8 @@ from tests.assets_scene import tiny_scene
 
 viser = pytest.importorskip("viser")
 
-from recon.scene import load_scene  # noqa: E402
-from recon.viewer import SceneViewer, render_progressive, viewer_c2w, wxyz  # noqa: E402
+from recon.app.viewer import SceneViewer, render_progressive, viewer_c2w, wxyz  # noqa: E402
+from recon.capture.scene import load_scene  # noqa: E402
 
 
 def free_port() -> int:
@@ -119,9 +119,9 @@ def test_browser_cleanup_stops_every_helper_before_removing_the_profile(tmp_path
 
 def test_training_view_shows_progress_and_the_current_render(viewer: SceneViewer) -> None:
     """The `recon run --view` observer: the step/loss/PSNR text, the cameras, and photo | render of a held-out view."""
+    from recon.app.viewer import TrainingView
+    from recon.evaluation.views import load_views
     from recon.nerf.trainer import TrainProgress
-    from recon.views import load_views
-    from recon.viewer import TrainingView
 
     live = TrainingView(viewer.scene_dir, port=free_port(), interval_s=0.0, side=32)
     try:

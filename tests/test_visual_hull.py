@@ -10,12 +10,12 @@ import pytest
 import torch
 
 from recon.camera import look_at
+from recon.capture.scene import Scene
 from recon.errors import ReconError
+from recon.evaluation.views import View
 from recon.geometry.visual_hull import carve, visual_hull_sdf
-from recon.model_choice import surface_start
 from recon.nerf.surface import SurfaceConfig, SurfaceModel
-from recon.scene import Scene
-from recon.views import View
+from recon.plans.training import surface_start
 
 BOX = np.array([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
 RADIUS = 0.5

@@ -13,7 +13,7 @@ field's rendered depth against them.
   piece :class:`recon.nerf.pieces.DepthPriorLoss`.
 
 Frames and units: OpenGL ``c2w`` (camera looks down -Z), intrinsics in pixels of the training images,
-distances along unit-length rays in scene units (`recon.scene.RAY_DISTANCE`).
+distances along unit-length rays in scene units (`recon.capture.scene.RAY_DISTANCE`).
 """
 from __future__ import annotations
 

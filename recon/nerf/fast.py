@@ -41,10 +41,10 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from recon.nerf.model_config import FastConfig, GridKind
 from recon.nerf.contraction import contract
 from recon.nerf.grid import DenseGrid, HashGrid, MultiDenseGrid, VMGrid, resample_dense
 from recon.nerf.kernels import accumulate_packed_triton, composite_packed_triton, use_triton
+from recon.nerf.model_config import FastConfig, GridKind
 from recon.nerf.native import DenseDensity, march_dense_native, march_render_native
 from recon.nerf.occupancy import OccupancyGrid, density_threshold, march, march_front_to_back
 from recon.nerf.rays import ray_aabb

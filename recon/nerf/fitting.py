@@ -39,7 +39,7 @@ class RayBatcher:
         random_background: RGBA only: composite each ray onto a fresh random color (given to the
             model too), which stops the model from painting the background into the density.
         empty: per image an (H, W) bool mask (tensor or array) of pixels known to see nothing up to
-            ``far`` (the sky, `recon.sky`); each batch then carries ``empty (B,)`` (float 0/1) for the
+            ``far`` (the sky, `recon.capture.sky`); each batch then carries ``empty (B,)`` (float 0/1) for the
             piece :class:`recon.nerf.pieces.EmptyRays`.
         drop_missed: with ``aabb``, leave out pixels whose rays miss the box (they can only show
             background); the count is in ``n_dropped``.

@@ -11,7 +11,8 @@ from collections.abc import Callable
 import torch
 from torch import Tensor, nn
 
-from ..metrics import mse_to_psnr
+from recon.evaluation.metrics import mse_to_psnr
+
 from .encoding import PositionalEncoding
 
 

@@ -78,7 +78,7 @@ class FastConfig:
     """Weight of the binary entropy of ray opacity (pushes opacity to 0 or 1; 0 = off)."""
     background: Literal["white", "black", "learned", "random", "sky"] = "white"
     """Background used when render_rays gets none; "learned" always uses the model's own color, "sky" its own
-    colour per ray direction (`recon.nerf.fast.SkyColor`; the train stage's sky, `recon.sky`)."""
+    colour per ray direction (`recon.nerf.fast.SkyColor`; the train stage's sky, `recon.capture.sky`)."""
     grid_lr_scale: float = 10.0
     """Grids train at lr * grid_lr_scale (the MLP at lr)."""
     shrink_step: int = 64
@@ -113,7 +113,7 @@ class SurfaceConfig:
     """The surface training starts from. visual_hull: what no training photo's silhouette (masks or a keyed
     backdrop) calls background, set with ``SurfaceModel.set_initial_sdf`` and saved with the weights; hull: the
     convex hull of the scene's sparse points (the train stage fills ``init_planes``); sphere: a sphere at the box
-    centre. auto: the train stage picks the first of these the capture allows (`recon.model_choice.surface_start`);
+    centre. auto: the train stage picks the first of these the capture allows (`recon.plans.training.surface_start`);
     the model itself reads auto as hull (its ``init_planes``, else a sphere)."""
     init_planes: tuple[tuple[float, float, float, float], ...] = ()
     """Half-spaces n·x <= d (unit n; rows (nx, ny, nz, d)) whose intersection is the initial surface instead of the

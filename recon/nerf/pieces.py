@@ -78,7 +78,7 @@ def _copy(module: torch.nn.Module) -> dict[str, Tensor]:
 
 
 class EmptyRays(TrainPiece):
-    """Rays known to see nothing (a batcher's ``empty`` masks: the sky, `recon.sky`) cost ``weight`` × the batch's
+    """Rays known to see nothing (a batcher's ``empty`` masks: the sky, `recon.capture.sky`) cost ``weight`` × the batch's
     mean of their opacity: L1, because a blob coloured like the sky costs the colour loss almost nothing."""
 
     def __init__(self, weight: float) -> None:

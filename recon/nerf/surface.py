@@ -55,9 +55,9 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from recon.nerf.model_config import SurfaceConfig
 from recon.nerf.fast import _make_grid, color_from_features, make_color_mlp, ray_background
 from recon.nerf.grid import MultiDenseGrid, grid_sample_coords
+from recon.nerf.model_config import SurfaceConfig
 from recon.nerf.occupancy import OccupancyGrid, march
 from recon.nerf.rays import ray_aabb
 from recon.nerf.render import RadianceModel, accumulate_packed, checked_aabb, render_weights_packed

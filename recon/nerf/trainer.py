@@ -25,7 +25,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from ..metrics import mse_to_psnr
+from recon.evaluation.metrics import mse_to_psnr
+
 from .fitting import RayBatcher, lr_at
 from .pieces import StepInfo, TrainPiece, mixed_precision
 from .render import RadianceModel

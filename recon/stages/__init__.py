@@ -1,7 +1,8 @@
-"""The pipeline's stages, in order. Each module is thin: it wires config and artifacts to the libraries."""
+"""The pipeline's stages, in order. Each one plans (`recon.plans`), prints its reasons, calls the libraries and writes
+its own folder."""
 from __future__ import annotations
 
-from recon.pipeline import RECON_NAMES, Pipeline, Stage
+from recon.runner.pipeline import RECON_NAMES, Pipeline, Stage
 from recon.stages import mesh, normalize, poses, train
 
 STAGES: list[Stage] = [poses.STAGE, normalize.STAGE, train.STAGE, mesh.STAGE]
@@ -13,5 +14,5 @@ def default_pipeline() -> Pipeline:
 
 def scene_parts() -> frozenset[str]:
     """What recon makes at the top of a scene folder (stage folders, manifest, lock, logs, scratch): no other
-    output of recon may be written inside them (`recon.ownership`)."""
+    output of recon may be written inside them (`recon.runner.ownership`)."""
     return RECON_NAMES | {s.folder for s in STAGES}

@@ -1,6 +1,6 @@
 """mesh stage: the trained field → a cleaned, colored triangle mesh in glTF/OBJ/PLY, with a report.
 
-`plan_mesh` (recon.mesh_plan) makes every decision first: the box and the ground to cut, the grid, the iso
+`plan_mesh` (recon.plans.mesh) makes every decision first: the box and the ground to cut, the grid, the iso
 opacity, the hollow fill, the photos to check and color against. `run` prints its reasons, then does the work
 with the library, loading and writing in between:
 1. the photos as the field saw them and the field's depth in each (`field_views`, `render_depths`);
@@ -24,16 +24,18 @@ import torch
 import trimesh
 
 from recon.atomic import write_json_atomic
+from recon.capture.region import support_kind
+from recon.capture.scene import Scene, load_scene
 from recon.config import MeshConfig
 from recon.errors import ReconError
+from recon.evaluation.views import View, load_views
 from recon.field import load_field
-from recon.field_mesh import extract_mesh, extract_zero_set, field_voxel
 from recon.geometry.clean import clean_mesh
 from recon.geometry.color import colors_from_field
 from recon.geometry.export import export_mesh, export_record, export_textured_mesh, export_transform
 from recon.geometry.preview import preview_textured, write_mesh_previews
-from recon.mesh_plan import MeshPlan, plan_mesh
-from recon.mesh_views import (
+from recon.meshing.extraction import extract_mesh, extract_zero_set, field_voxel
+from recon.meshing.photos import (
     bake_colors,
     coherence,
     compare_in_views,
@@ -45,10 +47,8 @@ from recon.mesh_views import (
     see_with_views,
     texture_mesh,
 )
-from recon.pipeline import Stage, StageContext
-from recon.region import support_kind
-from recon.scene import Scene, load_scene
-from recon.views import View, load_views
+from recon.plans.mesh import MeshPlan, plan_mesh
+from recon.runner.pipeline import Stage, StageContext
 
 REPORT_FILE = "mesh_report.json"
 MESH_STEM = "mesh"

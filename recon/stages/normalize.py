@@ -6,12 +6,12 @@ from pathlib import Path
 
 import numpy as np
 
-from recon.auto_masks import object_on_background, segment_object
-from recon.images import read_image, save_image
-from recon.normalization import normalize
-from recon.pipeline import Stage, StageContext
+from recon.capture.auto_masks import object_on_background, segment_object
+from recon.capture.images import read_image, save_image
+from recon.capture.normalization import normalize
+from recon.capture.scene import Scene, load_scene
 from recon.plots import mask_overview
-from recon.scene import Scene, load_scene
+from recon.runner.pipeline import Stage, StageContext
 
 MASK_FOLDER = "masks"
 OVERVIEW = 12

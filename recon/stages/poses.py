@@ -12,12 +12,9 @@ from pathlib import Path
 import numpy as np
 
 from recon.atomic import sha256_file
-from recon.config import PosesConfig
-from recon.errors import InputError
-from recon.images import camera_exif, list_photos, oriented_size, read_image, save_image
-from recon.colmap import find_colmap_model
-from recon.pipeline import Stage, StageContext
-from recon.scene import (
+from recon.capture.colmap import find_colmap_model
+from recon.capture.images import camera_exif, list_photos, oriented_size, read_image, save_image
+from recon.capture.scene import (
     Scene,
     check_cameras,
     detect_source,
@@ -28,6 +25,9 @@ from recon.scene import (
     import_npz,
     import_transforms,
 )
+from recon.config import PosesConfig
+from recon.errors import InputError
+from recon.runner.pipeline import Stage, StageContext
 
 MIN_PHOTOS = 3
 LOG_DIR = "logs"
@@ -63,7 +63,7 @@ def input_files(source: Path, kind: str) -> list[Path]:
     if kind == "npz":
         return [source]
     if kind == "video":
-        from recon.video import list_videos
+        from recon.capture.video import list_videos
 
         return [source] if source.is_file() else list_videos(source)
     if kind == "colmap":
@@ -132,7 +132,7 @@ def prepare_photo(path: Path, image_dir: Path, max_side: int) -> tuple[str, tupl
 
 def _video(ctx: StageContext) -> tuple[Scene, dict]:
     """Decode the clip(s) into the kept frames (01_poses/frames/, with time stamps), then SfM on them in order."""
-    from recon.video import SelectOptions, frame_name, list_videos, probe, select_frames, share_frames
+    from recon.capture.video import SelectOptions, frame_name, list_videos, probe, select_frames, share_frames
 
     cfg: PosesConfig = ctx.config
     videos = [ctx.source] if ctx.source.is_file() else list_videos(ctx.source)
@@ -177,7 +177,7 @@ def _video(ctx: StageContext) -> tuple[Scene, dict]:
 
 def _structure_from_motion(ctx: StageContext, photos: list[Path] | None = None) -> tuple[Scene, dict]:
     """SfM on the photos of ctx.source, or on `photos` given in order (video frames: matched sequentially)."""
-    from recon.sfm import SfmOptions, run_sfm
+    from recon.capture.sfm import SfmOptions, run_sfm
 
     cfg: PosesConfig = ctx.config
     ordered = photos is not None

@@ -17,13 +17,13 @@ import numpy as np
 import torch
 
 from recon.atomic import checksum_matches, checksum_path, fault_point, write_checksummed, write_json_atomic
+from recon.capture.scene import Scene, load_scene, spread_evenly
 from recon.config import TrainConfig
 from recon.errors import ReconError
+from recon.evaluation.views import View, evaluate, load_views, write_previews
 from recon.field import FIELD_FILE, save_field
-from recon.model_choice import TrainPlan, TrainSetup, build_training, plan_training
-from recon.pipeline import Stage, StageContext
-from recon.scene import Scene, load_scene, spread_evenly
-from recon.views import View, evaluate, load_views, write_previews
+from recon.plans.training import TrainPlan, TrainSetup, build_training, plan_training
+from recon.runner.pipeline import Stage, StageContext
 
 CHECKPOINT = "checkpoint.pt"
 
@@ -82,7 +82,7 @@ def _object_distance(views: list[View], scene: Scene) -> list[float]:
 
 
 def run(ctx: StageContext) -> dict:
-    """Plan (recon.model_choice) and say why, build, train from the checkpoint if any, evaluate, write the outputs."""
+    """Plan (recon.plans.training) and say why, build, train from the checkpoint if any, evaluate, write the outputs."""
     from recon.nerf.device import select_device
     from recon.plots import training_curves
 

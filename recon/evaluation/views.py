@@ -14,8 +14,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from recon.images import read_image, read_mask, undistort
-from recon.scene import Frame, Scene
+from recon.capture.images import read_image, read_mask, undistort
+from recon.capture.scene import Frame, Scene
 
 
 @dataclass
@@ -141,7 +141,7 @@ def evaluate(model: torch.nn.Module, views: list[View], aabb: torch.Tensor | Non
     """
     from dataclasses import replace
 
-    from recon.metrics import psnr, ssim
+    from recon.evaluation.metrics import psnr, ssim
     from recon.nerf.evaluate import align_pose, held_out_right_half, left_right_split
 
     per_view, renders = [], []

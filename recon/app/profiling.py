@@ -22,10 +22,10 @@ import numpy as np
 import torch
 
 if TYPE_CHECKING:
+    from recon.capture.scene import Scene
     from recon.config import TrainConfig
-    from recon.model_choice import TrainPlan, TrainSetup
-    from recon.scene import Scene
-    from recon.views import View
+    from recon.evaluation.views import View
+    from recon.plans.training import TrainPlan, TrainSetup
 
 BACKWARD_KINDS = (
     ("GridSampler", "density grid bwd"),
@@ -186,10 +186,10 @@ def _table(parts: dict[str, float], per: int, wall: float, unit: str) -> list[st
 
 def profile_training(cfg: TrainConfig, scene: Scene, views: list[View], report: Any, *, warmup: int = 200,
                      steps: int = 8, title: str = "") -> tuple[dict[str, Any], TrainPlan, TrainSetup]:
-    """Plan and build training on the CPU as the train stage does (`recon.model_choice`), train ``warmup`` steps, then
+    """Plan and build training on the CPU as the train stage does (`recon.plans.training`), train ``warmup`` steps, then
     profile ``steps`` more: (the numbers, the plan, what was built). ``views``: the training photos."""
-    from recon.model_choice import build_training, plan_training
     from recon.nerf.trainer import train
+    from recon.plans.training import build_training, plan_training
 
     device = torch.device("cpu")
     plan = plan_training(cfg, scene, views, device)
@@ -229,11 +229,11 @@ def profile_preset(data: str, preset: str, out_dir: Path, overrides: list[str], 
                    warmup: int = 200, steps: int = 8, render: bool = True) -> dict[str, Any]:
     """Profile ``steps`` training steps of ``preset`` after ``warmup`` steps, and one test render; return the numbers
     and write nothing (the caller writes profile.md)."""
-    from recon.bench import prepare_scene
+    from recon.app.bench import prepare_scene
+    from recon.capture.scene import load_scene
     from recon.config import load_config
+    from recon.evaluation.views import load_views
     from recon.nerf.evaluate import render_image
-    from recon.scene import load_scene
-    from recon.views import load_views
 
     config = load_config(preset, overrides)
     scene_dir = prepare_scene(data, out_dir, load_config(None, overrides), report)

@@ -26,11 +26,11 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
+from recon.app.progress import Reporter
 from recon.atomic import fault_point, is_temp_name, read_json, sha256_file, write_json_atomic
 from recon.config import RunConfig, config_slice
 from recon.errors import InputError, ReconError
-from recon.ownership import forbidden_reason, overlap_reason, resolve_path, scene_part_reason
-from recon.progress import Reporter
+from recon.runner.ownership import forbidden_reason, overlap_reason, resolve_path, scene_part_reason
 
 MANIFEST = "manifest.json"
 LOCK = ".lock"

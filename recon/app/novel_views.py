@@ -11,14 +11,14 @@ from typing import Any, Literal
 import numpy as np
 import torch
 
-from recon.camera import look_at
-from recon.errors import ReconError
-from recon.field import load_field
-from recon.images import save_image
 from recon.atomic import write_json_atomic
-from recon.ownership import claim_folder
-from recon.scene import Scene, load_scene, spread_evenly
-from recon.views import View, evaluate, load_views, render_view, write_previews
+from recon.camera import look_at
+from recon.capture.images import save_image
+from recon.capture.scene import Scene, load_scene, spread_evenly
+from recon.errors import ReconError
+from recon.evaluation.views import View, evaluate, load_views, render_view, write_previews
+from recon.field import load_field
+from recon.runner.ownership import claim_folder
 
 PathKind = Literal["orbit", "spiral", "train", "test"]
 
@@ -86,7 +86,7 @@ def render_path(scene_dir: Path, kind: PathKind, out_dir: Path, frames: int = 60
                 depth: bool = False, fps: int = 24, device: str = "auto", report: Any = None) -> list[Path]:
     """Render a camera path to PNG frames + GIF/MP4. train/test frames are named after their photos.
 
-    `out_dir` follows recon's ownership rule (`recon.ownership`): a new or empty folder or an earlier render,
+    `out_dir` follows recon's ownership rule (`recon.runner.ownership`): a new or empty folder or an earlier render,
     whose files recon replaces while a file of the user's in the way is refused before anything renders.
     """
     from recon.plots import depth_to_color

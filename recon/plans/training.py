@@ -11,16 +11,11 @@ import numpy as np
 import torch
 
 from recon.camera import pixel_footprint, project
+from recon.capture.scene import Frame, Scene
+from recon.capture.sky import SKY_MIN_FRACTION, sky_mask
 from recon.config import TrainConfig
 from recon.errors import ReconError
-from recon.nerf.appearance import PhotoAppearance, decide, exposure_spread
-from recon.nerf.depth_prior import DepthPrior, sparse_depth_targets
-from recon.nerf.fitting import RayBatcher
-from recon.nerf.pose_refine import PoseRefinement
-from recon.nerf.surface import hull_planes
-from recon.scene import Frame, Scene
-from recon.sky import SKY_MIN_FRACTION, sky_mask
-from recon.views import (
+from recon.evaluation.views import (
     BACKDROP_TOLERANCE,
     PLAIN_BACKDROP_FRACTION,
     View,
@@ -29,6 +24,11 @@ from recon.views import (
     plain_backdrop,
     view_tensors,
 )
+from recon.nerf.appearance import PhotoAppearance, decide, exposure_spread
+from recon.nerf.depth_prior import DepthPrior, sparse_depth_targets
+from recon.nerf.fitting import RayBatcher
+from recon.nerf.pose_refine import PoseRefinement
+from recon.nerf.surface import hull_planes
 
 BACKDROP_KEY_WHY = (
     "a surface colored like the backdrop is as bright as the backdrop itself, so the photos' colours cannot tell it "
@@ -39,7 +39,7 @@ BACKDROP_KEY_WHY = (
 def key_backdrop_for(cfg: TrainConfig, kind: str, scene: Scene, views: list[View]) -> tuple[list[View], np.ndarray | None, str]:
     """(the training views, keyed to RGBA when the backdrop key applies; the backdrop colour or None; why).
 
-    auto keys the surface model's photos when their borders are a plain backdrop (`recon.views.plain_backdrop`):
+    auto keys the surface model's photos when their borders are a plain backdrop (`recon.evaluation.views.plain_backdrop`):
     its zero set is closed, and without the key it closed over what only the backdrop shows, such as a hole
     seen through or space under the object that no camera sees against anything else."""
     if cfg.backdrop_key == "off":
@@ -66,7 +66,7 @@ SKY_WHY = (
 
 def sky_for(cfg: TrainConfig, kind: str, scene: Scene, frames: list[Frame],
             views: list[View]) -> tuple[list[np.ndarray] | None, str]:
-    """(per training photo, the (H, W) bool mask of its sky pixels, or None; why) — see `recon.sky`.
+    """(per training photo, the (H, W) bool mask of its sky pixels, or None; why) — see `recon.capture.sky`.
 
     auto: on for the fast model of an unbounded capture without masks when at least `SKY_MIN_FRACTION` of the
     training pixels are sky; the field then shows a sky colour per ray direction behind everything, and the sky
@@ -265,7 +265,7 @@ def depth_prior_for(cfg: TrainConfig, kind: str, scene: Scene, frames: list[Fram
     auto: on with few photos, for the surface model (`SURFACE_DEPTH_WHY`) and for unbounded captures
     (`UNBOUNDED_DEPTH_WHY`); off with masks. Its rays are cut to the scene box of an object capture, else to each
     photo's near/far, as the training rays are."""
-    from recon.normalization import FEW_PHOTOS
+    from recon.capture.normalization import FEW_PHOTOS
 
     if cfg.depth_prior == "off":
         return None, "depth prior: off (train.depth_prior=off)"
@@ -375,7 +375,7 @@ class TrainPlan:
 
 def plan_training(cfg: TrainConfig, scene: Scene, views: list[View], device: torch.device) -> TrainPlan:
     """The train stage's choices for `scene` on `device`; `views`: the training photos (`scene.split("train")`)
-    as `recon.views.load_views` loads them."""
+    as `recon.evaluation.views.load_views` loads them."""
     from recon.config import parse_duration
     from recon.nerf.compiled import compile_wanted
 
@@ -406,6 +406,10 @@ def plan_training(cfg: TrainConfig, scene: Scene, views: list[View], device: tor
         from recon.nerf.native import native_status
 
         reasons.append(f"marcher: {native_status()}")
+    if kind == "fast" and (device.type == "cuda" or cfg.fast.kernels == "triton"):  # on a CPU by default: nothing to say
+        from recon.nerf.kernels import kernels_choice
+
+        reasons.append(kernels_choice(cfg.fast.kernels, device.type)[1])
     depth_prior, depth_why = depth_prior_for(cfg, kind, scene, frames, views, kwargs)
     reasons.append(depth_why)
     return TrainPlan(

@@ -24,7 +24,7 @@ if TYPE_CHECKING:
     import numpy as np
     import torch
 
-    from recon.scene import Frame, Scene
+    from recon.capture.scene import Frame, Scene
 
 STAGE_FOLDERS = {"poses": "01_poses", "normalize": "02_scene", "train": "03_field", "mesh": "04_mesh"}
 
@@ -79,8 +79,8 @@ def run(
     """
     from rich.console import Console
 
+    from recon.app.progress import Reporter
     from recon.config import load_config
-    from recon.progress import Reporter
     from recon.stages import default_pipeline
 
     scene_dir = Path(out)
@@ -188,9 +188,9 @@ class Field:
 
 def load_field(scene: str | Path, device: str = "auto") -> Field:
     """The trained field of a scene folder (made by `recon.run` or `recon run`), ready to render cameras."""
+    from recon.capture.scene import load_scene
     from recon.field import load_field as load_model
     from recon.nerf.device import select_device
-    from recon.scene import load_scene
 
     scene_dir = Path(scene)
     if not (scene_dir / STAGE_FOLDERS["normalize"] / "scene.json").is_file():

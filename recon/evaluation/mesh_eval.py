@@ -17,9 +17,9 @@ import numpy as np
 import trimesh
 
 from recon.atomic import read_json
+from recon.capture.scene import Frame, Scene, load_scene, parse_frames
 from recon.errors import ReconError
 from recon.geometry.compare import chamfer_fscore, fit_sim3_robust, icp_sim3, sample_surface
-from recon.scene import Frame, Scene, load_scene, parse_frames
 
 SCENE_FOLDER = "02_scene"
 MESH_FOLDER = "04_mesh"
@@ -221,8 +221,8 @@ def silhouette_iou(scene_dir: Path, masks_dir: Path) -> dict[str, Any]:
 
     The mesh is rendered into every photo that has a mask in `masks_dir`, in the normalized frame with the scene's
     cameras; the true masks are undistorted like the photos, so both are pinhole images of the same camera."""
+    from recon.capture.images import IMAGE_SUFFIXES
     from recon.geometry.raster import mesh_depth
-    from recon.images import IMAGE_SUFFIXES
 
     scene = load_scene(scene_dir / SCENE_FOLDER)
     meshed = (scene_dir / MESH_FOLDER / "mesh_report.json").is_file()
@@ -252,7 +252,7 @@ def silhouette_iou(scene_dir: Path, masks_dir: Path) -> dict[str, Any]:
 
 def _pinhole_mask(path: Path, frame: Frame, w: int, h: int) -> np.ndarray:
     """A mask (white = object) at w × h with the photo's lens distortion removed, as bool."""
-    from recon.images import read_mask, undistort
+    from recon.capture.images import read_mask, undistort
 
     return undistort(read_mask(path, (w, h)), *frame.intrinsics_at(w, h), frame.distortion, frame.camera_model) >= 0.5
 

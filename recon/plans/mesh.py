@@ -14,14 +14,14 @@ from typing import Any
 
 import numpy as np
 
+from recon.camera import pixel_footprint
+from recon.capture.normalization import box_corners
+from recon.capture.region import support_kind
+from recon.capture.scene import Frame, Scene, spread_evenly
 from recon.config import MeshConfig, parse_region
 from recon.errors import ReconError
-from recon.field_mesh import ISO_OPACITY
 from recon.geometry.extract import choose_resolution, surface_cell
-from recon.normalization import box_corners
-from recon.region import support_kind
-from recon.scene import Frame, Scene, spread_evenly
-from recon.camera import pixel_footprint
+from recon.meshing.extraction import ISO_OPACITY
 
 MASKED_ISO_OPACITY = 0.25
 """ISO_OPACITY with masks: the masked-out pixels trained the space around the object empty, so a lower level cannot

@@ -6,7 +6,7 @@ exactly as `recon run` would, so a re-run batch (or a task Ray retries after its
 capture from its cache. A capture that fails records its error and the others go on; `OUT/batch.md` and
 `OUT/batch.json` sum up this batch's captures, then those only earlier batches into OUT ran.
 
-OUT follows recon's ownership rule (`recon.ownership`): its `.recon-batch.json` records which capture each folder
+OUT follows recon's ownership rule (`recon.runner.ownership`): its `.recon-batch.json` records which capture each folder
 holds, so a capture keeps its folder across batches and another capture of the same name gets name-2 instead of
 replacing it.
 """
@@ -21,12 +21,12 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
+from recon.app.progress import Reporter, format_seconds
+from recon.atomic import read_json, write_bytes_atomic, write_json_atomic
 from recon.config import RunConfig, load_config
 from recon.errors import InputError, ReconError
-from recon.atomic import read_json, write_bytes_atomic, write_json_atomic
-from recon.ownership import OwnedFolder, claim_folder, resolve_path
-from recon.pipeline import MANIFEST, prepare_scene_dir
-from recon.progress import Reporter, format_seconds
+from recon.runner.ownership import OwnedFolder, claim_folder, resolve_path
+from recon.runner.pipeline import MANIFEST, prepare_scene_dir
 
 INSTALL_HINT = 'pip install -c constraints.txt -e ".[ray]"'
 GENERIC_NAMES = {"images", "image", "photos", "imgs", "rgb", "input", "frames"}
@@ -314,7 +314,7 @@ def start_ray(address: str | None) -> Any:
     ray = require_ray()
     if ray.is_initialized():
         return ray
-    code = str(Path(__file__).resolve().parents[1])
+    code = str(Path(__file__).resolve().parents[2])
     env = {"PYTHONPATH": os.pathsep.join(p for p in (code, os.environ.get("PYTHONPATH", "")) if p), "OMP_WAIT_POLICY": "PASSIVE"}
     kwargs: dict[str, Any] = {"runtime_env": {"env_vars": env}, "logging_level": logging.WARNING, "log_to_driver": False}
     if address and not _is_loopback(address):

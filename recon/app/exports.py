@@ -6,7 +6,7 @@ the field and the default mesh live in) or `source` (the SfM or imported poses a
 distortion and no EXIF rotation), so every export describes plain pinhole cameras — what Gaussian-splatting
 trainers and nerfstudio's `splatfacto` expect. (The mesh exporter is `recon.geometry.export`.)
 
-An export folder follows recon's ownership rule (`recon.ownership`): it is new, empty or an earlier export
+An export folder follows recon's ownership rule (`recon.runner.ownership`): it is new, empty or an earlier export
 (its `.recon-export.json` lists the files recon wrote); the export is built in a staging folder inside it and
 moved in file by file, replacing only recon's own files, so whatever the user added there stays.
 """
@@ -23,9 +23,9 @@ import numpy as np
 
 from recon.atomic import write_json_atomic
 from recon.camera import opengl_c2w_to_opencv_w2c
+from recon.capture.scene import Frame, Scene, load_scene
 from recon.errors import ReconError
-from recon.ownership import claim_folder, marker_name
-from recon.scene import Frame, Scene, load_scene
+from recon.runner.ownership import claim_folder, marker_name
 
 ExportFormat = Literal["nerfstudio", "colmap", "points"]
 ExportFrame = Literal["normalized", "source"]
@@ -72,7 +72,7 @@ def scene_in_frame(scene_dir: Path, frame: ExportFrame) -> Scene:
 
 
 def export_scene(scene_dir: Path, fmt: ExportFormat, out: Path, frame: ExportFrame = "normalized", report: Any = None) -> list[Path]:
-    """Write one export of the scene into `out` (new, empty or an earlier export: see `recon.ownership`).
+    """Write one export of the scene into `out` (new, empty or an earlier export: see `recon.runner.ownership`).
 
     Returns the main files written (for the user to open).
     """
@@ -121,7 +121,7 @@ def write_undistorted_images(scene: Scene, folder: Path, names: list[str], repor
     """
     from PIL import Image
 
-    from recon.images import read_image, save_image, undistort
+    from recon.capture.images import read_image, save_image, undistort
 
     out_frames = []
     with report.task("writing undistorted images", total=len(scene.frames)) if report else contextlib.nullcontext() as bar:

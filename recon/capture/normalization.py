@@ -12,10 +12,10 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
+from recon.capture.region import object_region
+from recon.capture.scene import Frame, Scene
 from recon.config import NormalizeConfig
 from recon.errors import InputError
-from recon.region import object_region
-from recon.scene import Frame, Scene
 
 OBJECT_MAX_MEAN_VIEW = 0.9
 """Cameras count as 'around the object' when the mean of their unit view directions is shorter than this."""
@@ -181,7 +181,7 @@ def _box_from_cameras(c2ws: np.ndarray, frames: list[Frame], focus: np.ndarray) 
 
 
 def _distance_range(c2w: np.ndarray, points: np.ndarray, percentile: float) -> tuple[float, float] | None:
-    """near/far (`recon.scene.RAY_DISTANCE`) that the camera's rays travel to the points in front of it (percentiles)."""
+    """near/far (`recon.capture.scene.RAY_DISTANCE`) that the camera's rays travel to the points in front of it (percentiles)."""
     if len(points) < 10:
         return None
     offset = points - c2w[:3, 3]
@@ -198,7 +198,7 @@ def box_corners(box: np.ndarray) -> np.ndarray:
 
 
 def _box_distance_range(c2w: np.ndarray, aabb: np.ndarray) -> tuple[float, float]:
-    """near/far (`recon.scene.RAY_DISTANCE`) bounding every ray's segment inside the box: the distance from the camera
+    """near/far (`recon.capture.scene.RAY_DISTANCE`) bounding every ray's segment inside the box: the distance from the camera
     centre to the box (0 inside it) and to its farthest corner (a box's farthest point is a corner)."""
     origin = c2w[:3, 3]
     corners = box_corners(aabb)

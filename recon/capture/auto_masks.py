@@ -1,6 +1,6 @@
 """Object masks for captures that come without them: the object the cameras look at, cut out of every photo.
 
-No learned weights. The sparse points of the object region (`recon.region`) seen by a photo seed the object; the
+No learned weights. The sparse points of the object region (`recon.capture.region`) seen by a photo seed the object; the
 points on the cut support plane, the points outside the region and every pixel outside the region's projected box
 seed the background; GrabCut (colour models and a graph cut, OpenCV) segments between them. Then the photos vote:
 a pixel stays object only where its ray passes through space that (almost) no photo calls background — the masks'
@@ -16,10 +16,10 @@ import numpy as np
 from scipy.ndimage import binary_erosion
 
 from recon.camera import intrinsic_matrix, pixel_centres, project
+from recon.capture.images import read_image, undistort
+from recon.capture.normalization import box_corners
+from recon.capture.scene import Frame, Scene
 from recon.geometry.visual_hull import carve
-from recon.images import read_image, undistort
-from recon.normalization import box_corners
-from recon.scene import Frame, Scene
 
 SEGMENT_SIDE = 640
 """Photos are segmented at this longest side (pixels); the masks are written back at the photos' own size."""

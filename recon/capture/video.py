@@ -20,8 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
+from recon.capture.images import MAX_PIXELS, list_photos, too_large
 from recon.errors import InputError
-from recon.images import MAX_PIXELS, list_photos, too_large
 
 VIDEO_SUFFIXES = frozenset({".mp4", ".mov", ".m4v"})
 ANALYSIS_SIDE = 640
@@ -172,7 +172,7 @@ def _open(path: Path) -> Iterator[object]:
 
 def probe(path: Path) -> VideoInfo:
     """Size (as displayed), frame rate, frame count and rotation of a clip, decoding one frame to be sure; frames
-    over the photos' pixel limit (recon.images.MAX_PIXELS) are refused from the header, before that decode."""
+    over the photos' pixel limit (recon.capture.images.MAX_PIXELS) are refused from the header, before that decode."""
     import cv2
 
     path = Path(path)

@@ -3,7 +3,7 @@
 A field with a plain background colour cannot show a blue sky that brightens towards the horizon, so it
 paints the sky into its density as blobs just above the roofs (sceaux_castle), and those blobs are mesh.
 The train stage gives such scenes a sky colour per ray direction and trains the pixels found here as empty
-space (`recon.model_choice.sky_for`). The test is conservative: a pixel is sky only when it is
+space (`recon.plans.training.sky_for`). The test is conservative: a pixel is sky only when it is
 
 - smooth (colour gradient below `SKY_MAX_GRADIENT` per pixel after a 1-pixel blur; clouds' edges and every
   textured surface fail),

@@ -28,10 +28,10 @@ import numpy as np
 from PIL import Image
 from scipy.spatial import cKDTree
 
-from recon.colmap import reconstruction_frames
+from recon.capture.colmap import reconstruction_frames
+from recon.capture.images import device_of
+from recon.capture.scene import spread_evenly
 from recon.errors import ReconError
-from recon.images import device_of
-from recon.scene import spread_evenly
 
 if TYPE_CHECKING:  # pycolmap is imported when SfM runs: loading options (recon.config) must not pay for it
     import pycolmap

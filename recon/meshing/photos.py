@@ -4,7 +4,7 @@ The field's rendered depth in each view tells which faces some photo sees (`see_
 which vertices are object (`inside_masks`); the mesh's own z-buffer in each view (`mesh_depths`) decides which
 photo pixels colour a vertex or a texel (`bake_colors`, `texture_mesh`); `compare_in_views` scores the meshes
 against held-out photos and `coherence` against the object's pixels and the SfM points. Views are
-`recon.views.View`s at training size; the array work is `recon.geometry`'s.
+`recon.evaluation.views.View`s at training size; the array work is `recon.geometry`'s.
 """
 from __future__ import annotations
 
@@ -16,14 +16,15 @@ from typing import Any
 import numpy as np
 import torch
 
+from recon.camera import project
+from recon.capture.scene import Frame, Scene, spread_evenly
 from recon.config import MeshConfig
+from recon.evaluation.views import View, load_views, render_view, target_rgb
 from recon.geometry.clean import SeenFn
 from recon.geometry.coherence import largest_piece, mesh_zbuffers, object_pixels, point_agreement, projected_coverage
 from recon.geometry.color import colors_from_field, colors_from_photos, seen_by_views
 from recon.geometry.raster import mesh_depth, render_mesh
 from recon.geometry.texture import TexturedMesh, make_textured_mesh
-from recon.scene import Frame, Scene, spread_evenly
-from recon.views import View, load_views, render_view, target_rgb
 
 BAKE_TOL_FRACTION = 0.01
 """Depth tolerance of photo baking as a fraction of the mesh's bounding-box diagonal (`colors_from_photos`'
@@ -112,12 +113,9 @@ def inside_masks(views: Sequence[View], keep_fraction: float) -> Callable[[np.nd
         framed = np.zeros(len(vertices))
         for v in views:
             h, w = v.hw
-            fx, fy, cx, cy = v.intrinsics
-            local = (np.asarray(vertices, np.float64) - v.c2w[:3, 3]) @ v.c2w[:3, :3]
-            z = -local[:, 2]
+            uv, z = project(np.asarray(vertices, np.float64), v.c2w, v.intrinsics)
             ok = z > 1e-9
-            u = np.floor(cx + fx * local[:, 0] / np.where(ok, z, 1.0)).astype(np.int64)
-            r = np.floor(cy - fy * local[:, 1] / np.where(ok, z, 1.0)).astype(np.int64)
+            u, r = np.floor(uv[:, 0]).astype(np.int64), np.floor(uv[:, 1]).astype(np.int64)
             ok &= (u >= 0) & (u < w) & (r >= 0) & (r < h)
             framed += ok
             inside[ok] += v.image[r[ok], u[ok], 3] >= 128
@@ -269,7 +267,7 @@ def compare_in_views(
     ``light_colors`` (V, 3) for the textured mesh's vertices, also that light mesh with vertex colors instead
     of the texture ("light_vertex_colors": what the texture buys at the same face count).
     Returns the metrics and, per view, a strip photo | vertex colors | texture (H, 3W + 8, 3) in [0, 1]."""
-    from recon.metrics import mse_to_psnr
+    from recon.evaluation.metrics import mse_to_psnr
 
     def db(err: np.ndarray) -> float:
         return round(float(mse_to_psnr(float(np.mean(err)))), 3) if err.size else math.nan

@@ -23,8 +23,8 @@ from recon.errors import ReconError
 if TYPE_CHECKING:
     import viser
 
-    from recon.api import Field
-    from recon.scene import Scene
+    from recon.app.api import Field
+    from recon.capture.scene import Scene
 
 LEVELS = (64, 160)
 """Long sides of the progressive renders before the final one (pixels)."""
@@ -159,7 +159,7 @@ class SceneViewer:
 
     def __init__(self, scene_dir: Path, host: str = "127.0.0.1", port: int = 8080, server: viser.ViserServer | None = None,
                  device: str = "auto", log: Callable[[str], None] = print):
-        from recon.scene import load_scene
+        from recon.capture.scene import load_scene
 
         viser = require_viser()
         self.scene_dir = scene_dir
@@ -211,7 +211,7 @@ class SceneViewer:
         if not (self.scene_dir / "03_field" / "field.pt").is_file():
             self.log("no trained field yet (03_field/field.pt): no live render")
             return None
-        from recon.api import load_field
+        from recon.app.api import load_field
 
         return load_field(self.scene_dir, device=device)
 
@@ -259,7 +259,7 @@ class SceneViewer:
 
 def add_cameras(server: viser.ViserServer, scene: Scene) -> list[Any]:
     """A frustum per photo, with the photo (downscaled) on it; train/val/test cameras coloured apart."""
-    from recon.images import read_image
+    from recon.capture.images import read_image
 
     colors = {"train": (40, 40, 40), "val": (40, 120, 220), "test": (220, 60, 40)}
     extent = float(np.ptp(np.asarray(scene.aabb), axis=0).max()) if scene.aabb is not None else 1.0
@@ -317,7 +317,7 @@ class TrainingView:
             return
         self.last = now
         if not self.cameras_shown:
-            from recon.scene import load_scene
+            from recon.capture.scene import load_scene
 
             scene = load_scene(self.scene_dir / "02_scene")
             add_cameras(self.server, scene)
@@ -332,7 +332,7 @@ class TrainingView:
     def _render(self, data: dict[str, Any]) -> np.ndarray:
         import torch
 
-        from recon.images import resize
+        from recon.capture.images import resize
         from recon.nerf.evaluate import render_image
 
         t0 = time.perf_counter()

@@ -22,12 +22,12 @@ from typing import Any
 
 from rich.markup import escape
 
+from recon.app.progress import Reporter
 from recon.atomic import write_json_atomic
 from recon.config import load_config
 from recon.errors import ReconError
-from recon.progress import Reporter
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 SHARED = REPO.parent / "shared" / "data"
 DATASETS = {
     "sample": (REPO / "fixtures" / "sample" / "images", REPO / "fixtures" / "sample" / "gt_mesh.ply"),
@@ -181,7 +181,7 @@ def run_bench(
             "evals": metrics["evals"],
         }
         if until == "mesh" and gt is not None:
-            from recon.mesh_eval import compare_to_gt
+            from recon.evaluation.mesh_eval import compare_to_gt
 
             acc = compare_to_gt(scene, gt)
             row["fscore_1pct"] = acc.get("fscore@0.01")
@@ -190,7 +190,7 @@ def run_bench(
             row["normal_consistency"] = acc.get("normal_consistency")
             row["pose_residual_rms_rel"] = acc.get("alignment", {}).get("residual_rms_rel")
             if (gt.parent / "masks").is_dir():  # true object masks beside the truth: score the cut-outs too
-                from recon.mesh_eval import silhouette_iou
+                from recon.evaluation.mesh_eval import silhouette_iou
 
                 cut = silhouette_iou(scene, gt.parent / "masks")
                 row["capture"] = json.loads((scene / "02_scene" / "scene.json").read_text()).get("capture")

@@ -19,10 +19,10 @@ from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
 
+from recon.app.progress import Reporter, format_seconds, format_summary
 from recon.config import RunConfig, available_presets, check_batch_against_pixels, load_config, preset_description
 from recon.errors import ConfigError, ReconError
-from recon.pipeline import install_sigterm_as_interrupt, is_disk_full
-from recon.progress import Reporter, format_seconds, format_summary
+from recon.runner.pipeline import install_sigterm_as_interrupt, is_disk_full
 
 app = typer.Typer(
     add_completion=False,
@@ -116,7 +116,7 @@ def _check_device(config: RunConfig) -> None:
 
 def _recorded_preset(scene_dir: Path) -> str | None:
     """The preset the scene was last run with (so `recon mesh SCENE` keeps the run's settings)."""
-    from recon.pipeline import Manifest
+    from recon.runner.pipeline import Manifest
 
     return Manifest(scene_dir).data.get("preset")  # a damaged manifest records none (the runner warns)
 
@@ -155,8 +155,8 @@ def _run(
         config = _config(preset, overrides)
         _check_device(config)
         if source is not None:
-            from recon.video import count_photos
-            from recon.ownership import resolve_path
+            from recon.capture.video import count_photos
+            from recon.runner.ownership import resolve_path
 
             source = resolve_path(source, "The photos folder")  # a link loop is the user's to fix, not a crash
             check_batch_against_pixels(config, count_photos(source, config.poses.video_frames))
@@ -197,7 +197,7 @@ def run(
     if not view:
         _run(out, photos, preset, overrides, quiet, from_stage, until_stage, force)
         return
-    from recon.viewer import SceneViewer, TrainingView
+    from recon.app.viewer import SceneViewer, TrainingView
 
     with _guard(out):
         live = TrainingView(out, port=port)
@@ -238,7 +238,7 @@ def status(
             raise ReconError(f"{scene} is not a recon scene folder (no manifest.json). Create one with `recon run PHOTOS --out {scene}`.")
         # without options, "stale" means an upstream stage changed; with them, also "differs from these options"
         config = _config(preset, set_) if (preset or set_) else None
-        from recon.pipeline import Manifest
+        from recon.runner.pipeline import Manifest
 
         warning = Manifest(scene).warning
         if warning:
@@ -266,7 +266,7 @@ def render(
     device: Annotated[str, typer.Option("--device", help="auto | cpu | cuda")] = "auto",
 ) -> None:
     """Render a novel-view camera path (or the train/test cameras) to PNG frames and a GIF/MP4."""
-    from recon.novel_views import render_path
+    from recon.app.novel_views import render_path
 
     with _guard(scene):
         if path not in ("orbit", "spiral", "train", "test"):
@@ -289,13 +289,13 @@ def eval_(
     gt_masks: Annotated[Optional[Path], typer.Option("--gt-masks", help="Folder of true object masks (white = object, named like the photos): IoU of the mesh's silhouette and of the automatic masks.")] = None,
 ) -> None:
     """Render every held-out view: per-view and mean PSNR/SSIM, and image grids (and mesh accuracy with --gt-mesh)."""
-    from recon.novel_views import evaluate_scene
+    from recon.app.novel_views import evaluate_scene
 
     with _guard(scene):
         target = out or scene / "eval"
         if gt_masks is not None:
             from recon.atomic import write_json_atomic
-            from recon.mesh_eval import silhouette_iou
+            from recon.evaluation.mesh_eval import silhouette_iou
 
             result = silhouette_iou(scene, gt_masks)
             target.mkdir(parents=True, exist_ok=True)
@@ -306,8 +306,8 @@ def eval_(
             out_console.print(f"against {gt_masks} over {len(result['views'])} photos: " + "; ".join(parts)
                               + f" — {target / 'silhouette_iou.json'}", markup=False)
         if gt_mesh is not None:
-            from recon.mesh_eval import compare_to_gt, format_comparison
             from recon.atomic import write_json_atomic
+            from recon.evaluation.mesh_eval import compare_to_gt, format_comparison
 
             if not gt_mesh.is_file():
                 raise ReconError(f"The ground-truth mesh {gt_mesh} does not exist.")
@@ -338,7 +338,7 @@ def fit_image_cmd(
 
     import torch
 
-    from recon.images import read_image, save_image
+    from recon.capture.images import read_image, save_image
     from recon.nerf.image_fit import fit_image, render_field
 
     with _guard():
@@ -369,13 +369,13 @@ def bench(
     profile_steps: Annotated[int, typer.Option("--profile-steps", help="Training steps profiled.")] = 8,
 ) -> None:
     """Measure the speed/accuracy trade: each preset's time, held-out PSNR and mesh error, as a table and a plot."""
-    from recon.bench import run_bench
+    from recon.app.bench import run_bench
 
     install_sigterm_as_interrupt()
     with _guard():
         names = [p.strip() for p in presets_.split(",") if p.strip()]
         if profile:
-            from recon.profiling import run_profile
+            from recon.app.profiling import run_profile
 
             path = run_profile(data, names, out, list(set_ or []), Reporter(console), warmup=profile_warmup, steps=profile_steps)
             out_console.print(path.read_text(), markup=False)
@@ -393,7 +393,7 @@ def export(
     frame: Annotated[str, typer.Option("--frame", help="normalized (recon's box, +Z up, like the mesh) | source (the SfM / imported poses).")] = "normalized",
 ) -> None:
     """Export cameras, undistorted images and sparse points for other tools (nerfstudio, instant-ngp, Gaussian splatting)."""
-    from recon.exports import export_scene
+    from recon.app.exports import export_scene
 
     with _guard():
         written = export_scene(scene, format_, out, frame, report=Reporter(console))  # type: ignore[arg-type]
@@ -423,7 +423,7 @@ def view(
     device: Annotated[str, typer.Option("--device", help="auto | cpu | cuda (for the live field render)")] = "auto",
 ) -> None:
     """A local web viewer: cameras with their photos, sparse points, the mesh, and the field rendered live."""
-    from recon.viewer import SceneViewer
+    from recon.app.viewer import SceneViewer
 
     _serve(lambda: SceneViewer(scene, host=host, port=port, device=device, log=lambda m: console.print(f"viewer: {m}")), scene)
 
@@ -440,7 +440,7 @@ def batch(
     quiet: QuietOpt = False,
 ) -> None:
     """Run many captures as Ray tasks (one per capture), locally or on a cluster; exit 1 if any failed."""
-    from recon.batch import run_batch
+    from recon.app.batch import run_batch
 
     install_sigterm_as_interrupt()
     with _guard():

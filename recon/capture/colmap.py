@@ -1,7 +1,7 @@
 """COLMAP sparse models in recon's conventions: finding and reading a model, and converting its cameras and points.
 
-Both ways a COLMAP model reaches recon go through here: structure from motion (`recon.sfm` runs COLMAP and
-converts the model it chose) and importing a model someone made (`recon.scene.import_colmap`).
+Both ways a COLMAP model reaches recon go through here: structure from motion (`recon.capture.sfm` runs COLMAP and
+converts the model it chose) and importing a model someone made (`recon.capture.scene.import_colmap`).
 
 - poses: COLMAP gives world->camera in OpenCV axes (camera looks down +Z, +Y down); recon's frames are
   camera-to-world 4x4 matrices in the OpenGL convention (camera looks down -Z, +Y up, +X right), still in

@@ -22,10 +22,10 @@ from typing import Any, Literal
 
 import numpy as np
 
-from recon.errors import InputError
-from recon.images import IMAGE_SUFFIXES, MIN_SIDE, oriented_size
 from recon.atomic import read_json, write_json_atomic
-from recon.colmap import LENS_MODELS, find_colmap_model, read_model, reconstruction_frames
+from recon.capture.colmap import LENS_MODELS, find_colmap_model, read_model, reconstruction_frames
+from recon.capture.images import IMAGE_SUFFIXES, MIN_SIDE, oriented_size
+from recon.errors import InputError
 
 SCENE_FORMAT = "recon-scene"
 SCENE_VERSION = 1
@@ -37,7 +37,7 @@ RAY_DISTANCE = "distance along the unit-length ray"
 """What a frame's `near` and `far` measure, everywhere in recon: the distance t along a ray with a unit-length
 direction (the rays of `recon.nerf.rays`), so `o + t·d` at t = far is as far from the camera for a corner
 pixel as for the centre one. Not the depth along the optical axis: a corner ray reaching depth z has
-travelled z / cos(angle off-axis). `recon.normalization` computes them as Euclidean distances from the camera centre."""
+travelled z / cos(angle off-axis). `recon.capture.normalization` computes them as Euclidean distances from the camera centre."""
 
 
 @dataclass
@@ -61,7 +61,7 @@ class Frame:
     k4: float = 0.0
     camera_model: str = "OPENCV"
     """The lens: OPENCV (radial-tangential k1 k2 p1 p2 k3; holds PINHOLE and the radial models) or
-    OPENCV_FISHEYE (equidistant k1 k2 k3 k4). See `recon.colmap.LENS_MODELS`."""
+    OPENCV_FISHEYE (equidistant k1 k2 k3 k4). See `recon.capture.colmap.LENS_MODELS`."""
     split: str | None = None
     mask_path: str | None = None
     """Mask image of the photo (white = object; nerfstudio's `mask_path`): pixels outside are background."""
@@ -115,7 +115,7 @@ class Scene:
     world_from_source: np.ndarray = field(default_factory=lambda: np.eye(4))
     """(4, 4) similarity mapping the source (SfM or import) frame into this scene's frame."""
     region: np.ndarray | None = None
-    """(2, 3) box of the object of interest (what the cameras look at; `recon.region`), scene frame; None: all."""
+    """(2, 3) box of the object of interest (what the cameras look at; `recon.capture.region`), scene frame; None: all."""
     ground: np.ndarray | None = None
     """(4,) plane (nx, ny, nz, d), n·x = d with unit n pointing up, of the ground the object stands on; None: none."""
     has_alpha: bool = False
@@ -456,7 +456,7 @@ def find_masks(photos: Sequence[Path]) -> tuple[Path | None, dict[str, Path]]:
 
 def detect_source(path: Path) -> str:
     """What the user handed us: 'photos', 'video', 'transforms', 'nerf_synthetic', 'colmap' or 'npz'."""
-    from recon.video import is_video, list_videos
+    from recon.capture.video import is_video, list_videos
 
     if path.is_file() and path.suffix.lower() == ".npz":
         return "npz"
@@ -532,7 +532,7 @@ def _has_alpha(frame: Frame) -> bool:
 
 
 def frame_from_sfm(file_path: str, fd: dict, sx: float = 1.0, sy: float = 1.0) -> Frame:
-    """A Frame from `recon.sfm`'s per-image dict, with intrinsics scaled by (sx, sy) to the photo's size."""
+    """A Frame from `recon.capture.sfm`'s per-image dict, with intrinsics scaled by (sx, sy) to the photo's size."""
     return Frame(
         file_path=file_path,
         c2w=np.asarray(fd["c2w"], dtype=np.float64),
@@ -581,7 +581,7 @@ def import_colmap(folder: Path, log_dir: Path | None = None) -> Scene:
 
 def import_npz(path: Path, image_dir: Path) -> Scene:
     """The tiny-NeRF `.npz` (images (N,H,W,3) in [0,1] or uint8, poses (N,4,4) c2w OpenGL, focal): writes PNGs."""
-    from recon.images import save_image
+    from recon.capture.images import save_image
 
     try:
         data = np.load(path, allow_pickle=False)

@@ -1,0 +1,1 @@
+"""Photos and video in, masks, COLMAP, the scene contract and its importers, normalization, object region, sky."""
