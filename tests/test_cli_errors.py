@@ -91,8 +91,9 @@ def test_failed_stage_keeps_earlier_complete_stages(tmp_path: Path, shared_data:
 
 
 def test_real_process_exit_code_and_no_traceback(tmp_path: Path) -> None:
+    """`python -m recon` (a checkout without an install) is the same command line as `recon`."""
     proc = subprocess.run(
-        [sys.executable, "-m", "recon.app.cli", "run", str(tmp_path / "missing"), "--out", str(tmp_path / "s")],
+        [sys.executable, "-m", "recon", "run", str(tmp_path / "missing"), "--out", str(tmp_path / "s")],
         capture_output=True,
         text=True,
         timeout=120,
