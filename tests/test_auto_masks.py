@@ -102,6 +102,20 @@ def test_masks_match_the_true_silhouette_and_agree() -> None:
     assert all(m.shape == (H, W) for m in found.masks.values())
 
 
+def test_the_masks_do_not_depend_on_how_many_photos_are_cut_at_once(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The photos are cut in parallel, one per core; each cut seeds its own thread's RNG."""
+    import recon.nerf.device
+
+    scene, photos, _ = _scene(6)
+    found = {}
+    for threads in (1, 3):
+        monkeypatch.setattr(recon.nerf.device, "cpu_threads", lambda n=threads: n)
+        found[threads] = segment_object(scene, load_photo=lambda f: photos[f.name])
+    assert found[1].masks.keys() == found[3].masks.keys()
+    assert all(np.array_equal(found[1].masks[k], found[3].masks[k]) for k in found[1].masks)
+    assert found[1].agreement == found[3].agreement
+
+
 def test_the_other_photos_veto_what_one_cut_takes_from_the_table() -> None:
     """Paint a strip of the ball's texture on the table under the ball in one photo: its cut takes the strip, the
     hull the other photos carve leaves it out of the mask, and that photo's agreement says so."""

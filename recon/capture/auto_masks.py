@@ -10,6 +10,7 @@ Pure numpy/OpenCV on a normalized `Scene` and its photos; the caller decides wha
 from __future__ import annotations
 
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -85,6 +86,8 @@ def segment_object(scene: Scene, load_photo: PhotoLoader | None = None, side: in
     """
     import cv2
 
+    from recon.nerf.device import cpu_threads
+
     if scene.region is None:
         raise ValueError("segment_object needs the scene's object region (normalize finds it for object captures)")
     load = load_photo or (lambda f: read_image(scene.image_path(f), max_side=side)[..., :3])
@@ -94,8 +97,7 @@ def segment_object(scene: Scene, load_photo: PhotoLoader | None = None, side: in
     points = np.asarray(scene.points, np.float64).reshape(-1, 3)
     object_pts, background_pts = _label_points(points, region, grown, scene.ground)
 
-    cuts, intrinsics, sizes, seeds, edges = [], [], [], [], []
-    for frame in scene.frames:
+    def cut_one(frame: Frame) -> tuple[np.ndarray, np.ndarray, np.ndarray, tuple[int, int], np.ndarray]:
         photo = np.asarray(load(frame), np.float32)[..., :3]
         h, w = photo.shape[:2]
         intr = np.array(frame.intrinsics_at(w, h))
@@ -107,13 +109,20 @@ def segment_object(scene: Scene, load_photo: PhotoLoader | None = None, side: in
         fg = _visible_uv(points[object_pts], frame.c2w, intr, w, h)
         bg = _visible_uv(points[seen[background_pts[seen]]], frame.c2w, intr, w, h)
         box_uv = _visible_uv(box_corners(grown), frame.c2w, intr, w, h, clip=False)
-        cuts.append(_grabcut(cv2, pinhole, fg, bg, box_uv))
-        edges.append(_edges(cv2, pinhole))
-        if progress is not None:
-            progress()
-        intrinsics.append(intr)
-        sizes.append((w, h))
-        seeds.append(fg)
+        return _grabcut(cv2, pinhole, fg, bg, box_uv), _edges(cv2, pinhole), intr, (w, h), fg
+
+    cuts, intrinsics, sizes, seeds, edges = [], [], [], [], []
+    # one photo per core: OpenCV's graph cut runs on one thread and releases the GIL; each cut seeds its own
+    # thread's RNG, so the masks do not depend on the thread count
+    with ThreadPoolExecutor(max_workers=cpu_threads()) as pool:
+        for cut, edge, intr, size, fg in pool.map(cut_one, scene.frames):
+            cuts.append(cut)
+            edges.append(edge)
+            intrinsics.append(intr)
+            sizes.append(size)
+            seeds.append(fg)
+            if progress is not None:
+                progress()
 
     n = len(cuts)
     _, carved_by = carve(grown, HULL_RES, [f.c2w for f in scene.frames], intrinsics, cuts)
