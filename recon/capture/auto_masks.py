@@ -132,7 +132,7 @@ def segment_object(scene: Scene, load_photo: PhotoLoader | None = None, side: in
     hull_pts = np.stack([axes[i][idx] for i, idx in enumerate(np.nonzero(shell))], axis=-1)
     cell = float(np.max(extent * (1 + 2 * REGION_MARGIN)) / (HULL_RES - 1))
 
-    masks, agreement, coverage, support, kept, total = {}, {}, {}, {}, 0, 0
+    finals, agreement, support, kept, total = [], {}, {}, 0, 0
     for frame, cut, intr, (w, h), fg, edge in zip(scene.frames, cuts, intrinsics, sizes, seeds, edges, strict=True):
         silhouette = _silhouette(cv2, hull_pts, cell, frame.c2w, intr, w, h)
         final = cut & silhouette
@@ -143,8 +143,11 @@ def segment_object(scene: Scene, load_photo: PhotoLoader | None = None, side: in
             px = np.clip(fg.astype(np.int64), 0, [w - 1, h - 1])
             kept += int(final[px[:, 1], px[:, 0]].sum())
             total += len(fg)
-        masks[frame.name] = _to_photo_pixels(cv2, final, frame, intr)
-        coverage[frame.name] = float(masks[frame.name].mean())
+        finals.append(final)
+    with ThreadPoolExecutor(max_workers=cpu_threads()) as pool:  # full-size resampling: OpenCV, GIL released
+        full = pool.map(lambda args: _to_photo_pixels(cv2, *args), zip(finals, scene.frames, intrinsics))
+        masks = {frame.name: mask for frame, mask in zip(scene.frames, full, strict=True)}
+    coverage = {name: float(mask.mean()) for name, mask in masks.items()}
 
     median = float(np.median(list(agreement.values()))) if agreement else 0.0
     recall = kept / total if total else 0.0
