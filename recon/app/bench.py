@@ -166,7 +166,7 @@ def run_bench(
             "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
             **where,
             "device": metrics.get("device"),
-            "load_average_start": load_start,  # 1, 5 and 15 minutes: others' jobs slow every rate here
+            "load_average_start": load_start,  # 1, 5 and 15 minutes: other jobs slow every rate
             "load_average_end": _load_average(),
             "poses_normalize_wall_s": round(prepare_wall, 1),  # shared by every preset; cached on a rerun
             "model": metrics["model"],
@@ -237,7 +237,7 @@ def write_results(rows: list[dict[str, Any]], out_dir: Path, data: str) -> None:
 
 
 def provenance_lines(rows: list[dict[str, Any]]) -> list[str]:
-    """One line per row saying where and when it ran (rows written before this was recorded have none)."""
+    """One line per row saying where and when it ran (rows without a machine record are left out)."""
     lines = []
     for r in rows:
         machine = r.get("machine")
