@@ -176,22 +176,15 @@ class DenseGrid(nn.Module):
         return self.table.view(self.res, self.res, self.res, self.channels)
 
     def forward(self, x01: Tensor) -> Tensor:
-        """x01: (M, 3) in [0, 1] -> (M, C).
-
-        One channel goes through ``F.grid_sample`` on a view of the same storage (its fused kernel was
-        3x faster than building corner indices for a scalar grid); more channels use the channels-last
-        gather, whose backward was 2.3x faster than grid_sample's at 12 channels.
-        """
+        """x01: (M, 3) in [0, 1] -> (M, C): in Triton on CUDA when asked, in C where no point gradient is needed,
+        else in torch (:func:`trilinear_torch`)."""
         if self.kernels != "torch" and not x01.requires_grad and use_triton(self.kernels, x01, self.table):
             return trilinear_levels_triton(x01, [self.table], [self.res])  # CUDA only: the CPU takes the paths below
         if not x01.requires_grad and native_grid_ok(x01, self.table):  # no gradient to the points needed: in C
             if torch.is_grad_enabled() and self.table.requires_grad:
                 return _NativeTrilinear.apply(self.table, x01, self)
             return trilinear_features_native(x01, self.table, self.res)
-        if self.channels == 1:
-            return self.sample_scalar(grid_sample_coords(x01, self.table.dtype))
-        i0, frac = axis_cells(x01, self.res)
-        return gather_interp(self.table, corner_rows(i0, self.res), corner_weights(frac))
+        return trilinear_torch(x01, self.table, self.res)
 
     def sample_scalar(self, g: Tensor) -> Tensor:
         """A one-channel grid at points already in ``grid_sample``'s layout (:func:`grid_sample_coords`) -> (M, 1)."""
@@ -265,18 +258,24 @@ class MultiDenseGrid(nn.Module):
         return sum(g.tv_loss(n) for g in self.grids)
 
 
+def trilinear_torch(x01: Tensor, table: Tensor, r: int) -> Tensor:
+    """The trilinear read of one dense table ``(r³, C)`` at x01 (M, 3) in [0, 1] -> (M, C), in torch. One channel goes
+    through ``F.grid_sample`` on a view of the same storage (its fused kernel beats building corner indices for a
+    scalar grid); more channels use the channels-last gather, whose backward beats grid_sample's at 12 channels."""
+    if table.shape[1] == 1:
+        g = grid_sample_coords(x01, table.dtype)
+        return F.grid_sample(table.view(1, 1, r, r, r), g, mode="bilinear", align_corners=True).view(-1, 1)
+    i0, frac = axis_cells(x01, r)
+    return gather_interp(table, corner_rows(i0, r), corner_weights(frac))
+
+
 def trilinear_levels_torch(x01: Tensor, tables: list[Tensor], resolutions: list[int]) -> Tensor:
     """Sum over levels of the trilinear read of table ``(R³, C)`` at x01 (M, 3) -> (M, C), as :class:`DenseGrid` reads
     in torch (one channel: ``grid_sample``; more: the gather): the reference of
     :func:`recon.nerf.kernels.trilinear_levels_triton`, which reads them all in one pass on CUDA."""
     out = None
     for table, r in zip(tables, resolutions, strict=True):
-        if table.shape[1] == 1:
-            g = grid_sample_coords(x01, table.dtype)
-            level = F.grid_sample(table.view(1, 1, r, r, r), g, mode="bilinear", align_corners=True).view(-1, 1)
-        else:
-            i0, frac = axis_cells(x01, r)
-            level = gather_interp(table, corner_rows(i0, r), corner_weights(frac))
+        level = trilinear_torch(x01, table, r)
         out = level if out is None else out + level
     assert out is not None
     return out
