@@ -78,6 +78,20 @@ def test_ema_keeps_the_max_of_decayed_history_and_warmup_counts_all() -> None:
     assert bool(occ.warm)
 
 
+def test_threshold_ramps_from_start_to_final_after_warmup() -> None:
+    """A density between the start and the final threshold stays occupied early in the ramp and is culled once
+    the ramp has reached it: a young object keeps its samples while its density rises."""
+    occ = OccupancyGrid(AABB, resolution=4, sigma_threshold=5.0, warmup_steps=10, start_threshold=1.0, ramp_steps=100)
+    assert [occ.threshold_at(s) for s in (0, 10, 60, 110, 500)] == [1.0, 1.0, 3.0, 5.0, 5.0]
+    occ.decay = 0.0  # the EMA is the last density: each update's threshold alone decides
+    occ.update(lambda x: torch.full((x.shape[0],), 2.0), step=20)  # threshold 1.8
+    assert bool(occ.occupied.all())
+    occ.update(lambda x: torch.full((x.shape[0],), 2.0), step=40)  # threshold 2.6
+    assert not bool(occ.occupied.any())
+    plain = OccupancyGrid(AABB, resolution=4, sigma_threshold=5.0, warmup_steps=10)
+    assert plain.threshold_at(11) == 5.0
+
+
 def test_update_share_covers_every_vertex() -> None:
     occ = OccupancyGrid(AABB, resolution=5, warmup_steps=0)
     seen = torch.zeros(6**3, dtype=torch.long)

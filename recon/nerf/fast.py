@@ -242,6 +242,8 @@ class FastModel(RadianceModel):
             sigma_threshold=density_threshold(cfg.occupancy_alpha, self.step_size),
             warmup_steps=cfg.occupancy_warmup,
             contraction=cfg.unbounded,
+            start_threshold=density_threshold(min(cfg.occupancy_alpha_start, cfg.occupancy_alpha), self.step_size),
+            ramp_steps=cfg.occupancy_ramp,
         )
         self.register_buffer("march_box", aabb.clone())
         self.register_buffer("shrunk", torch.zeros((), dtype=torch.bool))

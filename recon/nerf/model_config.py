@@ -46,10 +46,18 @@ class FastConfig:
     """Hidden layers of the color MLP."""
     occupancy_res: int = 64
     """Occupancy grid cells per side."""
-    occupancy_alpha: float = 0.02
+    occupancy_alpha: float = 0.05
     """A vertex is occupied when its density gives at least this opacity over one step. Keep it above
     ``init_alpha``: space no ray has touched yet then gets culled at the first refresh (at ``init_alpha`` itself
-    much of the box stays occupied and every step marches through it)."""
+    much of the box stays occupied and every step marches through it). Why 0.05, not lower: a young field's faint fog
+    (a room behind an unmasked object most of all) keeps every sample of every ray otherwise; culling it trains a
+    sharper field in more steps of the same minutes (benchmarks/results/sample_culling.json)."""
+    occupancy_alpha_start: float = 0.02
+    """The occupancy opacity at the end of the warm-up, raised linearly to ``occupancy_alpha`` over
+    ``occupancy_ramp`` steps: an object whose density is still rising is not culled before it can pass the final
+    threshold (culled space gets no samples, so no gradient brings it back)."""
+    occupancy_ramp: int = 200
+    """Steps after the warm-up over which the occupancy opacity rises from ``occupancy_alpha_start``."""
     occupancy_warmup: int = 16
     """Steps during which every cell counts as occupied."""
     occupancy_every: int = 8
@@ -64,8 +72,9 @@ class FastConfig:
     """> 0: steps grow like t * cone_angle beyond the base step (unbounded scenes, e.g. 1/256)."""
     early_stop_transmittance: float = 1e-4
     """Drop samples behind this transmittance (no-grad pre-pass); 0 disables the pre-pass."""
-    color_min_weight: float = 1e-4
-    """Evaluate color only on samples with at least this weight (0 = everywhere)."""
+    color_min_weight: float = 1e-3
+    """Evaluate color only on samples with at least this weight (0 = everywhere): each colored sample costs a feature
+    read and the color MLP forward and backward, and ones below 1e-3 move a pixel by less than 1/1000."""
     init_alpha: float = 0.01
     """Opacity of one step of the initial (empty) density field."""
     density_activation: Literal["softplus", "trunc_exp"] = "softplus"

@@ -54,6 +54,9 @@ class OccupancyGrid(nn.Module):
         decay: EMA decay per update (instant-ngp: 0.95).
         warmup_steps: steps during which every cell is occupied.
         contraction: the field lives in contracted space (unbounded scene).
+        start_threshold: the threshold at the end of the warm-up (default ``sigma_threshold``), raised linearly to
+            ``sigma_threshold`` over ``ramp_steps``: a young object whose density is still rising is not culled
+            for good before it has had the steps to pass the final threshold.
     """
 
     def __init__(
@@ -64,6 +67,8 @@ class OccupancyGrid(nn.Module):
         decay: float = 0.95,
         warmup_steps: int = 256,
         contraction: bool = False,
+        start_threshold: float | None = None,
+        ramp_steps: int = 0,
     ) -> None:
         super().__init__()
         aabb = torch.as_tensor(aabb, dtype=torch.float32)
@@ -71,6 +76,8 @@ class OccupancyGrid(nn.Module):
             raise ValueError(f"aabb must be (2, 3) with max > min, got {aabb.tolist()}")
         self.res = int(resolution)
         self.sigma_threshold = float(sigma_threshold)
+        self.start_threshold = float(sigma_threshold if start_threshold is None else start_threshold)
+        self.ramp_steps = int(ramp_steps)
         self.decay = float(decay)
         self.warmup_steps = int(warmup_steps)
         self.contraction = bool(contraction)
@@ -159,10 +166,16 @@ class OccupancyGrid(nn.Module):
         if step < self.warmup_steps:
             self.occupied.fill_(True)
             return
-        above = (self.ema > self.sigma_threshold).float()[None, None]
+        above = (self.ema > self.threshold_at(step)).float()[None, None]
         cell = torch.nn.functional.max_pool3d(above, kernel_size=2, stride=1)[0, 0]
         self.occupied.copy_(cell > 0)
         self.warm.fill_(True)
+
+    def threshold_at(self, step: int) -> float:
+        """The density threshold at ``step``: ``start_threshold`` at the end of the warm-up, ``sigma_threshold``
+        from ``ramp_steps`` later on, linear between."""
+        done = 1.0 if self.ramp_steps <= 0 else min(max(step - self.warmup_steps, 0) / self.ramp_steps, 1.0)
+        return self.start_threshold + done * (self.sigma_threshold - self.start_threshold)
 
     def occupied_fraction(self) -> float:
         """Share of occupied cells, in [0, 1]."""
