@@ -135,11 +135,10 @@ def segment_object(scene: Scene, load_photo: PhotoLoader | None = None, side: in
     finals, agreement, support, kept, total = [], {}, {}, 0, 0
     for frame, cut, intr, (w, h), fg, edge in zip(scene.frames, cuts, intrinsics, sizes, seeds, edges, strict=True):
         silhouette = _silhouette(cv2, hull_pts, cell, frame.c2w, intr, w, h)
-        agreed = cut & silhouette
-        agreement[frame.name] = float(agreed.sum() / cut.sum()) if cut.any() else 0.0
-        final = _fill_agreed_holes(cv2, agreed, silhouette)
+        final = cut & silhouette
         outline = _outline(cv2, final)
         support[frame.name] = float(edge[outline].mean()) if outline.any() else 0.0
+        agreement[frame.name] = float(final.sum() / cut.sum()) if cut.any() else 0.0
         if len(fg):
             px = np.clip(fg.astype(np.int64), 0, [w - 1, h - 1])
             kept += int(final[px[:, 1], px[:, 0]].sum())
@@ -238,16 +237,6 @@ def _keep_seeded_pieces(cv2, cut: np.ndarray, fg: np.ndarray) -> np.ndarray:
     border = np.unique(np.concatenate([holes[0], holes[-1], holes[:, 0], holes[:, -1]]))
     small = np.flatnonzero(stats[:, cv2.CC_STAT_AREA] < MAX_SPECK * h * w)
     return keep | np.isin(holes, np.setdiff1d(small, border))
-
-
-def _fill_agreed_holes(cv2, mask: np.ndarray, silhouette: np.ndarray) -> np.ndarray:
-    """The mask with the background it encloses filled where the other photos' hull says object: a graph cut leaves
-    holes in fur, dark or glossy patches that no other photo confirms, while an opening the photos see through (a
-    handle's) is carved out of the hull and so stays background."""
-    _, holes, _, _ = cv2.connectedComponentsWithStats((~mask).astype(np.uint8), connectivity=4)
-    border = np.unique(np.concatenate([holes[0], holes[-1], holes[:, 0], holes[:, -1]]))
-    enclosed = ~np.isin(holes, border)
-    return mask | (enclosed & silhouette)
 
 
 def _edges(cv2, photo: np.ndarray) -> np.ndarray:
