@@ -132,6 +132,52 @@ def test_the_other_photos_veto_what_one_cut_takes_from_the_table() -> None:
     assert found.confident
 
 
+def test_the_other_photos_fill_a_hole_one_cut_leaves_in_the_object(monkeypatch: pytest.MonkeyPatch) -> None:
+    """One photo's graph cut leaves a hole in the ball (as cuts do in fur or a dark, featureless patch): the hull the
+    other photos carve says object there, and the mask is filled; without the hull's fill the hole stays."""
+    import recon.capture.auto_masks as auto_masks
+
+    scene, photos, truth = _scene()
+    name = min(photos)
+    ys, xs = np.nonzero(truth[name])
+    cy, cx = int(ys.mean()), int(xs.mean())
+    photos[name] = photos[name].copy()
+    patch = (slice(cy - 6, cy + 6), slice(cx - 6, cx + 6))
+    marker = np.array([0.0, 1.0, 0.0], np.float32)  # a colour no other pixel has
+    photos[name][patch] = marker
+    grabcut = auto_masks._grabcut
+
+    def cut_with_a_hole(cv2, photo, fg, bg, box_uv):
+        return grabcut(cv2, photo, fg, bg, box_uv) & ~np.all(np.abs(photo - marker) < 1e-3, axis=-1)
+
+    monkeypatch.setattr(auto_masks, "_grabcut", cut_with_a_hole)
+    found = segment_object(scene, load_photo=lambda f: photos[f.name])
+    assert found.masks[name][patch].mean() > 0.95
+    assert _iou(found.masks[name], truth[name]) > 0.9
+    monkeypatch.setattr(auto_masks, "_fill_agreed_holes", lambda cv2, mask, silhouette: mask)
+    unfilled = segment_object(scene, load_photo=lambda f: photos[f.name])
+    assert unfilled.masks[name][patch].mean() < 0.1
+
+
+def test_an_opening_the_hull_sees_through_stays_background() -> None:
+    """A ring's opening is background where the hull's silhouette has it too (a handle the photos see through), even
+    where the carved tunnel is narrower than the opening this photo sees; the same opening is filled where the
+    silhouette is solid; background reaching the border is never filled."""
+    import cv2
+
+    from recon.capture.auto_masks import _fill_agreed_holes
+
+    yy, xx = np.mgrid[:60, :80]
+    r = np.hypot(yy - 30, xx - 40)
+    ring, disc = (r < 20) & (r >= 8), r < 20
+    assert np.array_equal(_fill_agreed_holes(cv2, ring, ring), ring)
+    assert np.array_equal(_fill_agreed_holes(cv2, ring, disc), disc)
+    everything = np.ones_like(ring)
+    assert np.array_equal(_fill_agreed_holes(cv2, ring, everything), disc)
+    narrow_tunnel = disc & (r >= 3)  # the hull sees through a narrower opening: the hole is not the hull's to fill
+    assert np.array_equal(_fill_agreed_holes(cv2, ring, narrow_tunnel), ring)
+
+
 def test_photos_that_do_not_fit_their_cameras_are_not_trusted() -> None:
     scene, photos, _ = _scene()
     names = sorted(photos)

@@ -39,6 +39,8 @@ HULL_RES = 96
 HULL_TOLERANCE = 0.1
 """A hull vertex survives while at most this fraction of the photos (at least one) call it background: one bad
 cut must not carve the object out of every other photo."""
+HOLE_IN_HULL = 0.95
+"""A hole a cut leaves inside the object is filled when at least this share of it lies in the hull's silhouette."""
 MIN_AGREEMENT = 0.9
 """The masks are trusted when, in the median photo, at least this fraction of the cut lies inside the hull all photos
 carve (the hull is fatter than the object where no photo looks edge-on, so only the cut's excess counts)."""
@@ -135,10 +137,11 @@ def segment_object(scene: Scene, load_photo: PhotoLoader | None = None, side: in
     finals, agreement, support, kept, total = [], {}, {}, 0, 0
     for frame, cut, intr, (w, h), fg, edge in zip(scene.frames, cuts, intrinsics, sizes, seeds, edges, strict=True):
         silhouette = _silhouette(cv2, hull_pts, cell, frame.c2w, intr, w, h)
-        final = cut & silhouette
+        agreed = cut & silhouette
+        agreement[frame.name] = float(agreed.sum() / cut.sum()) if cut.any() else 0.0
+        final = _fill_agreed_holes(cv2, agreed, silhouette)
         outline = _outline(cv2, final)
         support[frame.name] = float(edge[outline].mean()) if outline.any() else 0.0
-        agreement[frame.name] = float(final.sum() / cut.sum()) if cut.any() else 0.0
         if len(fg):
             px = np.clip(fg.astype(np.int64), 0, [w - 1, h - 1])
             kept += int(final[px[:, 1], px[:, 0]].sum())
@@ -237,6 +240,20 @@ def _keep_seeded_pieces(cv2, cut: np.ndarray, fg: np.ndarray) -> np.ndarray:
     border = np.unique(np.concatenate([holes[0], holes[-1], holes[:, 0], holes[:, -1]]))
     small = np.flatnonzero(stats[:, cv2.CC_STAT_AREA] < MAX_SPECK * h * w)
     return keep | np.isin(holes, np.setdiff1d(small, border))
+
+
+def _fill_agreed_holes(cv2, mask: np.ndarray, silhouette: np.ndarray) -> np.ndarray:
+    """The mask with each hole it encloses filled when (almost, ``HOLE_IN_HULL``) all of it lies in the silhouette of
+    the hull the photos carve: a graph cut leaves holes in fur, dark or glossy patches that no other photo confirms.
+    An opening the photos see through (a handle's, a torus's) is carved out of the hull; where few photos see through
+    it the carved tunnel is narrower than the opening this photo shows, but it still leaves part of the hole outside
+    the silhouette, so the whole opening stays background (filling it wherever the hull was solid cost the realistic
+    tabletop's torus its opening)."""
+    count, holes, stats, _ = cv2.connectedComponentsWithStats((~mask).astype(np.uint8), connectivity=4)
+    border = np.unique(np.concatenate([holes[0], holes[-1], holes[:, 0], holes[:, -1]]))
+    inside = np.bincount(holes[silhouette], minlength=count)
+    agreed = np.flatnonzero(inside >= HOLE_IN_HULL * stats[:, cv2.CC_STAT_AREA])
+    return mask | np.isin(holes, np.setdiff1d(agreed, border))
 
 
 def _edges(cv2, photo: np.ndarray) -> np.ndarray:
