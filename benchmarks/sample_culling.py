@@ -27,7 +27,7 @@ import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from unbounded_march import FOX, REPO, build  # noqa: E402  (the same model, rays and step as the train stage's)
+from unbounded_march import FOX, REPO, build, counting_colored
 
 RESULT = REPO / "benchmarks" / "results" / "sample_culling.json"
 BEFORE = ["train.fast.occupancy_alpha=0.02", "train.fast.color_min_weight=1e-4",
@@ -45,17 +45,14 @@ def run(data: str, work: Path, overrides: list[str], budget: float) -> dict[str,
     setup = build(str(FOX), work, ["normalize.masks=off", *overrides], unbounded=True) if fox \
         else build("lego-half", work, overrides)
     model, take_step, rays = setup["model"], setup["take_step"], setup["rays"]
-    colored: list[int] = []
-    color = type(model)._rgb_unit
-    model._rgb_unit = lambda u, d: (colored.append(u.shape[0]), color(model, u, d))[1]  # count the colored samples
     per_step: list[tuple[float, float]] = []
-    t0, c0, step = time.perf_counter(), time.process_time(), 0
-    while (elapsed := time.perf_counter() - t0) < budget:
-        result = take_step(step, elapsed / budget)
-        per_step.append((result.out["num_samples"] / rays, float(-10 * np.log10(result.rgb_mse))))
-        step += 1
-    train_s, cpu_s = time.perf_counter() - t0, time.process_time() - c0
-    del model._rgb_unit
+    with counting_colored(model) as colored:
+        t0, c0, step = time.perf_counter(), time.process_time(), 0
+        while (elapsed := time.perf_counter() - t0) < budget:
+            result = take_step(step, elapsed / budget)
+            per_step.append((result.out["num_samples"] / rays, float(-10 * np.log10(result.rgb_mse))))
+            step += 1
+        train_s, cpu_s = time.perf_counter() - t0, time.process_time() - c0
     scene = load_scene(work / ("fox-poses" if fox else "lego-half-poses") / "02_scene")
     views = load_views(scene, scene.split("val")[::2] if fox else scene.split("test")[::25],
                        load_config("fast").train.max_side)

@@ -18,12 +18,14 @@ benchmarks/results/unbounded_march.json.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
 import os
 import statistics
 import tempfile
 import time
+from collections.abc import Iterator
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
@@ -59,19 +61,27 @@ def build(data: str, work: Path, overrides: list[str], unbounded: bool = False) 
             "pieces": [type(p).__name__ for p in setup.step_kwargs["pieces"]]}
 
 
+@contextlib.contextmanager
+def counting_colored(model: Any) -> Iterator[list[int]]:
+    """Within the block, the model's colored samples per call (its color head's batch sizes) append to the list."""
+    colored: list[int] = []
+    color = type(model)._rgb_unit
+    model._rgb_unit = lambda u, d: (colored.append(u.shape[0]), color(model, u, d))[1]
+    try:
+        yield colored
+    finally:
+        del model._rgb_unit
+
+
 def train_step(run: dict[str, Any]) -> dict[str, float]:
     """One step of the train stage's training (recon.nerf.trainer.TrainStep, its pieces included): CPU and wall
     seconds, samples and density evaluations per ray of the batch, colored samples per ray (a depth prior's own
     rays included: the step colors them too), the batch's PSNR."""
-    model = run["model"]
-    colored: list[int] = []
-    color = type(model)._rgb_unit
-    model._rgb_unit = lambda u, d: (colored.append(u.shape[0]), color(model, u, d))[1]  # count the colored samples
-    c0, w0 = time.process_time(), time.perf_counter()
-    result = run["take_step"](run["step"])
-    cpu_s, wall_s = time.process_time() - c0, time.perf_counter() - w0
+    with counting_colored(run["model"]) as colored:
+        c0, w0 = time.process_time(), time.perf_counter()
+        result = run["take_step"](run["step"])
+        cpu_s, wall_s = time.process_time() - c0, time.perf_counter() - w0
     run["step"] += 1
-    del model._rgb_unit
     n, out = run["rays"], result.out
     return {"cpu_s": cpu_s, "wall_s": wall_s,
             "samples_per_ray": out["num_samples"] / n, "density_evals_per_ray": out["density_evals"] / n,

@@ -3,8 +3,8 @@
 Each preset runs the real pipeline in its own scene folder (poses and normalize are computed once and
 reused through the stage cache), then the table (Markdown), the raw numbers (JSON) and a PNG of
 held-out PSNR against training time, one curve per preset, are written to the output folder.
-Every row also records where and when it was measured (commit, machine, device, load average, date), because
-speed numbers from different commits, machines or loads are not comparable. A benchmark measures; it asserts nothing.
+Every row carries its provenance (commit, machine, device, load average, date): speed numbers from different
+commits, machines or loads do not compare. A benchmark measures; it asserts nothing.
 """
 from __future__ import annotations
 

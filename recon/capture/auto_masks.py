@@ -236,10 +236,15 @@ def _keep_seeded_pieces(cv2, cut: np.ndarray, fg: np.ndarray) -> np.ndarray:
         area = pieces[seeded, cv2.CC_STAT_AREA]
         seeded = seeded[area >= MIN_PIECE * area.max()]
     keep = np.isin(labels, seeded)
-    _, holes, stats, _ = cv2.connectedComponentsWithStats((~keep).astype(np.uint8), connectivity=4)
+    return _fill_holes(cv2, keep, lambda holes, stats: np.flatnonzero(stats[:, cv2.CC_STAT_AREA] < MAX_SPECK * h * w))
+
+
+def _fill_holes(cv2, mask: np.ndarray, pick: Callable[[np.ndarray, np.ndarray], np.ndarray]) -> np.ndarray:
+    """The mask with the background pieces it encloses (4-connected, off the photo's border) filled where
+    ``pick(labels, stats)`` names their labels (OpenCV's connected-component labels and stats of ~mask)."""
+    _, holes, stats, _ = cv2.connectedComponentsWithStats((~mask).astype(np.uint8), connectivity=4)
     border = np.unique(np.concatenate([holes[0], holes[-1], holes[:, 0], holes[:, -1]]))
-    small = np.flatnonzero(stats[:, cv2.CC_STAT_AREA] < MAX_SPECK * h * w)
-    return keep | np.isin(holes, np.setdiff1d(small, border))
+    return mask | np.isin(holes, np.setdiff1d(pick(holes, stats), border))
 
 
 def _fill_agreed_holes(cv2, mask: np.ndarray, silhouette: np.ndarray) -> np.ndarray:
@@ -249,11 +254,11 @@ def _fill_agreed_holes(cv2, mask: np.ndarray, silhouette: np.ndarray) -> np.ndar
     it the carved tunnel is narrower than the opening this photo shows, but it still leaves part of the hole outside
     the silhouette, so the whole opening stays background (filling it wherever the hull was solid cost the realistic
     tabletop's torus its opening)."""
-    count, holes, stats, _ = cv2.connectedComponentsWithStats((~mask).astype(np.uint8), connectivity=4)
-    border = np.unique(np.concatenate([holes[0], holes[-1], holes[:, 0], holes[:, -1]]))
-    inside = np.bincount(holes[silhouette], minlength=count)
-    agreed = np.flatnonzero(inside >= HOLE_IN_HULL * stats[:, cv2.CC_STAT_AREA])
-    return mask | np.isin(holes, np.setdiff1d(agreed, border))
+    def in_hull(holes: np.ndarray, stats: np.ndarray) -> np.ndarray:
+        inside = np.bincount(holes[silhouette], minlength=len(stats))
+        return np.flatnonzero(inside >= HOLE_IN_HULL * stats[:, cv2.CC_STAT_AREA])
+
+    return _fill_holes(cv2, mask, in_hull)
 
 
 def _edges(cv2, photo: np.ndarray) -> np.ndarray:
