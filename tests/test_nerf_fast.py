@@ -231,6 +231,24 @@ def test_shrink_happens_once_and_asks_for_fresh_optimizer_moments() -> None:
     assert bool((box[0] >= model.grid_box[0] - 1e-6).all() and (box[1] <= model.grid_box[1] + 1e-6).all())
 
 
+def test_a_faint_young_field_is_not_culled_nor_shrunk_onto() -> None:
+    """A field below the occupancy threshold everywhere at the end of the warm-up keeps the whole box to march
+    (and its grids) until part of it passes the threshold; then the grid culls and the grids shrink."""
+    model = FastModel(FastConfig(**{**TINY, "density_levels": 1, "shrink_step": 6, "occupancy_alpha": 0.5,
+                                    "occupancy_alpha_start": 0.5}))
+    with torch.no_grad():
+        model.density_grid.table.fill_(-30.0)
+        model.density_grid.volume()[10:14, 10:14, 10:14] = -2.0  # faint: well under 50% opacity a step
+    moved = [model.step_update(step) for step in range(0, 12, 2)]
+    assert not any(moved) and not bool(model.shrunk) and model.occupancy.faint
+    assert bool(model.occupancy.occupied.all()) and torch.equal(model.march_box, model.aabb)
+    with torch.no_grad():
+        model.density_grid.volume()[10:14, 10:14, 10:14] = 30.0  # it has grown
+    moved = [model.step_update(step) for step in range(12, 30, 2)]
+    assert any(moved) and bool(model.shrunk) and not model.occupancy.faint
+    assert model.occupancy.occupied_fraction() < 0.2
+
+
 def test_density_is_counted_per_voxel_so_a_few_steps_make_a_surface_opaque() -> None:
     """Adam moves a raw grid value by ~lr per step; per-voxel units make ~60 steps at lr 0.1 enough for an
     opaque voxel, where world units (σ in the hundreds at real resolutions) would take thousands."""

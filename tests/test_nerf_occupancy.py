@@ -72,9 +72,10 @@ def test_ema_keeps_the_max_of_decayed_history_and_warmup_counts_all() -> None:
     torch.testing.assert_close(occ.ema, torch.full_like(occ.ema, 2.0))
     occ.update(lambda x: torch.zeros(x.shape[0]), step=20)  # ema 1.0 > 0.5 still occupied
     assert bool(occ.occupied.all())
+    corner = lambda x: torch.where((x <= AABB[0] + 1e-6).all(dim=-1), 4.0, 0.0)  # noqa: E731 (the object)
     for step in range(21, 23):
-        occ.update(lambda x: torch.zeros(x.shape[0]), step=step)  # 0.5, 0.25: below -> empty
-    assert not bool(occ.occupied.any())
+        occ.update(corner, step=step)  # 0.5, 0.25 elsewhere: below -> empty
+    assert int(occ.occupied.sum()) == 1 and bool(occ.occupied[0, 0, 0])
     assert bool(occ.warm)
 
 
@@ -84,12 +85,35 @@ def test_threshold_ramps_from_start_to_final_after_warmup() -> None:
     occ = OccupancyGrid(AABB, resolution=4, sigma_threshold=5.0, warmup_steps=10, start_threshold=1.0, ramp_steps=100)
     assert [occ.threshold_at(s) for s in (0, 10, 60, 110, 500)] == [1.0, 1.0, 3.0, 5.0, 5.0]
     occ.decay = 0.0  # the EMA is the last density: each update's threshold alone decides
-    occ.update(lambda x: torch.full((x.shape[0],), 2.0), step=20)  # threshold 1.8
+
+    def field(x: torch.Tensor) -> torch.Tensor:  # 2.0 everywhere but a dense corner vertex (the object)
+        return torch.where((x <= AABB[0] + 1e-6).all(dim=-1), 10.0, 2.0)
+
+    occ.update(field, step=20)  # threshold 1.8
     assert bool(occ.occupied.all())
-    occ.update(lambda x: torch.full((x.shape[0],), 2.0), step=40)  # threshold 2.6
-    assert not bool(occ.occupied.any())
+    occ.update(field, step=40)  # threshold 2.6
+    assert int(occ.occupied.sum()) == 1 and bool(occ.occupied[0, 0, 0]) and not occ.faint
     plain = OccupancyGrid(AABB, resolution=4, sigma_threshold=5.0, warmup_steps=10)
     assert plain.threshold_at(11) == 5.0
+
+
+def test_a_refresh_that_would_cull_everything_leaves_the_grid_open() -> None:
+    """A young field below the threshold everywhere keeps every cell it had (all of them after the warm-up) and
+    says so (``faint``); once part of it passes the threshold, the threshold alone decides again."""
+    occ = OccupancyGrid(AABB, resolution=20, sigma_threshold=5.0, warmup_steps=0)
+    occ.decay = 0.0
+    centre = AABB.mean(dim=0)
+
+    def bump(peak: float):  # densest at the box centre, fading outwards
+        return lambda x: peak * torch.exp(-((x - centre) ** 2).sum(-1) / 0.5)
+
+    occ.update(bump(1.0), step=0)  # below 5 everywhere
+    assert occ.faint and bool(occ.occupied.all()) and not bool(occ.warm)
+    occ.update(bump(100.0), step=1)  # the field has grown: above 5 near the centre only
+    assert not occ.faint and bool(occ.warm) and bool(occ.occupied[10, 10, 10]) and not bool(occ.occupied[0, 0, 0])
+    before = occ.occupied.clone()
+    occ.update(lambda x: torch.zeros(x.shape[0]), step=2)  # nothing above: the grid stays as it was
+    assert occ.faint and torch.equal(occ.occupied, before)
 
 
 def test_update_share_covers_every_vertex() -> None:
@@ -109,7 +133,7 @@ def test_update_share_covers_every_vertex() -> None:
 
 def test_occupied_aabb_and_outside_points() -> None:
     occ = OccupancyGrid(AABB, resolution=4, sigma_threshold=1.0, warmup_steps=0)
-    occ.update(lambda x: torch.zeros(x.shape[0]), step=0)
+    occ.occupied.fill_(False)
     assert occ.occupied_aabb() is None and occ.occupied_fraction() == 0.0
     occ.occupied[1, 2, 3] = True
     box = occ.occupied_aabb()
@@ -177,7 +201,7 @@ def test_contracted_grid_covers_far_points() -> None:
 
 def test_core_aabb_leaves_out_scattered_floaters() -> None:
     occ = OccupancyGrid(AABB, resolution=32, sigma_threshold=1.0, warmup_steps=0)
-    occ.update(lambda x: torch.zeros(x.shape[0]), step=0)
+    occ.occupied.fill_(False)
     occ.occupied[10:20, 8:22, 12:18] = True  # the object
     occ.occupied[20, 15, 15] = True  # a thin part touching it stays
     occ.occupied[31, 1, 2] = True  # isolated floaters go
