@@ -58,7 +58,8 @@ def run(data: str, work: Path, overrides: list[str], budget: float) -> dict[str,
                        load_config("fast").train.max_side)
     model.eval()
     with torch.no_grad():
-        held = evaluate(model, views, None if fox else model.aabb, np.ones(3, dtype=np.float32), appearance=fox)
+        # the background the train stage plans and scores with (an unbounded capture's: the photos' border colour)
+        held = evaluate(model, views, None if fox else model.aabb, np.asarray(setup["background"], np.float32), appearance=fox)
     return {"steps": step, "train_time_s": round(train_s, 1), "cpu_s_per_step": round(cpu_s / step, 4),
             "rays_per_s": round(step * rays / train_s, 1),
             "samples_per_ray": round(statistics.mean(s for s, _ in per_step[-50:]), 2),

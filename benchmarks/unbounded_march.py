@@ -58,6 +58,7 @@ def build(data: str, work: Path, overrides: list[str], unbounded: bool = False) 
     setup = build_training(plan, torch.device("cpu"))
     step = TrainStep(setup.model, setup.batcher, steps=cfg.steps, **setup.step_kwargs)
     return {"model": setup.model, "batcher": setup.batcher, "take_step": step, "rays": plan.batch_rays, "step": 0,
+            "background": plan.background,
             "pieces": [type(p).__name__ for p in setup.step_kwargs["pieces"]]}
 
 
