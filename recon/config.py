@@ -493,6 +493,7 @@ BOUNDS: dict[str, Bound] = {
     "train.fast.occupancy_res": _range(2, 512),
     "train.fast.occupancy_alpha": Bound(0, 1, low_open=True, high_open=True),
     "train.fast.occupancy_alpha_start": Bound(0, 1, low_open=True, high_open=True),
+    "train.fast.unbounded_occupancy_alpha": Bound(0, 1, low_open=True, high_open=True),
     "train.fast.occupancy_ramp": STEPS,
     "train.fast.occupancy_warmup": STEPS,
     "train.fast.occupancy_every": PERIOD,

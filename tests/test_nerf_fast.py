@@ -8,6 +8,7 @@ import torch
 
 from recon.nerf.fast import FastConfig, FastModel, distortion_loss_packed, sh_encode
 from recon.nerf.grid import DenseGrid
+from recon.nerf.occupancy import density_threshold
 
 TINY = dict(density_res=24, feature_res=16, feature_dim=4, occupancy_res=8, occupancy_warmup=4,
             occupancy_every=2, mlp_width=16, mlp_layers=1)
@@ -247,6 +248,18 @@ def test_a_faint_young_field_is_not_culled_nor_shrunk_onto() -> None:
     moved = [model.step_update(step) for step in range(12, 30, 2)]
     assert any(moved) and bool(model.shrunk) and not model.occupancy.faint
     assert model.occupancy.occupied_fraction() < 0.2
+
+
+def test_an_unbounded_scene_culls_from_its_own_occupancy_opacity() -> None:
+    """A room's fog is culled harder than an object's: the grid's final threshold is that of
+    ``unbounded_occupancy_alpha`` in contracted space and of ``occupancy_alpha`` in a box; the warm-up start is shared."""
+    cfg = {**TINY, "occupancy_alpha": 0.05, "unbounded_occupancy_alpha": 0.2, "occupancy_alpha_start": 0.02}
+    for unbounded, alpha in ((False, 0.05), (True, 0.2)):
+        model = FastModel(FastConfig(**{**cfg, "unbounded": unbounded}))
+        occ = model.occupancy
+        assert model.occupancy_alpha == alpha
+        assert math.isclose(occ.sigma_threshold, density_threshold(alpha, model.step_size), rel_tol=1e-12)
+        assert math.isclose(occ.start_threshold, density_threshold(0.02, model.step_size), rel_tol=1e-12)
 
 
 def test_density_is_counted_per_voxel_so_a_few_steps_make_a_surface_opaque() -> None:

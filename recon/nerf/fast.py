@@ -236,13 +236,15 @@ class FastModel(RadianceModel):
         self.bg_logit = nn.Parameter(torch.zeros(3)) if cfg.background == "learned" else None
         self.sky = SkyColor() if cfg.background == "sky" else None
 
+        self.occupancy_alpha = cfg.unbounded_occupancy_alpha if cfg.unbounded else cfg.occupancy_alpha
+        """The opacity per step from which occupancy keeps a vertex (a room's fog culled harder, see FastConfig)."""
         self.occupancy = OccupancyGrid(
             aabb,
             resolution=cfg.occupancy_res,
-            sigma_threshold=density_threshold(cfg.occupancy_alpha, self.step_size),
+            sigma_threshold=density_threshold(self.occupancy_alpha, self.step_size),
             warmup_steps=cfg.occupancy_warmup,
             contraction=cfg.unbounded,
-            start_threshold=density_threshold(min(cfg.occupancy_alpha_start, cfg.occupancy_alpha), self.step_size),
+            start_threshold=density_threshold(min(cfg.occupancy_alpha_start, self.occupancy_alpha), self.step_size),
             ramp_steps=cfg.occupancy_ramp,
         )
         self.register_buffer("march_box", aabb.clone())

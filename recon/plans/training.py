@@ -228,7 +228,9 @@ def auto_fast_config(base: Any, scene: Scene, footprint: float) -> tuple[Any, li
     aabb = np.asarray(scene.aabb, dtype=np.float64)
     unbounded = scene.capture != "object"
     reasons = [
-        "unbounded scene: space outside the box is contracted (mip-NeRF 360, L∞)" if unbounded
+        (f"unbounded scene: space outside the box is contracted (mip-NeRF 360, L∞); occupancy keeps space from "
+         f"{base.unbounded_occupancy_alpha:.0%} opacity per step (an object's: {base.occupancy_alpha:.0%}), so the "
+         "young fog every ray of a room crosses costs no samples") if unbounded
         else "object capture: a plain box around the object, nothing modelled outside it"
     ]
     extent = float((aabb[1] - aabb[0]).max()) if not unbounded else 4.0
