@@ -30,8 +30,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from unbounded_march import FOX, REPO, build, counting_colored
 
 RESULT = REPO / "benchmarks" / "results" / "sample_culling.json"
-BEFORE = ["train.fast.occupancy_alpha=0.02", "train.fast.color_min_weight=1e-4",
-          "train.fast.early_stop_transmittance=1e-4"]
+BEFORE = ["train.fast.occupancy_alpha=0.02", "train.fast.unbounded_occupancy_alpha=0.02",
+          "train.fast.color_min_weight=1e-4", "train.fast.early_stop_transmittance=1e-4"]
 
 
 def run(data: str, work: Path, overrides: list[str], budget: float) -> dict[str, Any]:
