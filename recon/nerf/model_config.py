@@ -50,13 +50,12 @@ class FastConfig:
     """A vertex is occupied when its density gives at least this opacity over one step. Keep it above
     ``init_alpha``: space no ray has touched yet then gets culled at the first refresh (at ``init_alpha`` itself
     much of the box stays occupied and every step marches through it). Why 0.05, not lower: a young field's faint fog
-    (a room behind an unmasked object most of all) keeps every sample of every ray otherwise; culling it trains a
-    sharper field in more steps of the same minutes (benchmarks/results/sample_culling.json)."""
+    keeps every sample of every ray otherwise; culling it trains a sharper field in more steps of the same minutes
+    (benchmarks/results/sample_culling.json)."""
     unbounded_occupancy_alpha: float = 0.1
-    """``occupancy_alpha`` of an unbounded scene (contracted space). Why higher: every ray of a room ends on something
-    and crosses its young fog on the way, so at 5% a fox trained unbounded still marched 35 samples a ray; at 10% it
-    marches 26, trains 1.3x the steps in the same minutes and scores higher on held-out photos
-    (benchmarks/results/fox_fast_masks_off.json)."""
+    """``occupancy_alpha`` of an unbounded scene (contracted space). Why higher than an object's: every ray of a room
+    ends on something and crosses its young fog on the way; culling that fog harder trains more steps in the same
+    minutes and scores higher on held-out photos (benchmarks/results/sample_culling.json, the fox's rows)."""
     occupancy_alpha_start: float = 0.02
     """The occupancy opacity at the end of the warm-up, raised linearly to ``occupancy_alpha`` over
     ``occupancy_ramp`` steps: an object whose density is still rising is not culled before it can pass the final

@@ -12,7 +12,7 @@ cell is at a corner): such a field is never culled where its density exceeds the
 ``sigma_threshold`` comes from an opacity per step: ``-log(1 - alpha) / step_size`` (see
 :func:`density_threshold`). Before ``warmup_steps`` every cell counts as occupied. A refresh that finds no vertex
 above the threshold (a young field still fainter than it everywhere) leaves the grid as it was (``faint``): culling
-it all would leave no sample and no gradient to bring the field back (a 30-step test scene once meshed to 8 faces).
+it all would leave no sample and no gradient to bring the field back.
 
 :func:`march` produces packed samples (variable count per ray, ray-major, ordered along each ray):
 candidates are generated per ray with ``repeat_interleave`` (no [rays x max_samples] tensor), filtered
