@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import shutil
 import sys
 import time
@@ -50,21 +51,35 @@ def _sync(device: torch.device) -> None:
         torch.cuda.synchronize(device)
 
 
-def render_timing(field: Path, views: list[Any], device: torch.device) -> float:
-    """Milliseconds per view to render `views` on `device` (one warm-up render first: allocation, compilation)."""
+def render_timing(field: Path, views: list[Any], device: torch.device, chunk: int | None = None) -> float:
+    """Milliseconds per view to render `views` on `device`, `chunk` rays at a time (None: the default, recon.nerf.
+    evaluate.default_render_chunk), after one warm-up render (allocation, compilation)."""
     from recon.evaluation.views import render_view
     from recon.field import load_field
 
     model, meta = load_field(field, device)
     aabb = torch.tensor(meta["aabb"], dtype=torch.float32, device=device) if meta.get("bounded") else None
     background = np.asarray(meta["background"], np.float32)
-    render_view(model, views[0], aabb, background)
+    render_view(model, views[0], aabb, background, chunk)
     _sync(device)
     t0 = time.perf_counter()
     for view in views:
-        render_view(model, view, aabb, background)
+        render_view(model, view, aabb, background, chunk)
     _sync(device)
     return 1000.0 * (time.perf_counter() - t0) / len(views)
+
+
+def chunk_sweep(field: Path, views: list[Any], device: torch.device, chunks: list[int]) -> dict[str, Any]:
+    """Render milliseconds per view at each of `chunks` rays a chunk (on CUDA; a CPU keeps its chunk), and the
+    default chunk on this device: what sets recon.nerf.evaluate.CUDA_CHUNK_GIB."""
+    from recon.field import load_field
+    from recon.nerf.evaluate import default_render_chunk
+
+    if device.type != "cuda":
+        return {"skipped": "the render chunk is swept on CUDA only"}
+    model, _ = load_field(field, device)
+    return {"default_chunk": default_render_chunk(model, device),
+            "ms_per_view": {str(c): round(render_timing(field, views, device, c), 1) for c in chunks}}
 
 
 def device_agreement(field: Path, views: list[Any], device: torch.device) -> dict[str, Any]:
@@ -183,12 +198,16 @@ def run_one(args: argparse.Namespace, kernels: str, until: str | None) -> tuple[
     if scene.exists() and not args.keep:
         shutil.rmtree(scene)
     report = Reporter(quiet=args.quiet)
+    if device.type == "cuda":
+        torch.cuda.reset_peak_memory_stats(device)
     t0 = time.perf_counter()
     outcomes = default_pipeline().run(scene, config, report, source=args.data.resolve(), preset=args.preset,
                                       until_stage=until)
     wall = time.perf_counter() - t0
     metrics = json.loads((scene / "03_field" / "metrics.json").read_text())
+    mesh_report = scene / "04_mesh" / "mesh_report.json"
     stage_s = {o.name: round(o.wall_s, 1) for o in outcomes}
+    peak_gib = round(torch.cuda.max_memory_allocated(device) / 2**30, 2) if device.type == "cuda" else None
     normalized = load_scene(scene / "02_scene")
     tests = normalized.split("test") or normalized.split("val")
     timing_views = load_views(normalized, spread_evenly(tests, args.render_views + 1), config.train.max_side)
@@ -206,6 +225,10 @@ def run_one(args: argparse.Namespace, kernels: str, until: str | None) -> tuple[
         "render_ms_per_view": round(render_timing(scene / "03_field", timing_views[1:] or timing_views, device), 1),
         "render_size": list(timing_views[0].hw),
         "mesh_stage_s": stage_s.get("mesh"),
+        "mesh_timings_s": json.loads(mesh_report.read_text()).get("timings_s") if until is None else None,
+        "render_chunks": chunk_sweep(scene / "03_field", timing_views[1:] or timing_views, device, args.render_chunks),
+        "evals": metrics.get("evals", []),
+        "peak_gpu_memory_gib": peak_gib,
         "stage_wall_s": stage_s,
         "wall_s": round(wall, 1),
         "cpu_vs_device": device_agreement(scene / "03_field", agree_views, device),
@@ -215,6 +238,8 @@ def run_one(args: argparse.Namespace, kernels: str, until: str | None) -> tuple[
 
 
 def run_check(args: argparse.Namespace) -> dict[str, Any]:
+    """Kernel timings, then a column per kernels setting; gpu_check.json is rewritten after each part, so a check
+    cut short (a time limit on a lent machine) keeps what it measured."""
     from recon.app.bench import provenance
     from recon.config import load_config
     from recon.nerf.device import select_device
@@ -222,31 +247,48 @@ def run_check(args: argparse.Namespace) -> dict[str, Any]:
     t0 = time.perf_counter()
     probe = load_config(args.preset, [*(SMOKE if args.smoke else []), *args.set])
     device = select_device(probe.train.device)
-    timings = kernel_timings(probe, device) if "triton" in args.kernels else {"skipped": "--kernels torch"}
-    runs: dict[str, Any] = {}
-    skipped: dict[str, str] = {}
-    config = probe
-    for kernels in args.kernels:
-        if kernels == "triton" and device.type != "cuda":
-            skipped[kernels] = f"not run: the Triton kernels run on CUDA only (this device: {device.type})"
-            continue
-        # the mesh stage once (its seconds are the torch run's); the other run stops after training
-        until = None if not runs else "train"
-        runs[kernels], config, device = run_one(args, kernels, until)
-    return {
+    row: dict[str, Any] = {
         "name": args.preset,
         "data": str(args.data),
         "date": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
         **provenance(),
         "device": str(device),
         "device_name": torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu",
-        "sizing": config.train.adjusted,
-        "batch_rays": config.train.batch_rays,
-        "kernel_timings": timings,
-        "runs": runs,
-        "not_run": skipped,
-        "wall_s": round(time.perf_counter() - t0, 1),
+        "load_average_start": [round(x, 2) for x in os.getloadavg()],
+        "sizing": probe.train.adjusted,
+        "batch_rays": probe.train.batch_rays,
+        "kernel_timings": {},
+        "runs": {},
+        "not_run": {},
+        "wall_s": None,
     }
+
+    def save() -> None:
+        row["wall_s"] = round(time.perf_counter() - t0, 1)
+        write_record(args.out, row)
+
+    row["kernel_timings"] = kernel_timings(probe, device) if "triton" in args.kernels else {"skipped": "--kernels torch"}
+    save()
+    for kernels in args.kernels:
+        if kernels == "triton" and device.type != "cuda":
+            row["not_run"][kernels] = f"not run: the Triton kernels run on CUDA only (this device: {device.type})"
+            continue
+        # the mesh stage once (its seconds are the torch run's); the other run stops after training
+        until = None if not row["runs"] else "train"
+        row["runs"][kernels], config, device = run_one(args, kernels, until)
+        row["sizing"], row["batch_rays"] = config.train.adjusted, config.train.batch_rays
+        first = next(iter(row["runs"].values()))  # the record's headline: the first column (torch by default)
+        row.update(steps=first["steps"], rays_per_s=first["rays_per_s"], psnr=first["psnr"])
+        save()
+    return row
+
+
+def write_record(out: Path, row: dict[str, Any]) -> None:
+    """gpu_check.json (the record, a list of one row as every file in benchmarks/results/) and gpu_check.md."""
+    from recon.atomic import write_bytes_atomic, write_json_atomic
+
+    write_json_atomic(out / "gpu_check.json", [row])
+    write_bytes_atomic(out / "gpu_check.md", f"# GPU check — {row['name']} on {Path(row['data']).name}\n\n{table(row)}\n")
 
 
 def table(row: dict[str, Any]) -> str:
@@ -263,6 +305,10 @@ def table(row: dict[str, Any]) -> str:
         ("rays/s", lambda r: f"{r['rays_per_s']:,.0f}"),
         ("test PSNR", lambda r: f"{r['psnr']:.2f} dB, SSIM {r['ssim']:.3f} over {r['test_views']} views"),
         ("render", lambda r: f"{r['render_ms_per_view']:.0f} ms per {r['render_size'][1]}×{r['render_size'][0]} view"),
+        ("render by rays a chunk", lambda r: r["render_chunks"].get("skipped") or ", ".join(
+            f"{int(c):,}: {ms:.0f} ms" for c, ms in r["render_chunks"]["ms_per_view"].items())
+            + f" (default {r['render_chunks']['default_chunk']:,})"),
+        ("peak GPU memory", lambda r: "—" if r["peak_gpu_memory_gib"] is None else f"{r['peak_gpu_memory_gib']:.1f} GiB"),
         ("mesh stage", lambda r: "not run (training only)" if r["mesh_stage_s"] is None else f"{r['mesh_stage_s']} s"),
         ("CPU vs device", lambda r: agreement(r["cpu_vs_device"])),
         ("wall", lambda r: f"{r['wall_s']:.0f} s (its stages)"),
@@ -298,6 +344,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--test-views", type=int, default=0, help="held-out views scored (0: all)")
     parser.add_argument("--render-views", type=int, default=10, help="views timed for render ms/view")
     parser.add_argument("--agreement-views", type=int, default=3, help="views rendered on both the CPU and the device")
+    parser.add_argument("--render-chunks", default="16384,65536,262144",
+                        help="rays a chunk to time renders at on CUDA, comma-separated (besides the default)")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="a config override, as recon --set")
     parser.add_argument("--smoke", action="store_true",
                         help="tiny run (5 s budget, 50-px photos, 32 samples a ray, 32³ mesh): that it runs")
@@ -305,6 +353,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--quiet", action="store_true", help="only warnings and errors while the pipeline runs")
     args = parser.parse_args(argv)
     args.kernels = [k.strip() for k in args.kernels.split(",") if k.strip()]
+    try:
+        args.render_chunks = [int(c) for c in args.render_chunks.split(",") if c.strip()]
+    except ValueError:
+        print(f"error: --render-chunks takes whole numbers (comma-separated), got {args.render_chunks!r}", file=sys.stderr)
+        return 2
     if not args.kernels or any(k not in KERNELS for k in args.kernels):
         print(f"error: --kernels takes {', '.join(KERNELS)} (comma-separated), got {args.kernels}", file=sys.stderr)
         return 2
@@ -317,12 +370,7 @@ def main(argv: list[str] | None = None) -> int:
         args.render_views, args.agreement_views = min(args.render_views, 1), min(args.agreement_views, 1)
     args.out.mkdir(parents=True, exist_ok=True)
     row = run_check(args)
-    from recon.atomic import write_json_atomic
-
-    write_json_atomic(args.out / "gpu_check.json", [row])
-    text = table(row)
-    (args.out / "gpu_check.md").write_text(f"# GPU check — {row['name']} on {args.data.name}\n\n{text}\n")
-    print(text)
+    print(table(row))
     return 0
 
 

@@ -160,12 +160,15 @@ def test_compiled_color_network_matches_its_eager_reference_and_keeps_the_weight
         return torch._dynamo.backends.debugging.aot_eager(graph, example_inputs)
 
     why = compile_color_network(model, torch.device("cpu"), "on", backend=counting)
-    assert "eager network is its reference" in why and len(graphs) == 1  # the no-grad probe's graph
-    torch.testing.assert_close(model.color_mlp(f), eager)
-    torch.testing.assert_close(model.color_mlp(f[:5]), eager[:5])
+    # both graphs are built before training: without gradients (renders) and with them (a training step), so a
+    # time-budgeted training spends none of its budget compiling
+    assert "eager network is its reference" in why and len(graphs) == 2
+    features = f.clone().requires_grad_()  # a training step's features come from grids that need gradients
+    torch.testing.assert_close(model.color_mlp(features), eager)
+    torch.testing.assert_close(model.color_mlp(features[:5]), eager[:5])
     with torch.no_grad():
         torch.testing.assert_close(model.color_mlp(f[:9]), eager[:9])
-    assert len(graphs) == 2  # one graph with gradients, one without, whatever the sample count
+    assert len(graphs) == 2  # whatever the sample count, nothing is compiled again
     assert list(model.state_dict()) == keys
 
 
@@ -177,6 +180,20 @@ def test_a_compiled_network_that_disagrees_with_its_reference_is_dropped() -> No
     why = compile_color_network(model, torch.device("cpu"), "on", backend=miscompiled)
     assert why.startswith("torch.compile: failed (AssertionError") and "stays eager" in why
     assert "forward" not in vars(model.color_mlp)
+
+
+def test_render_chunks_grow_with_a_cuda_cards_memory_only(device: torch.device) -> None:
+    from recon.nerf.classic import ClassicModel
+    from recon.nerf.evaluate import CUDA_CHUNK_GIB, default_render_chunk
+
+    fast = FastModel(FastConfig(**TINY))
+    chunk = default_render_chunk(fast, device)
+    if device.type == "cpu":
+        assert chunk == FastModel.render_chunk
+    else:
+        gib = torch.cuda.get_device_properties(device).total_memory / 2**30
+        assert chunk == FastModel.render_chunk * max(1, min(16, int(gib // CUDA_CHUNK_GIB)))
+    assert default_render_chunk(ClassicModel(), device) == 8192  # models without packed samples keep the default
 
 
 # ----------------------------------------------------------------------------- Triton kernels: the switch

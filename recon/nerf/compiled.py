@@ -51,6 +51,8 @@ def compile_color_network(model: nn.Module, device: torch.device, setting: Compi
     probe = torch.rand(7, first.in_features, device=device)
     with torch.no_grad():
         reference = mlp(probe)
+    grad_probe = torch.rand(64, first.in_features, device=device, requires_grad=True)
+    reference_grads = _input_and_weight_grads(mlp, grad_probe)
     eager = mlp.forward
 
     def forward(x: torch.Tensor) -> torch.Tensor:  # a frame of ours: dynamo traces it, inlining the Sequential's
@@ -61,7 +63,16 @@ def compile_color_network(model: nn.Module, device: torch.device, setting: Compi
         with torch.no_grad():
             compiled = mlp(probe)
         torch.testing.assert_close(compiled, reference, rtol=1e-3, atol=1e-4)
+        # the training graph (forward and backward, features that need a gradient) compiles here, not in the
+        # first step of a time-budgeted training
+        for got, want in zip(_input_and_weight_grads(mlp, grad_probe), reference_grads, strict=True):
+            torch.testing.assert_close(got, want, rtol=1e-3, atol=1e-4)
     except Exception as exc:  # any compiler failure: the eager network is correct, only slower
         del mlp.forward  # back to the class's eager forward
         return f"torch.compile: failed ({type(exc).__name__}: {str(exc).splitlines()[0][:160]}); the colour network stays eager"
     return why + f", {getattr(backend, '__name__', backend)}, dynamic sample counts; the eager network is its reference"
+
+
+def _input_and_weight_grads(mlp: nn.Module, x: torch.Tensor) -> list[torch.Tensor]:
+    """The gradients of ``mlp(x).sum()`` for ``x`` and each parameter (``autograd.grad``: no ``.grad`` is touched)."""
+    return list(torch.autograd.grad(mlp(x).sum(), [x, *mlp.parameters()]))

@@ -41,6 +41,22 @@ __all__ = [
 
 
 # ----------------------------------------------------------------------------- rendering
+CUDA_CHUNK_GIB = 5.0
+"""On CUDA a render chunk grows by the model's ``render_chunk`` rays for each this many GiB of the card's memory (up
+to 16×: the whole of a 400² view at once on a 80 GB card): each chunk launches the marcher's and the field's kernels
+once, so a card rendering a view in ten chunks waits on launches, not arithmetic."""
+
+
+def default_render_chunk(model: torch.nn.Module, device: torch.device) -> int:
+    """Rays a chunk when rendering a view: 8192, or the model's ``render_chunk`` where it has one (the fast model:
+    packed samples, only where the occupancy grid has matter), scaled up on CUDA (:data:`CUDA_CHUNK_GIB`)."""
+    base = getattr(model, "render_chunk", None)
+    if base is None or device.type != "cuda":
+        return int(base or 8192)
+    gib = torch.cuda.get_device_properties(device).total_memory / 2**30
+    return base * max(1, min(16, int(gib // CUDA_CHUNK_GIB)))
+
+
 def render_image(
     model: RadianceModel,
     c2w: Tensor,
@@ -55,7 +71,7 @@ def render_image(
     background: Tensor | Sequence[float] = (1.0, 1.0, 1.0),
     autocast: torch.dtype | None = None,
 ) -> dict[str, Tensor]:
-    """Render one camera, ``chunk`` rays at a time (default: the model's ``render_chunk``, else 8192), under
+    """Render one camera, ``chunk`` rays at a time (default: :func:`default_render_chunk`), under
     ``inference_mode`` in eval mode.
 
     Args:
@@ -83,7 +99,7 @@ def render_image(
     depth = torch.zeros(h * w, device=device)
     opacity = torch.zeros(h * w, device=device)
     idx = hit.nonzero().squeeze(-1)
-    chunk = chunk or int(getattr(model, "render_chunk", 8192))
+    chunk = chunk or default_render_chunk(model, device)
     was_training = model.training
     model.eval()
     try:
