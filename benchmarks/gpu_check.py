@@ -274,7 +274,7 @@ def run_check(args: argparse.Namespace) -> dict[str, Any]:
             row["not_run"][kernels] = f"not run: the Triton kernels run on CUDA only (this device: {device.type})"
             continue
         # the mesh stage once (its seconds are the torch run's); the other run stops after training
-        until = None if not row["runs"] else "train"
+        until = None if not row["runs"] and not args.no_mesh else "train"
         row["runs"][kernels], config, device = run_one(args, kernels, until)
         row["sizing"], row["batch_rays"] = config.train.adjusted, config.train.batch_rays
         first = next(iter(row["runs"].values()))  # the record's headline: the first column (torch by default)
@@ -349,6 +349,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="a config override, as recon --set")
     parser.add_argument("--smoke", action="store_true",
                         help="tiny run (5 s budget, 50-px photos, 32 samples a ray, 32³ mesh): that it runs")
+    parser.add_argument("--no-mesh", action="store_true", help="train only: no column runs the mesh stage")
     parser.add_argument("--keep", action="store_true", help="reuse the scene folder's cached stages")
     parser.add_argument("--quiet", action="store_true", help="only warnings and errors while the pipeline runs")
     args = parser.parse_args(argv)

@@ -6,7 +6,9 @@ Builds the model and ray batcher exactly as the train stage does (same preset, s
 step (ray batch, occupancy refresh, marcher, density and color grids, compositing, backward per kind,
 Adam) by labels wrapped around the model's functions from here, so the library carries no profiling code.
 Each part is compared with what this CPU does at best: a large matmul's GFLOP/s and a memory copy's GB/s,
-measured in the same process. A benchmark measures; it asserts nothing.
+measured in the same process. On CUDA (where `train.device` puts training) the same parts are also given in GPU
+time, the kernels each part launched: a part whose host milliseconds exceed its GPU milliseconds waits on launches
+and host reads, not on the card. A benchmark measures; it asserts nothing.
 """
 from __future__ import annotations
 
@@ -145,13 +147,24 @@ def _part(event: Any) -> str:
     return "other ops (loss, glue)"
 
 
-def attribute(prof: torch.profiler.profile) -> dict[str, float]:
-    """Seconds per part: each top-level event (no parent) counted once, by its label or autograd node."""
+def attribute(prof: torch.profiler.profile, gpu: bool = False) -> dict[str, float]:
+    """Seconds per part: each top-level event (no parent) counted once, by its label or autograd node; its host
+    time, or with `gpu` the time of the GPU kernels it (and the events under it) launched."""
     parts: dict[str, float] = defaultdict(float)
     for ev in prof.events():
         if ev.cpu_parent is None and ev.device_type == torch.autograd.DeviceType.CPU:
-            parts[_part(ev)] += ev.cpu_time_total / 1e6
+            parts[_part(ev)] += (ev.device_time_total if gpu else ev.cpu_time_total) / 1e6
     return dict(parts)
+
+
+def _activities(device: torch.device) -> list[Any]:
+    cuda = [torch.profiler.ProfilerActivity.CUDA] if device.type == "cuda" else []
+    return [torch.profiler.ProfilerActivity.CPU, *cuda]
+
+
+def _sync(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
 
 
 def _labels(model: Any) -> list[tuple[Any, ...]]:
@@ -174,36 +187,46 @@ def _labels(model: Any) -> list[tuple[Any, ...]]:
     ]
 
 
-def _table(parts: dict[str, float], per: int, wall: float, unit: str) -> list[str]:
-    lines = [f"| part | ms per {unit} | share of wall |", "|---|---|---|"]
+def _table(parts: dict[str, float], per: int, wall: float, unit: str,
+           gpu: dict[str, float] | None = None) -> list[str]:
+    """A part's host milliseconds and share of the wall per `unit`; with `gpu` (CUDA) its GPU kernels' milliseconds."""
+    g = (lambda name: f" {1000 * gpu.get(name, 0.0) / per:.1f} |") if gpu is not None else (lambda name: "")
+    lines = [f"| part | ms per {unit} | share of wall |" + (" GPU ms |" if gpu is not None else ""),
+             "|---|---|---|" + ("---|" if gpu is not None else "")]
     for name, s in sorted(parts.items(), key=lambda kv: -kv[1]):
-        lines.append(f"| {name} | {1000 * s / per:.1f} | {100 * s / wall:.0f}% |")
+        lines.append(f"| {name} | {1000 * s / per:.1f} | {100 * s / wall:.0f}% |" + g(name))
     untracked = wall - sum(parts.values())
-    lines.append(f"| Python between ops (wall − ops) | {1000 * untracked / per:.1f} | {100 * untracked / wall:.0f}% |")
-    lines.append(f"| **wall** | **{1000 * wall / per:.1f}** | 100% |")
+    lines.append(f"| Python between ops (wall − ops) | {1000 * untracked / per:.1f} | {100 * untracked / wall:.0f}% |"
+                 + (" |" if gpu is not None else ""))
+    total = f" **{1000 * sum(gpu.values()) / per:.1f}** |" if gpu is not None else ""
+    lines.append(f"| **wall** | **{1000 * wall / per:.1f}** | 100% |" + total)
     return lines
 
 
 def profile_training(cfg: TrainConfig, scene: Scene, views: list[View], report: Any, *, warmup: int = 200,
-                     steps: int = 8, title: str = "") -> tuple[dict[str, Any], TrainPlan, TrainSetup]:
-    """Plan and build training on the CPU as the train stage does (`recon.plans.training`), train ``warmup`` steps, then
-    profile ``steps`` more: (the numbers, the plan, what was built). ``views``: the training photos."""
+                     steps: int = 8, title: str = "", device: torch.device | None = None,
+                     ) -> tuple[dict[str, Any], TrainPlan, TrainSetup]:
+    """Plan and build training on `device` (default the CPU) as the train stage does (`recon.plans.training`), train
+    ``warmup`` steps, then profile ``steps`` more: (the numbers, the plan, what was built). ``views``: the training
+    photos."""
     from recon.nerf.trainer import train
     from recon.plans.training import build_training, plan_training
 
-    device = torch.device("cpu")
+    device = device or torch.device("cpu")
     plan = plan_training(cfg, scene, views, device)
     if plan.kind != "fast":
         raise ValueError(f"--profile measures the fast grid model; {title or 'this configuration'} trains '{plan.kind}'")
     setup = build_training(plan, device)
-    prof = torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CPU])
+    prof = torch.profiler.profile(activities=_activities(device))
     marks: dict[str, float] = {}
 
     def on_step(p: Any) -> None:
         if p.step == warmup:
+            _sync(device)
             marks["t0"] = time.perf_counter()
             prof.start()
         elif p.step == warmup + steps:
+            _sync(device)
             prof.stop()
             marks["t1"] = time.perf_counter()
 
@@ -214,15 +237,21 @@ def profile_training(cfg: TrainConfig, scene: Scene, views: list[View], report: 
             colored = counts["_rgb_unit"][-steps:]
     res: dict[str, Any] = {
         "warmup": warmup, "steps": steps, "batch_rays": plan.batch_rays, "wall_s": marks["t1"] - marks["t0"],
-        "parts": attribute(prof), "train_psnr": result["psnr"],
+        "parts": attribute(prof), "train_psnr": result["psnr"], "device": str(device),
         "samples_per_ray": float(np.mean(samples)) / plan.batch_rays if samples else float("nan"),
         "colored_per_ray": float(np.mean(colored)) / plan.batch_rays if colored else float("nan"),
         "params": sum(p.numel() for p in setup.model.parameters()),
         "pieces": [type(p).__name__ for p in setup.step_kwargs["pieces"]],
         "reasons": plan.reasons,
-        "top_ops": prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=15),
+        "top_ops": prof.key_averages().table(sort_by=_sort_key(device), row_limit=15),
     }
+    if device.type == "cuda":
+        res["gpu_parts"] = attribute(prof, gpu=True)
     return res, plan, setup
+
+
+def _sort_key(device: torch.device) -> str:
+    return "self_device_time_total" if device.type == "cuda" else "self_cpu_time_total"
 
 
 def profile_preset(data: str, preset: str, out_dir: Path, overrides: list[str], report: Any, *,
@@ -233,6 +262,7 @@ def profile_preset(data: str, preset: str, out_dir: Path, overrides: list[str], 
     from recon.capture.scene import load_scene
     from recon.config import load_config
     from recon.evaluation.views import load_views
+    from recon.nerf.device import select_device
     from recon.nerf.evaluate import render_image
 
     config = load_config(preset, overrides)
@@ -240,27 +270,33 @@ def profile_preset(data: str, preset: str, out_dir: Path, overrides: list[str], 
     cfg = config.train
     scene = load_scene(scene_dir / "02_scene")
     views = load_views(scene, scene.split("train"), cfg.max_side, report, "training photos")
-    step, plan, setup = profile_training(cfg, scene, views, report, warmup=warmup, steps=steps, title=preset)
+    device = select_device(cfg.device)
+    step, plan, setup = profile_training(cfg, scene, views, report, warmup=warmup, steps=steps, title=preset,
+                                         device=device)
     res: dict[str, Any] = {"preset": preset, "data": data, **step}
     if render:
         model, aabb, background = setup.model, setup.aabb, torch.tensor(plan.background)
         test = scene.split("test") or scene.split("val") or scene.split("train")
         view = load_views(scene, test[:1], cfg.max_side)[0]
         h, w = view.hw
-        c2w_t = torch.tensor(view.c2w, dtype=torch.float32)
+        c2w_t = torch.tensor(view.c2w, dtype=torch.float32, device=device)
         box: dict[str, Any] = {"aabb": aabb} if aabb is not None else {"near": view.near, "far": view.far}
         render_image(model, c2w_t, view.intrinsics, 32, 32, autocast=plan.autocast, **box)  # first-call costs out of the timing
-        rprof = torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CPU])
+        rprof = torch.profiler.profile(activities=_activities(device))
         with _labelled(_labels(model)) as rcounts:
+            _sync(device)
             t0 = time.perf_counter()
             with rprof:
                 render_image(model, c2w_t, view.intrinsics, h, w, background=background, autocast=plan.autocast, **box)
+                _sync(device)
             rwall = time.perf_counter() - t0
         res["render"] = {"view": view.name, "size": f"{w}×{h}", "wall_s": rwall, "parts": attribute(rprof),
                          "samples": sum(rcounts["_sigma_unit"]) + sum(rcounts["march_dense_native"])
                          + sum(rcounts["march_render_native"]),
                          "rays": h * w,
-                         "top_ops": rprof.key_averages().table(sort_by="self_cpu_time_total", row_limit=12)}
+                         "top_ops": rprof.key_averages().table(sort_by=_sort_key(device), row_limit=12)}
+        if device.type == "cuda":
+            res["render"]["gpu_parts"] = attribute(rprof, gpu=True)
     return res
 
 
@@ -285,12 +321,14 @@ def markdown(results: list[dict[str, Any]], limits: dict[str, float], load: tupl
         lines += [
             f"## {r['preset']} on {r['data']}: {r['steps']} steps after {r['warmup']}",
             "",
+            f"Device {r['device']}.",
+            "",
             f"{r['batch_rays']} rays/step, {r['samples_per_ray']:.1f} samples/ray after the marcher, "
             f"{r['colored_per_ray']:.1f} colored/ray, {r['params'] / 1e6:.1f} M parameters, "
             f"{r['steps'] * r['batch_rays'] / r['wall_s']:,.0f} rays/s while profiled; the step's pieces (as the train "
             f"stage plans them): {', '.join(r['pieces']) or 'none'}.",
             "",
-            *_table(r["parts"], r["steps"], r["wall_s"], "step"),
+            *_table(r["parts"], r["steps"], r["wall_s"], "step", r.get("gpu_parts")),
             "",
         ]
         if "render" in r:
@@ -299,7 +337,7 @@ def markdown(results: list[dict[str, Any]], limits: dict[str, float], load: tupl
                 f"Test render {rr['view']} ({rr['size']}): {rr['wall_s']:.2f} s, "
                 f"{rr['samples'] / rr['rays']:.1f} density evaluations/ray.",
                 "",
-                *_table(rr["parts"], 1, rr["wall_s"], "render"),
+                *_table(rr["parts"], 1, rr["wall_s"], "render", rr.get("gpu_parts")),
                 "",
             ]
         lines += ["<details><summary>top ops (step)</summary>", "", "```", r["top_ops"], "```", "", "</details>", ""]
