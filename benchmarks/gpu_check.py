@@ -15,7 +15,7 @@ and up means the two paths draw the same image). A check measures; it asserts no
 On CUDA it trains twice, A/B, with the same settings: `train.fast.kernels=torch` (all stages) and
 `train.fast.kernels=triton` (the train stage: recon/nerf/kernels.py's fused compositing and grid reads), one column
 each, after timing each kernel against its torch reference at the preset's batch size (which also compiles them
-before training). `train.fast.kernels=auto` stays on torch until such a record shows the kernels faster at the same
+before training). `train.fast.kernels=auto` uses the kernels since such a record showed them faster at the same
 PSNR (recon.nerf.kernels.MEASURED_FASTER). On a CPU only the torch column runs (the kernels are CUDA-only).
 """
 from __future__ import annotations

@@ -206,13 +206,30 @@ def test_render_chunks_grow_with_a_cuda_cards_memory_only(device: torch.device) 
     assert default_render_chunk(ClassicModel(), device) == 8192  # models without packed samples keep the default
 
 
+def test_the_color_network_runs_in_slices_on_a_cpu_and_in_one_call_on_a_gpu() -> None:
+    from recon.nerf.fast import MLP_SLICE, in_slices
+
+    calls = []
+
+    def row_wise(f: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
+        calls.append(f.shape[0])
+        return f * 2 + d
+
+    f, d = torch.randn(2 * MLP_SLICE + 5, 3), torch.randn(2 * MLP_SLICE + 5, 3)
+    torch.testing.assert_close(in_slices(row_wise, f, d), f * 2 + d)
+    assert calls == [MLP_SLICE, MLP_SLICE, 5]  # a CPU's cache takes a slice at a time
+    calls.clear()
+    meta = torch.empty(2 * MLP_SLICE + 5, 3, device="meta")  # a device that is not the CPU, without one
+    assert in_slices(row_wise, meta, meta).shape == meta.shape and calls == [2 * MLP_SLICE + 5]
+
+
 # ----------------------------------------------------------------------------- Triton kernels: the switch
 # (the kernels against their torch references: tests/test_triton_kernels.py)
 def test_kernels_auto_stays_on_torch_until_measured_and_a_cpu_never_uses_triton() -> None:
     from recon.nerf import kernels
 
     use, why = kernels.kernels_choice("auto", "cuda")
-    assert use is kernels.MEASURED_FASTER
+    assert use is (kernels.MEASURED_FASTER and kernels.triton_status()[0])
     if not kernels.MEASURED_FASTER:
         assert why.startswith("kernels: torch") and "until a GPU check measures the Triton kernels faster" in why
     assert kernels.kernels_choice("torch", "cuda") == (False, "kernels: torch (train.fast.kernels=torch)")

@@ -1,6 +1,6 @@
 """The Triton kernels (recon.nerf.kernels) against the torch code they replace: forward values and gradients.
 
-Where CUDA is present the kernels run compiled, in this process. Everywhere triton is installed they also run under
+Where CUDA is present the kernels run compiled, in this process. Elsewhere, where triton is installed, they run under
 Triton's interpreter (numpy on CPU tensors): TRITON_INTERPRET=1 must be set before triton is imported, so
 `test_kernels_under_the_interpreter` runs this file again in a subprocess with it set; no other test sees the
 variable or an imported triton. Without triton every test here skips. The interpreter is slow (numpy per program),
@@ -205,8 +205,10 @@ def test_fast_model_renders_and_trains_the_same_through_the_kernels(device: str,
 
 # ----------------------------------------------------------------------------- the interpreter run
 @pytest.mark.skipif(INTERPRETED, reason="this is the interpreter run")
+@pytest.mark.skipif(DEVICE == "cuda", reason="CUDA is here: the kernel cases ran compiled, the code the train stage runs")
 def test_kernels_under_the_interpreter() -> None:
-    """This file again with TRITON_INTERPRET=1 in a fresh process: every kernel case on CPU tensors."""
+    """This file again with TRITON_INTERPRET=1 in a fresh process: every kernel case on CPU tensors, where no GPU
+    compiles them (on an H100 machine, triton 3.6's interpreter failed on numpy 2.5, while the compiled cases passed)."""
     env = {**os.environ, "TRITON_INTERPRET": "1"}
     run = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-o", "addopts=",
                           str(Path(__file__).relative_to(REPO))], cwd=REPO, env=env, capture_output=True, text=True,

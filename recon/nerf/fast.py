@@ -138,15 +138,18 @@ def color_from_features(f: Tensor, d: Tensor, mlp: nn.Module | None, color_model
 
 
 MLP_SLICE = 8192
-"""Samples per call of the color MLP. A batch's colored samples (~66k per training step, ~125k per 16k-ray
+"""Samples per call of the color MLP on a CPU. A batch's colored samples (~66k per training step, ~125k per 16k-ray
 render chunk) in one call push the MLP's 64-wide activations out of the cache: in slices the same work runs
-markedly faster on a CPU, forward and backward, with the same results to float rounding."""
+markedly faster on a CPU, forward and backward, with the same results to float rounding. A GPU takes them in one
+call: each slice launches the network's kernels again, and on an H100 a step's 49 slices cost 89 ms of host time
+for 3 ms of kernels (docs/profile_gpu.md)."""
 
 
 def in_slices(fn: Callable[[Tensor, Tensor], Tensor], f: Tensor, d: Tensor) -> Tensor:
-    """``fn(f, d)`` of a row-wise ``fn``, computed on slices of ``MLP_SLICE`` rows (differentiably when recording)."""
+    """``fn(f, d)`` of a row-wise ``fn``, on a CPU computed on slices of ``MLP_SLICE`` rows (differentiably when
+    recording); elsewhere in one call."""
     n = f.shape[0]
-    if n <= MLP_SLICE:
+    if n <= MLP_SLICE or f.device.type != "cpu":
         return fn(f, d)
     if torch.is_grad_enabled():
         return torch.cat([fn(f[s : s + MLP_SLICE], d[s : s + MLP_SLICE]) for s in range(0, n, MLP_SLICE)])
