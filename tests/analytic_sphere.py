@@ -59,7 +59,7 @@ class SoftSphere(RadianceModel):
     def radiance(self, x: Tensor, d: Tensor) -> Tensor:
         return sphere_color(x)
 
-    def render_rays(self, rays_o, rays_d, near, far, *, training, background):
+    def render_rays(self, rays_o, rays_d, near, far, *, training, background, colors=True):
         t = stratified(near, far, self.samples, jitter=False)
         x = rays_o[:, None] + t[..., None] * rays_d[:, None]
         sigma = self.density(x.reshape(-1, 3)).view(t.shape)

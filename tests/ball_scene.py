@@ -34,7 +34,7 @@ class Ball(RadianceModel):
     def radiance(self, x: Tensor, d: Tensor) -> Tensor:
         return self.color.expand(x.shape[0], 3)
 
-    def render_rays(self, rays_o, rays_d, near, far, *, training, background):
+    def render_rays(self, rays_o, rays_d, near, far, *, training, background, colors=True):
         t = stratified(near, far, 128, jitter=False)
         x = rays_o[:, None] + t[..., None] * rays_d[:, None]
         sigma = self.density(x.reshape(-1, 3)).view(t.shape)

@@ -46,7 +46,7 @@ class FixedBall(RadianceModel):
     def radiance(self, x: Tensor, d: Tensor) -> Tensor:
         return COLOR.expand(x.shape[0], 3)
 
-    def render_rays(self, rays_o, rays_d, near, far, *, training, background):
+    def render_rays(self, rays_o, rays_d, near, far, *, training, background, colors=True):
         t = stratified(near, far, 96, jitter=False)
         sigma = self.density((rays_o[:, None] + t[..., None] * rays_d[:, None]).reshape(-1, 3)).view(t.shape)
         out = render_dense(sigma, (COLOR + 0.0 * self.unused).expand(*t.shape, 3), t, far, background)

@@ -43,6 +43,35 @@ def test_render_rays_shapes_and_finite(grid: str, unbounded: bool) -> None:
     assert model.density(x).shape == (100,) and model.radiance(x, d[:1].expand(100, 3)).shape == (100, 3)
 
 
+@pytest.mark.parametrize("native", [True, False])
+def test_a_depth_only_render_gives_the_same_depth_without_the_colour_work(native: bool, monkeypatch) -> None:
+    """colors=False (the mesh stage's depth maps, the depth prior): the same depth and opacity, no colour evaluated,
+    the background as rgb; through the C marcher (rendering) and the torch one (training, and CUDA)."""
+    import recon.nerf.fast as fast
+
+    if not native:
+        monkeypatch.setattr(fast, "march_render_native", lambda *a, **k: None)
+        monkeypatch.setattr(fast, "march_dense_native", lambda *a, **k: None)
+    torch.manual_seed(0)
+    model = FastModel(FastConfig(**{**TINY, "density_levels": 1}))
+    with torch.no_grad():
+        model.density_grid.table.add_(torch.randn_like(model.density_grid.table) * 3.0)
+    o, d, near, far = _rays(96)
+    bg = torch.tensor([0.2, 0.4, 0.6])
+    colored = []
+    monkeypatch.setattr(FastModel, "_rgb_unit", lambda self, u, dirs: colored.append(len(u)) or torch.zeros(len(u), 3))
+    with torch.no_grad():
+        full = model.render_rays(o, d, near, far, training=False, background=bg)
+        assert colored and sum(colored) > 0
+        colored.clear()
+        depth_only = model.render_rays(o, d, near, far, training=False, background=bg, colors=False)
+    assert not colored
+    torch.testing.assert_close(depth_only["depth"], full["depth"])
+    torch.testing.assert_close(depth_only["opacity"], full["opacity"])
+    assert 0 < float(full["opacity"].mean()) < 1
+    torch.testing.assert_close(depth_only["rgb"], bg.expand(96, 3))
+
+
 def test_initial_opacity_per_step_and_zero_outside_box() -> None:
     cfg = FastConfig(init_alpha=0.01, **TINY)
     model = FastModel(cfg)

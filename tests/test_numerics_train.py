@@ -43,7 +43,7 @@ class NaNAt(RadianceModel):
     def radiance(self, x: Tensor, d: Tensor) -> Tensor:
         return self.inner.radiance(x, d)
 
-    def render_rays(self, rays_o, rays_d, near, far, *, training, background):
+    def render_rays(self, rays_o, rays_d, near, far, *, training, background, colors=True):
         out = self.inner.render_rays(rays_o, rays_d, near, far, training=training, background=background)
         if self.step >= self.bad_step:
             out = {**out, "rgb": out["rgb"] * torch.nan}

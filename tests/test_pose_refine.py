@@ -77,7 +77,7 @@ class TexturedBall(RadianceModel):
     def radiance(self, x: Tensor, d: Tensor) -> Tensor:
         return 0.5 + 0.4 * torch.stack([torch.sin(6 * x[..., 0]), torch.sin(6 * x[..., 1] + 1), torch.cos(6 * x[..., 2])], -1)
 
-    def render_rays(self, rays_o, rays_d, near, far, *, training, background):
+    def render_rays(self, rays_o, rays_d, near, far, *, training, background, colors=True):
         t = stratified(near, far, 64, jitter=False)
         x = rays_o[:, None] + t[..., None] * rays_d[:, None]
         out = render_dense(self.density(x), self.radiance(x, rays_d) + 0.0 * self.unused, t, far, background)

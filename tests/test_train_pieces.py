@@ -37,7 +37,7 @@ class Blob(RadianceModel):
         return torch.sigmoid(self.color).expand(*x.shape[:-1], 3)
 
     def render_rays(self, rays_o: Tensor, rays_d: Tensor, near: Tensor, far: Tensor, *, training: bool,
-                    background: Tensor) -> dict[str, Tensor]:
+                    background: Tensor, colors: bool = True) -> dict[str, Tensor]:
         t = stratified(near, far, 8, jitter=training)
         x = rays_o[:, None] + t[..., None] * rays_d[:, None]
         return render_dense(self.density(x), self.radiance(x, rays_d), t, far, background)

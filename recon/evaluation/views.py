@@ -101,15 +101,16 @@ def key_backdrop(image: np.ndarray, color: np.ndarray, tolerance: float = BACKDR
 
 
 def render_view(model: torch.nn.Module, view: View, aabb: torch.Tensor | None, background: np.ndarray, chunk: int | None = None,
-                autocast: torch.dtype | None = None) -> dict[str, np.ndarray]:
-    """Render a view at its resolution → numpy rgb (H, W, 3), depth (H, W), opacity (H, W)."""
+                autocast: torch.dtype | None = None, colors: bool = True) -> dict[str, np.ndarray]:
+    """Render a view at its resolution → numpy rgb (H, W, 3), depth (H, W), opacity (H, W); ``colors=False``: depth
+    and opacity only (`recon.nerf.evaluate.render_image`)."""
     from recon.nerf.evaluate import render_image
 
     h, w = view.hw
     device = next(model.parameters()).device
     kwargs: dict[str, Any] = {"aabb": aabb} if aabb is not None else {"near": view.near, "far": view.far}
     out = render_image(model, torch.tensor(view.c2w, dtype=torch.float32, device=device), view.intrinsics, h, w, chunk,
-                       background=torch.tensor(background), autocast=autocast, **kwargs)
+                       background=torch.tensor(background), autocast=autocast, colors=colors, **kwargs)
     return {k: v.detach().cpu().numpy() for k, v in out.items()}
 
 

@@ -63,7 +63,7 @@ def render_depth(
     h, w = view.hw
     scale = min(1.0, max_side / max(h, w)) if max_side else 1.0
     if scale >= 1.0:
-        out = render_view(model, view, aabb, background)
+        out = render_view(model, view, aabb, background, colors=False)
         if opacities is not None:
             opacities.append(out["opacity"])
         return out["depth"]
@@ -71,7 +71,7 @@ def render_depth(
     sx, sy = w2 / w, h2 / h
     fx, fy, cx, cy = view.intrinsics
     small = View(view.name, np.zeros((h2, w2, 3), np.uint8), view.c2w, (fx * sx, fy * sy, cx * sx, cy * sy), view.near, view.far)
-    out = render_view(model, small, aabb, background)
+    out = render_view(model, small, aabb, background, colors=False)
     rows = np.minimum(((np.arange(h) + 0.5) * sy).astype(np.int64), h2 - 1)
     cols = np.minimum(((np.arange(w) + 0.5) * sx).astype(np.int64), w2 - 1)
     if opacities is not None:

@@ -146,8 +146,10 @@ class ClassicModel(RadianceModel):
         *,
         training: bool,
         background: Tensor,
+        colors: bool = True,
     ) -> dict[str, Any]:
-        """See :meth:`RadianceModel.render_rays`; also returns 'weights' (N, S) of the final pass."""
+        """See :meth:`RadianceModel.render_rays` (its colour comes out of the same network pass as its density, so
+        ``colors`` saves nothing and is not used); also returns 'weights' (N, S) of the final pass."""
         t_c = stratified(near, far, self.n_coarse, jitter=training)
         coarse = self._render_net(self.coarse, rays_o, rays_d, t_c, far, background)
         if self.fine is None:

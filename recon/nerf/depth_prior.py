@@ -188,5 +188,6 @@ class DepthPrior:
         gen = torch.Generator().manual_seed(self.seed * 1_000_003 + step)
         i = torch.randint(len(self), (min(self.rays, len(self)),), generator=gen).to(self.depth.device)
         bg = None if background is None else background[: i.numel()]
-        out = model.render_rays(self.rays_o[i], self.rays_d[i], self.near[i], self.far[i], training=True, background=bg)
+        out = model.render_rays(self.rays_o[i], self.rays_d[i], self.near[i], self.far[i], training=True, background=bg,
+                                colors=False)  # the loss reads depth only
         return {"depth": self.weight * depth_loss(out["depth"].float(), self.depth[i], self.sigma[i])}

@@ -71,6 +71,7 @@ def render_image(
     far: float | None = None,
     background: Tensor | Sequence[float] = (1.0, 1.0, 1.0),
     autocast: torch.dtype | None = None,
+    colors: bool = True,
 ) -> dict[str, Tensor]:
     """Render one camera, ``chunk`` rays at a time (default: :func:`default_render_chunk`), under
     ``inference_mode`` in eval mode.
@@ -80,6 +81,8 @@ def render_image(
         aabb: (2, 3) scene box giving near/far per ray (rays missing it show the background
             without running the model); or give ``near`` and ``far`` distances.
         autocast: mixed-precision dtype for the model (see :class:`recon.nerf.trainer.TrainStep`), or None.
+        colors: False for depth and opacity only (rgb is then the background where the model skips its colour
+            work: :meth:`RadianceModel.render_rays`).
 
     Returns dict: rgb (h, w, 3), depth (h, w) (0 where the ray misses the box), opacity (h, w).
     """
@@ -107,7 +110,7 @@ def render_image(
         with torch.inference_mode(), torch.autocast(device.type, dtype=autocast or torch.bfloat16, enabled=autocast is not None):
             for s in range(0, idx.numel(), chunk):
                 i = idx[s : s + chunk]
-                out = model.render_rays(o[i], d[i], t0[i], t1[i], training=False, background=bg)
+                out = model.render_rays(o[i], d[i], t0[i], t1[i], training=False, background=bg, colors=colors)
                 rgb[i], depth[i], opacity[i] = out["rgb"].float(), out["depth"].float(), out["opacity"].float()
     finally:
         model.train(was_training)

@@ -311,12 +311,14 @@ class FastModel(RadianceModel):
         *,
         training: bool,
         background: Tensor | None = None,
+        colors: bool = True,
     ) -> dict[str, Any]:
         """Render rays (N, 3) between near/far (N,) (see RadianceModel.render_rays).
 
         Returns rgb (N, 3), depth (N,), opacity (N,), background (N, 3) (the one composited, so a
         trainer using "random" can composite its targets the same way), num_samples (int, packed M),
-        and 'reg' (weighted regularizers) when any regularizer weight is non-zero.
+        and 'reg' (weighted regularizers) when any regularizer weight is non-zero. ``colors=False`` skips the
+        feature grid and the colour network (about half a render's time): rgb is then the background.
         """
         cfg = self.config
         n = rays_o.shape[0]
@@ -348,7 +350,7 @@ class FastModel(RadianceModel):
             fused = march_render_native(rays_o, rays_d, t_near, t_far, field, step_size, cfg.max_samples,
                                         cfg.early_stop_transmittance, cfg.color_min_weight)
             if fused is not None:
-                return self._composite_native(fused, rays_o, rays_d, far, background)
+                return self._composite_native(fused, rays_o, rays_d, far, background, colors)
         # the torch contracted marcher has no front-to-back variant: it returns no densities to reuse
         infer = no_grad and not contracted
         with torch.no_grad():
@@ -384,22 +386,25 @@ class FastModel(RadianceModel):
         else:
             weights, _ = render_weights_packed(sigma, delta, ri, n)
             opacity = accumulate_packed(weights, None, ri, n)
-        if cfg.color_min_weight > 0:
-            sel = (weights.detach() > cfg.color_min_weight).nonzero().squeeze(-1)
-            ri_c, w_c = ri[sel], weights[sel]
-            u_c = u[sel] if u is not None else self._unit(rays_o[ri_c] + rays_d[ri_c] * mid[sel, None]).clamp(0.0, 1.0)
-        else:
-            ri_c, w_c = ri, weights
-            u_c = u if u is not None else self._unit(rays_o[ri] + rays_d[ri] * mid[:, None]).clamp(0.0, 1.0)
-        rgb_s = self._rgb_unit(u_c, rays_d[ri_c])
         bg = self._background(background, rays_d, training)
         remainder = (1.0 - opacity).clamp_min(0.0)
-        if fused:
-            rgb = accumulate_packed_triton(w_c, rgb_s.float(), ri_c, n) + remainder[:, None] * bg
-            depth = depth_sum + remainder * far
+        depth = depth_sum + remainder * far if fused else accumulate_packed(weights, mid, ri, n) + remainder * far
+        if not colors:
+            rgb = bg.expand(n, 3)
         else:
-            rgb = accumulate_packed(w_c, rgb_s, ri_c, n) + remainder[:, None] * bg
-            depth = accumulate_packed(weights, mid, ri, n) + remainder * far
+            if cfg.color_min_weight > 0:
+                sel = (weights.detach() > cfg.color_min_weight).nonzero().squeeze(-1)
+                ri_c, w_c = ri[sel], weights[sel]
+                u_c = (u[sel] if u is not None
+                       else self._unit(rays_o[ri_c] + rays_d[ri_c] * mid[sel, None]).clamp(0.0, 1.0))
+            else:
+                ri_c, w_c = ri, weights
+                u_c = u if u is not None else self._unit(rays_o[ri] + rays_d[ri] * mid[:, None]).clamp(0.0, 1.0)
+            rgb_s = self._rgb_unit(u_c, rays_d[ri_c])
+            if fused:
+                rgb = accumulate_packed_triton(w_c, rgb_s.float(), ri_c, n) + remainder[:, None] * bg
+            else:
+                rgb = accumulate_packed(w_c, rgb_s, ri_c, n) + remainder[:, None] * bg
         out: dict[str, Any] = {"rgb": rgb, "depth": depth, "opacity": opacity, "background": bg,
                                "num_samples": int(ri.shape[0]), "density_evals": evaluated[0]}
         reg = self._regularizers(weights, mid, delta, ri, n, opacity)
@@ -423,15 +428,17 @@ class FastModel(RadianceModel):
                             contracted)
 
     def _composite_native(self, fused: dict[str, Tensor], rays_o: Tensor, rays_d: Tensor, far: Tensor,
-                          background: Tensor | None) -> dict[str, Any]:
+                          background: Tensor | None, colors: bool = True) -> dict[str, Any]:
         """render_rays' result from :func:`march_render_native`'s per-ray sums and colored samples."""
         n = rays_o.shape[0]
         ri_c, w_c = fused["ray_indices"], fused["weights"]
-        rgb_s = self._rgb_unit(fused["u"], rays_d[ri_c])
         opacity = fused["opacity"]
         bg = self._background(background, rays_d, False)
         remainder = (1.0 - opacity).clamp_min(0.0)
-        rgb = accumulate_packed(w_c, rgb_s, ri_c, n) + remainder[:, None] * bg
+        if colors:
+            rgb = accumulate_packed(w_c, self._rgb_unit(fused["u"], rays_d[ri_c]), ri_c, n) + remainder[:, None] * bg
+        else:
+            rgb = bg.expand(n, 3)
         depth = fused["depth_sum"] + remainder * far
         samples = int(fused["samples"].sum())
         return {"rgb": rgb, "depth": depth, "opacity": opacity, "background": bg, "num_samples": samples,

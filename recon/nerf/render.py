@@ -332,12 +332,15 @@ class RadianceModel(nn.Module, abc.ABC):
         *,
         training: bool,
         background: Tensor,
+        colors: bool = True,
     ) -> dict[str, Any]:
         """Render rays_o/rays_d (N, 3) between near/far (N,) over background (3,) or (N, 3).
 
         Returns 'rgb' (N, 3), 'depth' (N,), 'opacity' (N,); optionally 'aux_rgb' (list of (N, 3)
         extra predictions supervised with the same target, e.g. the coarse network) and 'reg'
         (a scalar regularization loss, already weighted). ``training`` enables sample jitter.
+        ``colors=False`` asks for depth and opacity only (the mesh stage's depth maps): a model whose colour is
+        separate work may skip it and return the background as 'rgb'.
         """
 
     @abc.abstractmethod

@@ -283,9 +283,10 @@ class SurfaceModel(RadianceModel):
         *,
         training: bool,
         background: Tensor | None = None,
+        colors: bool = True,
     ) -> dict[str, Any]:
-        """Render rays (N, 3) between near/far (N,) (see RadianceModel.render_rays); in training also
-        returns 'reg' (Eikonal + curvature, weighted) and 'sharpness'."""
+        """Render rays (N, 3) between near/far (N,) (see RadianceModel.render_rays; ``colors`` is not used); in
+        training also returns 'reg' (Eikonal + curvature, weighted) and 'sharpness'."""
         cfg = self.config
         n = rays_o.shape[0]
         box = self.march_box if bool(self.occupancy.warm) else self.aabb
