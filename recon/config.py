@@ -205,7 +205,10 @@ class MeshConfig:
     cpu_bake_views: int = 0
     """On the CPU the mesh is checked (hidden faces, masks) and colored against at most this many training photos,
     spread evenly, each costing a render of the field's depth; 0: 24 for the grid models, 6 for the classic NeRF
-    (which renders about a hundred times slower). A GPU uses every training photo."""
+    (which renders about a hundred times slower)."""
+    gpu_bake_views: int = 0
+    """The same on a GPU, where each photo costs the CPU's rasterizing and baking more than the depth render;
+    0: 48."""
     cpu_depth_side: int = 0
     """On the CPU those depth renders are at most this many pixels on the longest side (upsampled to the photo);
     0: 200 for the grid models, 64 for the classic NeRF. A GPU renders them at training size."""
@@ -551,6 +554,7 @@ BOUNDS: dict[str, Bound] = {
     "mesh.fill_cavities": _range(0, 256),
     "mesh.mask_keep_fraction": _range(0, 1),
     "mesh.cpu_bake_views": _range(1, 10**5, off=0, off_means="automatic"),
+    "mesh.gpu_bake_views": _range(1, 10**5, off=0, off_means="automatic"),
     "mesh.cpu_depth_side": _range(8, 16384, off=0, off_means="automatic"),
     "mesh.region_margin": _range(0, 10),
     "mesh.ground_margin_cells": _range(0, 100),

@@ -379,7 +379,10 @@ def test_plan_picks_the_photos_to_check_and_color_against() -> None:
     assert [f.name for f in few.view_frames] == ["v0.png", "v4.png"] and few.depth_side == 32
     assert "2 of 5 training views (spread evenly; at most 2 on the CPU for the classic model" in few.views_why
     gpu = mesh_plan.plan_mesh(MeshConfig(resolution=65), scene, PLAN_META, on_cpu=False, voxel=0.0)
-    assert len(gpu.view_frames) == 5 and gpu.depth_side is None
+    assert len(gpu.view_frames) == 5 and gpu.depth_side is None  # fewer photos than GPU_BAKE_VIEWS: all of them
+    gpu_few = mesh_plan.plan_mesh(MeshConfig(resolution=65, gpu_bake_views=3), scene, PLAN_META, on_cpu=False, voxel=0.0)
+    assert [f.name for f in gpu_few.view_frames] == ["v0.png", "v2.png", "v4.png"] and gpu_few.depth_side is None
+    assert "at most 3 on a GPU" in gpu_few.views_why
     field = mesh_plan.plan_mesh(MeshConfig(resolution=65, color="field", drop_hidden=False, texture_faces=0), scene,
                                 PLAN_META, on_cpu=True, voxel=0.0)
     assert not field.uses_views and field.view_frames == [] and not field.texture and field.held_out_frames == []
