@@ -12,11 +12,12 @@ seconds, and the CPU-vs-device agreement: the trained field rendered on the CPU 
 views, as the PSNR of one render against the other (the CPU's C marcher against CUDA's torch or Triton path; 40 dB
 and up means the two paths draw the same image). A check measures; it asserts nothing.
 
-On CUDA it trains twice, A/B, with the same settings: `train.fast.kernels=torch` (all stages) and
-`train.fast.kernels=triton` (the train stage: recon/nerf/kernels.py's fused compositing and grid reads), one column
-each, after timing each kernel against its torch reference at the preset's batch size (which also compiles them
-before training). `train.fast.kernels=auto` uses the kernels since such a record showed them faster at the same
-PSNR (recon.nerf.kernels.MEASURED_FASTER). On a CPU only the torch column runs (the kernels are CUDA-only).
+On CUDA it trains once per column (`--columns`, each the same run but for its overrides): `default` (what recon
+does on this card: the preset sized to it, the Triton kernels where recon.nerf.kernels.MEASURED_FASTER, all stages),
+`torch` (train.fast.kernels=torch: the kernels' torch references) and `unsized` (train.device_sizing=off: the CPU's
+preset values on the GPU), the others training only; before them each Triton kernel is timed against its torch
+reference at the preset's batch (which also compiles them before training). On a CPU only the default column runs:
+the others are the same run there.
 """
 from __future__ import annotations
 
@@ -43,7 +44,13 @@ A field trained for seconds is still fog: every ray marches to its sample cap, a
 evaluation, the timing, the mesh stage's depth maps of its baking views) pays that cap; 32 samples a ray keep them
 to seconds on a CPU. The appearance check (feature matching between photos) is skipped: the Lego's exposure is
 constant."""
-KERNELS = ("torch", "triton")
+COLUMNS: dict[str, list[str]] = {
+    "default": [],
+    "torch": ["train.fast.kernels=torch"],
+    "triton": ["train.fast.kernels=triton"],
+    "unsized": ["train.device_sizing=off"],
+}
+"""--columns: each column's overrides on top of the check's own. All but `default` compare something CUDA has."""
 
 
 def _sync(device: torch.device) -> None:
@@ -179,8 +186,9 @@ def kernel_timings(config: Any, device: torch.device) -> dict[str, Any]:
     return result
 
 
-def run_one(args: argparse.Namespace, kernels: str, until: str | None) -> tuple[dict[str, Any], Any, Any]:
-    """One pipeline run with train.fast.kernels=`kernels` (until the stage `until`, all when None): its column."""
+def run_one(args: argparse.Namespace, column: str, until: str | None, sweep: bool) -> tuple[dict[str, Any], Any, Any]:
+    """One pipeline run with `column`'s overrides (until the stage `until`, all when None; the render chunk swept
+    when `sweep`): its column."""
     from recon.app.progress import Reporter
     from recon.capture.scene import load_scene, spread_evenly
     from recon.config import load_config
@@ -189,12 +197,12 @@ def run_one(args: argparse.Namespace, kernels: str, until: str | None) -> tuple[
     from recon.stages import default_pipeline
 
     overrides = [*(SMOKE if args.smoke else []), f"train.final_eval_views={args.test_views}",
-                 f"train.fast.kernels={kernels}", *args.set]
+                 *COLUMNS[column], *args.set]
     if args.budget:
         overrides.append(f"train.budget={args.budget}")
     config = load_config(args.preset, overrides)
     device = select_device(config.train.device)
-    scene = args.out / f"lego-{args.preset}-{kernels}"
+    scene = args.out / f"lego-{args.preset}-{column}"
     if scene.exists() and not args.keep:
         shutil.rmtree(scene)
     report = Reporter(quiet=args.quiet)
@@ -213,7 +221,9 @@ def run_one(args: argparse.Namespace, kernels: str, until: str | None) -> tuple[
     timing_views = load_views(normalized, spread_evenly(tests, args.render_views + 1), config.train.max_side)
     agree_views = load_views(normalized, spread_evenly(tests, args.agreement_views), config.train.max_side)
     column = {
-        "kernels": next((r for r in metrics["reasons"] if "kernels:" in r), f"train.fast.kernels={kernels}"),
+        "kernels": next((r for r in metrics["reasons"] if "kernels:" in r), "kernels: C and torch (a CPU)"),
+        "sizing": next((r for r in metrics["reasons"] if r.startswith("GPU sizing")), "the preset's values"),
+        "batch_rays": config.train.batch_rays,
         "overrides": overrides,
         "steps": metrics["steps"],
         "train_time_s": metrics["train_time_s"],
@@ -226,7 +236,8 @@ def run_one(args: argparse.Namespace, kernels: str, until: str | None) -> tuple[
         "render_size": list(timing_views[0].hw),
         "mesh_stage_s": stage_s.get("mesh"),
         "mesh_timings_s": json.loads(mesh_report.read_text()).get("timings_s") if until is None else None,
-        "render_chunks": chunk_sweep(scene / "03_field", timing_views[1:] or timing_views, device, args.render_chunks),
+        "render_chunks": (chunk_sweep(scene / "03_field", timing_views[1:] or timing_views, device, args.render_chunks)
+                          if sweep else {"skipped": "swept in the first column"}),
         "evals": metrics.get("evals", []),
         "peak_gpu_memory_gib": peak_gib,
         "stage_wall_s": stage_s,
@@ -238,7 +249,7 @@ def run_one(args: argparse.Namespace, kernels: str, until: str | None) -> tuple[
 
 
 def run_check(args: argparse.Namespace) -> dict[str, Any]:
-    """Kernel timings, then a column per kernels setting; gpu_check.json is rewritten after each part, so a check
+    """Kernel timings, then a column per `--columns` entry; gpu_check.json is rewritten after each part, so a check
     cut short (a time limit on a lent machine) keeps what it measured."""
     from recon.app.bench import provenance
     from recon.config import load_config
@@ -267,18 +278,20 @@ def run_check(args: argparse.Namespace) -> dict[str, Any]:
         row["wall_s"] = round(time.perf_counter() - t0, 1)
         write_record(args.out, row)
 
-    row["kernel_timings"] = kernel_timings(probe, device) if "triton" in args.kernels else {"skipped": "--kernels torch"}
+    row["kernel_timings"] = kernel_timings(probe, device)
     save()
-    for kernels in args.kernels:
-        if kernels == "triton" and device.type != "cuda":
-            row["not_run"][kernels] = f"not run: the Triton kernels run on CUDA only (this device: {device.type})"
+    for column in args.columns:
+        if column != "default" and device.type != "cuda":
+            row["not_run"][column] = f"not run: on a {device.type} it is the default column's run"
             continue
-        # the mesh stage once (its seconds are the torch run's); the other run stops after training
-        until = None if not row["runs"] and not args.no_mesh else "train"
-        row["runs"][kernels], config, device = run_one(args, kernels, until)
-        row["sizing"], row["batch_rays"] = config.train.adjusted, config.train.batch_rays
-        first = next(iter(row["runs"].values()))  # the record's headline: the first column (torch by default)
-        row.update(steps=first["steps"], rays_per_s=first["rays_per_s"], psnr=first["psnr"])
+        # the mesh stage and the render-chunk sweep once, in the first column; the others stop after training
+        first = not row["runs"]
+        until = None if first and not args.no_mesh else "train"
+        row["runs"][column], config, device = run_one(args, column, until, sweep=first)
+        if first:  # the record's headline: the first column (default: what recon does on this device)
+            head = row["runs"][column]
+            row.update(sizing=config.train.adjusted, batch_rays=config.train.batch_rays, steps=head["steps"],
+                       rays_per_s=head["rays_per_s"], psnr=head["psnr"])
         save()
     return row
 
@@ -292,7 +305,7 @@ def write_record(out: Path, row: dict[str, Any]) -> None:
 
 
 def table(row: dict[str, Any]) -> str:
-    """The check's one table (Markdown): a column per kernels setting run, the kernels' timings below."""
+    """The check's one table (Markdown): a column per `--columns` entry run, the kernels' timings below."""
     runs = row["runs"]
     names = list(runs)
 
@@ -301,6 +314,8 @@ def table(row: dict[str, Any]) -> str:
                 f"{agree['psnr_min_db']:.1f} dB min / {agree['psnr_mean_db']:.1f} dB mean over {agree['views']} views")
 
     measures: list[tuple[str, Any]] = [
+        ("rays a step", lambda r: f"{r['batch_rays']:,}"),
+        ("kernels", lambda r: r["kernels"].removeprefix("kernels: ").split(" (")[0]),
         ("steps", lambda r: f"{r['steps']:,} in {r['train_time_s']:.0f} s ({r['ms_per_step']:.1f} ms/step)"),
         ("rays/s", lambda r: f"{r['rays_per_s']:,.0f}"),
         ("test PSNR", lambda r: f"{r['psnr']:.2f} dB, SSIM {r['ssim']:.3f} over {r['test_views']} views"),
@@ -316,7 +331,8 @@ def table(row: dict[str, Any]) -> str:
     lines = [f"device {row['device']} ({row['device_name']}); preset {row['name']}: {row['batch_rays']:,} rays/step; "
              f"check {row['wall_s']:.0f} s in all",
              "",
-             "| measure | " + " | ".join(f"train.fast.kernels={n}" for n in names) + " |",
+             "| measure | " + " | ".join(f"{n} ({', '.join(COLUMNS[n]) or 'as recon runs'})" if n in COLUMNS else n
+                                        for n in names) + " |",
              "|---|" + "---|" * len(names)]
     lines += [f"| {label} | " + " | ".join(cell(runs[n]) for n in names) + " |" for label, cell in measures]
     timings = row["kernel_timings"]
@@ -339,8 +355,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--preset", default="fast")
     parser.add_argument("--budget", default="60s",
                         help="training budget of each run (issue 37's target: 33 dB in 60 s); '' keeps the preset's")
-    parser.add_argument("--kernels", default="torch,triton",
-                        help="train.fast.kernels settings to run, comma-separated (triton runs on CUDA only)")
+    parser.add_argument("--columns", default="default,torch,unsized",
+                        help=f"runs to compare, comma-separated, of {', '.join(COLUMNS)} (on a CPU only default runs)")
     parser.add_argument("--test-views", type=int, default=0, help="held-out views scored (0: all)")
     parser.add_argument("--render-views", type=int, default=10, help="views timed for render ms/view")
     parser.add_argument("--agreement-views", type=int, default=3, help="views rendered on both the CPU and the device")
@@ -353,14 +369,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--keep", action="store_true", help="reuse the scene folder's cached stages")
     parser.add_argument("--quiet", action="store_true", help="only warnings and errors while the pipeline runs")
     args = parser.parse_args(argv)
-    args.kernels = [k.strip() for k in args.kernels.split(",") if k.strip()]
+    args.columns = [c.strip() for c in args.columns.split(",") if c.strip()]
     try:
         args.render_chunks = [int(c) for c in args.render_chunks.split(",") if c.strip()]
     except ValueError:
         print(f"error: --render-chunks takes whole numbers (comma-separated), got {args.render_chunks!r}", file=sys.stderr)
         return 2
-    if not args.kernels or any(k not in KERNELS for k in args.kernels):
-        print(f"error: --kernels takes {', '.join(KERNELS)} (comma-separated), got {args.kernels}", file=sys.stderr)
+    if not args.columns or any(c not in COLUMNS for c in args.columns) or len(set(args.columns)) < len(args.columns):
+        print(f"error: --columns takes {', '.join(COLUMNS)} (comma-separated, each once), got {args.columns}",
+              file=sys.stderr)
         return 2
     if not (args.data / "transforms_train.json").is_file():
         print(f"error: {args.data} has no transforms_train.json: pass --data with a NeRF-synthetic folder", file=sys.stderr)
