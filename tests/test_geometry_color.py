@@ -142,3 +142,26 @@ def test_field_colors_look_along_inward_normal(ball):
     colors = colors_from_field(radiance, verts, normals * 3.0, chunk=100)  # un-normalized normals are fine
     np.testing.assert_allclose(colors, 0.5 - 0.5 * normals, atol=1e-6)
     assert max(calls) == 100 and sum(calls) == len(verts)
+
+
+def test_the_weighted_median_is_the_value_where_half_the_weight_is_reached() -> None:
+    """Against a plain per-point, per-channel reference: the smallest sample whose cumulative weight (samples in
+    ascending order) reaches half the point's total; unseen views (weight 0) and tied values among them."""
+    from recon.geometry.color import _weighted_median
+
+    rng = np.random.default_rng(3)
+    k, n = 9, 200
+    values = np.round(rng.random((k, n, 3)), 1).astype(np.float32)  # rounded: many ties
+    weights = (rng.random((k, n)) * (rng.random((k, n)) < 0.5)).astype(np.float32)
+    weights[0] += 0.01  # every point seen at least once
+    expected = np.empty((n, 3), np.float32)
+    for i in range(n):
+        for c in range(3):
+            pairs = sorted(zip(values[:, i, c], weights[:, i]))
+            half, acc = 0.5 * sum(w for _, w in pairs), 0.0
+            for v, w in pairs:
+                acc += w
+                if acc >= half:
+                    expected[i, c] = v
+                    break
+    np.testing.assert_array_equal(_weighted_median(values, weights), expected)

@@ -60,13 +60,15 @@ def sample_bilinear(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
 
 
 def _weighted_median(values: np.ndarray, weights: np.ndarray) -> np.ndarray:
-    """Per-column weighted median: values (K, N, C), weights (K, N) ≥ 0 with a positive column sum."""
-    order = np.argsort(values, axis=0)
-    v = np.take_along_axis(values, order, axis=0)
-    w = np.take_along_axis(np.broadcast_to(weights[..., None], values.shape), order, axis=0)
-    cum = np.cumsum(w, axis=0)
-    first = np.argmax(cum >= 0.5 * cum[-1:], axis=0)  # (N, C)
-    return np.take_along_axis(v, first[None], axis=0)[0]
+    """Per-column weighted median: values (K, N, C), weights (K, N) ≥ 0 with a positive column sum. Sorted along
+    the last axis of a (N, C, K) copy: a point's K samples side by side sort 2–3× faster than strided ones."""
+    v = np.ascontiguousarray(values.transpose(1, 2, 0))  # (N, C, K)
+    order = np.argsort(v, axis=-1)
+    v = np.take_along_axis(v, order, axis=-1)
+    w = np.take_along_axis(np.broadcast_to(weights.T[:, None, :], v.shape), order, axis=-1)
+    cum = np.cumsum(w, axis=-1)
+    first = np.argmax(cum >= 0.5 * cum[..., -1:], axis=-1)  # (N, C)
+    return np.take_along_axis(v, first[..., None], axis=-1)[..., 0]
 
 
 def _visible_in_view(
