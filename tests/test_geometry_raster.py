@@ -114,3 +114,24 @@ def test_triangles_behind_the_camera_are_dropped_and_empty_input_is_empty() -> N
     assert (face_id == -1).all()
     with pytest.raises(ValueError, match="either colors"):
         render_mesh(vertices, np.array([[0, 1, 2]]), np.eye(4), (20.0, 20.0, 10.0, 10.0), (20, 20))
+
+
+@pytest.mark.parametrize("perspective", [True, False])
+def test_the_c_rasterizer_draws_what_the_numpy_one_does(perspective: bool, monkeypatch: pytest.MonkeyPatch) -> None:
+    """raster.c against the numpy code it replaces: a few hundred overlapping triangles of random depths (shared
+    edges, faces partly off the image, degenerate ones), the same face, weights and depth at every pixel."""
+    from recon.geometry import raster
+
+    if raster.native_rasterizer() is None:
+        pytest.skip("no C compiler here: the numpy rasterizer is the only one")
+    rng = np.random.default_rng(5)
+    xy = rng.uniform(-10.0, 74.0, (300, 2))
+    w = rng.uniform(0.5, 3.0, 300) if perspective else None
+    faces = np.concatenate([rng.integers(0, 300, (400, 3)), [[0, 1, 2], [2, 1, 3], [4, 4, 5]]])  # a shared edge, a degenerate face
+    native = rasterize(xy, w, faces, (48, 64))
+    monkeypatch.setattr(raster, "native_rasterizer", lambda: None)
+    reference = rasterize(xy, w, faces, (48, 64))
+    assert (native[0] >= 0).mean() > 0.5  # most pixels covered: the comparison is not of empty images
+    np.testing.assert_array_equal(native[0], reference[0])
+    np.testing.assert_allclose(native[1], reference[1], rtol=0, atol=1e-12)
+    np.testing.assert_array_equal(native[2], reference[2])

@@ -29,7 +29,7 @@ from typing import TypeVar
 import torch
 from torch import Tensor
 
-__all__ = ["DenseDensity", "native_marcher", "native_status", "march_dense_native", "march_render_native",
+__all__ = ["DenseDensity", "load_c_library", "native_marcher", "native_status", "march_dense_native", "march_render_native",
            "native_grid_ok", "trilinear_features_native", "trilinear_backward_native"]
 
 SOURCE = Path(__file__).with_name("march.c")
@@ -45,39 +45,46 @@ def _cache_dir() -> Path:
     return Path(base) / "recon" / "native"
 
 
-def _build(compiler: str, target: Path) -> None:
+def _build(compiler: str, source: Path, target: Path) -> None:
     """Compile to a temporary file beside ``target`` and move it in place (atomic: concurrent builds are safe)."""
     target.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(suffix=".so", dir=target.parent)
     os.close(fd)
     try:
-        subprocess.run([compiler, *CFLAGS, "-o", tmp, str(SOURCE), "-lm"], check=True, capture_output=True, timeout=120)
+        subprocess.run([compiler, *CFLAGS, "-o", tmp, str(source), "-lm"], check=True, capture_output=True, timeout=120)
         os.replace(tmp, target)
     finally:
         if os.path.exists(tmp):
             os.unlink(tmp)
 
 
+def load_c_library(source: Path) -> tuple[ctypes.CDLL | None, str]:
+    """(`source` built once with the system's C compiler into the cache and loaded, or None; why not, when None).
+    Shared by every C file of recon (this marcher, recon/geometry/raster.c); ``RECON_NATIVE=0`` turns all off."""
+    name = f"recon/{source.relative_to(Path(__file__).parents[1]).as_posix()}"
+    if os.environ.get("RECON_NATIVE", "1").lower() in ("0", "off", "false", "no"):
+        return None, "RECON_NATIVE=0"
+    compiler = next((c for c in (os.environ.get("CC"), "cc", "gcc", "clang") if c and shutil.which(c)), None)
+    key = hashlib.sha256(source.read_bytes() + " ".join(CFLAGS).encode()).hexdigest()[:16]
+    target = _cache_dir() / f"{source.stem}-{key}.so"
+    try:
+        if not target.exists():
+            if compiler is None:
+                return None, f"no C compiler (cc, gcc or clang) on PATH to build {name}"
+            _build(compiler, source, target)
+        return ctypes.CDLL(str(target)), ""
+    except (OSError, subprocess.SubprocessError) as exc:
+        detail = getattr(exc, "stderr", b"") or b""
+        return None, f"building {name} failed ({exc} {detail.decode(errors='replace')[:200]})"
+
+
 @lru_cache(maxsize=1)
 def native_marcher() -> ctypes.CDLL | None:
     """The loaded library, or None (why: :func:`native_status`)."""
     global _status
-    if os.environ.get("RECON_NATIVE", "1").lower() in ("0", "off", "false", "no"):
-        _status = "torch (RECON_NATIVE=0)"
-        return None
-    compiler = next((c for c in (os.environ.get("CC"), "cc", "gcc", "clang") if c and shutil.which(c)), None)
-    key = hashlib.sha256(SOURCE.read_bytes() + " ".join(CFLAGS).encode()).hexdigest()[:16]
-    target = _cache_dir() / f"march-{key}.so"
-    try:
-        if not target.exists():
-            if compiler is None:
-                _status = "torch: no C compiler (cc, gcc or clang) on PATH to build recon/nerf/march.c"
-                return None
-            _build(compiler, target)
-        lib = ctypes.CDLL(str(target))
-    except (OSError, subprocess.SubprocessError) as exc:
-        detail = getattr(exc, "stderr", b"") or b""
-        _status = f"torch: building recon/nerf/march.c failed ({exc} {detail.decode(errors='replace')[:200]})"
+    lib, why = load_c_library(SOURCE)
+    if lib is None:
+        _status = f"torch ({why})" if why == "RECON_NATIVE=0" else f"torch: {why}"
         return None
     p, i64, f32 = ctypes.c_void_p, ctypes.c_int64, ctypes.c_float
     lib.recon_march_dense.restype = i64
@@ -90,7 +97,7 @@ def native_marcher() -> ctypes.CDLL | None:
     lib.recon_trilinear_features.argtypes = [i64, p, p, i64, i64, p]
     lib.recon_trilinear_backward.restype = None
     lib.recon_trilinear_backward.argtypes = [i64, p, p, i64, i64, p]
-    _status = (f"native C (recon/nerf/march.c, built once into {target.parent}): rays are marched in C (bounded and "
+    _status = (f"native C (recon/nerf/march.c, built once into {_cache_dir()}): rays are marched in C (bounded and "
                "contracted steps), "
                "and renders read the feature grid in C (RECON_NATIVE=0: torch throughout)")
     return lib
