@@ -29,8 +29,8 @@ from typing import TypeVar
 import torch
 from torch import Tensor
 
-__all__ = ["DenseDensity", "load_c_library", "native_marcher", "native_status", "march_dense_native", "march_render_native",
-           "native_grid_ok", "trilinear_features_native", "trilinear_backward_native"]
+__all__ = ["DenseDensity", "load_c_library", "native_marcher", "native_status", "march_dense_native",
+           "march_render_native", "native_grid_ok", "trilinear_features_native", "trilinear_backward_native"]
 
 SOURCE = Path(__file__).with_name("march.c")
 CFLAGS = ["-O3", "-fPIC", "-shared", "-ffp-contract=off", "-fno-math-errno"]
