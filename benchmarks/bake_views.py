@@ -29,9 +29,9 @@ LEGO_HALF = REPO.parent / "shared" / "data" / "nerf_synthetic_lego_half"
 RESULT = REPO / "benchmarks" / "results" / "bake_views.json"
 
 
-def mesh_row(scene: Path, data: Path, budget: str, views: int, side: int) -> dict[str, Any]:
-    """The pipeline on `scene` up to the mesh stage with these bake settings (poses, normalize, train cached)."""
-    from recon.app.bench import provenance
+def mesh_row(scene: Path, data: Path, budget: str, views: int, side: int, where: dict[str, Any]) -> dict[str, Any]:
+    """The pipeline on `scene` up to the mesh stage with these bake settings (poses, normalize, train cached);
+    `where`: the run's provenance, read once before the first row (the record it rewrites is a tracked file)."""
     from recon.app.progress import Reporter
     from recon.config import load_config
     from recon.stages import default_pipeline
@@ -41,7 +41,6 @@ def mesh_row(scene: Path, data: Path, budget: str, views: int, side: int) -> dic
     config = load_config("fast", overrides)
     load = [round(x, 2) for x in os.getloadavg()]
     started = time.strftime("%Y-%m-%dT%H:%M:%S%z")
-    where = provenance()
     outcomes = default_pipeline().run(scene, config, Reporter(quiet=True), source=data.resolve(), preset="fast")
     metrics = json.loads((scene / "03_field" / "metrics.json").read_text())
     report = json.loads((scene / "04_mesh" / "mesh_report.json").read_text())
@@ -84,9 +83,12 @@ def main(argv: list[str] | None = None) -> int:
     scene = (args.work or Path(tempfile.mkdtemp(prefix="bake_views_"))) / "lego"
     from recon.atomic import write_json_atomic
 
+    from recon.app.bench import provenance
+
+    where = provenance()
     rows = []
     for views, side in pairs:
-        rows.append(mesh_row(scene, args.data, args.budget, views, side))
+        rows.append(mesh_row(scene, args.data, args.budget, views, side, where))
         write_json_atomic(args.out, rows)
         r = rows[-1]
         t, h = r["mesh_timings_s"], r["held_out_psnr"]
