@@ -31,8 +31,8 @@ CPU_BAKE_VIEWS = {"fast": 24, "classic": 6}
 GPU_BAKE_VIEWS = 48
 """mesh.gpu_bake_views=0: on a GPU the depth maps are quick, and what grows with the photos is the CPU's work of
 rasterizing the mesh into each and baking its pixels. On the Lego (benchmarks/results/bake_views.json) 100 photos
-against 48 took 36 s of colours and texture against 19 s, for 0.13 dB of the vertex-coloured mesh's held-out PSNR
-(0.04 dB where both meshes cover)."""
+against 48 took 26 s of colours and texture against 13 s, for 0.10 dB of the vertex-coloured mesh's held-out PSNR
+(none where both meshes cover)."""
 CPU_DEPTH_SIDE = {"fast": 200, "classic": 64}
 """mesh.cpu_depth_side=0 per model."""
 HIDDEN_TOL_CELLS = 1.0
