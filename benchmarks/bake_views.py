@@ -23,9 +23,9 @@ import time
 from pathlib import Path
 from typing import Any
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))  # this checkout's recon: its commit is the one recorded
-LEGO_HALF = REPO.parent / "shared" / "data" / "nerf_synthetic_lego_half"
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from gpu_check import LEGO_HALF, REPO, not_nerf_synthetic  # gpu_check puts this checkout's recon first
+
 RESULT = REPO / "benchmarks" / "results" / "bake_views.json"
 
 
@@ -73,17 +73,15 @@ def main(argv: list[str] | None = None) -> int:
         pairs = [tuple(int(x) for x in p.split(":")) for p in args.views.split(",") if p.strip()]
     except ValueError:
         pairs = []
+    error = not_nerf_synthetic(args.data)
     if not pairs or any(len(p) != 2 or min(p) < 1 for p in pairs):
-        print(f"error: --views takes VIEWS:SIDE pairs of whole numbers (e.g. 24:200,48:400), got {args.views!r}",
-              file=sys.stderr)
-        return 2
-    if not (args.data / "transforms_train.json").is_file():
-        print(f"error: {args.data} has no transforms_train.json: pass --data with a NeRF-synthetic folder", file=sys.stderr)
+        error = f"error: --views takes VIEWS:SIDE pairs of whole numbers (e.g. 24:200,48:400), got {args.views!r}"
+    if error:
+        print(error, file=sys.stderr)
         return 2
     scene = (args.work or Path(tempfile.mkdtemp(prefix="bake_views_"))) / "lego"
-    from recon.atomic import write_json_atomic
-
     from recon.app.bench import provenance
+    from recon.atomic import write_json_atomic
 
     where = provenance()
     rows = []

@@ -53,6 +53,13 @@ COLUMNS: dict[str, list[str]] = {
 """--columns: each column's overrides on top of the check's own. All but `default` compare something CUDA has."""
 
 
+def not_nerf_synthetic(data: Path) -> str | None:
+    """The error for a --data folder without NeRF-synthetic poses, or None."""
+    if (data / "transforms_train.json").is_file():
+        return None
+    return f"error: {data} has no transforms_train.json: pass --data with a NeRF-synthetic folder"
+
+
 def _sync(device: torch.device) -> None:
     if device.type == "cuda":
         torch.cuda.synchronize(device)
@@ -379,8 +386,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: --columns takes {', '.join(COLUMNS)} (comma-separated, each once), got {args.columns}",
               file=sys.stderr)
         return 2
-    if not (args.data / "transforms_train.json").is_file():
-        print(f"error: {args.data} has no transforms_train.json: pass --data with a NeRF-synthetic folder", file=sys.stderr)
+    if error := not_nerf_synthetic(args.data):
+        print(error, file=sys.stderr)
         return 2
     if args.smoke:
         args.budget = ""
