@@ -65,15 +65,22 @@ def _sync(device: torch.device) -> None:
         torch.cuda.synchronize(device)
 
 
-def render_timing(field: Path, views: list[Any], device: torch.device, chunk: int | None = None) -> float:
-    """Milliseconds per view to render `views` on `device`, `chunk` rays at a time (None: the default, recon.nerf.
-    evaluate.default_render_chunk), after one warm-up render (allocation, compilation)."""
-    from recon.evaluation.views import render_view
+def loaded_field(field: Path, device: torch.device) -> tuple[Any, torch.Tensor | None, np.ndarray]:
+    """The trained field on `device`: (model, its box when bounded, its background), what render_view takes."""
     from recon.field import load_field
 
     model, meta = load_field(field, device)
     aabb = torch.tensor(meta["aabb"], dtype=torch.float32, device=device) if meta.get("bounded") else None
-    background = np.asarray(meta["background"], np.float32)
+    return model, aabb, np.asarray(meta["background"], np.float32)
+
+
+def render_timing(field: tuple[Any, torch.Tensor | None, np.ndarray], views: list[Any], device: torch.device,
+                  chunk: int | None = None) -> float:
+    """Milliseconds per view to render `views` with the `loaded_field` on `device`, `chunk` rays at a time (None: the
+    default, recon.nerf.evaluate.default_render_chunk), after one warm-up render (allocation, compilation)."""
+    from recon.evaluation.views import render_view
+
+    model, aabb, background = field
     render_view(model, views[0], aabb, background, chunk)
     _sync(device)
     t0 = time.perf_counter()
@@ -83,16 +90,15 @@ def render_timing(field: Path, views: list[Any], device: torch.device, chunk: in
     return 1000.0 * (time.perf_counter() - t0) / len(views)
 
 
-def chunk_sweep(field: Path, views: list[Any], device: torch.device, chunks: list[int]) -> dict[str, Any]:
+def chunk_sweep(field: tuple[Any, torch.Tensor | None, np.ndarray], views: list[Any], device: torch.device,
+                chunks: list[int]) -> dict[str, Any]:
     """Render milliseconds per view at each of `chunks` rays a chunk (on CUDA; a CPU keeps its chunk), and the
     default chunk on this device: what sets recon.nerf.evaluate.CUDA_CHUNK_GIB."""
-    from recon.field import load_field
     from recon.nerf.evaluate import default_render_chunk
 
     if device.type != "cuda":
         return {"skipped": "the render chunk is swept on CUDA only"}
-    model, _ = load_field(field, device)
-    return {"default_chunk": default_render_chunk(model, device),
+    return {"default_chunk": default_render_chunk(field[0], device),
             "ms_per_view": {str(c): round(render_timing(field, views, device, c), 1) for c in chunks}}
 
 
@@ -226,6 +232,8 @@ def run_one(args: argparse.Namespace, column: str, until: str | None, sweep: boo
     normalized = load_scene(scene / "02_scene")
     tests = normalized.split("test") or normalized.split("val")
     timing_views = load_views(normalized, spread_evenly(tests, args.render_views + 1), config.train.max_side)
+    timed = timing_views[1:] or timing_views  # the first is the warm-up's
+    field = loaded_field(scene / "03_field", device)
     agree_views = load_views(normalized, spread_evenly(tests, args.agreement_views), config.train.max_side)
     column = {
         "kernels": next((r for r in metrics["reasons"] if "kernels:" in r), "kernels: C and torch (a CPU)"),
@@ -239,11 +247,11 @@ def run_one(args: argparse.Namespace, column: str, until: str | None, sweep: boo
         "psnr": round(metrics["test"]["psnr"], 2),
         "ssim": round(metrics["test"]["ssim"], 4),
         "test_views": len(metrics["test"]["views"]),
-        "render_ms_per_view": round(render_timing(scene / "03_field", timing_views[1:] or timing_views, device), 1),
+        "render_ms_per_view": round(render_timing(field, timed, device), 1),
         "render_size": list(timing_views[0].hw),
         "mesh_stage_s": stage_s.get("mesh"),
         "mesh_timings_s": json.loads(mesh_report.read_text()).get("timings_s") if until is None else None,
-        "render_chunks": (chunk_sweep(scene / "03_field", timing_views[1:] or timing_views, device, args.render_chunks)
+        "render_chunks": (chunk_sweep(field, timed, device, args.render_chunks)
                           if sweep else {"skipped": "swept in the first column"}),
         "evals": metrics.get("evals", []),
         "peak_gpu_memory_gib": peak_gib,

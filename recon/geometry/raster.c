@@ -1,6 +1,6 @@
 /* The z-buffer of recon/geometry/raster.py's rasterize in C: the same faces, pixels and arithmetic, one face after
- * another (raster.py's numpy code is the reference; tests/test_geometry_raster.py holds the two together). Built and loaded
- * by recon.nerf.native.load_c_library; plain C, no Python headers. */
+ * another (raster.py's numpy code is the reference; tests/test_geometry_raster.py holds the two together). Built
+ * and loaded by recon.nerf.native.load_c_library; plain C, no Python headers. */
 #include <stdint.h>
 
 /* Faces ids[0..n) in order; tri (F, 3, 2) pixel coordinates, tri_w (F, 3) depths, area (F,) signed doubled areas;
