@@ -204,6 +204,31 @@ def test_masks_come_back_in_the_photos_distorted_pixels() -> None:
     assert _iou(photo, pinhole) < 0.9  # the distortion moved it
 
 
+def test_matte_moves_an_offset_cut_onto_the_photos_edge_and_is_soft_only_there() -> None:
+    """A warm disc on a textured blue-green room, cut 3 px off to the side: the matte's outline lies on the disc's
+    edge (closer to the truth than the cut), it is soft only near the outline, and away from it equals the cut."""
+    import cv2
+
+    from recon.capture.auto_masks import MATTE_RADIUS, matte
+
+    h, w = 300, 400
+    yy, xx = np.mgrid[0:h, 0:w]
+    truth = (xx - 200.0) ** 2 + (yy - 150.0) ** 2 < 80.0**2
+    n = _noise(np.stack([xx.ravel() / 40.0, yy.ravel() / 40.0, np.zeros(xx.size)], -1), 3.0, 1).reshape(h, w)
+    photo = np.where(truth[..., None], np.stack([0.85 - 0.1 * n, 0.35 + 0.1 * n, 0.1 + 0 * n], -1),
+                     np.stack([0.2 + 0.2 * n, 0.45 + 0.3 * n, 0.5 + 0.2 * n], -1)).astype(np.float32)
+    cut = np.roll(truth, 3, axis=1)
+    soft = matte(cut, photo)
+    assert soft.dtype == np.float32 and soft.min() >= 0.0 and soft.max() <= 1.0
+    assert _iou(soft >= 0.5, truth) > _iou(cut, truth) + 0.01
+    reach = 2 * max(1, round(MATTE_RADIUS * w)) + 2  # a guided filter's output depends on windows of windows
+    outline = cv2.dilate((cut ^ cv2.erode(cut.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)).astype(np.uint8),
+                         np.ones((2 * reach + 1, 2 * reach + 1), np.uint8)).astype(bool)
+    partial = (soft > 0.02) & (soft < 0.98)
+    assert partial.any() and not partial[~outline].any()
+    assert np.array_equal(soft[~outline] >= 0.5, cut[~outline])
+
+
 def test_an_object_capture_with_masks_or_without_region_is_left_alone() -> None:
     scene, _, _ = _scene(3)
     scene.has_alpha = True
@@ -291,9 +316,11 @@ def test_the_normalize_stage_masks_an_object_on_a_table_and_trains_it_bounded(tm
     assert "automatic object masks" in result.notes["masks"]
     assert (folder / "masks.png").is_file()
     for f in result.frames:
-        mask = np.asarray(Image.open(f.mask_path)) > 127
+        values = np.asarray(Image.open(f.mask_path))
+        mask = values > 127
         assert Path(f.mask_path).parent == folder / "masks"
         assert _iou(mask, truth[f.name]) > 0.85
+        assert ((values > 0) & (values < 255)).any()  # soft along the outline (`matte`)
     summary, folder = run("off")
     result = load_scene(folder)
     assert summary["auto_masks"] == 0 and result.capture == "unbounded" and not result.has_alpha

@@ -5,6 +5,7 @@ points on the cut support plane, the points outside the region and every pixel o
 seed the background; GrabCut (colour models and a graph cut, OpenCV) segments between them. Then the photos vote:
 a pixel stays object only where its ray passes through space that (almost) no photo calls background — the masks'
 visual hull. How well each photo's cut agrees with the hull the others carve says how sure the segmentation is.
+Finally each cut's outline is snapped to its photo's edges and made as soft as they are (`matte`, a guided filter).
 Pure numpy/OpenCV on a normalized `Scene` and its photos; the caller decides what to do with unsure masks.
 """
 from __future__ import annotations
@@ -51,6 +52,14 @@ EDGE_PERCENTILE = 80
 MIN_EDGE_SUPPORT = 0.5
 """... and the median photo's mask outline runs along edges for at least this fraction of its length: seeds alone
 (photos that do not show what their cameras should) give outlines that agree across photos but ignore the image."""
+MATTE_RADIUS = 0.0075
+"""`matte`'s guided filter reaches this fraction of the photo's longer side (12 px at 1600) across the outline."""
+MATTE_EPS = 1e-2
+"""... its edge threshold (variance of the photo's colour, in [0, 1] units): weaker edges than this are smoothed over."""
+MATTE_CONTRAST = 2.0
+"""... and its output is steepened this many times about 0.5, so the filter's faint spill onto the background is
+cut and the outline stays about as soft as the photo's own edges. The three were chosen on the realistic generated
+tabletop against its true masks blurred by each photo's own camera blur (`benchmarks/auto_mask_matte.py`)."""
 
 
 @dataclass
@@ -170,6 +179,37 @@ def segment_object(scene: Scene, load_photo: PhotoLoader | None = None, side: in
             [f"{len(empty)} photo(s) with an empty mask"] if empty else [])
         reason += f" — not sure enough ({'; '.join(why)})"
     return ObjectMasks(masks, agreement, recall, support, confident, reason, coverage)
+
+
+def matte(mask: np.ndarray, photo: np.ndarray, radius: float = MATTE_RADIUS, eps: float = MATTE_EPS,
+          contrast: float = MATTE_CONTRAST) -> np.ndarray:
+    """(h, w) float32 in [0, 1]: the bool cut `mask` (h, w) with its outline moved onto the edges of `photo` (h, w, 3),
+    float in [0, 1] at the same size, and soft across them as a photo's edge is (its pixels mix object and background).
+
+    A cut made at `SEGMENT_SIDE` and grown to the photo's size is off by a pixel or two and hard; a guided filter
+    (He et al., OpenCV's ximgproc) keeps the mask where the photo is flat and lets it follow the photo's own edges.
+    """
+    import cv2
+
+    pixels = max(1, round(radius * max(mask.shape)))
+    soft = cv2.ximgproc.guidedFilter(np.ascontiguousarray(photo[..., :3], np.float32), mask.astype(np.float32), pixels, eps)
+    return np.clip((soft - 0.5) * contrast + 0.5, 0.0, 1.0).astype(np.float32)
+
+
+def matte_photos(scene: Scene, masks: dict[str, np.ndarray], progress: Callable[[], object] | None = None) -> dict[str, np.ndarray]:
+    """`matte` of every frame's mask in `masks` (frame name -> bool at the photo's size) with its photo read from disk."""
+    from recon.nerf.device import cpu_threads
+
+    frames = [f for f in scene.frames if f.name in masks]
+
+    def one(frame: Frame) -> np.ndarray:
+        soft = matte(masks[frame.name], read_image(scene.image_path(frame)))
+        if progress is not None:
+            progress()
+        return soft
+
+    with ThreadPoolExecutor(max_workers=cpu_threads()) as pool:  # OpenCV's filter releases the GIL
+        return {f.name: soft for f, soft in zip(frames, pool.map(one, frames), strict=True)}
 
 
 def _label_points(points: np.ndarray, region: np.ndarray, grown: np.ndarray,

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from recon.capture.auto_masks import object_on_background, segment_object
+from recon.capture.auto_masks import matte_photos, object_on_background, segment_object
 from recon.capture.images import read_image, save_image
 from recon.capture.normalization import normalize
 from recon.capture.scene import Scene, load_scene
@@ -57,7 +57,9 @@ def _auto_masks(ctx: StageContext, source: Scene, scene: Scene) -> tuple[int, st
             f"{found.reason}: kept the photos unmasked, so the table and room are modelled too (contracted). "
             f"Give the photos a masks/ folder (white = object) to mesh the object alone"
         )
-    _write(ctx.out / MASK_FOLDER, found.masks, scene)
+    with ctx.report.task("automatic masks: snapping each outline to the photo's edges", total=len(found.masks)) as bar:
+        mattes = matte_photos(scene, found.masks, progress=bar.advance)
+    _write(ctx.out / MASK_FOLDER, mattes, scene)
     for frame in source.frames:
         frame.mask_path = str(final / f"{Path(frame.file_path).stem}.png")
     source.has_alpha = True
@@ -79,5 +81,5 @@ def _write(folder: Path, masks: dict[str, np.ndarray], scene: Scene) -> None:
     mask_overview(photos, [masks[f.name] for f in shown], folder.with_suffix(".png"))
 
 
-# version 5: an object on a background without masks gets automatic masks (normalize.masks=auto)
-STAGE = Stage(name="normalize", folder="02_scene", inputs=("poses",), version=5, run=run)
+# version 6: automatic masks are soft at their outlines, snapped to the photos' edges
+STAGE = Stage(name="normalize", folder="02_scene", inputs=("poses",), version=6, run=run)
