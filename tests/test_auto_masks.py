@@ -135,7 +135,7 @@ def test_the_other_photos_veto_what_one_cut_takes_from_the_table() -> None:
 def test_the_other_photos_fill_a_hole_one_cut_leaves_in_the_object(monkeypatch: pytest.MonkeyPatch) -> None:
     """One photo's graph cut leaves a hole in the ball (as cuts do in fur or a dark, featureless patch): the hull the
     other photos carve says object there, and the mask is filled; without the hull's fill the hole stays."""
-    import recon.capture.auto_masks as auto_masks
+    from recon.capture import auto_masks
 
     scene, photos, truth = _scene()
     name = min(photos)

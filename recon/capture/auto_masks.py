@@ -197,13 +197,14 @@ def matte(mask: np.ndarray, photo: np.ndarray, radius: float = MATTE_RADIUS, eps
 
 
 def matte_photos(scene: Scene, masks: dict[str, np.ndarray], progress: Callable[[], object] | None = None) -> dict[str, np.ndarray]:
-    """`matte` of every frame's mask in `masks` (frame name -> bool at the photo's size) with its photo read from disk."""
+    """`matte` of every frame's mask in `masks` (frame name -> bool at the photo's size) with its photo read from disk,
+    as uint8 (0-255, the PNGs' own precision): every photo's matte held at once costs what its bool cut does."""
     from recon.nerf.device import cpu_threads
 
     frames = [f for f in scene.frames if f.name in masks]
 
     def one(frame: Frame) -> np.ndarray:
-        soft = matte(masks[frame.name], read_image(scene.image_path(frame)))
+        soft = np.round(matte(masks[frame.name], read_image(scene.image_path(frame))) * 255).astype(np.uint8)
         if progress is not None:
             progress()
         return soft

@@ -70,15 +70,19 @@ def _auto_masks(ctx: StageContext, source: Scene, scene: Scene) -> tuple[int, st
 
 
 def _write(folder: Path, masks: dict[str, np.ndarray], scene: Scene) -> None:
-    """Each mask as a PNG (white = object) named like its photo, and a contact sheet of up to OVERVIEW photos
-    beside the folder (`<folder>.png`) with their background dimmed."""
+    """Each mask (bool, or uint8 0-255) as a PNG (white = object) named like its photo, and a contact sheet of up to
+    OVERVIEW photos beside the folder (`<folder>.png`) with their background dimmed."""
+
+    def as_float(mask: np.ndarray) -> np.ndarray:  # bool cuts, or uint8 mattes (`matte_photos`)
+        return mask.astype(np.float32) / 255.0 if mask.dtype == np.uint8 else mask.astype(np.float32)
+
     folder.mkdir(parents=True, exist_ok=True)
     for name, mask in masks.items():
-        save_image(folder / f"{Path(name).stem}.png", mask.astype(np.float32)[..., None])
+        save_image(folder / f"{Path(name).stem}.png", as_float(mask)[..., None])
     frames = [f for f in scene.frames if f.name in masks]
     shown = [frames[i] for i in np.linspace(0, len(frames) - 1, min(OVERVIEW, len(frames))).round().astype(int)]
     photos = [read_image(scene.image_path(f), max_side=OVERVIEW_SIDE) for f in shown]
-    mask_overview(photos, [masks[f.name] for f in shown], folder.with_suffix(".png"))
+    mask_overview(photos, [as_float(masks[f.name]) for f in shown], folder.with_suffix(".png"))
 
 
 # version 6: automatic masks are soft at their outlines, snapped to the photos' edges
