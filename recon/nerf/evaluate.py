@@ -44,8 +44,7 @@ __all__ = [
 CUDA_CHUNK_GIB = 5.0
 """On CUDA a render chunk grows by the model's ``render_chunk`` rays for each this many GiB of the card's memory (up
 to 16×: the whole of a 400² view at once on a 80 GB card): each chunk launches the marcher's and the field's kernels
-again. On an H100 a 400² view took 138 ms in chunks of 16,384 rays and 71 ms in 262,144
-(benchmarks/results/gpu_check.json)."""
+again, so on a GPU larger chunks render a view faster (the chunk sweep in benchmarks/results/gpu_check.json)."""
 
 
 def default_render_chunk(model: torch.nn.Module, device: torch.device) -> int:

@@ -141,8 +141,8 @@ MLP_SLICE = 8192
 """Samples per call of the color MLP on a CPU. A batch's colored samples (~66k per training step, ~125k per 16k-ray
 render chunk) in one call push the MLP's 64-wide activations out of the cache: in slices the same work runs
 markedly faster on a CPU, forward and backward, with the same results to float rounding. A GPU takes them in one
-call: each slice launches the network's kernels again, and on an H100 a step's 49 slices cost 89 ms of host time
-for 3 ms of kernels (docs/profile_gpu.md)."""
+call: each slice launches the network's kernels again, and there the launches, not the kernels, set the step's
+pace (docs/profile_gpu.md)."""
 
 
 def in_slices(fn: Callable[[Tensor, Tensor], Tensor], f: Tensor, d: Tensor) -> Tensor:

@@ -30,9 +30,8 @@ CPU_BAKE_VIEWS = {"fast": 24, "classic": 6}
 """mesh.cpu_bake_views=0 per model: the classic NeRF renders about a hundred times slower than the grid models."""
 GPU_BAKE_VIEWS = 48
 """mesh.gpu_bake_views=0: on a GPU the depth maps are quick, and what grows with the photos is the CPU's work of
-rasterizing the mesh into each and baking its pixels. On the Lego (benchmarks/results/bake_views.json) 100 photos
-against 48 took 26 s of colours and texture against 13 s, for 0.10 dB of the vertex-coloured mesh's held-out PSNR
-(none where both meshes cover)."""
+rasterizing the mesh into each and baking its pixels: past 48 photos that work doubles for a held-out PSNR that
+barely moves (benchmarks/results/bake_views.json)."""
 CPU_DEPTH_SIDE = {"fast": 200, "classic": 64}
 """mesh.cpu_depth_side=0 per model."""
 HIDDEN_TOL_CELLS = 1.0
