@@ -153,6 +153,10 @@ class TrainConfig:
     least 1% of the training pixels are sky, for an unbounded capture without masks."""
     sky_weight: float = 0.1
     """Weight of the sky pixels' opacity (L1, averaged over each batch's rays) in the loss."""
+    transparent_weight: float = 0.1
+    """Weight of the opacity of the photos' fully transparent pixels (outside their masks or alpha; L1, averaged over
+    each batch's rays) in the fast field's loss: the random backgrounds alone leave a faint haze there, grey on a
+    held-out view's backdrop. A strong weight lets one photo's wrong mask carve away what the others see. 0: off."""
     pose_refine: Literal["on", "off"] = "off"
     """on: learn a small rotation and shift per training photo with the field (recon.nerf.pose_refine), for poses SfM
     left a few pixels off; held-out photos are then scored with their pose fitted on their left half. Off by default:
@@ -479,6 +483,7 @@ BOUNDS: dict[str, Bound] = {
     "train.depth_weight": WEIGHT,
     "train.depth_rays": _range(1, MAX_RAYS_PER_STEP),
     "train.sky_weight": WEIGHT,
+    "train.transparent_weight": WEIGHT,
     "train.classic.n_coarse": _range(1, 1024),
     "train.classic.n_fine": _range(0, 1024),
     "train.classic.pos_freqs": _range(0, 20),

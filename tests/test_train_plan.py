@@ -79,3 +79,34 @@ def test_the_plan_says_which_kernels_run_on_a_gpu_and_nothing_on_a_default_cpu()
         "kernels: torch on the cpu (train.fast.kernels=triton: the Triton kernels run on CUDA only)"]
     on_gpu = plan_training(cfg, scene, views, torch.device("cuda"))  # planning touches no CUDA memory
     assert any(r.startswith("kernels: ") for r in on_gpu.reasons)
+
+
+def _masked(views: list[View]) -> list[View]:
+    """The views as RGBA: an opaque square in the middle, transparent around it."""
+    out = []
+    for v in views:
+        alpha = np.zeros(v.image.shape[:2], np.uint8)
+        alpha[3:9, 4:12] = 255
+        alpha[2, 4:12] = 128  # a soft edge row: partly object, not known empty
+        out.append(replace(v, image=np.concatenate([v.image, alpha[..., None]], -1)))
+    return out
+
+
+def test_a_masked_fast_plan_trains_its_transparent_pixels_as_empty_space_and_says_so() -> None:
+    cfg, scene, views = _unbounded_without_masks(8)
+    scene, views = replace(scene, capture="object"), _masked(views)
+    plan = plan_training(cfg, scene, views, CPU)
+    assert plan.empty is not None and plan.empty_weight == cfg.transparent_weight
+    for mask, view in zip(plan.empty, views, strict=True):
+        np.testing.assert_array_equal(mask, view.image[..., 3] == 0)  # the soft row is not empty
+    share = 1 - (6 * 8 + 8) / (W * H)
+    assert f"transparent pixels: {share:.0%} of the training pixels lie outside the masks" in " ".join(plan.reasons)
+    pieces = build_training(plan, CPU).step_kwargs["pieces"]
+    assert [type(p).__name__ for p in pieces][:1] == ["EmptyRays"] and pieces[0].weight == cfg.transparent_weight
+
+    off = plan_training(replace(cfg, transparent_weight=0.0), scene, views, CPU)
+    assert off.empty is None and "train.transparent_weight=0" in " ".join(off.reasons)
+    unmasked = plan_training(cfg, scene, _unbounded_without_masks(8)[2], CPU)
+    assert unmasked.empty is None and not any(r.startswith("transparent pixels") for r in unmasked.reasons)
+    classic = plan_training(replace(cfg, model="classic"), scene, views, CPU)
+    assert classic.empty is None and "(the classic model)" in " ".join(classic.reasons)

@@ -1,9 +1,9 @@
 """The parts of a training step beyond the photos' colour loss, each a piece passed to `recon.nerf.trainer.train`.
 
-Sky rays trained as empty space, the sparse-depth prior, per-photo appearance and per-photo pose refinement each
-change the step in a different place; as pieces with a few hooks the loop stays one loop, a new feature is a new
-piece instead of new keyword arguments, and whoever builds a training run (the train stage, the profiler, a
-benchmark) passes the same sequence. Each step the trainer calls, piece by piece in the sequence's order:
+Rays known to see nothing (the sky, masked photos' transparent pixels) trained as empty space, the sparse-depth prior,
+per-photo appearance and per-photo pose refinement each change the step in a different place; as pieces with a few
+hooks the loop stays one loop, a new feature is a new piece instead of new keyword arguments, and whoever builds a
+training run (the train stage, the profiler, a benchmark) passes the same sequence. Each step the trainer calls, piece by piece in the sequence's order:
 
 * ``before_render(batch, at)`` — the batch's rays before the field renders them (pose refinement moves them);
 * ``after_render(out, batch)`` — the rendered output before the colour loss (appearance transforms its rgb);
@@ -78,8 +78,9 @@ def _copy(module: torch.nn.Module) -> dict[str, Tensor]:
 
 
 class EmptyRays(TrainPiece):
-    """Rays known to see nothing (a batcher's ``empty`` masks: the sky, `recon.capture.sky`) cost ``weight`` × the batch's
-    mean of their opacity: L1, because a blob coloured like the sky costs the colour loss almost nothing."""
+    """Rays known to see nothing (a batcher's ``empty`` masks: the sky, `recon.capture.sky`, or the transparent pixels
+    of masked photos) cost ``weight`` × the batch's mean of their opacity: L1, because a blob coloured like the sky, or
+    faint haze over a random background, costs the colour loss almost nothing."""
 
     def __init__(self, weight: float) -> None:
         self.weight = float(weight)

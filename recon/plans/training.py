@@ -99,6 +99,23 @@ def sky_for(cfg: TrainConfig, kind: str, scene: Scene, frames: list[Frame],
                    f"train as empty space (weight {cfg.sky_weight:g})")
 
 
+def transparent_for(cfg: TrainConfig, kind: str, views: list[View]) -> tuple[list[np.ndarray] | None, str]:
+    """(per training photo, the (H, W) bool mask of its fully transparent pixels, or None; why).
+
+    Photos with masks or alpha train on random backgrounds, which tell the field that those pixels show nothing
+    only through their colour; the fast field also pays for its opacity there (`train.transparent_weight`)."""
+    if not views or views[0].image.shape[-1] != 4:
+        return None, ""
+    if kind != "fast":
+        return None, f"transparent pixels: trained by their colour on random backgrounds (the {kind} model)"
+    if cfg.transparent_weight <= 0:
+        return None, "transparent pixels: trained by their colour alone (train.transparent_weight=0)"
+    masks = [v.image[..., 3] == 0 for v in views]
+    share = float(sum(m.sum() for m in masks)) / max(1, sum(m.size for m in masks))
+    return masks, (f"transparent pixels: {share:.0%} of the training pixels lie outside the masks and train as empty "
+                   f"space (weight {cfg.transparent_weight:g}): random backgrounds alone leave a faint haze there")
+
+
 def with_sky(kwargs: dict[str, Any]) -> dict[str, Any]:
     """`model_spec`'s model kwargs with the fast field's background set to its sky colour (`sky_for` said on)."""
     return {**kwargs, "config": {**kwargs["config"], "background": "sky"}}
@@ -356,9 +373,10 @@ class TrainPlan:
     background: np.ndarray
     random_background: bool
     background_why: str
-    sky: list[np.ndarray] | None
-    """Per training photo, its sky pixels, which train as empty space at `sky_weight`."""
-    sky_weight: float
+    empty: list[np.ndarray] | None
+    """Per training photo, its pixels known to show nothing (its sky, or its transparent pixels), which train as
+    empty space at `empty_weight`."""
+    empty_weight: float
     start_sdf: np.ndarray | None
     """The surface model's start shape as an SDF volume (the visual hull), or None."""
     appearance: bool
@@ -398,9 +416,15 @@ def plan_training(cfg: TrainConfig, scene: Scene, views: list[View], device: tor
     background, random_bg, bg_why = choose_background(cfg, scene, views, backdrop)
     sky, sky_why = sky_for(cfg, kind, scene, frames, views)
     reasons.append(sky_why)
+    empty, empty_weight = sky, cfg.sky_weight
     if sky is not None:
         kwargs = with_sky(kwargs)
         bg_why = "the field's sky colour per ray direction (see sky:)"
+    else:
+        empty, transparent_why = transparent_for(cfg, kind, views)
+        empty_weight = cfg.transparent_weight
+        if transparent_why:
+            reasons.append(transparent_why)
     budget_s = parse_duration(cfg.budget)
     if budget_s:
         reasons.append(f"time budget {cfg.budget}: at most {cfg.steps} steps, stopping when the budget is spent")
@@ -417,7 +441,7 @@ def plan_training(cfg: TrainConfig, scene: Scene, views: list[View], device: tor
     return TrainPlan(
         kind=kind, kwargs=kwargs, lr=lr, lr_final=lr * cfg.lr_decay, batch_rays=cfg.batch_rays, seed=cfg.seed,
         views=views, aabb=np.asarray(scene.aabb) if scene.capture == "object" else None,
-        background=background, random_background=random_bg, background_why=bg_why, sky=sky, sky_weight=cfg.sky_weight,
+        background=background, random_background=random_bg, background_why=bg_why, empty=empty, empty_weight=empty_weight,
         start_sdf=start_sdf, appearance=appearance, appearance_why=appearance_why, pose_refine=pose_refine,
         pose_why=pose_why, depth_prior=depth_prior,
         compile=cfg.compile if kind == "fast" and compile_wanted(cfg.compile, device)[0] else None,
@@ -433,7 +457,8 @@ class TrainSetup:
     batcher: RayBatcher
     step_kwargs: dict[str, Any]
     """`recon.nerf.trainer.train`'s (and `TrainStep`'s) arguments besides the model, the batcher and the step count:
-    rates, rays per step, autocast and the pieces (sky rays, depth prior, appearance, pose refinement, in that order)."""
+    rates, rays per step, autocast and the pieces (empty rays: the sky or the transparent pixels, depth prior,
+    appearance, pose refinement, in that order)."""
     aabb: torch.Tensor | None
     c2w: torch.Tensor
     """The training photos' camera-to-world matrices on the device."""
@@ -461,11 +486,11 @@ def build_training(plan: TrainPlan, device: torch.device) -> TrainSetup:
     batcher = RayBatcher(
         images, c2w, intr, aabb=aabb, near_far=None if aabb is not None else near_far,
         background=torch.tensor(plan.background), random_background=plan.random_background, seed=plan.seed,
-        device=device, empty=plan.sky,
+        device=device, empty=plan.empty,
     )
     pieces: list[TrainPiece] = []
-    if plan.sky is not None:
-        pieces.append(EmptyRays(plan.sky_weight))
+    if plan.empty is not None:
+        pieces.append(EmptyRays(plan.empty_weight))
     if plan.depth_prior is not None:
         pieces.append(DepthPriorLoss(copy.copy(plan.depth_prior).to(device)))
     appearance = None
