@@ -1,7 +1,8 @@
 """A tiny ground-truth scene for the training loop's tests: a red ball photographed from a ring of cameras, and a
 classic model small enough to learn it in a few dozen steps.
 
-Shared by tests/test_trainer.py and tests/test_numerics_train.py (test modules never import each other).
+Shared by tests/test_trainer.py and tests/test_numerics_train.py (test modules never import each other); the
+masked ball photos by tests/test_train_pieces.py and tests/test_train_plan.py.
 """
 from __future__ import annotations
 
@@ -62,3 +63,21 @@ def tiny_model(seed: int = 0) -> ClassicModel:
     """A classic NeRF of a few thousand weights over AABB, seeded: learns the ball in tens of steps."""
     torch.manual_seed(seed)
     return ClassicModel(AABB, n_coarse=24, n_fine=0, pos_freqs=3, dir_freqs=1, depth=2, width=32, skip=0)
+
+
+def masked_ball_photos(n: int = 12, size: int = 24, fl: float = 30.0,
+                       radius: float = 0.45) -> tuple[list[np.ndarray], Tensor, Tensor]:
+    """A ball photographed on a ring, RGBA (H, W, 4) uint8: opaque where a ray meets the ball, fully transparent
+    elsewhere; camera-to-world (n, 4, 4) and intrinsics (n, 4) as tensors."""
+    c2w = np.stack([look_at(np.array([2.5 * math.cos(a), 2.5 * math.sin(a), 0.6]), np.zeros(3))
+                    for a in np.linspace(0, 2 * math.pi, n, endpoint=False)])
+    ys, xs = np.mgrid[0:size, 0:size] + 0.5
+    images = []
+    for pose in c2w:
+        d = np.stack([(xs - size / 2) / fl, -(ys - size / 2) / fl, -np.ones_like(xs)], -1) @ pose[:3, :3].T
+        d /= np.linalg.norm(d, axis=-1, keepdims=True)
+        b = d @ pose[:3, 3]
+        hit = b * b - (pose[:3, 3] @ pose[:3, 3] - radius**2) > 0
+        rgba = np.stack([np.full_like(xs, 0.8), 0.3 + 0.4 * (d[..., 2] > 0), np.full_like(xs, 0.2), hit], -1)
+        images.append(np.round(rgba * 255).astype(np.uint8))
+    return images, torch.tensor(c2w, dtype=torch.float32), torch.tensor([[fl, fl, size / 2, size / 2]] * n)

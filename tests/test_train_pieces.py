@@ -17,6 +17,7 @@ from recon.nerf.pose_refine import PoseRefinement
 from recon.nerf.render import RadianceModel, render_dense
 from recon.nerf.sampling import stratified
 from recon.nerf.trainer import TrainStep, train
+from tests.ball_scene import masked_ball_photos
 
 AABB = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
 AT = StepInfo(step=0, steps=10, fraction=None, autocast=None)
@@ -168,28 +169,13 @@ def test_the_step_taken_on_its_own_is_the_step_train_takes() -> None:
     assert results[0].lr == 1e-2 and "rgb" in results[-1].out
 
 
-def _masked_ball_photos(n: int = 12, size: int = 24, fl: float = 30.0, radius: float = 0.45):
-    """A ball photographed on a ring, RGBA: opaque where a ray meets the ball, fully transparent elsewhere."""
-    c2w = np.stack([look_at(np.array([2.5 * math.cos(a), 2.5 * math.sin(a), 0.6]), np.zeros(3))
-                    for a in np.linspace(0, 2 * math.pi, n, endpoint=False)])
-    ys, xs = np.mgrid[0:size, 0:size] + 0.5
-    images = []
-    for pose in c2w:
-        d = np.stack([(xs - size / 2) / fl, -(ys - size / 2) / fl, -np.ones_like(xs)], -1) @ pose[:3, :3].T
-        d /= np.linalg.norm(d, axis=-1, keepdims=True)
-        b = d @ pose[:3, 3]
-        hit = b * b - (pose[:3, 3] @ pose[:3, 3] - radius**2) > 0
-        rgba = np.stack([np.full_like(xs, 0.8), 0.3 + 0.4 * (d[..., 2] > 0), np.full_like(xs, 0.2), hit], -1)
-        images.append(torch.from_numpy(np.round(rgba * 255).astype(np.uint8)))
-    return images, torch.tensor(c2w, dtype=torch.float32), torch.tensor([[fl, fl, size / 2, size / 2]] * n)
-
-
 def test_masked_photos_transparent_pixels_trained_as_empty_space_leave_less_haze_than_random_backgrounds_alone() -> None:
     """What `train.transparent_weight` is for: on random backgrounds alone the field keeps a faint haze where the
     masks say nothing is; the empty-space term clears most of it, and the object stays opaque."""
     from recon.nerf.fast import FastConfig, FastModel
 
-    images, c2w, intr = _masked_ball_photos()
+    images, c2w, intr = masked_ball_photos()
+    images = [torch.from_numpy(im) for im in images]
     empty = [im[..., 3] == 0 for im in images]
     haze, solid = {}, {}
     for weight in (0.0, 0.1):

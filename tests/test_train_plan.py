@@ -16,6 +16,7 @@ from recon.config import TrainConfig
 from recon.evaluation.views import View
 from recon.nerf.pieces import DepthPriorLoss
 from recon.plans.training import build_training, plan_training
+from tests.ball_scene import masked_ball_photos
 
 W, H, FL = 16, 12, 14.0
 CPU = torch.device("cpu")
@@ -81,32 +82,39 @@ def test_the_plan_says_which_kernels_run_on_a_gpu_and_nothing_on_a_default_cpu()
     assert any(r.startswith("kernels: ") for r in on_gpu.reasons)
 
 
-def _masked(views: list[View]) -> list[View]:
-    """The views as RGBA: an opaque square in the middle, transparent around it."""
-    out = []
-    for v in views:
-        alpha = np.zeros(v.image.shape[:2], np.uint8)
-        alpha[3:9, 4:12] = 255
-        alpha[2, 4:12] = 128  # a soft edge row: partly object, not known empty
-        out.append(replace(v, image=np.concatenate([v.image, alpha[..., None]], -1)))
-    return out
 
-
-def test_a_masked_fast_plan_trains_its_transparent_pixels_as_empty_space_and_says_so() -> None:
-    cfg, scene, views = _unbounded_without_masks(8)
-    scene, views = replace(scene, capture="object"), _masked(views)
+def test_a_masked_fast_plan_trains_as_empty_space_the_transparent_pixels_the_photos_agree_on_and_says_so() -> None:
+    """A ball on a ring of 12 photos, one of whose masks cut away half the ball: its cut half stays with the colour
+    loss (the other photos' masks keep the hull there), while every photo's pixels off the ball train as empty."""
+    images, c2w, intr = masked_ball_photos(size=32, fl=40.0)
+    wrong = images[3].copy()
+    wrong[:, :16, 3] = 0  # the left half of the ball cut away in one photo
+    images[3] = wrong
+    frames, views = [], []
+    for i, (image, pose, k) in enumerate(zip(images, c2w.double().numpy(), intr.tolist(), strict=True)):
+        frames.append(Frame(f"/p/{i:02d}.png", pose, *k, 32, 32, split="train"))
+        views.append(View(f"{i:02d}", image, pose, tuple(k), 1.0, 4.0))
+    scene = Scene(frames=frames, aabb=np.array([[-1.0] * 3, [1.0] * 3]), capture="object", has_alpha=True)
+    cfg = replace(TrainConfig(), batch_rays=128)
     plan = plan_training(cfg, scene, views, CPU)
     assert plan.empty is not None and plan.empty_weight == cfg.transparent_weight
-    for mask, view in zip(plan.empty, views, strict=True):
-        np.testing.assert_array_equal(mask, view.image[..., 3] == 0)  # the soft row is not empty
-    share = 1 - (6 * 8 + 8) / (W * H)
-    assert f"transparent pixels: {share:.0%} of the training pixels lie outside the masks" in " ".join(plan.reasons)
+    ball = [v.image[..., 3] > 0 for v in views]
+    for i, (empty, view) in enumerate(zip(plan.empty, views, strict=True)):
+        assert not (empty & ~(view.image[..., 3] == 0)).any()  # only transparent pixels are ever known empty
+        assert empty[:, :4].all() and empty[:, -4:].all()  # far off the ball: known empty in every photo
+        if i != 3:
+            assert empty.sum() >= 0.9 * (~ball[i]).sum()
+    cut_half = ~ball[3] & ball[2]  # the ball's pixels that photo 3's mask lost (its neighbour still shows them there)
+    assert cut_half.sum() > 50 and not (plan.empty[3] & cut_half).any()
+    said = next(r for r in plan.reasons if r.startswith("transparent pixels: "))
+    assert "train as empty space (weight 0.1)" in said and "inside the hull" in said
     pieces = build_training(plan, CPU).step_kwargs["pieces"]
-    assert [type(p).__name__ for p in pieces][:1] == ["EmptyRays"] and pieces[0].weight == cfg.transparent_weight
+    assert type(pieces[0]).__name__ == "EmptyRays" and pieces[0].weight == cfg.transparent_weight
 
     off = plan_training(replace(cfg, transparent_weight=0.0), scene, views, CPU)
     assert off.empty is None and "train.transparent_weight=0" in " ".join(off.reasons)
-    unmasked = plan_training(cfg, scene, _unbounded_without_masks(8)[2], CPU)
+    opaque = [replace(v, image=np.ascontiguousarray(v.image[..., :3])) for v in views]
+    unmasked = plan_training(cfg, replace(scene, has_alpha=False), opaque, CPU)
     assert unmasked.empty is None and not any(r.startswith("transparent pixels") for r in unmasked.reasons)
     classic = plan_training(replace(cfg, model="classic"), scene, views, CPU)
     assert classic.empty is None and "(the classic model)" in " ".join(classic.reasons)

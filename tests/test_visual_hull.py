@@ -13,7 +13,7 @@ from recon.camera import look_at
 from recon.capture.scene import Scene
 from recon.errors import ReconError
 from recon.evaluation.views import View
-from recon.geometry.visual_hull import carve, visual_hull_sdf
+from recon.geometry.visual_hull import carve, hull_silhouettes, visual_hull_sdf
 from recon.nerf.surface import SurfaceConfig, SurfaceModel
 from recon.plans.training import surface_start
 
@@ -208,3 +208,21 @@ def test_the_surface_preset_starts_from_the_keyed_photos_visual_hull_and_keeps_i
     assert model.config.init_shape == "visual_hull" and torch.isfinite(model.prior_volume).all()
     assert float(model.prior_volume.min()) < 0 < float(model.prior_volume.max())
     assert result.mesh["watertight"] is True  # the zero set of a closed start, 30 steps on
+
+
+def test_hull_silhouettes_cover_each_photos_object_and_outvote_one_wrong_mask() -> None:
+    """Each photo's silhouette of the common hull covers its object pixels (the hull holds the sphere) and not much
+    more; one photo's mask missing half the sphere carves nothing the others show while the tolerance allows one
+    dissenting photo, and carves it from every photo when it allows none."""
+    cams = _ring_cameras()
+    masks = [_silhouette(c) for c in cams]
+    wrong = [m.copy() for m in masks]
+    wrong[5][:, : SIZE // 2] = False
+    sil, carved_by = hull_silhouettes(BOX, RES, cams, [INTR] * len(cams), wrong, tolerance=1 / len(cams))
+    assert carved_by.shape == (RES,) * 3 and len(sil) == len(cams)
+    for i, (s, m) in enumerate(zip(sil, masks, strict=True)):
+        assert s.shape == m.shape and (s & m).sum() >= 0.99 * m.sum(), i  # the sphere, whole, in every photo
+        assert s.sum() <= 1.3 * m.sum(), i  # and the hull's splats only a few pixels beyond its outline
+    wrong[6][:, : SIZE // 2] = False  # a second photo beside it cuts the same side: more than the tolerance
+    outvoted, _ = hull_silhouettes(BOX, RES, cams, [INTR] * len(cams), wrong, tolerance=1 / len(cams))
+    assert (outvoted[5] & masks[5]).sum() < 0.9 * masks[5].sum()

@@ -15,13 +15,12 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.ndimage import binary_erosion
 
 from recon.camera import intrinsic_matrix, pixel_centres, project
 from recon.capture.images import read_image, undistort
 from recon.capture.normalization import box_corners
 from recon.capture.scene import Frame, Scene
-from recon.geometry.visual_hull import carve
+from recon.geometry.visual_hull import hull_silhouettes
 
 SEGMENT_SIDE = 640
 """Photos are segmented at this longest side (pixels); the masks are written back at the photos' own size."""
@@ -136,16 +135,10 @@ def segment_object(scene: Scene, load_photo: PhotoLoader | None = None, side: in
                 progress()
 
     n = len(cuts)
-    _, carved_by = carve(grown, HULL_RES, [f.c2w for f in scene.frames], intrinsics, cuts)
-    inside = (carved_by <= max(1, int(HULL_TOLERANCE * n))).reshape((HULL_RES,) * 3)
-    shell = inside & ~binary_erosion(inside)  # the hull's outer vertices project onto its whole silhouette
-    axes = [np.linspace(grown[0, i], grown[1, i], HULL_RES) for i in range(3)]
-    hull_pts = np.stack([axes[i][idx] for i, idx in enumerate(np.nonzero(shell))], axis=-1)
-    cell = float(np.max(extent * (1 + 2 * REGION_MARGIN)) / (HULL_RES - 1))
+    silhouettes, _ = hull_silhouettes(grown, HULL_RES, [f.c2w for f in scene.frames], intrinsics, cuts, HULL_TOLERANCE)
 
     finals, agreement, support, kept, total = [], {}, {}, 0, 0
-    for frame, cut, intr, (w, h), fg, edge in zip(scene.frames, cuts, intrinsics, sizes, seeds, edges, strict=True):
-        silhouette = _silhouette(cv2, hull_pts, cell, frame.c2w, intr, w, h)
+    for frame, cut, silhouette, (w, h), fg, edge in zip(scene.frames, cuts, silhouettes, sizes, seeds, edges, strict=True):
         agreed = cut & silhouette
         agreement[frame.name] = float(agreed.sum() / cut.sum()) if cut.any() else 0.0
         final = _fill_agreed_holes(cv2, agreed, silhouette)
@@ -315,29 +308,6 @@ def _outline(cv2, mask: np.ndarray) -> np.ndarray:
     m = mask.astype(np.uint8)
     kernel = np.ones((3, 3), np.uint8)
     return (cv2.dilate(m, kernel) - cv2.erode(m, kernel)) > 0
-
-
-def _silhouette(cv2, hull_pts: np.ndarray, cell: float, c2w: np.ndarray, intr: np.ndarray, w: int, h: int) -> np.ndarray:
-    """(h, w) bool: the pixels the hull's vertices cover, each splatted as wide as a grid cell at its depth."""
-    out = np.zeros((h, w), bool)
-    if not len(hull_pts):
-        return out
-    uv, z = project(hull_pts, c2w, intr)
-    front = z > 1e-9
-    uv, z = uv[front], z[front]
-    ok = (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
-    if not ok.any():
-        return out
-    px = uv[ok].astype(np.int64)
-    out[px[:, 1], px[:, 0]] = True
-    spacing = cell * max(intr[0], intr[1]) / float(np.median(z[ok]))  # pixels between neighbouring vertices
-    gap = int(np.ceil(spacing))  # close the gaps between splatted vertices, then grow by half a cell
-    closing = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * gap + 1, 2 * gap + 1))
-    out = cv2.morphologyEx(out.astype(np.uint8), cv2.MORPH_CLOSE, closing)
-    half = round(0.5 * spacing)
-    if half > 0:
-        out = cv2.dilate(out, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * half + 1, 2 * half + 1)))
-    return out.astype(bool)
 
 
 def _to_photo_pixels(cv2, mask: np.ndarray, frame: Frame, intr: np.ndarray) -> np.ndarray:

@@ -15,7 +15,7 @@ import numpy as np
 
 from recon.camera import project
 
-__all__ = ["carve", "visual_hull_sdf"]
+__all__ = ["carve", "hull_silhouettes", "silhouette", "visual_hull_sdf"]
 
 
 def carve(box: np.ndarray, res: int, c2ws: Sequence[np.ndarray], intrinsics: Sequence[Sequence[float]],
@@ -73,3 +73,48 @@ def visual_hull_sdf(inside: np.ndarray, box: np.ndarray, smooth_cells: float = 1
     if smooth_cells > 0:
         sdf = ndimage.gaussian_filter(sdf, smooth_cells)
     return sdf.astype(np.float32)
+
+
+def hull_silhouettes(box: np.ndarray, res: int, c2ws: Sequence[np.ndarray], intrinsics: Sequence[Sequence[float]],
+                     objects: Sequence[np.ndarray], tolerance: float) -> tuple[list[np.ndarray], np.ndarray]:
+    """(per photo, the (H, W) bool pixels the photos' common hull covers; carved_by as `carve` returns it).
+
+    The hull keeps every vertex of a res³ grid over box that at most `tolerance` of the photos (at least one) see as
+    background, so one photo's wrong object pixels carve nothing the others show; each photo's silhouette is the
+    hull's outer vertices splatted into it (`silhouette`), the size of its `objects` mask."""
+    from scipy.ndimage import binary_erosion
+
+    box = np.asarray(box, np.float64)
+    _, carved_by = carve(box, res, c2ws, intrinsics, objects)
+    inside = carved_by <= max(1, int(tolerance * len(objects)))
+    shell = inside & ~binary_erosion(inside)  # the hull's outer vertices project onto its whole silhouette
+    axes = [np.linspace(box[0, i], box[1, i], res) for i in range(3)]
+    hull_pts = np.stack([axes[i][idx] for i, idx in enumerate(np.nonzero(shell))], axis=-1)
+    cell = float(np.max(box[1] - box[0]) / (res - 1))
+    return [silhouette(hull_pts, cell, np.asarray(c2w, np.float64), np.asarray(intr, np.float64), obj.shape[1], obj.shape[0])
+            for c2w, intr, obj in zip(c2ws, intrinsics, objects, strict=True)], carved_by
+
+
+def silhouette(hull_pts: np.ndarray, cell: float, c2w: np.ndarray, intr: np.ndarray, w: int, h: int) -> np.ndarray:
+    """(h, w) bool: the pixels the hull's vertices cover, each splatted as wide as a grid cell at its depth."""
+    import cv2
+
+    out = np.zeros((h, w), bool)
+    if not len(hull_pts):
+        return out
+    uv, z = project(hull_pts, c2w, intr)
+    front = z > 1e-9
+    uv, z = uv[front], z[front]
+    ok = (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
+    if not ok.any():
+        return out
+    px = uv[ok].astype(np.int64)
+    out[px[:, 1], px[:, 0]] = True
+    spacing = cell * max(intr[0], intr[1]) / float(np.median(z[ok]))  # pixels between neighbouring vertices
+    gap = int(np.ceil(spacing))  # close the gaps between splatted vertices, then grow by half a cell
+    closing = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * gap + 1, 2 * gap + 1))
+    out = cv2.morphologyEx(out.astype(np.uint8), cv2.MORPH_CLOSE, closing)
+    half = round(0.5 * spacing)
+    if half > 0:
+        out = cv2.dilate(out, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * half + 1, 2 * half + 1)))
+    return out.astype(bool)

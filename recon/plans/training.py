@@ -11,6 +11,7 @@ import numpy as np
 import torch
 
 from recon.camera import pixel_footprint, project
+from recon.capture.auto_masks import HULL_TOLERANCE
 from recon.capture.scene import Frame, Scene
 from recon.capture.sky import SKY_MIN_FRACTION, sky_mask
 from recon.config import TrainConfig
@@ -24,11 +25,15 @@ from recon.evaluation.views import (
     plain_backdrop,
     view_tensors,
 )
+from recon.geometry.visual_hull import hull_silhouettes
 from recon.nerf.appearance import PhotoAppearance, decide, exposure_spread
 from recon.nerf.depth_prior import DepthPrior, sparse_depth_targets
 from recon.nerf.fitting import RayBatcher
 from recon.nerf.pose_refine import PoseRefinement
 from recon.nerf.surface import hull_planes
+
+TRANSPARENT_HULL_RES = 96
+"""Grid vertices per side of the hull that decides which transparent pixels are known to show nothing."""
 
 BACKDROP_KEY_WHY = (
     "a surface colored like the backdrop is as bright as the backdrop itself, so the photos' colours cannot tell it "
@@ -99,21 +104,32 @@ def sky_for(cfg: TrainConfig, kind: str, scene: Scene, frames: list[Frame],
                    f"train as empty space (weight {cfg.sky_weight:g})")
 
 
-def transparent_for(cfg: TrainConfig, kind: str, views: list[View]) -> tuple[list[np.ndarray] | None, str]:
-    """(per training photo, the (H, W) bool mask of its fully transparent pixels, or None; why).
+def transparent_for(cfg: TrainConfig, kind: str, scene: Scene, views: list[View]) -> tuple[list[np.ndarray] | None, str]:
+    """(per training photo, the (H, W) bool mask of its pixels known to show nothing, or None; why).
 
-    Photos with masks or alpha train on random backgrounds, which tell the field that those pixels show nothing
-    only through their colour; the fast field also pays for its opacity there (`train.transparent_weight`)."""
+    Photos with masks or alpha train on random backgrounds, which tell the field that their transparent pixels show
+    nothing only through their colour; the fast field also pays for its opacity there (`train.transparent_weight`).
+    Known means the photos agree: a transparent pixel that the hull of all the training photos' masks still covers
+    (most photos show something there: a thin part one photo's mask cut away) is left to the colour loss, so one
+    wrong mask cannot carve away what the others show."""
     if not views or views[0].image.shape[-1] != 4:
         return None, ""
     if kind != "fast":
         return None, f"transparent pixels: trained by their colour on random backgrounds (the {kind} model)"
     if cfg.transparent_weight <= 0:
         return None, "transparent pixels: trained by their colour alone (train.transparent_weight=0)"
-    masks = [v.image[..., 3] == 0 for v in views]
-    share = float(sum(m.sum() for m in masks)) / max(1, sum(m.size for m in masks))
-    return masks, (f"transparent pixels: {share:.0%} of the training pixels lie outside the masks and train as empty "
-                   f"space (weight {cfg.transparent_weight:g}): random backgrounds alone leave a faint haze there")
+    silhouettes, _ = hull_silhouettes(np.asarray(scene.aabb, np.float64), TRANSPARENT_HULL_RES, [v.c2w for v in views],
+                                      [v.intrinsics for v in views], [v.image[..., 3] >= 128 for v in views],
+                                      HULL_TOLERANCE)
+    transparent = [v.image[..., 3] == 0 for v in views]
+    masks = [t & ~s for t, s in zip(transparent, silhouettes, strict=True)]
+    total = max(1, sum(m.size for m in masks))
+    share, disputed = (float(sum(m.sum() for m in masks)) / total,
+                       float(sum((t & s).sum() for t, s in zip(transparent, silhouettes, strict=True))) / total)
+    return masks, (f"transparent pixels: {share:.0%} of the training pixels lie outside the masks and outside the hull "
+                   f"they carve together, and train as empty space (weight {cfg.transparent_weight:g}): random "
+                   f"backgrounds alone leave a faint haze there; {disputed:.1%} more are transparent in their photo but "
+                   f"inside the hull (other photos show something there) and train by their colour only")
 
 
 def with_sky(kwargs: dict[str, Any]) -> dict[str, Any]:
@@ -421,7 +437,7 @@ def plan_training(cfg: TrainConfig, scene: Scene, views: list[View], device: tor
         kwargs = with_sky(kwargs)
         bg_why = "the field's sky colour per ray direction (see sky:)"
     else:
-        empty, transparent_why = transparent_for(cfg, kind, views)
+        empty, transparent_why = transparent_for(cfg, kind, scene, views)
         empty_weight = cfg.transparent_weight
         if transparent_why:
             reasons.append(transparent_why)
