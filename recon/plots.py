@@ -120,15 +120,16 @@ def accuracy_plot(runs: Sequence[dict], path: Path, title: str = "mesh accuracy 
 
 def mask_overview(photos: Sequence[np.ndarray], masks: Sequence[np.ndarray], path: Path, columns: int = 4,
                   tile: int = 240) -> None:
-    """A contact sheet of photos (float (H, W, 3) in [0, 1]) with what their masks ((H', W') bool or [0, 1], any size) call
-    background dimmed to a quarter: one glance shows whether a segmentation holds the object and nothing else."""
+    """A contact sheet of photos (float (H, W, 3) in [0, 1]) with what their masks ((H', W') bool or [0, 1], any size)
+    call background dimmed to a quarter: one glance shows whether a segmentation holds the object and nothing else."""
     from PIL import Image
 
     tiles = []
     for photo, mask in zip(photos, masks, strict=True):
         img = Image.fromarray(np.round(np.clip(photo[..., :3], 0, 1) * 255).astype(np.uint8))
         img.thumbnail((tile, tile))
-        keep = np.asarray(Image.fromarray((np.asarray(mask) >= 0.5).astype(np.uint8) * 255).resize(img.size, Image.Resampling.NEAREST)) > 127
+        cut = Image.fromarray((np.asarray(mask) >= 0.5).astype(np.uint8) * 255)
+        keep = np.asarray(cut.resize(img.size, Image.Resampling.NEAREST)) > 127
         arr = np.asarray(img).astype(np.float32) * np.where(keep[..., None], 1.0, 0.25)
         canvas = np.full((tile, tile, 3), 255, np.uint8)
         canvas[: arr.shape[0], : arr.shape[1]] = arr.astype(np.uint8)

@@ -138,7 +138,8 @@ def segment_object(scene: Scene, load_photo: PhotoLoader | None = None, side: in
     silhouettes, _ = hull_silhouettes(grown, HULL_RES, [f.c2w for f in scene.frames], intrinsics, cuts, HULL_TOLERANCE)
 
     finals, agreement, support, kept, total = [], {}, {}, 0, 0
-    for frame, cut, silhouette, (w, h), fg, edge in zip(scene.frames, cuts, silhouettes, sizes, seeds, edges, strict=True):
+    for frame, cut, silhouette, (w, h), fg, edge in zip(scene.frames, cuts, silhouettes, sizes, seeds, edges,
+                                                         strict=True):
         agreed = cut & silhouette
         agreement[frame.name] = float(agreed.sum() / cut.sum()) if cut.any() else 0.0
         final = _fill_agreed_holes(cv2, agreed, silhouette)
@@ -185,11 +186,13 @@ def matte(mask: np.ndarray, photo: np.ndarray, radius: float = MATTE_RADIUS, eps
     import cv2
 
     pixels = max(1, round(radius * max(mask.shape)))
-    soft = cv2.ximgproc.guidedFilter(np.ascontiguousarray(photo[..., :3], np.float32), mask.astype(np.float32), pixels, eps)
+    guide = np.ascontiguousarray(photo[..., :3], np.float32)
+    soft = cv2.ximgproc.guidedFilter(guide, mask.astype(np.float32), pixels, eps)
     return np.clip((soft - 0.5) * contrast + 0.5, 0.0, 1.0).astype(np.float32)
 
 
-def matte_photos(scene: Scene, masks: dict[str, np.ndarray], progress: Callable[[], object] | None = None) -> dict[str, np.ndarray]:
+def matte_photos(scene: Scene, masks: dict[str, np.ndarray],
+                 progress: Callable[[], object] | None = None) -> dict[str, np.ndarray]:
     """`matte` of every frame's mask in `masks` (frame name -> bool at the photo's size) with its photo read from disk,
     as uint8 (0-255, the PNGs' own precision): every photo's matte held at once costs what its bool cut does."""
     from recon.nerf.device import cpu_threads

@@ -91,8 +91,9 @@ def hull_silhouettes(box: np.ndarray, res: int, c2ws: Sequence[np.ndarray], intr
     axes = [np.linspace(box[0, i], box[1, i], res) for i in range(3)]
     hull_pts = np.stack([axes[i][idx] for i, idx in enumerate(np.nonzero(shell))], axis=-1)
     cell = float(np.max(box[1] - box[0]) / (res - 1))
-    return [silhouette(hull_pts, cell, np.asarray(c2w, np.float64), np.asarray(intr, np.float64), obj.shape[1], obj.shape[0])
-            for c2w, intr, obj in zip(c2ws, intrinsics, objects, strict=True)], carved_by
+    silhouettes = [silhouette(hull_pts, cell, np.asarray(c2w, np.float64), np.asarray(intr, np.float64), *obj.shape[::-1])
+                   for c2w, intr, obj in zip(c2ws, intrinsics, objects, strict=True)]
+    return silhouettes, carved_by
 
 
 def silhouette(hull_pts: np.ndarray, cell: float, c2w: np.ndarray, intr: np.ndarray, w: int, h: int) -> np.ndarray:

@@ -3,7 +3,8 @@
 Rays known to see nothing (the sky, masked photos' transparent pixels) trained as empty space, the sparse-depth prior,
 per-photo appearance and per-photo pose refinement each change the step in a different place; as pieces with a few
 hooks the loop stays one loop, a new feature is a new piece instead of new keyword arguments, and whoever builds a
-training run (the train stage, the profiler, a benchmark) passes the same sequence. Each step the trainer calls, piece by piece in the sequence's order:
+training run (the train stage, the profiler, a benchmark) passes the same sequence. Each step the trainer calls,
+piece by piece in the sequence's order:
 
 * ``before_render(batch, at)`` — the batch's rays before the field renders them (pose refinement moves them);
 * ``after_render(out, batch)`` — the rendered output before the colour loss (appearance transforms its rgb);

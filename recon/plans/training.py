@@ -11,7 +11,7 @@ import numpy as np
 import torch
 
 from recon.camera import pixel_footprint, project
-from recon.capture.auto_masks import HULL_TOLERANCE
+from recon.capture.auto_masks import HULL_RES, HULL_TOLERANCE
 from recon.capture.scene import Frame, Scene
 from recon.capture.sky import SKY_MIN_FRACTION, sky_mask
 from recon.config import TrainConfig
@@ -31,9 +31,6 @@ from recon.nerf.depth_prior import DepthPrior, sparse_depth_targets
 from recon.nerf.fitting import RayBatcher
 from recon.nerf.pose_refine import PoseRefinement
 from recon.nerf.surface import hull_planes
-
-TRANSPARENT_HULL_RES = 96
-"""Grid vertices per side of the hull that decides which transparent pixels are known to show nothing."""
 
 BACKDROP_KEY_WHY = (
     "a surface colored like the backdrop is as bright as the backdrop itself, so the photos' colours cannot tell it "
@@ -104,7 +101,8 @@ def sky_for(cfg: TrainConfig, kind: str, scene: Scene, frames: list[Frame],
                    f"train as empty space (weight {cfg.sky_weight:g})")
 
 
-def transparent_for(cfg: TrainConfig, kind: str, scene: Scene, views: list[View]) -> tuple[list[np.ndarray] | None, str]:
+def transparent_for(cfg: TrainConfig, kind: str, scene: Scene,
+                    views: list[View]) -> tuple[list[np.ndarray] | None, str]:
     """(per training photo, the (H, W) bool mask of its pixels known to show nothing, or None; why).
 
     Photos with masks or alpha train on random backgrounds, which tell the field that their transparent pixels show
@@ -118,7 +116,7 @@ def transparent_for(cfg: TrainConfig, kind: str, scene: Scene, views: list[View]
         return None, f"transparent pixels: trained by their colour on random backgrounds (the {kind} model)"
     if cfg.transparent_weight <= 0:
         return None, "transparent pixels: trained by their colour alone (train.transparent_weight=0)"
-    silhouettes, _ = hull_silhouettes(np.asarray(scene.aabb, np.float64), TRANSPARENT_HULL_RES, [v.c2w for v in views],
+    silhouettes, _ = hull_silhouettes(np.asarray(scene.aabb, np.float64), HULL_RES, [v.c2w for v in views],
                                       [v.intrinsics for v in views], [v.image[..., 3] >= 128 for v in views],
                                       HULL_TOLERANCE)
     transparent = [v.image[..., 3] == 0 for v in views]
@@ -457,7 +455,8 @@ def plan_training(cfg: TrainConfig, scene: Scene, views: list[View], device: tor
     return TrainPlan(
         kind=kind, kwargs=kwargs, lr=lr, lr_final=lr * cfg.lr_decay, batch_rays=cfg.batch_rays, seed=cfg.seed,
         views=views, aabb=np.asarray(scene.aabb) if scene.capture == "object" else None,
-        background=background, random_background=random_bg, background_why=bg_why, empty=empty, empty_weight=empty_weight,
+        background=background, random_background=random_bg, background_why=bg_why, empty=empty,
+        empty_weight=empty_weight,
         start_sdf=start_sdf, appearance=appearance, appearance_why=appearance_why, pose_refine=pose_refine,
         pose_why=pose_why, depth_prior=depth_prior,
         compile=cfg.compile if kind == "fast" and compile_wanted(cfg.compile, device)[0] else None,
