@@ -22,11 +22,13 @@ the others are the same run there.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import shutil
 import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -48,9 +50,29 @@ COLUMNS: dict[str, list[str]] = {
     "default": [],
     "torch": ["train.fast.kernels=torch"],
     "triton": ["train.fast.kernels=triton"],
+    "torch-march": [],
     "unsized": ["train.device_sizing=off"],
+    "rays16k": ["train.batch_rays=16384", "train.depth_rays=1024"],
+    "rays8k": ["train.batch_rays=8192", "train.depth_rays=512"],
 }
-"""--columns: each column's overrides on top of the check's own. All but `default` compare something CUDA has."""
+"""--columns: each column's overrides on top of the check's own. All but `default` compare something CUDA has:
+`torch-march` is the default run with the Triton marcher swapped for the torch one it replaced (the marcher's
+share of the step), `rays16k` and `rays8k` the sized preset with fewer rays a step (more steps in the budget)."""
+
+
+@contextlib.contextmanager
+def column_patches(column: str) -> Iterator[None]:
+    """The check's one patch of recon, for the `torch-march` column: the fast model's Triton marcher declines (it
+    returns None where it does not apply), so the model marches in torch as before it; nothing otherwise."""
+    from recon.nerf import fast
+
+    saved = fast.march_dense_triton
+    if column == "torch-march":
+        fast.march_dense_triton = lambda *args, **kwargs: None
+    try:
+        yield
+    finally:
+        fast.march_dense_triton = saved
 
 
 def not_nerf_synthetic(data: Path) -> str | None:
@@ -302,7 +324,8 @@ def run_check(args: argparse.Namespace) -> dict[str, Any]:
         # the mesh stage and the render-chunk sweep once, in the first column; the others stop after training
         first = not row["runs"]
         until = None if first and not args.no_mesh else "train"
-        row["runs"][column], config, device = run_one(args, column, until, sweep=first)
+        with column_patches(column):  # its training, renders and timings
+            row["runs"][column], config, device = run_one(args, column, until, sweep=first)
         if first:  # the record's headline: the first column (default: what recon does on this device)
             head = row["runs"][column]
             row.update(sizing=config.train.adjusted, batch_rays=config.train.batch_rays, steps=head["steps"],

@@ -93,7 +93,7 @@ def _labelled(targets: list[tuple[Any, ...]]) -> Iterator[dict[str, list[int]]]:
             first = next((a for a in args if isinstance(a, torch.Tensor)), None)
             rows = None if first is None else int(first.shape[0])
             # the native marchers evaluate the densities of the samples they keep (None: they did not run)
-            if _name == "march_dense_native":
+            if _name in ("march_dense_native", "march_dense_triton"):
                 rows = None if result is None else int(result[2].shape[0])
             elif _name == "march_render_native":
                 rows = None if result is None else int(result["samples"].sum())
@@ -176,6 +176,7 @@ def _labels(model: Any) -> list[tuple[Any, ...]]:
         (fast, "march", "recon:marcher (occupancy skip + no-grad density pre-pass)"),
         (fast, "march_front_to_back", "recon:marcher (occupancy skip + no-grad density pre-pass)"),
         (fast, "march_dense_native", "recon:marcher (occupancy skip + no-grad density pre-pass)"),
+        (fast, "march_dense_triton", "recon:marcher (occupancy skip + no-grad density pre-pass)"),
         (fast, "march_render_native", "recon:marcher (native, with compositing)"),
         (type(model), "_sigma_unit", "recon:density grid fwd"),
         (type(model), "_rgb_unit", "recon:feature grid + color MLP fwd"),
@@ -233,7 +234,9 @@ def profile_training(cfg: TrainConfig, scene: Scene, views: list[View], report: 
     with report.task(f"{title}: {warmup} warm-up + {steps} profiled steps", total=None):
         with _labelled(_labels(setup.model)) as counts:
             result = train(setup.model, setup.batcher, steps=warmup + steps, **setup.step_kwargs, callbacks=[on_step])
-            samples = counts["render_weights_packed"][-steps:]
+            # the samples composited: counted where torch composites them, else where a fused marcher made them
+            samples = (counts["render_weights_packed"] or counts["march_dense_triton"]
+                       or counts["march_dense_native"])[-steps:]
             colored = counts["_rgb_unit"][-steps:]
     res: dict[str, Any] = {
         "warmup": warmup, "steps": steps, "batch_rays": plan.batch_rays, "wall_s": marks["t1"] - marks["t0"],
@@ -292,6 +295,7 @@ def profile_preset(data: str, preset: str, out_dir: Path, overrides: list[str], 
             rwall = time.perf_counter() - t0
         res["render"] = {"view": view.name, "size": f"{w}×{h}", "wall_s": rwall, "parts": attribute(rprof),
                          "samples": sum(rcounts["_sigma_unit"]) + sum(rcounts["march_dense_native"])
+                         + sum(rcounts["march_dense_triton"])
                          + sum(rcounts["march_render_native"]),
                          "rays": h * w,
                          "top_ops": rprof.key_averages().table(sort_by=_sort_key(device), row_limit=12)}

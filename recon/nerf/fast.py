@@ -43,7 +43,7 @@ from torch import Tensor, nn
 
 from recon.nerf.contraction import contract
 from recon.nerf.grid import DenseGrid, HashGrid, MultiDenseGrid, VMGrid, resample_dense
-from recon.nerf.kernels import accumulate_packed_triton, composite_packed_triton, use_triton
+from recon.nerf.kernels import accumulate_packed_triton, composite_packed_triton, march_dense_triton, use_triton
 from recon.nerf.model_config import FastConfig, GridKind
 from recon.nerf.native import DenseDensity, march_dense_native, march_render_native
 from recon.nerf.occupancy import OccupancyGrid, density_threshold, march, march_front_to_back
@@ -325,7 +325,7 @@ class FastModel(RadianceModel):
         if cfg.unbounded:
             t_near, t_far = near, far
         else:
-            box = self.march_box if bool(self.occupancy.warm) else self.aabb
+            box = self.march_box if self.occupancy.is_warm() else self.aabb
             tn, tf, hit = ray_aabb(rays_o, rays_d, box)
             t_near = torch.maximum(near, tn)
             t_far = torch.where(hit, torch.minimum(far, tf), t_near)
@@ -338,7 +338,7 @@ class FastModel(RadianceModel):
             return self._sigma_unit(self._unit(x).clamp(0.0, 1.0))
 
         step_size = self.step_size
-        if training and int(self.step) < cfg.occupancy_warmup:
+        if training and self.current_step() < cfg.occupancy_warmup:
             step_size *= cfg.warmup_step_scale
         # march front to back (densities behind opaque surfaces are never evaluated); without gradients
         # (evaluation, recon render, the viewer) the marcher's densities are the ones rendered, not evaluated again
@@ -358,6 +358,9 @@ class FastModel(RadianceModel):
             if field is not None:
                 native = march_dense_native(rays_o, rays_d, t_near, t_far, training, field, step_size, cfg.max_samples,
                                             cfg.early_stop_transmittance)
+                if native is None and use_triton(cfg.kernels, rays_o):  # CUDA: one kernel, one host read
+                    native = march_dense_triton(rays_o, rays_d, t_near, t_far, training, field, step_size,
+                                                cfg.max_samples, cfg.early_stop_transmittance)
             if native is not None:
                 ts, te, ri, sigma = native
                 evaluated[0] += int(ts.shape[0])
@@ -461,13 +464,13 @@ class FastModel(RadianceModel):
         """Refresh the occupancy grid every ``occupancy_every`` steps (all vertices while warming up), and
         shrink the grids to the occupied box once (``shrink_step``). True when the grids were re-sampled."""
         cfg = self.config
-        self.step.fill_(step)
+        self.set_step(step)
         if step % cfg.occupancy_every != 0:
             return False
         moved = False
         warming = step < cfg.occupancy_warmup
         self.occupancy.update(self.density, step, share=1 if warming else 4, jitter=not warming)
-        if bool(self.occupancy.warm):
+        if self.occupancy.is_warm():
             box = self.occupancy.occupied_aabb()
             if box is not None:
                 if cfg.shrink_step and step >= cfg.shrink_step and not bool(self.shrunk):

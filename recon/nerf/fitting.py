@@ -145,7 +145,9 @@ class RayBatcher:
 
     def _new_epoch(self) -> None:
         self._epoch_gen_state = self._perm_gen.get_state()
-        self._perm = torch.randperm(self.n_rays, generator=self._perm_gen)
+        # drawn on the CPU (the same order on every device), kept where the pixels are: a batch's indices copied to
+        # a GPU each step would wait for its queued work
+        self._perm = torch.randperm(self.n_rays, generator=self._perm_gen).to(self.device)
         self._cursor = 0
 
     def _take(self, b: int) -> Tensor:
@@ -157,7 +159,7 @@ class RayBatcher:
             self._cursor += chunk.numel()
             need -= chunk.numel()
             parts.append(chunk)
-        idx = torch.cat(parts).to(self.device)
+        idx = torch.cat(parts) if len(parts) > 1 else parts[0]
         return idx if self.valid is None else self.valid[idx]
 
     def next_batch(self, batch_rays: int) -> dict[str, Tensor]:

@@ -23,18 +23,22 @@ reference, forward and gradients, compiled on CUDA and under Triton's interprete
 """
 from __future__ import annotations
 
+import math
 from functools import lru_cache
 from types import ModuleType
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
 import torch
 from torch import Tensor
 
 from recon.nerf.render import SIGMA_MAX, TAU_MAX, accumulate_packed, render_weights_packed
 
+if TYPE_CHECKING:
+    from recon.nerf.native import DenseDensity
+
 __all__ = ["MEASURED_FASTER", "KERNEL_DEVICES", "KernelSetting", "kernels_choice", "triton_status", "use_triton",
            "composite_packed_torch", "composite_packed_triton", "accumulate_packed_triton",
-           "trilinear_levels_triton", "ray_offsets"]
+           "trilinear_levels_triton", "march_dense_triton", "ray_offsets"]
 
 KernelSetting = Literal["auto", "torch", "triton"]
 
@@ -55,6 +59,8 @@ GRID_BLOCK = 128
 """Points a grid-read program reads at a time."""
 MAX_LEVELS = 4
 """Grid levels one launch reads (more are summed over launches)."""
+MARCH_BLOCK = 32
+"""Rays a marching program takes, a ray a lane of one warp: a program loops until its longest ray ends."""
 
 
 @lru_cache(maxsize=1)
@@ -89,8 +95,8 @@ def kernels_choice(setting: KernelSetting, device_type: str) -> tuple[bool, str]
     ok, why = triton_status()
     if not ok:
         return False, f"kernels: torch (train.fast.kernels={setting}, but {why})"
-    return True, (f"kernels: Triton compositing and dense-grid reads on CUDA (train.fast.kernels={setting}, {why}); "
-                  "the torch code is their reference")
+    return True, (f"kernels: Triton marching, compositing and dense-grid reads on CUDA (train.fast.kernels={setting}, "
+                  f"{why}); the torch code is their reference")
 
 
 @lru_cache(maxsize=4)
@@ -265,3 +271,60 @@ def trilinear_levels_triton(x01: Tensor, tables: list[Tensor], resolutions: list
         out = part if out is None else out + part
     assert out is not None
     return out
+
+
+# ----------------------------------------------------------------------------- marching
+@lru_cache(maxsize=8)
+def _log_min_transmittance(min_transmittance: float, device: torch.device) -> Tensor:
+    """-log(min_transmittance) as a float64 tensor on ``device``: a Python float reaches a kernel as float32."""
+    return torch.tensor([-math.log(min_transmittance)], dtype=torch.float64, device=device)
+
+
+def march_dense_triton(rays_o: Tensor, rays_d: Tensor, t_near: Tensor, t_far: Tensor, jitter: bool,
+                       field: DenseDensity, step_size: float, max_samples: int,
+                       min_transmittance: float) -> tuple[Tensor, Tensor, Tensor, Tensor] | None:
+    """:func:`recon.nerf.occupancy.march_front_to_back` with the fast model's dense density in two launches of one
+    kernel (count, then write) and one host read (how many samples), where the torch marcher takes a window of
+    steps at a time, each with its own host reads; :func:`recon.nerf.native.march_dense_native` is the same march
+    in C for a CPU. None where it does not apply (contracted steps, more than MAX_LEVELS density levels, tensors
+    that are not float32 on a kernel device): the caller then marches in torch.
+
+    jitter: each ray's steps offset by one uniform draw, drawn as the torch marcher draws it (one float32 per ray).
+    Returns t_starts, t_ends, ray_indices, sigma (M,), sorted by ray and along each ray."""
+    tensors = (rays_o, rays_d, t_near, t_far, field.occupancy_box, field.grid_box, *field.tables)
+    if field.contracted or not 0 < len(field.tables) <= MAX_LEVELS or not all(
+            t.device.type in KERNEL_DEVICES and t.dtype == torch.float32 for t in tensors):
+        return None
+    device = rays_o.device
+    n = rays_o.shape[0]
+    u = torch.rand(n, device=device, dtype=torch.float32) if jitter else None
+    rays_o, rays_d, t_near, t_far = (t.contiguous() for t in (rays_o, rays_d, t_near, t_far))
+    tables = [t.contiguous() for t in field.tables]
+    res = [round(t.numel() ** (1 / 3)) for t in tables]
+    occupied = field.occupied.contiguous().view(torch.uint8)
+    counts = torch.empty(n, dtype=torch.int32, device=device)
+    empty = torch.zeros(0, device=device, dtype=torch.float32)
+    if n == 0:
+        return empty, empty.clone(), torch.zeros(0, device=device, dtype=torch.long), empty.clone()
+    grid = (-(-n // MARCH_BLOCK),)
+    t, r = [*tables, *tables[:1] * (MAX_LEVELS - len(tables))], [*res, *res[:1] * (MAX_LEVELS - len(res))]
+    box = field.occupancy_box.contiguous()
+    gbox = field.grid_box.contiguous()
+
+    def launch(offsets: Tensor, outs: list[Tensor], write: bool) -> None:
+        _jit().march_dense[grid](
+            rays_o, rays_d, t_near, t_far, u if u is not None else t_near, occupied, box, gbox,
+            _log_min_transmittance(float(min_transmittance), device), *t, *r, counts, offsets, *outs,
+            n, occupied.shape[0], float(step_size), int(max_samples), float(field.bias), float(field.density_scale),
+            LEVELS=len(tables), EXP=bool(field.exp_activation), JITTER=u is not None, WRITE=write,
+            SIGMA_MAX=SIGMA_MAX, TAU_MAX=TAU_MAX, BLOCK=MARCH_BLOCK, num_warps=1)
+
+    launch(counts, [counts] * 4, False)
+    ends = torch.cumsum(counts, 0)
+    total = int(ends[-1])  # the one host read: how many samples to make room for
+    out = [empty.new_empty(total), empty.new_empty(total), torch.empty(total, dtype=torch.long, device=device),
+           empty.new_empty(total)]
+    if total:
+        launch(ends - counts, out, True)
+    ts, te, ri, sigma = out
+    return ts, te, ri, sigma

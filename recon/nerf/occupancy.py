@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 import torch
@@ -91,6 +92,18 @@ class OccupancyGrid(nn.Module):
         self.register_buffer("warm", torch.zeros((), dtype=torch.bool))
         self.faint = False
         """The last refresh found no vertex above the threshold and left the grid as it was."""
+        self._warm_on_host: bool | None = None
+
+    def is_warm(self) -> bool:
+        """``bool(self.warm)``, read from the device once and then kept (refresh and loading a state update it): a
+        model asks before every render, and on CUDA a read waits for the GPU to finish its queued work."""
+        if self._warm_on_host is None:
+            self._warm_on_host = bool(self.warm)
+        return self._warm_on_host
+
+    def _load_from_state_dict(self, *args: Any, **kwargs: Any) -> None:
+        self._warm_on_host = None  # the loaded buffer decides
+        super()._load_from_state_dict(*args, **kwargs)
 
     # ------------------------------------------------------------------ coordinates
     def to_grid(self, x: Tensor) -> Tensor:
@@ -177,6 +190,7 @@ class OccupancyGrid(nn.Module):
         cell = torch.nn.functional.max_pool3d(above.float()[None, None], kernel_size=2, stride=1)[0, 0]
         self.occupied.copy_(cell > 0)
         self.warm.fill_(True)
+        self._warm_on_host = True
 
     def threshold_at(self, step: int) -> float:
         """The density threshold at ``step``: ``start_threshold`` at the end of the warm-up, ``sigma_threshold``

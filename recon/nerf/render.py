@@ -351,6 +351,27 @@ class RadianceModel(nn.Module, abc.ABC):
     def radiance(self, x: Tensor, d: Tensor) -> Tensor:
         """RGB (M, 3) in [0, 1] emitted at x (M, 3) towards unit view directions d (M, 3)."""
 
+    def current_step(self) -> int:
+        """The training step :meth:`step_update` last set (0 before any), kept on the host: models that keep it in a
+        ``step`` buffer (saved with the field) would otherwise read the device, which on CUDA waits for the GPU."""
+        host = getattr(self, "_host_step", None)
+        if host is None:
+            step = getattr(self, "step", None)
+            host = int(step) if isinstance(step, torch.Tensor) else 0
+            self._host_step = host
+        return host
+
+    def _load_from_state_dict(self, *args: Any, **kwargs: Any) -> None:
+        self._host_step = None  # the loaded buffer decides
+        super()._load_from_state_dict(*args, **kwargs)
+
+    def set_step(self, step: int) -> None:
+        """Record ``step`` on the host and, where the model has one, in its ``step`` buffer."""
+        self._host_step = int(step)
+        buffer = getattr(self, "step", None)
+        if isinstance(buffer, torch.Tensor):
+            buffer.fill_(step)
+
     def step_update(self, step: int) -> bool:
         """Per-step hook called by the trainer before each step (e.g. occupancy refresh); no-op here.
 

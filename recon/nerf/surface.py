@@ -213,7 +213,7 @@ class SurfaceModel(RadianceModel):
     def active_levels(self) -> int:
         """SDF grid levels in use at the current step (coarse to fine)."""
         every, n = self.config.level_every, len(self.sdf_grid.grids)
-        return n if every <= 0 else min(n, 1 + int(self.step) // every)
+        return n if every <= 0 else min(n, 1 + self.current_step() // every)
 
     @property
     def fd_step(self) -> float:
@@ -289,7 +289,7 @@ class SurfaceModel(RadianceModel):
         training also returns 'reg' (Eikonal + curvature, weighted) and 'sharpness'."""
         cfg = self.config
         n = rays_o.shape[0]
-        box = self.march_box if bool(self.occupancy.warm) else self.aabb
+        box = self.march_box if self.occupancy.is_warm() else self.aabb
         tn, tf, hit = ray_aabb(rays_o, rays_d, box)
         t_near = torch.maximum(near, tn)
         t_far = torch.where(hit, torch.minimum(far, tf), t_near)
@@ -300,7 +300,7 @@ class SurfaceModel(RadianceModel):
             return neus_tau(f0, f1, s) / (te - ts).clamp_min(1e-12)
 
         step_size = self.step_size
-        if training and int(self.step) < cfg.occupancy_warmup:
+        if training and self.current_step() < cfg.occupancy_warmup:
             step_size *= cfg.warmup_step_scale
         with torch.no_grad():
             ts, te, ri = march(
@@ -357,11 +357,11 @@ class SurfaceModel(RadianceModel):
     def step_update(self, step: int) -> bool:
         """Set the step (coarse-to-fine levels), refresh the occupancy shell every ``occupancy_every`` steps."""
         cfg = self.config
-        self.step.fill_(step)
+        self.set_step(step)
         if step % cfg.occupancy_every == 0:
             warming = step < cfg.occupancy_warmup
             self.occupancy.update(self._shell, step, share=1 if warming else 4, jitter=not warming)
-            if bool(self.occupancy.warm):
+            if self.occupancy.is_warm():
                 box = self.occupancy.occupied_aabb()
                 if box is not None:
                     self.march_box.copy_(box)

@@ -255,3 +255,139 @@ def trilinear_bwd(x, g_out, M, g0, g1, g2, g3, r0, r1, r2, r3,
         _level_add(g2, g, r2, px, py, pz, pm, cols, cm, C)
     if LEVELS > 3:
         _level_add(g3, g, r3, px, py, pz, pm, cols, cm, C)
+
+
+# ----------------------------------------------------------------------------- marching
+@triton.jit
+def _scalar_level(acc, table, R, px, py, pz, m):
+    """acc plus the trilinear read of a one-channel level (R³,) at unit points (px, py, pz), lanes ``m`` only; the
+    corners in trilinear_fwd's order, so a point reads the same value here as there."""
+    ix, fx = _cell(px, R)
+    iy, fy = _cell(py, R)
+    iz, fz = _cell(pz, R)
+    gx = 1.0 - fx
+    gy = 1.0 - fy
+    gz = 1.0 - fz
+    row = (ix * R + iy) * R + iz
+    rr = R * R
+    acc += gx * gy * gz * tl.load(table + row, mask=m, other=0.0)
+    acc += gx * gy * fz * tl.load(table + row + 1, mask=m, other=0.0)
+    acc += gx * fy * gz * tl.load(table + row + R, mask=m, other=0.0)
+    acc += gx * fy * fz * tl.load(table + row + R + 1, mask=m, other=0.0)
+    acc += fx * gy * gz * tl.load(table + row + rr, mask=m, other=0.0)
+    acc += fx * gy * fz * tl.load(table + row + rr + 1, mask=m, other=0.0)
+    acc += fx * fy * gz * tl.load(table + row + rr + R, mask=m, other=0.0)
+    acc += fx * fy * fz * tl.load(table + row + rr + R + 1, mask=m, other=0.0)
+    return acc
+
+
+@triton.jit
+def _softplus(x):
+    """torch's softplus (threshold 20): x above 20, else log1p(exp(x)), log1p by Goldberg's correction
+    (log(1 + y) * y / ((1 + y) - 1)): triton has no log1p that runs both compiled and interpreted."""
+    y = tl.exp(tl.minimum(x, 20.0))
+    v = 1.0 + y
+    log1p = tl.where(v == 1.0, y, tl.log(v) * (y / (v - 1.0)))
+    return tl.where(x > 20.0, x, log1p)
+
+
+@triton.jit
+def march_dense(rays_o, rays_d, t_near, t_far, jitter, occupied, occ_box, grid_box, log_min_t,
+                t0, t1, t2, t3, r0, r1, r2, r3, counts, offsets, out_ts, out_te, out_ri, out_sigma,
+                N, OCC_RES, step, max_samples, bias, density_scale,
+                LEVELS: tl.constexpr, EXP: tl.constexpr, JITTER: tl.constexpr, WRITE: tl.constexpr,
+                SIGMA_MAX: tl.constexpr, TAU_MAX: tl.constexpr, BLOCK: tl.constexpr):
+    """Front-to-back marching of BLOCK rays a program, a ray a lane: recon/nerf/march.c's samples mode for bounded
+    uniform steps (step k spans tn + (k + u) step to the next, kept where its midpoint's occupancy cell is occupied,
+    its density the levels' trilinear sum through the activation; a ray stops before the first sample whose optical
+    depth so far, a float64 sum, reaches log_min_t). The first launch (WRITE false) counts each ray's samples into
+    ``counts``; the second writes them at ``offsets`` (the counts' exclusive sum): ray-major, in order along each ray.
+    A program's loop ends when its last ray has."""
+    r = tl.program_id(0).to(tl.int64) * BLOCK + tl.arange(0, BLOCK)
+    rm = r < N
+    ox = tl.load(rays_o + r * 3, mask=rm, other=0.0)
+    oy = tl.load(rays_o + r * 3 + 1, mask=rm, other=0.0)
+    oz = tl.load(rays_o + r * 3 + 2, mask=rm, other=0.0)
+    dx = tl.load(rays_d + r * 3, mask=rm, other=0.0)
+    dy = tl.load(rays_d + r * 3 + 1, mask=rm, other=0.0)
+    dz = tl.load(rays_d + r * 3 + 2, mask=rm, other=0.0)
+    tn = tl.load(t_near + r, mask=rm, other=0.0)
+    tf = tl.load(t_far + r, mask=rm, other=0.0)
+    if JITTER:
+        u = tl.load(jitter + r, mask=rm, other=0.0)
+    else:
+        u = tl.zeros([BLOCK], dtype=tl.float32)
+    limit = tl.load(log_min_t)  # float64
+    # occupancy cells: the ray in cell units once (OccupancyGrid.query_rays)
+    lo_x = tl.load(occ_box)
+    lo_y = tl.load(occ_box + 1)
+    lo_z = tl.load(occ_box + 2)
+    cells = OCC_RES * 1.0
+    sx = cells / (tl.load(occ_box + 3) - lo_x)
+    sy = cells / (tl.load(occ_box + 4) - lo_y)
+    sz = cells / (tl.load(occ_box + 5) - lo_z)
+    pox = (ox - lo_x) * sx
+    poy = (oy - lo_y) * sy
+    poz = (oz - lo_z) * sz
+    pdx = dx * sx
+    pdy = dy * sy
+    pdz = dz * sz
+    g_x = tl.load(grid_box)
+    g_y = tl.load(grid_box + 1)
+    g_z = tl.load(grid_box + 2)
+    gs_x = tl.load(grid_box + 3) - g_x
+    gs_y = tl.load(grid_box + 4) - g_y
+    gs_z = tl.load(grid_box + 5) - g_z
+
+    n = tl.minimum(tl.ceil(tl.maximum(tf - tn, 0.0) / step), max_samples * 1.0)
+    n = tl.where(rm & (tf > tn), n, 0.0).to(tl.int32)
+    kmax = tl.max(n, 0)
+    depth = tl.zeros([BLOCK], dtype=tl.float64)
+    kept = tl.zeros([BLOCK], dtype=tl.int32)
+    alive = n > 0
+    if WRITE:
+        base = tl.load(offsets + r, mask=rm, other=0)
+    k = tl.zeros([], dtype=tl.int32)
+    while k < kmax:
+        ts = tn + (k.to(tl.float32) + u) * step
+        alive = alive & (k < n) & (ts < tf)
+        te = tl.minimum(ts + step, tf)
+        tm = 0.5 * (ts + te)
+        px = pox + pdx * tm
+        py = poy + pdy * tm
+        pz = poz + pdz * tm
+        inside = alive & (px >= 0.0) & (px <= cells) & (py >= 0.0) & (py <= cells) & (pz >= 0.0) & (pz <= cells)
+        ix = tl.minimum(tl.floor(px), cells - 1.0).to(tl.int64)
+        iy = tl.minimum(tl.floor(py), cells - 1.0).to(tl.int64)
+        iz = tl.minimum(tl.floor(pz), cells - 1.0).to(tl.int64)
+        occ = tl.load(occupied + (ix * OCC_RES + iy) * OCC_RES + iz, mask=inside, other=0)
+        take = inside & (occ != 0)
+        ux = tl.clamp((ox + dx * tm - g_x) / gs_x, 0.0, 1.0)
+        uy = tl.clamp((oy + dy * tm - g_y) / gs_y, 0.0, 1.0)
+        uz = tl.clamp((oz + dz * tm - g_z) / gs_z, 0.0, 1.0)
+        raw = tl.zeros([BLOCK], dtype=tl.float32)
+        raw = _scalar_level(raw, t0, r0, ux, uy, uz, take)
+        if LEVELS > 1:
+            raw = _scalar_level(raw, t1, r1, ux, uy, uz, take)
+        if LEVELS > 2:
+            raw = _scalar_level(raw, t2, r2, ux, uy, uz, take)
+        if LEVELS > 3:
+            raw = _scalar_level(raw, t3, r3, ux, uy, uz, take)
+        raw = raw + bias
+        if EXP:
+            sigma = tl.exp(tl.minimum(raw, 15.0)) * density_scale
+        else:
+            sigma = _softplus(raw) * density_scale
+        tau = _optical_thickness(sigma, te - ts, SIGMA_MAX, TAU_MAX)
+        if WRITE:
+            at = base + kept
+            tl.store(out_ts + at, ts, mask=take)
+            tl.store(out_te + at, te, mask=take)
+            tl.store(out_ri + at, r, mask=take)
+            tl.store(out_sigma + at, sigma, mask=take)
+        kept += take.to(tl.int32)
+        depth += tl.where(take, tau.to(tl.float64), 0.0)
+        alive = alive & (depth < limit)  # no later sample of this ray is kept
+        k = tl.where(tl.max(alive.to(tl.int32), 0) > 0, k + 1, kmax)
+    if not WRITE:
+        tl.store(counts + r, kept, mask=rm)
