@@ -60,6 +60,13 @@ COLUMNS: dict[str, list[str]] = {
 share of the step), `rays16k` and `rays8k` the sized preset with fewer rays a step (more steps in the budget)."""
 
 
+def column_label(column: str) -> str:
+    """What a column changes, for the table's header."""
+    if column == "torch-march":
+        return "the torch marcher instead of the Triton one"
+    return ", ".join(COLUMNS[column]) or "as recon runs"
+
+
 @contextlib.contextmanager
 def column_patches(column: str) -> Iterator[None]:
     """The check's one patch of recon, for the `torch-march` column: the fast model's Triton marcher declines (it
@@ -369,8 +376,7 @@ def table(row: dict[str, Any]) -> str:
     lines = [f"device {row['device']} ({row['device_name']}); preset {row['name']}: {row['batch_rays']:,} rays/step; "
              f"check {row['wall_s']:.0f} s in all",
              "",
-             "| measure | " + " | ".join(f"{n} ({', '.join(COLUMNS[n]) or 'as recon runs'})" if n in COLUMNS else n
-                                        for n in names) + " |",
+             "| measure | " + " | ".join(f"{n} ({column_label(n)})" if n in COLUMNS else n for n in names) + " |",
              "|---|" + "---|" * len(names)]
     lines += [f"| {label} | " + " | ".join(cell(runs[n]) for n in names) + " |" for label, cell in measures]
     timings = row["kernel_timings"]

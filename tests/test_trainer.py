@@ -8,7 +8,7 @@ import torch
 
 from recon.nerf.evaluate import render_image
 from recon.nerf.fitting import RayBatcher, lr_at
-from recon.nerf.trainer import TrainingDiverged, train
+from recon.nerf.trainer import TrainingDiverged, train, warm_up
 from tests.ball_scene import AABB, COLOR
 from tests.ball_scene import ball_views as _scene
 from tests.ball_scene import tiny_model as _tiny_model
@@ -108,6 +108,31 @@ def test_resume_equals_uninterrupted_run() -> None:
     assert out["step"] == 12
     for (k, a), b in zip(full.state_dict().items(), resumed.state_dict().values()):
         torch.testing.assert_close(a, b, rtol=0, atol=0, msg=k)
+
+
+def test_a_warm_up_render_leaves_training_as_it_would_have_been() -> None:
+    """The train stage's warm-up on CUDA (kernels compile before the budget): after it, the same run to the bit."""
+    images, c2w, intr = _scene(3, 8)
+    rgba = torch.cat([images, torch.rand(3, 8, 8, 1, generator=torch.Generator().manual_seed(1))], dim=-1)
+    kw = dict(steps=6, lr=5e-3, lr_final=1e-3, batch_rays=64)
+    runs = []
+    for warm in (False, True):
+        model = _tiny_model(1)
+        batcher = RayBatcher(rgba, c2w, intr, aabb=AABB, random_background=True, seed=2)
+        batcher.next_batch(40)  # mid-stream, as a resumed run is
+        torch.manual_seed(123)
+        if warm:
+            before = {k: v.clone() for k, v in model.state_dict().items()}
+            assert warm_up(model, batcher, 64) > 0.0
+            assert all(p.grad is None for p in model.parameters())
+            for k, v in model.state_dict().items():
+                torch.testing.assert_close(v, before[k], rtol=0, atol=0, msg=k)
+        out = train(model, batcher, **kw)
+        runs.append((out["loss"], model.state_dict(), torch.rand(3)))
+    assert runs[0][0] == runs[1][0]
+    torch.testing.assert_close(runs[1][2], runs[0][2], rtol=0, atol=0)  # the random stream goes on as it would have
+    for (k, a), b in zip(runs[0][1].items(), runs[1][1].values()):
+        torch.testing.assert_close(b, a, rtol=0, atol=0, msg=k)
 
 
 def test_interrupt_carries_a_resumable_state() -> None:

@@ -12,8 +12,9 @@ Design (DVGO-like, tuned for a small CPU; runs unchanged on CUDA):
   termination in a no-grad pre-pass), ordered along each ray (grids read ordered points faster).
   In a bounded scene rays are clipped to the box around the occupied cells once the grid is warm. On the CPU
   rays march in C (:mod:`recon.nerf.native`: the same samples as the torch path, faster; bounded and contracted
-  steps), and rendering composites there too. On CUDA, ``kernels="triton"`` composites the packed samples and
-  reads the dense grids in fused Triton kernels (:mod:`recon.nerf.kernels`; the torch code is their reference).
+  steps), and rendering composites there too. On CUDA, ``kernels="triton"`` marches (bounded steps), composites the
+  packed samples and reads the dense grids in fused Triton kernels (:mod:`recon.nerf.kernels`; the torch code is
+  their reference).
 
 Coordinates: world = normalized scene frame. Bounded scenes map the ``aabb`` onto the grids'
 unit cube; unbounded ones contract (:mod:`recon.nerf.contraction`) into [-2, 2]^3 first.

@@ -1,7 +1,7 @@
 """Fused Triton kernels for the fast model's CUDA hot path, each beside the torch code it replaces (its reference).
 
-On a GPU the fast model's step is launch-bound (docs/gpu.md): compositing packed samples costs ~15 small torch
-kernels (clamps, a float64 cumulative sum, the per-ray offsets' gather, exp, expm1, an index_add per sum), and a
+On a GPU the fast model's step in torch is launch-bound (docs/gpu.md): marching takes a window of steps at a time
+with host reads in each, compositing packed samples costs ~15 small torch kernels (clamps, a float64 cumulative sum, the per-ray offsets' gather, exp, expm1, an index_add per sum), and a
 three-level density read three ``grid_sample`` calls and their coordinate transform. Here each is one kernel
 forward and one backward (recon/nerf/triton_kernels.py), wrapped as ``torch.autograd.Function``s:
 
@@ -13,6 +13,10 @@ forward and one backward (recon/nerf/triton_kernels.py), wrapped as ``torch.auto
 * :func:`trilinear_levels_triton` — the sum of dense grids' trilinear reads at the same points (the density levels,
   or one feature grid), the tables' gradients by atomic adds. Reference: :func:`recon.nerf.grid.trilinear_levels_torch`
   (the torch reads of :class:`recon.nerf.grid.DenseGrid`).
+* :func:`march_dense_triton` — front-to-back marching through the occupancy grid and the dense density levels, a ray a
+  lane, in one kernel launched twice (count, then write) with one host read between. Reference:
+  :func:`recon.nerf.occupancy.march_front_to_back` (windows of steps, host reads in each); on a CPU the C marcher
+  (:func:`recon.nerf.native.march_dense_native`) is the same march.
 
 They run only where ``train.fast.kernels`` asks for them (:func:`kernels_choice`), triton imports and the tensors
 are float32 on CUDA; everywhere else the torch code runs unchanged, so CPU results stay bit-identical. Callers pass

@@ -39,6 +39,7 @@ __all__ = [
     "TrainingInterrupted",
     "make_optimizer",
     "train",
+    "warm_up",
 ]
 
 
@@ -253,6 +254,30 @@ class TrainStep:
         self.opt.load_state_dict(state["optimizer"])
         self.batcher.load_state_dict(state["batcher"])
         _set_rng_state(state["rng"])
+
+
+def warm_up(model: RadianceModel, batcher: RayBatcher, batch_rays: int = 4096,
+            autocast: torch.dtype | None = None) -> float:
+    """One training render of a batch and its backward, then everything as it was (no parameter moved, no gradient
+    kept, the batcher's stream and the random state restored): on CUDA the kernels (Triton's, the compiled graphs')
+    compile here, before a time budget starts, instead of in its first steps. Returns the seconds it took."""
+    t0 = time.perf_counter()
+    stream, rng = batcher.state_dict(), _rng_state()
+    was_training = model.training
+    model.train()
+    batch = batcher.next_batch(min(batch_rays, batcher.n_rays))
+    with mixed_precision(batch["rgb"].device.type, autocast):
+        out = model.render_rays(batch["rays_o"], batch["rays_d"], batch["near"], batch["far"], training=True,
+                                background=batch["background"])
+    loss = F.mse_loss(out["rgb"].float(), batch["rgb"]) + (out["reg"].float() if "reg" in out else 0.0)
+    loss.backward()
+    model.zero_grad(set_to_none=True)
+    model.train(was_training)
+    batcher.load_state_dict(stream)
+    _set_rng_state(rng)
+    if batch["rgb"].device.type == "cuda":
+        torch.cuda.synchronize(batch["rgb"].device)
+    return time.perf_counter() - t0
 
 
 def train(

@@ -8,6 +8,8 @@ Layouts (float32, contiguous):
   the unit cube, "align corners" (vertex 0 at 0, vertex R - 1 at 1), as :class:`recon.nerf.grid.DenseGrid`.
 
 min, max and clamp propagate NaN (a diverged network) as torch's clamp does, so the trainer's guard sees it.
+Sizes that change every step (a batch's sample count) are not specialized on (``do_not_specialize``): triton
+would otherwise compile a second variant the first time one is a multiple of 16, inside a time budget.
 Under ``TRITON_INTERPRET=1`` (set before triton is imported) the same kernels run on CPU tensors with numpy: that
 is how tests/test_triton_kernels.py checks them on a machine without a GPU.
 """
@@ -138,7 +140,7 @@ def accumulate_fwd(w, v, offsets, out, C: tl.constexpr, CP: tl.constexpr, BLOCK:
     tl.store(out + ray.to(tl.int64) * C + cols, acc, mask=cm)
 
 
-@triton.jit
+@triton.jit(do_not_specialize=["M"])
 def accumulate_bwd(w, v, ray_indices, g_out, g_w, g_v, M, C: tl.constexpr, CP: tl.constexpr, BLOCK: tl.constexpr):
     """dL/dw_i = <dL/dout[r_i], v_i>, dL/dv_i = dL/dout[r_i] w_i: one program per BLOCK samples."""
     i = tl.program_id(0).to(tl.int64) * BLOCK + tl.arange(0, BLOCK)
@@ -163,6 +165,15 @@ def _cell(p, R):
 
 
 @triton.jit
+def _cell3(px, py, pz, R):
+    """A point's cell in a grid of R vertices per side: lower vertex per axis, fractions and their complements."""
+    ix, fx = _cell(px, R)
+    iy, fy = _cell(py, R)
+    iz, fz = _cell(pz, R)
+    return ix, iy, iz, fx, fy, fz, 1.0 - fx, 1.0 - fy, 1.0 - fz
+
+
+@triton.jit
 def _corner_read(acc, table, R, ix, iy, iz, w, pm, cols, cm, C: tl.constexpr):
     row = (ix * R + iy) * R + iz
     vals = tl.load(table + row[:, None] * C + cols[None, :], mask=pm[:, None] & cm[None, :], other=0.0)
@@ -171,12 +182,7 @@ def _corner_read(acc, table, R, ix, iy, iz, w, pm, cols, cm, C: tl.constexpr):
 
 @triton.jit
 def _level_read(acc, table, R, px, py, pz, pm, cols, cm, C: tl.constexpr):
-    ix, fx = _cell(px, R)
-    iy, fy = _cell(py, R)
-    iz, fz = _cell(pz, R)
-    gx = 1.0 - fx
-    gy = 1.0 - fy
-    gz = 1.0 - fz
+    ix, iy, iz, fx, fy, fz, gx, gy, gz = _cell3(px, py, pz, R)
     acc = _corner_read(acc, table, R, ix, iy, iz, gx * gy * gz, pm, cols, cm, C)
     acc = _corner_read(acc, table, R, ix, iy, iz + 1, gx * gy * fz, pm, cols, cm, C)
     acc = _corner_read(acc, table, R, ix, iy + 1, iz, gx * fy * gz, pm, cols, cm, C)
@@ -188,7 +194,7 @@ def _level_read(acc, table, R, px, py, pz, pm, cols, cm, C: tl.constexpr):
     return acc
 
 
-@triton.jit
+@triton.jit(do_not_specialize=["M"])
 def trilinear_fwd(x, out, M, t0, t1, t2, t3, r0, r1, r2, r3,
                   LEVELS: tl.constexpr, C: tl.constexpr, CP: tl.constexpr, BLOCK: tl.constexpr):
     """out (M, C) = the sum over LEVELS (1..4) grids t0..t3 of r0..r3 vertices per side of their trilinear reads at
@@ -219,12 +225,7 @@ def _corner_add(grad, g, R, ix, iy, iz, w, pm, cols, cm, C: tl.constexpr):
 
 @triton.jit
 def _level_add(grad, g, R, px, py, pz, pm, cols, cm, C: tl.constexpr):
-    ix, fx = _cell(px, R)
-    iy, fy = _cell(py, R)
-    iz, fz = _cell(pz, R)
-    gx = 1.0 - fx
-    gy = 1.0 - fy
-    gz = 1.0 - fz
+    ix, iy, iz, fx, fy, fz, gx, gy, gz = _cell3(px, py, pz, R)
     _corner_add(grad, g, R, ix, iy, iz, gx * gy * gz, pm, cols, cm, C)
     _corner_add(grad, g, R, ix, iy, iz + 1, gx * gy * fz, pm, cols, cm, C)
     _corner_add(grad, g, R, ix, iy + 1, iz, gx * fy * gz, pm, cols, cm, C)
@@ -235,7 +236,7 @@ def _level_add(grad, g, R, px, py, pz, pm, cols, cm, C: tl.constexpr):
     _corner_add(grad, g, R, ix + 1, iy + 1, iz + 1, fx * fy * fz, pm, cols, cm, C)
 
 
-@triton.jit
+@triton.jit(do_not_specialize=["M"])
 def trilinear_bwd(x, g_out, M, g0, g1, g2, g3, r0, r1, r2, r3,
                   LEVELS: tl.constexpr, C: tl.constexpr, CP: tl.constexpr, BLOCK: tl.constexpr):
     """The tables' gradients of trilinear_fwd: each point's dL/dout times its corner weights, atomically added to
@@ -262,12 +263,7 @@ def trilinear_bwd(x, g_out, M, g0, g1, g2, g3, r0, r1, r2, r3,
 def _scalar_level(acc, table, R, px, py, pz, m):
     """acc plus the trilinear read of a one-channel level (R³,) at unit points (px, py, pz), lanes ``m`` only; the
     corners in trilinear_fwd's order, so a point reads the same value here as there."""
-    ix, fx = _cell(px, R)
-    iy, fy = _cell(py, R)
-    iz, fz = _cell(pz, R)
-    gx = 1.0 - fx
-    gy = 1.0 - fy
-    gz = 1.0 - fz
+    ix, iy, iz, fx, fy, fz, gx, gy, gz = _cell3(px, py, pz, R)
     row = (ix * R + iy) * R + iz
     rr = R * R
     acc += gx * gy * gz * tl.load(table + row, mask=m, other=0.0)
@@ -291,7 +287,7 @@ def _softplus(x):
     return tl.where(x > 20.0, x, log1p)
 
 
-@triton.jit
+@triton.jit(do_not_specialize=["N"])
 def march_dense(rays_o, rays_d, t_near, t_far, jitter, occupied, occ_box, grid_box, log_min_t,
                 t0, t1, t2, t3, r0, r1, r2, r3, counts, offsets, out_ts, out_te, out_ri, out_sigma,
                 N, OCC_RES, step, max_samples, bias, density_scale,

@@ -106,6 +106,12 @@ def run(ctx: StageContext) -> dict:
     for protocol in _held_out_protocols(plan):
         ctx.report.info(f"held-out evaluation: {protocol}")
     setup = build_training(plan, device)
+    if device.type == "cuda":
+        from recon.nerf.trainer import warm_up
+
+        seconds = warm_up(setup.model, setup.batcher, plan.batch_rays, plan.autocast)
+        setup.notes.append(f"warm-up: one training render and its backward before training ({seconds:.1f} s): on "
+                           "CUDA the kernels compile there, not in the first steps of the time budget")
     for note in setup.notes:
         ctx.report.info(f"model: {note}")
     eval_views = load_views(scene, spread_evenly(held_out, cfg.eval_views), cfg.max_side)
