@@ -165,3 +165,28 @@ def test_the_weighted_median_is_the_value_where_half_the_weight_is_reached() -> 
                     expected[i, c] = v
                     break
     np.testing.assert_array_equal(_weighted_median(values, weights), expected)
+
+
+@pytest.mark.parametrize("case", ["ray-depths-median", "z-depths-uint8-occluded", "no-depths-mean"])
+def test_the_torch_bake_equals_the_numpy_reference(ball, views, device, case):
+    """`colors_from_photos` with a device (the mesh stage's CUDA path) against the numpy loop, on each device: the
+    same seen flags and colours, an occluder in view 0 and points the views do not see included."""
+    verts, normals = ball
+    c2ws, images, ray_depths, z_depths = views
+    intr = np.tile(INTR, (6, 1))
+    images, kind, depths, reduce = list(images), "ray", list(ray_depths), "median"
+    if case == "z-depths-uint8-occluded":
+        images = [np.round(im * 255).astype(np.uint8) for im in images]
+        images[0] = np.broadcast_to(np.array([255, 0, 0], np.uint8), (H, W, 3))
+        kind, depths = "z", [np.full((H, W), 1.0, np.float32), *[d.astype(np.float32) for d in z_depths[1:]]]
+    elif case == "no-depths-mean":
+        depths, reduce = None, "mean"
+    verts = np.concatenate([verts, [[5.0, 5.0, 5.0]]])  # behind or outside every view's image
+    normals = np.concatenate([normals, [[0.0, 0.0, 1.0]]])
+    want = colors_from_photos(verts, normals, images[:4], c2ws[:4], intr[:4], None if depths is None else depths[:4],
+                              depth_kind=kind, reduce=reduce, fallback=np.zeros_like(verts))
+    got = colors_from_photos(verts, normals, images[:4], c2ws[:4], intr[:4], None if depths is None else depths[:4],
+                             depth_kind=kind, reduce=reduce, fallback=np.zeros_like(verts), device=device)
+    np.testing.assert_array_equal(got[1], want[1])
+    assert 0 < want[1].sum() < len(verts)
+    np.testing.assert_allclose(got[0], want[0], rtol=0, atol=1e-6)

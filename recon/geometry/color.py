@@ -14,7 +14,7 @@ import torch
 from scipy.ndimage import maximum_filter, minimum_filter
 from scipy.spatial import cKDTree
 
-from recon.camera import project
+from recon.camera import MIN_DEPTH, project
 
 RadianceFn = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
 """``radiance_fn(x: (M, 3), d: (M, 3) unit view directions) -> (M, 3)`` RGB in [0, 1]."""
@@ -69,6 +69,77 @@ def _weighted_median(values: np.ndarray, weights: np.ndarray) -> np.ndarray:
     cum = np.cumsum(w, axis=-1)
     first = np.argmax(cum >= 0.5 * cum[..., -1:], axis=-1)  # (N, C)
     return np.take_along_axis(v, first[..., None], axis=-1)[..., 0]
+
+
+def photo_samples_torch(
+    verts: np.ndarray, nrm: np.ndarray, images: Sequence[np.ndarray], scales: Sequence[float], c2ws: np.ndarray,
+    intrinsics: np.ndarray, depths: Sequence[np.ndarray] | None, depth_tol: float, depth_kind: Literal["ray", "z"],
+    min_cos: float, reduce: Literal["median", "mean"], device: torch.device, chunk: int | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """`colors_from_photos`' colours and seen flags (before the unseen points' fallback) in torch on ``device``, every
+    view of a chunk of points at once: the same visibility test (in front, facing the camera, inside the image, the
+    depth map's pixel within ``depth_tol``), bilinear samples and cos-weighted median or mean, in float64 where the
+    numpy reference computes in float64. Images: K arrays of one size (H, W, ≥3)."""
+    f64 = {"dtype": torch.float64, "device": device}
+    k = len(images)
+    chunk = chunk or max(1024, 2**23 // k)  # points a pass: its (K, N, 3) float64 tensors stay ~200 MB each
+    h, w = images[0].shape[:2]
+    pixels = torch.stack([torch.as_tensor(np.ascontiguousarray(im[..., :3])) for im in images]).to(device)
+    pixels = pixels.reshape(k * h * w, 3)
+    scale = torch.as_tensor(np.asarray(scales, np.float64), **f64)[:, None, None]
+    maps = None if depths is None else torch.stack([torch.as_tensor(np.asarray(d)) for d in depths]).to(device).reshape(-1)
+    rot = torch.as_tensor(c2ws[:, :3, :3], **f64)  # (K, 3, 3)
+    centre = torch.as_tensor(c2ws[:, :3, 3], **f64)[:, None, :]  # (K, 1, 3)
+    fx, fy, cx, cy = (torch.as_tensor(intrinsics[:, i], **f64)[:, None] for i in range(4))
+    base = (torch.arange(k, device=device) * (h * w))[:, None]
+    colors = np.zeros((len(verts), 3), np.float32)
+    seen = np.zeros(len(verts), bool)
+    for s in range(0, len(verts), chunk):
+        x = torch.as_tensor(verts[s : s + chunk], **f64)
+        n = torch.as_tensor(nrm[s : s + chunk], **f64)
+        cam = torch.matmul(x[None] - centre, rot)  # world_to_camera in every view: (K, N, 3)
+        z = -cam[..., 2]
+        safe = torch.where(z.abs() > MIN_DEPTH, z, torch.full_like(z, MIN_DEPTH))
+        u, v = cx + fx * cam[..., 0] / safe, cy - fy * cam[..., 1] / safe
+        to_cam = centre - x[None]
+        dist = torch.linalg.vector_norm(to_cam, dim=-1)
+        cos = (n[None] * to_cam).sum(-1) / dist.clamp_min(1e-12)
+        ok = (z > 0) & (cos > min_cos) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+        if maps is not None:
+            col = torch.where(ok, u, 0.0).long().clamp(0, w - 1)
+            row = torch.where(ok, v, 0.0).long().clamp(0, h - 1)
+            ref = maps[base + row * w + col]  # the map's own dtype, as the reference subtracts the tolerance
+            mine = dist if depth_kind == "ray" else z
+            ok &= (mine > (ref - depth_tol).to(mine.dtype)) & (mine < (ref + depth_tol).to(mine.dtype))
+        # bilinear, edge-clamped (sample_bilinear)
+        bx = (u - 0.5).clamp(0, w - 1)
+        by = (v - 0.5).clamp(0, h - 1)
+        x0 = bx.floor().long().clamp(max=w - 2 if w > 1 else 0)
+        y0 = by.floor().long().clamp(max=h - 2 if h > 1 else 0)
+        x1, y1 = (x0 + 1).clamp(max=w - 1), (y0 + 1).clamp(max=h - 1)
+        tx, ty = (bx - x0)[..., None], (by - y0)[..., None]
+
+        def at(rows: torch.Tensor, cols: torch.Tensor) -> torch.Tensor:
+            return pixels[base + rows * w + cols].to(torch.float64)
+
+        top = at(y0, x0) * (1 - tx) + at(y0, x1) * tx
+        bottom = at(y1, x0) * (1 - tx) + at(y1, x1) * tx
+        samples = torch.where(ok[..., None], (top * (1 - ty) + bottom * ty) * scale, 0.0).to(torch.float32)
+        weights = torch.where(ok, cos, 0.0).to(torch.float32)  # (K, N)
+        total = weights.sum(0)
+        hit = total > 0
+        if reduce == "median":
+            vals, order = torch.sort(samples.permute(1, 2, 0), dim=-1)  # (N, 3, K)
+            wts = torch.gather(weights.T[:, None, :].expand_as(vals), -1, order)
+            cum = torch.cumsum(wts, -1)
+            first = (cum >= 0.5 * cum[..., -1:]).int().argmax(-1, keepdim=True)
+            out = torch.gather(vals, -1, first)[..., 0]
+        else:
+            out = torch.einsum("kn,knc->nc", weights, samples) / total.clamp_min(1e-30)[:, None]
+        hit_np = hit.cpu().numpy()
+        colors[s : s + chunk][hit_np] = out[hit].cpu().numpy()
+        seen[s : s + chunk] = hit_np
+    return colors, seen
 
 
 def _visible_in_view(
@@ -134,6 +205,7 @@ def colors_from_photos(
     min_cos: float = 0.05,
     reduce: Literal["median", "mean"] = "median",
     chunk: int = 2**15,
+    device: torch.device | str | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Colors of surface points from the photos that see each point; robust to occluders and highlights.
 
@@ -160,7 +232,9 @@ def colors_from_photos(
 
     points, normals: (V, 3) scene frame, normals outward unit; images: K arrays (H, W, 3) float in
     [0, 1] (uint8 is rescaled); c2ws: (K, 4, 4) OpenGL; intrinsics: (K, 4) fx, fy, cx, cy; depths: K
-    maps (H, W) or None entries; extra image channels (alpha) are ignored.
+    maps (H, W) or None entries; extra image channels (alpha) are ignored. ``device``: compute the same in torch
+    there, all views at once (`photo_samples_torch`; this numpy loop, ``device=None``, is its reference): the mesh
+    stage passes its CUDA device, where baking a texture in numpy would be most of the stage's time.
     Returns ``colors (V, 3) float32`` and ``seen (V,) bool``.
     """
     verts = np.asarray(points, np.float64)
@@ -178,7 +252,14 @@ def colors_from_photos(
 
     colors = np.zeros((len(verts), 3), np.float32)
     seen = np.zeros(len(verts), bool)
-    for s in range(0, len(verts), chunk):
+    same_size = len({im.shape[:2] for im in imgs}) == 1 and (depths is None or all(d is not None for d in depths))
+    if device is not None and k and same_size and len(verts):
+        colors, seen = photo_samples_torch(verts, nrm, imgs, scales, c2ws, intr, depths, depth_tol, depth_kind,
+                                           min_cos, reduce, torch.device(device))
+        loop = range(0)
+    else:
+        loop = range(0, len(verts), chunk)
+    for s in loop:
         x, n = verts[s : s + chunk], nrm[s : s + chunk]
         samples = np.zeros((k, len(x), 3), np.float32)
         weights = np.zeros((k, len(x)), np.float32)

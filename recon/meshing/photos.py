@@ -211,6 +211,7 @@ def bake_colors(
     """
     if depth_tol is None:
         depth_tol = BAKE_TOL_FRACTION * float(np.linalg.norm(np.ptp(vertices, axis=0))) if len(vertices) else 0.0
+    device = next(model.parameters(), torch.empty(0)).device
     colors, seen = colors_from_photos(
         vertices,
         normals,
@@ -220,8 +221,8 @@ def bake_colors(
         depths=depths,
         depth_tol=depth_tol,
         depth_kind="z",
+        device=device if device.type == "cuda" else None,  # a CPU keeps the numpy reference
     )
-    device = next(model.parameters(), torch.empty(0)).device
     if not seen.all():
         colors[~seen] = colors_from_field(model.radiance, vertices[~seen], normals[~seen], device=device)
     return colors, {"views": len(views), "seen": int(seen.sum()), "unseen_from_field": int((~seen).sum())}
