@@ -122,19 +122,46 @@ def test_training_steps_fit_a_ball_on_every_device(device: torch.device) -> None
     assert model.density_grid.grids[0].table.device.type == device.type
 
 
+def test_the_batcher_serves_every_ray_once_an_epoch_and_resumes_on_its_device(device: torch.device) -> None:
+    """The epoch's shuffle is drawn on the batcher's device (a GPU draws its own order): each kept ray once per epoch,
+    each epoch in a new order, and a batcher loaded with a state taken mid-epoch serves what the original serves next."""
+    batcher = _ball_batcher(device, size=8, views=3)
+    n = batcher.n_rays
+    epochs = [batcher._perm]
+    batcher.next_batch(n)  # exactly the first epoch
+    batcher.next_batch(10)  # into the second
+    epochs.append(batcher._perm)
+    for perm in epochs:
+        assert perm.device.type == device.type
+        assert torch.equal(torch.sort(perm).values, torch.arange(n, device=device))  # every ray once
+    assert not torch.equal(epochs[0], epochs[1])
+    state = batcher.state_dict()
+    want = [batcher.next_batch(37) for _ in range(3)]
+    other = _ball_batcher(device, size=8, views=3)
+    other.load_state_dict(state)
+    for w in want:
+        got = other.next_batch(37)
+        for key in w:
+            torch.testing.assert_close(got[key], w[key], rtol=0, atol=0)
+
+
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA: compares a CUDA training step with the CPU's")
 def test_a_cuda_training_step_agrees_with_the_cpu(monkeypatch: pytest.MonkeyPatch) -> None:
     """One step from the same weights on the same rays: the same loss and the same grid update, to float tolerance.
-    The CPU's and CUDA's generators draw different numbers from one seed, so the marcher's jitter is drawn on the
-    CPU for both (else the two steps sample the rays at different depths)."""
-    rand = torch.rand
+    The CPU's and CUDA's generators draw different numbers from one seed, so the marcher's jitter and the batcher's
+    shuffle are drawn on the CPU for both (else the two steps sample other rays, at other depths)."""
+    rand, randperm = torch.rand, torch.randperm
 
     def drawn_on_the_cpu(*size: int, device: torch.device | str | None = None, **kwargs: object) -> torch.Tensor:
         if kwargs.get("generator") is not None:
             return rand(*size, device=device, **kwargs)
         return rand(*size, **kwargs).to(device)
 
+    def shuffled_on_the_cpu(n: int, generator: torch.Generator | None = None, device: object = None) -> torch.Tensor:
+        return randperm(n, generator=torch.Generator().manual_seed(0)).to(device)
+
     monkeypatch.setattr(torch, "rand", drawn_on_the_cpu)
+    monkeypatch.setattr(torch, "randperm", shuffled_on_the_cpu)
     results = {}
     for name in ("cpu", "cuda"):
         dev = torch.device(name)

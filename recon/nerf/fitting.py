@@ -118,7 +118,9 @@ class RayBatcher:
         self.n_dropped = total - self.n_rays
         if self.n_rays == 0:
             raise ValueError("no training ray meets the scene box: check the poses and the aabb")
-        self._perm_gen = torch.Generator().manual_seed(seed)
+        # each epoch's shuffle is drawn where the batches are made: on a GPU a CPU's draw of millions of indices would
+        # leave the card idle at every epoch's start (a CPU draws the same order as before; a GPU its own)
+        self._perm_gen = torch.Generator(device=self.device if self.device.type == "cuda" else "cpu").manual_seed(seed)
         self._bg_gen = torch.Generator(device=self.device).manual_seed(seed + 1)
         self._new_epoch()
 
@@ -145,9 +147,8 @@ class RayBatcher:
 
     def _new_epoch(self) -> None:
         self._epoch_gen_state = self._perm_gen.get_state()
-        # drawn on the CPU (the same order on every device), kept where the pixels are: a batch's indices copied to
-        # a GPU each step would wait for its queued work
-        self._perm = torch.randperm(self.n_rays, generator=self._perm_gen).to(self.device)
+        # kept where the pixels are: a batch's indices copied to a GPU each step would wait for its queued work
+        self._perm = torch.randperm(self.n_rays, generator=self._perm_gen, device=self._perm_gen.device)
         self._cursor = 0
 
     def _take(self, b: int) -> Tensor:
