@@ -71,6 +71,39 @@ def _weighted_median(values: np.ndarray, weights: np.ndarray) -> np.ndarray:
     return np.take_along_axis(v, first[..., None], axis=-1)[..., 0]
 
 
+def _photo_samples_numpy(
+    verts: np.ndarray, nrm: np.ndarray, imgs: Sequence[np.ndarray], scales: Sequence[float], c2ws: np.ndarray,
+    intr: np.ndarray, depths: Sequence[np.ndarray | None] | None, depth_tol: float, depth_kind: Literal["ray", "z"],
+    min_cos: float, reduce: Literal["median", "mean"], chunk: int,
+) -> tuple[np.ndarray, np.ndarray]:
+    """`colors_from_photos`' colours and seen flags (before the unseen points' fallback), a view at a time in numpy:
+    the reference `photo_samples_torch` is held to."""
+    k = len(imgs)
+    colors = np.zeros((len(verts), 3), np.float32)
+    seen = np.zeros(len(verts), bool)
+    for s in range(0, len(verts), chunk):
+        x, n = verts[s : s + chunk], nrm[s : s + chunk]
+        samples = np.zeros((k, len(x), 3), np.float32)
+        weights = np.zeros((k, len(x)), np.float32)
+        for view in range(k):
+            d = depths[view] if depths is not None else None
+            bounds = (d, d) if d is not None else None
+            ok, uv, cos = _visible_in_view(x, n, imgs[view].shape[:2], c2ws[view], intr[view], bounds, depth_tol, depth_kind, min_cos)
+            if ok.any():
+                samples[view, ok] = sample_bilinear(imgs[view], uv[ok])[:, :3] * scales[view]
+                weights[view, ok] = cos[ok]
+        total = weights.sum(axis=0)
+        hit = total > 0
+        seen[s : s + chunk] = hit
+        if not hit.any():
+            continue
+        if reduce == "median":
+            colors[s : s + chunk][hit] = _weighted_median(samples[:, hit], weights[:, hit])
+        else:
+            colors[s : s + chunk][hit] = np.einsum("kn,knc->nc", weights[:, hit], samples[:, hit]) / total[hit, None]
+    return colors, seen
+
+
 def photo_samples_torch(
     verts: np.ndarray, nrm: np.ndarray, images: Sequence[np.ndarray], scales: Sequence[float], c2ws: np.ndarray,
     intrinsics: np.ndarray, depths: Sequence[np.ndarray] | None, depth_tol: float, depth_kind: Literal["ray", "z"],
@@ -233,7 +266,7 @@ def colors_from_photos(
     points, normals: (V, 3) scene frame, normals outward unit; images: K arrays (H, W, 3) float in
     [0, 1] (uint8 is rescaled); c2ws: (K, 4, 4) OpenGL; intrinsics: (K, 4) fx, fy, cx, cy; depths: K
     maps (H, W) or None entries; extra image channels (alpha) are ignored. ``device``: compute the same in torch
-    there, all views at once (`photo_samples_torch`; this numpy loop, ``device=None``, is its reference): the mesh
+    there, all views at once (`photo_samples_torch`; the numpy loop, ``device=None``, is its reference): the mesh
     stage passes its CUDA device, where baking a texture in numpy would be most of the stage's time.
     Returns ``colors (V, 3) float32`` and ``seen (V,) bool``.
     """
@@ -250,35 +283,13 @@ def colors_from_photos(
     imgs = [np.asarray(im) for im in images]  # no float copies of all photos: scaled when sampled
     scales = [1 / 255 if im.dtype == np.uint8 else 1.0 for im in imgs]
 
-    colors = np.zeros((len(verts), 3), np.float32)
-    seen = np.zeros(len(verts), bool)
     same_size = len({im.shape[:2] for im in imgs}) == 1 and (depths is None or all(d is not None for d in depths))
     if device is not None and k and same_size and len(verts):
         colors, seen = photo_samples_torch(verts, nrm, imgs, scales, c2ws, intr, depths, depth_tol, depth_kind,
                                            min_cos, reduce, torch.device(device))
-        loop = range(0)
     else:
-        loop = range(0, len(verts), chunk)
-    for s in loop:
-        x, n = verts[s : s + chunk], nrm[s : s + chunk]
-        samples = np.zeros((k, len(x), 3), np.float32)
-        weights = np.zeros((k, len(x)), np.float32)
-        for view in range(k):
-            d = depths[view] if depths is not None else None
-            bounds = (d, d) if d is not None else None
-            ok, uv, cos = _visible_in_view(x, n, imgs[view].shape[:2], c2ws[view], intr[view], bounds, depth_tol, depth_kind, min_cos)
-            if ok.any():
-                samples[view, ok] = sample_bilinear(imgs[view], uv[ok])[:, :3] * scales[view]
-                weights[view, ok] = cos[ok]
-        total = weights.sum(axis=0)
-        hit = total > 0
-        seen[s : s + chunk] = hit
-        if not hit.any():
-            continue
-        if reduce == "median":
-            colors[s : s + chunk][hit] = _weighted_median(samples[:, hit], weights[:, hit])
-        else:
-            colors[s : s + chunk][hit] = np.einsum("kn,knc->nc", weights[:, hit], samples[:, hit]) / total[hit, None]
+        colors, seen = _photo_samples_numpy(verts, nrm, imgs, scales, c2ws, intr, depths, depth_tol, depth_kind,
+                                            min_cos, reduce, chunk)
 
     if not seen.all():
         if fallback is not None:

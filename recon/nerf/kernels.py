@@ -1,8 +1,9 @@
 """Fused Triton kernels for the fast model's CUDA hot path, each beside the torch code it replaces (its reference).
 
 On a GPU the fast model's step in torch is launch-bound (docs/gpu.md): marching takes a window of steps at a time
-with host reads in each, compositing packed samples costs ~15 small torch kernels (clamps, a float64 cumulative sum, the per-ray offsets' gather, exp, expm1, an index_add per sum), and a
-three-level density read three ``grid_sample`` calls and their coordinate transform. Here each is one kernel
+with host reads in each, compositing packed samples costs ~15 small torch kernels (clamps, a float64 cumulative sum,
+the per-ray offsets' gather, exp, expm1, an index_add per sum), and a three-level density read three
+``grid_sample`` calls and their coordinate transform. Here each is one kernel
 forward and one backward (recon/nerf/triton_kernels.py), wrapped as ``torch.autograd.Function``s:
 
 * :func:`composite_packed_triton` — alpha = -expm1(-σδ), the exclusive transmittance of each ray over its packed
@@ -28,9 +29,10 @@ reference, forward and gradients, compiled on CUDA and under Triton's interprete
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from functools import lru_cache
 from types import ModuleType
-from typing import TYPE_CHECKING, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 import torch
 from torch import Tensor
@@ -65,6 +67,12 @@ MAX_LEVELS = 4
 """Grid levels one launch reads (more are summed over launches)."""
 MARCH_BLOCK = 32
 """Rays a marching program takes, a ray a lane of one warp: a program loops until its longest ray ends."""
+
+
+def _four_levels(items: Sequence[Any]) -> list[Any]:
+    """``items`` (one per grid level, 1 to MAX_LEVELS) padded with its first to MAX_LEVELS: a kernel takes a fixed
+    number of level arguments and reads only the first LEVELS."""
+    return [*items, *list(items[:1]) * (MAX_LEVELS - len(items))]
 
 
 @lru_cache(maxsize=1)
@@ -234,8 +242,8 @@ class _TrilinearLevels(torch.autograd.Function):
         m, c = x01.shape[0], tables[0].shape[1]
         out = tables[0].new_empty(m, c)
         if m:
-            t, r = [*tables, *tables[:1] * (MAX_LEVELS - len(tables))], [*resolutions, *resolutions[:1] * MAX_LEVELS]
-            _jit().trilinear_fwd[(-(-m // GRID_BLOCK),)](x01, out, m, *t, *r[:MAX_LEVELS], LEVELS=len(tables), C=c,
+            _jit().trilinear_fwd[(-(-m // GRID_BLOCK),)](x01, out, m, *_four_levels(tables),
+                                                          *_four_levels(resolutions), LEVELS=len(tables), C=c,
                                                           CP=max(2, 1 << (c - 1).bit_length()), BLOCK=GRID_BLOCK)
         ctx.save_for_backward(x01, *tables)
         ctx.resolutions = resolutions
@@ -248,9 +256,8 @@ class _TrilinearLevels(torch.autograd.Function):
         grads = [torch.zeros_like(t) for t in tables]
         m, c = x01.shape[0], tables[0].shape[1]
         if m and any(need):
-            r = [*ctx.resolutions, *ctx.resolutions[:1] * MAX_LEVELS]
-            gs = [*grads, *grads[:1] * (MAX_LEVELS - len(grads))]
-            _jit().trilinear_bwd[(-(-m // GRID_BLOCK),)](x01, g.contiguous(), m, *gs, *r[:MAX_LEVELS],
+            _jit().trilinear_bwd[(-(-m // GRID_BLOCK),)](x01, g.contiguous(), m, *_four_levels(grads),
+                                                          *_four_levels(ctx.resolutions),
                                                           LEVELS=len(tables), C=c, CP=max(2, 1 << (c - 1).bit_length()),
                                                           BLOCK=GRID_BLOCK)
         return (None, None, *(gr if n else None for gr, n in zip(grads, need)))
@@ -306,19 +313,19 @@ def march_dense_triton(rays_o: Tensor, rays_d: Tensor, t_near: Tensor, t_far: Te
     tables = [t.contiguous() for t in field.tables]
     res = [round(t.numel() ** (1 / 3)) for t in tables]
     occupied = field.occupied.contiguous().view(torch.uint8)
-    counts = torch.empty(n, dtype=torch.int32, device=device)
     empty = torch.zeros(0, device=device, dtype=torch.float32)
     if n == 0:
         return empty, empty.clone(), torch.zeros(0, device=device, dtype=torch.long), empty.clone()
+    counts = torch.empty(n, dtype=torch.int32, device=device)
     grid = (-(-n // MARCH_BLOCK),)
-    t, r = [*tables, *tables[:1] * (MAX_LEVELS - len(tables))], [*res, *res[:1] * (MAX_LEVELS - len(res))]
     box = field.occupancy_box.contiguous()
     gbox = field.grid_box.contiguous()
 
     def launch(offsets: Tensor, outs: list[Tensor], write: bool) -> None:
         _jit().march_dense[grid](
             rays_o, rays_d, t_near, t_far, u if u is not None else t_near, occupied, box, gbox,
-            _log_min_transmittance(float(min_transmittance), device), *t, *r, counts, offsets, *outs,
+            _log_min_transmittance(float(min_transmittance), device), *_four_levels(tables), *_four_levels(res),
+            counts, offsets, *outs,
             n, occupied.shape[0], float(step_size), int(max_samples), float(field.bias), float(field.density_scale),
             LEVELS=len(tables), EXP=bool(field.exp_activation), JITTER=u is not None, WRITE=write,
             SIGMA_MAX=SIGMA_MAX, TAU_MAX=TAU_MAX, BLOCK=MARCH_BLOCK, num_warps=1)
