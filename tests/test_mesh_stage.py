@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -408,6 +409,35 @@ def test_bake_depths_are_the_mesh_z_buffer_without_its_silhouette_rim() -> None:
     assert info["seen"] == 1 and info["unseen_from_field"] == 1
 
 
+def test_the_textured_copy_is_unwrapped_beside_the_stages_next_steps(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """xatlas takes seconds on a full-size mesh: the stage starts the unwrap right after cleaning, in a thread, and
+    checks, colours and exports the mesh meanwhile. Here the unwrap waits (at most 30 s) for the coherence check to
+    start: run one after the other, it would see it never start."""
+    model = SoftSphere(amplitude=400.0, width=0.05, samples=64)
+    scene_dir = _scene_dir(tmp_path, model, np.eye(4), kind="transforms")
+    coherence_started, seen = threading.Event(), {}
+    real_unwrap, real_coherence = mesh_stage.unwrap_mesh, mesh_stage.coherence
+
+    def waiting_unwrap(*args, **kwargs):
+        seen["own_thread"] = threading.current_thread() is not threading.main_thread()
+        seen["beside_coherence"] = coherence_started.wait(timeout=30)
+        return real_unwrap(*args, **kwargs)
+
+    def flagged_coherence(*args, **kwargs):
+        coherence_started.set()
+        return real_coherence(*args, **kwargs)
+
+    monkeypatch.setattr(mesh_stage, "unwrap_mesh", waiting_unwrap)
+    monkeypatch.setattr(mesh_stage, "coherence", flagged_coherence)
+    cfg = MeshConfig(resolution=33, target_faces=0, color="field", coarse_to_fine=False, texture_faces=200, texture_size=64)
+    _, out = _run_stage(scene_dir, model, cfg, monkeypatch)
+
+    assert seen == {"own_thread": True, "beside_coherence": True}
+    textured = json.loads((out / "mesh_report.json").read_text())["textured"]
+    assert not textured.get("failed") and (out / "mesh_textured.glb").is_file()
+    assert set(textured["timings_s"]) == {"decimate_s", "unwrap_s", "bake_s", "unwrap_wait_s"}
+
+
 @pytest.mark.parametrize("fails", ["unwrap", "export"])
 def test_a_failed_textured_mesh_still_delivers_the_vertex_colored_mesh_and_says_why(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str], fails: str
@@ -418,7 +448,7 @@ def test_a_failed_textured_mesh_still_delivers_the_vertex_colored_mesh_and_says_
     if fails == "unwrap":
         def broken(*args, **kwargs):
             raise ValueError("xatlas made no UV charts")
-        monkeypatch.setattr(mesh_views, "make_textured_mesh", broken)
+        monkeypatch.setattr(mesh_stage, "unwrap_mesh", broken)  # raised in the unwrap's thread, met where it is awaited
     else:
         real_export = mesh_stage.export_textured_mesh
 

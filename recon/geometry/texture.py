@@ -166,6 +166,60 @@ class TexturedMesh:
     """Faces before/after decimation, charts, coverage, timings."""
 
 
+@dataclass
+class UnwrappedMesh:
+    """A decimated copy of a mesh with its UV atlas, before any colour: what `bake_unwrapped` textures. A step of its
+    own so the unwrap (xatlas, seconds, in a process of its own) can run while the caller does other work."""
+
+    vertices: np.ndarray
+    """(V, 3); vertices on chart seams appear once per chart."""
+    faces: np.ndarray
+    """(F, 3) int64 indices into vertices."""
+    uv: np.ndarray
+    """(V, 2) in [0, 1], v up."""
+    normals: np.ndarray
+    """(V, 3) outward unit normals of the decimated mesh before its seams were split."""
+    faces_in: int
+    """Faces of the mesh before decimation."""
+    timings: dict[str, float]
+    """decimate_s, unwrap_s."""
+
+
+def unwrap_mesh(vertices: np.ndarray, faces: np.ndarray, target_faces: int, size: int, padding: int = 2) -> UnwrappedMesh:
+    """Decimate (quadric, `clean.decimate`) to about ``target_faces`` and `unwrap` for a ``size``² texture.
+
+    vertices: (V, 3); faces (F, 3) counter-clockwise from outside; padding: texels xatlas leaves between charts."""
+    timings: dict[str, float] = {}
+    t = time.perf_counter()
+    mesh, _ = decimate(trimesh.Trimesh(np.asarray(vertices, np.float64), np.asarray(faces, np.int64), process=False), target_faces)
+    normals = np.asarray(mesh.vertex_normals, np.float64)
+    timings["decimate_s"] = round(time.perf_counter() - t, 3)
+    t = time.perf_counter()
+    source, tris, uv = unwrap(mesh.vertices, mesh.faces, size, padding)
+    timings["unwrap_s"] = round(time.perf_counter() - t, 3)
+    return UnwrappedMesh(np.asarray(mesh.vertices, np.float64)[source], tris, uv, normals[source], len(faces), timings)
+
+
+def bake_unwrapped(
+    unwrapped: UnwrappedMesh,
+    size: int,
+    color_fn: ColorFn,
+    pad: int | None = None,
+    progress: Callable[[int], None] | None = None,
+) -> TexturedMesh:
+    """`bake_texture` of an `unwrap_mesh` result: the textured mesh. size: texture side in texels (the one unwrapped
+    for); pad: texels of seam padding (None: fill the whole image); progress: called with the texels baked, chunk by
+    chunk."""
+    t = time.perf_counter()
+    u = unwrapped
+    texture, mask = bake_texture(u.vertices, u.faces, u.uv, u.normals, size, color_fn, pad, progress)
+    timings = {**u.timings, "bake_s": round(time.perf_counter() - t, 3)}
+    info = {"faces_in": u.faces_in, "faces": len(u.faces), "vertices": len(u.vertices),
+            "texture_size": int(size), "texels_covered": int(mask.sum()), "coverage": round(float(mask.mean()), 4),
+            "timings_s": timings}
+    return TexturedMesh(u.vertices, u.faces, u.uv, u.normals, texture, mask, info)
+
+
 def make_textured_mesh(
     vertices: np.ndarray,
     faces: np.ndarray,
@@ -176,25 +230,6 @@ def make_textured_mesh(
     pad: int | None = None,
     progress: Callable[[int], None] | None = None,
 ) -> TexturedMesh:
-    """Decimate (quadric, `clean.decimate`) to about ``target_faces``, `unwrap`, `bake_texture` with color_fn.
-
-    vertices: (V, 3) scene frame; faces (F, 3) counter-clockwise from outside; size: texture side in texels;
-    padding: texels xatlas leaves between charts; pad: texels of seam padding (None: fill the whole image);
-    progress: called with the number of texels baked, chunk by chunk.
-    """
-    timings: dict[str, float] = {}
-    t = time.perf_counter()
-    mesh, _ = decimate(trimesh.Trimesh(np.asarray(vertices, np.float64), np.asarray(faces, np.int64), process=False), target_faces)
-    normals = np.asarray(mesh.vertex_normals, np.float64)
-    timings["decimate_s"] = round(time.perf_counter() - t, 3)
-    t = time.perf_counter()
-    source, tris, uv = unwrap(mesh.vertices, mesh.faces, size, padding)
-    timings["unwrap_s"] = round(time.perf_counter() - t, 3)
-    t = time.perf_counter()
-    verts, nrm = np.asarray(mesh.vertices, np.float64)[source], normals[source]
-    texture, mask = bake_texture(verts, tris, uv, nrm, size, color_fn, pad, progress)
-    timings["bake_s"] = round(time.perf_counter() - t, 3)
-    info = {"faces_in": int(len(faces)), "faces": int(len(tris)), "vertices": int(len(verts)),
-            "texture_size": int(size), "texels_covered": int(mask.sum()), "coverage": round(float(mask.mean()), 4),
-            "timings_s": timings}
-    return TexturedMesh(verts, tris, uv, nrm, texture, mask, info)
+    """`unwrap_mesh` then `bake_unwrapped`: decimated to about ``target_faces``, unwrapped, a ``size``² texture baked
+    with color_fn (see those two for the arguments)."""
+    return bake_unwrapped(unwrap_mesh(vertices, faces, target_faces, size, padding), size, color_fn, pad, progress)

@@ -24,7 +24,7 @@ from recon.geometry.clean import SeenFn
 from recon.geometry.coherence import largest_piece, mesh_zbuffers, object_pixels, point_agreement, projected_coverage
 from recon.geometry.color import colors_from_field, colors_from_photos, seen_by_views
 from recon.geometry.raster import mesh_depth, render_mesh
-from recon.geometry.texture import TexturedMesh, make_textured_mesh
+from recon.geometry.texture import TexturedMesh, UnwrappedMesh, bake_unwrapped, unwrap_mesh
 
 BAKE_TOL_FRACTION = 0.01
 """Depth tolerance of photo baking as a fraction of the mesh's bounding-box diagonal (`colors_from_photos`'
@@ -231,12 +231,12 @@ def bake_colors(
 # ---------------------------------------------------------------------------------------- textured mesh
 def texture_mesh(
     model: torch.nn.Module, cfg: MeshConfig, views: Sequence[View], depths: Sequence[np.ndarray],
-    vertices: np.ndarray, faces: np.ndarray, report: Any,
+    vertices: np.ndarray, faces: np.ndarray, report: Any, unwrapped: UnwrappedMesh | None = None,
 ) -> TexturedMesh:
     """The mesh decimated to ``cfg.texture_faces``, unwrapped, with a ``cfg.texture_size``² texture baked the
     way the vertex colors are (`bake_colors` on the surface point under each texel: the same depth test,
     median and field fallback; or the field's color with mesh.color=field). vertices, faces: the full mesh; depths:
-    its z-buffer in each view (`mesh_depths`)."""
+    its z-buffer in each view (`mesh_depths`); unwrapped: its `unwrap_mesh` when the caller made it already."""
     device = next(model.parameters(), torch.empty(0)).device
     unseen = [0]
     if cfg.color == "photos":
@@ -250,8 +250,11 @@ def texture_mesh(
         def color_fn(points: np.ndarray, normals: np.ndarray) -> np.ndarray:
             return colors_from_field(model.radiance, points, normals, device=device)
 
-    with report.task(f"texture: decimate, unwrap, bake {cfg.texture_size}²", total=None, unit="texels") as bar:
-        textured = make_textured_mesh(vertices, faces, cfg.texture_faces, cfg.texture_size, color_fn, progress=bar.advance)
+    if unwrapped is None:
+        with report.task("texture: decimate, unwrap", total=None):
+            unwrapped = unwrap_mesh(vertices, faces, cfg.texture_faces, cfg.texture_size)
+    with report.task(f"texture: bake {cfg.texture_size}²", total=None, unit="texels") as bar:
+        textured = bake_unwrapped(unwrapped, cfg.texture_size, color_fn, progress=bar.advance)
     textured.info["source"] = cfg.color
     if cfg.color == "photos":
         textured.info["unseen_from_field"] = unseen[0]

@@ -10,13 +10,15 @@ with the library, loading and writing in between:
 4. colors baked from the photos against the mesh's own z-buffer (`mesh_depths`, `bake_colors`) or the field's;
 5. `export_mesh` in the chosen frame (`export_transform`), two previews, `mesh_report.json`;
 6. with mesh.texture_faces > 0, a decimated, UV-unwrapped copy with a baked texture (`texture_mesh`), compared
-   with the vertex-colored mesh in the held-out photos (`compare_in_views`).
+   with the vertex-colored mesh in the held-out photos (`compare_in_views`). Its decimation and unwrap (xatlas, in a
+   process of its own) start as soon as the mesh is cleaned and run beside steps 3–5, which do not need them.
 """
 from __future__ import annotations
 
 import resource
 import sys
 import time
+from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Any
 
 import numpy as np
@@ -34,6 +36,7 @@ from recon.geometry.clean import clean_mesh
 from recon.geometry.color import colors_from_field
 from recon.geometry.export import export_mesh, export_record, export_textured_mesh, export_transform
 from recon.geometry.preview import preview_textured, write_mesh_previews
+from recon.geometry.texture import UnwrappedMesh, unwrap_mesh
 from recon.meshing.extraction import extract_mesh, extract_zero_set, field_voxel
 from recon.meshing.photos import (
     bake_colors,
@@ -105,6 +108,7 @@ def run(ctx: StageContext) -> dict:
     if len(faces) == 0:
         raise ReconError("Every piece of the extracted surface was removed while cleaning; lower mesh.min_component_fraction.")
     _say_cleaning(ctx, clean, plan, len(views))
+    unwrapping = _start_unwrap(vertices, faces, cfg) if plan.texture else None
 
     t = time.perf_counter()
     observed = ([np.zeros((0, 3)) if p is None else p for p in map(scene.observed_points, plan.view_frames)]
@@ -139,7 +143,8 @@ def run(ctx: StageContext) -> dict:
     if plan.texture:
         try:
             textured_info, texture_previews = _textured(ctx, cfg, plan, scene, model, views, surface_depths,
-                                                        (vertices, faces, colors), transform, background, timings)
+                                                        (vertices, faces, colors), transform, background, timings,
+                                                        unwrapping)
             previews += texture_previews
         except Exception as exc:  # an optional output: the vertex-colored mesh above is the stage's result
             textured_info = textured_failed(exc, cfg, ctx)
@@ -201,16 +206,33 @@ def _say_cleaning(ctx: StageContext, clean: dict, plan: MeshPlan, n_views: int) 
                         f"of the field; {n_views} views, depth tolerance {plan.hidden_tolerance:.3g} units)")
 
 
+def _start_unwrap(vertices: np.ndarray, faces: np.ndarray, cfg: MeshConfig) -> Future[UnwrappedMesh]:
+    """The textured copy's `unwrap_mesh`, started in a thread: xatlas runs in a process of its own (seconds on a
+    150k-face mesh), so the stage's next steps go on beside it; its error, if any, comes with the result."""
+    pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="recon-unwrap")
+    try:
+        return pool.submit(unwrap_mesh, vertices, faces, cfg.texture_faces, cfg.texture_size)
+    finally:
+        pool.shutdown(wait=False)  # the thread ends with its one task
+
+
 def _textured(
     ctx: StageContext, cfg: MeshConfig, plan: MeshPlan, scene: Scene, model: torch.nn.Module, views: list[View],
     depths: list[np.ndarray], mesh: tuple[np.ndarray, np.ndarray, np.ndarray], transform: np.ndarray | None,
-    background: np.ndarray, timings: dict[str, float],
+    background: np.ndarray, timings: dict[str, float], unwrapping: Future[UnwrappedMesh] | None = None,
 ) -> tuple[dict, list[str]]:
     """`texture_mesh`, its files, preview, and `compare_in_views` in the held-out views: the report's "textured"."""
     from PIL import Image
 
     t = time.perf_counter()
-    textured = texture_mesh(model, cfg, views, depths, mesh[0], mesh[1], ctx.report)
+    unwrapped = None
+    if unwrapping is not None:
+        with ctx.report.task("texture: decimate, unwrap (started after cleaning)", total=None):
+            unwrapped = unwrapping.result()
+    waited = round(time.perf_counter() - t, 3)
+    textured = texture_mesh(model, cfg, views, depths, mesh[0], mesh[1], ctx.report, unwrapped)
+    if unwrapped is not None:
+        textured.info["timings_s"]["unwrap_wait_s"] = waited  # what the unwrap beside steps 3-5 still cost the stage
     paths = export_textured_mesh(textured.vertices, textured.faces, textured.uv, textured.texture, ctx.out,
                                  stem=TEXTURED_STEM, normals=textured.normals, transform=transform)
     Image.fromarray(np.round(preview_textured(textured) * 255).astype(np.uint8)).save(ctx.out / "preview_textured.png")
