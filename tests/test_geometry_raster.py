@@ -128,6 +128,9 @@ def test_the_c_rasterizer_draws_what_the_numpy_one_does(perspective: bool, monke
     xy = rng.uniform(-10.0, 74.0, (300, 2))
     w = rng.uniform(0.5, 3.0, 300) if perspective else None
     faces = np.concatenate([rng.integers(0, 300, (400, 3)), [[0, 1, 2], [2, 1, 3], [4, 4, 5]]])  # a shared edge, a degenerate face
+    xy[7], xy[8, 0] = np.nan, np.inf  # faces with a non-finite corner are not drawn
+    if w is not None:
+        w[9], w[10], w[11] = -1.0, 0.0, np.nan  # behind, at and undefined: dropped
     native = rasterize(xy, w, faces, (48, 64))
     monkeypatch.setattr(raster, "native_rasterizer", lambda: None)
     reference = rasterize(xy, w, faces, (48, 64))
@@ -135,3 +138,7 @@ def test_the_c_rasterizer_draws_what_the_numpy_one_does(perspective: bool, monke
     np.testing.assert_array_equal(native[0], reference[0])
     np.testing.assert_allclose(native[1], reference[1], rtol=0, atol=1e-12)
     np.testing.assert_array_equal(native[2], reference[2])
+    drawn = np.unique(native[0][native[0] >= 0])
+    assert not np.isin(drawn, np.flatnonzero(np.isin(faces, [7, 8] + ([9, 10, 11] if perspective else [])).any(1))).any()
+    with pytest.raises(IndexError):
+        rasterize(xy, w, np.array([[0, 1, 300]]), (48, 64))

@@ -37,7 +37,7 @@ def native_rasterizer() -> ctypes.CDLL | None:
     if lib is not None:
         p, i64 = ctypes.c_void_p, ctypes.c_int64
         lib.recon_rasterize.restype = None
-        lib.recon_rasterize.argtypes = [i64, p, p, p, p, p, p, i64, p, p, p]
+        lib.recon_rasterize.argtypes = [i64, p, p, p, i64, i64, p, p, p]
     return lib
 
 
@@ -53,14 +53,26 @@ def rasterize(
     weights of the face's three vertices (0 where empty) and ``depth (H, W) float64`` (inf where empty).
     """
     h, w_img = hw
-    xy = np.asarray(xy, np.float64)
-    faces = np.asarray(faces, np.int64).reshape(-1, 3)
-    depth_v = np.ones(len(xy)) if w is None else np.asarray(w, np.float64)
+    xy = np.ascontiguousarray(xy, np.float64)
+    faces = np.ascontiguousarray(faces, np.int64).reshape(-1, 3)
+    depth_v = None if w is None else np.ascontiguousarray(w, np.float64)
     face_id = np.full(h * w_img, -1, np.int64)
     bary = np.zeros((h * w_img, 3))
     zbuf = np.full(h * w_img, np.inf)
     if len(faces) == 0:
         return face_id.reshape(h, w_img), bary.reshape(h, w_img, 3), zbuf.reshape(h, w_img)
+    if xy.ndim != 2 or xy.shape[1] != 2 or (depth_v is not None and depth_v.shape != (len(xy),)):
+        raise ValueError(f"rasterize needs xy (V, 2) and w (V,) or None; got {xy.shape} and "
+                         f"{None if depth_v is None else depth_v.shape}")
+    if faces.min() < 0 or faces.max() >= len(xy):  # the C code would read past the vertices
+        raise IndexError(f"faces index vertices {faces.min()}..{faces.max()} of {len(xy)}")
+    lib = native_rasterizer()
+    if lib is not None:
+        lib.recon_rasterize(len(faces), faces.ctypes.data, xy.ctypes.data, None if depth_v is None else depth_v.ctypes.data,
+                            w_img, h, face_id.ctypes.data, bary.ctypes.data, zbuf.ctypes.data)
+        return face_id.reshape(h, w_img), bary.reshape(h, w_img, 3), zbuf.reshape(h, w_img)
+    if depth_v is None:
+        depth_v = np.ones(len(xy))
 
     tri = xy[faces]  # (F, 3, 2)
     tri_w = depth_v[faces]  # (F, 3)
@@ -68,20 +80,15 @@ def rasterize(
             - (tri[:, 1, 1] - tri[:, 0, 1]) * (tri[:, 2, 0] - tri[:, 0, 0]))
     # pixel centres c + 0.5 inside the triangle's bounds: c in [ceil(min - 0.5), floor(max - 0.5)]
     # (minima of the three corners taken pairwise: numpy's reductions over a short middle axis are ~10x slower)
-    lo = np.ceil(np.minimum(np.minimum(tri[:, 0], tri[:, 1]), tri[:, 2]) - 0.5).astype(np.int64)
-    hi = np.floor(np.maximum(np.maximum(tri[:, 0], tri[:, 1]), tri[:, 2]) - 0.5).astype(np.int64)
-    lo = np.maximum(lo, 0)
-    hi = np.minimum(hi, [w_img - 1, h - 1])
+    # (clipped to the image before they become integers, as in raster.c)
+    lo = np.maximum(np.ceil(np.minimum(np.minimum(tri[:, 0], tri[:, 1]), tri[:, 2]) - 0.5), 0.0)
+    hi = np.minimum(np.floor(np.maximum(np.maximum(tri[:, 0], tri[:, 1]), tri[:, 2]) - 0.5), [w_img - 1, h - 1])
     nearest = np.minimum(np.minimum(tri_w[:, 0], tri_w[:, 1]), tri_w[:, 2])
-    keep = (np.abs(area) > 1e-12) & (nearest > 1e-9) & (hi[:, 0] >= lo[:, 0]) & (hi[:, 1] >= lo[:, 1])
+    finite = np.isfinite(tri).all(axis=(1, 2)) & np.isfinite(tri_w).all(axis=1)  # faces with a non-finite corner: none
+    keep = finite & (np.abs(area) > 1e-12) & (nearest > 1e-9) & (hi[:, 0] >= lo[:, 0]) & (hi[:, 1] >= lo[:, 1])
+    lo, hi = (np.where(keep[:, None], b, 0.0).astype(np.int64) for b in (lo, hi))
     ids = np.flatnonzero(keep)
     if len(ids) == 0:
-        return face_id.reshape(h, w_img), bary.reshape(h, w_img, 3), zbuf.reshape(h, w_img)
-    lib = native_rasterizer()
-    if lib is not None:
-        args = [np.ascontiguousarray(a) for a in (ids, tri, tri_w, area, lo[ids], hi[ids])]
-        lib.recon_rasterize(len(ids), *(a.ctypes.data for a in args), w_img, face_id.ctypes.data, bary.ctypes.data,
-                            zbuf.ctypes.data)
         return face_id.reshape(h, w_img), bary.reshape(h, w_img, 3), zbuf.reshape(h, w_img)
     span = hi[ids] - lo[ids] + 1  # (n, 2) bounding-box width, height in pixels
     count = span[:, 0] * span[:, 1]
