@@ -211,7 +211,8 @@ def _start_unwrap(vertices: np.ndarray, faces: np.ndarray, cfg: MeshConfig) -> F
     150k-face mesh), so the stage's next steps go on beside it; its error, if any, comes with the result."""
     pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="recon-unwrap")
     try:
-        return pool.submit(unwrap_mesh, vertices, faces, cfg.texture_faces, cfg.texture_size)
+        # copies: the steps beside it must stay free to work on the mesh's arrays
+        return pool.submit(unwrap_mesh, vertices.copy(), faces.copy(), cfg.texture_faces, cfg.texture_size)
     finally:
         pool.shutdown(wait=False)  # the thread ends with its one task
 
