@@ -280,6 +280,8 @@ def run_one(args: argparse.Namespace, column: str, until: str | None, sweep: boo
         "render_size": list(timing_views[0].hw),
         "mesh_stage_s": stage_s.get("mesh"),
         "mesh_timings_s": json.loads(mesh_report.read_text()).get("timings_s") if until is None else None,
+        "texture_timings_s": ((json.loads(mesh_report.read_text()).get("textured") or {}).get("timings_s")
+                              if until is None else None),  # decimate, unwrap (beside the stage), bake, the wait
         "render_chunks": (chunk_sweep(field, timed, device, args.render_chunks)
                           if sweep else {"skipped": "swept in the first column"}),
         "evals": metrics.get("evals", []),
