@@ -255,7 +255,7 @@ def run_one(args: argparse.Namespace, column: str, until: str | None, sweep: boo
                                       until_stage=until)
     wall = time.perf_counter() - t0
     metrics = json.loads((scene / "03_field" / "metrics.json").read_text())
-    mesh_report = scene / "04_mesh" / "mesh_report.json"
+    mesh = json.loads((scene / "04_mesh" / "mesh_report.json").read_text()) if until is None else {}
     stage_s = {o.name: round(o.wall_s, 1) for o in outcomes}
     peak_gib = round(torch.cuda.max_memory_allocated(device) / 2**30, 2) if device.type == "cuda" else None
     normalized = load_scene(scene / "02_scene")
@@ -279,9 +279,8 @@ def run_one(args: argparse.Namespace, column: str, until: str | None, sweep: boo
         "render_ms_per_view": round(render_timing(field, timed, device), 1),
         "render_size": list(timing_views[0].hw),
         "mesh_stage_s": stage_s.get("mesh"),
-        "mesh_timings_s": json.loads(mesh_report.read_text()).get("timings_s") if until is None else None,
-        "texture_timings_s": ((json.loads(mesh_report.read_text()).get("textured") or {}).get("timings_s")
-                              if until is None else None),  # decimate, unwrap (beside the stage), bake, the wait
+        "mesh_timings_s": mesh.get("timings_s"),
+        "texture_timings_s": (mesh.get("textured") or {}).get("timings_s"),  # decimate, unwrap, bake, the wait
         "render_chunks": (chunk_sweep(field, timed, device, args.render_chunks)
                           if sweep else {"skipped": "swept in the first column"}),
         "evals": metrics.get("evals", []),
