@@ -278,6 +278,18 @@ def test_recon_eval_gt_masks_scores_the_mesh_silhouette(tmp_path) -> None:
         silhouette_iou(tmp_path, masks)
 
 
+def _box_holds(scene: Scene, frame, mask: np.ndarray) -> float:
+    """The fraction of the mask's pixels whose ray (through the pixel's centre) passes through the scene's box."""
+    v, u = np.nonzero(mask)
+    fl_x, fl_y, cx, cy = frame.intrinsics_at(mask.shape[1], mask.shape[0])
+    d = np.stack([(u + 0.5 - cx) / fl_x, -(v + 0.5 - cy) / fl_y, -np.ones(len(u))], -1) @ frame.c2w[:3, :3].T
+    o = frame.c2w[:3, 3]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t0, t1 = (scene.aabb[0] - o) / d, (scene.aabb[1] - o) / d
+    enter, leave = np.nanmax(np.minimum(t0, t1), axis=-1), np.nanmin(np.maximum(t0, t1), axis=-1)
+    return float(np.mean(leave > np.maximum(enter, 0.0)))
+
+
 def test_the_normalize_stage_masks_an_object_on_a_table_and_trains_it_bounded(tmp_path) -> None:
     """Through the stage: the photos on disk, SfM-like points, no masks. normalize writes the masks and their
     contact sheet, points every frame at its mask, and the scene becomes a masked object capture; with
@@ -321,7 +333,50 @@ def test_the_normalize_stage_masks_an_object_on_a_table_and_trains_it_bounded(tm
         assert Path(f.mask_path).parent == folder / "masks"
         assert _iou(mask, truth[f.name]) > 0.85
         assert ((values > 0) & (values < 255)).any()  # soft along the outline (`matte`)
+        assert _box_holds(result, f, truth[f.name]) > 0.999  # the field's box holds what the masks show
     summary, folder = run("off")
     result = load_scene(folder)
     assert summary["auto_masks"] == 0 and result.capture == "unbounded" and not result.has_alpha
     assert not (folder / "masks").exists()
+
+
+def test_a_masked_objects_box_holds_its_plain_top_that_has_no_sparse_points(tmp_path) -> None:
+    """The user's masks show the whole ball, but SfM found points only on its lower part (a plain top has no
+    texture): normalize grows the box to the masks' visual hull, so the field can model the top the masks show."""
+    from PIL import Image
+
+    from recon.app.progress import Reporter
+    from recon.capture.scene import load_scene
+    from recon.config import NormalizeConfig, load_config
+    from recon.runner.pipeline import StageContext
+    from recon.stages import normalize as stage
+
+    scene, photos, truth = _scene(12)
+    (tmp_path / "photos").mkdir()
+    (tmp_path / "masks").mkdir()
+    for f in scene.frames:
+        Image.fromarray(np.round(photos[f.name] * 255).astype(np.uint8)).save(tmp_path / "photos" / f.name)
+        Image.fromarray(truth[f.name].astype(np.uint8) * 255).save(tmp_path / "masks" / f.name)
+        f.file_path = str(tmp_path / "photos" / f.name)
+        f.mask_path = str(tmp_path / "masks" / f.name)
+    low = scene.points[:, 2] < BALL_C[2] + 0.3 * BALL_R  # the top 35% of the ball's height has no points
+    keep = np.flatnonzero(low)
+    renumber = np.cumsum(low) - 1
+    scene.points = scene.points[keep]
+    scene.point_visibility = {k: renumber[v[low[v]]] for k, v in scene.point_visibility.items()}
+    scene.capture, scene.region, scene.ground, scene.has_alpha = None, None, None, True
+    (tmp_path / "01_poses").mkdir()
+    scene.save(tmp_path / "01_poses")
+    out = tmp_path / ".tmp-02_scene"
+    out.mkdir()
+    ctx = StageContext(name="normalize", folder="02_scene", out=out, work=tmp_path / "work",
+                       inputs={"poses": tmp_path / "01_poses"}, config=NormalizeConfig(), run_config=load_config(None, []),
+                       source=None, scene_dir=tmp_path, report=Reporter(quiet=True))
+    summary = stage.run(ctx)
+    result = load_scene(out)
+    assert result.capture == "object" and summary["auto_masks"] == 0
+    assert "visual hull" in result.notes["box"]
+    for f in result.frames:
+        assert _box_holds(result, f, truth[f.name]) > 0.999
+    cut = stage.normalize(load_scene(tmp_path / "01_poses"), NormalizeConfig())  # the sparse points' box alone
+    assert min(_box_holds(cut, f, truth[f.name]) for f in cut.frames) < 0.97

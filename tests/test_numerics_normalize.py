@@ -268,3 +268,22 @@ def test_rotation_between_nearly_opposite_vectors_is_exact(tilt: float) -> None:
     np.testing.assert_allclose(R @ a, b, rtol=0, atol=1e-15)
     np.testing.assert_allclose(R.T @ R, np.eye(3), rtol=0, atol=1e-15)
     assert np.linalg.det(R) == pytest.approx(1.0, abs=1e-15)
+
+
+def test_an_object_box_grows_to_hold_what_the_masks_show_and_no_further() -> None:
+    # the masks' visual hull (`recon.stages.normalize`) reaches past the sparse points: a plain part has no points
+    base = ring()
+    ref = normalize(base, NormalizeConfig())
+    assert ref.capture == "object"
+    beyond = np.array([[0.0, 0.0, 1.4], [0.2, -0.1, 0.0]])  # above the blob (points reach ~1), and inside it
+    grown = normalize(base, NormalizeConfig(), holds=beyond)
+    inside = lambda s, p: np.all((p @ np.linalg.inv(s.source_from_world)[:3, :3].T
+                                  + np.linalg.inv(s.source_from_world)[:3, 3] >= s.aabb[0] - 1e-9)
+                                 & (p @ np.linalg.inv(s.source_from_world)[:3, :3].T
+                                    + np.linalg.inv(s.source_from_world)[:3, 3] <= s.aabb[1] + 1e-9), axis=1)
+    assert not inside(ref, beyond[:1]).all() and inside(grown, beyond).all()
+    assert "visual hull" in grown.notes["box"] and "visual hull" not in ref.notes["box"]
+    assert not inside(grown, beyond[:1] + [0.0, 0.0, 0.3]).all()  # to what the hull holds, and its margin
+    same = normalize(base, NormalizeConfig(), holds=beyond[1:])  # what the box holds already changes nothing
+    np.testing.assert_allclose(same.aabb, ref.aabb)
+    assert "visual hull" not in same.notes["box"]

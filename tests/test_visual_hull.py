@@ -13,7 +13,7 @@ from recon.camera import look_at
 from recon.capture.scene import Scene
 from recon.errors import ReconError
 from recon.evaluation.views import View
-from recon.geometry.visual_hull import carve, hull_silhouettes, visual_hull_sdf
+from recon.geometry.visual_hull import carve, hull_bounds, hull_silhouettes, visual_hull_sdf
 from recon.nerf.surface import SurfaceConfig, SurfaceModel
 from recon.plans.training import surface_start
 
@@ -74,6 +74,30 @@ def test_a_photo_carves_only_what_lies_in_its_frame_and_min_views_counts_photos(
     assert inside2.all()  # one photo cannot carve what two must agree on
     wide, _ = carve(BOX, RES, [cam], [intr], sil, margin_px=6)
     assert not inside[~wide].any() and wide.sum() > inside.sum()  # a margin only keeps more
+
+
+def test_the_hull_bounds_hold_the_sphere_ignore_one_wrong_mask_and_what_few_photos_see() -> None:
+    cams = _ring_cameras()
+    sils = [_silhouette(c) for c in cams]
+    bounds = hull_bounds(BOX, RES, cams, [INTR] * len(cams), sils)
+    cell = 0.05
+    assert bounds is not None
+    assert (bounds[0] <= -RADIUS + cell).all() and (bounds[1] >= RADIUS - cell).all()  # the sphere, to a cell
+    assert (bounds[0] >= -RADIUS - 0.1).all() and (bounds[1] <= RADIUS + 0.1).all()  # the hull's lumps at most
+    for everything in (True, False):  # one photo calls everything object, or nothing: the others decide
+        wrong = [s.copy() for s in sils]
+        wrong[0][:] = everything
+        assert np.allclose(hull_bounds(BOX, RES, cams, [INTR] * len(cams), wrong), bounds)
+    # a ring of narrow photos at the equator that call everything object: the grid's top and bottom lie beyond their
+    # frames, so what counts is what enough of them see
+    equator = _ring_cameras((0.0,))
+    narrow = [(300.0, 300.0, SIZE / 2, SIZE / 2)] * len(equator)
+    full = [np.ones((SIZE, SIZE), bool)] * len(equator)
+    any_photo = hull_bounds(BOX, RES, equator, narrow, full, min_seen=0.0)
+    most = hull_bounds(BOX, RES, equator, narrow, full, min_seen=0.9)
+    assert any_photo[1, 2] < 0.9 and any_photo[0, 2] > -0.9  # what no photo sees is not object
+    assert (most[1] - most[0] < any_photo[1] - any_photo[0]).all()
+    assert hull_bounds(BOX, RES, equator, narrow, [np.zeros((SIZE, SIZE), bool)] * len(equator)) is None
 
 
 def test_the_hull_sdf_is_a_signed_distance_zero_on_the_sphere_and_closed_in_its_box() -> None:

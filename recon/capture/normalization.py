@@ -252,8 +252,11 @@ def _drop_nonfinite_points(scene: Scene) -> Scene:
     )
 
 
-def normalize(scene: Scene, cfg: NormalizeConfig) -> Scene:
-    """The canonical scene: +Z up, centred on the object (or the points), scaled so the box fits [-1, 1]^3."""
+def normalize(scene: Scene, cfg: NormalizeConfig, holds: np.ndarray | None = None) -> Scene:
+    """The canonical scene: +Z up, centred on the object (or the points), scaled so the box fits [-1, 1]^3.
+
+    holds: points (N, 3) in `scene`'s frame that an object capture's box must hold besides its sparse points (the
+    masks' visual hull: `recon.stages.normalize`)."""
     if len(scene.frames) < 1:
         raise InputError("The scene has no cameras to normalize.")
     c2ws = np.stack([f.c2w for f in scene.frames])
@@ -307,6 +310,14 @@ def normalize(scene: Scene, cfg: NormalizeConfig) -> Scene:
             box = _box_from_points((points[near_obj] - center) @ R.T, cfg.link_spacings)
         notes["box"] = ("the object region's sparse points (stray points dropped)" if region is not None else
                         "sparse points around the focus (stray points dropped)") if box is not None else ""
+        if holds is not None and box is not None:
+            held = (np.asarray(holds, np.float64).reshape(-1, 3) - center) @ R.T
+            grown = np.stack([np.minimum(box[0], held.min(axis=0)), np.maximum(box[1], held.max(axis=0))])
+            growth = float(((grown[1] - grown[0]) / (box[1] - box[0])).max())
+            if growth > 1.01:
+                box = grown
+                notes["box"] += (f", grown to hold the masks' visual hull (up to {growth - 1:.0%} longer a side): "
+                                 f"the masks show parts of the object that have no sparse points")
     else:
         center = np.median(points[finite], axis=0) if finite.sum() >= 20 else focus
         box = _box_from_points((points[finite] - center) @ R.T, cfg.link_spacings)

@@ -15,7 +15,7 @@ import numpy as np
 
 from recon.camera import project
 
-__all__ = ["carve", "hull_silhouettes", "silhouette", "visual_hull_sdf"]
+__all__ = ["carve", "hull_bounds", "hull_silhouettes", "silhouette", "visual_hull_sdf"]
 
 
 def carve(box: np.ndarray, res: int, c2ws: Sequence[np.ndarray], intrinsics: Sequence[Sequence[float]],
@@ -29,12 +29,44 @@ def carve(box: np.ndarray, res: int, c2ws: Sequence[np.ndarray], intrinsics: Seq
     near a surface only the photos that see it edge-on carve, so asking for two (or a margin) leaves a shell two to
     three times as far from the true surface.
     """
-    import cv2
+    carved_by, _ = _sightings(_grid(box, res), c2ws, intrinsics, objects, margin_px)
+    carved_by = carved_by.reshape(res, res, res)
+    return carved_by < min_views, carved_by
 
+
+def hull_bounds(box: np.ndarray, res: int, c2ws: Sequence[np.ndarray], intrinsics: Sequence[Sequence[float]],
+                objects: Sequence[np.ndarray], min_seen: float = 0.25) -> np.ndarray | None:
+    """(2, 3) bounds of the vertices of a res³ grid over box that at most one photo sees as background and at least
+    `min_seen` of the photos see in their frame, or None when no vertex is such.
+
+    Why: a box fitted to an object's sparse points misses its plain parts (no texture, no points), which its masks
+    still show; the field cannot model what lies outside its box. One photo's wrong mask carves nothing here, and
+    space few photos see (beyond the frames' edges, where nothing carves) does not count as object."""
+    carved_by, seen_by = _sightings(_grid(box, res), c2ws, intrinsics, objects)
+    kept = (carved_by <= 1) & (seen_by >= max(1, int(np.ceil(min_seen * len(objects)))))
+    if not kept.any():
+        return None
+    idx = np.stack(np.unravel_index(np.flatnonzero(kept), (res, res, res)), axis=-1)
+    box = np.asarray(box, np.float64)
+    cell = (box[1] - box[0]) / (res - 1)
+    return np.stack([box[0] + idx.min(axis=0) * cell, box[0] + idx.max(axis=0) * cell])
+
+
+def _grid(box: np.ndarray, res: int) -> np.ndarray:
+    """The vertices (res³, 3) of a res³ grid over box (2, 3), in [ix, iy, iz] order."""
     box = np.asarray(box, np.float64)
     axes = [np.linspace(box[0, i], box[1, i], res) for i in range(3)]
-    pts = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    return np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+
+
+def _sightings(pts: np.ndarray, c2ws: Sequence[np.ndarray], intrinsics: Sequence[Sequence[float]],
+               objects: Sequence[np.ndarray], margin_px: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """(how many photos see each point as background, how many see it at all): in front of the camera and inside
+    the frame, background when more than `margin_px` pixels from the photo's object pixels."""
+    import cv2
+
     carved_by = np.zeros(len(pts), np.int32)
+    seen_by = np.zeros(len(pts), np.int32)
     kernel = np.ones((2 * margin_px + 1, 2 * margin_px + 1), np.uint8) if margin_px > 0 else None
     for c2w, intr, obj in zip(c2ws, intrinsics, objects, strict=True):
         obj = np.asarray(obj, np.uint8)
@@ -44,11 +76,9 @@ def carve(box: np.ndarray, res: int, c2ws: Sequence[np.ndarray], intrinsics: Seq
         uv, z = project(pts, np.asarray(c2w, np.float64), np.asarray(intr, np.float64))
         col, row = np.floor(uv[:, 0]).astype(np.int64), np.floor(uv[:, 1]).astype(np.int64)
         seen = (z > 0) & (col >= 0) & (col < w) & (row >= 0) & (row < h)
-        background = np.zeros(len(pts), bool)
-        background[seen] = obj[row[seen], col[seen]] == 0
-        carved_by += background
-    carved_by = carved_by.reshape(res, res, res)
-    return carved_by < min_views, carved_by
+        seen_by += seen
+        carved_by[seen] += obj[row[seen], col[seen]] == 0
+    return carved_by, seen_by
 
 
 def visual_hull_sdf(inside: np.ndarray, box: np.ndarray, smooth_cells: float = 1.0) -> np.ndarray:

@@ -2,14 +2,17 @@
 object photographed without masks in front of its table and room — the object's masks cut from the photos."""
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
-from recon.capture.auto_masks import matte_photos, object_on_background, segment_object
+from recon.capture.auto_masks import HULL_RES, SEGMENT_SIDE, matte_photos, object_on_background, segment_object
 from recon.capture.images import read_image, save_image
-from recon.capture.normalization import normalize
+from recon.capture.normalization import box_corners, normalize
 from recon.capture.scene import Scene, load_scene
+from recon.evaluation.views import load_view
+from recon.geometry.visual_hull import hull_bounds
 from recon.plots import mask_overview
 from recon.runner.pipeline import Stage, StageContext
 
@@ -17,6 +20,8 @@ MASK_FOLDER = "masks"
 OVERVIEW = 12
 """The masks' contact sheet (02_scene/masks.png) shows this many photos, spread over the capture."""
 OVERVIEW_SIDE = 240
+HULL_SEARCH = 0.25
+"""A masked object's box may grow by up to this fraction of its size a side to hold the masks' visual hull."""
 
 
 def run(ctx: StageContext) -> dict:
@@ -27,6 +32,9 @@ def run(ctx: StageContext) -> dict:
         masked, why = _auto_masks(ctx, source, scene)
         if masked:
             scene = normalize(source, ctx.config)
+    if scene.has_alpha and scene.capture == "object":
+        scene = normalize(source, ctx.config, holds=_masks_hull(ctx, scene))
+    if why:
         scene.notes["masks"] = why
     scene.save(ctx.out)
     for key in ("up", "capture", "region", "masks", "box", "scale", "split"):
@@ -69,6 +77,28 @@ def _auto_masks(ctx: StageContext, source: Scene, scene: Scene) -> tuple[int, st
     )
 
 
+def _masks_hull(ctx: StageContext, scene: Scene) -> np.ndarray | None:
+    """The corners (8, 3), in the photos' (source) frame, of the box around the masks' visual hull, searched for in
+    `scene`'s box grown by HULL_SEARCH a side; None when the masks agree on nothing (the box stays as it is)."""
+    box = np.asarray(scene.aabb, np.float64)
+    search = box + np.stack([-(box[1] - box[0]), box[1] - box[0]]) * HULL_SEARCH
+    written = ctx.scene_dir / ctx.folder / MASK_FOLDER  # this run's automatic masks are still in ctx.out
+    objects, intrinsics = [], []
+    with ctx.report.task("fitting the box to the masks", total=len(scene.frames)) as bar:
+        for frame in scene.frames:
+            if frame.mask_path and Path(frame.mask_path).parent == written:
+                frame = replace(frame, mask_path=str(ctx.out / MASK_FOLDER / Path(frame.mask_path).name))
+            view = load_view(scene, frame, SEGMENT_SIDE, keep_alpha=True)
+            objects.append(view.image[..., 3] >= 128)
+            intrinsics.append(view.intrinsics)
+            bar.advance()
+    bounds = hull_bounds(search, HULL_RES, [f.c2w for f in scene.frames], intrinsics, objects)
+    if bounds is None:
+        return None
+    corners = np.concatenate([box_corners(bounds), np.ones((8, 1))], axis=1)
+    return (corners @ np.asarray(scene.source_from_world, np.float64).T)[:, :3]
+
+
 def _write(folder: Path, masks: dict[str, np.ndarray], scene: Scene) -> None:
     """Each mask (bool, or uint8 0-255) as a PNG (white = object) named like its photo, and a contact sheet of up to
     OVERVIEW photos beside the folder (`<folder>.png`) with their background dimmed."""
@@ -86,4 +116,5 @@ def _write(folder: Path, masks: dict[str, np.ndarray], scene: Scene) -> None:
 
 
 # version 6: automatic masks are soft at their outlines, snapped to the photos' edges
-STAGE = Stage(name="normalize", folder="02_scene", inputs=("poses",), version=6, run=run)
+# version 7: a masked object's box holds the masks' visual hull
+STAGE = Stage(name="normalize", folder="02_scene", inputs=("poses",), version=7, run=run)
