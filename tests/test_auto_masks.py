@@ -10,6 +10,7 @@ import pytest
 
 from recon.camera import look_at
 from recon.capture.auto_masks import object_on_background, segment_object
+from recon.capture.normalization import box_corners
 from recon.capture.scene import Frame, Scene
 
 W, H, FOCAL = 160, 120, 150.0
@@ -380,3 +381,11 @@ def test_a_masked_objects_box_holds_its_plain_top_that_has_no_sparse_points(tmp_
         assert _box_holds(result, f, truth[f.name]) > 0.999
     cut = stage.normalize(load_scene(tmp_path / "01_poses"), NormalizeConfig())  # the sparse points' box alone
     assert min(_box_holds(cut, f, truth[f.name]) for f in cut.frames) < 0.97
+
+    def bottom(scene: Scene) -> float:  # the box's lowest corner in the photos' frame (the table at z = 0)
+        corners = np.c_[box_corners(scene.aabb), np.ones(8)] @ np.asarray(scene.source_from_world).T
+        return float(corners[:, 2].min())
+
+    # every photo sees the space under the ball, below the table, in front of the ball: the hull goes on down there,
+    # but the table is the ground the ball stands on, and the box grows no further down than the points put it
+    assert bottom(result) == pytest.approx(bottom(cut), abs=0.02)

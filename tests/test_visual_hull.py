@@ -98,6 +98,9 @@ def test_the_hull_bounds_hold_the_sphere_ignore_one_wrong_mask_and_what_few_phot
     assert any_photo[1, 2] < 0.9 and any_photo[0, 2] > -0.9  # what no photo sees is not object
     assert (most[1] - most[0] < any_photo[1] - any_photo[0]).all()
     assert hull_bounds(BOX, RES, equator, narrow, [np.zeros((SIZE, SIZE), bool)] * len(equator)) is None
+    # what lies behind the plane the object stands on is not object, however many photos see the object there
+    floor = hull_bounds(BOX, RES, equator, narrow, full, min_seen=0.0, support=np.array([0.0, 0.0, 1.0, -0.2]))
+    assert floor[0, 2] == pytest.approx(-0.25) and np.allclose(floor[1], any_photo[1])  # a cell below the plane
 
 
 def test_the_hull_sdf_is_a_signed_distance_zero_on_the_sphere_and_closed_in_its_box() -> None:

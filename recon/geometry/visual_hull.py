@@ -35,15 +35,22 @@ def carve(box: np.ndarray, res: int, c2ws: Sequence[np.ndarray], intrinsics: Seq
 
 
 def hull_bounds(box: np.ndarray, res: int, c2ws: Sequence[np.ndarray], intrinsics: Sequence[Sequence[float]],
-                objects: Sequence[np.ndarray], min_seen: float = 0.25) -> np.ndarray | None:
+                objects: Sequence[np.ndarray], min_seen: float = 0.25,
+                support: np.ndarray | None = None) -> np.ndarray | None:
     """(2, 3) bounds of the vertices of a res³ grid over box that at most one photo sees as background and at least
     `min_seen` of the photos see in their frame, or None when no vertex is such.
 
     Why: a box fitted to an object's sparse points misses its plain parts (no texture, no points), which its masks
     still show; the field cannot model what lies outside its box. One photo's wrong mask carves nothing here, and
-    space few photos see (beyond the frames' edges, where nothing carves) does not count as object."""
-    carved_by, seen_by = _sightings(_grid(box, res), c2ws, intrinsics, objects)
+    space few photos see (beyond the frames' edges, where nothing carves) does not count as object.
+    support: the plane (4,) (n, d) the object stands or hangs on, n towards the object: vertices more than a cell
+    behind it do not count either (every photo sees the space under a table's object in front of the object)."""
+    pts = _grid(box, res)
+    carved_by, seen_by = _sightings(pts, c2ws, intrinsics, objects)
     kept = (carved_by <= 1) & (seen_by >= max(1, int(np.ceil(min_seen * len(objects)))))
+    if support is not None:
+        cell = float(np.max(np.asarray(box, np.float64)[1] - np.asarray(box, np.float64)[0])) / (res - 1)
+        kept &= pts @ np.asarray(support[:3], np.float64) >= float(support[3]) - cell
     if not kept.any():
         return None
     idx = np.stack(np.unravel_index(np.flatnonzero(kept), (res, res, res)), axis=-1)

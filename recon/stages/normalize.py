@@ -79,7 +79,8 @@ def _auto_masks(ctx: StageContext, source: Scene, scene: Scene) -> tuple[int, st
 
 def _masks_hull(ctx: StageContext, scene: Scene) -> np.ndarray | None:
     """The corners (8, 3), in the photos' (source) frame, of the box around the masks' visual hull, searched for in
-    `scene`'s box grown by HULL_SEARCH a side; None when the masks agree on nothing (the box stays as it is)."""
+    `scene`'s box grown by HULL_SEARCH a side and on the object's side of its ground or wall; None when the masks
+    agree on nothing (the box stays as it is)."""
     box = np.asarray(scene.aabb, np.float64)
     search = box + np.stack([-(box[1] - box[0]), box[1] - box[0]]) * HULL_SEARCH
     written = ctx.scene_dir / ctx.folder / MASK_FOLDER  # this run's automatic masks are still in ctx.out
@@ -92,7 +93,12 @@ def _masks_hull(ctx: StageContext, scene: Scene) -> np.ndarray | None:
             objects.append(view.image[..., 3] >= 128)
             intrinsics.append(view.intrinsics)
             bar.advance()
-    bounds = hull_bounds(search, HULL_RES, [f.c2w for f in scene.frames], intrinsics, objects)
+    support = None
+    if scene.ground is not None:  # the ground or wall the object stands on, its normal turned towards the object
+        support = np.asarray(scene.ground, np.float64)
+        middle = box.mean(axis=0) if scene.region is None else np.asarray(scene.region, np.float64).mean(axis=0)
+        support = support if support[:3] @ middle >= support[3] else -support
+    bounds = hull_bounds(search, HULL_RES, [f.c2w for f in scene.frames], intrinsics, objects, support=support)
     if bounds is None:
         return None
     corners = np.concatenate([box_corners(bounds), np.ones((8, 1))], axis=1)
