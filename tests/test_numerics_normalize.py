@@ -284,6 +284,8 @@ def test_an_object_box_grows_to_hold_what_the_masks_show_and_no_further() -> Non
     assert not inside(ref, beyond[:1]).all() and inside(grown, beyond).all()
     assert "visual hull" in grown.notes["box"] and "visual hull" not in ref.notes["box"]
     assert not inside(grown, beyond[:1] + [0.0, 0.0, 0.3]).all()  # to what the hull holds, and its margin
+    world = (beyond[:1] - 0.0) @ np.linalg.inv(grown.source_from_world)[:3, :3].T + np.linalg.inv(grown.source_from_world)[:3, 3]
+    assert (world <= grown.region[1] + 1e-9).all() and (world >= grown.region[0] - 1e-9).all()  # the mesh's too
     same = normalize(base, NormalizeConfig(), holds=beyond[1:])  # what the box holds already changes nothing
     np.testing.assert_allclose(same.aabb, ref.aabb)
     assert "visual hull" not in same.notes["box"]

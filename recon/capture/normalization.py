@@ -316,6 +316,8 @@ def normalize(scene: Scene, cfg: NormalizeConfig, holds: np.ndarray | None = Non
             growth = float(((grown[1] - grown[0]) / (box[1] - box[0])).max())
             if growth > 1.01:
                 box = grown
+                if region is not None:  # the object is what the masks show: the mesh region holds it too
+                    region = np.stack([np.minimum(region[0], held.min(axis=0)), np.maximum(region[1], held.max(axis=0))])
                 notes["box"] += (f", grown to hold the masks' visual hull (up to {growth - 1:.0%} longer a side): "
                                  f"the masks show parts of the object that have no sparse points")
     else:
