@@ -205,7 +205,7 @@ def test_the_start_shape_says_why_it_is_not_the_visual_hull() -> None:
 
 @pytest.fixture(scope="module")
 def surface_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[object, Path]:
-    """The tiny sample scene's poses, trained 30 steps as the surface preset (small grids) and meshed."""
+    """The tiny sample scene's poses, trained 60 steps as the surface preset (small grids) and meshed."""
     import shutil
 
     import recon
@@ -234,7 +234,7 @@ def test_the_surface_preset_starts_from_the_keyed_photos_visual_hull_and_keeps_i
     model, _ = load_field(out / "03_field")
     assert model.config.init_shape == "visual_hull" and torch.isfinite(model.prior_volume).all()
     assert float(model.prior_volume.min()) < 0 < float(model.prior_volume.max())
-    assert result.mesh["watertight"] is True  # the zero set of a closed start, 30 steps on
+    assert result.mesh["watertight"] is True  # the zero set of a closed start, 60 steps on
 
 
 def test_hull_silhouettes_cover_each_photos_object_and_outvote_one_wrong_mask() -> None:
