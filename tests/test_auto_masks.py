@@ -3,6 +3,7 @@ of cameras, with sparse points sampled on the ball and the table. The cut must m
 across photos, and say it is unsure when the photos do not fit their cameras."""
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -389,3 +390,12 @@ def test_a_masked_objects_box_holds_its_plain_top_that_has_no_sparse_points(tmp_
     # every photo sees the space under the ball, below the table, in front of the ball: the hull goes on down there,
     # but the table is the ground the ball stands on, and the box grows no further down than the points put it
     assert bottom(result) == pytest.approx(bottom(cut), abs=0.02)
+
+    # masks that call every pixel object (RGBA photos saved opaque) say nothing of where the object ends
+    for f in scene.frames:
+        Image.fromarray(np.full(truth[f.name].shape, 255, np.uint8)).save(f.mask_path)
+    opaque = tmp_path / ".tmp-02_scene-opaque"
+    opaque.mkdir()
+    stage.run(replace(ctx, out=opaque))
+    assert "visual hull" not in load_scene(opaque).notes["box"]
+    np.testing.assert_allclose(load_scene(opaque).aabb, cut.aabb)

@@ -22,6 +22,8 @@ OVERVIEW = 12
 OVERVIEW_SIDE = 240
 HULL_SEARCH = 0.25
 """A masked object's box may grow by up to this fraction of its size a side to hold the masks' visual hull."""
+MIN_HULL_PHOTOS = 3
+"""The masks' hull grows the box only when at least this many photos have background in their masks."""
 
 
 def run(ctx: StageContext) -> dict:
@@ -84,21 +86,26 @@ def _masks_hull(ctx: StageContext, scene: Scene) -> np.ndarray | None:
     box = np.asarray(scene.aabb, np.float64)
     search = box + np.stack([-(box[1] - box[0]), box[1] - box[0]]) * HULL_SEARCH
     written = ctx.scene_dir / ctx.folder / MASK_FOLDER  # this run's automatic masks are still in ctx.out
-    objects, intrinsics = [], []
+    objects, intrinsics, c2ws = [], [], []
     with ctx.report.task("fitting the box to the masks", total=len(scene.frames)) as bar:
         for frame in scene.frames:
             if frame.mask_path and Path(frame.mask_path).parent == written:
                 frame = replace(frame, mask_path=str(ctx.out / MASK_FOLDER / Path(frame.mask_path).name))
             view = load_view(scene, frame, SEGMENT_SIDE, keep_alpha=True)
-            objects.append(view.image[..., 3] >= 128)
-            intrinsics.append(view.intrinsics)
+            obj = view.image[..., 3] >= 128
+            if not obj.all():  # a mask that calls the whole photo object says nothing of where the object ends
+                objects.append(obj)
+                intrinsics.append(view.intrinsics)
+                c2ws.append(frame.c2w)
             bar.advance()
+    if len(objects) < MIN_HULL_PHOTOS:
+        return None
     support = None
     if scene.ground is not None:  # the ground or wall the object stands on, its normal turned towards the object
         support = np.asarray(scene.ground, np.float64)
         middle = box.mean(axis=0) if scene.region is None else np.asarray(scene.region, np.float64).mean(axis=0)
         support = support if support[:3] @ middle >= support[3] else -support
-    bounds = hull_bounds(search, HULL_RES, [f.c2w for f in scene.frames], intrinsics, objects, support=support)
+    bounds = hull_bounds(search, HULL_RES, c2ws, intrinsics, objects, support=support)
     if bounds is None:
         return None
     corners = np.concatenate([box_corners(bounds), np.ones((8, 1))], axis=1)
