@@ -312,12 +312,13 @@ def normalize(scene: Scene, cfg: NormalizeConfig, holds: np.ndarray | None = Non
                         "sparse points around the focus (stray points dropped)") if box is not None else ""
         if holds is not None and box is not None:
             held = (np.asarray(holds, np.float64).reshape(-1, 3) - center) @ R.T
-            grown = np.stack([np.minimum(box[0], held.min(axis=0)), np.maximum(box[1], held.max(axis=0))])
+            held_lo, held_hi = held.min(axis=0), held.max(axis=0)
+            grown = np.stack([np.minimum(box[0], held_lo), np.maximum(box[1], held_hi)])
             growth = float(((grown[1] - grown[0]) / (box[1] - box[0])).max())
             if growth > 1.01:
                 box = grown
                 if region is not None:  # the object is what the masks show: the mesh region holds it too
-                    region = np.stack([np.minimum(region[0], held.min(axis=0)), np.maximum(region[1], held.max(axis=0))])
+                    region = np.stack([np.minimum(region[0], held_lo), np.maximum(region[1], held_hi)])
                 notes["box"] += (f", grown to hold the masks' visual hull (up to {growth - 1:.0%} longer a side): "
                                  f"the masks show parts of the object that have no sparse points")
     else:

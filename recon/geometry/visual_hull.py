@@ -53,10 +53,7 @@ def hull_bounds(box: np.ndarray, res: int, c2ws: Sequence[np.ndarray], intrinsic
         kept &= pts @ np.asarray(support[:3], np.float64) >= float(support[3]) - cell
     if not kept.any():
         return None
-    idx = np.stack(np.unravel_index(np.flatnonzero(kept), (res, res, res)), axis=-1)
-    box = np.asarray(box, np.float64)
-    cell = (box[1] - box[0]) / (res - 1)
-    return np.stack([box[0] + idx.min(axis=0) * cell, box[0] + idx.max(axis=0) * cell])
+    return np.stack([pts[kept].min(axis=0), pts[kept].max(axis=0)])
 
 
 def _grid(box: np.ndarray, res: int) -> np.ndarray:
@@ -125,8 +122,7 @@ def hull_silhouettes(box: np.ndarray, res: int, c2ws: Sequence[np.ndarray], intr
     _, carved_by = carve(box, res, c2ws, intrinsics, objects)
     inside = carved_by <= max(1, int(tolerance * len(objects)))
     shell = inside & ~binary_erosion(inside)  # the hull's outer vertices project onto its whole silhouette
-    axes = [np.linspace(box[0, i], box[1, i], res) for i in range(3)]
-    hull_pts = np.stack([axes[i][idx] for i, idx in enumerate(np.nonzero(shell))], axis=-1)
+    hull_pts = _grid(box, res)[shell.reshape(-1)]
     cell = float(np.max(box[1] - box[0]) / (res - 1))
     silhouettes = [silhouette(hull_pts, cell, np.asarray(c2w, np.float64), np.asarray(intr, np.float64), *obj.shape[::-1])
                    for c2w, intr, obj in zip(c2ws, intrinsics, objects, strict=True)]
