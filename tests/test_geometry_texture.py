@@ -123,6 +123,7 @@ def test_baked_texture_renders_the_analytic_color_and_survives_export(tmp_path) 
                                  normals=textured.normals)
     assert {p.name for p in paths.values()} == {"mesh_textured.glb", "mesh_textured.obj", "mesh_textured.mtl", "mesh_textured.png"}
     assert "map_Kd mesh_textured.png" in paths["mtl"].read_text() and "mtllib mesh_textured.mtl" in paths["obj"].read_text()
+    assert paths["png"].read_bytes() in paths["glb"].read_bytes()  # the glb embeds the one PNG encoding as it is
     for fmt in ("glb", "obj"):
         mesh = trimesh.load(paths[fmt], force="mesh", process=False)
         assert isinstance(mesh.visual, trimesh.visual.TextureVisuals)

@@ -23,8 +23,6 @@ from pathlib import Path
 import numpy as np
 import trimesh
 from PIL import Image
-from trimesh.exchange.obj import export_obj
-from trimesh.visual.material import PBRMaterial
 
 from recon.atomic import write_bytes_atomic
 from recon.errors import ReconError
@@ -87,43 +85,64 @@ def export_record(frame: str, why: str, transform: np.ndarray | None, paths: dic
     }
 
 
-def glb_bytes(vertices: np.ndarray, faces: np.ndarray, colors_linear: np.ndarray, normals: np.ndarray) -> bytes:
-    """Minimal glTF 2.0 binary: one mesh, POSITION/NORMAL/COLOR_0 (float32 VEC3), uint32 indices,
-    and an unlit-looking dielectric material (metallic 0, rough 1) so vertex colors show as they are."""
-    arrays = [
-        np.ascontiguousarray(vertices, np.float32),
-        np.ascontiguousarray(normals, np.float32),
-        np.ascontiguousarray(colors_linear, np.float32),
-        np.ascontiguousarray(faces, np.uint32).reshape(-1),
-    ]
-    views, accessors, offset = [], [], 0
-    for i, arr in enumerate(arrays):
-        is_index = i == 3
+def glb_bytes(
+    vertices: np.ndarray,
+    faces: np.ndarray,
+    normals: np.ndarray,
+    colors_linear: np.ndarray | None = None,
+    uv: np.ndarray | None = None,
+    png: bytes | None = None,
+    material: str = "vertex_color",
+) -> bytes:
+    """Minimal glTF 2.0 binary: one mesh, POSITION/NORMAL (float32 VEC3), COLOR_0 (float32 VEC3, linear) when
+    ``colors_linear`` is given, TEXCOORD_0 when ``uv`` (V, 2; OBJ convention, v up: flipped here to glTF's v down)
+    and ``png`` (the encoded texture, embedded as it is: encoded once for the .png file and the .glb) are; uint32
+    indices; a dielectric material (metallic 0, rough 1) so vertex colors or the texture show as they are."""
+    arrays = [np.ascontiguousarray(vertices, np.float32), np.ascontiguousarray(normals, np.float32)]
+    attributes = {"POSITION": 0, "NORMAL": 1}
+    if colors_linear is not None:
+        attributes["COLOR_0"] = len(arrays)
+        arrays.append(np.ascontiguousarray(colors_linear, np.float32))
+    if uv is not None:
+        attributes["TEXCOORD_0"] = len(arrays)
+        flipped = np.asarray(uv, np.float64) * [1.0, -1.0] + [0.0, 1.0]
+        arrays.append(np.ascontiguousarray(flipped, np.float32))
+    indices = len(arrays)
+    arrays.append(np.ascontiguousarray(faces, np.uint32).reshape(-1))
+    views, accessors, chunks, offset = [], [], [], 0
+    for i, arr in enumerate(arrays):  # every array is 4-byte elements, so views stay 4-byte aligned
         views.append({"buffer": 0, "byteOffset": offset, "byteLength": arr.nbytes,
-                      "target": 34963 if is_index else 34962})
-        acc = {"bufferView": i, "componentType": 5125 if is_index else 5126,
-               "count": int(arr.shape[0]), "type": "SCALAR" if is_index else "VEC3"}
+                      "target": 34963 if i == indices else 34962})
+        acc = {"bufferView": i, "componentType": 5125 if i == indices else 5126, "count": int(arr.shape[0]),
+               "type": "SCALAR" if i == indices else ("VEC2" if arr.shape[1] == 2 else "VEC3")}
         if i == 0:  # POSITION requires min/max
             acc["min"], acc["max"] = arr.min(axis=0).tolist(), arr.max(axis=0).tolist()
         accessors.append(acc)
-        offset += arr.nbytes  # every array is 4-byte elements, so views stay 4-byte aligned
-    doc = {
+        chunks.append(arr.tobytes())
+        offset += arr.nbytes
+    pbr: dict = {"baseColorFactor": [1, 1, 1, 1], "metallicFactor": 0.0, "roughnessFactor": 1.0}
+    doc: dict = {
         "asset": {"version": "2.0", "generator": "recon"},
         "scene": 0,
         "scenes": [{"nodes": [0]}],
         "nodes": [{"mesh": 0, "name": "mesh"}],
         "meshes": [{"name": "mesh", "primitives": [{
-            "attributes": {"POSITION": 0, "NORMAL": 1, "COLOR_0": 2}, "indices": 3, "material": 0, "mode": 4}]}],
-        "materials": [{"name": "vertex_color", "pbrMetallicRoughness": {
-            "baseColorFactor": [1, 1, 1, 1], "metallicFactor": 0.0, "roughnessFactor": 1.0}}],
+            "attributes": attributes, "indices": indices, "material": 0, "mode": 4}]}],
+        "materials": [{"name": material, "pbrMetallicRoughness": pbr}],
         "accessors": accessors,
         "bufferViews": views,
-        "buffers": [{"byteLength": offset}],
     }
+    if png is not None:
+        views.append({"buffer": 0, "byteOffset": offset, "byteLength": len(png)})
+        chunks.append(png + b"\0" * (-len(png) % 4))
+        offset += len(chunks[-1])
+        doc["images"] = [{"bufferView": len(views) - 1, "mimeType": "image/png"}]
+        doc["textures"] = [{"source": 0}]
+        pbr["baseColorTexture"] = {"index": 0}
+    doc["buffers"] = [{"byteLength": offset}]
     js = json.dumps(doc, separators=(",", ":")).encode()
     js += b" " * (-len(js) % 4)
-    binary = b"".join(a.tobytes() for a in arrays)
-    binary += b"\0" * (-len(binary) % 4)
+    binary = b"".join(chunks)
     total = 12 + 8 + len(js) + 8 + len(binary)
     return b"".join([
         struct.pack("<4sII", b"glTF", 2, total),
@@ -141,6 +160,18 @@ def obj_text(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray) -> str
     return ("# recon mesh: vertex colors as 'v x y z r g b'\n"
             + ("v %.7g %.7g %.7g %.4f %.4f %.4f\n" * len(v)) % tuple(v.ravel().tolist())
             + ("f %d %d %d\n" * len(f)) % tuple(f.ravel().tolist()))
+
+
+def textured_obj_text(vertices: np.ndarray, faces: np.ndarray, uv: np.ndarray, normals: np.ndarray, mtl_file: str,
+                      material: str) -> str:
+    """Wavefront OBJ of a UV-mapped mesh using material ``material`` of ``mtl_file``: ``v``, ``vt`` (v up) and ``vn``
+    lines, one each per vertex, and faces ``f a/a/a b/b/b c/c/c`` (1-based); formatted as `obj_text` is."""
+    f = np.repeat(np.asarray(faces, np.int64).reshape(-1, 3) + 1, 3, axis=1)
+    return (f"# recon textured mesh\nmtllib {mtl_file}\nusemtl {material}\n"
+            + ("v %.8g %.8g %.8g\n" * len(vertices)) % tuple(np.asarray(vertices, np.float64).ravel().tolist())
+            + ("vt %.8g %.8g\n" * len(uv)) % tuple(np.asarray(uv, np.float64).ravel().tolist())
+            + ("vn %.6g %.6g %.6g\n" * len(normals)) % tuple(np.asarray(normals, np.float64).ravel().tolist())
+            + ("f %d/%d/%d %d/%d/%d %d/%d/%d\n" * len(f)) % tuple(f.ravel().tolist()))
 
 
 def export_mesh(
@@ -172,7 +203,7 @@ def export_mesh(
     out.mkdir(parents=True, exist_ok=True)
     paths = {
         "glb": write_bytes_atomic(out / f"{stem}.glb",
-                             glb_bytes(up, faces, srgb_to_linear(colors), mesh_up.vertex_normals)),
+                             glb_bytes(up, faces, mesh_up.vertex_normals, srgb_to_linear(colors))),
         "obj": write_bytes_atomic(out / f"{stem}.obj", obj_text(up, faces, colors)),
     }
     rgba = np.hstack([np.round(colors * 255), np.full((len(colors), 1), 255)]).astype(np.uint8)
@@ -203,7 +234,7 @@ def export_textured_mesh(
     their paths by format.
 
     vertices: (V, 3) scene frame (+Z up); faces (F, 3) counter-clockwise from outside; uv: (V, 2) in
-    [0, 1], v up (OBJ/OpenGL; trimesh flips it for glTF); texture: (H, W, 3) uint8 sRGB, top row first;
+    [0, 1], v up (OBJ/OpenGL; flipped for glTF); texture: (H, W, 3) uint8 sRGB, top row first;
     normals: optional (V, 3) outward (e.g. of the mesh before its seams were split, so shading does not
     break at them), else computed from the faces; transform and y_up as in `export_mesh`. The material is
     metallic 0, roughness 1, so Blender's glTF importer shows the texture through an Image Texture node
@@ -219,23 +250,21 @@ def export_textured_mesh(
     for t in ([transform] if transform is not None else []) + ([Z_UP_TO_Y_UP] if y_up else []):
         vertices, faces = apply_transform(vertices, faces, t)
         linear = np.asarray(t, np.float64)[:3, :3] @ linear
-    mesh = trimesh.Trimesh(vertices, faces, process=False)
     if normals is not None:  # normals map by the inverse transpose of the linear part
         n = np.asarray(normals, np.float64) @ np.linalg.inv(linear)
-        mesh.vertex_normals = n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
-    image = Image.fromarray(texture)
-    mesh.visual = trimesh.visual.TextureVisuals(uv=uv, material=PBRMaterial(
-        name=stem, baseColorTexture=image, metallicFactor=0.0, roughnessFactor=1.0))
+    else:
+        n = np.asarray(trimesh.Trimesh(vertices, faces, process=False).vertex_normals, np.float64)
+    n = n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+    png = io.BytesIO()
+    Image.fromarray(texture).save(png, format="PNG")
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    png = io.BytesIO()
-    image.save(png, format="PNG")
-    obj, _ = export_obj(mesh, include_normals=True, include_color=False, include_texture=True, return_texture=True,
-                        write_texture=False, mtl_name=f"{stem}.mtl")
     paths = {
-        "glb": write_bytes_atomic(out / f"{stem}.glb", mesh.export(file_type="glb", include_normals=True)),
+        "glb": write_bytes_atomic(out / f"{stem}.glb", glb_bytes(vertices, faces, n, uv=uv, png=png.getvalue(),
+                                                                 material=stem)),
         "png": write_bytes_atomic(out / f"{stem}.png", png.getvalue()),
         "mtl": write_bytes_atomic(out / f"{stem}.mtl", mtl_text(stem, f"{stem}.png")),
     }
+    obj = textured_obj_text(vertices, faces, uv, n, f"{stem}.mtl", stem)
     paths["obj"] = write_bytes_atomic(out / f"{stem}.obj", obj)
     return paths
