@@ -15,7 +15,8 @@ out="${OUT:-/tmp/gpu_out}"
 mkdir -p "$out"
 site=/tmp/recon-site
 if [ "${GPU_WHEELS:-}" != none ]; then
-  [ -d "$site" ] || pip install -q --no-index --no-deps --target "$site" .dev/whl/*.whl > "$out/pip.log" 2>&1
+  [ -f "$site/.installed" ] || { python3 -m pip install -q --no-index --no-deps --target "$site" .dev/whl/*.whl \
+    > "$out/pip.log" 2>&1 && touch "$site/.installed"; }
   export PYTHONPATH="$site:$PWD"
 fi
 { date -u; git rev-parse HEAD 2>/dev/null; nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv 2>&1
