@@ -236,8 +236,9 @@ class MeshConfig:
     texture_faces: int = 50000
     """Also write mesh_textured.glb/.obj: the mesh decimated to this many faces, UV-unwrapped, its color
     baked into a texture (0: no textured mesh)."""
-    texture_size: int = 2048
-    """Side of the square texture image of the textured mesh, in texels."""
+    texture_size: int = 0
+    """Side of the square texture image of the textured mesh, in texels; 0: the smallest power of two from 512 to
+    2048 that gives every photo pixel on the surface a texel (`recon.plans.mesh.texture_side`)."""
 
 
 @dataclass
@@ -566,7 +567,7 @@ BOUNDS: dict[str, Bound] = {
     "mesh.target_faces": _range(4, 10**8, off=0, off_means="keep all"),
     "mesh.real_size": _range(0, 1e9),
     "mesh.texture_faces": _range(4, 150000, off=0, off_means="no textured mesh"),
-    "mesh.texture_size": _range(16, 8192),
+    "mesh.texture_size": _range(16, 8192, off=0, off_means="automatic"),
 }
 """Allowed range of every int and float option (tests/test_bad_input.py checks that none is missing): checked once
 the preset and every --set are applied. texture_faces stops at 150,000 because xatlas (the UV unwrap) crashed the
@@ -577,6 +578,8 @@ GRID_COPIES_IN_MESH_STAGE = 6.0
 """The mesh stage's peak memory in units of its float32 density grid (which mesh.memory_budget_mb caps): the grid,
 plus 4.7 grids more that fill_enclosed allocates (its masks and labels; tracemalloc on 128³ and 256³ grids), plus
 marching cubes' 0.2-0.4."""
+AUTO_TEXTURE_SIDES = (512, 1024, 2048)
+"""mesh.texture_size=0 picks from these (`recon.plans.mesh.texture_side`)."""
 TEXTURE_BAKE_BYTES_PER_TEXEL = 180
 """Peak memory of baking a texture, per texel (rasterized face ids and barycentrics, points, colors, the padding's
 distance transform): measured 0.75 GB over the process for a 2048² bake."""
@@ -603,7 +606,7 @@ def implied_memory(config: RunConfig) -> list[tuple[str, str, int]]:
 
     The mesh grid is what mesh.memory_budget_mb allows of mesh.resolution (or max_resolution) cubed, times the
     copies the stage makes of it; the training grids are counted as dense (the default; vm and hash grids of the
-    same resolution are far smaller); the texture is baked at mesh.texture_size².
+    same resolution are far smaller); the texture is baked at mesh.texture_size² (automatic: at most 2048²).
     """
     mesh, fast, surface = config.mesh, config.train.fast, config.train.surface
     res = mesh.resolution or mesh.max_resolution
@@ -612,7 +615,8 @@ def implied_memory(config: RunConfig) -> list[tuple[str, str, int]]:
             "the mesh stage (its float32 density grid and the grids filling and meshing copy from it)",
             int(grid * GRID_COPIES_IN_MESH_STAGE))]
     if config.mesh.texture_faces:
-        out.append(("mesh.texture_size", "baking the texture", TEXTURE_BAKE_BYTES_PER_TEXEL * mesh.texture_size**2))
+        side = mesh.texture_size or AUTO_TEXTURE_SIDES[-1]
+        out.append(("mesh.texture_size", "baking the texture", TEXTURE_BAKE_BYTES_PER_TEXEL * side**2))
     if config.train.model in ("auto", "fast"):
         params = (_dense_grid_parameters(fast.density_res, 1, fast.density_levels)
                   + _dense_grid_parameters(fast.feature_res, fast.feature_dim, fast.feature_levels))

@@ -177,7 +177,7 @@ def test_texture_baked_from_photos_matches_held_out_photos_and_fills_what_no_pho
     colors, _ = bake_colors(model, train, depths, vertices, normals)
 
     cfg = MeshConfig(texture_faces=1500, texture_size=256)
-    textured = texture_mesh(model, cfg, train, depths, vertices, faces, quiet)
+    textured = texture_mesh(model, cfg, train, depths, vertices, faces, quiet, cfg.texture_size)
     assert textured.info["faces"] <= 1500 and textured.info["unseen_from_field"] > 0
     # vertex colors on the same 1500-face mesh: what the texture replaces
     low_colors, _ = bake_colors(model, train, depths, textured.vertices, textured.normals)

@@ -438,6 +438,40 @@ def test_the_textured_copy_is_unwrapped_beside_the_stages_next_steps(tmp_path: P
     assert set(textured["timings_s"]) == {"decimate_s", "unwrap_s", "bake_s", "unwrap_wait_s"}
 
 
+def test_the_automatic_texture_gives_every_photo_pixel_on_the_surface_a_texel_and_no_more() -> None:
+    """mesh.texture_size=0: the smallest automatic side whose texels on the surface (TEXTURE_COVERAGE of them) are at
+    least the photo pixels there; the largest one when even it falls short (and it says so); a set size as given."""
+    auto = MeshConfig(texture_size=0)
+    for area, footprint in ((7.18, 0.00666), (0.5, 0.01), (2.0, 0.003), (7.18, 0.00333)):
+        side, why = mesh_plan.texture_side(auto, area, footprint)
+        pixels = area / footprint**2
+        smaller = [s for s in mesh_plan.AUTO_TEXTURE_SIDES if s < side]
+        assert side**2 * mesh_plan.TEXTURE_COVERAGE >= pixels or side == mesh_plan.AUTO_TEXTURE_SIDES[-1]
+        assert not smaller or smaller[-1] ** 2 * mesh_plan.TEXTURE_COVERAGE < pixels, (area, footprint, side)
+        assert f"texture {side}²" in why and "mesh.texture_size" in why
+    assert mesh_plan.texture_side(auto, 7.18, 0.00666)[0] == 1024  # the shipped sample's balanced mesh: 569² wanted
+    assert mesh_plan.texture_side(auto, 0.5, 0.01)[0] == 512
+    side, why = mesh_plan.texture_side(auto, 7.18, 0.001)
+    assert side == 2048 and "largest automatic size" in why
+    assert mesh_plan.texture_side(MeshConfig(texture_size=300), 7.18, 0.001)[0] == 300
+
+
+def test_the_stage_sizes_the_texture_to_the_photos_by_default(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """With mesh.texture_size=0 the stage bakes the side `texture_side` gives for its cleaned mesh's area and the
+    photos' footprint, and reports that size and why."""
+    model = SoftSphere(amplitude=400.0, width=0.05, samples=64)
+    scene_dir = _scene_dir(tmp_path, model, np.eye(4), kind="transforms")
+    cfg = MeshConfig(resolution=33, target_faces=0, color="field", coarse_to_fine=False, texture_faces=200, texture_size=0)
+    _, out = _run_stage(scene_dir, model, cfg, monkeypatch)
+    report = json.loads((out / "mesh_report.json").read_text())
+    footprint = report["resolution"]["pixel_footprint"]
+    assert footprint is None  # mesh.resolution was given: the grid did not use it, the texture does all the same
+    side = report["textured"]["texture_size"]
+    assert side in mesh_plan.AUTO_TEXTURE_SIDES and report["textured"]["coverage"] > 0
+    assert report["textured"]["texture_size_reason"].startswith(f"texture {side}²: the photos put about")
+    assert side == mesh_plan.texture_side(cfg, report["clean"]["output"]["area"], report["resolution"]["photo_footprint"])[0]
+
+
 @pytest.mark.parametrize("fails", ["unwrap", "export"])
 def test_a_failed_textured_mesh_still_delivers_the_vertex_colored_mesh_and_says_why(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str], fails: str

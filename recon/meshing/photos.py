@@ -231,9 +231,9 @@ def bake_colors(
 # ---------------------------------------------------------------------------------------- textured mesh
 def texture_mesh(
     model: torch.nn.Module, cfg: MeshConfig, views: Sequence[View], depths: Sequence[np.ndarray],
-    vertices: np.ndarray, faces: np.ndarray, report: Any, unwrapped: UnwrappedMesh | None = None,
+    vertices: np.ndarray, faces: np.ndarray, report: Any, side: int, unwrapped: UnwrappedMesh | None = None,
 ) -> TexturedMesh:
-    """The mesh decimated to ``cfg.texture_faces``, unwrapped, with a ``cfg.texture_size``² texture baked the
+    """The mesh decimated to ``cfg.texture_faces``, unwrapped, with a ``side``² texture baked the
     way the vertex colors are (`bake_colors` on the surface point under each texel: the same depth test,
     median and field fallback; or the field's color with mesh.color=field). vertices, faces: the full mesh; depths:
     its z-buffer in each view (`mesh_depths`); unwrapped: its `unwrap_mesh` when the caller made it already."""
@@ -252,9 +252,9 @@ def texture_mesh(
 
     if unwrapped is None:
         with report.task("texture: decimate, unwrap", total=None):
-            unwrapped = unwrap_mesh(vertices, faces, cfg.texture_faces, cfg.texture_size)
-    with report.task(f"texture: bake {cfg.texture_size}²", total=None, unit="texels") as bar:
-        textured = bake_unwrapped(unwrapped, cfg.texture_size, color_fn, progress=bar.advance)
+            unwrapped = unwrap_mesh(vertices, faces, cfg.texture_faces, side)
+    with report.task(f"texture: bake {side}²", total=None, unit="texels") as bar:
+        textured = bake_unwrapped(unwrapped, side, color_fn, progress=bar.advance)
     textured.info["source"] = cfg.color
     if cfg.color == "photos":
         textured.info["unseen_from_field"] = unseen[0]

@@ -9,6 +9,7 @@ no photo is read, so a plan can be made (and tested) without either.
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -18,7 +19,7 @@ from recon.camera import pixel_footprint
 from recon.capture.normalization import box_corners
 from recon.capture.region import support_kind
 from recon.capture.scene import Frame, Scene, spread_evenly
-from recon.config import MeshConfig, parse_region
+from recon.config import AUTO_TEXTURE_SIDES, MeshConfig, parse_region
 from recon.errors import ReconError
 from recon.geometry.extract import choose_resolution, surface_cell
 from recon.meshing.extraction import ISO_OPACITY
@@ -39,6 +40,10 @@ HIDDEN_TOL_CELLS = 1.0
 result is insensitive to it near one voxel: the inner walls lie several voxels behind the visible surface."""
 POINT_TOL_CELLS = 1.0
 """The mesh passes through an SfM point (coherence's point agreement) when within this many surface cells of it."""
+TEXTURE_COVERAGE = 0.5
+"""The share of a texture's texels on the surface once xatlas has packed the charts with gaps between them
+(`recon.geometry.texture.CHARTS_PER_ATLAS`): about half on a marching-cubes mesh (each mesh's share is its
+mesh_report.json → textured → coverage)."""
 HELD_OUT_VIEWS = 8
 """The textured and vertex-colored meshes are compared in at most this many held-out views (spread evenly)."""
 
@@ -55,6 +60,23 @@ def scene_footprint(frames: list[Frame], aabb: np.ndarray, max_side: int) -> tup
     focals = np.array([training_focal(f, max_side) for f in frames])
     fp, dist = pixel_footprint(aabb, centres, focals)
     return fp, f" (median camera distance {dist:.3g}, focal {np.median(focals):.1f} px at training size {max_side})"
+
+
+def texture_side(cfg: MeshConfig, area: float, footprint: float) -> tuple[int, str]:
+    """The textured mesh's texture side and why: mesh.texture_size when set, else the smallest of AUTO_TEXTURE_SIDES
+    that gives every photo pixel on the surface a texel. area: the mesh's surface (scene units²); footprint: what a
+    photo pixel covers there (`MeshPlan.photo_footprint`). A texture finer than the photos it is baked from holds
+    nothing they do not show, and each step up costs four times the bake."""
+    if cfg.texture_size:
+        return int(cfg.texture_size), f"texture {cfg.texture_size}² (mesh.texture_size)"
+    pixels = area / max(footprint, 1e-12) ** 2
+    needed = math.sqrt(pixels / TEXTURE_COVERAGE)
+    side = next((s for s in AUTO_TEXTURE_SIDES if s >= needed), AUTO_TEXTURE_SIDES[-1])
+    return side, (f"texture {side}²: the photos put about {pixels:,.0f} pixels on the mesh's {area:.3g} units² "
+                  f"({footprint:.3g} units a pixel), and about {TEXTURE_COVERAGE:.0%} of a texture's texels land on the "
+                  f"surface, so {side}² gives each pixel a texel" + (
+                      "" if side >= needed else f" as near as the largest automatic size allows (wants {needed:.0f}²)")
+                  + "; mesh.texture_size sets it")
 
 
 def mesh_region(scene: Scene, aabb: np.ndarray, cfg: MeshConfig) -> tuple[np.ndarray, np.ndarray | None, str]:
@@ -139,6 +161,9 @@ class MeshPlan:
     """Grid nodes per axis over the region."""
     footprint: float | None
     """The training pixel's size at the cameras' distance (None with mesh.resolution given)."""
+    photo_footprint: float
+    """`scene_footprint`: what one pixel of the photos (at training size, as the mesh is colored from them) covers at
+    the cameras' median distance, scene units; sets the automatic texture size (`texture_side`)."""
     resolution_why: str
     zero_set: bool
     """A surface field: its signed distance's zero set is the mesh (closed, no iso choice, no hidden faces)."""
@@ -188,7 +213,8 @@ def plan_mesh(cfg: MeshConfig, scene: Scene, meta: dict[str, Any], *, on_cpu: bo
     train_frames = scene.split("train") or scene.frames
 
     region, ground, region_why = mesh_region(scene, aabb, cfg)
-    footprint, fp_why = (None, "") if cfg.resolution > 0 else scene_footprint(train_frames, aabb, max_side)
+    photo_footprint, fp_why = scene_footprint(train_frames, aabb, max_side)
+    footprint = None if cfg.resolution > 0 else photo_footprint
     shape, resolution_why = choose_resolution(region, cfg, footprint, fp_why)
 
     zero_set = meta.get("kind") == "surface"
@@ -227,7 +253,7 @@ def plan_mesh(cfg: MeshConfig, scene: Scene, meta: dict[str, Any], *, on_cpu: bo
         aabb=aabb, bounded=bounded,
         unbounded_why="" if bounded else "unbounded scene: the mesh covers the scene box only (the background is not meshed)",
         region=region, ground=ground, region_why=region_why,
-        shape=shape, footprint=footprint, resolution_why=resolution_why,
+        shape=shape, footprint=footprint, photo_footprint=photo_footprint, resolution_why=resolution_why,
         zero_set=zero_set, extraction=extraction, iso_why=iso_why, fill_why=fill_why,
         cell=cell, hidden_tolerance=HIDDEN_TOL_CELLS * cell if drop_hidden else None,
         ground_margin=cfg.ground_margin_cells * cell, point_tolerance=POINT_TOL_CELLS * cell,

@@ -50,7 +50,7 @@ from recon.meshing.photos import (
     see_with_views,
     texture_mesh,
 )
-from recon.plans.mesh import MeshPlan, plan_mesh
+from recon.plans.mesh import MeshPlan, plan_mesh, texture_side
 from recon.runner.pipeline import Stage, StageContext
 
 REPORT_FILE = "mesh_report.json"
@@ -108,7 +108,11 @@ def run(ctx: StageContext) -> dict:
     if len(faces) == 0:
         raise ReconError("Every piece of the extracted surface was removed while cleaning; lower mesh.min_component_fraction.")
     _say_cleaning(ctx, clean, plan, len(views))
-    unwrapping = _start_unwrap(vertices, faces, cfg) if plan.texture else None
+    side, side_why = texture_side(cfg, clean["output"]["area"], plan.photo_footprint)
+    unwrapping = None
+    if plan.texture:
+        ctx.report.info(f"textured mesh: {side_why}")
+        unwrapping = _start_unwrap(vertices, faces, cfg.texture_faces, side)
 
     t = time.perf_counter()
     observed = ([np.zeros((0, 3)) if p is None else p for p in map(scene.observed_points, plan.view_frames)]
@@ -144,10 +148,11 @@ def run(ctx: StageContext) -> dict:
         try:
             textured_info, texture_previews = _textured(ctx, cfg, plan, scene, model, views, surface_depths,
                                                         (vertices, faces, colors), transform, background, timings,
-                                                        unwrapping)
+                                                        side, unwrapping)
+            textured_info["texture_size_reason"] = side_why
             previews += texture_previews
         except Exception as exc:  # an optional output: the vertex-colored mesh above is the stage's result
-            textured_info = textured_failed(exc, cfg, ctx)
+            textured_info = textured_failed(exc, cfg, ctx, side)
     timings["total_s"] = round(time.perf_counter() - t_all, 3)
 
     out = clean["output"]
@@ -159,7 +164,8 @@ def run(ctx: StageContext) -> dict:
         "components_removed": removed,
         "component_rule": clean["components"]["rule"],
         "bbox_scene": out["bbox"],
-        "resolution": {"grid": list(plan.shape), "reason": plan.resolution_why, "pixel_footprint": plan.footprint},
+        "resolution": {"grid": list(plan.shape), "reason": plan.resolution_why, "pixel_footprint": plan.footprint,
+                       "photo_footprint": plan.photo_footprint},
         "region": {"box": plan.region.tolist(), "reason": plan.region_why,
                    "ground": None if plan.ground is None else plan.ground.tolist()},
         "extraction": extraction,
@@ -206,13 +212,13 @@ def _say_cleaning(ctx: StageContext, clean: dict, plan: MeshPlan, n_views: int) 
                         f"of the field; {n_views} views, depth tolerance {plan.hidden_tolerance:.3g} units)")
 
 
-def _start_unwrap(vertices: np.ndarray, faces: np.ndarray, cfg: MeshConfig) -> Future[UnwrappedMesh]:
+def _start_unwrap(vertices: np.ndarray, faces: np.ndarray, target_faces: int, side: int) -> Future[UnwrappedMesh]:
     """The textured copy's `unwrap_mesh`, started in a thread: xatlas runs in a process of its own (seconds on a
     150k-face mesh), so the stage's next steps go on beside it; its error, if any, comes with the result."""
     pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="recon-unwrap")
     try:
         # copies: the steps beside it must stay free to work on the mesh's arrays
-        return pool.submit(unwrap_mesh, vertices.copy(), faces.copy(), cfg.texture_faces, cfg.texture_size)
+        return pool.submit(unwrap_mesh, vertices.copy(), faces.copy(), target_faces, side)
     finally:
         pool.shutdown(wait=False)  # the thread ends with its one task
 
@@ -220,7 +226,7 @@ def _start_unwrap(vertices: np.ndarray, faces: np.ndarray, cfg: MeshConfig) -> F
 def _textured(
     ctx: StageContext, cfg: MeshConfig, plan: MeshPlan, scene: Scene, model: torch.nn.Module, views: list[View],
     depths: list[np.ndarray], mesh: tuple[np.ndarray, np.ndarray, np.ndarray], transform: np.ndarray | None,
-    background: np.ndarray, timings: dict[str, float], unwrapping: Future[UnwrappedMesh] | None = None,
+    background: np.ndarray, timings: dict[str, float], side: int, unwrapping: Future[UnwrappedMesh] | None = None,
 ) -> tuple[dict, list[str]]:
     """`texture_mesh`, its files, preview, and `compare_in_views` in the held-out views: the report's "textured"."""
     from PIL import Image
@@ -231,7 +237,7 @@ def _textured(
         with ctx.report.task("texture: decimate, unwrap (started after cleaning)", total=None):
             unwrapped = unwrapping.result()
     waited = round(time.perf_counter() - t, 3)
-    textured = texture_mesh(model, cfg, views, depths, mesh[0], mesh[1], ctx.report, unwrapped)
+    textured = texture_mesh(model, cfg, views, depths, mesh[0], mesh[1], ctx.report, side, unwrapped)
     if unwrapped is not None:
         textured.info["timings_s"]["unwrap_wait_s"] = waited  # what the unwrap beside steps 3-5 still cost the stage
     paths = export_textured_mesh(textured.vertices, textured.faces, textured.uv, textured.texture, ctx.out,
@@ -241,7 +247,7 @@ def _textured(
     info: dict[str, Any] = {**textured.info, "files": {k: p.name for k, p in paths.items()}}
     previews = ["preview_textured.png"]
     ctx.report.info(
-        f"textured mesh: {info['faces']:,} faces (decimated from {info['faces_in']:,}), {cfg.texture_size}² texture, "
+        f"textured mesh: {info['faces']:,} faces (decimated from {info['faces_in']:,}), {side}² texture, "
         f"{info['coverage']:.0%} of its texels on the surface, baked like the vertex colors"
         + (f" ({info['unseen_from_field']:,} texels no photo sees colored by the field)" if "unseen_from_field" in info else "")
     )
@@ -269,7 +275,7 @@ def _textured(
     return info, previews
 
 
-def textured_failed(exc: Exception, cfg: MeshConfig, ctx: StageContext) -> dict[str, Any]:
+def textured_failed(exc: Exception, cfg: MeshConfig, ctx: StageContext, side: int) -> dict[str, Any]:
     """The report's "textured" when unwrapping, baking or exporting the textured mesh failed: the error and what
     to do, said in one warning line; its partial files are removed so no half-written textured mesh is left.
 
@@ -278,10 +284,10 @@ def textured_failed(exc: Exception, cfg: MeshConfig, ctx: StageContext) -> dict[
         path.unlink(missing_ok=True)
     error = f"{type(exc).__name__}: {exc}"
     todo = (f"the vertex-colored {MESH_STEM}.glb is complete; for a textured mesh rerun the mesh stage with a larger "
-            f"--set mesh.texture_size (now {cfg.texture_size}) or fewer --set mesh.texture_faces (now {cfg.texture_faces}), "
+            f"--set mesh.texture_size (now {side}) or fewer --set mesh.texture_faces (now {cfg.texture_faces}), "
             f"or --set mesh.texture_faces=0 to skip it")
     ctx.report.warn(f"textured mesh not written ({error}); {todo}")
-    return {"failed": True, "error": error, "what_to_do": todo, "texture_size": cfg.texture_size,
+    return {"failed": True, "error": error, "what_to_do": todo, "texture_size": side,
             "texture_faces": cfg.texture_faces}
 
 
