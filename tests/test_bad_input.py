@@ -575,3 +575,18 @@ def test_manifest_of_an_unknown_version_is_refused(tmp_path: Path, version: int)
     assert ("upgrade recon" in out) == (version > MANIFEST_VERSION)
     assert_clean_error(*recon("status", str(scene)), f"manifest version {version}")
     assert json.loads(manifest.read_text())["version"] == version  # refused, not rewritten
+
+
+def test_a_folder_of_raw_files_or_of_subfolders_says_what_to_do(tmp_path: Path) -> None:
+    raw = tmp_path / "raw"
+    raw.mkdir()
+    for i in range(3):
+        (raw / f"IMG_{i}.CR2").write_bytes(b"II*\x00raw")
+    code, out = recon("run", str(raw), "--out", str(tmp_path / "s1"))
+    assert_clean_error(code, out, "No photos found", "camera RAW files (.CR2)", "export them as JPEG")
+    nested = tmp_path / "nested"
+    for i, sub in enumerate(["day1", "day2"]):
+        (nested / sub).mkdir(parents=True)
+        _rgb(nested / sub / "a.png", seed=i)
+    code, out = recon("run", str(nested), "--out", str(tmp_path / "s2"))
+    assert_clean_error(code, out, "No photos found", "day1/, day2/ hold photos", str(nested / "day1"))

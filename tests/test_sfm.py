@@ -470,3 +470,17 @@ def test_sceaux_castle_registers_all(shared_data: Path, tmp_path: Path) -> None:
     scale = frame["w"] / 2832
     assert frame["fl_x"] == pytest.approx(2905.88 * scale, rel=0.05)
     assert math.isfinite(result.mean_reprojection_error) and result.mean_reprojection_error < 1.5
+
+
+def test_sfm_bar_goes_back_on_a_retry_instead_of_counting_past_three() -> None:
+    from recon.stages.poses import sfm_bar_position
+
+    # the calls run_sfm makes for a first attempt and a retry (which starts mapping at 0.5)
+    calls = [("extract", 0.0), ("extract", 1.0), ("match", 0.0), ("match", 1.0), ("map", 0.0), ("map", 0.5),
+             ("map", 1.0)]
+    retry = calls[:4] + [("map", 0.5), ("map", 1.0)]
+    positions = [sfm_bar_position(p, f) for p, f in calls + retry]
+    assert max(positions) == 3.0 and positions[-1] == 3.0
+    assert positions[len(calls)] == 0.0  # the retry's extraction starts the bar again
+    assert positions[:len(calls)] == sorted(positions[:len(calls)])
+    assert sfm_bar_position("something else", 0.0) is None

@@ -35,6 +35,36 @@ LOG_DIR = "logs"
 what it prints while SfM runs goes to SCENE/logs/01_poses.log."""
 
 
+SFM_PHASES = {"extract": "extracting SIFT features", "match": "matching", "map": "incremental mapping"}
+
+
+def sfm_bar_position(phase: str, fraction: float) -> float | None:
+    """Where the 3-step structure-from-motion bar stands: a retry with other feature settings runs the three
+    phases again, so the bar goes back to the phase it is in instead of counting past 3/3."""
+    if phase not in SFM_PHASES:
+        return None
+    return list(SFM_PHASES).index(phase) + min(max(fraction, 0.0), 1.0)
+
+
+RAW_SUFFIXES = {".cr2", ".cr3", ".nef", ".arw", ".dng", ".raf", ".orf", ".rw2", ".pef", ".srw"}
+
+
+def no_photos(source: Path, skipped: list[Path]) -> InputError:
+    """The error for a folder without a photo recon reads, saying what it holds instead: camera RAW files, or
+    subfolders of photos."""
+    raw = sorted({p.suffix.upper() for p in skipped if p.suffix.lower() in RAW_SUFFIXES})
+    nested = [d for d in sorted(source.iterdir()) if d.is_dir() and not d.name.startswith(".") and list_photos(d)[0]]
+    if raw:
+        why = (f" It holds camera RAW files ({', '.join(raw)}), which recon does not develop: export them as JPEG (or "
+               f"16-bit TIFF) from your RAW developer, with the same settings for every photo, into a folder of their own.")
+    elif nested:
+        why = (f" Its subfolders {', '.join(d.name + '/' for d in nested[:5])} hold photos: recon reads one folder, not "
+               f"its subfolders, so pass one of them (e.g. {nested[0]}) or move the photos up.")
+    else:
+        why = " Put the photos (JPEG, PNG, TIFF or HEIC) directly in that folder and run again."
+    return InputError(f"No photos found in {source}.{why}")
+
+
 def source_digest(source: Path, cfg: PosesConfig | None) -> str:
     """Digest of the files the poses come from (names + bytes): adding, removing or editing one re-runs poses.
 
@@ -181,14 +211,13 @@ def _structure_from_motion(ctx: StageContext, photos: list[Path] | None = None) 
 
     cfg: PosesConfig = ctx.config
     ordered = photos is not None
+    skipped: list[Path] = []
     if photos is None:
         photos, skipped = list_photos(ctx.source)
         for path in skipped:
-            ctx.report.warn(f"Skipping {path.name}: not an image file recon reads ({', '.join(['jpg', 'png', 'tif'])}…).")
+            ctx.report.warn(f"Skipping {path.name}: not an image file recon reads (JPEG, PNG, TIFF, HEIC, WebP, BMP).")
     if not photos:
-        raise InputError(
-            f"No photos found in {ctx.source}. Put the photos (JPEG/PNG/TIFF) directly in that folder and run again."
-        )
+        raise no_photos(ctx.source, skipped)
     if len(photos) < MIN_PHOTOS:
         raise InputError(
             f"Only {len(photos)} photo(s) in {ctx.source}; structure from motion needs at least {MIN_PHOTOS}, and a "
@@ -230,13 +259,9 @@ def _structure_from_motion(ctx: StageContext, photos: list[Path] | None = None) 
             f"in order, so exhaustive matching would mostly pair views that cannot overlap."
         )
     with ctx.report.task("structure from motion", total=3) as bar:
-        phases = {"extract": "extracting SIFT features", "match": "matching", "map": "incremental mapping"}
-
         def progress(phase: str, fraction: float) -> None:
-            if fraction == 0.0:
-                bar.update(info=phases.get(phase, phase))
-            elif fraction >= 1.0:
-                bar.advance()
+            bar.update(completed=sfm_bar_position(phase, fraction),
+                       info=SFM_PHASES.get(phase, phase) if fraction < 1.0 else None)
 
         log_file = ctx.scene_dir / LOG_DIR / f"{ctx.folder}.log"
         result = run_sfm(image_dir, [n for _, n in names], sfm_dir, options, progress=progress, log_file=log_file)
