@@ -126,3 +126,45 @@ def test_few_photos_all_train_and_say_how_psnr_is_measured() -> None:
     many = frames(FEW_PHOTOS)
     assign_split(many, test_every=8, val_every=8)
     assert sum(f.split == "test" for f in many) == 3 and sum(f.split == "train" for f in many) < FEW_PHOTOS
+
+
+def test_iphone_heic_photos_are_read_upright_posed_and_exported_as_jpeg(tmp_path: Path) -> None:
+    """An iPhone's default format: pixels stored sideways, the file's rotation (irot, which pillow-heif writes from
+    EXIF Orientation 6 given as bytes) turning them upright; libheif applies it and the EXIF then reads Orientation 1."""
+    import recon
+    from typer.testing import CliRunner
+
+    from recon.app.cli import app
+    from recon.capture.images import oriented_size, read_image
+    from recon.capture.scene import import_transforms, load_scene
+
+    sample = sorted((Path(__file__).resolve().parents[1] / "fixtures" / "sample" / "images").glob("*.jpg"))[:12]
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    for i, path in enumerate(sample):
+        exif = Image.Exif()
+        exif[0x010F], exif[0x0110], exif[0x0112] = "Apple", "iPhone 15", 6
+        exif.get_ifd(EXIF_IFD).update({0x920A: 6.1, 0xA405: 26})
+        with Image.open(path) as upright:
+            upright.crop((0, 0, 400, 300)).transpose(Image.Transpose.ROTATE_90).save(photos / f"IMG_{i:04d}.HEIC", exif=exif.tobytes())
+    first = photos / "IMG_0000.HEIC"
+    assert oriented_size(first) == (400, 300)
+    truth = np.asarray(Image.open(sample[0]).convert("RGB").crop((0, 0, 400, 300)), dtype=np.float32) / 255
+    assert np.abs(read_image(first) - truth).mean() < 0.02  # upright: turned sideways it would not even fit
+
+    scene = tmp_path / "scene"
+    recon.run(photos, out=scene, preset="fast", until_stage="normalize")
+    frames = load_scene(scene / "01_poses").frames
+    assert len(frames) == 12 and {(f.w, f.h) for f in frames} == {(400, 300)}
+    copies = sorted((scene / "01_poses" / "colmap" / "images").iterdir())
+    assert [p.suffix for p in copies] == [".jpg"] * 12  # COLMAP reads no HEIC
+    with Image.open(copies[0]) as copy:
+        assert (copy.getexif().get(0x0110), copy.getexif().get(0x0112)) == ("iPhone 15", 1)
+
+    out = tmp_path / "ns"
+    result = CliRunner().invoke(app, ["export", str(scene), "--format", "nerfstudio", "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    exported = import_transforms(out).frames
+    assert [Path(f.file_path).name for f in exported] == [f"IMG_{i:04d}.jpg" for i in range(12)]
+    with Image.open(exported[0].file_path) as img:
+        assert img.format == "JPEG" and img.size == (400, 300)

@@ -23,6 +23,7 @@ import numpy as np
 
 from recon.atomic import write_json_atomic
 from recon.camera import opengl_c2w_to_opencv_w2c
+from recon.capture.images import HEIF_SUFFIXES
 from recon.capture.scene import Frame, Scene, load_scene
 from recon.errors import ReconError
 from recon.runner.ownership import claim_folder, marker_name
@@ -108,6 +109,8 @@ def export_names(scene: Scene) -> list[str]:
     paths = [os.path.abspath(scene.image_path(f)) for f in scene.frames]
     root = os.path.commonpath([os.path.dirname(p) for p in paths])
     names = [Path(os.path.relpath(p, root)).as_posix() for p in paths]
+    # HEIC goes out as JPEG: the tools an export is for (nerfstudio, COLMAP, 3DGS) do not read it
+    names = [str(Path(n).with_suffix(".jpg")) if Path(n).suffix.lower() in HEIF_SUFFIXES else n for n in names]
     if len(set(names)) != len(names):  # the same photo twice: keep them apart by position
         names = [f"{i:04d}_{Path(n).name}" for i, n in enumerate(names)]
     return names
@@ -134,7 +137,8 @@ def write_undistorted_images(scene: Scene, folder: Path, names: list[str], repor
                     rotated = img.getexif().get(0x0112, 1) != 1
             except OSError as exc:
                 raise ReconError(f"Cannot read the photo {src} ({exc}); it was readable when the scene was made. Restore it and export again.") from None
-            if not any(frame.distortion) and frame.camera_model != "OPENCV_FISHEYE" and not rotated:
+            same_format = Path(src).suffix.lower() == dst.suffix.lower()
+            if not any(frame.distortion) and frame.camera_model != "OPENCV_FISHEYE" and not rotated and same_format:
                 shutil.copyfile(src, dst)
             else:
                 image = read_image(src)

@@ -14,12 +14,23 @@ from PIL import Image, ImageOps, UnidentifiedImageError
 from recon.camera import intrinsic_matrix
 from recon.errors import InputError
 
-IMAGE_SUFFIXES = {".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".webp"}
+HEIF_SUFFIXES = {".heic", ".heif"}
+"""iPhones save HEIC by default; pillow-heif decodes it (upright, HDR to 8 bit), no other tool recon hands
+photos to (COLMAP, nerfstudio) reads it, so a copy for them is re-encoded."""
+IMAGE_SUFFIXES = {".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".webp"} | HEIF_SUFFIXES
 MIN_SIDE = 32
 MAX_PIXELS = 400_000_000
 """Refuse decompression bombs; huge photos below this are downscaled on read."""
 
 Image.MAX_IMAGE_PIXELS = MAX_PIXELS
+
+try:  # PIL opens .heic/.heif from here on: libheif applies the file's rotation and its EXIF then says Orientation 1
+    from pillow_heif import register_heif_opener
+
+    register_heif_opener()
+    HEIF_READER: str | None = None
+except ImportError:  # a dependency; an install without it still reads every other format
+    HEIF_READER = "pillow-heif is not installed: `pip install pillow-heif`, or convert the photos to JPEG"
 
 
 def list_photos(folder: Path) -> tuple[list[Path], list[Path]]:
@@ -49,6 +60,8 @@ def too_large(path: Path | str, width: int, height: int, what: str = "image") ->
 
 
 def unreadable(path: Path, exc: BaseException) -> InputError:
+    if HEIF_READER and Path(path).suffix.lower() in HEIF_SUFFIXES:
+        return InputError(f"Cannot read the HEIC photo {path}: {HEIF_READER}.")
     return InputError(
         f"Cannot read the image {path}: {exc}. The file is corrupt or not an image; "
         f"remove it from the folder or replace it with a good copy."
