@@ -19,12 +19,13 @@ from recon.stages.poses import prepare_photo
 EXIF_IFD = 0x8769
 
 
-def phone_photo(path: Path, make: str, model: str, fl35: int, size=(320, 240), orientation: int = 1, seed: int = 0) -> None:
+def phone_photo(path: Path, make: str, model: str, fl35: int, size=(320, 240), orientation: int = 1, seed: int = 0,
+                focal_mm: float = 4.2) -> None:
     rng = np.random.default_rng(seed)
     img = Image.fromarray((rng.random((size[1], size[0], 3)) * 255).astype(np.uint8))
     exif = Image.Exif()
     exif[0x010F], exif[0x0110], exif[0x0112] = make, model, orientation
-    exif.get_ifd(EXIF_IFD).update({0x920A: 4.2, 0xA405: fl35})
+    exif.get_ifd(EXIF_IFD).update({0x920A: focal_mm, 0xA405: fl35})
     img.save(path, exif=exif, quality=95)
 
 
@@ -44,30 +45,33 @@ def test_copy_for_colmap_keeps_device_and_focal_exif_upright(tmp_path: Path) -> 
         assert sub.get(0xA405) == 26 and abs(float(sub.get(0x920A)) - 4.2) < 1e-6
 
 
-def test_two_phones_of_one_resolution_get_two_cameras_with_focal_priors(tmp_path: Path) -> None:
+def test_two_phones_or_two_lenses_of_one_resolution_get_a_camera_each_with_focal_priors(tmp_path: Path) -> None:
     photos = tmp_path / "photos"
     photos.mkdir()
-    specs = [("Apple", "iPhone 12", 26), ("Apple", "iPhone 12", 26), ("Samsung", "SM-G991B", 24)]
-    for i, (make, model, fl35) in enumerate(specs):
-        phone_photo(photos / f"p{i}.jpg", make, model, fl35, seed=i)
+    # two photos of an iPhone's main lens, one of its ultra-wide (same make, model and size), one of a Samsung
+    specs = [("Apple", "iPhone 12", 26, 4.2), ("Apple", "iPhone 12", 26, 4.2), ("Samsung", "SM-G991B", 24, 5.4),
+             ("Apple", "iPhone 12", 13, 1.54)]
+    for i, (make, model, fl35, focal) in enumerate(specs):
+        phone_photo(photos / f"p{i}.jpg", make, model, fl35, seed=i, focal_mm=focal)
     image_dir = tmp_path / "sfm"
     image_dir.mkdir()
-    names = [prepare_photo(photos / f"p{i}.jpg", image_dir, max_side=320)[0] for i in range(3)]
+    names = [prepare_photo(photos / f"p{i}.jpg", image_dir, max_side=320)[0] for i in range(4)]
     sizes, devices = _image_info(image_dir, names)
-    assert devices == ["Apple iPhone 12", "Apple iPhone 12", "Samsung SM-G991B"]
+    assert devices == ["Apple iPhone 12 at 4.2 mm (26 mm equiv.)", "Apple iPhone 12 at 4.2 mm (26 mm equiv.)",
+                       "Samsung SM-G991B at 5.4 mm (24 mm equiv.)", "Apple iPhone 12 at 1.54 mm (13 mm equiv.)"]
     model, shared, reason = choose_camera(sizes, devices)
-    assert not shared and "2 cameras" in reason
+    assert not shared and "3 cameras" in reason
     groups = camera_groups(sizes, devices, shared)
-    assert groups == [[0, 1], [2]]
+    assert groups == [[0, 1], [2], [3]]
     database = tmp_path / "db.db"
     extract(database, image_dir, names, groups, model, SfmOptions(num_threads=1))
     with pycolmap.Database.open(database) as db:
         cameras = {c.camera_id: c for c in db.read_all_cameras()}
         camera_of = {im.name: im.camera_id for im in db.read_all_images()}
-    assert len(cameras) == 2
-    assert camera_of["p0.jpg"] == camera_of["p1.jpg"] != camera_of["p2.jpg"]
+    assert len(cameras) == 3
+    assert camera_of["p0.jpg"] == camera_of["p1.jpg"] != camera_of["p2.jpg"] != camera_of["p3.jpg"] != camera_of["p0.jpg"]
     diag = math.hypot(320, 240)
-    for name, fl35 in (("p0.jpg", 26), ("p2.jpg", 24)):
+    for name, fl35 in (("p0.jpg", 26), ("p2.jpg", 24), ("p3.jpg", 13)):
         cam = cameras[camera_of[name]]
         assert cam.has_prior_focal_length
         # COLMAP's 35 mm rule: focal over the 43.27 mm film diagonal, times the image diagonal in pixels

@@ -145,7 +145,11 @@ def camera_exif(path: Path) -> Image.Exif | None:
 
 
 def device_of(path: Path) -> str | None:
-    """'Make Model' from a photo's EXIF (None without either): which device took it."""
+    """Which camera took a photo, from its EXIF: 'Make Model', and the lens's focal length where the EXIF gives
+    one ('Apple iPhone 15 at 6.8 mm (26 mm equiv.)'); None without make and model.
+
+    A phone's lenses (ultra-wide, main, tele) and its digital zoom share make, model and resolution but not
+    intrinsics: photos of one camera at two focal lengths must not share a COLMAP camera."""
     try:
         with Image.open(path) as img:
             exif = img.getexif()
@@ -153,7 +157,24 @@ def device_of(path: Path) -> str | None:
         raise unreadable(path, exc) from None
     parts = [str(exif.get(tag, "")).strip("\x00 ") for tag in CAMERA_EXIF_TAGS]
     text = " ".join(p for p in parts if p)
-    return text or None
+    if not text:
+        return None
+    sub = exif.get_ifd(_EXIF_IFD)
+    focal, focal35 = (_positive(sub.get(tag)) for tag in CAMERA_EXIF_SUBTAGS)
+    if focal:
+        text += f" at {focal:.3g} mm" + (f" ({focal35:.3g} mm equiv.)" if focal35 else "")
+    elif focal35:
+        text += f" at {focal35:.3g} mm equiv."
+    return text
+
+
+def _positive(value: object) -> float | None:
+    """An EXIF number (a rational possibly 0/0) as a float, or None when missing, zero or unreadable."""
+    try:
+        number = float(value)  # type: ignore[arg-type]
+    except (TypeError, ValueError, ZeroDivisionError):
+        return None
+    return number if np.isfinite(number) and number > 0 else None
 
 
 def to_array(img: Image.Image) -> np.ndarray:

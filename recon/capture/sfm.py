@@ -179,7 +179,8 @@ def camera_groups(
     """Indices of the images that share one set of intrinsics, in input order.
 
     All images when `shared`; else, under "auto", the images of one EXIF device and one size share a camera
-    (two phones with the same resolution still get two), and an image without EXIF device gets its own
+    (two phones with the same resolution still get two, and so do two lenses or zooms of one phone, since
+    `recon.capture.images.device_of` names the focal length too), and an image without EXIF device gets its own
     (a crop or an edited copy cannot be told from another lens).
     """
     if shared:
