@@ -21,6 +21,7 @@ from rich.progress import (
     TimeElapsedColumn,
     TimeRemainingColumn,
 )
+from rich.table import Column
 
 
 class Task:
@@ -99,7 +100,9 @@ class Reporter:
             TimeElapsedColumn(),
             TextColumn("ETA"),
             TimeRemainingColumn(),
-            TextColumn("{task.fields[info]}"),
+            # the status text wraps onto more lines in a narrow terminal: kept on one line, rich shrank the count,
+            # the elapsed time and the ETA to '…' in 80 columns
+            TextColumn("{task.fields[info]}", table_column=Column(no_wrap=False, overflow="fold")),
         ]
         with Progress(*columns, console=self.console, transient=False) as progress:
             task_id = progress.add_task(description, total=total, info="")

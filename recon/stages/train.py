@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import time
 import warnings
+from collections import deque
 from pathlib import Path
 from typing import Any
 
@@ -150,6 +151,26 @@ def _held_out_protocols(plan: TrainPlan) -> list[str]:
     return [p for p, on in ((HELD_OUT_PROTOCOL, plan.appearance), (POSE_PROTOCOL, plan.pose_refine)) if on]
 
 
+ESTIMATE_AFTER_S = 3.0
+"""Training seconds over which the step rate is measured before the steps a budget allows are estimated."""
+RATE_WINDOW_S = 30.0
+"""The step rate is that of the last this-many training seconds: steps get faster as occupancy culls empty space."""
+
+
+def expected_steps(step: int, used_s: float, since_step: int, since_s: float, budget_s: float, cap: int) -> int:
+    """The step count training will end at, for the progress bar's total (and so its ETA): the cap without a
+    budget; with one, the steps the recent rate fits in what is left of it (to tens of steps), when that is fewer.
+
+    A budget stops training before the cap on most machines: a bar out of the cap would end at a fraction and its
+    ETA would count steps that never run. used_s: training seconds spent; the rate is measured since step
+    `since_step` at `since_s` training seconds.
+    """
+    if budget_s <= 0 or used_s - since_s < ESTIMATE_AFTER_S or step <= since_step:
+        return cap
+    rate = (step - since_step) / (used_s - since_s)
+    return int(min(cap, max(step, round((step + rate * max(budget_s - used_s, 0.0)) / 10.0) * 10)))
+
+
 def _fit(ctx: StageContext, cfg: TrainConfig, plan: TrainPlan, setup: TrainSetup,
          eval_views: list[View]) -> tuple[dict[str, Any], list[dict], list[dict], float]:
     """Train from the stage's checkpoint when there is one, checkpointing as it goes; (train's result, the held-out
@@ -178,11 +199,20 @@ def _fit(ctx: StageContext, cfg: TrainConfig, plan: TrainPlan, setup: TrainSetup
     def train_time() -> float:
         return time_before + time.perf_counter() - t_start - eval_time[0]
 
+    first_step = checkpoint["state"]["step"] if checkpoint else 0
     with ctx.report.task("training", total=cfg.steps, unit="steps") as bar:
-        bar.update(completed=checkpoint["state"]["step"] if checkpoint else 0)
+        bar.update(completed=first_step)
+
+        recent = deque([(time_before, first_step)])  # (training seconds, step) over the last RATE_WINDOW_S
 
         def on_step(p: Any) -> None:
-            bar.update(completed=p.step, info=f"loss {p.loss:.4f}  PSNR {p.psnr:.2f} dB  {p.rays_per_s:,.0f} rays/s")
+            now = train_time()
+            recent.append((now, p.step))
+            while len(recent) > 2 and now - recent[1][0] >= RATE_WINDOW_S:
+                recent.popleft()
+            total = expected_steps(p.step, now, recent[0][1], recent[0][0], plan.budget_s, p.steps)
+            bar.update(completed=p.step, total=total,
+                       info=f"loss {p.loss:.4f}  PSNR {p.psnr:.2f} dB  {p.rays_per_s:,.0f} rays/s")
             if p.step % 10 == 0 or p.step == p.steps:
                 history.append({"step": p.step, "loss": p.loss, "psnr": p.psnr, "time_s": round(train_time(), 3)})
             if p.metrics is not None:
@@ -204,6 +234,7 @@ def _fit(ctx: StageContext, cfg: TrainConfig, plan: TrainPlan, setup: TrainSetup
             for w in caught:
                 if "training is not improving" in str(w.message):
                     ctx.report.warn(str(w.message))
+            bar.update(completed=result["step"], total=result["step"])  # the budget ended it: the bar ends full
         except TrainingInterrupted as stop:
             _save_checkpoint(ckpt_path, {"state": stop.state, "evals": evals, "history": history, "train_time_s": train_time()})
             raise KeyboardInterrupt from None

@@ -1,0 +1,37 @@
+"""What a user watches: the progress bar's count, elapsed time and ETA fit an 80-column terminal, and a training
+run with a time budget counts toward the steps the budget allows, not toward a step cap it never reaches."""
+from __future__ import annotations
+
+import io
+import re
+
+from rich.console import Console
+
+from recon.app.progress import Reporter
+from recon.stages.train import ESTIMATE_AFTER_S, expected_steps
+
+
+def test_a_bar_keeps_its_count_and_eta_in_80_columns() -> None:
+    buf = io.StringIO()
+    reporter = Reporter(console=Console(file=buf, width=80, force_terminal=True, color_system=None))
+    reporter.current_stage = "train"
+    with reporter.task("training", total=12000, unit="steps") as bar:
+        bar.update(completed=530, total=2140, info="loss 0.0006  PSNR 32.23 dB  31,694 rays/s")
+    text = buf.getvalue().split("\r")[-1]
+    assert "530/2140 steps" in text
+    assert re.search(r"\d:\d\d:\d\d ETA", text) and "PSNR 32.23 dB" in text
+    assert all(len(line.rstrip()) <= 80 for line in re.sub(r"\x1b\[[0-9;?]*[A-Za-z]", "", text).splitlines())
+
+
+def test_expected_steps_follows_the_budget_when_it_comes_before_the_cap() -> None:
+    # 500 steps in 60 s of a 240-s budget: 2,000 steps in all, far under the 12,000-step cap
+    assert expected_steps(500, 60.0, 0, 0.0, 240.0, 12000) == 2000
+    # a fast machine reaches the cap first: the cap
+    assert expected_steps(5000, 60.0, 0, 0.0, 240.0, 12000) == 12000
+    # no budget, or too little of this run to measure a rate: the cap
+    assert expected_steps(500, 60.0, 0, 0.0, 0.0, 12000) == 12000
+    assert expected_steps(20, ESTIMATE_AFTER_S / 2, 0, 0.0, 240.0, 12000) == 12000
+    # the rate since the given step and time (the last 30 s, or since a resumed run started): 470 steps in 60 s
+    assert expected_steps(1000, 121.0, 530, 61.0, 240.0, 12000) == 1930  # 1,000 + 470/60 × 119 s left
+    # the budget spent: never under the steps already done
+    assert expected_steps(2013, 250.0, 0, 0.0, 240.0, 12000) == 2013
