@@ -5,22 +5,27 @@ from __future__ import annotations
 import io
 import re
 
+import pytest
 from rich.console import Console
 
 from recon.app.progress import Reporter
 from recon.stages.train import ESTIMATE_AFTER_S, expected_steps
 
 
-def test_a_bar_keeps_its_count_and_eta_in_80_columns() -> None:
+@pytest.mark.parametrize(("stage", "description", "unit", "info"), [
+    ("train", "training", "steps", "loss 0.0006  PSNR 32.23 dB  31,694 rays/s"),
+    ("mesh", "rendering the meshes into the held-out views", "views", ""),
+])
+def test_a_bar_keeps_its_count_and_times_in_80_columns(stage: str, description: str, unit: str, info: str) -> None:
     buf = io.StringIO()
     reporter = Reporter(console=Console(file=buf, width=80, force_terminal=True, color_system=None))
-    reporter.current_stage = "train"
-    with reporter.task("training", total=12000, unit="steps") as bar:
-        bar.update(completed=530, total=2140, info="loss 0.0006  PSNR 32.23 dB  31,694 rays/s")
-    text = buf.getvalue().split("\r")[-1]
-    assert "530/2140 steps" in text
-    assert re.search(r"\d:\d\d:\d\d ETA", text) and "PSNR 32.23 dB" in text
-    assert all(len(line.rstrip()) <= 80 for line in re.sub(r"\x1b\[[0-9;?]*[A-Za-z]", "", text).splitlines())
+    reporter.current_stage = stage
+    with reporter.task(description, total=12000, unit=unit) as bar:
+        bar.update(completed=530, total=2140, info=info)
+    text = re.sub(r"\x1b\[[0-9;?]*[A-Za-z]", "", buf.getvalue().split("\r")[-1])
+    assert f"530/2140 {unit}" in text and re.search(r"\d:\d\d:\d\d ETA", text)
+    assert all(word in text.split() for word in info.split())  # the status text wraps, none of it is cut
+    assert all(len(line.rstrip()) <= 80 for line in text.splitlines())
 
 
 def test_expected_steps_follows_the_budget_when_it_comes_before_the_cap() -> None:

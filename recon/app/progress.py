@@ -91,17 +91,17 @@ class Reporter:
             yield Task(None, None)
             return
         stage = f"[cyan]{self.current_stage}[/] " if self.current_stage else ""
+        # in a narrow terminal a shorter bar, and the description wraps: rich would otherwise shrink the count, the
+        # elapsed time and the ETA to '…' (80 columns) to keep each on one line
         columns = [
             SpinnerColumn(),
-            TextColumn(f"{stage}{escape(description)}"),
-            BarColumn(),
+            TextColumn(f"{stage}{escape(description)}", table_column=Column(no_wrap=False)),
+            BarColumn(bar_width=40 if self.console.width >= 120 else 16),
             MofNCompleteColumn(),
             TextColumn(escape(unit)),
             TimeElapsedColumn(),
             TextColumn("ETA"),
             TimeRemainingColumn(),
-            # the status text wraps onto more lines in a narrow terminal: kept on one line, rich shrank the count,
-            # the elapsed time and the ETA to '…' in 80 columns
             TextColumn("{task.fields[info]}", table_column=Column(no_wrap=False, overflow="fold")),
         ]
         with Progress(*columns, console=self.console, transient=False) as progress:
