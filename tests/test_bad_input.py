@@ -590,3 +590,16 @@ def test_a_folder_of_raw_files_or_of_subfolders_says_what_to_do(tmp_path: Path) 
         _rgb(nested / sub / "a.png", seed=i)
     code, out = recon("run", str(nested), "--out", str(tmp_path / "s2"))
     assert_clean_error(code, out, "No photos found", "day1/, day2/ hold photos", str(nested / "day1"))
+
+
+def test_byte_identical_copies_of_a_photo_are_left_out_and_named(tmp_path: Path) -> None:
+    from recon.stages.poses import drop_copies
+
+    for i in range(3):
+        _rgb(tmp_path / f"IMG_{i}.png", seed=i)
+    (tmp_path / "IMG_1 (1).png").write_bytes((tmp_path / "IMG_1.png").read_bytes())
+    (tmp_path / "IMG_0 copy.png").write_bytes((tmp_path / "IMG_0.png").read_bytes())
+    photos = sorted(tmp_path.glob("*.png"))
+    kept, copies = drop_copies(photos)
+    assert [p.name for p in kept] == ["IMG_0.png", "IMG_1.png", "IMG_2.png"]
+    assert {c.name: o.name for c, o in copies.items()} == {"IMG_0 copy.png": "IMG_0.png", "IMG_1 (1).png": "IMG_1.png"}

@@ -65,6 +65,16 @@ def no_photos(source: Path, skipped: list[Path]) -> InputError:
     return InputError(f"No photos found in {source}.{why}")
 
 
+def drop_copies(photos: list[Path]) -> tuple[list[Path], dict[Path, Path]]:
+    """The photos (in their order) without byte-identical copies (a photo copied twice into the folder: 'IMG_1 (1).jpg',
+    'IMG_1 copy.jpg'), and each copy left out with the photo kept for it: the shortest name, the original's."""
+    by_digest: dict[str, list[Path]] = {}
+    for path in photos:
+        by_digest.setdefault(sha256_file(path), []).append(path)
+    original = {p: min(same, key=lambda q: (len(q.name), q.name)) for same in by_digest.values() for p in same}
+    return [p for p in photos if original[p] == p], {p: o for p, o in original.items() if o != p}
+
+
 def source_digest(source: Path, cfg: PosesConfig | None) -> str:
     """Digest of the files the poses come from (names + bytes): adding, removing or editing one re-runs poses.
 
@@ -216,6 +226,10 @@ def _structure_from_motion(ctx: StageContext, photos: list[Path] | None = None) 
         photos, skipped = list_photos(ctx.source)
         for path in skipped:
             ctx.report.warn(f"Skipping {path.name}: not an image file recon reads (JPEG, PNG, TIFF, HEIC, WebP, BMP).")
+        photos, copies = drop_copies(photos)
+        for copy, original in copies.items():
+            ctx.report.warn(f"Skipping {copy.name}: the same file as {original.name} (a copy adds no view; it would "
+                            f"count twice in training).")
     if not photos:
         raise no_photos(ctx.source, skipped)
     if len(photos) < MIN_PHOTOS:
