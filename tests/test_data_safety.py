@@ -348,8 +348,8 @@ def test_pycolmap_logs_land_in_the_given_folder(tmp_path: Path) -> None:
 def test_same_photo_name_with_two_extensions_is_a_clear_error(tmp_path: Path) -> None:
     photos = tmp_path / "photos"
     photos.mkdir()
-    for name in ("a.jpg", "a.jpeg", "b.jpg", "c.jpg"):
-        Image.fromarray(np.zeros((40, 40, 3), np.uint8)).save(photos / name, format="JPEG")
+    for i, name in enumerate(("a.jpg", "a.jpeg", "b.jpg", "c.jpg")):  # four different photos (copies are left out)
+        Image.fromarray(np.full((40, 40, 3), 50 * i, np.uint8)).save(photos / name, format="JPEG")
     assert_refused(*recon("run", photos, "--out", tmp_path / "s", *QUICK), "a.jpeg and a.jpg")
 
 
