@@ -18,6 +18,8 @@ HEIF_SUFFIXES = {".heic", ".heif"}
 """iPhones save HEIC by default; pillow-heif decodes it (upright, HDR to 8 bit), no other tool recon hands
 photos to (COLMAP, nerfstudio) reads it, so a copy for them is re-encoded."""
 IMAGE_SUFFIXES = {".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".webp"} | HEIF_SUFFIXES
+READABLE_FORMATS = "JPEG, PNG, TIFF, HEIC, WebP or BMP"
+"""IMAGE_SUFFIXES as the messages name them."""
 MIN_SIDE = 32
 MAX_PIXELS = 400_000_000
 """Refuse decompression bombs; huge photos below this are downscaled on read."""

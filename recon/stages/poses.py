@@ -7,13 +7,14 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
+from collections import Counter
 from pathlib import Path
 
 import numpy as np
 
 from recon.atomic import sha256_file
 from recon.capture.colmap import find_colmap_model
-from recon.capture.images import camera_exif, list_photos, oriented_size, read_image, save_image
+from recon.capture.images import READABLE_FORMATS, camera_exif, list_photos, oriented_size, read_image, save_image
 from recon.capture.scene import (
     Scene,
     check_cameras,
@@ -61,16 +62,17 @@ def no_photos(source: Path, skipped: list[Path]) -> InputError:
         why = (f" Its subfolders {', '.join(d.name + '/' for d in nested[:5])} hold photos: recon reads one folder, not "
                f"its subfolders, so pass one of them (e.g. {nested[0]}) or move the photos up.")
     else:
-        why = " Put the photos (JPEG, PNG, TIFF or HEIC) directly in that folder and run again."
+        why = f" Put the photos ({READABLE_FORMATS}) directly in that folder and run again."
     return InputError(f"No photos found in {source}.{why}")
 
 
 def drop_copies(photos: list[Path]) -> tuple[list[Path], dict[Path, Path]]:
     """The photos (in their order) without byte-identical copies (a photo copied twice into the folder: 'IMG_1 (1).jpg',
     'IMG_1 copy.jpg'), and each copy left out with the photo kept for it: the shortest name, the original's."""
+    sizes = Counter(path.stat().st_size for path in photos)
     by_digest: dict[str, list[Path]] = {}
-    for path in photos:
-        by_digest.setdefault(sha256_file(path), []).append(path)
+    for path in photos:  # only a photo whose size another shares is read: source_digest read them all already
+        by_digest.setdefault(sha256_file(path) if sizes[path.stat().st_size] > 1 else str(path), []).append(path)
     original = {p: min(same, key=lambda q: (len(q.name), q.name)) for same in by_digest.values() for p in same}
     return [p for p in photos if original[p] == p], {p: o for p, o in original.items() if o != p}
 
@@ -225,7 +227,7 @@ def _structure_from_motion(ctx: StageContext, photos: list[Path] | None = None) 
     if photos is None:
         photos, skipped = list_photos(ctx.source)
         for path in skipped:
-            ctx.report.warn(f"Skipping {path.name}: not an image file recon reads (JPEG, PNG, TIFF, HEIC, WebP, BMP).")
+            ctx.report.warn(f"Skipping {path.name}: not an image file recon reads ({READABLE_FORMATS}).")
         photos, copies = drop_copies(photos)
         for copy, original in copies.items():
             ctx.report.warn(f"Skipping {copy.name}: the same file as {original.name} (a copy adds no view; it would "
