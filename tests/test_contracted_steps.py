@@ -6,7 +6,7 @@ import math
 import pytest
 import torch
 
-from recon.nerf.contraction import contract, contracted_intervals
+from recon.nerf.contraction import contract, contracted_distance, contracted_intervals
 from recon.nerf.fast import FastConfig, FastModel
 from recon.nerf.occupancy import march
 
@@ -78,3 +78,41 @@ def test_unbounded_fast_model_marches_contracted_steps_by_default():
     ts, te, ri = march(o, d, tn, tf, None, 0.05, 256, contracted=True)
     ts2, te2, ri2 = contracted_intervals(o, d, tn, tf, 0.05, 256, jitter=False)
     assert torch.equal(ri, ri2) and torch.equal(ts, ts2)
+
+
+def test_contracted_distance_is_the_integral_of_one_over_rho_squared_and_each_contracted_step_spans_one_step():
+    torch.manual_seed(0)
+    n = 16
+    o = torch.randn(n, 3) * 1.5  # some rays start inside the unit box, some outside
+    d = torch.nn.functional.normalize(torch.randn(n, 3), dim=-1)
+    t_near, t_far = torch.zeros(n), torch.full((n,), 1e4)
+    u = torch.linspace(0, 1, 100_001, dtype=torch.float64) ** 4
+    for r in range(4):  # against the trapezoid rule on a fine grid of the ray
+        t = t_far[r].double() * u
+        rho = (o[r].double() + t[:, None] * d[r].double()).abs().amax(-1).clamp_min(1.0)
+        integral = torch.cat([torch.zeros(1, dtype=torch.float64),
+                              torch.cumsum(0.5 * (rho[1:] ** -2 + rho[:-1] ** -2) * (t[1:] - t[:-1]), 0)])
+        s = contracted_distance(o, d, t_near, t_far, t.float(), torch.full_like(t, r, dtype=torch.long))
+        assert torch.allclose(s.double(), integral, atol=1e-5)
+        assert 0.5 < float(s[-1]) < 4.0  # the far field adds at most a few box widths, however far it runs
+    step = 0.01
+    ts, te, ri = contracted_intervals(o, d, t_near, t_far, step, 100_000, jitter=False)
+    ds = contracted_distance(o, d, t_near, t_far, te, ri) - contracted_distance(o, d, t_near, t_far, ts, ri)
+    first = torch.ones_like(ri, dtype=torch.bool)
+    first[1:] = ri[1:] != ri[:-1]
+    last = torch.ones_like(first)
+    last[:-1] = first[1:]
+    inner = ~(first | last)  # a ray's last interval is cut at t_far
+    assert torch.allclose(ds[inner], torch.full_like(ds[inner], step), rtol=1e-3)
+
+
+def test_unbounded_distortion_loss_does_not_grow_with_how_far_the_rays_run():
+    """Measured in world distance, the loss of a field's weight spread to the far field grows with far; in
+    contracted distance it stays the size of an object's."""
+    torch.manual_seed(0)
+    model = FastModel(FastConfig(unbounded=True, density_res=32, feature_res=16, occupancy_res=16,
+                                 distortion_weight=1.0))
+    o, d, tn, _ = _rays()
+    regs = [float(model.render_rays(o, d, tn, torch.full_like(tn, far), training=True)["reg"].detach())
+            for far in (1e2, 1e5)]
+    assert all(0.0 < r < 2.0 for r in regs) and regs[1] < 1.5 * regs[0]

@@ -120,7 +120,7 @@ def test_a_masked_fast_plan_trains_as_empty_space_the_transparent_pixels_the_pho
     assert classic.empty is None and "(the classic model)" in " ".join(classic.reasons)
 
 
-def test_distortion_loss_is_kept_for_an_object_and_off_for_an_unbounded_capture_with_its_reason() -> None:
+def test_distortion_loss_is_kept_for_objects_and_unbounded_captures_with_its_reason() -> None:
     from recon.nerf.model_config import FastConfig
     from recon.plans.training import auto_fast_config
 
@@ -129,6 +129,8 @@ def test_distortion_loss_is_kept_for_an_object_and_off_for_an_unbounded_capture_
     obj, why_obj = auto_fast_config(base, Scene(frames=[], aabb=box, capture="object"), footprint=0.01)
     far, why_far = auto_fast_config(base, Scene(frames=[], aabb=box, capture="unbounded"), footprint=0.01)
     assert obj.distortion_weight == 0.03 and any(r.startswith("distortion loss 0.03") for r in why_obj)
-    assert far.distortion_weight == 0.0 and any(r.startswith("distortion loss off") for r in why_far)
+    assert far.distortion_weight == 0.03 and any(r.startswith("distortion loss 0.03") and "contracted distance" in r
+                                                 for r in why_far)
+    assert not any("contracted distance" in r for r in why_obj)
     plain, why_plain = auto_fast_config(FastConfig(), Scene(frames=[], aabb=box, capture="object"), footprint=0.01)
     assert plain.distortion_weight == 0.0 and not any("distortion" in r for r in why_plain)

@@ -42,7 +42,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from recon.nerf.contraction import contract
+from recon.nerf.contraction import contract, contracted_distance
 from recon.nerf.grid import DenseGrid, HashGrid, MultiDenseGrid, VMGrid, resample_dense
 from recon.nerf.kernels import accumulate_packed_triton, composite_packed_triton, march_dense_triton, use_triton
 from recon.nerf.model_config import FastConfig, GridKind
@@ -411,6 +411,10 @@ class FastModel(RadianceModel):
                 rgb = accumulate_packed(w_c, rgb_s, ri_c, n) + remainder[:, None] * bg
         out: dict[str, Any] = {"rgb": rgb, "depth": depth, "opacity": opacity, "background": bg,
                                "num_samples": int(ri.shape[0]), "density_evals": evaluated[0]}
+        if cfg.unbounded and cfg.distortion_weight > 0 and training:  # the distortion loss in contracted distance
+            s_start = contracted_distance(rays_o, rays_d, t_near, t_far, ts, ri)
+            s_end = contracted_distance(rays_o, rays_d, t_near, t_far, te, ri)
+            mid, delta = 0.5 * (s_start + s_end), s_end - s_start
         reg = self._regularizers(weights, mid, delta, ri, n, opacity)
         if reg is not None:
             out["reg"] = reg

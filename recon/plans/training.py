@@ -276,16 +276,11 @@ def auto_fast_config(base: Any, scene: Scene, footprint: float) -> tuple[Any, li
     else:
         reasons.append(f"grids {density_res}³ density / {feature_res}³ features (the preset's cap; pixels would allow {needed}³)")
     distortion = base.distortion_weight
-    if distortion > 0 and unbounded:
-        distortion = 0.0
-        reasons.append(
-            f"distortion loss off (the preset's {base.distortion_weight:g}): it is measured in ray distance, which in an "
-            "unbounded capture runs out to the contracted far field, where it would outweigh the photos"
-        )
-    elif distortion > 0:
+    if distortion > 0:
         reasons.append(
             f"distortion loss {distortion:g} (mip-NeRF 360, train.fast.distortion_weight): draws each ray's weight into "
-            "one interval, so no fog or floaters stand in front of the object's surface, and fewer samples a ray"
+            "one interval, so no fog or floaters stand in front of the surface, and fewer samples a ray"
+            + ("; measured in contracted distance, so the far field weighs no more than the object" if unbounded else "")
         )
     cfg = replace(base, aabb=tuple(tuple(float(x) for x in row) for row in aabb), unbounded=unbounded,
                   density_res=density_res, feature_res=feature_res, distortion_weight=distortion)
