@@ -136,11 +136,18 @@ def contracted_distance(
     with torch.no_grad():
         b = _norm_breaks(rays_o, rays_d, t_near, t_far)  # (N, K) float64
         o, d = rays_o.double(), rays_d.double()
+        n, k = b.shape
         rho = inf_norm(o[:, None, :] + b[..., None] * d[:, None, :]).squeeze(-1).clamp_min(1.0)
         pieces = (b[:, 1:] - b[:, :-1]) / (rho[:, :-1] * rho[:, 1:])
         cum = torch.cat([torch.zeros_like(b[:, :1]), torch.cumsum(pieces, dim=1)], dim=1)
         t64 = torch.minimum(torch.maximum(t.double(), b[ray_indices, 0]), b[ray_indices, -1])
-        j = (b[ray_indices, 1:-1] <= t64[:, None]).sum(dim=1, keepdim=True)  # the piece t lies in
-        ta, ra, ca = (x[ray_indices].gather(1, j).squeeze(1) for x in (b, rho, cum))
-        rt = inf_norm(o[ray_indices] + t64[:, None] * d[ray_indices]).squeeze(-1).clamp_min(1.0)
+        # the piece t lies in: one search over all rays' breaks, each ray's mapped into [r, r + 1) by t / (1 + t)
+        # (distances are >= 0; float64 tells breaks apart to ~1e-12 (1 + t)^2, and a piece's start is what matters)
+        rows = torch.arange(n, device=b.device, dtype=torch.float64)
+        key = (rows[:, None] + b / (1.0 + b)).reshape(-1)
+        j = torch.searchsorted(key, ray_indices.double() + t64 / (1.0 + t64), right=True) - 1
+        j = torch.minimum(torch.maximum(j, ray_indices * k), ray_indices * k + k - 2)
+        b, rho = b.reshape(-1), rho.reshape(-1)
+        ta, tb, ra, rb, ca = b[j], b[j + 1], rho[j], rho[j + 1], cum.reshape(-1)[j]
+        rt = ra + (rb - ra) * ((t64 - ta) / (tb - ta).clamp_min(1e-300))  # rho is linear within the piece
         return (ca + (t64 - ta) / (ra * rt)).to(t.dtype)

@@ -412,8 +412,8 @@ class FastModel(RadianceModel):
         out: dict[str, Any] = {"rgb": rgb, "depth": depth, "opacity": opacity, "background": bg,
                                "num_samples": int(ri.shape[0]), "density_evals": evaluated[0]}
         if cfg.unbounded and cfg.distortion_weight > 0 and training:  # the distortion loss in contracted distance
-            s_start = contracted_distance(rays_o, rays_d, t_near, t_far, ts, ri)
-            s_end = contracted_distance(rays_o, rays_d, t_near, t_far, te, ri)
+            s_start, s_end = contracted_distance(rays_o, rays_d, t_near, t_far, torch.cat([ts, te]),
+                                                 torch.cat([ri, ri])).chunk(2)
             mid, delta = 0.5 * (s_start + s_end), s_end - s_start
         reg = self._regularizers(weights, mid, delta, ri, n, opacity)
         if reg is not None:
