@@ -37,3 +37,18 @@ def test_bench_without_ground_truth_has_no_accuracy_plot(tmp_path: Path) -> None
     write_results([row], tmp_path, "lego-half")
     assert not (tmp_path / "bench_accuracy.png").exists()
     assert "F-score" not in (tmp_path / "bench.md").read_text()
+
+
+def test_bench_table_says_how_many_pieces_the_mesh_is_in_when_the_rows_know(tmp_path: Path) -> None:
+    whole = {**_row("fast", "fast", 240.0, 0.9, 0.8, 0.9), "mesh_pieces": 3, "mesh_largest_piece_area": 0.981}
+    unmeshed = _row("balanced", "fast", 600.0, 0.9, 0.8, 0.9)
+    write_results([whole, unmeshed], tmp_path, "fox")
+    table = (tmp_path / "bench.md").read_text().splitlines()
+    header = [c.strip() for c in next(line for line in table if line.startswith("| preset")).strip("|").split("|")]
+    fast = [c.strip() for c in next(line for line in table if line.startswith("| fast |")).strip("|").split("|")]
+    balanced = [c.strip() for c in next(line for line in table if line.startswith("| balanced |")).strip("|").split("|")]
+    assert len(fast) == len(header) == len(balanced)
+    assert fast[header.index("mesh pieces")] == "3" and fast[header.index("largest piece's area")] == "98.1%"
+    assert balanced[header.index("mesh pieces")] == "—"
+    write_results([unmeshed], tmp_path, "fox")
+    assert "mesh pieces" not in (tmp_path / "bench.md").read_text()

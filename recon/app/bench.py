@@ -180,6 +180,14 @@ def run_bench(
             "rays_per_s": metrics["rays_per_s"],
             "evals": metrics["evals"],
         }
+        report_path = scene / "04_mesh" / "mesh_report.json"
+        if until == "mesh" and report_path.is_file():  # how whole the mesh is, with or without a true surface
+            coherence = json.loads(report_path.read_text()).get("coherence", {})
+            pieces, projected = coherence.get("largest_piece", {}), coherence.get("projected", {})
+            row["mesh_pieces"] = pieces.get("pieces")
+            row["mesh_largest_piece_area"] = _rounded(pieces.get("largest_area_fraction"))
+            row["mesh_coverage"] = _rounded(projected.get("coverage"))
+            row["mesh_points_missing"] = _rounded(coherence.get("points", {}).get("missing"))
         if until == "mesh" and gt is not None:
             from recon.evaluation.mesh_eval import compare_to_gt
 
@@ -203,17 +211,24 @@ def run_bench(
     return rows
 
 
+def _rounded(value: float | None) -> float | None:
+    return None if value is None else round(float(value), 4)
+
+
 def write_results(rows: list[dict[str, Any]], out_dir: Path, data: str) -> None:
     from recon.plots import accuracy_plot, tradeoff_plot
 
     write_json_atomic(out_dir / "bench.json", rows)
     has_mesh = any("fscore_1pct" in r for r in rows)
+    has_pieces = any(r.get("mesh_pieces") is not None for r in rows)
     lines = [
         f"# recon bench — {data}",
         "",
         "| preset | model | steps | train time | wall (train+mesh) | test PSNR | SSIM | views | rays/s |"
-        + (" F-score@1% | Chamfer-L1 / diag | F-score@0.5% | normal agreement |" if has_mesh else ""),
-        "|---|---|---|---|---|---|---|---|---|" + ("---|---|---|---|" if has_mesh else ""),
+        + (" F-score@1% | Chamfer-L1 / diag | F-score@0.5% | normal agreement |" if has_mesh else "")
+        + (" mesh pieces | largest piece's area |" if has_pieces else ""),
+        "|---|---|---|---|---|---|---|---|---|" + ("---|---|---|---|" if has_mesh else "")
+        + ("---|---|" if has_pieces else ""),
     ]
     for r in rows:
         line = (
@@ -227,6 +242,10 @@ def write_results(rows: list[dict[str, Any]], out_dir: Path, data: str) -> None:
             f05, nc = r.get("fscore_05pct"), r.get("normal_consistency")
             line += f" {f05:.3f} |" if f05 is not None else " — |"
             line += f" {nc:.3f} |" if nc is not None else " — |"
+        if has_pieces:
+            pieces, largest = r.get("mesh_pieces"), r.get("mesh_largest_piece_area")
+            line += f" {pieces} |" if pieces is not None else " — |"
+            line += f" {largest:.1%} |" if largest is not None else " — |"
         lines.append(line)
     lines += ["", *provenance_lines(rows), "", "![PSNR vs time](bench.png)", ""]
     if has_mesh:  # one point per preset: the mesh's accuracy against its training time
