@@ -111,7 +111,7 @@ def test_unbounded_distortion_loss_does_not_grow_with_how_far_the_rays_run():
     contracted distance it stays the size of an object's."""
     torch.manual_seed(0)
     model = FastModel(FastConfig(unbounded=True, density_res=32, feature_res=16, occupancy_res=16,
-                                 distortion_weight=1.0))
+                                 unbounded_distortion_weight=1.0))
     o, d, tn, _ = _rays()
     regs = [float(model.render_rays(o, d, tn, torch.full_like(tn, far), training=True)["reg"].detach())
             for far in (1e2, 1e5)]

@@ -120,7 +120,8 @@ def test_a_masked_fast_plan_trains_as_empty_space_the_transparent_pixels_the_pho
     assert classic.empty is None and "(the classic model)" in " ".join(classic.reasons)
 
 
-def test_distortion_loss_is_kept_for_objects_and_unbounded_captures_with_its_reason() -> None:
+def test_distortion_loss_has_a_weight_for_objects_and_one_for_unbounded_captures_and_says_which() -> None:
+    from recon.nerf.fast import FastModel
     from recon.nerf.model_config import FastConfig
     from recon.plans.training import auto_fast_config
 
@@ -128,9 +129,16 @@ def test_distortion_loss_is_kept_for_objects_and_unbounded_captures_with_its_rea
     box = np.array([[-1.0] * 3, [1.0] * 3])
     obj, why_obj = auto_fast_config(base, Scene(frames=[], aabb=box, capture="object"), footprint=0.01)
     far, why_far = auto_fast_config(base, Scene(frames=[], aabb=box, capture="unbounded"), footprint=0.01)
-    assert obj.distortion_weight == 0.03 and any(r.startswith("distortion loss 0.03") for r in why_obj)
-    assert far.distortion_weight == 0.03 and any(r.startswith("distortion loss 0.03") and "contracted distance" in r
-                                                 for r in why_far)
+    assert any(r.startswith("distortion loss 0.03 (mip-NeRF 360, train.fast.distortion_weight)") for r in why_obj)
+    assert any(r.startswith("no distortion loss (an object's: 0.03)") for r in why_far)
+    small = dict(density_res=32, feature_res=16, occupancy_res=16)
+    assert FastModel(replace(obj, **small)).distortion_weight == 0.03
+    assert FastModel(replace(far, **small)).distortion_weight == 0.0
+    on, why_on = auto_fast_config(replace(base, unbounded_distortion_weight=0.01),
+                                  Scene(frames=[], aabb=box, capture="unbounded"), footprint=0.01)
+    assert FastModel(replace(on, **small)).distortion_weight == 0.01
+    assert any(r.startswith("distortion loss 0.01 (mip-NeRF 360, train.fast.unbounded_distortion_weight)")
+               and "contracted distance" in r for r in why_on)
     assert not any("contracted distance" in r for r in why_obj)
     plain, why_plain = auto_fast_config(FastConfig(), Scene(frames=[], aabb=box, capture="object"), footprint=0.01)
-    assert plain.distortion_weight == 0.0 and not any("distortion" in r for r in why_plain)
+    assert not any("distortion" in r for r in why_plain)

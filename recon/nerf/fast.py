@@ -241,6 +241,7 @@ class FastModel(RadianceModel):
         self.sky = SkyColor() if cfg.background == "sky" else None
 
         self.occupancy_alpha = cfg.unbounded_occupancy_alpha if cfg.unbounded else cfg.occupancy_alpha
+        self.distortion_weight = cfg.unbounded_distortion_weight if cfg.unbounded else cfg.distortion_weight
         """The opacity per step from which occupancy keeps a vertex (a room's fog culled harder, see FastConfig)."""
         self.occupancy = OccupancyGrid(
             aabb,
@@ -411,7 +412,7 @@ class FastModel(RadianceModel):
                 rgb = accumulate_packed(w_c, rgb_s, ri_c, n) + remainder[:, None] * bg
         out: dict[str, Any] = {"rgb": rgb, "depth": depth, "opacity": opacity, "background": bg,
                                "num_samples": int(ri.shape[0]), "density_evals": evaluated[0]}
-        if cfg.unbounded and cfg.distortion_weight > 0 and training:  # the distortion loss in contracted distance
+        if cfg.unbounded and self.distortion_weight > 0 and training:  # the distortion loss in contracted distance
             s_start, s_end = contracted_distance(rays_o, rays_d, t_near, t_far, torch.cat([ts, te]),
                                                  torch.cat([ri, ri])).chunk(2)
             mid, delta = 0.5 * (s_start + s_end), s_end - s_start
@@ -457,8 +458,8 @@ class FastModel(RadianceModel):
         terms = []
         if cfg.tv_weight > 0:
             terms.append(cfg.tv_weight * (self.density_grid.tv_loss() + self.color_grid.tv_loss()))
-        if cfg.distortion_weight > 0:
-            terms.append(cfg.distortion_weight * distortion_loss_packed(weights, mid, delta, ri, n))
+        if self.distortion_weight > 0:
+            terms.append(self.distortion_weight * distortion_loss_packed(weights, mid, delta, ri, n))
         if cfg.entropy_weight > 0:
             o = opacity.clamp(1e-6, 1 - 1e-6)
             terms.append(cfg.entropy_weight * -(o * torch.log(o) + (1 - o) * torch.log(1 - o)).mean())

@@ -86,7 +86,9 @@ class FastConfig:
     tv_weight: float = 0.0
     """Weight of the total-variation loss on the grids (0 = off)."""
     distortion_weight: float = 0.0
-    """Weight of the mip-NeRF 360 distortion loss (0 = off)."""
+    """Weight of the mip-NeRF 360 distortion loss (0 = off) for an object capture, on ray distance."""
+    unbounded_distortion_weight: float = 0.0
+    """The same for an unbounded capture, on contracted distance (`recon.nerf.contraction.contracted_distance`)."""
     entropy_weight: float = 0.0
     """Weight of the binary entropy of ray opacity (pushes opacity to 0 or 1; 0 = off)."""
     background: Literal["white", "black", "learned", "random", "sky"] = "white"

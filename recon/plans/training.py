@@ -275,15 +275,21 @@ def auto_fast_config(base: Any, scene: Scene, footprint: float) -> tuple[Any, li
         )
     else:
         reasons.append(f"grids {density_res}³ density / {feature_res}³ features (the preset's cap; pixels would allow {needed}³)")
-    distortion = base.distortion_weight
+    distortion = base.unbounded_distortion_weight if unbounded else base.distortion_weight
     if distortion > 0:
+        key = "unbounded_distortion_weight" if unbounded else "distortion_weight"
         reasons.append(
-            f"distortion loss {distortion:g} (mip-NeRF 360, train.fast.distortion_weight): draws each ray's weight into "
-            "one interval, so no fog or floaters stand in front of the surface, and fewer samples a ray"
-            + ("; measured in contracted distance, so the far field weighs no more than the object" if unbounded else "")
+            f"distortion loss {distortion:g} (mip-NeRF 360, train.fast.{key}): draws each ray's weight into one "
+            "interval, so no fog or floaters stand in front of the surface, and fewer samples a ray"
+            + ("; on contracted distance, so the far field weighs no more than the object" if unbounded else "")
+        )
+    elif unbounded and base.distortion_weight > 0:
+        reasons.append(
+            f"no distortion loss (an object's: {base.distortion_weight:g}): in an unbounded capture it cost held-out "
+            "PSNR and the mesh's accuracy (docs/presets.md); train.fast.unbounded_distortion_weight turns it on"
         )
     cfg = replace(base, aabb=tuple(tuple(float(x) for x in row) for row in aabb), unbounded=unbounded,
-                  density_res=density_res, feature_res=feature_res, distortion_weight=distortion)
+                  density_res=density_res, feature_res=feature_res)
     return cfg, reasons
 
 
