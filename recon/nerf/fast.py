@@ -241,8 +241,9 @@ class FastModel(RadianceModel):
         self.sky = SkyColor() if cfg.background == "sky" else None
 
         self.occupancy_alpha = cfg.unbounded_occupancy_alpha if cfg.unbounded else cfg.occupancy_alpha
-        self.distortion_weight = cfg.unbounded_distortion_weight if cfg.unbounded else cfg.distortion_weight
         """The opacity per step from which occupancy keeps a vertex (a room's fog culled harder, see FastConfig)."""
+        self.distortion_weight = cfg.unbounded_distortion_weight if cfg.unbounded else cfg.distortion_weight
+        """The distortion loss's weight: an unbounded capture's is its own, on contracted distance."""
         self.occupancy = OccupancyGrid(
             aabb,
             resolution=cfg.occupancy_res,
