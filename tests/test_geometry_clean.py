@@ -108,18 +108,3 @@ def test_a_zero_area_face_marching_cubes_leaves_in_a_closed_mesh_keeps_it_closed
     assert len(mesh.faces) == 6 and mesh.is_watertight
     collapsed = _mesh(np.concatenate([v, v[:1]]), np.concatenate([faces, [[0, 5, 3]]]))  # vertex 5 merges into 0
     assert len(collapsed.faces) == 6 and collapsed.is_watertight  # the face merging collapsed is dropped
-
-
-def test_pieces_the_hidden_cut_leaves_behind_are_floaters_too():
-    """Faces no photo sees are cut away; a shred of them that one photo grazes is left cut off from the surface.
-    Here a band below a sphere's equator is unseen, which leaves a small cap (2.5% of the area) on its own."""
-    sphere = trimesh.creation.icosphere(subdivisions=4)
-    band = lambda v: (v[:, 2] > -0.95) & (v[:, 2] < -0.6)  # noqa: E731
-    seen = lambda v, n: ~band(np.asarray(v))  # noqa: E731
-    cut_only = trimesh.Trimesh(sphere.vertices, sphere.faces[~band(sphere.vertices)[sphere.faces].all(axis=1)],
-                               process=False)
-    assert len(component_areas(cut_only)[1]) == 2  # what the hidden cut alone leaves: the surface and the cap
-    v, f, report = clean_mesh(sphere.vertices, sphere.faces, np.array([[-2.0] * 3, [2.0] * 3]), seen_fn=seen)
-    out = trimesh.Trimesh(v, f, process=False)
-    assert len(component_areas(out)[1]) == 1 and out.vertices[:, 2].min() > -0.95
-    assert report["hidden"]["shreds_removed"] == 1 and 0.0 < report["hidden"]["shreds_area"] < 0.05 * out.area

@@ -151,8 +151,8 @@ def clean_mesh(
     ground_margin: float = 0.0,
     keep_fn: Callable[[np.ndarray], np.ndarray] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, dict]:
-    """Crop to the scene box, remove floaters and (with ``seen_fn``) hidden faces and the floaters their cut
-    leaves, optionally Taubin-smooth and decimate.
+    """Crop to the scene box, remove floaters and (with ``seen_fn``) hidden faces, optionally
+    Taubin-smooth and decimate.
 
     vertices: (V, 3) scene units; faces: (F, 3) vertex indices; aabb: (2, 3) scene box.
     Floater rule: a face-connected component is kept when its area is at least
@@ -182,9 +182,6 @@ def clean_mesh(
     report["floaters_removed"] = _counts(mesh)
     if seen_fn is not None and len(mesh.faces):
         mesh, report["hidden"] = remove_hidden_faces(mesh, seen_fn)
-        # the inner walls' edges that a photo grazes stay behind as shreds, cut off from the surface: floaters again
-        mesh, shreds = remove_small_components(mesh, min_component_fraction)
-        report["hidden"].update(shreds_removed=shreds["removed"], shreds_area=shreds.get("removed_area", 0.0))
         report["hidden_removed"] = _counts(mesh)
     if smooth_iters > 0 and len(mesh.faces):
         smoothing.filter_taubin(mesh, lamb=0.5, nu=0.53, iterations=smooth_iters)

@@ -208,11 +208,8 @@ def _say_cleaning(ctx: StageContext, clean: dict, plan: MeshPlan, n_views: int) 
         where = "on or below the ground plane" if kind == "ground" else "on or behind the wall"
         ctx.report.info(f"{kind}: {clean['ground_cut']['faces_removed']:,} faces {where} cut away")
     if "hidden" in clean:
-        hidden = clean["hidden"]
-        shreds = (f", then {hidden['shreds_removed']} pieces of them cut off from the surface"
-                  if hidden.get("shreds_removed") else "")
-        ctx.report.info(f"hidden faces: {hidden['removed_faces']:,} faces that no photo sees removed (inner walls "
-                        f"of the field; {n_views} views, depth tolerance {plan.hidden_tolerance:.3g} units){shreds}")
+        ctx.report.info(f"hidden faces: {clean['hidden']['removed_faces']:,} faces that no photo sees removed (inner walls "
+                        f"of the field; {n_views} views, depth tolerance {plan.hidden_tolerance:.3g} units)")
 
 
 def _start_unwrap(vertices: np.ndarray, faces: np.ndarray, target_faces: int, side: int) -> Future[UnwrappedMesh]:
