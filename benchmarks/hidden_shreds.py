@@ -39,10 +39,11 @@ def main() -> None:
     from recon.evaluation.mesh_eval import compare_to_gt
 
     shipped = clean.remove_hidden_faces
+    min_fraction = load_config().mesh.min_component_fraction
 
     def hidden_then_shreds(mesh: Any, seen_fn: Any) -> tuple[Any, dict]:
         mesh, report = shipped(mesh, seen_fn)
-        mesh, shreds = clean.remove_small_components(mesh, load_config().mesh.min_component_fraction)
+        mesh, shreds = clean.remove_small_components(mesh, min_fraction)
         return mesh, {**report, "shreds_removed": shreds["removed"], "shreds_area": shreds.get("removed_area", 0.0)}
 
     field = json.loads((args.scene / "03_field" / "metrics.json").read_text())
