@@ -161,3 +161,28 @@ def test_bench_dataset_is_the_photos_alone_with_the_truth_beside(tmp_path: Path,
     inode = listed[0].stat().st_ino
     tt.bench_dataset(photos.parent, verbose=False)  # cached: nothing rendered or linked again
     assert listed[0].stat().st_ino == inode
+
+
+def test_bench_dataset_at_a_seed_is_another_draw(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """`--data tabletop_realistic@SEED` renders the capture from that seed into its own cache folder: other cameras
+    than the default draw's; a seed that is not a whole number is refused naming the data set."""
+    import json
+
+    from recon.app.bench import resolve_dataset
+    from recon.errors import ReconError
+
+    monkeypatch.setattr(tt, "BENCH_CAPTURE", {"views": 3, "size": "64x48", "seed": 0, "supersample": 1, "mesh_res": 48})
+    monkeypatch.setitem(sys.modules, "_recon_fixture_gen_tabletop", tt)
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    default_photos, default_gt = resolve_dataset("tabletop_realistic")
+    photos, gt = resolve_dataset("tabletop_realistic@5")
+    assert photos == tmp_path / "recon" / "datasets" / "tabletop_realistic@5" / "photos"
+    assert len(list(photos.iterdir())) == 3
+
+    def centres(gt_mesh: Path) -> np.ndarray:
+        frames = json.loads((gt_mesh.parent / "transforms.json").read_text())["frames"]
+        return np.array([np.array(f["transform_matrix"])[:3, 3] for f in frames])
+
+    assert not np.allclose(centres(gt), centres(default_gt))
+    with pytest.raises(ReconError, match="tabletop_realistic@two"):
+        resolve_dataset("tabletop_realistic@two")

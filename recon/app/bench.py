@@ -35,7 +35,8 @@ DATASETS = {
     "fox": (SHARED / "fox" / "images", None),
 }
 GENERATED = {"tabletop_realistic": "gen_tabletop"}
-"""Data sets rendered on first use (then cached) by fixtures/<generator>.py's `bench_dataset`: photos without masks."""
+"""Data sets rendered on first use (then cached) by fixtures/<generator>.py's `bench_dataset`: photos without masks.
+``NAME@SEED`` renders the same capture from another seed (other camera path, textures, exposures and noise)."""
 
 
 def _generated_dataset(name: str) -> tuple[Path, Path]:
@@ -43,11 +44,15 @@ def _generated_dataset(name: str) -> tuple[Path, Path]:
     import importlib.util
     import sys
 
-    script = REPO / "fixtures" / f"{GENERATED[name]}.py"
+    base, _, seed = name.partition("@")
+    if seed and not seed.isdigit():
+        raise ReconError(f"Benchmark data '{name}': the part after '@' is the generator's seed, a whole number "
+                         f"(e.g. {base}@2).")
+    script = REPO / "fixtures" / f"{GENERATED[base]}.py"
     if not script.is_file():
         raise ReconError(f"Benchmark data '{name}' is rendered by {script}, which this installation lacks; "
                          f"run recon bench from a source checkout.")
-    module_name = f"_recon_fixture_{GENERATED[name]}"
+    module_name = f"_recon_fixture_{GENERATED[base]}"
     module = sys.modules.get(module_name)
     if module is None:
         spec = importlib.util.spec_from_file_location(module_name, script)
@@ -55,11 +60,11 @@ def _generated_dataset(name: str) -> tuple[Path, Path]:
         sys.modules[module_name] = module  # its dataclasses look their module up while it loads
         spec.loader.exec_module(module)
     cache = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "recon" / "datasets" / name
-    return module.bench_dataset(cache)
+    return module.bench_dataset(cache, **({"seed": int(seed)} if seed else {}))
 
 
 def resolve_dataset(name: str) -> tuple[Path, Path | None]:
-    if name in GENERATED:
+    if name.partition("@")[0] in GENERATED:
         return _generated_dataset(name)
     if name in DATASETS:
         source, gt = DATASETS[name]
