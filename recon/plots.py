@@ -118,6 +118,21 @@ def accuracy_plot(runs: Sequence[dict], path: Path, title: str = "mesh accuracy 
     plt.close(fig)
 
 
+def mesh_sheet(tiles: Sequence[tuple[str, Path]], path: Path, tile_inches: float = 3.5) -> None:
+    """Meshes side by side, each preview (a PNG) under its caption: which preset's mesh looks how, at a glance."""
+    from PIL import Image
+
+    plt = _pyplot()
+    fig, axes = plt.subplots(1, len(tiles), figsize=(tile_inches * len(tiles), tile_inches + 0.5), squeeze=False)
+    for ax, (caption, preview) in zip(axes[0], tiles, strict=True):
+        with Image.open(preview) as img:
+            ax.imshow(np.asarray(img.convert("RGB")))
+        ax.set_title(caption, fontsize=10)
+        ax.axis("off")
+    _save(fig, path)
+    plt.close(fig)
+
+
 def mask_overview(photos: Sequence[np.ndarray], masks: Sequence[np.ndarray], path: Path, columns: int = 4,
                   tile: int = 240) -> None:
     """A contact sheet of photos (float (H, W, 3) in [0, 1]) with what their masks ((H', W') bool or [0, 1], any size)

@@ -52,3 +52,24 @@ def test_bench_table_says_how_many_pieces_the_mesh_is_in_when_the_rows_know(tmp_
     assert balanced[header.index("mesh pieces")] == "—"
     write_results([unmeshed], tmp_path, "fox")
     assert "mesh pieces" not in (tmp_path / "bench.md").read_text()
+
+
+def test_bench_shows_each_meshed_presets_preview_side_by_side(tmp_path: Path) -> None:
+    """bench_meshes.png holds a tile per preset whose mesh stage left a preview, and bench.md shows it; without any
+    preview (`--until train`) there is no sheet."""
+    from PIL import Image
+
+    rows = [_row("fast", "fast", 240.0, 0.9, 0.8, 0.9), _row("surface", "surface", 600.0, 0.95, 0.9, 0.99)]
+    write_results(rows, tmp_path, "sample")
+    assert not (tmp_path / "bench_meshes.png").exists()
+    assert "bench_meshes.png" not in (tmp_path / "bench.md").read_text()
+    for name, colour in (("fast", (255, 0, 0)), ("surface", (0, 0, 255))):
+        (tmp_path / f"sample-{name}" / "04_mesh").mkdir(parents=True)
+        Image.new("RGB", (64, 64), colour).save(tmp_path / f"sample-{name}" / "04_mesh" / "preview_front.png")
+    write_results(rows, tmp_path, "sample")
+    sheet = read_image(tmp_path / "bench_meshes.png")
+    assert "bench_meshes.png" in (tmp_path / "bench.md").read_text()
+    red = (sheet[..., 0] > 0.9) & (sheet[..., 1] < 0.1) & (sheet[..., 2] < 0.1)
+    blue = (sheet[..., 2] > 0.9) & (sheet[..., 0] < 0.1) & (sheet[..., 1] < 0.1)
+    assert red.any() and blue.any()
+    assert np.nonzero(red)[1].mean() < np.nonzero(blue)[1].mean()  # in the rows' order, left to right

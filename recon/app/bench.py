@@ -139,7 +139,8 @@ def run_bench(
     report: Reporter,
     until: str = "mesh",
 ) -> list[dict[str, Any]]:
-    """Run every preset on `data`; write bench.md, bench.json and bench.png into `out_dir`."""
+    """Run every preset on `data`; write bench.md, bench.json, bench.png (and, with meshes, bench_accuracy.png
+    and bench_meshes.png) into `out_dir`."""
     from recon.stages import default_pipeline
 
     source, gt = resolve_dataset(data)
@@ -150,7 +151,7 @@ def run_bench(
     prepare_wall = time.perf_counter() - t0
     rows = []
     for preset in presets:
-        scene = out_dir / f"{Path(data).name}-{preset}"
+        scene = preset_scene(out_dir, data, preset)
         if not scene.exists():  # start from the shared poses/normalize
             shutil.copytree(base, scene, ignore=shutil.ignore_patterns(".lock", ".work"))
         config = load_config(preset, overrides)
@@ -216,12 +217,17 @@ def run_bench(
     return rows
 
 
+def preset_scene(out_dir: Path, data: str, preset: str) -> Path:
+    """The scene folder a benchmark makes for one preset."""
+    return out_dir / f"{Path(data).name}-{preset}"
+
+
 def _rounded(value: float | None) -> float | None:
     return None if value is None else round(float(value), 4)
 
 
 def write_results(rows: list[dict[str, Any]], out_dir: Path, data: str) -> None:
-    from recon.plots import accuracy_plot, tradeoff_plot
+    from recon.plots import accuracy_plot, mesh_sheet, tradeoff_plot
 
     write_json_atomic(out_dir / "bench.json", rows)
     has_mesh = any("fscore_1pct" in r for r in rows)
@@ -256,8 +262,24 @@ def write_results(rows: list[dict[str, Any]], out_dir: Path, data: str) -> None:
     if has_mesh:  # one point per preset: the mesh's accuracy against its training time
         lines += ["![mesh accuracy vs time](bench_accuracy.png)", ""]
         accuracy_plot(rows, out_dir / "bench_accuracy.png", title=f"mesh F-score vs training time — {data}")
+    meshes = [(_mesh_caption(r), preset_scene(out_dir, data, r["name"]) / "04_mesh" / "preview_front.png")
+              for r in rows]
+    meshes = [(caption, preview) for caption, preview in meshes if preview.is_file()]
+    if meshes:  # each preset's mesh from the same camera
+        lines += ["![each preset's mesh](bench_meshes.png)", ""]
+        mesh_sheet(meshes, out_dir / "bench_meshes.png")
     (out_dir / "bench.md").write_text("\n".join(lines))
     tradeoff_plot(rows, out_dir / "bench.png", title=f"held-out PSNR vs training time — {data}")
+
+
+def _mesh_caption(row: dict[str, Any]) -> str:
+    """A preset's name and training time, with its mesh's F-score and pieces where the row has them."""
+    details = []
+    if row.get("fscore_05pct") is not None:
+        details.append(f"F@0.5% {row['fscore_05pct']:.3f}")
+    if row.get("mesh_pieces") is not None:
+        details.append(f"{row['mesh_pieces']} piece{'' if row['mesh_pieces'] == 1 else 's'}")
+    return f"{row['name']}: {row['train_time_s'] / 60:.1f} min" + ("\n" + ", ".join(details) if details else "")
 
 
 def provenance_lines(rows: list[dict[str, Any]]) -> list[str]:
