@@ -54,16 +54,28 @@ COLUMNS: dict[str, list[str]] = {
     "unsized": ["train.device_sizing=off"],
     "rays16k": ["train.batch_rays=16384", "train.depth_rays=1024"],
     "rays8k": ["train.batch_rays=8192", "train.depth_rays=512"],
+    "nodist": ["train.fast.distortion_weight=0"],
+    "cpu-shuffle": [],
+    "no-warmup": [],
+    "reverted": ["train.fast.distortion_weight=0"],
 }
 """--columns: each column's overrides on top of the check's own. All but `default` compare something CUDA has:
 `torch-march` is the default run with the Triton marcher swapped for the torch one it replaced (the marcher's
-share of the step), `rays16k` and `rays8k` the sized preset with fewer rays a step (more steps in the budget)."""
+share of the step), `rays16k` and `rays8k` the sized preset with fewer rays a step (more steps in the budget).
+`nodist`, `cpu-shuffle`, `no-warmup` and `reverted` (all three) undo, one at a time, what changed on the CUDA path
+after the record at 223fc2c: the distortion loss, the epoch's shuffle drawn on the GPU, the warm-up render."""
 
 
 def column_label(column: str) -> str:
     """What a column changes, for the table's header."""
     if column == "torch-march":
         return "the torch marcher instead of the Triton one"
+    if column == "cpu-shuffle":
+        return "each epoch's shuffle drawn on the CPU"
+    if column == "no-warmup":
+        return "no warm-up render before training"
+    if column == "reverted":
+        return "train.fast.distortion_weight=0, the shuffle on the CPU, no warm-up"
     return ", ".join(COLUMNS[column]) or "as recon runs"
 
 
@@ -71,15 +83,25 @@ def column_label(column: str) -> str:
 def column_patches(column: str) -> Iterator[None]:
     """The check's one patch of recon, for the `torch-march` column: the fast model's Triton marcher declines (it
     returns None where it does not apply), so the model marches in torch as before it; nothing otherwise."""
-    from recon.nerf import fast
+    from recon.nerf import fast, fitting, trainer
 
-    saved = fast.march_dense_triton
+    saved = fast.march_dense_triton, fitting.RayBatcher._new_epoch, trainer.warm_up
     if column == "torch-march":
         fast.march_dense_triton = lambda *args, **kwargs: None
+    if column in ("cpu-shuffle", "reverted"):
+        def cpu_epoch(self: Any) -> None:
+            if self._perm_gen.device.type != "cpu":
+                self._perm_gen = torch.Generator().manual_seed(self.seed)
+            self._epoch_gen_state = self._perm_gen.get_state()
+            self._perm = torch.randperm(self.n_rays, generator=self._perm_gen).to(self.device)
+            self._cursor = 0
+        fitting.RayBatcher._new_epoch = cpu_epoch
+    if column in ("no-warmup", "reverted"):
+        trainer.warm_up = lambda *args, **kwargs: 0.0
     try:
         yield
     finally:
-        fast.march_dense_triton = saved
+        fast.march_dense_triton, fitting.RayBatcher._new_epoch, trainer.warm_up = saved
 
 
 def not_nerf_synthetic(data: Path) -> str | None:
