@@ -318,10 +318,6 @@ GPU_TIERS: tuple[tuple[float, int, float, int], ...] = (
 """(at least this many GiB of GPU memory, rays per step ×, grid resolution ×, step cap ×) for the grid models.
 A preset's 4,096 rays a step leave a GPU launch-bound (an H200 ran the fast preset at 26 ms a step, 157k rays/s):
 more rays per step cost little more time per step; finer grids cost memory, which a large card has."""
-GPU_DISTORTION_WHY = ("; the distortion loss, which keeps fog off the few steps a CPU takes, cost held-out PSNR over "
-                      "the steps a GPU takes (benchmarks/results/gpu_check.json: the nodist column)")
-"""Why the sized grid models train without the distortion loss (train.fast.distortion_weight): at the GPU's many steps
-its pull of each ray's weight into one interval costs more detail than the fog it keeps away."""
 GPU_GRID_MEMORY_FRACTION = 0.25
 """The sized grids' training memory (parameters, gradients, Adam moments) stays below this share of the GPU's."""
 
@@ -338,8 +334,7 @@ def device_sizing(config: RunConfig, memory_bytes: int, name: str,
     Only the grid models (fast, surface) are sized: the classic preset's values are already the paper's GPU
     values. Rays per step (and depth rays) and grid resolutions grow with the card's memory (`GPU_TIERS`); with a
     time budget the step cap, evaluation and checkpoint periods grow too, so the same minutes run the steps the
-    card can take. The fast model trains without the distortion loss there (`GPU_DISTORTION_WHY`). Keys in `keep` (the
-    user's --set) are left as they are."""
+    card can take. Keys in `keep` (the user's --set) are left as they are."""
     train = config.train
     tier = next((t for t in GPU_TIERS if memory_bytes >= t[0] * 2**30), None)
     if train.model not in ("auto", "fast", "surface") or tier is None:
@@ -376,16 +371,11 @@ def device_sizing(config: RunConfig, memory_bytes: int, name: str,
     if grid_bytes > GPU_GRID_MEMORY_FRACTION * memory_bytes:  # the card cannot hold finer grids: keep the preset's
         sized.train.fast, sized.train.surface = train.fast, train.surface
         changes = before
-    distortion = train.fast.distortion_weight
-    if train.model != "surface" and distortion > 0 and "train.fast.distortion_weight" not in keep:
-        sized.train.fast.distortion_weight = 0.0
-        changes.append(f"train.fast.distortion_weight={distortion:g}→0")
     if not changes:
         return config, ""
     return sized, (f"GPU sizing ({name}, {memory_bytes / 2**30:.0f} GiB; train.device_sizing=off keeps the preset's "
                    f"CPU-sized values): {', '.join(changes)} — 4,096 rays a step leave a GPU waiting on kernel "
-                   f"launches, and the same minutes buy more steps there"
-                   + (GPU_DISTORTION_WHY if sized.train.fast.distortion_weight != distortion else ""))
+                   f"launches, and the same minutes buy more steps there")
 
 
 def _apply_overrides(config: RunConfig, overrides: list[str] | None) -> None:
