@@ -66,23 +66,26 @@ share of the step), `rays16k` and `rays8k` the sized preset with fewer rays a st
 after the record at 223fc2c: the distortion loss, the epoch's shuffle drawn on the GPU, the warm-up render."""
 
 
+PATCHED_LABELS = {
+    "torch-march": "the torch marcher instead of the Triton one",
+    "cpu-shuffle": "each epoch's shuffle drawn on the CPU",
+    "no-warmup": "no warm-up render before training",
+    "reverted": "train.fast.distortion_weight=0, the shuffle on the CPU, no warm-up",
+}
+"""What the columns that patch recon (`column_patches`) change, in words: their overrides alone do not say it."""
+
+
 def column_label(column: str) -> str:
     """What a column changes, for the table's header."""
-    if column == "torch-march":
-        return "the torch marcher instead of the Triton one"
-    if column == "cpu-shuffle":
-        return "each epoch's shuffle drawn on the CPU"
-    if column == "no-warmup":
-        return "no warm-up render before training"
-    if column == "reverted":
-        return "train.fast.distortion_weight=0, the shuffle on the CPU, no warm-up"
-    return ", ".join(COLUMNS[column]) or "as recon runs"
+    return PATCHED_LABELS.get(column) or ", ".join(COLUMNS[column]) or "as recon runs"
 
 
 @contextlib.contextmanager
 def column_patches(column: str) -> Iterator[None]:
-    """The check's one patch of recon, for the `torch-march` column: the fast model's Triton marcher declines (it
-    returns None where it does not apply), so the model marches in torch as before it; nothing otherwise."""
+    """The check's patches of recon for a column, undone after it: `torch-march` makes the fast model's Triton
+    marcher decline (it returns None where it does not apply), so the model marches in torch as before it;
+    `cpu-shuffle` draws each epoch's shuffle on the CPU (the batcher's code before 33677a6); `no-warmup` skips the
+    train stage's warm-up render; `reverted` does the last two. Other columns run recon as it is."""
     from recon.nerf import fast, fitting, trainer
 
     saved = fast.march_dense_triton, fitting.RayBatcher._new_epoch, trainer.warm_up
