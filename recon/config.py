@@ -515,6 +515,7 @@ BOUNDS: dict[str, Bound] = {
     "train.fast.init_alpha": Bound(0, 1, low_open=True, high_open=True),
     "train.fast.tv_weight": WEIGHT,
     "train.fast.distortion_weight": WEIGHT,
+    "train.fast.distortion_from": _fraction(),
     "train.fast.unbounded_distortion_weight": WEIGHT,
     "train.fast.entropy_weight": WEIGHT,
     "train.fast.grid_lr_scale": LR_SCALE,

@@ -138,6 +138,24 @@ def test_param_groups_cover_all_parameters_once() -> None:
     assert groups[0]["lr"] == pytest.approx(1e-2 * model.config.grid_lr_scale)
 
 
+def test_the_distortion_loss_starts_once_its_share_of_training_is_done() -> None:
+    model = FastModel(FastConfig(distortion_weight=0.03, distortion_from=0.25, entropy_weight=0.0, tv_weight=0.0,
+                                 **TINY))
+    weights = []
+    for progress in (0.0, 0.24, 0.25, 1.0):
+        model.set_progress(progress)
+        weights.append(model.distortion_weight_now())
+    assert weights == [0.0, 0.0, 0.03, 0.03]
+    held = FastModel(FastConfig(distortion_weight=0.03, **TINY))
+    held.set_progress(0.0)
+    assert held.distortion_weight_now() == 0.03
+    o, d, near, far = _rays(64)
+    model.set_progress(0.1)  # not yet: no distortion term in the training loss
+    assert "reg" not in model.render_rays(o, d, near, far, training=True, background=torch.ones(3))
+    model.set_progress(0.5)
+    assert float(model.render_rays(o, d, near, far, training=True, background=torch.ones(3))["reg"]) > 0
+
+
 def test_a_few_steps_reduce_the_loss_on_a_synthetic_target() -> None:
     """Target: rays through a red ball of radius 0.5 are red, others white (over a white background)."""
     torch.manual_seed(0)

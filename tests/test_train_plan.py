@@ -142,3 +142,8 @@ def test_distortion_loss_has_a_weight_for_objects_and_one_for_unbounded_captures
     assert not any("contracted distance" in r for r in why_obj)
     plain, why_plain = auto_fast_config(FastConfig(), Scene(frames=[], aabb=box, capture="object"), footprint=0.01)
     assert not any("distortion" in r for r in why_plain)
+    assert not any("distortion_from" in r for r in why_obj)
+    _, why_late = auto_fast_config(replace(base, distortion_from=0.3), Scene(frames=[], aabb=box, capture="object"),
+                                   footprint=0.01)
+    assert any(r.startswith("distortion loss 0.03") and "from 30% of training on (train.fast.distortion_from)" in r
+               for r in why_late)

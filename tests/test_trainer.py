@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from recon.nerf.evaluate import render_image
-from recon.nerf.fitting import RayBatcher, lr_at
+from recon.nerf.fitting import RayBatcher, lr_at, training_done
 from recon.nerf.trainer import TrainingDiverged, train, warm_up
 from tests.ball_scene import AABB, COLOR
 from tests.ball_scene import ball_views as _scene
@@ -63,6 +63,19 @@ def test_lr_decay_is_exponential() -> None:
     assert lr_at(50, 100, 1e-2, 1e-4) == pytest.approx(1e-3)
     assert lr_at(100, 100, 1e-2, 1e-4) == pytest.approx(1e-4)
     assert lr_at(7, 100, 1e-2, None) == 1e-2
+
+
+def test_the_model_hears_the_share_of_training_done_before_each_step() -> None:
+    """Steps decide it without a budget; a budget's spent share decides it when larger (as for the rate)."""
+    assert training_done(3, 4) == 0.75 and training_done(1, 4, 0.6) == 0.6 and training_done(3, 4, 0.2) == 0.75
+    assert training_done(9, 4, 1.3) == 1.0 and training_done(0, 0) == 0.0
+    images, c2w, intr = _scene()
+    model = _tiny_model()
+    heard: list[float] = []
+    set_progress = model.set_progress
+    model.set_progress = lambda p: heard.append(p) or set_progress(p)  # type: ignore[method-assign]
+    train(model, RayBatcher(images, c2w, intr, aabb=AABB, seed=0), steps=4, lr=1e-2, batch_rays=32)
+    assert heard == [0.0, 0.25, 0.5, 0.75] and model.progress == 0.75
 
 
 def test_training_learns_the_ball() -> None:

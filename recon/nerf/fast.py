@@ -413,7 +413,7 @@ class FastModel(RadianceModel):
                 rgb = accumulate_packed(w_c, rgb_s, ri_c, n) + remainder[:, None] * bg
         out: dict[str, Any] = {"rgb": rgb, "depth": depth, "opacity": opacity, "background": bg,
                                "num_samples": int(ri.shape[0]), "density_evals": evaluated[0]}
-        if cfg.unbounded and self.distortion_weight > 0 and training:  # the distortion loss in contracted distance
+        if cfg.unbounded and training and self.distortion_weight_now() > 0:  # the distortion loss in contracted distance
             s_start, s_end = contracted_distance(rays_o, rays_d, t_near, t_far, torch.cat([ts, te]),
                                                  torch.cat([ri, ri])).chunk(2)
             mid, delta = 0.5 * (s_start + s_end), s_end - s_start
@@ -454,13 +454,18 @@ class FastModel(RadianceModel):
         return {"rgb": rgb, "depth": depth, "opacity": opacity, "background": bg, "num_samples": samples,
                 "density_evals": samples}
 
+    def distortion_weight_now(self) -> float:
+        """The distortion loss's weight at this point of training: 0 until ``distortion_from`` of it is done."""
+        return self.distortion_weight if getattr(self, "progress", 0.0) >= self.config.distortion_from else 0.0
+
     def _regularizers(self, weights: Tensor, mid: Tensor, delta: Tensor, ri: Tensor, n: int, opacity: Tensor) -> Tensor | None:
         cfg = self.config
         terms = []
         if cfg.tv_weight > 0:
             terms.append(cfg.tv_weight * (self.density_grid.tv_loss() + self.color_grid.tv_loss()))
-        if self.distortion_weight > 0:
-            terms.append(self.distortion_weight * distortion_loss_packed(weights, mid, delta, ri, n))
+        weight = self.distortion_weight_now()
+        if weight > 0:
+            terms.append(weight * distortion_loss_packed(weights, mid, delta, ri, n))
         if cfg.entropy_weight > 0:
             o = opacity.clamp(1e-6, 1 - 1e-6)
             terms.append(cfg.entropy_weight * -(o * torch.log(o) + (1 - o) * torch.log(1 - o)).mean())

@@ -205,7 +205,12 @@ def lr_at(step: int, steps: int, lr: float, lr_final: float | None, fraction: fl
     """
     if lr_final is None or steps <= 0:
         return lr
-    frac = min(step, steps) / steps
+    return lr * (lr_final / lr) ** training_done(step, steps, fraction)
+
+
+def training_done(step: int, steps: int, fraction: float | None = None) -> float:
+    """The share of training done, 0 to 1: ``step / steps``, or ``fraction`` (of a time budget spent) when larger."""
+    done = min(step, steps) / steps if steps > 0 else 0.0
     if fraction is not None:
-        frac = min(max(frac, fraction), 1.0)
-    return lr * (lr_final / lr) ** frac
+        done = max(done, fraction)
+    return min(max(done, 0.0), 1.0)

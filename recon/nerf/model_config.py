@@ -87,6 +87,10 @@ class FastConfig:
     """Weight of the total-variation loss on the grids (0 = off)."""
     distortion_weight: float = 0.0
     """Weight of the mip-NeRF 360 distortion loss (0 = off) for an object capture, on ray distance."""
+    distortion_from: float = 0.0
+    """The share of training (0 to 1) done before the distortion loss starts (0: from the first step). Early, the
+    loss draws each ray's weight into one interval before the field has found its finer parts, and at fine grids
+    they never come back; started later it still clears fog and floaters (docs/gpu.md)."""
     unbounded_distortion_weight: float = 0.0
     """The same for an unbounded capture, on contracted distance (`recon.nerf.contraction.contracted_distance`)."""
     entropy_weight: float = 0.0

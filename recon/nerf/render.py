@@ -372,6 +372,11 @@ class RadianceModel(nn.Module, abc.ABC):
         if isinstance(buffer, torch.Tensor):
             buffer.fill_(step)
 
+    def set_progress(self, progress: float) -> None:
+        """Record the share of training done (0 to 1: of the steps, or of the time budget when one sets the
+        schedule); the trainer calls it before each step, so a loss whose weight follows training can read it."""
+        self.progress = float(progress)
+
     def step_update(self, step: int) -> bool:
         """Per-step hook called by the trainer before each step (e.g. occupancy refresh); no-op here.
 

@@ -27,7 +27,7 @@ from torch import Tensor
 
 from recon.evaluation.metrics import mse_to_psnr
 
-from .fitting import RayBatcher, lr_at
+from .fitting import RayBatcher, lr_at, training_done
 from .pieces import StepInfo, TrainPiece, mixed_precision
 from .render import RadianceModel
 
@@ -199,6 +199,7 @@ class TrainStep:
         for g in opt.param_groups:
             g["lr"] = g["initial_lr"] * cur_lr / self.lr
         model.train()
+        model.set_progress(training_done(step, self.steps, fraction))
         if model.step_update(step):
             opt.state.clear()  # grids were re-sampled: old Adam moments point at other places
         at = StepInfo(step, self.steps, fraction, self.autocast)

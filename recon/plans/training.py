@@ -282,6 +282,8 @@ def auto_fast_config(base: Any, scene: Scene, footprint: float) -> tuple[Any, li
             f"distortion loss {distortion:g} (mip-NeRF 360, train.fast.{key}): draws each ray's weight into one "
             "interval, so no fog or floaters stand in front of the surface, and fewer samples a ray"
             + ("; on contracted distance, so the far field weighs no more than the object" if unbounded else "")
+            + (f"; from {base.distortion_from:.0%} of training on (train.fast.distortion_from), once the field has "
+               "found its finer parts" if base.distortion_from > 0 else "")
         )
     elif unbounded and base.distortion_weight > 0:
         reasons.append(
