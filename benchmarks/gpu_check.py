@@ -55,6 +55,7 @@ COLUMNS: dict[str, list[str]] = {
     "rays16k": ["train.batch_rays=16384", "train.depth_rays=1024"],
     "rays8k": ["train.batch_rays=8192", "train.depth_rays=512"],
     "nodist": ["train.fast.distortion_weight=0"],
+    "dist-from-start": ["train.fast.distortion_from=0"],
     "cpu-shuffle": [],
     "no-warmup": [],
     "reverted": ["train.fast.distortion_weight=0"],
@@ -63,7 +64,8 @@ COLUMNS: dict[str, list[str]] = {
 `torch-march` is the default run with the Triton marcher swapped for the torch one it replaced (the marcher's
 share of the step), `rays16k` and `rays8k` the sized preset with fewer rays a step (more steps in the budget).
 `nodist`, `cpu-shuffle`, `no-warmup` and `reverted` (all three) undo, one at a time, what changed on the CUDA path
-after the record at 223fc2c: the distortion loss, the epoch's shuffle drawn on the GPU, the warm-up render."""
+after the record at 223fc2c: the distortion loss, the epoch's shuffle drawn on the GPU, the warm-up render.
+`dist-from-start` runs the distortion loss from the first step, as before GPU sizing started it later."""
 
 
 PATCHED_LABELS = {

@@ -318,6 +318,9 @@ GPU_TIERS: tuple[tuple[float, int, float, int], ...] = (
 """(at least this many GiB of GPU memory, rays per step ×, grid resolution ×, step cap ×) for the grid models.
 A preset's 4,096 rays a step leave a GPU launch-bound (an H200 ran the fast preset at 26 ms a step, 157k rays/s):
 more rays per step cost little more time per step; finer grids cost memory, which a large card has."""
+GPU_DISTORTION_FROM = 0.3
+"""With finer grids on a card, the distortion loss starts after this share of training: from the first step, at a
+card's grids, it cost the Lego its finer parts; from here it still kept the sample's mesh clean (docs/gpu.md)."""
 GPU_GRID_MEMORY_FRACTION = 0.25
 """The sized grids' training memory (parameters, gradients, Adam moments) stays below this share of the GPU's."""
 
@@ -368,14 +371,21 @@ def device_sizing(config: RunConfig, memory_bytes: int, name: str,
     for key in grids:
         scale(key, grid_x, 16, MAX_GRID_RES if "occupancy" not in key else 512)
     grid_bytes = sum(need for keys, _, need in implied_memory(sized) if keys.startswith("train."))
+    late_loss = ""
     if grid_bytes > GPU_GRID_MEMORY_FRACTION * memory_bytes:  # the card cannot hold finer grids: keep the preset's
         sized.train.fast, sized.train.surface = train.fast, train.surface
         changes = before
+    elif (changes != before and train.model != "surface" and sized.train.fast.distortion_weight > 0
+          and sized.train.fast.distortion_from == 0 and "train.fast.distortion_from" not in keep):
+        sized.train.fast.distortion_from = GPU_DISTORTION_FROM
+        changes.append(f"train.fast.distortion_from=0→{GPU_DISTORTION_FROM:g}")
+        late_loss = (f"; at the finer grids the distortion loss from the first step costs held-out detail, from "
+                     f"{GPU_DISTORTION_FROM:.0%} of training it still clears the fog (docs/gpu.md)")
     if not changes:
         return config, ""
     return sized, (f"GPU sizing ({name}, {memory_bytes / 2**30:.0f} GiB; train.device_sizing=off keeps the preset's "
                    f"CPU-sized values): {', '.join(changes)} — 4,096 rays a step leave a GPU waiting on kernel "
-                   f"launches, and the same minutes buy more steps there")
+                   f"launches, and the same minutes buy more steps there{late_loss}")
 
 
 def _apply_overrides(config: RunConfig, overrides: list[str] | None) -> None:

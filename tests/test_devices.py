@@ -9,7 +9,7 @@ from collections.abc import Callable
 import pytest
 import torch
 
-from recon.config import GPU_TIERS, device_sizing, load_config
+from recon.config import GPU_DISTORTION_FROM, GPU_TIERS, device_sizing, load_config
 from recon.nerf.compiled import compile_color_network, compile_wanted
 from recon.nerf.fast import FastConfig, FastModel
 from recon.nerf.fitting import RayBatcher
@@ -301,6 +301,22 @@ def test_grids_stay_the_presets_when_the_card_could_not_hold_them() -> None:
     sized, why = device_sizing(huge, 16 * GiB, "g")
     assert sized.train.fast == huge.train.fast and sized.train.batch_rays == 4 * 4096
     assert "feature_res" not in why
+
+
+def test_finer_grids_start_the_distortion_loss_later_and_say_why() -> None:
+    base = load_config("fast", ["train.device=cpu"])
+    assert base.train.fast.distortion_weight > 0 and base.train.fast.distortion_from == 0  # the CPU's: first step
+    sized, why = device_sizing(base, 80 * GiB, "g")
+    assert sized.train.fast.distortion_from == GPU_DISTORTION_FROM
+    assert f"train.fast.distortion_from=0→{GPU_DISTORTION_FROM:g}" in why and "distortion loss" in why
+    same_grids = device_sizing(base, 8 * GiB, "g")[0]  # more rays, the preset's grids: the loss as on a CPU
+    assert same_grids.train.batch_rays > base.train.batch_rays and same_grids.train.fast.distortion_from == 0
+    kept = device_sizing(base, 80 * GiB, "g", keep=frozenset({"train.fast.distortion_from"}))[0]
+    assert kept.train.fast.distortion_from == 0
+    no_loss = load_config("fast", ["train.device=cpu", "train.fast.distortion_weight=0"])
+    assert device_sizing(no_loss, 80 * GiB, "g")[0].train.fast.distortion_from == 0
+    huge = load_config("fast", ["train.device=cpu", "train.fast.feature_res=256"])  # the grids stay: so does the loss
+    assert device_sizing(huge, 16 * GiB, "g")[0].train.fast.distortion_from == 0
 
 
 def test_load_config_sizes_presets_on_cuda_and_set_wins(monkeypatch: pytest.MonkeyPatch) -> None:
