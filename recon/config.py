@@ -318,9 +318,10 @@ GPU_TIERS: tuple[tuple[float, int, float, int], ...] = (
 """(at least this many GiB of GPU memory, rays per step ×, grid resolution ×, step cap ×) for the grid models.
 A preset's 4,096 rays a step leave a GPU launch-bound (an H200 ran the fast preset at 26 ms a step, 157k rays/s):
 more rays per step cost little more time per step; finer grids cost memory, which a large card has."""
-GPU_DISTORTION_FROM = 0.3
+GPU_DISTORTION_FROM = 0.1
 """With finer grids on a card, the distortion loss starts after this share of training: from the first step, at a
-card's grids, it cost the Lego its finer parts; from here it still kept the sample's mesh clean (docs/gpu.md)."""
+card's grids, it cost the Lego its finer parts; from here it still kept real objects' meshes as clean, which a later
+start did not (docs/gpu.md)."""
 GPU_GRID_MEMORY_FRACTION = 0.25
 """The sized grids' training memory (parameters, gradients, Adam moments) stays below this share of the GPU's."""
 
