@@ -456,7 +456,7 @@ class FastModel(RadianceModel):
 
     def distortion_weight_now(self) -> float:
         """The distortion loss's weight at this point of training: 0 until ``distortion_from`` of it is done."""
-        return self.distortion_weight if getattr(self, "progress", 0.0) >= self.config.distortion_from else 0.0
+        return self.distortion_weight if self.progress >= self.config.distortion_from else 0.0
 
     def _regularizers(self, weights: Tensor, mid: Tensor, delta: Tensor, ri: Tensor, n: int, opacity: Tensor) -> Tensor | None:
         cfg = self.config

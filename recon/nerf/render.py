@@ -322,6 +322,9 @@ class RadianceModel(nn.Module, abc.ABC):
     ``rays_d`` are unit length so ``t`` and depths are world units.
     """
 
+    progress: float = 0.0
+    """The share of training done, as :meth:`set_progress` last set it (0 before training)."""
+
     @abc.abstractmethod
     def render_rays(
         self,
