@@ -198,7 +198,7 @@ def kernel_timings(config: Any, device: torch.device) -> dict[str, Any]:
         return {"skipped": f"the Triton kernels run on CUDA only (this device: {device.type})"}
     from recon.nerf import kernels as K
     from recon.nerf.grid import trilinear_levels_torch
-    from recon.nerf.render import accumulate_packed
+    from recon.nerf.render import accumulate_packed, distortion_packed
 
     ok, why = K.triton_status()
     if not ok:
@@ -231,6 +231,14 @@ def kernel_timings(config: Any, device: torch.device) -> dict[str, Any]:
         out.sum().backward()
         return out
 
+    t_sorted = t.sort().values  # midpoints ascending along each ray, as the marcher gives them
+
+    def distortion(fn: Any) -> Any:
+        w = weights.clone().requires_grad_()
+        out = fn(w, t_sorted, delta, ri, rays)
+        out.mean().backward()
+        return out
+
     def grid(fn: Any, tables: list[torch.Tensor]) -> Any:
         params = [tb.clone().requires_grad_() for tb in tables]
         out = fn(x01, params, [round(tb.shape[0] ** (1 / 3)) for tb in tables])
@@ -241,6 +249,7 @@ def kernel_timings(config: Any, device: torch.device) -> dict[str, Any]:
         f"compositing ({m:,} samples)": (lambda: composite(K.composite_packed_torch),
                                           lambda: composite(K.composite_packed_triton)),
         "colour sums": (lambda: colour(accumulate_packed), lambda: colour(K.accumulate_packed_triton)),
+        "distortion loss": (lambda: distortion(distortion_packed), lambda: distortion(K.distortion_packed_triton)),
         f"density read ({'+'.join(f'{r}³' for r in sorted(set(density_res)))})": (
             lambda: grid(trilinear_levels_torch, density), lambda: grid(K.trilinear_levels_triton, density)),
         f"feature read ({fast.feature_res}³×{fast.feature_dim})": (

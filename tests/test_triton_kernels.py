@@ -24,9 +24,10 @@ from recon.nerf.kernels import (
     accumulate_packed_triton,
     composite_packed_torch,
     composite_packed_triton,
+    distortion_packed_triton,
     trilinear_levels_triton,
 )
-from recon.nerf.render import accumulate_packed
+from recon.nerf.render import accumulate_packed, distortion_packed
 
 REPO = Path(__file__).resolve().parents[1]
 HAS_TRITON = importlib.util.find_spec("triton") is not None
@@ -129,6 +130,41 @@ def test_a_nan_density_reaches_the_weights(device: str) -> None:
     assert torch.isnan(w[1:4]).all() and torch.isnan(opacity[0]) and torch.isfinite(w[4:]).all()
 
 
+def _compare_distortion(w: torch.Tensor, mid: torch.Tensor, delta: torch.Tensor, ri: torch.Tensor, n: int) -> None:
+    """Each ray's loss and its gradients to the weights, midpoints and intervals: the float32 kernel against the
+    reference run in float64 (the truth the float32 reference is also held to: both cancel in m W_<i - (wm)_<i)."""
+    mine = _to(DEVICE, w, mid, delta, grad=True)
+    ref = _to(DEVICE, w.double(), mid.double(), delta.double(), grad=True)
+    (r,) = _to(DEVICE, ri)
+    got, want = distortion_packed_triton(*mine, r, n), distortion_packed(*ref, r, n)
+    assert got.dtype == torch.float32
+    torch.testing.assert_close(got.double(), want, rtol=1e-6, atol=1e-6)
+    up = torch.randn(n, generator=torch.Generator().manual_seed(5), dtype=torch.float64).to(DEVICE)
+    for name, a, b in zip(("d weights", "d midpoints", "d intervals"), torch.autograd.grad(got, mine, up.float()),
+                          torch.autograd.grad(want, ref, up), strict=True):
+        torch.testing.assert_close(a.double(), b, rtol=1e-6, atol=1e-6 * max(1.0, float(b.abs().max())),
+                                   msg=lambda m, name=name: f"{name}: {m}")
+
+
+def test_distortion_matches_the_reference_over_rays_of_varied_length(device: str) -> None:
+    counts = [0, 3, 0, 0, 64, 1, 65, 130, 2, 0]
+    sigma, delta, t, ri = _packed(counts, sigma_scale=5.0)
+    w, _ = composite_packed_torch(sigma, delta, t, ri, len(counts))[:2]
+    _compare_distortion(w, t - 0.5 * delta, delta, ri, len(counts))
+    # far from the origin (an unbounded capture's contracted distances near 2), weights not from compositing
+    g = torch.Generator().manual_seed(4)
+    _compare_distortion(torch.rand(ri.shape[0], generator=g), 1.5 + 0.2 * t / t.max(), delta, ri, len(counts))
+
+
+def test_distortion_without_samples_without_rays_and_of_one_sample(device: str) -> None:
+    empty = torch.zeros(0)
+    assert distortion_packed_triton(*_to(DEVICE, empty, empty, empty, empty.long()), 3).tolist() == [0.0] * 3
+    assert distortion_packed_triton(*_to(DEVICE, empty, empty, empty, empty.long()), 0).shape == (0,)
+    one = torch.tensor([0.5]), torch.tensor([1.0]), torch.tensor([0.3]), torch.tensor([1])
+    got = distortion_packed_triton(*_to(DEVICE, *one), 2)  # a lone sample: only its own interval's term
+    assert got.tolist() == pytest.approx([0.0, 0.25 * 0.3 / 3])
+
+
 @pytest.mark.parametrize("channels", [3, 1, 0])
 def test_accumulate_matches_index_add(device: str, channels: int) -> None:
     counts = [0, 2, 65, 0, 7, 0]
@@ -178,7 +214,8 @@ def test_fast_model_renders_and_trains_the_same_through_the_kernels(device: str,
     monkeypatch.setattr(kernels, "KERNEL_DEVICES", ("cuda", "cpu") if INTERPRETED else ("cuda",))
     cfg = dict(density_res=12, feature_res=8, feature_dim=4, density_levels=2, mlp_width=8, occupancy_res=8,
                occupancy_warmup=0, early_stop_transmittance=0.0, init_alpha=0.3,
-               color_min_weight=0.0)  # every sample coloured: a weight at the threshold can't pick different samples
+               color_min_weight=0.0,  # every sample coloured: a weight at the threshold can't pick different samples
+               distortion_weight=0.05)
     torch.manual_seed(0)
     reference = FastModel(FastConfig(**cfg, kernels="torch")).to(DEVICE)
     with torch.no_grad():
@@ -195,10 +232,10 @@ def test_fast_model_renders_and_trains_the_same_through_the_kernels(device: str,
     for model in (reference, fused):
         torch.manual_seed(3)  # the same jitter
         out = model.render_rays(*rays, training=True, background=torch.ones(3, device=DEVICE))
-        (out["rgb"].square().sum() + out["depth"].sum() + out["opacity"].sum()).backward()
+        (out["rgb"].square().sum() + out["depth"].sum() + out["opacity"].sum() + out["reg"]).backward()
         outs.append(out)
     assert outs[0]["num_samples"] == outs[1]["num_samples"] > 0
-    for key in ("rgb", "depth", "opacity"):
+    for key in ("rgb", "depth", "opacity", "reg"):
         torch.testing.assert_close(outs[1][key], outs[0][key], rtol=1e-5, atol=1e-5)
     for (name, a), b in zip(fused.named_parameters(), reference.parameters(), strict=True):
         torch.testing.assert_close(a.grad, b.grad, rtol=1e-4, atol=1e-5, msg=lambda m, name=name: f"{name}: {m}")

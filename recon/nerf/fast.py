@@ -44,12 +44,18 @@ from torch import Tensor, nn
 
 from recon.nerf.contraction import contract, contracted_distance
 from recon.nerf.grid import DenseGrid, HashGrid, MultiDenseGrid, VMGrid, resample_dense
-from recon.nerf.kernels import accumulate_packed_triton, composite_packed_triton, march_dense_triton, use_triton
+from recon.nerf.kernels import (
+    accumulate_packed_triton,
+    composite_packed_triton,
+    distortion_packed_triton,
+    march_dense_triton,
+    use_triton,
+)
 from recon.nerf.model_config import FastConfig, GridKind
 from recon.nerf.native import DenseDensity, march_dense_native, march_render_native
 from recon.nerf.occupancy import OccupancyGrid, density_threshold, march, march_front_to_back
 from recon.nerf.rays import ray_aabb
-from recon.nerf.render import RadianceModel, accumulate_packed, checked_aabb, render_weights_packed
+from recon.nerf.render import RadianceModel, accumulate_packed, checked_aabb, distortion_packed, render_weights_packed
 
 __all__ = ["FastConfig", "FastModel", "sh_encode", "distortion_loss_packed", "ray_background", "SkyColor", "trunc_exp"]
 
@@ -89,29 +95,12 @@ def sh_encode(d: Tensor, degree: int) -> Tensor:
     return torch.stack(out, dim=-1)
 
 
-def _packed_exclusive_cumsum(x: Tensor, ray_indices: Tensor) -> Tensor:
-    """Per-ray exclusive cumulative sum of packed x (M,) (float64 running sum, returned in x's dtype)."""
-    if x.shape[0] == 0:
-        return x.clone()
-    x64 = x.double()
-    excl = torch.cumsum(x64, 0) - x64
-    first = torch.ones_like(ray_indices, dtype=torch.bool)
-    first[1:] = ray_indices[1:] != ray_indices[:-1]
-    seg = torch.cumsum(first.long(), 0) - 1
-    return (excl - excl[first][seg]).to(x.dtype)
-
-
-def distortion_loss_packed(weights: Tensor, t_mid: Tensor, delta: Tensor, ray_indices: Tensor, n_rays: int) -> Tensor:
-    """mip-NeRF 360 distortion loss (Barron et al. 2022, eq. 15) on packed samples, mean over rays.
-
-    sum_{i,j} w_i w_j |m_i - m_j| + 1/3 sum_i w_i^2 delta_i, with the double sum in O(M) as
-    2 sum_i w_i (m_i W_<i - (wm)_<i) for samples sorted along each ray (Sun et al. 2022, DVGO v2).
-    weights, t_mid, delta, ray_indices: (M,) -> scalar.
-    """
-    w_excl = _packed_exclusive_cumsum(weights, ray_indices)
-    wm_excl = _packed_exclusive_cumsum(weights * t_mid, ray_indices)
-    per_sample = 2.0 * weights * (t_mid * w_excl - wm_excl) + weights**2 * delta / 3.0
-    return accumulate_packed(per_sample, None, ray_indices, n_rays).mean() if n_rays else per_sample.sum()
+def distortion_loss_packed(weights: Tensor, t_mid: Tensor, delta: Tensor, ray_indices: Tensor, n_rays: int,
+                           fused: bool = False) -> Tensor:
+    """The mip-NeRF 360 distortion loss of packed samples, mean over rays: :func:`recon.nerf.render.distortion_packed`,
+    or its Triton kernel where ``fused`` (:func:`recon.nerf.kernels.distortion_packed_triton`)."""
+    per_ray = (distortion_packed_triton if fused else distortion_packed)(weights, t_mid, delta, ray_indices, n_rays)
+    return per_ray.mean() if n_rays else per_ray.sum()
 
 
 def make_color_mlp(feat: int, color_model: str, sh_degree: int, width: int, layers: int) -> nn.Sequential | None:
@@ -465,7 +454,8 @@ class FastModel(RadianceModel):
             terms.append(cfg.tv_weight * (self.density_grid.tv_loss() + self.color_grid.tv_loss()))
         weight = self.distortion_weight_now()
         if weight > 0:
-            terms.append(weight * distortion_loss_packed(weights, mid, delta, ri, n))
+            fused = use_triton(cfg.kernels, weights, mid, delta)
+            terms.append(weight * distortion_loss_packed(weights, mid, delta, ri, n, fused))
         if cfg.entropy_weight > 0:
             o = opacity.clamp(1e-6, 1 - 1e-6)
             terms.append(cfg.entropy_weight * -(o * torch.log(o) + (1 - o) * torch.log(1 - o)).mean())

@@ -11,6 +11,8 @@ forward and one backward (recon/nerf/triton_kernels.py), wrapped as ``torch.auto
   (:func:`recon.nerf.render.render_weights_packed` and :func:`recon.nerf.render.accumulate_packed`).
 * :func:`accumulate_packed_triton` — per-ray weighted sums of packed values (the colours), a segmented sum without
   atomics. Reference: :func:`recon.nerf.render.accumulate_packed`.
+* :func:`distortion_packed_triton` — each ray's distortion loss (the fast model's regularizer) and its gradients, in
+  one pass forward and two backward. Reference: :func:`recon.nerf.render.distortion_packed`.
 * :func:`trilinear_levels_triton` — the sum of dense grids' trilinear reads at the same points (the density levels,
   or one feature grid), the tables' gradients by atomic adds. Reference: :func:`recon.nerf.grid.trilinear_levels_torch`
   (the torch reads of :class:`recon.nerf.grid.DenseGrid`).
@@ -43,7 +45,7 @@ if TYPE_CHECKING:
     from recon.nerf.native import DenseDensity
 
 __all__ = ["MEASURED_FASTER", "KERNEL_DEVICES", "KernelSetting", "kernels_choice", "triton_status", "use_triton",
-           "composite_packed_torch", "composite_packed_triton", "accumulate_packed_triton",
+           "composite_packed_torch", "composite_packed_triton", "accumulate_packed_triton", "distortion_packed_triton",
            "trilinear_levels_triton", "march_dense_triton", "ray_offsets"]
 
 KernelSetting = Literal["auto", "torch", "triton"]
@@ -233,6 +235,44 @@ def accumulate_packed_triton(weights: Tensor, values: Tensor, ray_indices: Tenso
     out = _AccumulatePacked.apply(weights.contiguous(), (values[:, None] if flat else values).contiguous(),
                                   ray_indices.contiguous(), n_rays)
     return out[:, 0] if flat else out
+
+
+# ----------------------------------------------------------------------------- the distortion loss
+class _DistortionPacked(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, weights: Tensor, t_mid: Tensor, delta: Tensor, ray_indices: Tensor,  # type: ignore[override]
+                n_rays: int) -> Tensor:
+        offsets = ray_offsets(ray_indices, n_rays)
+        loss = weights.new_empty(n_rays)
+        if n_rays:
+            _jit().distortion_fwd[(n_rays,)](weights, t_mid, delta, offsets, loss, BLOCK=COMPOSITE_BLOCK)
+        ctx.save_for_backward(weights, t_mid, delta, offsets)
+        return loss
+
+    @staticmethod
+    def backward(ctx, g: Tensor) -> tuple[Tensor | None, ...]:  # type: ignore[override]
+        weights, t_mid, delta, offsets = ctx.saved_tensors
+        n = offsets.shape[0] - 1
+        g_w, g_m, g_d = torch.empty_like(weights), torch.empty_like(weights), torch.empty_like(weights)
+        if n:  # every sample is some ray's: all are written
+            _jit().distortion_bwd[(n,)](weights, t_mid, delta, offsets, g.contiguous(), g_w, g_m, g_d,
+                                        BLOCK=COMPOSITE_BLOCK)
+        need = ctx.needs_input_grad
+        return g_w if need[0] else None, g_m if need[1] else None, g_d if need[2] else None, None, None
+
+
+def distortion_packed_triton(weights: Tensor, t_mid: Tensor, delta: Tensor, ray_indices: Tensor,
+                             n_rays: int) -> Tensor:
+    """:func:`recon.nerf.render.distortion_packed`, each ray's distortion loss (N,), in one kernel forward and one
+    backward (one program per ray) instead of the reference's float64 cumulative sums, gathers and index_adds.
+
+    weights, t_mid (sorted along each ray), delta: (M,) float32; ray_indices (M,) sorted ascending. Differentiable in
+    all three."""
+    m = weights.shape[0]
+    for name, x in (("weights", weights), ("t_mid", t_mid), ("delta", delta), ("ray_indices", ray_indices)):
+        _check_1d(name, x, m)
+    return _DistortionPacked.apply(weights.contiguous(), t_mid.contiguous(), delta.contiguous(),
+                                   ray_indices.contiguous(), n_rays)
 
 
 # ----------------------------------------------------------------------------- dense grids' trilinear reads

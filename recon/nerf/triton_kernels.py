@@ -154,6 +154,79 @@ def accumulate_bwd(w, v, ray_indices, g_out, g_w, g_v, M, C: tl.constexpr, CP: t
     tl.store(g_v + i[:, None] * C + cols[None, :], g * tl.load(w + i, mask=m, other=0.0)[:, None], mask=mm)
 
 
+# ----------------------------------------------------------------------------- the distortion loss
+@triton.jit
+def _distortion_chunk(w, m, d, m0, i, s, end, carry_w, carry_wm):
+    """One chunk of a ray's samples i (from s, masked at end): w, m - m0, d and the exclusive sums W_<i, (wm)_<i, each
+    a cumulative sum of the previous samples' values (loaded shifted by one) on top of the earlier chunks'.
+
+    Midpoints are taken from the ray's first one, m0: the loss depends only on their differences, and m W_<i - (wm)_<i
+    cancels less in float32 near 0 than far from the origin."""
+    mask = i < end
+    prev = mask & (i > s)
+    wi = tl.load(w + i, mask=mask, other=0.0)
+    mi = tl.load(m + i, mask=mask, other=0.0) - m0
+    di = tl.load(d + i, mask=mask, other=0.0)
+    w_prev = tl.load(w + i - 1, mask=prev, other=0.0)
+    wm_prev = w_prev * (tl.load(m + i - 1, mask=prev, other=0.0) - m0)
+    return wi, mi, di, carry_w + tl.cumsum(w_prev, 0), carry_wm + tl.cumsum(wm_prev, 0)
+
+
+@triton.jit
+def distortion_fwd(w, m, d, offsets, loss, BLOCK: tl.constexpr):
+    """One program per ray: loss_r = sum_i 2 w_i (m_i W_<i - (wm)_<i) + w_i^2 d_i / 3 over its samples (sorted by
+    m), the mip-NeRF 360 distortion loss in O(samples)."""
+    ray = tl.program_id(0)
+    start = tl.load(offsets + ray)
+    end = tl.load(offsets + ray + 1)
+    m0 = tl.load(m + start, mask=start < end, other=0.0)
+    carry_w = tl.zeros([], dtype=tl.float32)
+    carry_wm = tl.zeros([], dtype=tl.float32)
+    acc = tl.zeros([], dtype=tl.float32)
+    for s in range(start, end, BLOCK):
+        i = s + tl.arange(0, BLOCK)
+        wi, mi, di, before_w, before_wm = _distortion_chunk(w, m, d, m0, i, s, end, carry_w, carry_wm)
+        acc += tl.sum(2.0 * wi * (mi * before_w - before_wm) + wi * wi * di * (1.0 / 3.0), 0)
+        carry_w += tl.sum(wi, 0)
+        carry_wm += tl.sum(wi * mi, 0)
+    tl.store(loss + ray, acc)
+
+
+@triton.jit
+def distortion_bwd(w, m, d, offsets, g_loss, g_w, g_m, g_d, BLOCK: tl.constexpr):
+    """Gradients of distortion_fwd, one program per ray in two passes (the ray's totals W, WM first). With the later
+    samples' sums W_>i = W - W_<i - w_i and (wm)_>i = WM - (wm)_<i - w_i m_i:
+        dL/dw_i = 2 (m_i W_<i - (wm)_<i) + 2 ((wm)_>i - m_i W_>i) + 2/3 w_i d_i
+        dL/dm_i = 2 w_i (W_<i - W_>i),   dL/dd_i = w_i^2 / 3."""
+    ray = tl.program_id(0)
+    start = tl.load(offsets + ray)
+    end = tl.load(offsets + ray + 1)
+    g = tl.load(g_loss + ray)
+    m0 = tl.load(m + start, mask=start < end, other=0.0)
+    total_w = tl.zeros([], dtype=tl.float32)
+    total_wm = tl.zeros([], dtype=tl.float32)
+    for s in range(start, end, BLOCK):
+        i = s + tl.arange(0, BLOCK)
+        mask = i < end
+        wi = tl.load(w + i, mask=mask, other=0.0)
+        total_w += tl.sum(wi, 0)
+        total_wm += tl.sum(wi * (tl.load(m + i, mask=mask, other=0.0) - m0), 0)
+    carry_w = tl.zeros([], dtype=tl.float32)
+    carry_wm = tl.zeros([], dtype=tl.float32)
+    for s in range(start, end, BLOCK):
+        i = s + tl.arange(0, BLOCK)
+        mask = i < end
+        wi, mi, di, before_w, before_wm = _distortion_chunk(w, m, d, m0, i, s, end, carry_w, carry_wm)
+        after_w = total_w - before_w - wi
+        after_wm = total_wm - before_wm - wi * mi
+        gw = 2.0 * (mi * before_w - before_wm) + 2.0 * (after_wm - mi * after_w) + wi * di * (2.0 / 3.0)
+        tl.store(g_w + i, g * gw, mask=mask)
+        tl.store(g_m + i, g * 2.0 * wi * (before_w - after_w), mask=mask)
+        tl.store(g_d + i, g * wi * wi * (1.0 / 3.0), mask=mask)
+        carry_w += tl.sum(wi, 0)
+        carry_wm += tl.sum(wi * mi, 0)
+
+
 # ----------------------------------------------------------------------------- dense grids' trilinear reads
 @triton.jit
 def _cell(p, R):
