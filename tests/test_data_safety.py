@@ -514,6 +514,127 @@ def test_rerender_keeps_the_users_files_and_never_overwrites_them(trained: Path,
     assert not [p for p in out.iterdir() if p.name.startswith(".recon-staging")]
 
 
+def test_eval_never_replaces_the_users_files(trained: Path, tmp_path: Path) -> None:
+    """`recon eval SCENE --out DIR` overwrote a metrics.json (or grid.png, or views/*.png) the user had in DIR."""
+    mine = tmp_path / "mine"
+    (mine / "views").mkdir(parents=True)
+    (mine / "metrics.json").write_text("my metrics")
+    assert_refused(*recon("eval", trained, "--out", mine, "--limit", "1", "--split", "train"), "files that recon did not write (metrics.json, views)")
+    assert snapshot(mine) == {"metrics.json": b"my metrics", "views": "dir"}
+    out = tmp_path / "ev"
+    code, output = recon("eval", trained, "--out", out, "--limit", "1", "--split", "train")
+    assert code == 0, output
+    (out / "notes.txt").write_text("mine")
+    (out / "grid.png").unlink()
+    (out / "grid.png").write_bytes(b"my grid")  # recon's name, recorded as recon's: replaced on the next run
+    code, output = recon("eval", trained, "--out", out, "--limit", "1", "--split", "train")
+    assert code == 0, output
+    assert (out / "notes.txt").read_text() == "mine" and (out / "grid.png").read_bytes()[:4] == b"\x89PNG"
+    # SCENE/eval from before evaluations kept a record: recon's, as its files say
+    (out / "notes.txt").unlink()
+    own = Path(shutil.copytree(out, trained / "eval", dirs_exist_ok=True))
+    (own / ".recon-eval.json").unlink()
+    code, output = recon("eval", trained, "--limit", "1", "--split", "train")
+    assert code == 0 and (own / ".recon-eval.json").is_file(), output
+    shutil.rmtree(own)
+
+
+def test_fit_image_never_replaces_the_users_files(tiny: Path, tmp_path: Path) -> None:
+    """`recon fit-image --out DIR` overwrote a curve.json (or fitted.png) the user had in DIR."""
+    image = min((tiny / "images").iterdir())
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "curve.json").write_text("my curve")
+    assert_refused(*recon("fit-image", image, "--out", mine, "--steps", "2", "--size", "32"),
+                   "files that recon did not write (curve.json)")
+    assert snapshot(mine) == {"curve.json": b"my curve"}
+    out = tmp_path / "fit"
+    code, output = recon("fit-image", image, "--out", out, "--steps", "2", "--size", "32")
+    assert code == 0, output
+    assert json.loads((out / "curve.json").read_text())[-1]["step"] == 2
+    (out / "notes.txt").write_text("mine")
+    code, output = recon("fit-image", image, "--out", out, "--steps", "3", "--size", "32")
+    assert code == 0, output
+    assert json.loads((out / "curve.json").read_text())[-1]["step"] == 3  # its own files are replaced
+    assert (out / "notes.txt").read_text() == "mine" and (out / "fitted.png").is_file()
+    assert not [p for p in out.iterdir() if p.name.startswith(".recon-staging")]
+
+
+def _fake_bench(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> tuple[Path, list[str]]:
+    """A photos folder and a stand-in pipeline (each stage writes metrics.json) for `run_bench`; the stages it ran."""
+    import recon.stages
+    from recon.runner.pipeline import Pipeline, Stage
+
+    ran: list[str] = []
+    metrics = {"model": "fast", "steps": 1, "train_time_s": 1.0, "rays_per_s": 1.0, "evals": [],
+               "test": {"psnr": 20.0, "ssim": 0.5, "views": []}}
+
+    def stage(name: str, folder: str, inputs: tuple[str, ...]) -> Stage:
+        def run(ctx) -> dict:
+            ran.append(name)
+            (ctx.out / "metrics.json").write_text(json.dumps(metrics))
+            return {}
+        return Stage(name, folder, inputs, 1, run, needs_source=name == "poses",
+                     source_digest=(lambda s, c: "photos") if name == "poses" else None)
+
+    pipe = Pipeline([stage("poses", "01_poses", ()), stage("normalize", "02_scene", ("poses",)),
+                     stage("train", "03_field", ("normalize",))])
+    monkeypatch.setattr(recon.stages, "default_pipeline", lambda: pipe)
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    return photos, ran
+
+
+def test_bench_never_replaces_the_users_reports(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """`recon bench --out DIR` (and --profile) overwrote a bench.md or profile.md the user had in DIR."""
+    from recon.app.bench import run_bench
+    from recon.app.profiling import run_profile
+    from recon.app.progress import Reporter
+    from recon.errors import InputError
+
+    photos, ran = _fake_bench(tmp_path, monkeypatch)
+    for name in ("bench.md", "profile.md"):
+        mine = tmp_path / f"mine-{name}"
+        mine.mkdir()
+        (mine / name).write_text("my notes")
+        with pytest.raises(InputError, match=f"files that recon did not write \\({name}\\)"):
+            if name == "bench.md":
+                run_bench(str(photos), ["fast"], mine, [], Reporter(quiet=True), until="train")
+            else:
+                run_profile(str(photos), ["fast"], mine, [], Reporter(quiet=True))
+        assert snapshot(mine) == {name: b"my notes"} and ran == []
+    out = tmp_path / "bench"
+    run_bench(str(photos), ["fast"], out, [], Reporter(quiet=True), until="train")
+    assert ran == ["poses", "normalize", "train"] and (out / ".recon-bench.json").is_file()
+    (out / "notes.txt").write_text("mine")
+    run_bench(str(photos), ["fast"], out, [], Reporter(quiet=True), until="train")  # its own folder: reused
+    assert (out / "notes.txt").read_text() == "mine" and json.loads((out / "bench.json").read_text())[0]["name"] == "fast"
+
+
+def test_a_benchmark_folder_from_before_records_is_adopted_only_when_it_holds_only_recons(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from recon.app.bench import run_bench
+    from recon.app.progress import Reporter
+    from recon.errors import InputError
+
+    photos, _ = _fake_bench(tmp_path, monkeypatch)
+    old = tmp_path / "old"
+    run_bench(str(photos), ["fast"], old, [], Reporter(quiet=True), until="train")
+    (old / ".recon-bench.json").unlink()  # as recon left a benchmark before it kept a record
+    alike = Path(shutil.copytree(old, tmp_path / "alike"))
+    (alike / "draft.txt").write_text("mine")  # ... with a file of the user's beside it: not recon's folder
+    run_bench(str(photos), ["fast"], old, [], Reporter(quiet=True), until="train")
+    assert (old / ".recon-bench.json").is_file()
+    with pytest.raises(InputError, match="draft.txt"):
+        run_bench(str(photos), ["fast"], alike, [], Reporter(quiet=True), until="train")
+    lone = tmp_path / "lone"
+    lone.mkdir()
+    (lone / "bench.md").write_text("my notes")  # a report's name alone is no sign of recon
+    with pytest.raises(InputError, match="bench.md"):
+        run_bench(str(photos), ["fast"], lone, [], Reporter(quiet=True), until="train")
+    assert (lone / "bench.md").read_text() == "my notes"
+
+
 def test_photos_folder_named_masks_is_not_its_own_masks_folder(tmp_path: Path) -> None:
     from recon.capture.scene import find_masks
 

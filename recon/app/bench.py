@@ -23,7 +23,7 @@ from typing import Any
 from rich.markup import escape
 
 from recon.app.progress import Reporter
-from recon.atomic import write_json_atomic
+from recon.atomic import read_json, write_bytes_atomic, write_json_atomic
 from recon.config import load_config
 from recon.errors import ReconError
 
@@ -120,6 +120,44 @@ def provenance() -> dict[str, Any]:
     }
 
 
+REPORT_FILES = ("bench.json", "bench.md", "bench.png", "bench_accuracy.png", "bench_meshes.png", "profile.md",
+                "profile.json")
+"""What `recon bench` (and `--profile`) writes at the top of its --out folder, beside one scene folder a preset."""
+
+
+def claim_bench_folder(out_dir: Path) -> None:
+    """Check that `recon bench` may write into `out_dir` (recon.runner.ownership), before anything runs: a new or empty
+    folder or an earlier benchmark's, where a file of the user's in the place of a report is refused, never replaced.
+    The scenes inside are recon scenes, which the pipeline itself will only reuse, never replace. A benchmark folder
+    from before benchmarks kept a record is taken as recon's when it holds nothing but reports and scenes."""
+    from recon.runner.ownership import OwnedFolder, claim_folder
+    from recon.stages import scene_parts
+
+    earlier = OwnedFolder(out_dir, "bench")
+    if out_dir.is_dir() and not out_dir.is_symlink() and not earlier.marker.exists() and _earlier_bench(out_dir):
+        earlier.save({p.name for p in out_dir.iterdir() if p.name in REPORT_FILES})
+    owned = claim_folder(out_dir, "bench", scene_parts)
+    owned.check_free(REPORT_FILES)
+    owned.save(owned.files | set(REPORT_FILES))
+
+
+def _earlier_bench(folder: Path) -> bool:
+    """Does `folder` hold a benchmark recon wrote before it kept a record: its bench.json (rows with a preset's name,
+    PSNR and commit) or profile.json, and besides them only report files and recon scenes (a manifest.json each)?"""
+    rows: Any = None
+    with contextlib.suppress(OSError, ValueError):
+        rows = read_json(folder / "bench.json") if (folder / "bench.json").is_file() else None
+    ours = isinstance(rows, list) and bool(rows) and all(isinstance(r, dict) and {"name", "psnr", "commit"} <= r.keys()
+                                                         for r in rows)
+    profile: Any = None
+    with contextlib.suppress(OSError, ValueError):
+        profile = read_json(folder / "profile.json") if (folder / "profile.json").is_file() else None
+    ours = ours or isinstance(profile, dict) and {"limits", "results"} <= profile.keys()
+    return ours and all(p.name in REPORT_FILES and p.is_file() and not p.is_symlink()
+                        or p.is_dir() and not p.is_symlink() and (p / "manifest.json").is_file()
+                        for p in folder.iterdir())
+
+
 def prepare_scene(data: str, out_dir: Path, config: Any, report: Reporter) -> Path:
     """Poses and normalize of `data` in `out_dir/<name>-poses` (cached): the scene every preset starts from."""
     from recon.stages import default_pipeline
@@ -144,6 +182,7 @@ def run_bench(
     from recon.stages import default_pipeline
 
     source, gt = resolve_dataset(data)
+    claim_bench_folder(out_dir)
     pipeline = default_pipeline()
     where = provenance()
     t0 = time.perf_counter()
@@ -268,7 +307,7 @@ def write_results(rows: list[dict[str, Any]], out_dir: Path, data: str) -> None:
     if meshes:  # each preset's mesh from the same camera
         lines += ["![each preset's mesh](bench_meshes.png)", ""]
         mesh_sheet(meshes, out_dir / "bench_meshes.png")
-    (out_dir / "bench.md").write_text("\n".join(lines))
+    write_bytes_atomic(out_dir / "bench.md", "\n".join(lines))
     tradeoff_plot(rows, out_dir / "bench.png", title=f"held-out PSNR vs training time — {data}")
 
 

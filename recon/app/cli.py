@@ -289,16 +289,22 @@ def eval_(
     gt_masks: Annotated[Optional[Path], typer.Option("--gt-masks", help="Folder of true object masks (white = object, named like the photos): IoU of the mesh's silhouette and of the automatic masks.")] = None,
 ) -> None:
     """Render every held-out view: per-view and mean PSNR/SSIM, and image grids (and mesh accuracy with --gt-mesh)."""
-    from recon.app.novel_views import evaluate_scene
+    from recon.app.novel_views import claim_eval_folder, evaluate_scene
 
     with _guard(scene):
         target = out or scene / "eval"
+        if gt_mesh is not None and not gt_mesh.is_file():
+            raise ReconError(f"The ground-truth mesh {gt_mesh} does not exist.")
+        if gt_masks is not None and not gt_masks.is_dir():
+            raise ReconError(f"The masks folder {gt_masks} does not exist: give --gt-masks a folder of object masks.")
+        if gt_masks is not None or gt_mesh is not None:
+            claim_eval_folder(target, [*(["silhouette_iou.json"] if gt_masks is not None else []),
+                                       *(["mesh_accuracy.json"] if gt_mesh is not None else [])])
         if gt_masks is not None:
             from recon.atomic import write_json_atomic
             from recon.evaluation.mesh_eval import silhouette_iou
 
             result = silhouette_iou(scene, gt_masks)
-            target.mkdir(parents=True, exist_ok=True)
             write_json_atomic(target / "silhouette_iou.json", result)
             parts = [f"{what} IoU {result[f'mean_{key}iou']:.3f} (least {result[f'min_{key}iou']:.3f}), precision "
                      f"{result[f'mean_{key}precision']:.3f}, recall {result[f'mean_{key}recall']:.3f}"
@@ -309,10 +315,7 @@ def eval_(
             from recon.atomic import write_json_atomic
             from recon.evaluation.mesh_eval import compare_to_gt, format_comparison
 
-            if not gt_mesh.is_file():
-                raise ReconError(f"The ground-truth mesh {gt_mesh} does not exist.")
             comparison = compare_to_gt(scene, gt_mesh)
-            target.mkdir(parents=True, exist_ok=True)
             write_json_atomic(target / "mesh_accuracy.json", comparison)
             out_console.print(format_comparison(comparison), markup=False)
         if gt_mesh is not None or gt_masks is not None:
@@ -323,6 +326,10 @@ def eval_(
             f"— {target / 'metrics.json'}, {target / 'grid.png'}",
             markup=False,
         )
+
+
+FIT_IMAGE_FILES = ("fitted.png", "curve.json", "curve.png")
+"""What `recon fit-image` writes into its --out folder."""
 
 
 @app.command(name="fit-image")
@@ -340,20 +347,25 @@ def fit_image_cmd(
 
     from recon.capture.images import read_image, save_image
     from recon.nerf.image_fit import fit_image, render_field
+    from recon.plots import training_curves
+    from recon.runner.ownership import claim_folder
+    from recon.stages import scene_parts
 
     with _guard():
         if steps < 1 or freqs < 0:
             raise ReconError("--steps must be ≥ 1 and --freqs ≥ 0.")
+        # a new or empty folder or an earlier fit's (recon.runner.ownership): a file of the user's is never replaced
+        owned = claim_folder(out, "fit-image", scene_parts, [image])
+        owned.check_free(FIT_IMAGE_FILES)
         img = torch.from_numpy(read_image(image, max_side=max_side)[..., :3].copy())
-        out.mkdir(parents=True, exist_ok=True)
         report = Reporter(console)
         with report.task("fitting", total=steps) as bar:
             model, curve = fit_image(img, steps=steps, n_freqs=freqs, on_step=lambda s, loss: bar.advance())
-        save_image(out / "fitted.png", render_field(model, *img.shape[:2]).numpy())
-        (out / "curve.json").write_text(json.dumps(curve, indent=1))
-        from recon.plots import training_curves
-
-        training_curves([], curve, out / "curve.png", title=f"2D field, L={freqs}")
+        with owned.staging() as staged:
+            save_image(staged / "fitted.png", render_field(model, *img.shape[:2]).numpy())
+            (staged / "curve.json").write_text(json.dumps(curve, indent=1))
+            training_curves([], curve, staged / "curve.png", title=f"2D field, L={freqs}")
+            owned.replace_with(staged)
         out_console.print(f"PSNR {curve[-1]['psnr']:.2f} dB after {steps} steps — {out / 'fitted.png'}, {out / 'curve.png'}", markup=False)
 
 

@@ -18,7 +18,7 @@ from recon.capture.scene import Scene, load_scene, spread_evenly
 from recon.errors import ReconError
 from recon.evaluation.views import View, evaluate, load_views, render_view, write_previews
 from recon.field import load_field
-from recon.runner.ownership import claim_folder
+from recon.runner.ownership import OwnedFolder, claim_folder
 
 PathKind = Literal["orbit", "spiral", "train", "test"]
 
@@ -128,6 +128,37 @@ def render_path(scene_dir: Path, kind: PathKind, out_dir: Path, frames: int = 60
     return [out_dir / p.name for p in written]
 
 
+EVAL_FILES = ("metrics.json", "grid.png", "silhouette_iou.json", "mesh_accuracy.json")
+"""What `recon eval` writes at the top of its folder (SCENE/eval or --out), beside views/<photo>.png."""
+
+
+def claim_eval_folder(out_dir: Path, names: list[str]) -> OwnedFolder:
+    """Check that `recon eval` may write `names` into `out_dir` (recon.runner.ownership), before it renders: a new or
+    empty folder or an earlier evaluation's, where a file of the user's in the way is refused, never replaced. An
+    evaluation folder from before evaluations kept a record is taken as recon's when it holds only what one writes."""
+    from recon.atomic import read_json
+    from recon.stages import scene_parts
+
+    earlier = OwnedFolder(out_dir, "eval")
+    if out_dir.is_dir() and not out_dir.is_symlink() and not earlier.marker.exists():
+        def ours(name: str) -> bool:
+            try:
+                doc = read_json(out_dir / name)
+            except (OSError, ValueError):
+                return False
+            return isinstance(doc, dict) and ("views" in doc or "chamfer_l1_rel" in doc)
+
+        files = [p.relative_to(out_dir).as_posix() for p in out_dir.rglob("*") if not p.is_dir()]
+        if (any(ours(n) for n in EVAL_FILES if n.endswith(".json") and n in files)
+                and all(n in EVAL_FILES or n.startswith("views/") and n.count("/") == 1 and n.endswith(".png")
+                        and not (out_dir / n).is_symlink() for n in files)):
+            earlier.save(files)
+    owned = claim_folder(out_dir, "eval", scene_parts)
+    owned.check_free(names)
+    owned.save(owned.files | set(names))  # recorded before they are written: a crash leaves them recon's
+    return owned
+
+
 def evaluate_scene(scene_dir: Path, out_dir: Path, split: str = "test", max_side: int | None = None, device: str = "auto", report: Any = None, limit: int = 0) -> dict[str, Any]:
     """Render every view of a split: per-view and mean PSNR/SSIM (metrics.json) and an image grid PNG."""
     scene, model, meta, aabb = _trained(scene_dir, device)
@@ -137,6 +168,7 @@ def evaluate_scene(scene_dir: Path, out_dir: Path, split: str = "test", max_side
         raise ReconError(f"The scene has no '{split}' views to evaluate. Try --split val or --split train.")
     background = np.asarray(meta["background"], dtype=np.float32)
     views = load_views(scene, frames, max_side or meta["max_side"], report, f"{split} photos")
+    claim_eval_folder(out_dir, ["metrics.json", "grid.png", *(f"views/{v.name}.png" for v in views)])
     appearance = bool(meta.get("appearance"))  # trained with per-photo appearance: the left-half / right-half protocol
     if report:
         with report.task(f"rendering {len(views)} {split} views", total=None):
@@ -144,7 +176,6 @@ def evaluate_scene(scene_dir: Path, out_dir: Path, split: str = "test", max_side
     else:
         result = evaluate(model, views, aabb, background, keep=True, appearance=appearance)
     renders = result.pop("renders")
-    out_dir.mkdir(parents=True, exist_ok=True)
     write_previews(renders, out_dir / "views")
     _grid([r[1]["rgb"] for r in renders], [r[2] for r in renders], out_dir / "grid.png")
     result["split"] = split

@@ -354,13 +354,15 @@ def markdown(results: list[dict[str, Any]], limits: dict[str, float], load: tupl
 def run_profile(data: str, presets: list[str], out_dir: Path, overrides: list[str], report: Any, *,
                 warmup: int = 200, steps: int = 8) -> Path:
     """Profile each preset on ``data``; write ``out_dir/profile.md`` (and profile.json) and return its path."""
-    from recon.atomic import write_json_atomic
+    from recon.app.bench import claim_bench_folder, resolve_dataset
+    from recon.atomic import write_bytes_atomic, write_json_atomic
 
-    out_dir.mkdir(parents=True, exist_ok=True)
+    resolve_dataset(data)  # a data set that is not there fails before the folder is claimed
+    claim_bench_folder(out_dir)
     limits = machine_limits()
     results = [profile_preset(data, p, out_dir, overrides, report, warmup=warmup, steps=steps) for p in presets]
     path = out_dir / "profile.md"
-    path.write_text(markdown(results, limits, os.getloadavg()))
+    write_bytes_atomic(path, markdown(results, limits, os.getloadavg()))
     write_json_atomic(out_dir / "profile.json", {"limits": limits, "results": [
         {k: v for k, v in r.items() if k != "top_ops"} | ({"render": {k: v for k, v in r["render"].items() if k != "top_ops"}}
                                                           if "render" in r else {})

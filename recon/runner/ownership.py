@@ -1,8 +1,8 @@
 """Which folders recon may write into and which files in them it may replace: the one home of that rule.
 
 recon writes into a folder only when it is new or empty, or carries recon's own record for that kind of output
-(a scene's manifest.json for `recon run`, checked by the runner; `.recon-KIND.json` for a batch, an export or a
-render), and never into the root, the home folder, the photos or a stage folder of a scene. The record lists every
+(a scene's manifest.json for `recon run`, checked by the runner; `.recon-KIND.json` for a batch, an export, a
+render, a benchmark, an evaluation or an image fit), and never into the root, the home folder, the photos or a stage folder of a scene. The record lists every
 file recon put there, so a later run replaces only those: a file the user added is kept, and one that stands where
 recon would write is refused before anything is written, never overwritten.
 """
@@ -21,8 +21,10 @@ from recon.errors import InputError
 
 STAGING_PREFIX = ".recon-staging-"
 """Where an output is built before its files move into place: `OUT/.recon-staging-PID/`."""
-KIND_WORDS = {"batch": "a recon batch", "export": "a recon export", "render": "a recon render"}
-KIND_VERBS = {"batch": "write", "export": "export", "render": "render"}
+KIND_WORDS = {"batch": "a recon batch", "export": "a recon export", "render": "a recon render",
+              "bench": "a recon benchmark", "fit-image": "a recon image fit", "eval": "a recon evaluation"}
+KIND_VERBS = {"batch": "write", "export": "export", "render": "render", "bench": "write", "fit-image": "write",
+              "eval": "write"}
 
 
 def marker_name(kind: str) -> str:
