@@ -128,6 +128,10 @@ class TrainConfig:
     compile: Literal["auto", "on", "off"] = "auto"
     """torch.compile of the fast model's per-sample networks (recon/nerf/compiled.py): auto: on CUDA only (on a
     CPU the C marcher and fused torch kernels are faster than compiled ones, and compiling costs a minute)."""
+    optimizer: Literal["auto", "adam", "masked_adam"] = "auto"
+    """masked_adam: the fast model's grid values that no ray of a step touched keep their value and Adam moments
+    (DVGO's masked Adam; recon/nerf/masked_adam.py); adam: torch's Adam moves every value every step. auto:
+    masked_adam on a CPU with the native library (the C update skips the untouched values), adam elsewhere."""
     precision: Literal["fp32", "bf16"] = "fp32"
     """bf16: the networks' matrix math in bfloat16 (autocast; volume rendering stays fp32). Faster on GPUs and
     CPUs with AMX/AVX512-BF16, slower on older CPUs."""

@@ -516,7 +516,8 @@ class FastModel(RadianceModel):
         grids = list(self.density_grid.parameters()) + list(self.color_grid.parameters())
         if self.bg_logit is not None:
             grids.append(self.bg_logit)
-        groups = [{"params": grids, "lr": lr * self.config.grid_lr_scale}]
+        # masked: a step's rays touch few of the grids' values (MaskedAdam may leave the rest alone)
+        groups = [{"params": grids, "lr": lr * self.config.grid_lr_scale, "masked": True}]
         if self.color_mlp is not None:
             groups.append({"params": list(self.color_mlp.parameters()), "lr": lr})
         if self.sky is not None:

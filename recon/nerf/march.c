@@ -403,3 +403,35 @@ void recon_trilinear_backward(int64_t n, const float *u, const float *grad_out, 
             for (int64_t ch = 0; ch < channels; ++ch) base[corner[k] + ch] += w[k] * g[ch];
     }
 }
+
+/* One Adam step (torch.optim.Adam's, without weight decay) over n values, skipping every value whose gradient is
+ * exactly 0 when `masked` (DVGO's masked Adam: a dense grid's entries that no ray of the step touched keep their
+ * value and moments). step_size = lr / (1 - beta1^t), bias2_sqrt = sqrt(1 - beta2^t), as torch computes them;
+ * one_minus_beta1 and one_minus_beta2 come rounded from double (1.0f - 0.999f is 0.00100005f, not 0.001f).
+ * Blocks of ADAM_BLOCK values: a block without a gradient is skipped after one (vectorized) look, and a block with
+ * one is updated without branches, so the compiler vectorizes both loops. */
+#define ADAM_BLOCK 64
+void recon_adam(int64_t n, float *restrict param, const float *restrict grad, float *restrict exp_avg,
+                float *restrict exp_avg_sq, float one_minus_beta1, float beta2, float one_minus_beta2, float step_size,
+                float bias2_sqrt, float eps, int32_t masked)
+{
+    for (int64_t lo = 0; lo < n; lo += ADAM_BLOCK) {
+        const int64_t len = n - lo < ADAM_BLOCK ? n - lo : ADAM_BLOCK;
+        const float *g = grad + lo;
+        float *p = param + lo, *m = exp_avg + lo, *v = exp_avg_sq + lo;
+        if (masked) {
+            int any = 0;
+            for (int64_t j = 0; j < len; ++j) any |= g[j] != 0.0f;
+            if (!any) continue;
+        }
+        for (int64_t j = 0; j < len; ++j) {
+            const int keep = !masked || g[j] != 0.0f;
+            const float m_new = m[j] + (g[j] - m[j]) * one_minus_beta1;
+            const float v_new = v[j] * beta2 + one_minus_beta2 * g[j] * g[j];
+            const float p_new = p[j] - step_size * m_new / (sqrtf(v_new) / bias2_sqrt + eps);
+            m[j] = keep ? m_new : m[j];
+            v[j] = keep ? v_new : v[j];
+            p[j] = keep ? p_new : p[j];
+        }
+    }
+}

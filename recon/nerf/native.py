@@ -30,7 +30,7 @@ import torch
 from torch import Tensor
 
 __all__ = ["DenseDensity", "load_c_library", "native_marcher", "native_status", "march_dense_native",
-           "march_render_native", "native_grid_ok", "trilinear_features_native", "trilinear_backward_native"]
+           "march_render_native", "native_grid_ok", "trilinear_features_native", "trilinear_backward_native", "adam_native"]
 
 SOURCE = Path(__file__).with_name("march.c")
 CFLAGS = ["-O3", "-fPIC", "-shared", "-ffp-contract=off", "-fno-math-errno"]
@@ -97,6 +97,8 @@ def native_marcher() -> ctypes.CDLL | None:
     lib.recon_trilinear_features.argtypes = [i64, p, p, i64, i64, p]
     lib.recon_trilinear_backward.restype = None
     lib.recon_trilinear_backward.argtypes = [i64, p, p, i64, i64, p]
+    lib.recon_adam.restype = None
+    lib.recon_adam.argtypes = [i64, p, p, p, p, f32, f32, f32, f32, f32, f32, i32]
     _status = (f"native C (recon/nerf/march.c, built once into {_cache_dir()}): rays are marched in C (bounded and "
                "contracted steps), "
                "and renders read the feature grid in C (RECON_NATIVE=0: torch throughout)")
@@ -281,6 +283,25 @@ def trilinear_backward_native(x01: Tensor, grad_out: Tensor, res: int, out: Tens
     lib.recon_trilinear_backward(x01.shape[0], x01.data_ptr(), grad_out.data_ptr(), res, grad_out.shape[1],
                                  grad_table.data_ptr())
     return grad_table
+
+
+def adam_native(param: Tensor, grad: Tensor, exp_avg: Tensor, exp_avg_sq: Tensor, *, beta1: float, beta2: float,
+                step_size: float, bias2_sqrt: float, eps: float, masked: bool) -> bool:
+    """:func:`recon.nerf.masked_adam.adam_step_torch` in C over contiguous float32 CPU tensors, split over threads;
+    False (nothing done) where it does not apply: no library, another device or dtype, a strided tensor."""
+    tensors = (param, grad, exp_avg, exp_avg_sq)
+    if not native_grid_ok(*tensors) or not all(t.is_contiguous() and t.shape == param.shape for t in tensors):
+        return False
+    lib = native_marcher()
+    flat = [t.detach().view(-1) for t in tensors]
+
+    def part(lo: int, hi: int) -> None:
+        if hi > lo:
+            lib.recon_adam(hi - lo, *(t[lo:].data_ptr() for t in flat), 1.0 - beta1, beta2, 1.0 - beta2, step_size,
+                           bias2_sqrt, eps, int(masked))
+
+    _in_slices(flat[0].shape[0], part)
+    return True
 
 
 _pool: ThreadPoolExecutor | None = None

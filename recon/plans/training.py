@@ -417,6 +417,8 @@ class TrainPlan:
     compile: str | None
     """train.compile when the fast model's colour network is compiled, else None."""
     autocast: torch.dtype | None
+    optimizer: str
+    """"adam" or "masked_adam" (`choose_optimizer`)."""
     budget_s: float
     reasons: list[str]
     """Every choice's reason, in the order they are printed."""
@@ -465,6 +467,9 @@ def plan_training(cfg: TrainConfig, scene: Scene, views: list[View], device: tor
         from recon.nerf.kernels import kernels_choice
 
         reasons.append(kernels_choice(cfg.fast.kernels, device.type)[1])
+    optimizer, optimizer_why = choose_optimizer(cfg, kind, device)
+    if optimizer_why:
+        reasons.append(optimizer_why)
     depth_prior, depth_why = depth_prior_for(cfg, kind, scene, frames, views, kwargs)
     reasons.append(depth_why)
     return TrainPlan(
@@ -475,8 +480,24 @@ def plan_training(cfg: TrainConfig, scene: Scene, views: list[View], device: tor
         start_sdf=start_sdf, appearance=appearance, appearance_why=appearance_why, pose_refine=pose_refine,
         pose_why=pose_why, depth_prior=depth_prior,
         compile=cfg.compile if kind == "fast" and compile_wanted(cfg.compile, device)[0] else None,
-        autocast=torch.bfloat16 if cfg.precision == "bf16" else None, budget_s=budget_s, reasons=reasons,
+        autocast=torch.bfloat16 if cfg.precision == "bf16" else None, optimizer=optimizer, budget_s=budget_s,
+        reasons=reasons,
     )
+
+
+def choose_optimizer(cfg: TrainConfig, kind: str, device: torch.device) -> tuple[str, str]:
+    """train.optimizer for this model on this device, and why ("" where there is nothing to say: no grid model)."""
+    from recon.nerf.native import native_marcher
+
+    if kind != "fast":
+        return "adam", ""
+    if cfg.optimizer != "auto":
+        return cfg.optimizer, f"optimizer: {cfg.optimizer} (train.optimizer={cfg.optimizer})"
+    if device.type == "cpu" and native_marcher() is not None:
+        return "masked_adam", ("optimizer: masked Adam (train.optimizer=auto on a CPU): a step's rays touch few of the "
+                               "grids' values, and updating only those, in C, spares the pass over all of them")
+    return "adam", (f"optimizer: Adam on every grid value (train.optimizer=auto: "
+                    f"{'a GPU updates them all in one fused pass' if device.type != 'cpu' else 'no native library here'})")
 
 
 @dataclass
@@ -532,6 +553,6 @@ def build_training(plan: TrainPlan, device: torch.device) -> TrainSetup:
         pose_refine = PoseRefinement(len(plan.views), centres=c2w[:, :3, 3]).to(device)
         pieces.append(PoseRefine(pose_refine, batcher.aabb))
     step_kwargs = {"lr": plan.lr, "lr_final": plan.lr_final, "batch_rays": plan.batch_rays, "autocast": plan.autocast,
-                   "pieces": pieces}
+                   "pieces": pieces, "optimizer": plan.optimizer}
     return TrainSetup(model=model, batcher=batcher, step_kwargs=step_kwargs, aabb=aabb, c2w=c2w,
                       appearance=appearance, pose_refine=pose_refine, notes=notes)

@@ -1,0 +1,127 @@
+"""MaskedAdam (recon/nerf/masked_adam.py): torch's Adam where every value has a gradient, untouched values left alone
+in a masked group; the C update (recon.nerf.native.adam_native) against the torch reference; the train stage's
+choice of optimizer and a fast model trained with it."""
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from recon.nerf.masked_adam import MaskedAdam, adam_step_torch
+from recon.nerf.native import adam_native, native_marcher
+
+needs_native = pytest.mark.skipif(native_marcher() is None, reason="the native library did not build here (no cc)")
+
+
+def _problem(n: int, seed: int, zero_share: float) -> tuple[torch.Tensor, torch.Tensor]:
+    g = torch.Generator().manual_seed(seed)
+    start = torch.randn(n, generator=g)
+    grad = torch.randn(n, generator=g) * torch.logspace(-6, 2, n)[torch.randperm(n, generator=g)]
+    grad[torch.rand(n, generator=g) < zero_share] = 0.0
+    return start, grad
+
+
+def _steps(optimizer: type, masked: bool, start: torch.Tensor, grads: list[torch.Tensor], **kw: object) -> list[torch.Tensor]:
+    p = torch.nn.Parameter(start.clone())
+    opt = optimizer([{"params": [p], "masked": masked}], lr=0.05, **kw)
+    for grad in grads:
+        p.grad = grad.clone()
+        opt.step()
+    state = opt.state[p]
+    return [p.detach(), state["exp_avg"], state["exp_avg_sq"]]
+
+
+def test_where_every_value_has_a_gradient_it_is_torchs_adam() -> None:
+    start, _ = _problem(1000, 0, 0.0)
+    grads = [_problem(1000, s, 0.0)[1] for s in range(1, 6)]
+    for masked in (False, True):
+        for got, want in zip(_steps(MaskedAdam, masked, start, grads), _steps(torch.optim.Adam, False, start, grads),
+                             strict=True):
+            torch.testing.assert_close(got, want, rtol=2e-6, atol=1e-7)
+
+
+def test_a_masked_group_leaves_values_without_a_gradient_alone() -> None:
+    start, _ = _problem(500, 0, 0.0)
+    grads = [_problem(500, s, 0.5)[1] for s in range(1, 4)]
+    grads[-1][:100] = 0.0  # the first 100 get no gradient in the last step: Adam would still move them (momentum)
+    p, m, v = _steps(MaskedAdam, True, start, grads)
+    before = _steps(MaskedAdam, True, start, grads[:-1])
+    for now, earlier in zip((p, m, v), before, strict=True):
+        assert torch.equal(now[:100], earlier[:100])
+    never = (torch.stack(grads) == 0).all(0)
+    assert never.any() and torch.equal(p[never], start[never]) and not m[never].any() and not v[never].any()
+    adam = _steps(torch.optim.Adam, False, start, grads)[0]
+    assert not torch.equal(adam[:100], before[0][:100])  # unmasked Adam moves them: the test tells the two apart
+    unmasked = _steps(MaskedAdam, False, start, grads)
+    torch.testing.assert_close(unmasked[0], adam, rtol=2e-6, atol=1e-7)
+
+
+@needs_native
+@pytest.mark.parametrize("masked", [True, False])
+@pytest.mark.parametrize("n", [1, 63, 64, 65, 5000, 300_001])
+def test_the_c_update_matches_the_torch_reference(masked: bool, n: int) -> None:
+    """Sizes around the C code's 64-value blocks and a large one split over threads; gradients from 1e-6 to 1e2, a
+    third exactly 0 (whole blocks of them too), moments already non-zero."""
+    start, grad = _problem(n, 3, 1 / 3)
+    grad[: min(n, 200)] = 0.0
+    g = torch.Generator().manual_seed(9)
+    m0, v0 = torch.randn(n, generator=g) * 0.1, torch.rand(n, generator=g) * 0.01
+    kwargs = {"beta1": 0.9, "beta2": 0.999, "step_size": 0.05 / (1 - 0.9**7), "bias2_sqrt": math.sqrt(1 - 0.999**7),
+              "eps": 1e-8, "masked": masked}
+    native = [start.clone(), grad, m0.clone(), v0.clone()]
+    reference = [start.clone(), grad, m0.clone(), v0.clone()]
+    assert adam_native(*native, **kwargs)
+    adam_step_torch(*reference, **kwargs)
+    for name, a, b in zip(("param", "exp_avg", "exp_avg_sq"), native[::2] + native[3:], reference[::2] + reference[3:],
+                          strict=True):
+        torch.testing.assert_close(a, b, rtol=1e-6, atol=1e-7, msg=lambda msg, name=name: f"{name}: {msg}")
+    if masked:
+        assert torch.equal(native[0][grad == 0], start[grad == 0])
+
+
+def test_the_c_update_declines_what_it_cannot_take() -> None:
+    x = torch.zeros(8, dtype=torch.float64)
+    kwargs = {"beta1": 0.9, "beta2": 0.999, "step_size": 0.1, "bias2_sqrt": 0.1, "eps": 1e-8, "masked": True}
+    assert not adam_native(x, x, x, x, **kwargs)
+    y = torch.zeros(4, 4)[:, 0]  # strided
+    assert not adam_native(y, y, y, y, **kwargs)
+
+
+def test_the_train_stage_picks_masked_adam_on_a_cpu_and_says_why(monkeypatch: pytest.MonkeyPatch) -> None:
+    import recon.nerf.native as native
+    from recon.config import load_config
+    from recon.plans.training import choose_optimizer
+
+    cfg = load_config("fast", []).train
+    cpu, cuda = torch.device("cpu"), torch.device("cuda")
+    if native_marcher() is not None:
+        name, why = choose_optimizer(cfg, "fast", cpu)
+        assert name == "masked_adam" and "touch few" in why
+    assert choose_optimizer(cfg, "fast", cuda)[0] == "adam"
+    assert choose_optimizer(cfg, "surface", cpu) == ("adam", "")
+    forced = load_config("fast", ["train.optimizer=adam"]).train
+    assert choose_optimizer(forced, "fast", cpu) == ("adam", "optimizer: adam (train.optimizer=adam)")
+    monkeypatch.setattr(native, "native_marcher", lambda: None)
+    name, why = choose_optimizer(cfg, "fast", cpu)
+    assert name == "adam" and "no native library" in why
+
+
+def test_a_fast_model_learns_with_masked_adam_and_its_untouched_grid_values_stay() -> None:
+    """The fast model's grids are the masked group: values outside every ray's reach keep their start."""
+    from recon.nerf.fast import FastConfig, FastModel
+    from recon.nerf.fitting import RayBatcher
+    from recon.nerf.trainer import train
+    from tests.ball_scene import AABB, ball_views
+
+    images, c2w, intr = ball_views()
+    torch.manual_seed(0)
+    model = FastModel(FastConfig(aabb=AABB.tolist(), density_res=24, feature_res=16, feature_dim=4, mlp_width=16,
+                                 occupancy_res=16, occupancy_warmup=0, shrink_step=0))
+    start = model.color_grid.table.detach().clone()
+    seen: list[float] = []
+    train(model, RayBatcher(images, c2w, intr, aabb=AABB, seed=0), steps=120, lr=1e-2, batch_rays=256,
+          optimizer="masked_adam", callbacks=[lambda p: seen.append(p.psnr)])
+    assert sum(seen[-10:]) / 10 > sum(seen[:10]) / 10 + 5.0
+    kept = (model.color_grid.table.detach() == start).all(1)
+    assert 0 < int(kept.sum()) < kept.shape[0]  # some values were never reached, and kept their start exactly
