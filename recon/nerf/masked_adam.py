@@ -74,7 +74,7 @@ class MaskedAdam(torch.optim.Optimizer):
                 t = float(state["step"])
                 kwargs = {"beta1": beta1, "beta2": beta2, "step_size": group["lr"] / (1.0 - beta1**t),
                           "bias2_sqrt": math.sqrt(1.0 - beta2**t), "eps": group["eps"],
-                          "masked": bool(group["masked"])}
+                          "masked": bool(group.get("masked", False))}
                 if not adam_native(p, p.grad, state["exp_avg"], state["exp_avg_sq"], **kwargs):
                     adam_step_torch(p, p.grad, state["exp_avg"], state["exp_avg_sq"], **kwargs)
         return loss
