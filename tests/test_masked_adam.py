@@ -80,6 +80,44 @@ def test_the_c_update_matches_the_torch_reference(masked: bool, n: int) -> None:
         assert torch.equal(native[0][grad == 0], start[grad == 0])
 
 
+@needs_native
+def test_zero_grad_keeps_only_the_gradients_a_step_left_all_zero() -> None:
+    grid, net = torch.nn.Parameter(torch.randn(300)), torch.nn.Parameter(torch.randn(5))
+    opt = MaskedAdam([{"params": [grid], "masked": True}, {"params": [net]}], lr=0.1)
+    grid.grad, net.grad = _problem(300, 1, 0.8)[1], torch.ones(5)
+    held = grid.grad
+    opt.step()
+    assert not held.any()  # the masked update used its gradients and set them to 0
+    opt.zero_grad()
+    assert grid.grad is held and net.grad is None
+    grid.grad.add_(_problem(300, 2, 0.8)[1])  # the next backward adds into it
+    net.grad = torch.ones(5)
+    opt.step()
+    assert grid.grad is held and not held.any()
+    held.add_(1.0)  # changed since the step: not known to be 0 any more
+    opt.zero_grad()
+    assert grid.grad is None
+
+
+@needs_native
+def test_a_gradient_written_in_c_after_the_step_is_not_kept() -> None:
+    """A dense grid's C backward writes into the kept gradient through a pointer; it says so (the tensor's version),
+    so a zero_grad after a backward that no step followed drops what that backward wrote."""
+    from recon.nerf.grid import DenseGrid
+
+    grid = DenseGrid(8, 2, init_std=0.1)
+    opt = MaskedAdam([{"params": list(grid.parameters()), "masked": True}], lr=0.1)
+    x = torch.rand(50, 3)
+    grid(x).sum().backward()
+    opt.step()
+    kept = grid.table.grad
+    assert kept is not None and not kept.any()
+    grid(x).sum().backward()  # into the kept gradient, in C, before any zero_grad
+    assert grid.table.grad is kept and kept.any()
+    opt.zero_grad()
+    assert grid.table.grad is None
+
+
 def test_the_c_update_declines_what_it_cannot_take() -> None:
     x = torch.zeros(8, dtype=torch.float64)
     kwargs = {"beta1": 0.9, "beta2": 0.999, "step_size": 0.1, "bias2_sqrt": 0.1, "eps": 1e-8, "masked": True}
@@ -107,8 +145,7 @@ def test_the_train_stage_picks_masked_adam_on_a_cpu_and_says_why(monkeypatch: py
     assert name == "adam" and "no native library" in why
 
 
-def test_a_fast_model_learns_with_masked_adam_and_its_untouched_grid_values_stay() -> None:
-    """The fast model's grids are the masked group: values outside every ray's reach keep their start."""
+def _trained_fast_model(steps: int) -> tuple[torch.nn.Module, torch.Tensor, list[float]]:
     from recon.nerf.fast import FastConfig, FastModel
     from recon.nerf.fitting import RayBatcher
     from recon.nerf.trainer import train
@@ -120,8 +157,25 @@ def test_a_fast_model_learns_with_masked_adam_and_its_untouched_grid_values_stay
                                  occupancy_res=16, occupancy_warmup=0, shrink_step=0))
     start = model.color_grid.table.detach().clone()
     seen: list[float] = []
-    train(model, RayBatcher(images, c2w, intr, aabb=AABB, seed=0), steps=120, lr=1e-2, batch_rays=256,
+    train(model, RayBatcher(images, c2w, intr, aabb=AABB, seed=0), steps=steps, lr=1e-2, batch_rays=256,
           optimizer="masked_adam", callbacks=[lambda p: seen.append(p.psnr)])
+    return model, start, seen
+
+
+def test_a_fast_model_learns_with_masked_adam_and_its_untouched_grid_values_stay() -> None:
+    """The fast model's grids are the masked group: values outside every ray's reach keep their start."""
+    model, start, seen = _trained_fast_model(120)
     assert sum(seen[-10:]) / 10 > sum(seen[:10]) / 10 + 5.0
     kept = (model.color_grid.table.detach() == start).all(1)
     assert 0 < int(kept.sum()) < kept.shape[0]  # some values were never reached, and kept their start exactly
+
+
+@needs_native
+def test_keeping_the_zeroed_gradients_changes_nothing(monkeypatch: pytest.MonkeyPatch) -> None:
+    """MaskedAdam keeps the grids' gradients it left all 0 (the next backward adds into them unzeroed): the same
+    training, bit for bit, as dropping them every step."""
+    kept, _, _ = _trained_fast_model(25)
+    monkeypatch.setattr(MaskedAdam, "zero_grad", torch.optim.Optimizer.zero_grad)
+    dropped, _, _ = _trained_fast_model(25)
+    for (name, a), b in zip(kept.state_dict().items(), dropped.state_dict().values(), strict=True):
+        assert torch.equal(a, b), name

@@ -31,6 +31,7 @@ from collections.abc import Callable
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
+from torch.autograd.graph import increment_version
 
 from recon.nerf.kernels import trilinear_levels_triton, use_triton
 from recon.nerf.native import native_grid_ok, trilinear_backward_native, trilinear_features_native
@@ -142,6 +143,7 @@ class _NativeTrilinear(torch.autograd.Function):
         held = table.grad
         if held is not None and held.is_contiguous() and held.dtype == torch.float32 and held.shape == table.shape:
             trilinear_backward_native(x01, g, grid.res, out=held, accumulate=True)
+            increment_version(held)  # written through a pointer: say so (MaskedAdam keeps only unchanged zero grads)
         else:
             buffer = grid._grad_buffer
             if buffer is None or buffer.shape != table.shape or buffer is held:

@@ -409,15 +409,16 @@ void recon_trilinear_backward(int64_t n, const float *u, const float *grad_out, 
  * value and moments). step_size = lr / (1 - beta1^t), bias2_sqrt = sqrt(1 - beta2^t), as torch computes them;
  * one_minus_beta1 and one_minus_beta2 come rounded from double (1.0f - 0.999f is 0.00100005f, not 0.001f).
  * Blocks of ADAM_BLOCK values: a block without a gradient is skipped after one (vectorized) look, and a block with
- * one is updated without branches, so the compiler vectorizes both loops. */
+ * one is updated without branches, so the compiler vectorizes both loops. With `clear` (masked only) the gradients it
+ * used are set to 0, so the whole gradient is 0 afterwards and the next backward can add into it unzeroed. */
 #define ADAM_BLOCK 64
-void recon_adam(int64_t n, float *restrict param, const float *restrict grad, float *restrict exp_avg,
+void recon_adam(int64_t n, float *restrict param, float *restrict grad, float *restrict exp_avg,
                 float *restrict exp_avg_sq, float one_minus_beta1, float beta2, float one_minus_beta2, float step_size,
-                float bias2_sqrt, float eps, int32_t masked)
+                float bias2_sqrt, float eps, int32_t masked, int32_t clear)
 {
     for (int64_t lo = 0; lo < n; lo += ADAM_BLOCK) {
         const int64_t len = n - lo < ADAM_BLOCK ? n - lo : ADAM_BLOCK;
-        const float *g = grad + lo;
+        float *g = grad + lo;
         float *p = param + lo, *m = exp_avg + lo, *v = exp_avg_sq + lo;
         if (masked) {
             int any = 0;
@@ -433,5 +434,7 @@ void recon_adam(int64_t n, float *restrict param, const float *restrict grad, fl
             v[j] = keep ? v_new : v[j];
             p[j] = keep ? p_new : p[j];
         }
+        if (masked && clear)
+            for (int64_t j = 0; j < len; ++j) g[j] = 0.0f;
     }
 }

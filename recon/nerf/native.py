@@ -98,7 +98,7 @@ def native_marcher() -> ctypes.CDLL | None:
     lib.recon_trilinear_backward.restype = None
     lib.recon_trilinear_backward.argtypes = [i64, p, p, i64, i64, p]
     lib.recon_adam.restype = None
-    lib.recon_adam.argtypes = [i64, p, p, p, p, f32, f32, f32, f32, f32, f32, i32]
+    lib.recon_adam.argtypes = [i64, p, p, p, p, f32, f32, f32, f32, f32, f32, i32, i32]
     _status = (f"native C (recon/nerf/march.c, built once into {_cache_dir()}): rays are marched in C (bounded and "
                "contracted steps), "
                "and renders read the feature grid in C (RECON_NATIVE=0: torch throughout)")
@@ -286,9 +286,10 @@ def trilinear_backward_native(x01: Tensor, grad_out: Tensor, res: int, out: Tens
 
 
 def adam_native(param: Tensor, grad: Tensor, exp_avg: Tensor, exp_avg_sq: Tensor, *, beta1: float, beta2: float,
-                step_size: float, bias2_sqrt: float, eps: float, masked: bool) -> bool:
+                step_size: float, bias2_sqrt: float, eps: float, masked: bool, clear: bool = False) -> bool:
     """:func:`recon.nerf.masked_adam.adam_step_torch` in C over contiguous float32 CPU tensors, split over threads;
-    False (nothing done) where it does not apply: no library, another device or dtype, a strided tensor."""
+    False (nothing done) where it does not apply: no library, another device or dtype, a strided tensor.
+    ``clear`` (with ``masked``): set the gradients it used to 0, leaving ``grad`` all 0."""
     tensors = (param, grad, exp_avg, exp_avg_sq)
     if not native_grid_ok(*tensors) or not all(t.is_contiguous() and t.shape == param.shape for t in tensors):
         return False
@@ -298,7 +299,7 @@ def adam_native(param: Tensor, grad: Tensor, exp_avg: Tensor, exp_avg_sq: Tensor
     def part(lo: int, hi: int) -> None:
         if hi > lo:
             lib.recon_adam(hi - lo, *(t[lo:].data_ptr() for t in flat), 1.0 - beta1, beta2, 1.0 - beta2, step_size,
-                           bias2_sqrt, eps, int(masked))
+                           bias2_sqrt, eps, int(masked), int(clear))
 
     _in_slices(flat[0].shape[0], part)
     return True
