@@ -128,22 +128,16 @@ REPORT_FILES = ("bench.json", "bench.md", "bench.png", "bench_accuracy.png", "be
 def claim_bench_folder(out_dir: Path) -> None:
     """Check that `recon bench` may write into `out_dir` (recon.runner.ownership), before anything runs: a new or empty
     folder or an earlier benchmark's, where a file of the user's in the place of a report is refused, never replaced.
-    The scenes inside are recon scenes, which the pipeline itself will only reuse, never replace. A benchmark folder
-    from before benchmarks kept a record is taken as recon's when it holds nothing but reports and scenes."""
-    from recon.runner.ownership import OwnedFolder, claim_folder
+    The scenes inside are recon scenes, which the pipeline itself will only reuse, never replace."""
+    from recon.runner.ownership import claim_names
     from recon.stages import scene_parts
 
-    earlier = OwnedFolder(out_dir, "bench")
-    if out_dir.is_dir() and not out_dir.is_symlink() and not earlier.marker.exists() and _earlier_bench(out_dir):
-        earlier.save({p.name for p in out_dir.iterdir() if p.name in REPORT_FILES})
-    owned = claim_folder(out_dir, "bench", scene_parts)
-    owned.check_free(REPORT_FILES)
-    owned.save(owned.files | set(REPORT_FILES))
+    claim_names(out_dir, "bench", scene_parts, REPORT_FILES, _unrecorded_bench)
 
 
-def _earlier_bench(folder: Path) -> bool:
-    """Does `folder` hold a benchmark recon wrote before it kept a record: its bench.json (rows with a preset's name,
-    PSNR and commit) or profile.json, and besides them only report files and recon scenes (a manifest.json each)?"""
+def _unrecorded_bench(folder: Path) -> set[str] | None:
+    """The reports of a benchmark folder without a record, when it holds nothing else but recon scenes (a
+    manifest.json each) and its bench.json (rows with a preset's name, PSNR and commit) or profile.json is recon's."""
     rows: Any = None
     with contextlib.suppress(OSError, ValueError):
         rows = read_json(folder / "bench.json") if (folder / "bench.json").is_file() else None
@@ -153,9 +147,11 @@ def _earlier_bench(folder: Path) -> bool:
     with contextlib.suppress(OSError, ValueError):
         profile = read_json(folder / "profile.json") if (folder / "profile.json").is_file() else None
     ours = ours or isinstance(profile, dict) and {"limits", "results"} <= profile.keys()
-    return ours and all(p.name in REPORT_FILES and p.is_file() and not p.is_symlink()
-                        or p.is_dir() and not p.is_symlink() and (p / "manifest.json").is_file()
-                        for p in folder.iterdir())
+    entries = list(folder.iterdir())
+    if not ours or not all(p.name in REPORT_FILES and p.is_file() and not p.is_symlink()
+                           or p.is_dir() and not p.is_symlink() and (p / "manifest.json").is_file() for p in entries):
+        return None
+    return {p.name for p in entries if p.name in REPORT_FILES}
 
 
 def prepare_scene(data: str, out_dir: Path, config: Any, report: Reporter) -> Path:

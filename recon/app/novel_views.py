@@ -18,7 +18,7 @@ from recon.capture.scene import Scene, load_scene, spread_evenly
 from recon.errors import ReconError
 from recon.evaluation.views import View, evaluate, load_views, render_view, write_previews
 from recon.field import load_field
-from recon.runner.ownership import OwnedFolder, claim_folder
+from recon.runner.ownership import OwnedFolder, claim_folder, claim_names
 
 PathKind = Literal["orbit", "spiral", "train", "test"]
 
@@ -134,29 +134,30 @@ EVAL_FILES = ("metrics.json", "grid.png", "silhouette_iou.json", "mesh_accuracy.
 
 def claim_eval_folder(out_dir: Path, names: list[str]) -> OwnedFolder:
     """Check that `recon eval` may write `names` into `out_dir` (recon.runner.ownership), before it renders: a new or
-    empty folder or an earlier evaluation's, where a file of the user's in the way is refused, never replaced. An
-    evaluation folder from before evaluations kept a record is taken as recon's when it holds only what one writes."""
-    from recon.atomic import read_json
+    empty folder or an earlier evaluation's, where a file of the user's in the way is refused, never replaced."""
     from recon.stages import scene_parts
 
-    earlier = OwnedFolder(out_dir, "eval")
-    if out_dir.is_dir() and not out_dir.is_symlink() and not earlier.marker.exists():
-        def ours(name: str) -> bool:
-            try:
-                doc = read_json(out_dir / name)
-            except (OSError, ValueError):
-                return False
-            return isinstance(doc, dict) and ("views" in doc or "chamfer_l1_rel" in doc)
+    return claim_names(out_dir, "eval", scene_parts, names, _unrecorded_eval)
 
-        files = [p.relative_to(out_dir).as_posix() for p in out_dir.rglob("*") if not p.is_dir()]
-        if (any(ours(n) for n in EVAL_FILES if n.endswith(".json") and n in files)
-                and all(n in EVAL_FILES or n.startswith("views/") and n.count("/") == 1 and n.endswith(".png")
-                        and not (out_dir / n).is_symlink() for n in files)):
-            earlier.save(files)
-    owned = claim_folder(out_dir, "eval", scene_parts)
-    owned.check_free(names)
-    owned.save(owned.files | set(names))  # recorded before they are written: a crash leaves them recon's
-    return owned
+
+def _unrecorded_eval(folder: Path) -> list[str] | None:
+    """The files of an evaluation folder without a record, when it holds only what `recon eval` writes and one of its
+    JSON files is recon's (per-view rows or a mesh comparison)."""
+    from recon.atomic import read_json
+
+    def ours(name: str) -> bool:
+        try:
+            doc = read_json(folder / name)
+        except (OSError, ValueError):
+            return False
+        return isinstance(doc, dict) and ("views" in doc or "chamfer_l1_rel" in doc)
+
+    files = [p.relative_to(folder).as_posix() for p in folder.rglob("*") if not p.is_dir()]
+    if (any(ours(n) for n in EVAL_FILES if n.endswith(".json") and n in files)
+            and all(n in EVAL_FILES or n.startswith("views/") and n.count("/") == 1 and n.endswith(".png")
+                    and not (folder / n).is_symlink() for n in files)):
+        return files
+    return None
 
 
 def evaluate_scene(scene_dir: Path, out_dir: Path, split: str = "test", max_side: int | None = None, device: str = "auto", report: Any = None, limit: int = 0) -> dict[str, Any]:

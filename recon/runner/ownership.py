@@ -262,3 +262,22 @@ def claim_folder(out: Path, kind: str, scene_parts: Callable[[], Collection[str]
         f"Refusing to write {what} into {out}: {holds}. recon writes only into a new or empty folder or one it made "
         f"for the same kind of output, so that it never replaces your files: give {option} another folder."
     )
+
+
+def claim_names(out: Path, kind: str, scene_parts: Callable[[], Collection[str]], names: Iterable[str],
+                unrecorded: Callable[[Path], Collection[str] | None] = lambda folder: None) -> OwnedFolder:
+    """`claim_folder` for an output written file by file into `out` (not built in a staging folder): each of `names`
+    is refused where a file recon did not write stands, then recorded as recon's before it is written (a crash leaves
+    it recon's). `unrecorded(out)`, for a folder without this kind's record: the files it holds when all of them are
+    this kind's output (as recon left such folders before it kept a record), else None (the folder stays refused)."""
+    earlier = OwnedFolder(out, kind)
+    if out.is_dir() and not out.is_symlink() and not earlier.marker.exists():
+        files = unrecorded(out)
+        if files is not None:
+            earlier.save(files)
+    owned = claim_folder(out, kind, scene_parts)
+    names = list(names)
+    owned.check_free(names)
+    owned.save(owned.files | set(names))
+    return owned
+
