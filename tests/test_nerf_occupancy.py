@@ -9,7 +9,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from recon.nerf.grid import trilinear_reference
-from recon.nerf.occupancy import OccupancyGrid, density_threshold, march
+from recon.nerf.occupancy import OccupancyGrid, cells_with_a_vertex, density_threshold, march
 
 AABB = torch.tensor([[-1.0, -0.5, -1.5], [1.0, 1.5, 0.5]])
 
@@ -62,6 +62,21 @@ def test_grid_never_culls_where_the_field_is_above_threshold(res: int, seed: int
     kept = set(zip(ri.tolist(), [round(v, 9) for v in ts.tolist()]))
     needed = set(zip(ri_all[need].tolist(), [round(v, 9) for v in ts_all[need].tolist()]))
     assert needed <= kept
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.integers(1, 9), st.integers(1, 9), st.integers(1, 9), st.integers(0, 2**31 - 1), st.floats(0.0, 1.0))
+def test_a_cell_is_occupied_when_any_of_its_corners_is_above(nx: int, ny: int, nz: int, seed: int, share: float) -> None:
+    """The separable OR against a max-pool of 2, stride 1 (the plain definition) on any grid shape, and one vertex
+    set occupies exactly the cells around it."""
+    above = torch.rand(nx + 1, ny + 1, nz + 1, generator=torch.Generator().manual_seed(seed)) < share
+    pooled = torch.nn.functional.max_pool3d(above.float()[None, None], kernel_size=2, stride=1)[0, 0] > 0
+    assert torch.equal(cells_with_a_vertex(above), pooled)
+    one = torch.zeros(5, 5, 5, dtype=torch.bool)
+    one[2, 0, 4] = True
+    cells = cells_with_a_vertex(one)
+    assert cells.shape == (4, 4, 4) and set(map(tuple, cells.nonzero().tolist())) == {
+        (i, 0, 3) for i in (1, 2)}
 
 
 def test_ema_keeps_the_max_of_decayed_history_and_warmup_counts_all() -> None:

@@ -187,8 +187,7 @@ class OccupancyGrid(nn.Module):
         self.faint = not bool(above.any())
         if self.faint:  # nothing would stay: keep marching where the grid marched (all of it, straight after warm-up)
             return
-        cell = torch.nn.functional.max_pool3d(above.float()[None, None], kernel_size=2, stride=1)[0, 0]
-        self.occupied.copy_(cell > 0)
+        self.occupied.copy_(cells_with_a_vertex(above))
         self.warm.fill_(True)
         self._warm_on_host = True
 
@@ -233,6 +232,15 @@ class OccupancyGrid(nn.Module):
         lo, hi = idx.amin(0).to(self.box.dtype), idx.amax(0).to(self.box.dtype) + 1
         size = (self.box[1] - self.box[0]) / self.res
         return torch.stack((self.box[0] + lo * size, self.box[0] + hi * size))
+
+
+def cells_with_a_vertex(above: Tensor) -> Tensor:
+    """Cells (R, R, R) bool of which at least one of the 8 corner vertices is set in ``above`` (R + 1, R + 1, R + 1):
+    ORs of neighbouring slices along each axis in turn, a max-pool of 2 with stride 1 done separably (torch's CPU
+    ``max_pool3d`` took a hundred times as long on a 97³ grid, every refresh)."""
+    above = above[1:] | above[:-1]
+    above = above[:, 1:] | above[:, :-1]
+    return above[:, :, 1:] | above[:, :, :-1]
 
 
 def _sample_counts(t_near: Tensor, t_far: Tensor, step: float, cone: float, max_samples: int):
