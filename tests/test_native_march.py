@@ -125,6 +125,33 @@ def test_a_failed_build_falls_back_to_torch(monkeypatch: pytest.MonkeyPatch, tmp
 
 
 @needs_native
+def test_a_compiler_without_host_flags_gets_the_portable_build(monkeypatch: pytest.MonkeyPatch, tmp_path) -> None:
+    """The library is built for this CPU first (HOST_CFLAGS); a compiler that refuses that gets the portable flags,
+    and a build for this CPU is cached under a key that names the CPU, so another kind of CPU builds its own."""
+    import shutil
+
+    cc = next(c for c in ("cc", "gcc", "clang") if shutil.which(c))
+    picky = tmp_path / "picky-cc"
+    picky.write_text(f'#!/bin/sh\nfor a in "$@"; do [ "$a" = "{native.HOST_CFLAGS[0]}" ] && exit 1; done\n'
+                     f'exec {cc} "$@"\n')
+    picky.chmod(0o755)
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    monkeypatch.setenv("CC", str(picky))
+    native.native_marcher.cache_clear()
+    try:
+        assert native.native_marcher() is not None
+        built = sorted(p.name for p in (tmp_path / "cache" / "recon" / "native").glob("march-*.so"))
+        assert built == [native._target(native.SOURCE, native.CFLAGS).name]
+    finally:
+        native.native_marcher.cache_clear()
+    host = [*native.CFLAGS, *native.HOST_CFLAGS]
+    here = native._target(native.SOURCE, host)
+    monkeypatch.setattr(native, "_cpu_signature", lambda: "model name: another CPU")
+    assert native._target(native.SOURCE, host) != here
+    assert native._target(native.SOURCE, native.CFLAGS).name in built  # the portable build is the same anywhere
+
+
+@needs_native
 @pytest.mark.parametrize("channels", [1, 12])
 def test_native_grid_reads_train_as_the_torch_paths(channels: int) -> None:
     """Values and table gradients of the C reads equal torch's (grid_sample for one channel, the gather for more);

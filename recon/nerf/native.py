@@ -4,8 +4,9 @@ Why: the torch marcher costs ~25 tensor passes over every candidate step (millio
 empty cells) and three ``grid_sample`` calls per density; in C a candidate is a few flops. Here: the
 march (occupancy, empty-block jumps, density levels, early termination; when rendering, compositing too) and
 dense grids' trilinear reads and their table gradient. The library is plain C with no Python or torch headers,
-so it builds in about a second with ``cc``; it is cached under ``~/.cache/recon`` (``$XDG_CACHE_HOME``) keyed by
-the source's hash, and loaded with ctypes. Nothing depends on it: with no compiler, a failed build, a CUDA
+so it builds in about a second with ``cc``, for this machine's CPU (its vector instructions) where the compiler can;
+it is cached under ``~/.cache/recon`` (``$XDG_CACHE_HOME``) keyed by the source's hash, the flags and the CPU, and
+loaded with ctypes. Nothing depends on it: with no compiler, a failed build, a CUDA
 tensor, or ``RECON_NATIVE=0``, callers use the torch paths, which compute the same samples and values
 (``tests/test_native_march.py`` holds the two together). Rays are split over threads (ctypes releases the GIL),
 one per torch CPU thread. Measurements: docs/profile.md.
@@ -16,6 +17,7 @@ import ctypes
 import hashlib
 import math
 import os
+import platform
 import shutil
 import subprocess
 import tempfile
@@ -35,6 +37,11 @@ __all__ = ["DenseDensity", "load_c_library", "native_marcher", "native_status", 
 SOURCE = Path(__file__).with_name("march.c")
 CFLAGS = ["-O3", "-fPIC", "-shared", "-ffp-contract=off", "-fno-math-errno"]
 """No fused multiply-adds, so steps and cells round as torch's separate multiply and add do."""
+HOST_CFLAGS = ["-march=native"]
+"""Tried first: the loops vectorize over the CPU's widest registers (AVX-512 where there is one, not SSE2's four
+floats); the same IEEE operations in the same order, so the same results. A compiler that refuses it gets CFLAGS
+alone. Such a build runs only on CPUs like the one it was built on, so the cache key holds the CPU's model and
+feature flags (a home folder shared by several machines keeps one build per kind of CPU)."""
 
 _status = "not loaded yet"
 T = TypeVar("T")
@@ -45,17 +52,40 @@ def _cache_dir() -> Path:
     return Path(base) / "recon" / "native"
 
 
-def _build(compiler: str, source: Path, target: Path) -> None:
+@lru_cache(maxsize=1)
+def _cpu_signature() -> str:
+    """This CPU's model and feature flags (Linux: /proc/cpuinfo's first processor), for the cache key of a build
+    for this CPU."""
+    try:
+        lines = Path("/proc/cpuinfo").read_text(errors="replace").split("\n\n")[0].splitlines()
+        picked = [line for line in lines if line.split(":")[0].strip() in ("model name", "flags", "Features",
+                                                                             "CPU implementer", "CPU part")]
+        if picked:
+            return "\n".join(picked)
+    except OSError:
+        pass
+    return f"{platform.machine()} {platform.processor()} {platform.platform()}"
+
+
+def _build(compiler: str, flags: list[str], source: Path, target: Path) -> None:
     """Compile to a temporary file beside ``target`` and move it in place (atomic: concurrent builds are safe)."""
     target.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(suffix=".so", dir=target.parent)
     os.close(fd)
     try:
-        subprocess.run([compiler, *CFLAGS, "-o", tmp, str(source), "-lm"], check=True, capture_output=True, timeout=120)
+        subprocess.run([compiler, *flags, "-o", tmp, str(source), "-lm"], check=True, capture_output=True, timeout=120)
         os.replace(tmp, target)
     finally:
         if os.path.exists(tmp):
             os.unlink(tmp)
+
+
+def _target(source: Path, flags: list[str]) -> Path:
+    """The cached build of ``source`` with ``flags`` (for this CPU when they are HOST_CFLAGS)."""
+    key = source.read_bytes() + " ".join(flags).encode()
+    if any(f in flags for f in HOST_CFLAGS):
+        key += _cpu_signature().encode()
+    return _cache_dir() / f"{source.stem}-{hashlib.sha256(key).hexdigest()[:16]}.so"
 
 
 def load_c_library(source: Path) -> tuple[ctypes.CDLL | None, str]:
@@ -65,17 +95,19 @@ def load_c_library(source: Path) -> tuple[ctypes.CDLL | None, str]:
     if os.environ.get("RECON_NATIVE", "1").lower() in ("0", "off", "false", "no"):
         return None, "RECON_NATIVE=0"
     compiler = next((c for c in (os.environ.get("CC"), "cc", "gcc", "clang") if c and shutil.which(c)), None)
-    key = hashlib.sha256(source.read_bytes() + " ".join(CFLAGS).encode()).hexdigest()[:16]
-    target = _cache_dir() / f"{source.stem}-{key}.so"
-    try:
-        if not target.exists():
-            if compiler is None:
-                return None, f"no C compiler (cc, gcc or clang) on PATH to build {name}"
-            _build(compiler, source, target)
-        return ctypes.CDLL(str(target)), ""
-    except (OSError, subprocess.SubprocessError) as exc:
-        detail = getattr(exc, "stderr", b"") or b""
-        return None, f"building {name} failed ({exc} {detail.decode(errors='replace')[:200]})"
+    failed = ""
+    for flags in ([*CFLAGS, *HOST_CFLAGS], CFLAGS):  # for this CPU where the compiler can, else portable
+        target = _target(source, flags)
+        try:
+            if not target.exists():
+                if compiler is None:
+                    return None, f"no C compiler (cc, gcc or clang) on PATH to build {name}"
+                _build(compiler, flags, source, target)
+            return ctypes.CDLL(str(target)), ""
+        except (OSError, subprocess.SubprocessError) as exc:
+            detail = getattr(exc, "stderr", b"") or b""
+            failed = f"building {name} failed ({exc} {detail.decode(errors='replace')[:200]})"
+    return None, failed
 
 
 @lru_cache(maxsize=1)
