@@ -44,6 +44,8 @@ alone. Such a build runs only on CPUs like the one it was built on, so the cache
 feature flags (a home folder shared by several machines keeps one build per kind of CPU)."""
 
 _status = "not loaded yet"
+BUILT_FOR: dict[str, str] = {}
+"""recon/<C file> -> how its loaded library was built: for this CPU, or portable and why."""
 T = TypeVar("T")
 
 
@@ -103,7 +105,10 @@ def load_c_library(source: Path) -> tuple[ctypes.CDLL | None, str]:
                 if compiler is None:
                     return None, f"no C compiler (cc, gcc or clang) on PATH to build {name}"
                 _build(compiler, flags, source, target)
-            return ctypes.CDLL(str(target)), ""
+            lib = ctypes.CDLL(str(target))
+            BUILT_FOR[name] = (f"for this CPU with {' '.join(HOST_CFLAGS)}" if flags != CFLAGS else
+                               f"portable, as the compiler refused {' '.join(HOST_CFLAGS)}")
+            return lib, ""
         except (OSError, subprocess.SubprocessError) as exc:
             detail = getattr(exc, "stderr", b"") or b""
             failed = f"building {name} failed ({exc} {detail.decode(errors='replace')[:200]})"
@@ -131,7 +136,8 @@ def native_marcher() -> ctypes.CDLL | None:
     lib.recon_trilinear_backward.argtypes = [i64, p, p, i64, i64, p]
     lib.recon_adam.restype = None
     lib.recon_adam.argtypes = [i64, p, p, p, p, f32, f32, f32, f32, f32, f32, i32, i32]
-    _status = (f"native C (recon/nerf/march.c, built once into {_cache_dir()}): rays are marched in C (bounded and "
+    _status = (f"native C (recon/nerf/march.c, built {BUILT_FOR.get('recon/nerf/march.c', '')}, cached in "
+               f"{_cache_dir()}): rays are marched in C (bounded and "
                "contracted steps), "
                "and renders read the feature grid in C (RECON_NATIVE=0: torch throughout)")
     return lib
