@@ -13,6 +13,7 @@ one per torch CPU thread. Measurements: docs/profile.md.
 """
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import hashlib
 import math
@@ -58,15 +59,12 @@ def _cache_dir() -> Path:
 def _cpu_signature() -> str:
     """This CPU's model and feature flags (Linux: /proc/cpuinfo's first processor), for the cache key of a build
     for this CPU."""
-    try:
+    lines: list[str] = []
+    with contextlib.suppress(OSError):
         lines = Path("/proc/cpuinfo").read_text(errors="replace").split("\n\n")[0].splitlines()
-        picked = [line for line in lines if line.split(":")[0].strip() in ("model name", "flags", "Features",
-                                                                             "CPU implementer", "CPU part")]
-        if picked:
-            return "\n".join(picked)
-    except OSError:
-        pass
-    return f"{platform.machine()} {platform.processor()} {platform.platform()}"
+    picked = [line for line in lines if line.split(":")[0].strip() in ("model name", "flags", "Features",
+                                                                         "CPU implementer", "CPU part")]
+    return "\n".join(picked) or f"{platform.machine()} {platform.processor()} {platform.platform()}"
 
 
 def _build(compiler: str, flags: list[str], source: Path, target: Path) -> None:
@@ -100,11 +98,19 @@ def load_c_library(source: Path) -> tuple[ctypes.CDLL | None, str]:
     failed = ""
     for flags in ([*CFLAGS, *HOST_CFLAGS], CFLAGS):  # for this CPU where the compiler can, else portable
         target = _target(source, flags)
+        refused = target.with_suffix(".refused")  # a compiler that refused these flags once is not asked again
+        if flags != CFLAGS and refused.exists():
+            continue
         try:
             if not target.exists():
                 if compiler is None:
                     return None, f"no C compiler (cc, gcc or clang) on PATH to build {name}"
-                _build(compiler, flags, source, target)
+                try:
+                    _build(compiler, flags, source, target)
+                except subprocess.CalledProcessError:
+                    if flags != CFLAGS:
+                        refused.touch()
+                    raise
             lib = ctypes.CDLL(str(target))
             BUILT_FOR[name] = (f"for this CPU with {' '.join(HOST_CFLAGS)}" if flags != CFLAGS else
                                f"portable, as the compiler refused {' '.join(HOST_CFLAGS)}")

@@ -236,8 +236,8 @@ class OccupancyGrid(nn.Module):
 
 def cells_with_a_vertex(above: Tensor) -> Tensor:
     """Cells (R, R, R) bool of which at least one of the 8 corner vertices is set in ``above`` (R + 1, R + 1, R + 1):
-    ORs of neighbouring slices along each axis in turn, a max-pool of 2 with stride 1 done separably (torch's CPU
-    ``max_pool3d`` took a hundred times as long on a 97³ grid, every refresh)."""
+    ORs of neighbouring slices along each axis in turn, a max-pool of 2 with stride 1 done separably, as torch's CPU
+    ``max_pool3d`` is far slower at it (docs/profile.md)."""
     above = above[1:] | above[:-1]
     above = above[:, 1:] | above[:, :-1]
     return above[:, :, 1:] | above[:, :, :-1]
