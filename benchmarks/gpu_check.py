@@ -130,6 +130,15 @@ def loaded_field(field: Path, device: torch.device) -> tuple[Any, torch.Tensor |
     return model, aabb, np.asarray(meta["background"], np.float32)
 
 
+def one_ray_psnr(field: tuple[Any, torch.Tensor | None, np.ndarray], views: list[Any]) -> float:
+    """The mean PSNR over `views` rendered with one ray through each pixel's centre: what the check scored before
+    views coarser than the training photos got k×k rays a pixel (recon.evaluation.views.rays_a_side)."""
+    from recon.evaluation.views import evaluate
+
+    model, aabb, background = field
+    return round(float(evaluate(model, views, aabb, background)["psnr"]), 2)
+
+
 def render_timing(field: tuple[Any, torch.Tensor | None, np.ndarray], views: list[Any], device: torch.device,
                   chunk: int | None = None) -> float:
     """Milliseconds per view to render `views` with the `loaded_field` on `device`, `chunk` rays at a time (None: the
@@ -300,6 +309,7 @@ def run_one(args: argparse.Namespace, column: str, until: str | None, sweep: boo
     timed = timing_views[1:] or timing_views  # the first is the warm-up's
     field = loaded_field(scene / "03_field", device)
     agree_views = load_views(normalized, spread_evenly(tests, args.agreement_views), config.train.max_side)
+    supersampled = [v for v in metrics["test"]["views"] if v.get("rays_a_side", 1) > 1]
     column = {
         "kernels": next((r for r in metrics["reasons"] if "kernels:" in r), "kernels: C and torch (a CPU)"),
         "sizing": next((r for r in metrics["reasons"] if r.startswith("GPU sizing")), "the preset's values"),
@@ -312,6 +322,10 @@ def run_one(args: argparse.Namespace, column: str, until: str | None, sweep: boo
         "psnr": round(metrics["test"]["psnr"], 2),
         "ssim": round(metrics["test"]["ssim"], 4),
         "test_views": len(metrics["test"]["views"]),
+        "supersampled_views": {"views": len(supersampled), "rays_a_side": max(v["rays_a_side"] for v in supersampled),
+                               "psnr_one_ray": one_ray_psnr(field, load_views(
+                                   normalized, spread_evenly(tests, args.test_views), config.train.max_side))}
+                              if supersampled else None,
         "render_ms_per_view": round(render_timing(field, timed, device), 1),
         "render_size": list(timing_views[0].hw),
         "mesh_stage_s": stage_s.get("mesh"),
@@ -400,7 +414,11 @@ def table(row: dict[str, Any]) -> str:
         ("kernels", lambda r: r["kernels"].removeprefix("kernels: ").split(" (")[0]),
         ("steps", lambda r: f"{r['steps']:,} in {r['train_time_s']:.0f} s ({r['ms_per_step']:.1f} ms/step)"),
         ("rays/s", lambda r: f"{r['rays_per_s']:,.0f}"),
-        ("test PSNR", lambda r: f"{r['psnr']:.2f} dB, SSIM {r['ssim']:.3f} over {r['test_views']} views"),
+        ("test PSNR", lambda r: f"{r['psnr']:.2f} dB, SSIM {r['ssim']:.3f} over {r['test_views']} views" + (
+            "" if not r.get("supersampled_views") else
+            f" ({r['supersampled_views']['views']} coarser than the training photos, up to "
+            f"{r['supersampled_views']['rays_a_side']}² rays a pixel; one ray a pixel: "
+            f"{r['supersampled_views']['psnr_one_ray']:.2f} dB)")),
         ("render", lambda r: f"{r['render_ms_per_view']:.0f} ms per {r['render_size'][1]}×{r['render_size'][0]} view"),
         ("render by rays a chunk", lambda r: r["render_chunks"].get("skipped") or ", ".join(
             f"{int(c):,}: {ms:.0f} ms" for c, ms in r["render_chunks"]["ms_per_view"].items())

@@ -16,7 +16,7 @@ from recon.camera import look_at
 from recon.capture.images import save_image
 from recon.capture.scene import Scene, load_scene, spread_evenly
 from recon.errors import ReconError
-from recon.evaluation.views import View, evaluate, load_views, render_view, write_previews
+from recon.evaluation.views import View, evaluate, load_views, render_view, supersampling_note, training_focal, write_previews
 from recon.field import load_field
 from recon.runner.ownership import OwnedFolder, claim_folder, claim_names
 
@@ -169,13 +169,17 @@ def evaluate_scene(scene_dir: Path, out_dir: Path, split: str = "test", max_side
         raise ReconError(f"The scene has no '{split}' views to evaluate. Try --split val or --split train.")
     background = np.asarray(meta["background"], dtype=np.float32)
     views = load_views(scene, frames, max_side or meta["max_side"], report, f"{split} photos")
+    focal = training_focal(scene.split("train") or frames, meta["max_side"])
+    note = supersampling_note(views, focal)
+    if note and report:
+        report.info(note)
     claim_eval_folder(out_dir, ["metrics.json", "grid.png", *(f"views/{v.name}.png" for v in views)])
     appearance = bool(meta.get("appearance"))  # trained with per-photo appearance: the left-half / right-half protocol
     if report:
         with report.task(f"rendering {len(views)} {split} views", total=None):
-            result = evaluate(model, views, aabb, background, keep=True, appearance=appearance)
+            result = evaluate(model, views, aabb, background, keep=True, appearance=appearance, focal=focal)
     else:
-        result = evaluate(model, views, aabb, background, keep=True, appearance=appearance)
+        result = evaluate(model, views, aabb, background, keep=True, appearance=appearance, focal=focal)
     renders = result.pop("renders")
     write_previews(renders, out_dir / "views")
     _grid([r[1]["rgb"] for r in renders], [r[2] for r in renders], out_dir / "grid.png")

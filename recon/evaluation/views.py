@@ -100,18 +100,59 @@ def key_backdrop(image: np.ndarray, color: np.ndarray, tolerance: float = BACKDR
     return np.round(np.clip(np.concatenate([rgb, a], axis=-1), 0.0, 1.0) * 255).astype(np.uint8)
 
 
+MAX_RAYS_A_SIDE = 4
+"""The most rays along each side of a pixel when a view is coarser than the training photos (16 a pixel): a view
+that much coarser is already box-filtered closely, and each step up costs the square of it in rays."""
+
+
+def training_focal(frames: list[Frame], max_side: int) -> float:
+    """The training photos' median focal length in pixels at the size training reads them (`read_image` scales a
+    photo down to `max_side` on its longest side)."""
+    return float(np.median([f.fl_x * min(1.0, max_side / max(f.w, f.h)) for f in frames]))
+
+
+def rays_a_side(view: View, focal: float) -> int:
+    """k, for k×k rays a pixel: how many times coarser the view's pixels are than the training photos' (focal lengths
+    `focal` against the view's), to the nearest whole number, 1 to MAX_RAYS_A_SIDE.
+
+    A field trained on photos at one pixel size holds detail down to that size; one ray through each centre of a
+    coarser view samples that detail instead of averaging it, as the coarser photo's pixel does (a camera's, and
+    `read_image`'s area downscale): its edges alias, and it is scored against a smoother photo."""
+    return int(min(max(round(focal / view.intrinsics[0]), 1), MAX_RAYS_A_SIDE))
+
+
+def supersampling_note(views: list[View], focal: float) -> str | None:
+    """What `evaluate(focal=...)` does to these views, in a sentence (None when every view gets one ray a pixel)."""
+    coarse = [(v, rays_a_side(v, focal)) for v in views]
+    coarse = [(v, k) for v, k in coarse if k > 1]
+    if not coarse:
+        return None
+    ks = sorted({k for _, k in coarse})
+    view = coarse[0][0]
+    return (f"{len(coarse)} of {len(views)} views are coarser than the training photos (e.g. {view.name}: "
+            f"{view.hw[1]}×{view.hw[0]} px, focal {view.intrinsics[0]:.0f} px against the photos' {focal:.0f}): each of "
+            f"their pixels is the mean of {' or '.join(f'{k}×{k}' for k in ks)} rays, as a downscaled photo's pixel is "
+            "the mean of its area")
+
+
 def render_view(model: torch.nn.Module, view: View, aabb: torch.Tensor | None, background: np.ndarray, chunk: int | None = None,
-                autocast: torch.dtype | None = None, colors: bool = True) -> dict[str, np.ndarray]:
+                autocast: torch.dtype | None = None, colors: bool = True, rays_side: int = 1) -> dict[str, np.ndarray]:
     """Render a view at its resolution → numpy rgb (H, W, 3), depth (H, W), opacity (H, W); ``colors=False``: depth
-    and opacity only (`recon.nerf.evaluate.render_image`)."""
+    and opacity only (`recon.nerf.evaluate.render_image`). ``rays_side`` k > 1: each pixel is the mean of k×k rays
+    spread evenly over it (`rays_a_side`)."""
     from recon.nerf.evaluate import render_image
 
     h, w = view.hw
+    k = max(1, int(rays_side))
     device = next(model.parameters()).device
     kwargs: dict[str, Any] = {"aabb": aabb} if aabb is not None else {"near": view.near, "far": view.far}
-    out = render_image(model, torch.tensor(view.c2w, dtype=torch.float32, device=device), view.intrinsics, h, w, chunk,
+    # pixel centres sit at i + 0.5 (recon.nerf.rays): scaling the intrinsics by k puts k×k sub-pixel centres in each pixel
+    out = render_image(model, torch.tensor(view.c2w, dtype=torch.float32, device=device),
+                       tuple(float(x) * k for x in view.intrinsics), h * k, w * k, chunk,
                        background=torch.tensor(background), autocast=autocast, colors=colors, **kwargs)
-    return {k: v.detach().cpu().numpy() for k, v in out.items()}
+    if k > 1:
+        out = {name: v.reshape(h, k, w, k, *v.shape[2:]).mean(dim=(1, 3)) for name, v in out.items()}
+    return {name: v.detach().cpu().numpy() for name, v in out.items()}
 
 
 def view_tensors(views: list[View], device: torch.device) -> tuple[list[torch.Tensor], torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -131,8 +172,12 @@ def target_rgb(view: View, background: np.ndarray) -> np.ndarray:
 
 
 def evaluate(model: torch.nn.Module, views: list[View], aabb: torch.Tensor | None, background: np.ndarray, keep: bool = False,
-             autocast: torch.dtype | None = None, appearance: bool = False, align_poses: bool = False) -> dict[str, Any]:
+             autocast: torch.dtype | None = None, appearance: bool = False, align_poses: bool = False,
+             focal: float | None = None) -> dict[str, Any]:
     """PSNR/SSIM of renders against photos; with keep=True also the renders themselves.
+
+    focal: the training photos' focal length in pixels (`training_focal`); a view coarser than them is rendered
+    with k×k rays a pixel (`rays_a_side`, kept as the view's ``rays_a_side``), as its photo averages each pixel's area.
 
     appearance=True (a field trained with per-photo appearance): each photo's colour transform is fitted on
     its left half and the right half is scored (recon.nerf.evaluate.HELD_OUT_PROTOCOL); the full-image
@@ -147,10 +192,11 @@ def evaluate(model: torch.nn.Module, views: list[View], aabb: torch.Tensor | Non
 
     per_view, renders = [], []
     for view in views:
-        extra: dict[str, Any] = {}
+        k = rays_a_side(view, focal) if focal else 1
+        extra: dict[str, Any] = {"rays_a_side": k} if k > 1 else {}
         gt = target_rgb(view, background)
         if align_poses:
-            given = render_view(model, view, aabb, background, autocast=autocast)
+            given = render_view(model, view, aabb, background, autocast=autocast, rays_side=k)
             extra["psnr_given_pose"] = round(float(psnr(torch.from_numpy(given["rgb"]), torch.from_numpy(gt))), 3)
             device = next(model.parameters()).device
             left, _ = left_right_split(view.hw[1])
@@ -159,7 +205,7 @@ def evaluate(model: torch.nn.Module, views: list[View], aabb: torch.Tensor | Non
                              torch.tensor(view.c2w, dtype=torch.float32, device=device), view.intrinsics,
                              background=torch.tensor(background, dtype=torch.float32), **kwargs)
             view = replace(view, c2w=c2w.cpu().double().numpy())
-        out = render_view(model, view, aabb, background, autocast=autocast)
+        out = render_view(model, view, aabb, background, autocast=autocast, rays_side=k)
         pred, ref = out["rgb"], gt
         if appearance:
             extra["psnr_neutral"] = round(float(psnr(torch.from_numpy(pred), torch.from_numpy(gt))), 3)

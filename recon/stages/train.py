@@ -21,7 +21,7 @@ from recon.atomic import checksum_matches, checksum_path, fault_point, write_che
 from recon.capture.scene import Scene, load_scene, spread_evenly
 from recon.config import TrainConfig
 from recon.errors import ReconError
-from recon.evaluation.views import View, evaluate, load_views, write_previews
+from recon.evaluation.views import View, evaluate, load_views, supersampling_note, training_focal, write_previews
 from recon.field import FIELD_FILE, save_field
 from recon.plans.training import TrainPlan, TrainSetup, build_training, plan_training
 from recon.runner.pipeline import Stage, StageContext
@@ -115,13 +115,17 @@ def run(ctx: StageContext) -> dict:
                            "CUDA the kernels compile there, not in the first steps of the time budget")
     for note in setup.notes:
         ctx.report.info(f"model: {note}")
+    focal = training_focal(train_frames, cfg.max_side)
     eval_views = load_views(scene, spread_evenly(held_out, cfg.eval_views), cfg.max_side)
-    result, evals, history, train_time = _fit(ctx, cfg, plan, setup, eval_views)
-
     test_views = load_views(scene, spread_evenly(test_frames, cfg.final_eval_views), cfg.max_side)  # a spiral's first N would be one viewpoint
+    note = supersampling_note(eval_views + [v for v in test_views if v.name not in {e.name for e in eval_views}], focal)
+    if note:
+        ctx.report.info(f"held-out evaluation: {note}")
+    result, evals, history, train_time = _fit(ctx, cfg, plan, setup, eval_views, focal)
+
     with ctx.report.task("evaluating test views", total=None):
         final = evaluate(setup.model, test_views, setup.aabb, plan.background, keep=True, autocast=plan.autocast,
-                         appearance=plan.appearance, align_poses=plan.pose_refine)
+                         appearance=plan.appearance, align_poses=plan.pose_refine, focal=focal)
     write_previews(final.pop("renders"), ctx.out / "renders")
     _save(ctx.out / FIELD_FILE, scene, plan, setup, cfg.max_side)
     metrics = _metrics(scene, device, plan, setup, result, final, evals, history, train_time)
@@ -172,9 +176,10 @@ def expected_steps(step: int, used_s: float, since_step: int, since_s: float, bu
 
 
 def _fit(ctx: StageContext, cfg: TrainConfig, plan: TrainPlan, setup: TrainSetup,
-         eval_views: list[View]) -> tuple[dict[str, Any], list[dict], list[dict], float]:
+         eval_views: list[View], focal: float) -> tuple[dict[str, Any], list[dict], list[dict], float]:
     """Train from the stage's checkpoint when there is one, checkpointing as it goes; (train's result, the held-out
-    evaluations, the training curve, the training time in seconds, evaluation excluded)."""
+    evaluations, the training curve, the training time in seconds, evaluation excluded). focal: the training photos'
+    focal length, for views coarser than them (`recon.evaluation.views.rays_a_side`)."""
     from recon.nerf.trainer import TrainingDiverged, TrainingInterrupted, train
 
     model, aabb, background = setup.model, setup.aabb, plan.background
@@ -190,7 +195,7 @@ def _fit(ctx: StageContext, cfg: TrainConfig, plan: TrainPlan, setup: TrainSetup
     def eval_fn(m: torch.nn.Module, step: int) -> dict[str, float]:
         t = time.perf_counter()
         r = evaluate(m, eval_views, aabb, background, autocast=plan.autocast, appearance=plan.appearance,
-                     align_poses=plan.pose_refine)
+                     align_poses=plan.pose_refine, focal=focal)
         eval_time[0] += time.perf_counter() - t
         return {"psnr": r["psnr"], "ssim": r["ssim"]}
 
