@@ -59,13 +59,15 @@ COLUMNS: dict[str, list[str]] = {
     "cpu-shuffle": [],
     "no-warmup": [],
     "reverted": ["train.fast.distortion_weight=0"],
+    "sh2": ["train.fast.sh_degree=2"],
 }
 """--columns: each column's overrides on top of the check's own. All but `default` compare something CUDA has:
 `torch-march` is the default run with the Triton marcher swapped for the torch one it replaced (the marcher's
 share of the step), `rays16k` and `rays8k` the sized preset with fewer rays a step (more steps in the budget).
 `nodist`, `cpu-shuffle`, `no-warmup` and `reverted` (all three) undo, one at a time, what changed on the CUDA path
 after the record at 223fc2c: the distortion loss, the epoch's shuffle drawn on the GPU, the warm-up render.
-`dist-from-start` runs the distortion loss from the first step, as before GPU sizing started it later."""
+`dist-from-start` runs the distortion loss from the first step, as before GPU sizing started it later; `sh2` the
+colour's view dependence at the presets' second degree, as before GPU sizing took it to the third."""
 
 
 PATCHED_LABELS = {

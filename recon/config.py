@@ -326,6 +326,10 @@ GPU_DISTORTION_FROM = 0.1
 """With finer grids on a card, the distortion loss starts after this share of training: from the first step, at a
 card's grids, it cost the Lego its finer parts; from here it still kept real objects' meshes as clean, which a later
 start did not (docs/gpu.md)."""
+GPU_SH_DEGREE = 3
+"""On a card the fast model's view-dependent colour takes the direction's spherical harmonics to this degree (the
+most `recon.nerf.fast.sh_encode` has; the presets' is 2): it fits the glossy highlights degree 2 leaves as error, and
+the colour network's wider input costs a card next to nothing. A CPU keeps the presets' value (docs/gpu.md)."""
 GPU_GRID_MEMORY_FRACTION = 0.25
 """The sized grids' training memory (parameters, gradients, Adam moments) stays below this share of the GPU's."""
 
@@ -386,11 +390,19 @@ def device_sizing(config: RunConfig, memory_bytes: int, name: str,
         changes.append(f"train.fast.distortion_from=0→{GPU_DISTORTION_FROM:g}")
         late_loss = (f"; at the finer grids the distortion loss from the first step costs held-out detail, from "
                      f"{GPU_DISTORTION_FROM:.0%} of training it still clears the fog (docs/gpu.md)")
+    glossy = ""
+    fast = sized.train.fast
+    if (train.model != "surface" and fast.color_model == "mlp_view" and fast.sh_degree < GPU_SH_DEGREE
+            and "train.fast.sh_degree" not in keep):
+        changes.append(f"train.fast.sh_degree={fast.sh_degree}→{GPU_SH_DEGREE}")
+        sized.train.fast = dataclasses.replace(fast, sh_degree=GPU_SH_DEGREE)  # a copy: `fast` may be the caller's
+        glossy = ("; the colour's view dependence to the third degree fits glossy highlights, and its wider input "
+                  "costs a card next to nothing")
     if not changes:
         return config, ""
     return sized, (f"GPU sizing ({name}, {memory_bytes / 2**30:.0f} GiB; train.device_sizing=off keeps the preset's "
                    f"CPU-sized values): {', '.join(changes)} — 4,096 rays a step leave a GPU waiting on kernel "
-                   f"launches, and the same minutes buy more steps there{late_loss}")
+                   f"launches, and the same minutes buy more steps there{late_loss}{glossy}")
 
 
 def _apply_overrides(config: RunConfig, overrides: list[str] | None) -> None:

@@ -3,13 +3,14 @@ compositing, grid reads and training steps; the GPU sizing of presets (`recon.co
 compiled colour network against its eager reference (`recon.nerf.compiled`)."""
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable
 
 import pytest
 import torch
 
-from recon.config import GPU_DISTORTION_FROM, GPU_TIERS, device_sizing, load_config
+from recon.config import GPU_DISTORTION_FROM, GPU_SH_DEGREE, GPU_TIERS, device_sizing, load_config
 from recon.nerf.compiled import compile_color_network, compile_wanted
 from recon.nerf.fast import FastConfig, FastModel
 from recon.nerf.fitting import RayBatcher
@@ -299,8 +300,24 @@ def test_sizing_grows_with_memory_and_leaves_small_gpus_classic_and_set_values_a
 def test_grids_stay_the_presets_when_the_card_could_not_hold_them() -> None:
     huge = load_config("fast", ["train.device=cpu", "train.fast.feature_res=256"])  # 3.2 GiB to train; 320³: 6.3
     sized, why = device_sizing(huge, 16 * GiB, "g")
-    assert sized.train.fast == huge.train.fast and sized.train.batch_rays == 4 * 4096
-    assert "feature_res" not in why
+    assert dataclasses.replace(sized.train.fast, sh_degree=huge.train.fast.sh_degree) == huge.train.fast
+    assert sized.train.batch_rays == 4 * 4096 and "feature_res" not in why
+
+
+def test_a_card_takes_the_view_dependent_colour_a_degree_further_and_says_why() -> None:
+    base = load_config("fast", ["train.device=cpu"])
+    assert base.train.fast.color_model == "mlp_view" and base.train.fast.sh_degree < GPU_SH_DEGREE  # the CPU's
+    for memory in (80 * GiB, 8 * GiB):  # finer grids or the preset's: the colour network's input costs a card little
+        sized, why = device_sizing(base, memory, "g")
+        assert sized.train.fast.sh_degree == GPU_SH_DEGREE and base.train.fast.sh_degree == 2  # the caller's is kept
+        assert f"train.fast.sh_degree=2→{GPU_SH_DEGREE}" in why and "glossy" in why
+    assert device_sizing(base, 4 * GiB, "g")[0].train.fast.sh_degree == 2  # below every tier: not sized
+    kept = device_sizing(base, 80 * GiB, "g", keep=frozenset({"train.fast.sh_degree"}))[0]
+    assert kept.train.fast.sh_degree == 2
+    plain = load_config("fast", ["train.device=cpu", "train.fast.color_model=mlp"])  # no view dependence to widen
+    assert "sh_degree" not in device_sizing(plain, 80 * GiB, "g")[1]
+    surface = load_config("surface", ["train.device=cpu"])
+    assert "sh_degree" not in device_sizing(surface, 80 * GiB, "g")[1]
 
 
 def test_finer_grids_start_the_distortion_loss_later_and_say_why() -> None:
