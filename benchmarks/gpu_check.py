@@ -324,6 +324,7 @@ def run_one(args: argparse.Namespace, column: str, until: str | None, sweep: boo
         "psnr": round(metrics["test"]["psnr"], 2),
         "ssim": round(metrics["test"]["ssim"], 4),
         "test_views": len(metrics["test"]["views"]),
+        "psnr_per_view": {v["view"]: round(v["psnr"], 2) for v in metrics["test"]["views"]},
         "supersampled_views": {"views": len(supersampled), "rays_a_side": max(v["rays_a_side"] for v in supersampled),
                                "psnr_one_ray": one_ray_psnr(field, load_views(
                                    normalized, spread_evenly(tests, args.test_views), config.train.max_side))}
