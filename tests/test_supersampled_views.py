@@ -8,8 +8,15 @@ import torch
 
 from recon.camera import look_at
 from recon.capture.scene import Frame
-from recon.evaluation.views import (MAX_RAYS_A_SIDE, View, evaluate, rays_a_side, render_view, supersampling_note,
-                                    training_focal)
+from recon.evaluation.views import (
+    MAX_RAYS_A_SIDE,
+    View,
+    evaluate,
+    rays_a_side,
+    render_view,
+    supersampling_note,
+    training_focal,
+)
 from tests.analytic_sphere import AABB, BACKGROUND, SoftSphere
 
 POSE = look_at(np.array([0.4, -2.6, 1.2]), np.zeros(3))

@@ -16,7 +16,15 @@ from recon.camera import look_at
 from recon.capture.images import save_image
 from recon.capture.scene import Scene, load_scene, spread_evenly
 from recon.errors import ReconError
-from recon.evaluation.views import View, evaluate, load_views, render_view, supersampling_note, training_focal, write_previews
+from recon.evaluation.views import (
+    View,
+    evaluate,
+    load_views,
+    render_view,
+    supersampling_note,
+    training_focal,
+    write_previews,
+)
 from recon.field import load_field
 from recon.runner.ownership import OwnedFolder, claim_folder, claim_names
 
