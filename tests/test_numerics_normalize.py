@@ -289,3 +289,37 @@ def test_an_object_box_grows_to_hold_what_the_masks_show_and_no_further() -> Non
     same = normalize(base, NormalizeConfig(), holds=beyond[1:])  # what the box holds already changes nothing
     np.testing.assert_allclose(same.aabb, ref.aabb)
     assert "visual hull" not in same.notes["box"]
+
+
+def test_the_masks_hull_is_the_training_photos_alone(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    # held-out photos score the result; their masks must not shape the box (a test set's silhouettes would)
+    from dataclasses import replace
+    from types import SimpleNamespace
+
+    import recon.stages.normalize as stage
+    from recon.app.progress import Reporter
+    from recon.evaluation.views import View
+
+    frames = []
+    for i in range(12):
+        az = 2 * math.pi * i / 12
+        eye = 3.0 * np.array([math.cos(az), math.sin(az), 0.4])
+        frames.append(Frame(f"p{i:02d}.png", look_at(eye, np.zeros(3)), 60.0, 60.0, 32.0, 32.0, 64, 64,
+                            split="test" if i % 4 == 0 else "train"))
+    scene = Scene(frames=frames, aabb=np.array([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]]), capture="object", has_alpha=True)
+    read: list[str] = []
+
+    def silhouette(scene: Scene, frame: Frame, side: int, keep_alpha: bool) -> View:
+        read.append(frame.split or "")
+        image = np.zeros((64, 64, 4), np.uint8)
+        image[22:42, 22:42, 3] = 255  # an object at the centre, seen by every photo
+        return View(frame.stem, image, frame.c2w, (60.0, 60.0, 32.0, 32.0), 0.0, 0.0)
+
+    monkeypatch.setattr(stage, "load_view", silhouette)
+    ctx = SimpleNamespace(scene_dir=tmp_path, folder="02_scene", out=tmp_path / "out", report=Reporter(quiet=True))
+    assert stage._masks_hull(ctx, scene) is not None
+    assert read == ["train"] * 9
+    read.clear()
+    unsplit = Scene(frames=[replace(f, split=None) for f in frames], aabb=scene.aabb, capture="object", has_alpha=True)
+    stage._masks_hull(ctx, unsplit)  # a scene without a split: every photo is a training photo
+    assert read == [""] * 12

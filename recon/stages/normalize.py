@@ -80,15 +80,16 @@ def _auto_masks(ctx: StageContext, source: Scene, scene: Scene) -> tuple[int, st
 
 
 def _masks_hull(ctx: StageContext, scene: Scene) -> np.ndarray | None:
-    """The corners (8, 3), in the photos' (source) frame, of the box around the masks' visual hull, searched for in
-    `scene`'s box grown by HULL_SEARCH a side and on the object's side of its ground or wall; None when the masks
-    agree on nothing (the box stays as it is)."""
+    """The corners (8, 3), in the photos' (source) frame, of the box around the training photos' masks' visual hull,
+    searched for in `scene`'s box grown by HULL_SEARCH a side and on the object's side of its ground or wall; None
+    when the masks agree on nothing (the box stays as it is). Held-out photos score the result; they do not shape it."""
     box = np.asarray(scene.aabb, np.float64)
     search = box + np.stack([-(box[1] - box[0]), box[1] - box[0]]) * HULL_SEARCH
     written = ctx.scene_dir / ctx.folder / MASK_FOLDER  # this run's automatic masks are still in ctx.out
     objects, intrinsics, c2ws = [], [], []
-    with ctx.report.task("fitting the box to the masks", total=len(scene.frames)) as bar:
-        for frame in scene.frames:
+    frames = scene.split("train") or scene.frames
+    with ctx.report.task("fitting the box to the masks", total=len(frames)) as bar:
+        for frame in frames:
             if frame.mask_path and Path(frame.mask_path).parent == written:
                 frame = replace(frame, mask_path=str(ctx.out / MASK_FOLDER / Path(frame.mask_path).name))
             view = load_view(scene, frame, SEGMENT_SIDE, keep_alpha=True)
