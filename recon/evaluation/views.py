@@ -123,8 +123,7 @@ def rays_a_side(view: View, focal: float) -> int:
 
 def supersampling_note(views: list[View], focal: float) -> str | None:
     """What `evaluate(focal=...)` does to these views, in a sentence (None when every view gets one ray a pixel)."""
-    coarse = [(v, rays_a_side(v, focal)) for v in views]
-    coarse = [(v, k) for v, k in coarse if k > 1]
+    coarse = [(v, k) for v in views if (k := rays_a_side(v, focal)) > 1]
     if not coarse:
         return None
     ks = sorted({k for _, k in coarse})
