@@ -60,6 +60,8 @@ COLUMNS: dict[str, list[str]] = {
     "no-warmup": [],
     "reverted": ["train.fast.distortion_weight=0"],
     "sh2": ["train.fast.sh_degree=2"],
+    "dist-until-half": ["train.fast.distortion_until=0.5"],
+    "features288": ["train.fast.feature_res=288"],
 }
 """--columns: each column's overrides on top of the check's own. All but `default` compare something CUDA has:
 `torch-march` is the default run with the Triton marcher swapped for the torch one it replaced (the marcher's
@@ -67,7 +69,10 @@ share of the step), `rays16k` and `rays8k` the sized preset with fewer rays a st
 `nodist`, `cpu-shuffle`, `no-warmup` and `reverted` (all three) undo, one at a time, what changed on the CUDA path
 after the record at 223fc2c: the distortion loss, the epoch's shuffle drawn on the GPU, the warm-up render.
 `dist-from-start` runs the distortion loss from the first step, as before GPU sizing started it later; `sh2` the
-colour's view dependence at the presets' second degree, as before GPU sizing took it to the third."""
+colour's view dependence at the presets' second degree, as before GPU sizing took it to the third.
+`dist-until-half` stops the distortion loss halfway through training (is it the loss's last steps that cost the
+Lego its detail?); `features288` a feature grid of 288³ instead of the sized 192³ (is the card's field short of
+capacity, and what does Adam over every value of a larger grid cost a step?)."""
 
 
 PATCHED_LABELS = {

@@ -161,6 +161,12 @@ class TrainConfig:
     """Weight of the opacity of the photos' fully transparent pixels (outside their masks or alpha; L1, averaged over
     each batch's rays) in the fast field's loss: the random backgrounds alone leave a faint haze there, grey on a
     held-out view's backdrop. A strong weight lets one photo's wrong mask carve away what the others see. 0: off."""
+    transparent_disputed_share: float = 1.0
+    """The share of ``transparent_weight`` that the transparent pixels the hull of all the masks still covers pay
+    (`recon.plans.training.transparent_for`). Such a pixel may show a thin part one photo's mask cut away, which the
+    other photos keep through their colour; or space under an object's base that only the lowest photos see, which
+    the photos above cannot see behind the base: left to the colour loss alone, a blob hangs there in every low
+    view. 0: the colour loss alone."""
     pose_refine: Literal["on", "off"] = "off"
     """on: learn a small rotation and shift per training photo with the field (recon.nerf.pose_refine), for poses SfM
     left a few pixels off; held-out photos are then scored with their pose fitted on their left half. Off by default:
@@ -385,7 +391,8 @@ def device_sizing(config: RunConfig, memory_bytes: int, name: str,
         sized.train.fast, sized.train.surface = train.fast, train.surface
         changes = before
     elif (changes != before and train.model != "surface" and sized.train.fast.distortion_weight > 0
-          and sized.train.fast.distortion_from == 0 and "train.fast.distortion_from" not in keep):
+          and sized.train.fast.distortion_from == 0 and "train.fast.distortion_from" not in keep
+          and sized.train.fast.distortion_until > GPU_DISTORTION_FROM):
         sized.train.fast.distortion_from = GPU_DISTORTION_FROM
         changes.append(f"train.fast.distortion_from=0→{GPU_DISTORTION_FROM:g}")
         late_loss = (f"; at the finer grids the distortion loss from the first step costs held-out detail, from "
@@ -512,6 +519,7 @@ BOUNDS: dict[str, Bound] = {
     "train.depth_rays": _range(1, MAX_RAYS_PER_STEP),
     "train.sky_weight": WEIGHT,
     "train.transparent_weight": WEIGHT,
+    "train.transparent_disputed_share": _range(0, 1),
     "train.classic.n_coarse": _range(1, 1024),
     "train.classic.n_fine": _range(0, 1024),
     "train.classic.pos_freqs": _range(0, 20),
@@ -543,6 +551,7 @@ BOUNDS: dict[str, Bound] = {
     "train.fast.tv_weight": WEIGHT,
     "train.fast.distortion_weight": WEIGHT,
     "train.fast.distortion_from": _fraction(),
+    "train.fast.distortion_until": Bound(0.0, 1.0, low_open=True),
     "train.fast.unbounded_distortion_weight": WEIGHT,
     "train.fast.entropy_weight": WEIGHT,
     "train.fast.grid_lr_scale": LR_SCALE,
@@ -692,6 +701,13 @@ def _check_cross(config: RunConfig) -> None:
         raise ConfigError(
             f"Options 'train.batch_rays' ({train.batch_rays}) and 'train.depth_rays' ({train.depth_rays}) add up to "
             f"more than {MAX_RAYS_PER_STEP} rays per training step. Lower them (the presets use at most 4096 + 512)."
+        )
+    fast = train.fast
+    if fast.distortion_weight > 0 and fast.distortion_until <= fast.distortion_from:
+        raise ConfigError(
+            f"Options 'train.fast.distortion_from' ({fast.distortion_from:g}) and 'train.fast.distortion_until' "
+            f"({fast.distortion_until:g}) leave the distortion loss no share of training: start it before it stops, "
+            "or set train.fast.distortion_weight=0 to train without it."
         )
     test, val = config.normalize.test_every, config.normalize.val_every
     if test and val:

@@ -334,6 +334,8 @@ def test_finer_grids_start_the_distortion_loss_later_and_say_why() -> None:
     assert device_sizing(no_loss, 80 * GiB, "g")[0].train.fast.distortion_from == 0
     huge = load_config("fast", ["train.device=cpu", "train.fast.feature_res=256"])  # the grids stay: so does the loss
     assert device_sizing(huge, 16 * GiB, "g")[0].train.fast.distortion_from == 0
+    early_stop = load_config("fast", ["train.device=cpu", "train.fast.distortion_until=0.05"])  # a later start: none
+    assert device_sizing(early_stop, 80 * GiB, "g")[0].train.fast.distortion_from == 0
 
 
 def test_load_config_sizes_presets_on_cuda_and_set_wins(monkeypatch: pytest.MonkeyPatch) -> None:

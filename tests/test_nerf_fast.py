@@ -156,6 +156,18 @@ def test_the_distortion_loss_starts_once_its_share_of_training_is_done() -> None
     assert float(model.render_rays(o, d, near, far, training=True, background=torch.ones(3))["reg"]) > 0
 
 
+def test_the_distortion_loss_stops_once_its_window_is_over() -> None:
+    model = FastModel(FastConfig(distortion_weight=0.03, distortion_from=0.1, distortion_until=0.6,
+                                 entropy_weight=0.0, tv_weight=0.0, **TINY))
+    weights = []
+    for progress in (0.05, 0.1, 0.59, 0.6, 1.0):
+        model.set_progress(progress)
+        weights.append(model.distortion_weight_now())
+    assert weights == [0.0, 0.03, 0.03, 0.0, 0.0]
+    o, d, near, far = _rays(64)
+    assert "reg" not in model.render_rays(o, d, near, far, training=True, background=torch.ones(3))
+
+
 def test_a_few_steps_reduce_the_loss_on_a_synthetic_target() -> None:
     """Target: rays through a red ball of radius 0.5 are red, others white (over a white background)."""
     torch.manual_seed(0)

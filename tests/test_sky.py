@@ -132,6 +132,20 @@ def test_the_batcher_carries_the_empty_masks_with_each_ray() -> None:
         RayBatcher(images, c2w, intr, near_far=torch.tensor([0.1, 10.0]), empty=masks[:1])
 
 
+def test_the_batcher_carries_weighted_empty_masks_to_a_255th() -> None:
+    """Float masks are weights of each pixel's empty-space loss (the disputed transparent pixels pay a share)."""
+    images = [torch.from_numpy(_castle()) for _ in range(2)]
+    weights = [torch.full(im.shape[:2], w) for im, w in zip(images, (0.3, 0.8), strict=True)]
+    weights[1][:, : W // 2] = 0.0  # half of the second photo is not known empty at all
+    c2w = torch.eye(4).expand(2, 4, 4).clone()
+    intr = torch.tensor([[60.0, 60.0, W / 2, H / 2]] * 2)
+    batch = RayBatcher(images, c2w, intr, near_far=torch.tensor([0.1, 10.0]), empty=weights, seed=0).next_batch(600)
+    first, second = batch["empty"][batch["image"] == 0], batch["empty"][batch["image"] == 1]
+    assert first.numel() > 100 and second.numel() > 100
+    assert torch.allclose(first, torch.full_like(first, round(0.3 * 255) / 255))
+    assert torch.allclose(second.unique(), torch.tensor([0.0, round(0.8 * 255) / 255]))
+
+
 def test_the_sky_colour_starts_grey_and_is_what_an_empty_field_shows() -> None:
     d = torch.nn.functional.normalize(torch.randn(50, 3), dim=-1)
     torch.testing.assert_close(SkyColor()(d), torch.full((50, 3), 0.5))

@@ -6,6 +6,7 @@ import math
 from dataclasses import replace
 
 import numpy as np
+import pytest
 import torch
 
 from recon.app.profiling import profile_training
@@ -83,9 +84,12 @@ def test_the_plan_says_which_kernels_run_on_a_gpu_and_nothing_on_a_default_cpu()
 
 
 
-def test_a_masked_fast_plan_trains_as_empty_space_the_transparent_pixels_the_photos_agree_on_and_says_so() -> None:
-    """A ball on a ring of 12 photos, one of whose masks cut away half the ball: its cut half stays with the colour
-    loss (the other photos' masks keep the hull there), while every photo's pixels off the ball train as empty."""
+@pytest.mark.parametrize("share", [0.0, 0.25])
+def test_a_masked_fast_plan_trains_as_empty_space_the_transparent_pixels_the_photos_agree_on_and_says_so(
+        share: float) -> None:
+    """A ball on a ring of 12 photos, one of whose masks cut away half the ball: its cut half pays only
+    train.transparent_disputed_share of the opacity loss (the other photos' masks keep the hull there; 0: the colour
+    loss alone), while every photo's pixels off the ball train as empty at the full weight."""
     images, c2w, intr = masked_ball_photos(size=32, fl=40.0)
     wrong = images[3].copy()
     wrong[:, :16, 3] = 0  # the left half of the ball cut away in one photo
@@ -95,19 +99,21 @@ def test_a_masked_fast_plan_trains_as_empty_space_the_transparent_pixels_the_pho
         frames.append(Frame(f"/p/{i:02d}.png", pose, *k, 32, 32, split="train"))
         views.append(View(f"{i:02d}", image, pose, tuple(k), 1.0, 4.0))
     scene = Scene(frames=frames, aabb=np.array([[-1.0] * 3, [1.0] * 3]), capture="object", has_alpha=True)
-    cfg = replace(TrainConfig(), batch_rays=128)
+    cfg = replace(TrainConfig(), batch_rays=128, transparent_disputed_share=share)
     plan = plan_training(cfg, scene, views, CPU)
     assert plan.empty is not None and plan.empty_weight == cfg.transparent_weight
     ball = [v.image[..., 3] > 0 for v in views]
     for i, (empty, view) in enumerate(zip(plan.empty, views, strict=True)):
-        assert not (empty & ~(view.image[..., 3] == 0)).any()  # only transparent pixels are ever known empty
-        assert empty[:, :4].all() and empty[:, -4:].all()  # far off the ball: known empty in every photo
+        weight = np.asarray(empty, np.float32)
+        assert not weight[view.image[..., 3] != 0].any()  # only transparent pixels are ever known empty
+        assert (weight[:, :4] == 1).all() and (weight[:, -4:] == 1).all()  # far off the ball: empty in every photo
         if i != 3:
-            assert empty.sum() >= 0.9 * (~ball[i]).sum()
+            assert (weight == 1).sum() >= 0.9 * (~ball[i]).sum()
     cut_half = ~ball[3] & ball[2]  # the ball's pixels that photo 3's mask lost (its neighbour still shows them there)
-    assert cut_half.sum() > 50 and not (plan.empty[3] & cut_half).any()
+    assert cut_half.sum() > 50 and np.allclose(np.asarray(plan.empty[3], np.float32)[cut_half], share)
     said = next(r for r in plan.reasons if r.startswith("transparent pixels: "))
     assert "train as empty space (weight 0.1)" in said and "inside the hull" in said
+    assert ("train by their colour only" in said) == (share == 0) and ("at 25% of that weight" in said) == (share > 0)
     pieces = build_training(plan, CPU).step_kwargs["pieces"]
     assert type(pieces[0]).__name__ == "EmptyRays" and pieces[0].weight == cfg.transparent_weight
 

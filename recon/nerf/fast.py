@@ -444,8 +444,12 @@ class FastModel(RadianceModel):
                 "density_evals": samples}
 
     def distortion_weight_now(self) -> float:
-        """The distortion loss's weight at this point of training: 0 until ``distortion_from`` of it is done."""
-        return self.distortion_weight if self.progress >= self.config.distortion_from else 0.0
+        """The distortion loss's weight at this point of training: 0 before ``distortion_from`` of it is done and
+        from ``distortion_until`` of it on."""
+        cfg = self.config
+        started = self.progress >= cfg.distortion_from
+        stopped = cfg.distortion_until < 1 and self.progress >= cfg.distortion_until
+        return self.distortion_weight if started and not stopped else 0.0
 
     def _regularizers(self, weights: Tensor, mid: Tensor, delta: Tensor, ri: Tensor, n: int, opacity: Tensor) -> Tensor | None:
         cfg = self.config

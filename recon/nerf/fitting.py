@@ -23,6 +23,14 @@ from .rays import pixel_rays, ray_aabb
 __all__ = ["RayBatcher", "lr_at"]
 
 
+def _as_weights(mask: Tensor | Any) -> Tensor:
+    """An ``empty`` mask as uint8 weights 0..255: bool masks as 0 or 255, float ones in [0, 1] rounded to 1/255."""
+    m = torch.as_tensor(mask)
+    if m.dtype == torch.bool:
+        return m.to(torch.uint8) * 255
+    return (m.float().clamp(0.0, 1.0) * 255.0).round().to(torch.uint8)
+
+
 class RayBatcher:
     """All training pixels of a set of posed images, served as shuffled ray batches.
 
@@ -38,9 +46,10 @@ class RayBatcher:
             model renders leftover transmittance with it.
         random_background: RGBA only: composite each ray onto a fresh random color (given to the
             model too), which stops the model from painting the background into the density.
-        empty: per image an (H, W) bool mask (tensor or array) of pixels known to see nothing up to
-            ``far`` (the sky, `recon.capture.sky`); each batch then carries ``empty (B,)`` (float 0/1) for the
-            piece :class:`recon.nerf.pieces.EmptyRays`.
+        empty: per image an (H, W) mask (tensor or array) of pixels known to see nothing up to ``far`` (the sky,
+            `recon.capture.sky`, or the transparent pixels of masked photos): bool, or a float weight in [0, 1] of
+            how surely each pixel sees nothing (kept to 1/255); each batch then carries ``empty (B,)`` (float)
+            for the piece :class:`recon.nerf.pieces.EmptyRays`.
         drop_missed: with ``aabb``, leave out pixels whose rays miss the box (they can only show
             background); the count is in ``n_dropped``.
         seed: seeds the shuffling and random-background generators.
@@ -104,7 +113,7 @@ class RayBatcher:
         if empty is not None:
             if len(empty) != n or any(tuple(m.shape) != tuple(im.shape[:2]) for m, im in zip(empty, imgs, strict=True)):
                 raise ValueError("empty must hold one (H, W) mask per image, each the size of its image")
-            self.empty = torch.cat([torch.as_tensor(m, dtype=torch.bool).reshape(-1) for m in empty]).to(self.device)
+            self.empty = torch.cat([_as_weights(m).reshape(-1) for m in empty]).to(self.device)
         self.background = torch.as_tensor(background, dtype=torch.float32, device=self.device)
         self.random_background = random_background and self.has_alpha
         self.seed = seed
@@ -180,7 +189,7 @@ class RayBatcher:
         batch = {"rays_o": o, "rays_d": d, "near": near, "far": far, "rgb": rgb, "background": bg,
                  "image": self.image_index(flat)}
         if self.empty is not None:
-            batch["empty"] = self.empty[flat].float()
+            batch["empty"] = self.empty[flat].float() / 255.0
         return batch
 
     def state_dict(self) -> dict[str, Any]:

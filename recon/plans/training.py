@@ -103,13 +103,15 @@ def sky_for(cfg: TrainConfig, kind: str, scene: Scene, frames: list[Frame],
 
 def transparent_for(cfg: TrainConfig, kind: str, scene: Scene,
                     views: list[View]) -> tuple[list[np.ndarray] | None, str]:
-    """(per training photo, the (H, W) bool mask of its pixels known to show nothing, or None; why).
+    """(per training photo, the (H, W) mask of its pixels known to show nothing, or None; why): bool, or the float
+    weight of each pixel's opacity loss when the disputed pixels pay a share of it.
 
     Photos with masks or alpha train on random backgrounds, which tell the field that their transparent pixels show
     nothing only through their colour; the fast field also pays for its opacity there (`train.transparent_weight`).
     Known means the photos agree: a transparent pixel that the hull of all the training photos' masks still covers
-    (most photos show something there: a thin part one photo's mask cut away) is left to the colour loss, so one
-    wrong mask cannot carve away what the others show."""
+    (a thin part one photo's mask cut away, or space under a base only the lowest photos see) pays
+    `train.transparent_disputed_share` of the weight: the other photos' colour keeps a thin part against one wrong
+    mask, while space in which no photo shows anything is still cleared."""
     if not views or views[0].image.shape[-1] != 4:
         return None, ""
     if kind != "fast":
@@ -120,14 +122,20 @@ def transparent_for(cfg: TrainConfig, kind: str, scene: Scene,
                                       [v.intrinsics for v in views], [v.image[..., 3] >= 128 for v in views],
                                       HULL_TOLERANCE)
     transparent = [v.image[..., 3] == 0 for v in views]
-    masks = [t & ~s for t, s in zip(transparent, silhouettes, strict=True)]
-    total = max(1, sum(m.size for m in masks))
-    share, disputed = (float(sum(m.sum() for m in masks)) / total,
+    agreed = [t & ~s for t, s in zip(transparent, silhouettes, strict=True)]
+    total = max(1, sum(m.size for m in agreed))
+    share, disputed = (float(sum(m.sum() for m in agreed)) / total,
                        float(sum((t & s).sum() for t, s in zip(transparent, silhouettes, strict=True))) / total)
-    return masks, (f"transparent pixels: {share:.0%} of the training pixels lie outside the masks and outside the hull "
-                   f"they carve together, and train as empty space (weight {cfg.transparent_weight:g}): random "
-                   f"backgrounds alone leave a faint haze there; {disputed:.1%} more are transparent in their photo but "
-                   f"inside the hull (other photos show something there) and train by their colour only")
+    why = (f"transparent pixels: {share:.0%} of the training pixels lie outside the masks and outside the hull they "
+           f"carve together, and train as empty space (weight {cfg.transparent_weight:g}): random backgrounds alone "
+           f"leave a faint haze there; {disputed:.1%} more are transparent in their photo but inside the hull")
+    part = cfg.transparent_disputed_share
+    if part <= 0:
+        return agreed, f"{why}, and train by their colour only (train.transparent_disputed_share=0)"
+    weights = [np.where(a, 1.0, np.where(t, part, 0.0)).astype(np.float32) for a, t in zip(agreed, transparent, strict=True)]
+    return weights, (f"{why} (other photos may show a thin part there, or only the lowest photos see past a base), "
+                     f"and train as empty space at {part:.0%} of that weight (train.transparent_disputed_share): the "
+                     "colour loss alone leaves a blob under a base in every low view")
 
 
 def with_sky(kwargs: dict[str, Any]) -> dict[str, Any]:
@@ -284,6 +292,8 @@ def auto_fast_config(base: Any, scene: Scene, footprint: float) -> tuple[Any, li
             + ("; on contracted distance, so the far field weighs no more than the object" if unbounded else "")
             + (f"; from {base.distortion_from:.0%} of training on (train.fast.distortion_from), once the field has "
                "found its finer parts" if base.distortion_from > 0 else "")
+            + (f"; until {base.distortion_until:.0%} of it (train.fast.distortion_until)"
+               if base.distortion_until < 1 else "")
         )
     elif unbounded and base.distortion_weight > 0:
         reasons.append(
