@@ -132,7 +132,8 @@ def transparent_for(cfg: TrainConfig, kind: str, scene: Scene,
     part = cfg.transparent_disputed_share
     if part <= 0:
         return agreed, f"{why}, and train by their colour only (train.transparent_disputed_share=0)"
-    weights = [np.where(a, 1.0, np.where(t, part, 0.0)).astype(np.float32) for a, t in zip(agreed, transparent, strict=True)]
+    weights = (transparent if part >= 1 else  # all of the weight: every transparent pixel alike, as bools
+               [np.where(a, np.float32(1), np.float32(part) * t) for a, t in zip(agreed, transparent, strict=True)])
     return weights, (f"{why} (other photos may show a thin part there, or only the lowest photos see past a base), "
                      f"and train as empty space at {part:.0%} of that weight (train.transparent_disputed_share): the "
                      "colour loss alone leaves a blob under a base in every low view")

@@ -118,7 +118,8 @@ def run(ctx: StageContext) -> dict:
     focal = training_focal(train_frames, cfg.max_side)
     eval_views = load_views(scene, spread_evenly(held_out, cfg.eval_views), cfg.max_side)
     test_views = load_views(scene, spread_evenly(test_frames, cfg.final_eval_views), cfg.max_side)  # a spiral's first N would be one viewpoint
-    note = supersampling_note(eval_views + [v for v in test_views if v.name not in {e.name for e in eval_views}], focal)
+    scored = {v.name for v in eval_views}
+    note = supersampling_note(eval_views + [v for v in test_views if v.name not in scored], focal)
     if note:
         ctx.report.info(f"held-out evaluation: {note}")
     result, evals, history, train_time = _fit(ctx, cfg, plan, setup, eval_views, focal)
