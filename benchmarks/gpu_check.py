@@ -62,6 +62,8 @@ COLUMNS: dict[str, list[str]] = {
     "sh2": ["train.fast.sh_degree=2"],
     "dist-until-half": ["train.fast.distortion_until=0.5"],
     "features288": ["train.fast.feature_res=288"],
+    "features288x3": ["train.fast.feature_res=288", "train.fast.feature_levels=3"],
+    "features1level": ["train.fast.feature_levels=1"],
 }
 """--columns: each column's overrides on top of the check's own. All but `default` compare something CUDA has:
 `torch-march` is the default run with the Triton marcher swapped for the torch one it replaced (the marcher's
@@ -71,8 +73,10 @@ after the record at 223fc2c: the distortion loss, the epoch's shuffle drawn on t
 `dist-from-start` runs the distortion loss from the first step, as before GPU sizing started it later; `sh2` the
 colour's view dependence at the presets' second degree, as before GPU sizing took it to the third.
 `dist-until-half` stops the distortion loss halfway through training (is it the loss's last steps that cost the
-Lego its detail?); `features288` a feature grid of 288³ instead of the sized 192³ (is the card's field short of
-capacity, and what does Adam over every value of a larger grid cost a step?)."""
+Lego its detail?); `features288` a feature grid of 288³ (and 144³ under it) instead of the sized 192³ (and
+96³) (is the card's field short of capacity, and what does Adam over every value of a larger grid cost a step?),
+`features288x3` the same in three levels (288³, 144³, 72³), `features1level` the sized 192³ feature grid without
+the coarser level GPU sizing puts under it."""
 
 
 PATCHED_LABELS = {
@@ -213,7 +217,7 @@ def kernel_timings(config: Any, device: torch.device) -> dict[str, Any]:
     if device.type != "cuda":
         return {"skipped": f"the Triton kernels run on CUDA only (this device: {device.type})"}
     from recon.nerf import kernels as K
-    from recon.nerf.grid import trilinear_levels_torch
+    from recon.nerf.grid import level_resolutions, trilinear_levels_torch
     from recon.nerf.render import accumulate_packed, distortion_packed
 
     ok, why = K.triton_status()
@@ -231,9 +235,10 @@ def kernel_timings(config: Any, device: torch.device) -> dict[str, Any]:
     rgb = torch.rand(m, 3, device=device, generator=gen)
     weights = torch.rand(m, device=device, generator=gen) / 48.0
     x01 = torch.rand(m, 3, device=device, generator=gen)
-    density_res = [max(16, int(round((fast.density_res - 1) / 2**k)) + 1) for k in range(fast.density_levels)]
-    density = [torch.randn(r**3, 1, device=device, generator=gen) for r in sorted(set(density_res))]
-    features = [torch.randn(fast.feature_res**3, fast.feature_dim, device=device, generator=gen)]
+    density_res = level_resolutions(fast.density_res, fast.density_levels)
+    feature_res = level_resolutions(fast.feature_res, fast.feature_levels)
+    density = [torch.randn(r**3, 1, device=device, generator=gen) for r in density_res]
+    features = [torch.randn(r**3, fast.feature_dim, device=device, generator=gen) for r in feature_res]
 
     def composite(fn: Any) -> Any:
         s = sigma.clone().requires_grad_()
@@ -266,9 +271,9 @@ def kernel_timings(config: Any, device: torch.device) -> dict[str, Any]:
                                           lambda: composite(K.composite_packed_triton)),
         "colour sums": (lambda: colour(accumulate_packed), lambda: colour(K.accumulate_packed_triton)),
         "distortion loss": (lambda: distortion(distortion_packed), lambda: distortion(K.distortion_packed_triton)),
-        f"density read ({'+'.join(f'{r}³' for r in sorted(set(density_res)))})": (
+        f"density read ({'+'.join(f'{r}³' for r in density_res)})": (
             lambda: grid(trilinear_levels_torch, density), lambda: grid(K.trilinear_levels_triton, density)),
-        f"feature read ({fast.feature_res}³×{fast.feature_dim})": (
+        f"feature read ({'+'.join(f'{r}³' for r in feature_res)}×{fast.feature_dim})": (
             lambda: grid(trilinear_levels_torch, features), lambda: grid(K.trilinear_levels_triton, features)),
     }
     result: dict[str, Any] = {"triton": why}

@@ -336,6 +336,11 @@ GPU_SH_DEGREE = 3
 """On a card the fast model's view-dependent colour takes the direction's spherical harmonics to this degree (the
 most `recon.nerf.fast.sh_encode` has; the presets' is 2): it fits the glossy highlights degree 2 leaves as error, and
 the colour network's wider input costs a card next to nothing. A CPU keeps the presets' value (docs/gpu.md)."""
+GPU_FEATURE_LEVELS = 2
+"""With finer grids on a card, the fast model's colour features are a sum of this many dense grids, each half the
+resolution of the one before (`recon.nerf.grid.MultiDenseGrid`): at a card's feature resolution a vertex of the
+finest grid is reached by few rays early on, and the coarser level learns the colour of every part in the meantime
+(docs/gpu.md)."""
 GPU_GRID_MEMORY_FRACTION = 0.25
 """The sized grids' training memory (parameters, gradients, Adam moments) stays below this share of the GPU's."""
 
@@ -385,11 +390,18 @@ def device_sizing(config: RunConfig, memory_bytes: int, name: str,
     before = list(changes)
     for key in grids:
         scale(key, grid_x, 16, MAX_GRID_RES if "occupancy" not in key else 512)
+    levels = ""
+    if (changes != before and train.model != "surface" and sized.train.fast.grid == "dense"
+            and sized.train.fast.feature_levels < GPU_FEATURE_LEVELS and "train.fast.feature_levels" not in keep):
+        changes.append(f"train.fast.feature_levels={sized.train.fast.feature_levels}→{GPU_FEATURE_LEVELS}")
+        sized.train.fast = dataclasses.replace(sized.train.fast, feature_levels=GPU_FEATURE_LEVELS)
+        levels = ("; under the finer feature grid a coarser one learns the colour of the parts few rays have reached "
+                  "yet")
     grid_bytes = sum(need for keys, _, need in implied_memory(sized) if keys.startswith("train."))
     late_loss = ""
     if grid_bytes > GPU_GRID_MEMORY_FRACTION * memory_bytes:  # the card cannot hold finer grids: keep the preset's
         sized.train.fast, sized.train.surface = train.fast, train.surface
-        changes = before
+        changes, levels = before, ""
     elif (changes != before and train.model != "surface" and sized.train.fast.distortion_weight > 0
           and sized.train.fast.distortion_from == 0 and "train.fast.distortion_from" not in keep
           and sized.train.fast.distortion_until > GPU_DISTORTION_FROM):
@@ -409,7 +421,7 @@ def device_sizing(config: RunConfig, memory_bytes: int, name: str,
         return config, ""
     return sized, (f"GPU sizing ({name}, {memory_bytes / 2**30:.0f} GiB; train.device_sizing=off keeps the preset's "
                    f"CPU-sized values): {', '.join(changes)} — 4,096 rays a step leave a GPU waiting on kernel "
-                   f"launches, and the same minutes buy more steps there{late_loss}{glossy}")
+                   f"launches, and the same minutes buy more steps there{late_loss}{levels}{glossy}")
 
 
 def _apply_overrides(config: RunConfig, overrides: list[str] | None) -> None:

@@ -10,7 +10,8 @@ from collections.abc import Callable
 import pytest
 import torch
 
-from recon.config import GPU_DISTORTION_FROM, GPU_SH_DEGREE, GPU_TIERS, device_sizing, load_config
+from recon.config import (GPU_DISTORTION_FROM, GPU_FEATURE_LEVELS, GPU_SH_DEGREE, GPU_TIERS, device_sizing,
+                          load_config)
 from recon.nerf.compiled import compile_color_network, compile_wanted
 from recon.nerf.fast import FastConfig, FastModel
 from recon.nerf.fitting import RayBatcher
@@ -318,6 +319,25 @@ def test_a_card_takes_the_view_dependent_colour_a_degree_further_and_says_why() 
     assert "sh_degree" not in device_sizing(plain, 80 * GiB, "g")[1]
     surface = load_config("surface", ["train.device=cpu"])
     assert "sh_degree" not in device_sizing(surface, 80 * GiB, "g")[1]
+
+
+def test_finer_feature_grids_get_a_coarser_level_under_them_and_say_why() -> None:
+    base = load_config("fast", ["train.device=cpu"])
+    assert base.train.fast.feature_levels == 1 < GPU_FEATURE_LEVELS  # the CPU's: one level
+    sized, why = device_sizing(base, 80 * GiB, "g")
+    assert sized.train.fast.feature_levels == GPU_FEATURE_LEVELS and base.train.fast.feature_levels == 1
+    assert f"train.fast.feature_levels=1→{GPU_FEATURE_LEVELS}" in why and "coarser" in why
+    same_grids, why = device_sizing(base, 8 * GiB, "g")  # more rays, the preset's grids: one level, as on a CPU
+    assert same_grids.train.fast.feature_levels == 1 and "feature_levels" not in why
+    kept = device_sizing(base, 80 * GiB, "g", keep=frozenset({"train.fast.feature_levels"}))[0]
+    assert kept.train.fast.feature_levels == 1 and kept.train.fast.feature_res > base.train.fast.feature_res
+    hashed = load_config("fast", ["train.device=cpu", "train.fast.grid=hash"])  # levels are a dense grid's
+    assert device_sizing(hashed, 80 * GiB, "g")[0].train.fast.feature_levels == 1
+    huge = load_config("fast", ["train.device=cpu", "train.fast.feature_res=256"])  # the grids stay: so do the levels
+    sized, why = device_sizing(huge, 16 * GiB, "g")
+    assert sized.train.fast.feature_levels == 1 and "feature_levels" not in why
+    surface = load_config("surface", ["train.device=cpu"])
+    assert "feature_levels" not in device_sizing(surface, 80 * GiB, "g")[1]
 
 
 def test_finer_grids_start_the_distortion_loss_later_and_say_why() -> None:

@@ -212,7 +212,9 @@ def test_fast_model_renders_and_trains_the_same_through_the_kernels(device: str,
     from recon.nerf.fast import FastConfig, FastModel
 
     monkeypatch.setattr(kernels, "KERNEL_DEVICES", ("cuda", "cpu") if INTERPRETED else ("cuda",))
-    cfg = dict(density_res=12, feature_res=8, feature_dim=4, density_levels=2, mlp_width=8, occupancy_res=8,
+    # two levels of 17³ and 33³ each (none under MultiDenseGrid's 16³): the levels read in one pass
+    cfg = dict(density_res=33, feature_res=33, feature_dim=4, density_levels=2, feature_levels=2, mlp_width=8,
+               occupancy_res=8,
                occupancy_warmup=0, early_stop_transmittance=0.0, init_alpha=0.3,
                color_min_weight=0.0,  # every sample coloured: a weight at the threshold can't pick different samples
                distortion_weight=0.05)
@@ -223,6 +225,7 @@ def test_fast_model_renders_and_trains_the_same_through_the_kernels(device: str,
             p.add_(0.5 * torch.randn_like(p))
     fused = FastModel(FastConfig(**cfg, kernels="triton")).to(DEVICE)
     fused.load_state_dict(reference.state_dict())
+    assert [len(m.grids) for m in (fused.density_grid, fused.color_grid)] == [2, 2]
     g = torch.Generator().manual_seed(7)
     toward = torch.randn(6, 3, generator=g) * 0.2 + torch.tensor([0.0, 0.0, -1.0])
     rays_d = torch.nn.functional.normalize(toward, dim=-1)

@@ -218,6 +218,12 @@ def resample_dense(grid: DenseGrid, old_from_new: Callable[[Tensor], Tensor], ch
     grid.table.copy_(new_table)
 
 
+def level_resolutions(res: int, levels: int, min_res: int = 16) -> list[int]:
+    """Vertices per side of a :class:`MultiDenseGrid`'s levels, coarsest first: the finest ``res``, each level half
+    the one before (in cells), none under ``min_res``; levels that would coincide are one."""
+    return sorted({max(min_res, int(round((res - 1) / 2**k)) + 1) for k in range(levels)})
+
+
 class MultiDenseGrid(nn.Module):
     """Sum of dense grids at several resolutions (finest ``res``, each level half the previous).
 
@@ -228,8 +234,7 @@ class MultiDenseGrid(nn.Module):
 
     def __init__(self, res: int, channels: int, levels: int = 3, min_res: int = 16, init_std: float = 0.0) -> None:
         super().__init__()
-        resolutions = sorted({max(min_res, int(round((res - 1) / 2**k)) + 1) for k in range(levels)})
-        self.resolutions = resolutions
+        self.resolutions = resolutions = level_resolutions(res, levels, min_res)
         self.channels = int(channels)
         self.grids = nn.ModuleList(DenseGrid(r, channels, init_std) for r in resolutions)
         self.kernels = "torch"  # as DenseGrid.kernels; the Triton kernel reads every level in one pass over the points
