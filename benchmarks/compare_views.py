@@ -30,7 +30,9 @@ def main() -> int:
     parser.add_argument("--out", type=Path, required=True, help="the PNG to write")
     args = parser.parse_args()
 
+    from recon.atomic import atomic_open
     from recon.capture.scene import load_scene
+    from recon.evaluation.metrics import psnr
     from recon.evaluation.views import load_view, render_view, target_rgb
     from recon.field import load_field
 
@@ -46,31 +48,26 @@ def main() -> int:
         return 2
     models = [load_field(Path(f)) for f in fields]
     rows = []
+    # one scene, so one training size and background: the first field's
+    max_side, background = int(models[0][1].get("max_side") or 400), np.asarray(models[0][1]["background"], np.float32)
     for name in args.views.split(","):
-        cells: list[np.ndarray] = []
-        texts: list[str] = []
+        view = load_view(scene, frames[name], max_side, keep_alpha=True)
+        photo = target_rgb(view, background)
+        cells, texts = [photo], [f"{name}: photo"]
         for (model, meta), label in zip(models, labels, strict=True):
-            view = load_view(scene, frames[name], int(meta.get("max_side") or 400), keep_alpha=True)
-            background = np.asarray(meta["background"], np.float32)
             aabb = torch.tensor(meta["aabb"], dtype=torch.float32) if meta.get("bounded") else None
-            photo = target_rgb(view, background)
-            if not cells:
-                cells.append(photo)
-                texts.append(f"{name}: photo")
             with torch.no_grad():
                 rgb = render_view(model, view, aabb, background)["rgb"].astype(np.float32)
-            psnr = -10 * np.log10(max(float(np.mean((rgb - photo) ** 2)), 1e-12))
             cells.append(rgb)
-            texts.append(f"{label}: {psnr:.2f} dB")
+            texts.append(f"{label}: {float(psnr(torch.from_numpy(rgb), torch.from_numpy(photo))):.2f} dB")
         row = Image.fromarray((np.clip(np.concatenate(cells, 1), 0, 1) * 255).astype(np.uint8))
         draw = ImageDraw.Draw(row)
         for k, text in enumerate(texts):
             draw.text((k * cells[0].shape[1] + 6, 6), text, fill=(0, 0, 0))
         rows.append(np.asarray(row))
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = args.out.with_name(args.out.name + ".tmp.png")
-    Image.fromarray(np.concatenate(rows, 0)).save(tmp)
-    tmp.replace(args.out)
+    with atomic_open(args.out) as f:
+        Image.fromarray(np.concatenate(rows, 0)).save(f, format="PNG")
     print(args.out)
     return 0
 

@@ -214,8 +214,7 @@ def test_fast_model_renders_and_trains_the_same_through_the_kernels(device: str,
     monkeypatch.setattr(kernels, "KERNEL_DEVICES", ("cuda", "cpu") if INTERPRETED else ("cuda",))
     # two levels of 17³ and 33³ each (none under MultiDenseGrid's 16³): the levels read in one pass
     cfg = dict(density_res=33, feature_res=33, feature_dim=4, density_levels=2, feature_levels=2, mlp_width=8,
-               occupancy_res=8,
-               occupancy_warmup=0, early_stop_transmittance=0.0, init_alpha=0.3,
+               occupancy_res=8, occupancy_warmup=0, early_stop_transmittance=0.0, init_alpha=0.3,
                color_min_weight=0.0,  # every sample coloured: a weight at the threshold can't pick different samples
                distortion_weight=0.05)
     torch.manual_seed(0)

@@ -92,9 +92,8 @@ class FastConfig:
     loss draws each ray's weight into one interval before the field has found its finer parts, and at fine grids
     they never come back; started later it still clears fog and floaters (docs/gpu.md)."""
     distortion_until: float = 1.0
-    """The share of training (0 to 1) after which the distortion loss stops (1: to the last step). Stopped at half
-    of training on the CPU at a card's grids, the Lego and the sample's mesh were the same within a run's noise, so
-    the presets keep it to the end; gpu_check's `dist-until-half` column asks a card (docs/gpu.md)."""
+    """The share of training (0 to 1) after which the distortion loss stops (1: to the last step, the presets'
+    value: stopping it earlier has not measured better, docs/gpu.md)."""
     unbounded_distortion_weight: float = 0.0
     """The same for an unbounded capture, on contracted distance (`recon.nerf.contraction.contracted_distance`)."""
     entropy_weight: float = 0.0
