@@ -5,8 +5,9 @@ import math
 
 import pytest
 import torch
+import torch.nn.functional as F
 
-from recon.nerf.fast import FastConfig, FastModel, distortion_loss_packed, sh_encode
+from recon.nerf.fast import FastConfig, FastModel, distortion_loss_packed, sh_encode, sh_product, sh_terms
 from recon.nerf.grid import DenseGrid
 from recon.nerf.occupancy import density_threshold
 
@@ -116,6 +117,23 @@ def test_sh_encoding_is_orthonormal_on_the_sphere() -> None:
     y = sh_encode(d, 3)
     gram = y.t() @ y * (4 * math.pi / n)
     torch.testing.assert_close(gram, torch.eye(16, dtype=torch.float64), atol=2e-3, rtol=0)
+
+
+@pytest.mark.parametrize("degree", [0, 1, 2, 3])
+def test_sh_as_one_matrix_product_equals_the_terms(degree: int) -> None:
+    """The GPU's harmonics (powers of d times a matrix read off the terms) are the terms' to rounding, on unit
+    directions, the axes themselves and directions that are not unit length (both are polynomials); a CPU runs the
+    terms."""
+    g = torch.Generator().manual_seed(degree)
+    d = torch.cat([F.normalize(torch.randn(5000, 3, generator=g, dtype=torch.float64), dim=-1),
+                   torch.eye(3, dtype=torch.float64), -torch.eye(3, dtype=torch.float64),
+                   3 * torch.rand(50, 3, generator=g, dtype=torch.float64) - 1.5])
+    torch.testing.assert_close(sh_product(d, degree), sh_terms(d, degree), atol=1e-12, rtol=0)
+    torch.testing.assert_close(sh_product(d.float(), degree), sh_terms(d.float(), degree), atol=2e-6, rtol=0)
+    assert sh_product(d.float(), degree).dtype == torch.float32
+    assert torch.equal(sh_encode(d.float(), degree), sh_terms(d.float(), degree))
+    with pytest.raises(ValueError, match="sh_degree"):
+        sh_product(d, 4)
 
 
 def test_occupancy_refresh_culls_empty_space_after_warmup() -> None:

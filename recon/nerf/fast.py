@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from functools import lru_cache
 from typing import Any
 
 import torch
@@ -57,7 +58,7 @@ from recon.nerf.occupancy import OccupancyGrid, density_threshold, march, march_
 from recon.nerf.rays import ray_aabb
 from recon.nerf.render import RadianceModel, accumulate_packed, checked_aabb, distortion_packed, render_weights_packed
 
-__all__ = ["FastConfig", "FastModel", "sh_encode", "distortion_loss_packed", "ray_background", "SkyColor", "trunc_exp"]
+__all__ = ["FastConfig", "FastModel", "sh_encode", "sh_product", "sh_terms", "distortion_loss_packed", "ray_background", "SkyColor", "trunc_exp"]
 
 def trunc_exp(x: Tensor, max_input: float = 15.0) -> Tensor:
     """exp of x clamped at ``max_input`` (gradient 0 above it): overflow-free density activation."""
@@ -73,8 +74,10 @@ _SH_C = (
 )
 
 
-def sh_encode(d: Tensor, degree: int) -> Tensor:
-    """Real spherical harmonics of unit directions d (M, 3) up to ``degree`` (0..3): (M, (degree+1)^2)."""
+def sh_terms(d: Tensor, degree: int) -> Tensor:
+    """Real spherical harmonics of unit directions d (M, 3) up to ``degree`` (0..3): (M, (degree+1)^2), term by term.
+
+    The definition, :func:`sh_product`'s reference and what :func:`sh_encode` runs on a CPU."""
     if not 0 <= degree <= 3:
         raise ValueError(f"sh_degree must be in 0..3, got {degree}")
     x, y, z = d.unbind(-1)
@@ -93,6 +96,49 @@ def sh_encode(d: Tensor, degree: int) -> Tensor:
                 c3[5] * z * (xx - yy), c3[6] * x * (xx - 3 * yy),
             ]
     return torch.stack(out, dim=-1)
+
+
+def _monomials(d: Tensor, degree: int) -> Tensor:
+    """d (M, 3) and its outer powers up to ``degree`` (>= 1), flattened: (M, 3 + 9 + 27) at degree 3, in as many
+    operations as degrees (the products are repeated, x·y and y·x, which costs a few multiply-adds, not launches)."""
+    parts, power = [d], d
+    for _ in range(1, degree):
+        power = (power[:, :, None] * d[:, None, :]).flatten(1)
+        parts.append(power)
+    return torch.cat(parts, 1) if len(parts) > 1 else d
+
+
+@lru_cache(maxsize=16)
+def _sh_matrix(degree: int, device: torch.device, dtype: torch.dtype) -> tuple[Tensor, Tensor]:
+    """(the constant term (K,), the (monomials, K) matrix) with ``sh_terms(d) = constant + _monomials(d) @ matrix``.
+
+    Read off :func:`sh_terms` itself (one home for the coefficients): the harmonics are polynomials in x, y, z, so
+    their coefficients solve a linear system on generic points, exactly up to float64 rounding (the pseudo-inverse
+    splits a coefficient evenly between x·y and y·x)."""
+    points = torch.randn(64, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    constant = sh_terms(torch.zeros(1, 3, dtype=torch.float64), degree)[0]
+    matrix = torch.linalg.pinv(_monomials(points, degree)) @ (sh_terms(points, degree) - constant)
+    return constant.to(device, dtype), matrix.to(device, dtype)
+
+
+def sh_product(d: Tensor, degree: int) -> Tensor:
+    """:func:`sh_terms` as one matrix product of d's powers: 4 kernel launches at degree 3 where the terms take ~45
+    (tests/test_nerf_fast.py holds the two together)."""
+    if not 0 <= degree <= 3:
+        raise ValueError(f"sh_degree must be in 0..3, got {degree}")
+    if degree == 0:
+        return torch.full((d.shape[0], 1), _SH_C[0], dtype=d.dtype, device=d.device)
+    constant, matrix = _sh_matrix(degree, d.device, d.dtype)
+    with torch.autocast(d.device.type, enabled=False):  # the directions' harmonics in their own precision
+        return torch.addmm(constant, _monomials(d, degree), matrix)
+
+
+def sh_encode(d: Tensor, degree: int) -> Tensor:
+    """Real spherical harmonics of unit directions d (M, 3) up to ``degree`` (0..3): (M, (degree+1)^2).
+
+    On a GPU, where each operation is a kernel launch, as one matrix product (:func:`sh_product`); on a CPU term by
+    term (:func:`sh_terms`), which moves fewer bytes than the product's repeated powers and measured faster there."""
+    return sh_terms(d, degree) if d.device.type == "cpu" else sh_product(d, degree)
 
 
 def distortion_loss_packed(weights: Tensor, t_mid: Tensor, delta: Tensor, ray_indices: Tensor, n_rays: int,

@@ -80,15 +80,12 @@ def ray_aabb(rays_o: Tensor, rays_d: Tensor, aabb: Tensor) -> tuple[Tensor, Tens
         raise ValueError(f"aabb must have shape (2, 3), got {tuple(aabb.shape)}")
     aabb = aabb.to(rays_o)
     parallel = rays_d == 0
-    safe_d = torch.where(parallel, torch.ones_like(rays_d), rays_d)
-    t0 = (aabb[0] - rays_o) / safe_d
-    t1 = (aabb[1] - rays_o) / safe_d
+    t0, t1 = (aabb[:, None, :] - rays_o) / torch.where(parallel, 1.0, rays_d)  # both slabs' planes in one launch
     inside = (rays_o >= aabb[0]) & (rays_o <= aabb[1])
-    inf = torch.full_like(t0, torch.inf)
-    lo = torch.where(parallel, torch.where(inside, -inf, inf), torch.minimum(t0, t1))
-    hi = torch.where(parallel, torch.where(inside, inf, -inf), torch.maximum(t0, t1))
+    always = torch.where(inside, torch.inf, -torch.inf)  # a parallel axis: in its slab for every t, or for none
+    lo = torch.where(parallel, -always, torch.minimum(t0, t1))
+    hi = torch.where(parallel, always, torch.maximum(t0, t1))
     t_near = lo.amax(dim=-1).clamp_min(0.0)
     t_far = hi.amin(dim=-1)
     hit = t_far > t_near
-    zero = torch.zeros_like(t_near)
-    return torch.where(hit, t_near, zero), torch.where(hit, t_far, zero), hit
+    return torch.where(hit, t_near, 0.0), torch.where(hit, t_far, 0.0), hit
