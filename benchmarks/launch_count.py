@@ -122,6 +122,8 @@ def count(scene_dir: Path, preset: str, overrides: list[str], memory_gib: float,
     kernels.KERNEL_DEVICES = ("cuda", "cpu")
     sh_encode = fast.sh_encode
     fast.sh_encode = getattr(fast, "sh_product", sh_encode)  # a card's harmonics (a CPU runs the terms)
+    for degree in range(4):  # their matrices are made once, at a run's first step, not at every step
+        fast.sh_encode(torch.zeros(1, 3), degree)
     interpreter.InterpretedFunction.run = counted_run
     taken, i, t0 = 0, first, time.perf_counter()
     try:
