@@ -81,27 +81,42 @@ def measure(scene_dir: Path, preset: str, overrides: list[str], warmup: int, ste
             "places": dict(places.most_common()), "timed_steps": timed, "ms_per_step": round(ms, 2)}
 
 
-def main(argv: list[str] | None = None) -> int:
-    from recon.app.bench import provenance
-    from recon.atomic import write_json_atomic
-
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+def step_parser(doc: str) -> argparse.ArgumentParser:
+    """The options of a script that measures training steps on a scene recon made (this one, launch_count.py)."""
+    parser = argparse.ArgumentParser(description=doc.split("\n\n")[0])
     parser.add_argument("--scene", type=Path, required=True, help="a scene folder recon made (its 02_scene is read)")
     parser.add_argument("--out", type=Path, required=True, help="the record to write (JSON)")
     parser.add_argument("--preset", default="fast")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="a config override, as recon --set")
+    return parser
+
+
+def scene_row(name: str, args: argparse.Namespace) -> dict[str, Any] | None:
+    """A record row's provenance (the scene and options, date, commit, machine, load), or None, said on stderr, when
+    ``args.scene`` holds no scene recon made."""
+    from recon.app.bench import provenance
+
+    if not (args.scene / "02_scene" / "scene.json").is_file():
+        print(f"error: {args.scene} has no 02_scene/scene.json: pass --scene with a scene folder recon made "
+              "(e.g. one the GPU check left in its --out)", file=sys.stderr)
+        return None
+    return {"name": name, "scene": str(args.scene), "preset": args.preset, "overrides": args.set,
+            "date": time.strftime("%Y-%m-%dT%H:%M:%S%z"), **provenance(),
+            "load_average_start": [round(x, 2) for x in os.getloadavg()]}
+
+
+def main(argv: list[str] | None = None) -> int:
+    from recon.atomic import write_json_atomic
+
+    parser = step_parser(__doc__)
     parser.add_argument("--warmup", type=int, default=300)
     parser.add_argument("--steps", type=int, default=3, help="steps under the sync debug mode")
     parser.add_argument("--timed", type=int, default=100)
     args = parser.parse_args(argv)
-    if not (args.scene / "02_scene" / "scene.json").is_file():
-        print(f"error: {args.scene} has no 02_scene/scene.json: pass --scene with a scene folder recon made "
-              "(e.g. one the GPU check left in its --out)", file=sys.stderr)
+    row = scene_row("gpu_syncs", args)
+    if row is None:
         return 2
-    load = [round(x, 2) for x in os.getloadavg()]
-    row = {"name": "gpu_syncs", "scene": str(args.scene), "preset": args.preset, "overrides": args.set,
-           "date": time.strftime("%Y-%m-%dT%H:%M:%S%z"), **provenance(), "load_average_start": load,
-           **measure(args.scene, args.preset, args.set, args.warmup, args.steps, args.timed)}
+    row.update(measure(args.scene, args.preset, args.set, args.warmup, args.steps, args.timed))
     write_json_atomic(args.out, [row])
     print(f"{row['device']}: {row['ms_per_step']} ms a step of {row['batch_rays']:,} rays"
           + (f"; {row['host_reads_per_step']} host reads a step:" if row["host_reads_per_step"] is not None else ""))

@@ -19,7 +19,6 @@ adds a row to an earlier one). A measurement: it asserts nothing.
 """
 from __future__ import annotations
 
-import argparse
 import collections
 import json
 import os
@@ -35,8 +34,8 @@ os.environ["RECON_NATIVE"] = "0"  # the C marcher is a CPU's; a card marches in 
 import torch  # noqa: E402
 from torch.utils._python_dispatch import TorchDispatchMode  # noqa: E402
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))  # this checkout's recon (its commit is the one recorded)
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from gpu_syncs import scene_row, step_parser  # noqa: E402  (gpu_syncs puts this checkout's recon first)
 
 NO_KERNEL = ("view", "_unsafe_view", "expand", "t", "transpose", "unsqueeze", "squeeze", "select", "slice", "permute",
              "detach", "alias", "as_strided", "reshape", "_reshape_alias", "unbind", "split", "split_with_sizes",
@@ -177,28 +176,19 @@ class _Paused:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from recon.app.bench import provenance
     from recon.atomic import write_json_atomic
 
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--scene", type=Path, required=True, help="a scene folder recon made (its 02_scene is read)")
-    parser.add_argument("--out", type=Path, required=True, help="the record to write (JSON)")
-    parser.add_argument("--preset", default="fast")
-    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="a config override, as recon --set")
+    parser = step_parser(__doc__)
     parser.add_argument("--memory-gib", type=float, default=80.0, help="the card's memory, for the sizing (an H100: 80)")
     parser.add_argument("--rays", type=int, default=64, help="rays a counted step (the interpreter's pace)")
     parser.add_argument("--warmup", type=int, default=80, help="steps before counting")
     parser.add_argument("--steps", type=int, default=3, help="steps counted")
     parser.add_argument("--append", action="store_true", help="add the row to --out's rows instead of replacing them")
     args = parser.parse_args(argv)
-    if not (args.scene / "02_scene" / "scene.json").is_file():
-        print(f"error: {args.scene} has no 02_scene/scene.json: pass --scene with a scene folder recon made "
-              "(e.g. one the GPU check left in its --out)", file=sys.stderr)
+    row = scene_row("launch_count", args)
+    if row is None:
         return 2
-    load = [round(x, 2) for x in os.getloadavg()]
-    row = {"name": "launch_count", "scene": str(args.scene), "preset": args.preset, "overrides": args.set,
-           "date": time.strftime("%Y-%m-%dT%H:%M:%S%z"), **provenance(), "load_average_start": load,
-           **count(args.scene, args.preset, args.set, args.memory_gib, args.rays, args.warmup, args.steps)}
+    row.update(count(args.scene, args.preset, args.set, args.memory_gib, args.rays, args.warmup, args.steps))
     earlier = json.loads(args.out.read_text()) if args.append and args.out.is_file() else []
     write_json_atomic(args.out, [*earlier, row])
     print(f"{row['launches_per_step']:.0f} launches a step ({row['torch_ops_per_step']:.0f} torch operations, "
