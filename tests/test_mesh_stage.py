@@ -506,3 +506,16 @@ def test_a_failed_textured_mesh_still_delivers_the_vertex_colored_mesh_and_says_
     assert "preview_textured.png" not in report["previews"]
     said = " ".join(capsys.readouterr().err.split())  # the console wraps long lines
     assert said.count("textured mesh not written") == 1 and error in said
+
+
+def test_an_object_density_mesh_in_pieces_points_to_the_surface_preset() -> None:
+    """Only an object's density mesh with a share of its area outside the largest piece gets the advice, and it
+    says how much lies outside; a zero set (already the surface model) and an unbounded scene never do."""
+    from recon.plans.mesh import SPLIT_AREA, pieces_advice
+
+    advice = pieces_advice(0.91, zero_set=False, capture="object")
+    assert advice.startswith("9% of the mesh's area lies outside its largest piece") and "--preset surface" in advice
+    assert pieces_advice(SPLIT_AREA, zero_set=False, capture="object") == ""
+    assert pieces_advice(0.5, zero_set=True, capture="object") == ""
+    assert pieces_advice(0.5, zero_set=False, capture="unbounded") == ""
+    assert pieces_advice(0.5, zero_set=False, capture=None) == ""

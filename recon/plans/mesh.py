@@ -142,6 +142,21 @@ def hollow_fill_applies(scene: Scene, cfg: MeshConfig, bounded: bool) -> tuple[b
     return True, ""
 
 
+SPLIT_AREA = 0.95
+"""A density mesh whose largest piece holds less of its area than this is in pieces a user sees: `pieces_advice`."""
+
+
+def pieces_advice(largest_area_fraction: float, zero_set: bool, capture: str | None) -> str:
+    """What to run for a mesh in one piece when an object's density mesh is in several ("" when it is not): the
+    surface preset meshes an object as one closed surface, without the holes a density mesh has where few photos
+    agree (a real capture's soft fur, a plain patch)."""
+    if zero_set or capture != "object" or largest_area_fraction >= SPLIT_AREA:
+        return ""
+    return (f"{1 - largest_area_fraction:.0%} of the mesh's area lies outside its largest piece: --preset surface meshes "
+            "an object as one closed surface, without the holes a density mesh has where few photos agree "
+            "(docs/surface.md)")
+
+
 @dataclass(frozen=True)
 class MeshPlan:
     """Every decision of the mesh stage, in the order it makes them; the ``*_why`` fields say why (printed or

@@ -50,7 +50,7 @@ from recon.meshing.photos import (
     see_with_views,
     texture_mesh,
 )
-from recon.plans.mesh import MeshPlan, plan_mesh, texture_side
+from recon.plans.mesh import MeshPlan, pieces_advice, plan_mesh, texture_side
 from recon.runner.pipeline import Stage, StageContext
 
 REPORT_FILE = "mesh_report.json"
@@ -121,6 +121,9 @@ def run(ctx: StageContext) -> dict:
                          opacities or None, observed, plan.point_tolerance)
     timings["coherence_s"] = round(time.perf_counter() - t, 3)
     ctx.report.info(describe_coherence(coherent))
+    advice = pieces_advice(coherent["largest_piece"]["largest_area_fraction"], plan.zero_set, scene.capture)
+    if advice:
+        ctx.report.info(advice)
 
     t = time.perf_counter()
     normals = np.asarray(trimesh.Trimesh(vertices, faces, process=False).vertex_normals, np.float32)
