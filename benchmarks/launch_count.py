@@ -120,7 +120,8 @@ def count(scene_dir: Path, preset: str, overrides: list[str], memory_gib: float,
 
     kernels.KERNEL_DEVICES = ("cuda", "cpu")
     sh_encode = fast.sh_encode
-    fast.sh_encode = getattr(fast, "sh_product", sh_encode)  # a card's harmonics (a CPU runs the terms)
+    # a card's harmonics (a CPU runs the terms); code from before sh_product had only the terms, on every device
+    fast.sh_encode = getattr(fast, "sh_product", sh_encode)
     for degree in range(4):  # their matrices are made once, at a run's first step, not at every step
         fast.sh_encode(torch.zeros(1, 3), degree)
     interpreter.InterpretedFunction.run = counted_run

@@ -58,7 +58,8 @@ from recon.nerf.occupancy import OccupancyGrid, density_threshold, march, march_
 from recon.nerf.rays import ray_aabb
 from recon.nerf.render import RadianceModel, accumulate_packed, checked_aabb, distortion_packed, render_weights_packed
 
-__all__ = ["FastConfig", "FastModel", "sh_encode", "sh_product", "sh_terms", "distortion_loss_packed", "ray_background", "SkyColor", "trunc_exp"]
+__all__ = ["FastConfig", "FastModel", "sh_encode", "sh_product", "sh_terms", "distortion_loss_packed", "ray_background",
+           "SkyColor", "trunc_exp"]
 
 def trunc_exp(x: Tensor, max_input: float = 15.0) -> Tensor:
     """exp of x clamped at ``max_input`` (gradient 0 above it): overflow-free density activation."""
@@ -122,13 +123,11 @@ def _sh_matrix(degree: int, device: torch.device, dtype: torch.dtype) -> tuple[T
 
 
 def sh_product(d: Tensor, degree: int) -> Tensor:
-    """:func:`sh_terms` as one matrix product of d's powers: 4 kernel launches at degree 3 where the terms take ~45
-    (tests/test_nerf_fast.py holds the two together)."""
-    if not 0 <= degree <= 3:
-        raise ValueError(f"sh_degree must be in 0..3, got {degree}")
-    if degree == 0:
-        return torch.full((d.shape[0], 1), _SH_C[0], dtype=d.dtype, device=d.device)
-    constant, matrix = _sh_matrix(degree, d.device, d.dtype)
+    """:func:`sh_terms` as one matrix product of d's powers: 4 kernel launches at degree 3 where the terms take 51
+    (tests/test_nerf_fast.py holds the two together). Degree 0 (a constant) and a degree out of range are the terms'."""
+    if degree < 1:
+        return sh_terms(d, degree)
+    constant, matrix = _sh_matrix(degree, d.device, d.dtype)  # sh_terms refuses a degree over 3 there
     with torch.autocast(d.device.type, enabled=False):  # the directions' harmonics in their own precision
         return torch.addmm(constant, _monomials(d, degree), matrix)
 
