@@ -6,6 +6,9 @@ one run after the other (so the rows compare).
     python benchmarks/option_sweep.py --option train.transparent_weight --values 0,0.1 --data fox --until train \
         --name transparent_weight
 
+A value may bring overrides of its own after "+" (what only that value needs), e.g.
+`--values dense,hash+train.fast.feature_res=512` for a hash grid of finer levels than the dense grid's resolution.
+
 Runs poses and normalize once (`recon bench`'s shared scene, automatic masks included), then `recon bench`'s run of
 `--preset` once per value on that scene: steps, rays/s, held-out PSNR overall and per test photo, and with
 `--until mesh` (the default) the mesh's accuracy where the data has a true surface. Writes
@@ -26,7 +29,8 @@ sys.path.insert(0, str(REPO))  # this checkout's recon, not an installed one
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--option", required=True, help="a --set key, e.g. train.fast.distortion_weight")
-    parser.add_argument("--values", required=True, help="comma-separated values, run in this order")
+    parser.add_argument("--values", required=True,
+                        help="comma-separated values, run in this order; VALUE+key=v+... adds overrides to one value")
     parser.add_argument("--data", default="sample")
     parser.add_argument("--preset", default="fast")
     parser.add_argument("--until", default="mesh", choices=["train", "mesh"])
@@ -43,15 +47,18 @@ def main() -> None:
     work = args.work or Path.home() / ".cache" / "recon" / "bench" / args.name
     report = Reporter(quiet=True)
     rows: list[dict[str, Any]] = []
-    for value in args.values.split(","):
-        overrides = [*args.set, f"{args.option}={value}"]
+    for item in args.values.split(","):
+        value, *own = item.split("+")
+        overrides = [*args.set, f"{args.option}={value}", *own]
         row = run_bench(args.data, [args.preset], work, overrides, report, until=args.until)[0]
         metrics = json.loads((work / f"{Path(args.data).name}-{args.preset}" / "03_field" / "metrics.json").read_text())
         row["option"], row["value"] = args.option, value
+        if own:
+            row["value_overrides"] = own
         row["psnr_per_view"] = {v["view"]: round(v["psnr"], 2) for v in metrics["test"]["views"]}
         rows.append(row)
         mesh = f", F@1% {row['fscore_1pct']:.3f}" if row.get("fscore_1pct") is not None else ""
-        print(f"{args.option}={value}: {row['steps']} steps, {row['rays_per_s']:,.0f} rays/s, "
+        print(f"{args.option}={item}: {row['steps']} steps, {row['rays_per_s']:,.0f} rays/s, "
               f"test PSNR {row['psnr']:.2f} dB{mesh}")
         write_json_atomic(result, rows)
     print(f"wrote {result}")

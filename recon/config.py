@@ -22,7 +22,9 @@ import numpy as np
 
 from recon.capture.sfm import SfmOptions
 from recon.errors import ConfigError
-from recon.nerf.model_config import FastConfig, GridKind, SurfaceConfig
+from recon.nerf.model_config import (
+    HASH_BASE_RES, HASH_FEATURES, FastConfig, GridKind, SurfaceConfig, density_grid_dim, hash_level_layout,
+)
 
 PIPELINES_DIR = Path(__file__).resolve().parent.parent / "pipelines"
 
@@ -541,6 +543,7 @@ BOUNDS: dict[str, Bound] = {
     "train.fast.density_res": _range(2, MAX_GRID_RES),
     "train.fast.feature_res": _range(2, MAX_GRID_RES),
     "train.fast.feature_dim": _range(1, 64),
+    "train.fast.hash_table_log2": _range(10, 24),
     "train.fast.density_levels": _range(1, 8),
     "train.fast.feature_levels": _range(1, 8),
     "train.fast.sh_degree": _range(0, 3),
@@ -651,12 +654,19 @@ def _dense_grid_parameters(res: int, channels: int, levels: int) -> int:
     return sum(max(2, (res - 1) // 2**k + 1) ** 3 for k in range(levels)) * channels
 
 
+def _grid_parameters(kind: str, res: int, channels: int, levels: int, table_log2: int) -> int:
+    """Values in one of the fast model's grids: a "hash" grid's tables (``channels`` levels of HASH_FEATURES), any
+    other as dense (a "vm" grid of the same resolution is far smaller)."""
+    if kind == "hash":
+        return sum(hash_level_layout(channels, HASH_BASE_RES, res, table_log2)[1]) * HASH_FEATURES
+    return _dense_grid_parameters(res, channels, levels)
+
+
 def implied_memory(config: RunConfig) -> list[tuple[str, str, int]]:
     """The memory each memory-hungry group of options implies: (options to lower, what needs it, bytes).
 
     The mesh grid is what mesh.memory_budget_mb allows of mesh.resolution (or max_resolution) cubed, times the
-    copies the stage makes of it; the training grids are counted as dense (the default; vm and hash grids of the
-    same resolution are far smaller); the texture is baked at mesh.texture_size² (automatic: at most 2048²).
+    copies the stage makes of it; the training grids as `_grid_parameters` counts them; the texture is baked at mesh.texture_size² (automatic: at most 2048²).
     """
     mesh, fast, surface = config.mesh, config.train.fast, config.train.surface
     res = mesh.resolution or mesh.max_resolution
@@ -668,8 +678,10 @@ def implied_memory(config: RunConfig) -> list[tuple[str, str, int]]:
         side = mesh.texture_size or AUTO_TEXTURE_SIDES[-1]
         out.append(("mesh.texture_size", "baking the texture", TEXTURE_BAKE_BYTES_PER_TEXEL * side**2))
     if config.train.model in ("auto", "fast"):
-        params = (_dense_grid_parameters(fast.density_res, 1, fast.density_levels)
-                  + _dense_grid_parameters(fast.feature_res, fast.feature_dim, fast.feature_levels))
+        params = (_grid_parameters(fast.density_grid, fast.density_res, density_grid_dim(fast.density_grid),
+                                   fast.density_levels, fast.hash_table_log2)
+                  + _grid_parameters(fast.grid, fast.feature_res, fast.feature_dim, fast.feature_levels,
+                                     fast.hash_table_log2))
         out.append(("train.fast.density_res / feature_res / feature_dim / *_levels", "training the fast model's grids",
                     TRAINING_BYTES_PER_PARAMETER * params))
     if config.train.model == "surface":

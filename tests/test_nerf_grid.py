@@ -149,3 +149,22 @@ def test_multi_dense_grid_is_the_sum_of_its_levels() -> None:
     x = _points(100)
     ref = sum(trilinear_reference(g.volume().detach(), x) for g in grid.grids)
     torch.testing.assert_close(grid(x), ref, rtol=1e-5, atol=1e-5)
+
+
+def test_the_memory_check_counts_a_hash_grid_by_its_tables() -> None:
+    """A hash grid's memory is its tables' (levels × 2**hash_table_log2 rows at most), not a dense grid of its
+    finest resolution: 16 levels up to 1024 fit where a dense 1024³ grid is refused."""
+    from recon.config import TRAINING_BYTES_PER_PARAMETER, ConfigError, implied_memory, load_config
+    from recon.nerf.fast import FastModel
+
+    hashed = ["train.fast.grid=hash", "train.fast.feature_dim=16", "train.fast.hash_table_log2=19"]
+    fine = load_config("fast", [*hashed, "train.fast.feature_res=1024"])  # not refused
+    with pytest.raises(ConfigError, match="more than this machine"):
+        load_config("fast", ["train.fast.feature_res=1024"])
+    small = load_config("fast", [*hashed, "train.fast.feature_res=64", "train.fast.hash_table_log2=12",
+                                 "train.fast.density_res=16", "train.fast.density_levels=1"])
+    model = FastModel(small.train.fast)
+    counted = next(need for keys, _, need in implied_memory(small) if keys.startswith("train.fast"))
+    values = sum(p.numel() for grid in (model.density_grid, model.color_grid) for p in grid.parameters())
+    assert counted == values * TRAINING_BYTES_PER_PARAMETER
+    assert implied_memory(fine)[-1][2] < 2**31

@@ -25,6 +25,7 @@ from recon.nerf.kernels import (
     composite_packed_torch,
     composite_packed_triton,
     distortion_packed_triton,
+    hash_levels_triton,
     trilinear_levels_triton,
 )
 from recon.nerf.render import accumulate_packed, distortion_packed
@@ -204,11 +205,33 @@ def test_trilinear_levels_match_the_grids_torch_reads(device: str, channels: int
         torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-5)
 
 
-def test_fast_model_renders_and_trains_the_same_through_the_kernels(device: str,
-                                                                    monkeypatch: pytest.MonkeyPatch) -> None:
+@pytest.mark.parametrize("max_res, log2_table", [(24, 10), (64, 12)], ids=["some-levels-hashed", "most-hashed"])
+def test_hash_levels_match_the_hash_grids_torch_read(device: str, max_res: int, log2_table: int) -> None:
+    """Dense levels and hashed ones (tables small enough that vertices collide), points on the box's faces and
+    corners and outside it among them: the same features and the same table gradient (collisions sum, as the torch
+    gather's do)."""
+    from recon.nerf.grid import HashGrid
+
+    torch.manual_seed(2)
+    grid = HashGrid(levels=6, features=2, log2_table=log2_table, base_res=4, max_res=max_res, init_scale=1.0)
+    assert any(grid.hashed) and not all(grid.hashed)
+    grid = grid.to(DEVICE)
+    x = _points(200).to(DEVICE)
+    got = hash_levels_triton(x, grid.table, grid.verts_t, grid.offsets, grid.hashed_t, grid.log2_table)
+    want = grid(x)  # kernels="torch": the reference
+    torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-6)
+    up = torch.randn(want.shape, generator=torch.Generator().manual_seed(3)).to(DEVICE)
+    (a,) = torch.autograd.grad(got, grid.table, up)
+    (b,) = torch.autograd.grad(want, grid.table, up)
+    torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-5)
+
+
+@pytest.mark.parametrize("features", ["dense", "hash"])
+def test_fast_model_renders_and_trains_the_same_through_the_kernels(device: str, monkeypatch: pytest.MonkeyPatch,
+                                                                    features: str) -> None:
     """One training render of a small fast model, train.fast.kernels=triton against torch from the same weights:
     the same colours, depths, opacities and grid gradients (on a CPU: under the interpreter, the C marcher's
-    samples for both)."""
+    samples for both). Colour features in a dense grid of two levels or in a hash grid."""
     from recon.nerf.fast import FastConfig, FastModel
 
     monkeypatch.setattr(kernels, "KERNEL_DEVICES", ("cuda", "cpu") if INTERPRETED else ("cuda",))
@@ -216,7 +239,7 @@ def test_fast_model_renders_and_trains_the_same_through_the_kernels(device: str,
     cfg = dict(density_res=33, feature_res=33, feature_dim=4, density_levels=2, feature_levels=2, mlp_width=8,
                occupancy_res=8, occupancy_warmup=0, early_stop_transmittance=0.0, init_alpha=0.3,
                color_min_weight=0.0,  # every sample coloured: a weight at the threshold can't pick different samples
-               distortion_weight=0.05)
+               distortion_weight=0.05, grid=features, hash_table_log2=10)
     torch.manual_seed(0)
     reference = FastModel(FastConfig(**cfg, kernels="torch")).to(DEVICE)
     with torch.no_grad():
@@ -224,7 +247,8 @@ def test_fast_model_renders_and_trains_the_same_through_the_kernels(device: str,
             p.add_(0.5 * torch.randn_like(p))
     fused = FastModel(FastConfig(**cfg, kernels="triton")).to(DEVICE)
     fused.load_state_dict(reference.state_dict())
-    assert [len(m.grids) for m in (fused.density_grid, fused.color_grid)] == [2, 2]
+    assert len(fused.density_grid.grids) == 2
+    assert len(fused.color_grid.grids) == 2 if features == "dense" else any(fused.color_grid.hashed)
     g = torch.Generator().manual_seed(7)
     toward = torch.randn(6, 3, generator=g) * 0.2 + torch.tensor([0.0, 0.0, -1.0])
     rays_d = torch.nn.functional.normalize(toward, dim=-1)

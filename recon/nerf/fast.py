@@ -52,7 +52,7 @@ from recon.nerf.kernels import (
     march_dense_triton,
     use_triton,
 )
-from recon.nerf.model_config import FastConfig, GridKind
+from recon.nerf.model_config import HASH_BASE_RES, HASH_FEATURES, FastConfig, GridKind, density_grid_dim
 from recon.nerf.native import DenseDensity, march_dense_native, march_render_native
 from recon.nerf.occupancy import OccupancyGrid, density_threshold, march, march_front_to_back
 from recon.nerf.rays import ray_aabb
@@ -230,14 +230,14 @@ class SkyColor(nn.Module):
         return torch.sigmoid(self.linear(sh_encode(F.normalize(d.float(), dim=-1), self.degree)))
 
 
-def _make_grid(kind: GridKind, res: int, dim: int, *, density: bool, levels: int = 1) -> nn.Module:
+def _make_grid(kind: GridKind, res: int, dim: int, *, density: bool, levels: int = 1, table_log2: int = 17) -> nn.Module:
     """A grid encoder of the given kind; ``dim`` as documented on FastConfig.feature_dim."""
     if kind == "dense":
         return DenseGrid(res, dim, init_std=0.0) if levels <= 1 else MultiDenseGrid(res, dim, levels)
     if kind == "vm":
         return VMGrid(res, dim, init_std=0.01 if density else 0.1)
     if kind == "hash":
-        return HashGrid(levels=dim, features=2, log2_table=17, base_res=16, max_res=res)
+        return HashGrid(levels=dim, features=HASH_FEATURES, log2_table=table_log2, base_res=HASH_BASE_RES, max_res=res)
     raise ValueError(f"unknown grid kind {kind!r}; choose dense, vm or hash")
 
 
@@ -260,7 +260,8 @@ class FastModel(RadianceModel):
         """World step along rays (in contracted units when unbounded)."""
 
         self.density_grid = _make_grid(
-            cfg.density_grid, cfg.density_res, 1 if cfg.density_grid == "dense" else 8, density=True, levels=cfg.density_levels
+            cfg.density_grid, cfg.density_res, density_grid_dim(cfg.density_grid), density=True,
+            levels=cfg.density_levels, table_log2=cfg.hash_table_log2,
         )
         self.density_scale = (cfg.density_res - 1) / extent
         """σ = activation(raw) / voxel size: raw values count opacity per voxel, not per world unit. Adam moves
@@ -269,7 +270,8 @@ class FastModel(RadianceModel):
         s0 = -math.log1p(-cfg.init_alpha) / self.step_size / self.density_scale  # opacity init_alpha per step
         self.density_bias = math.log(math.expm1(s0)) if cfg.density_activation == "softplus" else math.log(s0)
 
-        self.color_grid = _make_grid(cfg.grid, cfg.feature_res, cfg.feature_dim, density=False, levels=cfg.feature_levels)
+        self.color_grid = _make_grid(cfg.grid, cfg.feature_res, cfg.feature_dim, density=False, levels=cfg.feature_levels,
+                                     table_log2=cfg.hash_table_log2)
         self.color_mlp = make_color_mlp(self.color_grid.out_dim, cfg.color_model, cfg.sh_degree, cfg.mlp_width, cfg.mlp_layers)
         self.bg_logit = nn.Parameter(torch.zeros(3)) if cfg.background == "learned" else None
         self.sky = SkyColor() if cfg.background == "sky" else None
@@ -291,7 +293,7 @@ class FastModel(RadianceModel):
         self.register_buffer("shrunk", torch.zeros((), dtype=torch.bool))
         self.register_buffer("step", torch.zeros((), dtype=torch.long))
         for grid in (*self.density_grid.modules(), *self.color_grid.modules()):
-            if isinstance(grid, (DenseGrid, MultiDenseGrid)):
+            if isinstance(grid, (DenseGrid, MultiDenseGrid, HashGrid)):
                 grid.kernels = cfg.kernels  # their CUDA reads (recon.nerf.kernels); a CPU reads in torch or C
 
     @property

@@ -33,7 +33,8 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 from torch.autograd.graph import increment_version
 
-from recon.nerf.kernels import trilinear_levels_triton, use_triton
+from recon.nerf.kernels import hash_levels_triton, trilinear_levels_triton, use_triton
+from recon.nerf.model_config import hash_level_layout
 from recon.nerf.native import native_grid_ok, trilinear_backward_native, trilinear_features_native
 
 _PRIMES = (1, 2654435761, 805459861)  # instant-ngp spatial hash (Teschner et al. 2003 / Müller et al. 2022)
@@ -328,23 +329,6 @@ class VMGrid(nn.Module):
         ).mean()
 
 
-def hash_level_layout(levels: int, base_res: int, max_res: int, log2_table: int) -> tuple[list[int], list[int], list[bool]]:
-    """Per level: vertices per side, table rows, and whether the level is hashed (else dense-indexed).
-
-    Resolutions grow geometrically from base_res to max_res cells per side (instant-ngp eq. 2); a level
-    whose (res + 1)**3 vertices fit in 2**log2_table rows is stored densely, without collisions.
-    """
-    growth = math.exp((math.log(max_res) - math.log(base_res)) / max(levels - 1, 1))
-    verts, rows, hashed = [], [], []
-    for lv in range(levels):
-        n = int(math.floor(base_res * growth**lv)) + 1
-        dense = n**3 <= 2**log2_table
-        verts.append(n)
-        rows.append(n**3 if dense else 2**log2_table)
-        hashed.append(not dense)
-    return verts, rows, hashed
-
-
 class HashGrid(nn.Module):
     """Multiresolution hash encoding (Müller et al. 2022) in plain torch: levels x features output channels.
 
@@ -368,7 +352,9 @@ class HashGrid(nn.Module):
         offsets = torch.tensor([0] + rows).cumsum(0)
         self.register_buffer("offsets", offsets[:-1].clone(), persistent=False)
         self.register_buffer("verts_t", torch.tensor(self.verts), persistent=False)
+        self.register_buffer("hashed_t", torch.tensor(self.hashed, dtype=torch.int64), persistent=False)
         self.table = nn.Parameter((torch.rand(int(offsets[-1]), self.features) * 2 - 1) * init_scale)
+        self.kernels = "torch"  # as DenseGrid.kernels
 
     @property
     def out_dim(self) -> int:
@@ -390,7 +376,10 @@ class HashGrid(nn.Module):
         return local + self.offsets[level]
 
     def forward(self, x01: Tensor) -> Tensor:
-        """x01: (M, 3) in [0, 1] -> (M, levels * features), level-major."""
+        """x01: (M, 3) in [0, 1] -> (M, levels * features), level-major: in one Triton kernel on CUDA when asked
+        (:func:`recon.nerf.kernels.hash_levels_triton`), else in torch (the reference)."""
+        if self.kernels != "torch" and not x01.requires_grad and use_triton(self.kernels, x01, self.table):
+            return hash_levels_triton(x01, self.table, self.verts_t, self.offsets, self.hashed_t, self.log2_table)
         m = x01.shape[0]
         idxs, ws = [], []
         for lv in range(self.levels):

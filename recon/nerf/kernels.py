@@ -46,7 +46,7 @@ if TYPE_CHECKING:
 
 __all__ = ["MEASURED_FASTER", "KERNEL_DEVICES", "KernelSetting", "kernels_choice", "triton_status", "use_triton",
            "composite_packed_torch", "composite_packed_triton", "accumulate_packed_triton", "distortion_packed_triton",
-           "trilinear_levels_triton", "march_dense_triton", "ray_offsets"]
+           "trilinear_levels_triton", "hash_levels_triton", "march_dense_triton", "ray_offsets"]
 
 KernelSetting = Literal["auto", "torch", "triton"]
 
@@ -322,6 +322,47 @@ def trilinear_levels_triton(x01: Tensor, tables: list[Tensor], resolutions: list
         out = part if out is None else out + part
     assert out is not None
     return out
+
+
+# ----------------------------------------------------------------------------- hash grids' reads
+class _HashLevels(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, x01: Tensor, table: Tensor, layout: tuple[Tensor, ...], mask: int) -> Tensor:  # type: ignore[override]
+        m, f, levels = x01.shape[0], table.shape[1], layout[0].shape[0]
+        out = table.new_empty(m, levels * f)
+        if m:
+            _jit().hash_fwd[(-(-m // GRID_BLOCK),)](x01, table, out, *layout, m, mask, LEVELS=levels, F=f,
+                                                     BLOCK=GRID_BLOCK)
+        ctx.save_for_backward(x01, table)
+        ctx.layout, ctx.mask = layout, mask
+        return out
+
+    @staticmethod
+    def backward(ctx, g: Tensor) -> tuple[Tensor | None, ...]:  # type: ignore[override]
+        x01, table = ctx.saved_tensors
+        if not ctx.needs_input_grad[1]:
+            return None, None, None, None
+        grad = torch.zeros_like(table)
+        m, f, levels = x01.shape[0], table.shape[1], ctx.layout[0].shape[0]
+        if m:
+            _jit().hash_bwd[(-(-m // GRID_BLOCK),)](x01, g.contiguous(), grad, *ctx.layout, m, ctx.mask, LEVELS=levels,
+                                                     F=f, BLOCK=GRID_BLOCK)
+        return None, grad, None, None
+
+
+def hash_levels_triton(x01: Tensor, table: Tensor, verts: Tensor, offsets: Tensor, hashed: Tensor,
+                       log2_table: int) -> Tensor:
+    """:meth:`recon.nerf.grid.HashGrid.forward` in one kernel: x01 (M, 3) float32 in the unit cube (no gradient to
+    the points), the levels' one table (rows, F) float32, per level (L,) int64 its vertices per side, first row and
+    whether it is hashed -> (M, L · F), level-major; differentiable in the table."""
+    if x01.dim() != 2 or x01.shape[1] != 3:
+        raise ValueError(f"x01 must have shape (M, 3), got {tuple(x01.shape)}")
+    if not table.is_contiguous() or table.dim() != 2:
+        raise ValueError(f"the table must be a contiguous (rows, F) tensor, got {tuple(table.shape)}")
+    layout = tuple(t.to(device=x01.device, dtype=torch.int64).contiguous() for t in (verts, offsets, hashed))
+    if not layout[0].shape == layout[1].shape == layout[2].shape or layout[0].dim() != 1:
+        raise ValueError("verts, offsets and hashed need one value per level")
+    return _HashLevels.apply(x01.detach().contiguous(), table, layout, (1 << log2_table) - 1)
 
 
 # ----------------------------------------------------------------------------- marching

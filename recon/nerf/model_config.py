@@ -4,6 +4,7 @@ They live with the models that read them; `recon.config` gathers them into the r
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Literal
 
@@ -32,6 +33,8 @@ class FastConfig:
     """Vertices per side of the feature grid (finest resolution for "hash")."""
     feature_dim: int = 12
     """Feature channels: dense = channels, vm = components per axis (3x channels out), hash = levels (x2)."""
+    hash_table_log2: int = 17
+    """"hash" grids: rows of each hashed level's table, as a power of two (instant-ngp's T; its NeRF uses 19)."""
     density_levels: int = 3
     """Dense density grid: sum of this many grids, each half the resolution of the previous (coarse-to-fine)."""
     feature_levels: int = 1
@@ -202,3 +205,32 @@ class SurfaceConfig:
     """The color grid trains at lr * grid_lr_scale."""
     sharpness_lr_scale: float = 1.0
     """log s trains at lr * sharpness_lr_scale."""
+
+
+def density_grid_dim(kind: GridKind) -> int:
+    """The density grid's ``dim`` (as FastConfig.feature_dim counts it): one channel of a dense grid, else 8
+    (vm components, hash levels) that a linear map turns into the density."""
+    return 1 if kind == "dense" else 8
+
+
+HASH_BASE_RES = 16
+"""Cells per side of a "hash" grid's coarsest level (instant-ngp's N_min)."""
+HASH_FEATURES = 2
+"""Features per level of a "hash" grid (instant-ngp's F)."""
+
+
+def hash_level_layout(levels: int, base_res: int, max_res: int, log2_table: int) -> tuple[list[int], list[int], list[bool]]:
+    """Per level: vertices per side, table rows, and whether the level is hashed (else dense-indexed).
+
+    Resolutions grow geometrically from base_res to max_res cells per side (instant-ngp eq. 2); a level
+    whose (res + 1)**3 vertices fit in 2**log2_table rows is stored densely, without collisions.
+    """
+    growth = math.exp((math.log(max_res) - math.log(base_res)) / max(levels - 1, 1))
+    verts, rows, hashed = [], [], []
+    for lv in range(levels):
+        n = int(math.floor(base_res * growth**lv)) + 1
+        dense = n**3 <= 2**log2_table
+        verts.append(n)
+        rows.append(n**3 if dense else 2**log2_table)
+        hashed.append(not dense)
+    return verts, rows, hashed

@@ -331,6 +331,85 @@ def trilinear_bwd(x, g_out, M, g0, g1, g2, g3, r0, r1, r2, r3,
         _level_add(g3, g, r3, px, py, pz, pm, cols, cm, C)
 
 
+# ----------------------------------------------------------------------------- hash grids' reads
+@triton.jit
+def _hash_row(ix, iy, iz, R, off, hashed, MASK):
+    """Table row of vertex (ix, iy, iz) of a level of R vertices per side starting at row ``off``: the dense index,
+    or where ``hashed`` the instant-ngp hash (ix · 1 xor iy · 2654435761 xor iz · 805459861) & MASK, as
+    grid.HashGrid.level_rows computes it."""
+    dense = (ix * R + iy) * R + iz
+    h = (ix ^ (iy * 2654435761) ^ (iz * 805459861)) & MASK
+    return off + tl.where(hashed != 0, h, dense)
+
+
+@triton.jit
+def _hash_corner_read(acc, table, R, off, hashed, MASK, ix, iy, iz, w, pm, cols, F: tl.constexpr):
+    row = _hash_row(ix, iy, iz, R, off, hashed, MASK)
+    return acc + w[:, None] * tl.load(table + row[:, None] * F + cols[None, :], mask=pm[:, None], other=0.0)
+
+
+@triton.jit(do_not_specialize=["M"])
+def hash_fwd(x, table, out, res, offsets, hashed, M, MASK, LEVELS: tl.constexpr, F: tl.constexpr,
+             BLOCK: tl.constexpr):
+    """out (M, LEVELS · F): every level's trilinear read of the one (rows, F) table at x (M, 3), level-major, in one
+    pass over the points (the torch path gathers 8 rows per level through index tensors). res, offsets, hashed:
+    (LEVELS,) int64 per level: vertices per side, first row, hashed (1) or dense (0)."""
+    i = tl.program_id(0).to(tl.int64) * BLOCK + tl.arange(0, BLOCK)
+    pm = i < M
+    px = tl.load(x + i * 3, mask=pm, other=0.0)
+    py = tl.load(x + i * 3 + 1, mask=pm, other=0.0)
+    pz = tl.load(x + i * 3 + 2, mask=pm, other=0.0)
+    cols = tl.arange(0, F)
+    for lv in tl.static_range(LEVELS):
+        R = tl.load(res + lv)
+        off = tl.load(offsets + lv)
+        hs = tl.load(hashed + lv)
+        ix, iy, iz, fx, fy, fz, gx, gy, gz = _cell3(px, py, pz, R)
+        acc = tl.zeros([BLOCK, F], dtype=tl.float32)
+        acc = _hash_corner_read(acc, table, R, off, hs, MASK, ix, iy, iz, gx * gy * gz, pm, cols, F)
+        acc = _hash_corner_read(acc, table, R, off, hs, MASK, ix, iy, iz + 1, gx * gy * fz, pm, cols, F)
+        acc = _hash_corner_read(acc, table, R, off, hs, MASK, ix, iy + 1, iz, gx * fy * gz, pm, cols, F)
+        acc = _hash_corner_read(acc, table, R, off, hs, MASK, ix, iy + 1, iz + 1, gx * fy * fz, pm, cols, F)
+        acc = _hash_corner_read(acc, table, R, off, hs, MASK, ix + 1, iy, iz, fx * gy * gz, pm, cols, F)
+        acc = _hash_corner_read(acc, table, R, off, hs, MASK, ix + 1, iy, iz + 1, fx * gy * fz, pm, cols, F)
+        acc = _hash_corner_read(acc, table, R, off, hs, MASK, ix + 1, iy + 1, iz, fx * fy * gz, pm, cols, F)
+        acc = _hash_corner_read(acc, table, R, off, hs, MASK, ix + 1, iy + 1, iz + 1, fx * fy * fz, pm, cols, F)
+        tl.store(out + i[:, None] * (LEVELS * F) + lv * F + cols[None, :], acc, mask=pm[:, None])
+
+
+@triton.jit
+def _hash_corner_add(grad, g, R, off, hashed, MASK, ix, iy, iz, w, pm, cols, F: tl.constexpr):
+    row = _hash_row(ix, iy, iz, R, off, hashed, MASK)
+    tl.atomic_add(grad + row[:, None] * F + cols[None, :], w[:, None] * g, mask=pm[:, None])
+
+
+@triton.jit(do_not_specialize=["M"])
+def hash_bwd(x, g_out, grad, res, offsets, hashed, M, MASK, LEVELS: tl.constexpr, F: tl.constexpr,
+             BLOCK: tl.constexpr):
+    """The table's gradient of hash_fwd: each point's dL/dout of a level times its corner weights, atomically added
+    to the 8 corners' rows (``grad`` zeroed by the caller)."""
+    i = tl.program_id(0).to(tl.int64) * BLOCK + tl.arange(0, BLOCK)
+    pm = i < M
+    px = tl.load(x + i * 3, mask=pm, other=0.0)
+    py = tl.load(x + i * 3 + 1, mask=pm, other=0.0)
+    pz = tl.load(x + i * 3 + 2, mask=pm, other=0.0)
+    cols = tl.arange(0, F)
+    for lv in tl.static_range(LEVELS):
+        R = tl.load(res + lv)
+        off = tl.load(offsets + lv)
+        hs = tl.load(hashed + lv)
+        g = tl.load(g_out + i[:, None] * (LEVELS * F) + lv * F + cols[None, :], mask=pm[:, None], other=0.0)
+        ix, iy, iz, fx, fy, fz, gx, gy, gz = _cell3(px, py, pz, R)
+        _hash_corner_add(grad, g, R, off, hs, MASK, ix, iy, iz, gx * gy * gz, pm, cols, F)
+        _hash_corner_add(grad, g, R, off, hs, MASK, ix, iy, iz + 1, gx * gy * fz, pm, cols, F)
+        _hash_corner_add(grad, g, R, off, hs, MASK, ix, iy + 1, iz, gx * fy * gz, pm, cols, F)
+        _hash_corner_add(grad, g, R, off, hs, MASK, ix, iy + 1, iz + 1, gx * fy * fz, pm, cols, F)
+        _hash_corner_add(grad, g, R, off, hs, MASK, ix + 1, iy, iz, fx * gy * gz, pm, cols, F)
+        _hash_corner_add(grad, g, R, off, hs, MASK, ix + 1, iy, iz + 1, fx * gy * fz, pm, cols, F)
+        _hash_corner_add(grad, g, R, off, hs, MASK, ix + 1, iy + 1, iz, fx * fy * gz, pm, cols, F)
+        _hash_corner_add(grad, g, R, off, hs, MASK, ix + 1, iy + 1, iz + 1, fx * fy * fz, pm, cols, F)
+
+
 # ----------------------------------------------------------------------------- marching
 @triton.jit
 def _scalar_level(acc, table, R, px, py, pz, m):
