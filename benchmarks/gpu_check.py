@@ -64,6 +64,7 @@ COLUMNS: dict[str, list[str]] = {
     "features288": ["train.fast.feature_res=288"],
     "features288x3": ["train.fast.feature_res=288", "train.fast.feature_levels=3"],
     "features1level": ["train.fast.feature_levels=1"],
+    "dense": ["train.fast.grid=dense"],
 }
 """--columns: each column's overrides on top of the check's own. All but `default` compare something CUDA has:
 `torch-march` is the default run with the Triton marcher swapped for the torch one it replaced (the marcher's
@@ -76,7 +77,10 @@ colour's view dependence at the presets' second degree, as before GPU sizing too
 Lego its detail?); `features288` a feature grid of 288³ (and 144³ under it) instead of the sized 192³ (and
 96³) (is the card's field short of capacity, and what does Adam over every value of a larger grid cost a step?),
 `features288x3` the same in three levels (288³, 144³, 72³), `features1level` the sized 192³ feature grid without
-the coarser level GPU sizing puts under it."""
+the coarser level GPU sizing puts under it (each of the three keeps dense feature grids: a --set of a feature key
+does). `dense` the colour features in the sized dense grids (192³ and 96³ under it, 96 M values), as before GPU
+sizing put them in a hash grid (16 levels of 2 features up to what the pixels resolve, 2^19 rows a level: at most
+11.4 M values, read in one Triton kernel)."""
 
 
 PATCHED_LABELS = {
@@ -217,7 +221,8 @@ def kernel_timings(config: Any, device: torch.device) -> dict[str, Any]:
     if device.type != "cuda":
         return {"skipped": f"the Triton kernels run on CUDA only (this device: {device.type})"}
     from recon.nerf import kernels as K
-    from recon.nerf.grid import level_resolutions, trilinear_levels_torch
+    from recon.nerf.grid import HashGrid, level_resolutions, trilinear_levels_torch
+    from recon.nerf.model_config import HASH_BASE_RES, HASH_FEATURES
     from recon.nerf.render import accumulate_packed, distortion_packed
 
     ok, why = K.triton_status()
@@ -238,7 +243,8 @@ def kernel_timings(config: Any, device: torch.device) -> dict[str, Any]:
     density_res = level_resolutions(fast.density_res, fast.density_levels)
     feature_res = level_resolutions(fast.feature_res, fast.feature_levels)
     density = [torch.randn(r**3, 1, device=device, generator=gen) for r in density_res]
-    features = [torch.randn(r**3, fast.feature_dim, device=device, generator=gen) for r in feature_res]
+    hashed = fast.grid == "hash"
+    features = [] if hashed else [torch.randn(r**3, fast.feature_dim, device=device, generator=gen) for r in feature_res]
 
     def composite(fn: Any) -> Any:
         s = sigma.clone().requires_grad_()
@@ -273,9 +279,22 @@ def kernel_timings(config: Any, device: torch.device) -> dict[str, Any]:
         "distortion loss": (lambda: distortion(distortion_packed), lambda: distortion(K.distortion_packed_triton)),
         f"density read ({'+'.join(f'{r}³' for r in density_res)})": (
             lambda: grid(trilinear_levels_torch, density), lambda: grid(K.trilinear_levels_triton, density)),
-        f"feature read ({'+'.join(f'{r}³' for r in feature_res)}×{fast.feature_dim})": (
-            lambda: grid(trilinear_levels_torch, features), lambda: grid(K.trilinear_levels_triton, features)),
     }
+    if hashed:
+        table = HashGrid(fast.feature_dim, HASH_FEATURES, fast.hash_table_log2, HASH_BASE_RES, fast.feature_res).to(device)
+
+        def hash_read(fused: bool) -> Any:
+            table.kernels = "triton" if fused else "torch"
+            table.zero_grad(set_to_none=True)
+            out = table(x01)
+            out.sum().backward()
+            return out
+
+        cases[f"feature read (hash grid, {fast.feature_dim} levels up to {fast.feature_res}³)"] = (
+            lambda: hash_read(False), lambda: hash_read(True))
+    else:
+        cases[f"feature read ({'+'.join(f'{r}³' for r in feature_res)}×{fast.feature_dim})"] = (
+            lambda: grid(trilinear_levels_torch, features), lambda: grid(K.trilinear_levels_triton, features))
     result: dict[str, Any] = {"triton": why}
     for name, (reference, fused) in cases.items():
         a, b = (torch.cat([x.detach().flatten() for x in (out if isinstance(out, tuple) else (out,))])

@@ -343,6 +343,16 @@ GPU_FEATURE_LEVELS = 2
 resolution of the one before (`recon.nerf.grid.MultiDenseGrid`): at a card's feature resolution a vertex of the
 finest grid is reached by few rays early on, and the coarser level learns the colour of every part in the meantime
 (docs/gpu.md)."""
+MAX_GRID_RES = 1024
+"""The finest grid resolution an option may ask for (vertices, or a hash grid's cells, per side)."""
+GPU_HASH_FEATURES: dict[str, int | str] = {"grid": "hash", "feature_dim": 16, "hash_table_log2": 19,
+                                           "feature_res": MAX_GRID_RES}
+"""With finer grids on a card, the fast model's colour features in instant-ngp's multiresolution hash grid (16
+levels of 2 features, 2^19 rows a level, the finest as fine as the pixels resolve: `auto_fast_config` caps
+feature_res there) instead of dense grids: it reaches the photos' detail with a tenth of the dense grids' values,
+and its one Triton kernel reads every level in a pass (docs/gpu.md). A CPU keeps dense grids, which it reads in C."""
+GPU_HASH_KEYS = frozenset(f"train.fast.{key}" for key in (*GPU_HASH_FEATURES, "feature_levels"))
+"""A --set of any of these keeps the preset's feature grid (then dense grids get GPU_FEATURE_LEVELS)."""
 GPU_GRID_MEMORY_FRACTION = 0.25
 """The sized grids' training memory (parameters, gradients, Adam moments) stays below this share of the GPU's."""
 
@@ -393,8 +403,16 @@ def device_sizing(config: RunConfig, memory_bytes: int, name: str,
     for key in grids:
         scale(key, grid_x, 16, MAX_GRID_RES if "occupancy" not in key else 512)
     levels = ""
-    if (changes != before and train.model != "surface" and sized.train.fast.grid == "dense"
-            and sized.train.fast.feature_levels < GPU_FEATURE_LEVELS and "train.fast.feature_levels" not in keep):
+    finer = changes != before and train.model != "surface" and sized.train.fast.grid == "dense"
+    if finer and not keep & GPU_HASH_KEYS:
+        changes = [c for c in changes if not c.startswith("train.fast.feature_res=")]  # the hash grid's instead
+        changes += [f"train.fast.{key}={getattr(train.fast, key)}→{value}" for key, value in GPU_HASH_FEATURES.items()
+                    if getattr(train.fast, key) != value]
+        sized.train.fast = dataclasses.replace(sized.train.fast, feature_levels=1, **GPU_HASH_FEATURES)  # type: ignore[arg-type]
+        levels = ("; the colour features in a multiresolution hash grid (instant-ngp's), whose finest levels reach "
+                  "the pixels' detail with a tenth of a dense grid's values")
+    elif (finer and sized.train.fast.feature_levels < GPU_FEATURE_LEVELS
+          and "train.fast.feature_levels" not in keep):
         changes.append(f"train.fast.feature_levels={sized.train.fast.feature_levels}→{GPU_FEATURE_LEVELS}")
         sized.train.fast = dataclasses.replace(sized.train.fast, feature_levels=GPU_FEATURE_LEVELS)
         levels = ("; under the finer feature grid a coarser one learns the colour of the parts few rays have reached "
@@ -500,7 +518,6 @@ WEIGHT = _range(0, 1e4)
 LR_SCALE = _above(0, 1e4)
 MAX_RAYS_PER_STEP = 2**18
 """Rays rendered per training step (batch plus depth rays): 64 times the presets' largest batch (4096)."""
-MAX_GRID_RES = 1024
 MAX_HOLDOUT_EVERY = 10**4
 
 BOUNDS: dict[str, Bound] = {

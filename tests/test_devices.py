@@ -10,8 +10,8 @@ from collections.abc import Callable
 import pytest
 import torch
 
-from recon.config import (GPU_DISTORTION_FROM, GPU_FEATURE_LEVELS, GPU_SH_DEGREE, GPU_TIERS, device_sizing,
-                          load_config)
+from recon.config import (GPU_DISTORTION_FROM, GPU_FEATURE_LEVELS, GPU_HASH_FEATURES, GPU_HASH_KEYS, GPU_SH_DEGREE,
+                          GPU_TIERS, device_sizing, load_config)
 from recon.nerf.compiled import compile_color_network, compile_wanted
 from recon.nerf.fast import FastConfig, FastModel
 from recon.nerf.fitting import RayBatcher
@@ -299,10 +299,10 @@ def test_sizing_grows_with_memory_and_leaves_small_gpus_classic_and_set_values_a
 
 
 def test_grids_stay_the_presets_when_the_card_could_not_hold_them() -> None:
-    huge = load_config("fast", ["train.device=cpu", "train.fast.feature_res=256"])  # 3.2 GiB to train; 320³: 6.3
+    huge = load_config("fast", ["train.device=cpu", "train.fast.density_res=512"])  # 2.5 GiB to train; 640³: 4.9
     sized, why = device_sizing(huge, 16 * GiB, "g")
     assert dataclasses.replace(sized.train.fast, sh_degree=huge.train.fast.sh_degree) == huge.train.fast
-    assert sized.train.batch_rays == 4 * 4096 and "feature_res" not in why
+    assert sized.train.batch_rays == 4 * 4096 and "density_res" not in why and "hash" not in why
 
 
 def test_a_card_takes_the_view_dependent_colour_a_degree_further_and_says_why() -> None:
@@ -321,23 +321,36 @@ def test_a_card_takes_the_view_dependent_colour_a_degree_further_and_says_why() 
     assert "sh_degree" not in device_sizing(surface, 80 * GiB, "g")[1]
 
 
-def test_finer_feature_grids_get_a_coarser_level_under_them_and_say_why() -> None:
+def test_finer_grids_take_the_colour_features_into_a_hash_grid_and_say_why() -> None:
+    base = load_config("fast", ["train.device=cpu"])
+    assert base.train.fast.grid == "dense" and base.train.fast.feature_levels == 1  # the CPU's
+    sized, why = device_sizing(base, 80 * GiB, "g")
+    fast = sized.train.fast
+    assert {key: getattr(fast, key) for key in GPU_HASH_FEATURES} == GPU_HASH_FEATURES and fast.feature_levels == 1
+    assert base.train.fast.grid == "dense"  # the caller's config is kept
+    assert "train.fast.grid=dense→hash" in why and "hash grid" in why and why.count("train.fast.feature_res=") == 1
+    assert fast.density_res > base.train.fast.density_res  # the density stays a dense grid, finer
+    same_grids, why = device_sizing(base, 8 * GiB, "g")  # more rays, the preset's grids: dense, as on a CPU
+    assert same_grids.train.fast.grid == "dense" and "hash" not in why
+    surface = load_config("surface", ["train.device=cpu"])
+    assert "hash" not in device_sizing(surface, 80 * GiB, "g")[1]
+
+
+def test_a_dense_feature_grid_kept_on_a_card_gets_a_coarser_level_under_it() -> None:
     base = load_config("fast", ["train.device=cpu"])
     assert base.train.fast.feature_levels == 1 < GPU_FEATURE_LEVELS  # the CPU's: one level
-    sized, why = device_sizing(base, 80 * GiB, "g")
-    assert sized.train.fast.feature_levels == GPU_FEATURE_LEVELS and base.train.fast.feature_levels == 1
-    assert f"train.fast.feature_levels=1→{GPU_FEATURE_LEVELS}" in why and "coarser" in why
-    same_grids, why = device_sizing(base, 8 * GiB, "g")  # more rays, the preset's grids: one level, as on a CPU
-    assert same_grids.train.fast.feature_levels == 1 and "feature_levels" not in why
+    for key in sorted(GPU_HASH_KEYS - {"train.fast.feature_levels"}):  # any of them set: the preset's dense grid
+        sized, why = device_sizing(base, 80 * GiB, "g", keep=frozenset({key}))
+        assert sized.train.fast.grid == "dense" and sized.train.fast.feature_levels == GPU_FEATURE_LEVELS, key
+        assert f"train.fast.feature_levels=1→{GPU_FEATURE_LEVELS}" in why and "coarser" in why
     kept = device_sizing(base, 80 * GiB, "g", keep=frozenset({"train.fast.feature_levels"}))[0]
-    assert kept.train.fast.feature_levels == 1 and kept.train.fast.feature_res > base.train.fast.feature_res
-    hashed = load_config("fast", ["train.device=cpu", "train.fast.grid=hash"])  # levels are a dense grid's
-    assert device_sizing(hashed, 80 * GiB, "g")[0].train.fast.feature_levels == 1
-    huge = load_config("fast", ["train.device=cpu", "train.fast.feature_res=256"])  # the grids stay: so do the levels
-    sized, why = device_sizing(huge, 16 * GiB, "g")
-    assert sized.train.fast.feature_levels == 1 and "feature_levels" not in why
-    surface = load_config("surface", ["train.device=cpu"])
-    assert "feature_levels" not in device_sizing(surface, 80 * GiB, "g")[1]
+    assert kept.train.fast.grid == "dense" and kept.train.fast.feature_levels == 1
+    assert kept.train.fast.feature_res > base.train.fast.feature_res
+    vm = load_config("fast", ["train.device=cpu", "train.fast.grid=vm"])  # levels and hashing are a dense grid's
+    assert device_sizing(vm, 80 * GiB, "g")[0].train.fast.feature_levels == 1
+    huge = load_config("fast", ["train.device=cpu", "train.fast.density_res=512"])  # the grids stay: so do the features
+    sized, why = device_sizing(huge, 16 * GiB, "g", keep=frozenset({"train.fast.grid"}))
+    assert sized.train.fast.grid == "dense" and sized.train.fast.feature_levels == 1 and "feature_levels" not in why
 
 
 def test_finer_grids_start_the_distortion_loss_later_and_say_why() -> None:
@@ -352,7 +365,7 @@ def test_finer_grids_start_the_distortion_loss_later_and_say_why() -> None:
     assert kept.train.fast.distortion_from == 0
     no_loss = load_config("fast", ["train.device=cpu", "train.fast.distortion_weight=0"])
     assert device_sizing(no_loss, 80 * GiB, "g")[0].train.fast.distortion_from == 0
-    huge = load_config("fast", ["train.device=cpu", "train.fast.feature_res=256"])  # the grids stay: so does the loss
+    huge = load_config("fast", ["train.device=cpu", "train.fast.density_res=512"])  # the grids stay: so does the loss
     assert device_sizing(huge, 16 * GiB, "g")[0].train.fast.distortion_from == 0
     early_stop = load_config("fast", ["train.device=cpu", "train.fast.distortion_until=0.05"])  # a later start: none
     assert device_sizing(early_stop, 80 * GiB, "g")[0].train.fast.distortion_from == 0

@@ -296,6 +296,27 @@ def test_shrinking_the_grids_keeps_the_field_and_empties_the_outside() -> None:
     assert not model.shrink_grids(torch.tensor([[-0.74] * 3, [0.74] * 3]))  # < 10% smaller: not worth it
 
 
+def test_a_hash_colour_grid_stays_on_the_scene_box_when_the_density_grid_shrinks() -> None:
+    """The density grid is re-sampled onto the occupied box; the hash colour grid is not (it has no vertices to
+    re-sample), and its reads follow the points: the colour at every world point inside the new box is the same."""
+    torch.manual_seed(1)
+    model = FastModel(FastConfig(**{**TINY, "grid": "hash", "feature_res": 40, "hash_table_log2": 10,
+                                    "shrink_margin": 0.0, "aabb": ((-1.0, -1.2, -0.8), (1.1, 1.0, 1.0))}))
+    with torch.no_grad():
+        model.color_grid.table.normal_(0.0, 1.0)  # colours that vary at the finest levels
+        x = torch.rand(3000, 3) * 1.2 - 0.6
+        d = torch.nn.functional.normalize(torch.randn(3000, 3), dim=-1)
+        before = model.radiance(x, d)
+        table = model.color_grid.table.clone()
+        assert model.shrink_grids(torch.tensor([[-0.6, -0.7, -0.65], [0.6, 0.62, 0.6]]))
+        after = model.radiance(x, d)
+        model._color_unit = lambda u: u  # read the hash grid in the shrunk box's coordinates: other colours
+        unmapped = model.radiance(x, d)
+    assert not torch.equal(model.grid_box, model.aabb) and torch.equal(model.color_grid.table, table)
+    torch.testing.assert_close(after, before, rtol=0, atol=1e-5)
+    assert float((unmapped - before).abs().max()) > 1e-2
+
+
 def test_shrink_happens_once_and_asks_for_fresh_optimizer_moments() -> None:
     model = FastModel(FastConfig(**{**TINY, "density_levels": 1, "shrink_step": 6}))
     with torch.no_grad():

@@ -19,7 +19,7 @@ import pytest
 import torch
 
 from recon.nerf import kernels
-from recon.nerf.grid import trilinear_levels_torch
+from recon.nerf.grid import hash_reference, trilinear_levels_torch
 from recon.nerf.kernels import (
     accumulate_packed_triton,
     composite_packed_torch,
@@ -224,6 +224,36 @@ def test_hash_levels_match_the_hash_grids_torch_read(device: str, max_res: int, 
     (a,) = torch.autograd.grad(got, grid.table, up)
     (b,) = torch.autograd.grad(want, grid.table, up)
     torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-5)
+
+
+def test_the_hash_kernels_probe_agrees_where_it_runs(device: str) -> None:
+    from recon.nerf.grid import hash_kernel_check
+
+    hash_kernel_check.cache_clear()
+    ok, why = hash_kernel_check(DEVICE)
+    assert ok and "one Triton kernel" in why, why
+
+
+def test_a_hash_kernel_that_fails_leaves_hash_grids_to_the_torch_read(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Where the kernel cannot be built (or disagrees), the probe says so once and the grid reads in torch."""
+    import recon.nerf.grid as grid_module
+    from recon.nerf.grid import HashGrid, hash_kernel_check
+
+    def broken(*args: Any) -> torch.Tensor:
+        raise RuntimeError("PTX assembly aborted\nmore lines")
+
+    monkeypatch.setattr(kernels, "KERNEL_DEVICES", ("cuda", "cpu"))
+    monkeypatch.setattr(grid_module, "hash_levels_triton", broken)
+    hash_kernel_check.cache_clear()
+    try:
+        ok, why = hash_kernel_check("cpu")
+        assert not ok and "failed" in why and "PTX assembly aborted" in why and "more lines" not in why
+        grid = HashGrid(levels=3, features=2, log2_table=8, base_res=4, max_res=20, init_scale=1.0)
+        grid.kernels = "triton"
+        x = _points(50)
+        torch.testing.assert_close(grid(x), hash_reference(grid, x), rtol=1e-5, atol=1e-5)
+    finally:
+        hash_kernel_check.cache_clear()
 
 
 @pytest.mark.parametrize("features", ["dense", "hash"])

@@ -317,7 +317,17 @@ class FastModel(RadianceModel):
         return trunc_exp(raw) * self.density_scale
 
     def _rgb_unit(self, u: Tensor, d: Tensor) -> Tensor:
-        return in_slices(self._rgb_from_features, self.color_grid(u), d)
+        return in_slices(self._rgb_from_features, self.color_grid(self._color_unit(u)), d)
+
+    def _color_unit(self, u: Tensor) -> Tensor:
+        """Grid unit coordinates (M, 3) -> the colour grid's. A hash grid is not re-sampled when the grids shrink
+        (`shrink_grids`): it stays on the scene box, where a point of the shrunk density grid's unit cube lies
+        at an offset and scale (exactly 0 and 1 before any shrink)."""
+        if not isinstance(self.color_grid, HashGrid) or self.config.unbounded:
+            return u
+        box, scene = self.grid_box.to(u), self.aabb.to(u)
+        extent = scene[1] - scene[0]
+        return torch.addcmul((box[0] - scene[0]) / extent, u, (box[1] - box[0]) / extent)
 
     def _rgb_from_features(self, f: Tensor, d: Tensor) -> Tensor:
         return color_from_features(f, d, self.color_mlp, self.config.color_model, self.config.sh_degree)
@@ -545,7 +555,8 @@ class FastModel(RadianceModel):
         the boxes' extents. Returns True when the grids moved (the optimizer's moments are then stale).
         """
         cfg = self.config
-        if cfg.unbounded or any(isinstance(m, (VMGrid, HashGrid)) for m in (self.density_grid, self.color_grid)):
+        if cfg.unbounded or not isinstance(self.density_grid, (DenseGrid, MultiDenseGrid)) or isinstance(
+                self.color_grid, VMGrid):  # a hash colour grid stays on the scene box (_color_unit)
             return False
         old = self.grid_box.clone()
         pad = cfg.shrink_margin * float((self.aabb[1] - self.aabb[0]).max())

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from functools import lru_cache
 
 import torch
 import torch.nn.functional as F
@@ -378,7 +379,8 @@ class HashGrid(nn.Module):
     def forward(self, x01: Tensor) -> Tensor:
         """x01: (M, 3) in [0, 1] -> (M, levels * features), level-major: in one Triton kernel on CUDA when asked
         (:func:`recon.nerf.kernels.hash_levels_triton`), else in torch (the reference)."""
-        if self.kernels != "torch" and not x01.requires_grad and use_triton(self.kernels, x01, self.table):
+        if (self.kernels != "torch" and not x01.requires_grad and use_triton(self.kernels, x01, self.table)
+                and hash_kernel_check(str(x01.device))[0]):
             return hash_levels_triton(x01, self.table, self.verts_t, self.offsets, self.hashed_t, self.log2_table)
         m = x01.shape[0]
         idxs, ws = [], []
@@ -393,6 +395,27 @@ class HashGrid(nn.Module):
     def tv_loss(self, n: int = 0) -> Tensor:
         """Hash tables have no spatial neighbourhood: no TV term (weight decay is the usual substitute)."""
         return self.table.new_zeros(())
+
+
+@lru_cache(maxsize=4)
+def hash_kernel_check(device: str) -> tuple[bool, str]:
+    """(does the hash grid's Triton kernel agree with its torch read on ``device``?, why, in one sentence): a probe
+    of hashed and dense levels, forward and table gradient, once per device; where the kernel fails to compile or
+    disagrees, hash grids read in torch there (slower, the same values) and the train stage says so."""
+    probe = HashGrid(levels=4, features=2, log2_table=10, base_res=4, max_res=40, init_scale=1.0).to(device)
+    x = torch.rand(300, 3, generator=torch.Generator().manual_seed(0)).to(device)
+    try:
+        fused = hash_levels_triton(x, probe.table, probe.verts_t, probe.offsets, probe.hashed_t, probe.log2_table)
+        (g_fused,) = torch.autograd.grad(fused.square().sum(), probe.table)
+    except Exception as exc:  # a compiler or driver that cannot build it: the torch read serves
+        first = str(exc).splitlines()[0][:160] if str(exc) else ""
+        return False, f"hash grid: read in torch (its Triton kernel failed on {device}: {type(exc).__name__}: {first})"
+    reference = probe(x)  # kernels="torch": the reference
+    (g_ref,) = torch.autograd.grad(reference.square().sum(), probe.table)
+    error = max(float((fused - reference).abs().max()), float((g_fused - g_ref).abs().max()))
+    if not error <= 1e-3:
+        return False, f"hash grid: read in torch (its Triton kernel differed from the torch read by {error:.3g})"
+    return True, f"hash grid: read in one Triton kernel (a probe agreed with the torch read within {error:.1g})"
 
 
 # ----------------------------------------------------------------------------------------------------------

@@ -229,6 +229,15 @@ def distortion_bwd(w, m, d, offsets, g_loss, g_w, g_m, g_d, BLOCK: tl.constexpr)
 
 # ----------------------------------------------------------------------------- dense grids' trilinear reads
 @triton.jit
+def _program_points(x, M, BLOCK: tl.constexpr):
+    """This program's BLOCK point indices (int64), which of them exist (< M), and their coordinates from x (M, 3)."""
+    i = tl.program_id(0).to(tl.int64) * BLOCK + tl.arange(0, BLOCK)
+    pm = i < M
+    return (i, pm, tl.load(x + i * 3, mask=pm, other=0.0), tl.load(x + i * 3 + 1, mask=pm, other=0.0),
+            tl.load(x + i * 3 + 2, mask=pm, other=0.0))
+
+
+@triton.jit
 def _cell(p, R):
     """Lower vertex (int64, in [0, R - 2]) and fraction of unit coordinates p in a grid of R vertices per side, as
     grid.axis_cells: clamped to [0, 1]; a NaN reads vertex 0 with a NaN fraction (the output stays NaN)."""
@@ -272,11 +281,7 @@ def trilinear_fwd(x, out, M, t0, t1, t2, t3, r0, r1, r2, r3,
                   LEVELS: tl.constexpr, C: tl.constexpr, CP: tl.constexpr, BLOCK: tl.constexpr):
     """out (M, C) = the sum over LEVELS (1..4) grids t0..t3 of r0..r3 vertices per side of their trilinear reads at
     x (M, 3): one pass over the points for every level (the torch path reads each level separately)."""
-    i = tl.program_id(0).to(tl.int64) * BLOCK + tl.arange(0, BLOCK)
-    pm = i < M
-    px = tl.load(x + i * 3, mask=pm, other=0.0)
-    py = tl.load(x + i * 3 + 1, mask=pm, other=0.0)
-    pz = tl.load(x + i * 3 + 2, mask=pm, other=0.0)
+    i, pm, px, py, pz = _program_points(x, M, BLOCK)
     cols = tl.arange(0, CP)
     cm = cols < C
     acc = tl.zeros([BLOCK, CP], dtype=tl.float32)
@@ -314,11 +319,7 @@ def trilinear_bwd(x, g_out, M, g0, g1, g2, g3, r0, r1, r2, r3,
                   LEVELS: tl.constexpr, C: tl.constexpr, CP: tl.constexpr, BLOCK: tl.constexpr):
     """The tables' gradients of trilinear_fwd: each point's dL/dout times its corner weights, atomically added to
     the 8 corners' rows of every level's gradient g0..g3 (zeroed by the caller)."""
-    i = tl.program_id(0).to(tl.int64) * BLOCK + tl.arange(0, BLOCK)
-    pm = i < M
-    px = tl.load(x + i * 3, mask=pm, other=0.0)
-    py = tl.load(x + i * 3 + 1, mask=pm, other=0.0)
-    pz = tl.load(x + i * 3 + 2, mask=pm, other=0.0)
+    i, pm, px, py, pz = _program_points(x, M, BLOCK)
     cols = tl.arange(0, CP)
     cm = cols < C
     g = tl.load(g_out + i[:, None] * C + cols[None, :], mask=pm[:, None] & cm[None, :], other=0.0)
@@ -354,16 +355,10 @@ def hash_fwd(x, table, out, res, offsets, hashed, M, MASK, LEVELS: tl.constexpr,
     """out (M, LEVELS · F): every level's trilinear read of the one (rows, F) table at x (M, 3), level-major, in one
     pass over the points (the torch path gathers 8 rows per level through index tensors). res, offsets, hashed:
     (LEVELS,) int64 per level: vertices per side, first row, hashed (1) or dense (0)."""
-    i = tl.program_id(0).to(tl.int64) * BLOCK + tl.arange(0, BLOCK)
-    pm = i < M
-    px = tl.load(x + i * 3, mask=pm, other=0.0)
-    py = tl.load(x + i * 3 + 1, mask=pm, other=0.0)
-    pz = tl.load(x + i * 3 + 2, mask=pm, other=0.0)
+    i, pm, px, py, pz = _program_points(x, M, BLOCK)
     cols = tl.arange(0, F)
     for lv in tl.static_range(LEVELS):
-        R = tl.load(res + lv)
-        off = tl.load(offsets + lv)
-        hs = tl.load(hashed + lv)
+        R, off, hs = tl.load(res + lv), tl.load(offsets + lv), tl.load(hashed + lv)
         ix, iy, iz, fx, fy, fz, gx, gy, gz = _cell3(px, py, pz, R)
         acc = tl.zeros([BLOCK, F], dtype=tl.float32)
         acc = _hash_corner_read(acc, table, R, off, hs, MASK, ix, iy, iz, gx * gy * gz, pm, cols, F)
@@ -388,16 +383,10 @@ def hash_bwd(x, g_out, grad, res, offsets, hashed, M, MASK, LEVELS: tl.constexpr
              BLOCK: tl.constexpr):
     """The table's gradient of hash_fwd: each point's dL/dout of a level times its corner weights, atomically added
     to the 8 corners' rows (``grad`` zeroed by the caller)."""
-    i = tl.program_id(0).to(tl.int64) * BLOCK + tl.arange(0, BLOCK)
-    pm = i < M
-    px = tl.load(x + i * 3, mask=pm, other=0.0)
-    py = tl.load(x + i * 3 + 1, mask=pm, other=0.0)
-    pz = tl.load(x + i * 3 + 2, mask=pm, other=0.0)
+    i, pm, px, py, pz = _program_points(x, M, BLOCK)
     cols = tl.arange(0, F)
     for lv in tl.static_range(LEVELS):
-        R = tl.load(res + lv)
-        off = tl.load(offsets + lv)
-        hs = tl.load(hashed + lv)
+        R, off, hs = tl.load(res + lv), tl.load(offsets + lv), tl.load(hashed + lv)
         g = tl.load(g_out + i[:, None] * (LEVELS * F) + lv * F + cols[None, :], mask=pm[:, None], other=0.0)
         ix, iy, iz, fx, fy, fz, gx, gy, gz = _cell3(px, py, pz, R)
         _hash_corner_add(grad, g, R, off, hs, MASK, ix, iy, iz, gx * gy * gz, pm, cols, F)

@@ -277,13 +277,16 @@ def auto_fast_config(base: Any, scene: Scene, footprint: float) -> tuple[Any, li
     needed = int(np.ceil(extent / max(footprint, 1e-12) / 16.0) * 16)
     density_res = int(min(base.density_res, max(32, needed)))
     feature_res = int(min(base.feature_res, max(32, needed)))
+    hashed = (f" (a hash grid of {base.feature_dim} levels, 2^{base.hash_table_log2} rows each)"
+              if base.grid == "hash" else "")
     if density_res < base.density_res or feature_res < base.feature_res:
         reasons.append(
-            f"grids {density_res}³/{feature_res}³ instead of {base.density_res}³/{base.feature_res}³: one training pixel "
-            f"covers {footprint:.4g} units at the cameras' distance, so finer voxels could not be seen"
+            f"grids {density_res}³/{feature_res}³{hashed} instead of {base.density_res}³/{base.feature_res}³: one "
+            f"training pixel covers {footprint:.4g} units at the cameras' distance, so finer voxels could not be seen"
         )
     else:
-        reasons.append(f"grids {density_res}³ density / {feature_res}³ features (the preset's cap; pixels would allow {needed}³)")
+        reasons.append(f"grids {density_res}³ density / {feature_res}³ features{hashed} (the preset's cap; pixels "
+                       f"would allow {needed}³)")
     distortion = base.unbounded_distortion_weight if unbounded else base.distortion_weight
     if distortion > 0:
         key = "unbounded_distortion_weight" if unbounded else "distortion_weight"
@@ -477,7 +480,12 @@ def plan_training(cfg: TrainConfig, scene: Scene, views: list[View], device: tor
     if kind == "fast" and (device.type == "cuda" or cfg.fast.kernels == "triton"):  # on a CPU by default: nothing to say
         from recon.nerf.kernels import kernels_choice
 
-        reasons.append(kernels_choice(cfg.fast.kernels, device.type)[1])
+        fused, why = kernels_choice(cfg.fast.kernels, device.type)
+        reasons.append(why)
+        if fused and cfg.fast.grid == "hash":
+            from recon.nerf.grid import hash_kernel_check
+
+            reasons.append(hash_kernel_check(str(device))[1])
     optimizer, optimizer_why = choose_optimizer(cfg, kind, device)
     if optimizer_why:
         reasons.append(optimizer_why)
