@@ -412,7 +412,7 @@ def hash_kernel_check(device: str) -> tuple[bool, str]:
         return False, f"hash grid: read in torch (its Triton kernel failed on {device}: {type(exc).__name__}: {first})"
     reference = probe(x)  # kernels="torch": the reference
     (g_ref,) = torch.autograd.grad(reference.square().sum(), probe.table)
-    error = max(float((fused - reference).abs().max()), float((g_fused - g_ref).abs().max()))
+    error = max(float((fused - reference).detach().abs().max()), float((g_fused - g_ref).abs().max()))
     if not error <= 1e-3:
         return False, f"hash grid: read in torch (its Triton kernel differed from the torch read by {error:.3g})"
     return True, f"hash grid: read in one Triton kernel (a probe agreed with the torch read within {error:.1g})"
