@@ -339,7 +339,8 @@ GPU_SH_DEGREE = 3
 most `recon.nerf.fast.sh_encode` has; the presets' is 2): it fits the glossy highlights degree 2 leaves as error, and
 the colour network's wider input costs a card next to nothing. A CPU keeps the presets' value (docs/gpu.md)."""
 GPU_FEATURE_LEVELS = 2
-"""With finer grids on a card, the fast model's colour features are a sum of this many dense grids, each half the
+"""With finer grids on a card and the colour features kept in dense grids (a --set of a feature key: else they go into
+a hash grid, GPU_HASH_FEATURES), the features are a sum of this many dense grids, each half the
 resolution of the one before (`recon.nerf.grid.MultiDenseGrid`): at a card's feature resolution a vertex of the
 finest grid is reached by few rays early on, and the coarser level learns the colour of every part in the meantime
 (docs/gpu.md)."""
