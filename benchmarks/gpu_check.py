@@ -241,10 +241,7 @@ def kernel_timings(config: Any, device: torch.device) -> dict[str, Any]:
     weights = torch.rand(m, device=device, generator=gen) / 48.0
     x01 = torch.rand(m, 3, device=device, generator=gen)
     density_res = level_resolutions(fast.density_res, fast.density_levels)
-    feature_res = level_resolutions(fast.feature_res, fast.feature_levels)
     density = [torch.randn(r**3, 1, device=device, generator=gen) for r in density_res]
-    hashed = fast.grid == "hash"
-    features = [] if hashed else [torch.randn(r**3, fast.feature_dim, device=device, generator=gen) for r in feature_res]
 
     def composite(fn: Any) -> Any:
         s = sigma.clone().requires_grad_()
@@ -280,7 +277,7 @@ def kernel_timings(config: Any, device: torch.device) -> dict[str, Any]:
         f"density read ({'+'.join(f'{r}³' for r in density_res)})": (
             lambda: grid(trilinear_levels_torch, density), lambda: grid(K.trilinear_levels_triton, density)),
     }
-    if hashed:
+    if fast.grid == "hash":  # a dense table of the hash grid's finest resolution would not fit a card
         table = HashGrid(fast.feature_dim, HASH_FEATURES, fast.hash_table_log2, HASH_BASE_RES, fast.feature_res).to(device)
 
         def hash_read(fused: bool) -> Any:
@@ -293,6 +290,8 @@ def kernel_timings(config: Any, device: torch.device) -> dict[str, Any]:
         cases[f"feature read (hash grid, {fast.feature_dim} levels up to {fast.feature_res}³)"] = (
             lambda: hash_read(False), lambda: hash_read(True))
     else:
+        feature_res = level_resolutions(fast.feature_res, fast.feature_levels)
+        features = [torch.randn(r**3, fast.feature_dim, device=device, generator=gen) for r in feature_res]
         cases[f"feature read ({'+'.join(f'{r}³' for r in feature_res)}×{fast.feature_dim})"] = (
             lambda: grid(trilinear_levels_torch, features), lambda: grid(K.trilinear_levels_triton, features))
     result: dict[str, Any] = {"triton": why}

@@ -684,7 +684,8 @@ def implied_memory(config: RunConfig) -> list[tuple[str, str, int]]:
     """The memory each memory-hungry group of options implies: (options to lower, what needs it, bytes).
 
     The mesh grid is what mesh.memory_budget_mb allows of mesh.resolution (or max_resolution) cubed, times the
-    copies the stage makes of it; the training grids as `_grid_parameters` counts them; the texture is baked at mesh.texture_size² (automatic: at most 2048²).
+    copies the stage makes of it; the training grids as `_grid_parameters` counts them; the texture is baked at
+    mesh.texture_size² (automatic: at most 2048²).
     """
     mesh, fast, surface = config.mesh, config.train.fast, config.train.surface
     res = mesh.resolution or mesh.max_resolution
