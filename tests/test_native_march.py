@@ -181,11 +181,43 @@ def test_native_grid_reads_train_as_the_torch_paths(channels: int) -> None:
 
 
 @needs_native
+@pytest.mark.parametrize("max_res, log2_table", [(24, 10), (64, 8)], ids=["some-levels-hashed", "most-hashed"])
+def test_native_hash_reads_train_as_the_torch_read(max_res: int, log2_table: int) -> None:
+    """A hash grid's C read (dense levels and hashed ones, tables small enough that vertices collide; points on the
+    box's faces and corners and outside it) gives the torch read's features and table gradient (collisions sum)."""
+    from recon.nerf.grid import HashGrid, hash_reference
+
+    torch.manual_seed(5)
+    grid = HashGrid(levels=6, features=2, log2_table=log2_table, base_res=4, max_res=max_res, init_scale=1.0)
+    assert any(grid.hashed) and not all(grid.hashed)
+    x = torch.cat([torch.rand(3000, 3), torch.tensor([[0.0, 0.0, 0.0], [1.0, 1.0, 1.0], [1.0, 0.5, 0.0]]),
+                   torch.rand(50, 3) * 1.4 - 0.2])
+    upstream = torch.randn(x.shape[0], grid.out_dim)
+    native_out = grid(x)  # x needs no gradient: the C path
+    assert native_out.grad_fn is not None and "NativeRead" in type(native_out.grad_fn).__name__
+    (native_out * upstream).sum().backward()
+    native_grad = grid.table.grad.clone()
+    grid.zero_grad()
+    torch_out = grid.read_torch(x)
+    (torch_out * upstream).sum().backward()
+    torch.testing.assert_close(native_out, torch_out, atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(native_grad, grid.table.grad, atol=1e-4, rtol=1e-4)
+    torch.testing.assert_close(native_out[:40].detach(), hash_reference(grid, x[:40]), atol=1e-5, rtol=1e-5)
+    x_torch = x.clone().requires_grad_(True)  # a point gradient is wanted: the torch path
+    (grid(x_torch) * upstream).sum().backward()
+    assert x_torch.grad is not None and bool(x_torch.grad.abs().sum() > 0)
+
+
+@needs_native
 @pytest.mark.parametrize("set_to_none", [True, False])
-def test_the_reused_gradient_buffer_never_doubles_a_gradient(set_to_none: bool) -> None:
+@pytest.mark.parametrize("kind", ["dense", "hash"])
+def test_the_reused_gradient_buffer_never_doubles_a_gradient(set_to_none: bool, kind: str) -> None:
+    from recon.nerf.grid import HashGrid
+
     torch.manual_seed(4)
-    grid = DenseGrid(6, 12, init_std=1.0)
-    x, upstream = torch.rand(500, 3), torch.randn(500, 12)
+    grid = DenseGrid(6, 12, init_std=1.0) if kind == "dense" else HashGrid(levels=3, log2_table=8, base_res=4,
+                                                                            max_res=16, init_scale=1.0)
+    x, upstream = torch.rand(500, 3), torch.randn(500, grid.out_dim)
     opt = torch.optim.SGD(grid.parameters(), lr=0.0)
     grads = []
     for _ in range(3):

@@ -6,9 +6,9 @@ scene box, or the contracted [-2, 2]^3 box, onto it), and return features ``(M, 
 
 Every encoder stores its values as a channels-last table ``(rows, C)`` and interpolates with one call of
 :func:`gather_interp` (``F.embedding_bag`` forward, ``index_add_`` backward), except scalar dense grids,
-which use ``F.grid_sample`` on a view of the same storage: no custom CUDA, runs anywhere, CPU and GPU. (Dense grids
-read on a CPU in C where no point gradient is needed, :mod:`recon.nerf.native`; on CUDA in a Triton kernel when the
-fast model's ``kernels`` asks, :mod:`recon.nerf.kernels`.)
+which use ``F.grid_sample`` on a view of the same storage: no custom CUDA, runs anywhere, CPU and GPU. (Dense and
+hash grids read on a CPU in C where no point gradient is needed, :mod:`recon.nerf.native`; on CUDA in a Triton
+kernel when the fast model's ``kernels`` asks, :mod:`recon.nerf.kernels`.)
 Plain reference implementations (:func:`trilinear_reference`, :func:`hash_reference`) are slow
 per-corner loops that the tests compare the fast path against.
 
@@ -36,7 +36,8 @@ from torch.autograd.graph import increment_version
 
 from recon.nerf.kernels import hash_levels_triton, trilinear_levels_triton, use_triton
 from recon.nerf.model_config import hash_level_layout
-from recon.nerf.native import native_grid_ok, trilinear_backward_native, trilinear_features_native
+from recon.nerf.native import (hash_backward_native, hash_features_native, native_grid_ok, trilinear_backward_native,
+                               trilinear_features_native)
 
 _PRIMES = (1, 2654435761, 805459861)  # instant-ngp spatial hash (Teschner et al. 2003 / Müller et al. 2022)
 
@@ -122,8 +123,8 @@ def grid_sample_coords(x01: Tensor, dtype: torch.dtype) -> Tensor:
     return (x01.clamp(0.0, 1.0) * 2.0 - 1.0).flip(-1).view(1, 1, 1, -1, 3).to(dtype)
 
 
-class _NativeTrilinear(torch.autograd.Function):
-    """A dense grid's trilinear read in C (:mod:`recon.nerf.native`), differentiable in the table only (the torch
+class _NativeRead(torch.autograd.Function):
+    """A dense or hash grid's read in C (:mod:`recon.nerf.native`), differentiable in the table only (the torch
     paths stay for points that need a gradient: normals, pose refinement).
 
     The backward scatters straight into the table's ``.grad``: into the gradient already there (accumulating, as
@@ -132,10 +133,10 @@ class _NativeTrilinear(torch.autograd.Function):
     page faults on every step; autograd would copy a returned buffer that the grid still holds."""
 
     @staticmethod
-    def forward(ctx, table: Tensor, x01: Tensor, grid: "DenseGrid") -> Tensor:  # type: ignore[override]
+    def forward(ctx, table: Tensor, x01: Tensor, grid: "DenseGrid | HashGrid") -> Tensor:  # type: ignore[override]
         ctx.save_for_backward(x01)
         ctx.grid = grid
-        return trilinear_features_native(x01, table, grid.res)
+        return grid._native_read(x01)
 
     @staticmethod
     def backward(ctx, g: Tensor) -> tuple[None, None, None]:  # type: ignore[override]
@@ -144,16 +145,26 @@ class _NativeTrilinear(torch.autograd.Function):
         table = grid.table
         held = table.grad
         if held is not None and held.is_contiguous() and held.dtype == torch.float32 and held.shape == table.shape:
-            trilinear_backward_native(x01, g, grid.res, out=held, accumulate=True)
+            grid._native_add_grad(x01, g, held)
             increment_version(held)  # written through a pointer: say so (MaskedAdam keeps only unchanged zero grads)
         else:
             buffer = grid._grad_buffer
             if buffer is None or buffer.shape != table.shape or buffer is held:
                 buffer = torch.empty_like(table)
             grid._grad_buffer = buffer
-            grad = trilinear_backward_native(x01, g, grid.res, out=buffer)
-            table.grad = grad if held is None else held + grad
+            grid._native_add_grad(x01, g, buffer.zero_())
+            table.grad = buffer if held is None else held + buffer
         return None, None, None
+
+
+def _read_in_c(grid: "DenseGrid | HashGrid", x01: Tensor) -> Tensor | None:
+    """The grid's read in C where no point gradient is needed and the library takes the tensors (through
+    :class:`_NativeRead` when the table trains), else None: the caller reads in torch."""
+    if x01.requires_grad or not native_grid_ok(x01, grid.table):
+        return None
+    if torch.is_grad_enabled() and grid.table.requires_grad:
+        return _NativeRead.apply(grid.table, x01, grid)
+    return grid._native_read(x01)
 
 
 class DenseGrid(nn.Module):
@@ -166,7 +177,7 @@ class DenseGrid(nn.Module):
         super().__init__()
         self.res, self.channels = int(res), int(channels)
         self.table = nn.Parameter(torch.randn(self.res**3, self.channels) * init_std)
-        self._grad_buffer: Tensor | None = None  # see _NativeTrilinear
+        self._grad_buffer: Tensor | None = None  # see _NativeRead
         # train.fast.kernels, set by the fast model: "triton" (or "auto", once measured) reads CUDA points in a Triton
         # kernel (recon.nerf.kernels.use_triton decides); "torch" never
         self.kernels = "torch"
@@ -184,11 +195,14 @@ class DenseGrid(nn.Module):
         else in torch (:func:`trilinear_torch`)."""
         if self.kernels != "torch" and not x01.requires_grad and use_triton(self.kernels, x01, self.table):
             return trilinear_levels_triton(x01, [self.table], [self.res])  # CUDA only: the CPU takes the paths below
-        if not x01.requires_grad and native_grid_ok(x01, self.table):  # no gradient to the points needed: in C
-            if torch.is_grad_enabled() and self.table.requires_grad:
-                return _NativeTrilinear.apply(self.table, x01, self)
-            return trilinear_features_native(x01, self.table, self.res)
-        return trilinear_torch(x01, self.table, self.res)
+        native = _read_in_c(self, x01)
+        return native if native is not None else trilinear_torch(x01, self.table, self.res)
+
+    def _native_read(self, x01: Tensor) -> Tensor:
+        return trilinear_features_native(x01, self.table, self.res)
+
+    def _native_add_grad(self, x01: Tensor, g: Tensor, out: Tensor) -> None:
+        trilinear_backward_native(x01, g, self.res, out=out, accumulate=True)
 
     def sample_scalar(self, g: Tensor) -> Tensor:
         """A one-channel grid at points already in ``grid_sample``'s layout (:func:`grid_sample_coords`) -> (M, 1)."""
@@ -356,6 +370,7 @@ class HashGrid(nn.Module):
         self.register_buffer("hashed_t", torch.tensor(self.hashed, dtype=torch.int64), persistent=False)
         self.table = nn.Parameter((torch.rand(int(offsets[-1]), self.features) * 2 - 1) * init_scale)
         self.kernels = "torch"  # as DenseGrid.kernels
+        self._grad_buffer: Tensor | None = None  # see _NativeRead
 
     @property
     def out_dim(self) -> int:
@@ -378,10 +393,16 @@ class HashGrid(nn.Module):
 
     def forward(self, x01: Tensor) -> Tensor:
         """x01: (M, 3) in [0, 1] -> (M, levels * features), level-major: in one Triton kernel on CUDA when asked
-        (:func:`recon.nerf.kernels.hash_levels_triton`), else in torch (the reference)."""
+        (:func:`recon.nerf.kernels.hash_levels_triton`), in C where no point gradient is needed, else in torch (the
+        reference)."""
         if (self.kernels != "torch" and not x01.requires_grad and use_triton(self.kernels, x01, self.table)
                 and hash_kernel_check(str(x01.device))[0]):
             return hash_levels_triton(x01, self.table, self.verts_t, self.offsets, self.hashed_t, self.log2_table)
+        native = _read_in_c(self, x01)
+        return native if native is not None else self.read_torch(x01)
+
+    def read_torch(self, x01: Tensor) -> Tensor:
+        """The forward in torch: the reference the C and Triton reads are tested against."""
         m = x01.shape[0]
         idxs, ws = [], []
         for lv in range(self.levels):
@@ -391,6 +412,15 @@ class HashGrid(nn.Module):
         idx = torch.stack(idxs, dim=1).reshape(m * self.levels, 8)
         w = torch.stack(ws, dim=1).reshape(m * self.levels, 8)
         return gather_interp(self.table, idx, w).reshape(m, self.levels * self.features)
+
+    def _native_levels(self) -> Tensor:
+        return torch.stack((self.verts_t, self.offsets, self.hashed_t))
+
+    def _native_read(self, x01: Tensor) -> Tensor:
+        return hash_features_native(x01, self.table, self._native_levels(), self.log2_table)
+
+    def _native_add_grad(self, x01: Tensor, g: Tensor, out: Tensor) -> None:
+        hash_backward_native(x01, g, self._native_levels(), self.log2_table, out)
 
     def tv_loss(self, n: int = 0) -> Tensor:
         """Hash tables have no spatial neighbourhood: no TV term (weight decay is the usual substitute)."""
@@ -410,7 +440,7 @@ def hash_kernel_check(device: str) -> tuple[bool, str]:
     except Exception as exc:  # a compiler or driver that cannot build it: the torch read serves
         first = str(exc).splitlines()[0][:160] if str(exc) else ""
         return False, f"hash grid: read in torch (its Triton kernel failed on {device}: {type(exc).__name__}: {first})"
-    reference = probe(x)  # kernels="torch": the reference
+    reference = probe.read_torch(x)
     (g_ref,) = torch.autograd.grad(reference.square().sum(), probe.table)
     error = max(float((fused - reference).detach().abs().max()), float((g_fused - g_ref).abs().max()))
     if not error <= 1e-3:

@@ -346,12 +346,11 @@ int64_t recon_march_render(
                  ray_samples, out_u, out_w);
 }
 
-/* Point i's cell in a (res³, channels) channels-last table: the offset of its lower corner's first channel, the
- * eight corners' offsets from it and their trilinear weights (corner bit 2 = x high, bit 1 = y, bit 0 = z, as in
- * recon.nerf.grid.corner_weights). Unit coordinates are clamped to [0, 1]. */
-static inline int64_t cell_weights(const float *u, int64_t res, int64_t channels, int64_t corner[8], float w[8]) {
+/* A point's cell in a grid of res vertices a side: its lower vertex c (each in [0, res - 2]) and the eight corners'
+ * trilinear weights (corner bit 2 = x high, bit 1 = y, bit 0 = z, as in recon.nerf.grid.corner_weights), from unit
+ * coordinates clamped to [0, 1]: recon.nerf.grid.axis_cells's arithmetic, in its order. */
+static inline void unit_cell(const float *u, int64_t res, int64_t c[3], float w[8]) {
     float p[3];
-    int64_t c[3];
     for (int a = 0; a < 3; ++a) {
         p[a] = clamp01(u[a]) * (float)(res - 1);
         c[a] = (int64_t)floorf(p[a]);
@@ -364,6 +363,13 @@ static inline int64_t cell_weights(const float *u, int64_t res, int64_t channels
     w[2] = (1 - fx) * fy * (1 - fz), w[3] = (1 - fx) * fy * fz;
     w[4] = fx * (1 - fy) * (1 - fz), w[5] = fx * (1 - fy) * fz;
     w[6] = fx * fy * (1 - fz), w[7] = fx * fy * fz;
+}
+
+/* Point i's cell in a (res³, channels) channels-last table: the offset of its lower corner's first channel, the
+ * eight corners' offsets from it and their trilinear weights (unit_cell's). */
+static inline int64_t cell_weights(const float *u, int64_t res, int64_t channels, int64_t corner[8], float w[8]) {
+    int64_t c[3];
+    unit_cell(u, res, c, w);
     const int64_t sx = res * res * channels, sy = res * channels, sz = channels;
     corner[0] = 0, corner[1] = sz, corner[2] = sy, corner[3] = sy + sz;
     corner[4] = sx, corner[5] = sx + sz, corner[6] = sx + sy, corner[7] = sx + sy + sz;
@@ -401,6 +407,65 @@ void recon_trilinear_backward(int64_t n, const float *u, const float *grad_out, 
         const float *g = grad_out + i * channels;
         for (int k = 0; k < 8; ++k)
             for (int64_t ch = 0; ch < channels; ++ch) base[corner[k] + ch] += w[k] * g[ch];
+    }
+}
+
+/* The table rows of the eight corners of a hash grid's level (its first row `offset`, `res` vertices a side): the
+ * dense row (ix * res + iy) * res + iz, or where `hashed` instant-ngp's hash (ix * 1 ^ iy * 2654435761 ^
+ * iz * 805459861) & mask, in unsigned 64-bit arithmetic whose low bits are torch's int64 ones
+ * (recon.nerf.grid.HashGrid.level_rows). */
+static inline void hash_corner_rows(const int64_t c[3], int64_t res, int64_t offset, int32_t hashed, uint64_t mask,
+                                    int64_t row[8]) {
+    for (int k = 0; k < 8; ++k) {
+        const uint64_t ix = (uint64_t)(c[0] + ((k >> 2) & 1)), iy = (uint64_t)(c[1] + ((k >> 1) & 1)),
+                       iz = (uint64_t)(c[2] + (k & 1));
+        row[k] = offset + (hashed ? (int64_t)((ix ^ (iy * 2654435761ull) ^ (iz * 805459861ull)) & mask)
+                                  : (int64_t)((ix * (uint64_t)res + iy) * (uint64_t)res + iz));
+    }
+}
+
+/* A hash grid's features of n points (unit coordinates u (n, 3)): every level's trilinear read of the one
+ * (rows, features) table, out (n, levels * features) level-major. res, offset, hashed: (levels,) per level.
+ * recon.nerf.grid.HashGrid.forward; the torch path gathers 8 rows a level through index tensors. */
+void recon_hash_features(int64_t n, const float *u, const float *table, int64_t levels, const int64_t *res,
+                         const int64_t *offset, const int64_t *hashed, int64_t log2_table, int64_t features,
+                         float *out)
+{
+    const uint64_t mask = (1ull << log2_table) - 1;
+    int64_t c[3], row[8];
+    float w[8];
+    for (int64_t lv = 0; lv < levels; ++lv) {
+        for (int64_t i = 0; i < n; ++i) {
+            float *o = out + (i * levels + lv) * features;
+            unit_cell(u + 3 * i, res[lv], c, w);
+            hash_corner_rows(c, res[lv], offset[lv], (int32_t)hashed[lv], mask, row);
+            for (int64_t f = 0; f < features; ++f) {
+                float acc = 0.0f;
+                for (int k = 0; k < 8; ++k) acc += w[k] * table[row[k] * features + f];
+                o[f] = acc;
+            }
+        }
+    }
+}
+
+/* The backward of recon_hash_features for the table: grad_table (rows, features) += each point's upstream gradient
+ * of a level spread over that level's corner rows by the trilinear weights, for levels first, first + step, ...
+ * below levels: levels own disjoint rows, so threads taking different levels never write the same value. */
+void recon_hash_backward(int64_t n, const float *u, const float *grad_out, int64_t levels, const int64_t *res,
+                         const int64_t *offset, const int64_t *hashed, int64_t log2_table, int64_t features,
+                         int64_t first, int64_t step, float *grad_table)
+{
+    const uint64_t mask = (1ull << log2_table) - 1;
+    int64_t c[3], row[8];
+    float w[8];
+    for (int64_t lv = first; lv < levels; lv += step) {
+        for (int64_t i = 0; i < n; ++i) {
+            const float *g = grad_out + (i * levels + lv) * features;
+            unit_cell(u + 3 * i, res[lv], c, w);
+            hash_corner_rows(c, res[lv], offset[lv], (int32_t)hashed[lv], mask, row);
+            for (int k = 0; k < 8; ++k)
+                for (int64_t f = 0; f < features; ++f) grad_table[row[k] * features + f] += w[k] * g[f];
+        }
     }
 }
 

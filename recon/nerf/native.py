@@ -2,8 +2,8 @@
 
 Why: the torch marcher costs ~25 tensor passes over every candidate step (millions per view, most of them in
 empty cells) and three ``grid_sample`` calls per density; in C a candidate is a few flops. Here: the
-march (occupancy, empty-block jumps, density levels, early termination; when rendering, compositing too) and
-dense grids' trilinear reads and their table gradient. The library is plain C with no Python or torch headers,
+march (occupancy, empty-block jumps, density levels, early termination; when rendering, compositing too), and
+dense and hash grids' trilinear reads and their tables' gradients. The library is plain C with no Python or torch headers,
 so it builds in about a second with ``cc``, for this machine's CPU (its vector instructions) where the compiler can;
 it is cached under ``~/.cache/recon`` (``$XDG_CACHE_HOME``) keyed by the source's hash, the flags and the CPU, and
 loaded with ctypes. Nothing depends on it: with no compiler, a failed build, a CUDA
@@ -33,7 +33,8 @@ import torch
 from torch import Tensor
 
 __all__ = ["DenseDensity", "load_c_library", "native_marcher", "native_status", "march_dense_native",
-           "march_render_native", "native_grid_ok", "trilinear_features_native", "trilinear_backward_native", "adam_native"]
+           "march_render_native", "native_grid_ok", "trilinear_features_native", "trilinear_backward_native", "hash_features_native",
+           "hash_backward_native", "adam_native"]
 
 SOURCE = Path(__file__).with_name("march.c")
 CFLAGS = ["-O3", "-fPIC", "-shared", "-ffp-contract=off", "-fno-math-errno"]
@@ -140,6 +141,10 @@ def native_marcher() -> ctypes.CDLL | None:
     lib.recon_trilinear_features.argtypes = [i64, p, p, i64, i64, p]
     lib.recon_trilinear_backward.restype = None
     lib.recon_trilinear_backward.argtypes = [i64, p, p, i64, i64, p]
+    lib.recon_hash_features.restype = None
+    lib.recon_hash_features.argtypes = [i64, p, p, i64, p, p, p, i64, i64, p]
+    lib.recon_hash_backward.restype = None
+    lib.recon_hash_backward.argtypes = [i64, p, p, i64, p, p, p, i64, i64, i64, i64, p]
     lib.recon_adam.restype = None
     lib.recon_adam.argtypes = [i64, p, p, p, p, f32, f32, f32, f32, f32, f32, i32, i32]
     _status = (f"native C (recon/nerf/march.c, built {BUILT_FOR.get('recon/nerf/march.c', '')}, cached in "
@@ -329,6 +334,49 @@ def trilinear_backward_native(x01: Tensor, grad_out: Tensor, res: int, out: Tens
     return grad_table
 
 
+def hash_features_native(x01: Tensor, table: Tensor, levels: Tensor, log2_table: int) -> Tensor | None:
+    """A hash grid's features (M, L · F) at unit points x01 (M, 3) from its (rows, F) table, natively; None when
+    :func:`native_grid_ok` is not. ``levels`` (3, L) int64: each level's vertices a side, first row and hashed
+    (1) or dense (0). No gradient: :class:`recon.nerf.grid.HashGrid` wraps it for training."""
+    if not native_grid_ok(x01, table):
+        return None
+    lib = native_marcher()
+    x01, table, levels = x01.detach().contiguous(), table.detach().contiguous(), levels.contiguous()
+    n_levels, features = levels.shape[1], table.shape[1]
+    out = torch.empty(x01.shape[0], n_levels * features)
+
+    def part(lo: int, hi: int) -> None:
+        if hi > lo:
+            lib.recon_hash_features(hi - lo, x01[lo].data_ptr(), table.data_ptr(), n_levels, levels[0].data_ptr(),
+                                    levels[1].data_ptr(), levels[2].data_ptr(), log2_table, features,
+                                    out[lo].data_ptr())
+
+    _in_slices(x01.shape[0], part)
+    return out
+
+
+def hash_backward_native(x01: Tensor, grad_out: Tensor, levels: Tensor, log2_table: int, out: Tensor) -> Tensor:
+    """Add the table's gradient of :func:`hash_features_native`, given the features' gradient (M, L · F), into
+    ``out`` (the contiguous float32 (rows, F) table gradient) and return it. The levels are dealt out to the
+    threads (each level's rows are its own, so no two threads add into one value)."""
+    lib = native_marcher()
+    x01, grad_out = x01.detach().contiguous(), grad_out.detach().to(torch.float32).contiguous()
+    levels = levels.contiguous()
+    n_levels = levels.shape[1]
+    workers = max(1, min(torch.get_num_threads(), n_levels, x01.shape[0] // 1024))
+
+    def part(first: int) -> None:
+        lib.recon_hash_backward(x01.shape[0], x01.data_ptr(), grad_out.data_ptr(), n_levels, levels[0].data_ptr(),
+                                levels[1].data_ptr(), levels[2].data_ptr(), log2_table, out.shape[1], first, workers,
+                                out.data_ptr())
+
+    if workers > 1:
+        list(_thread_pool(workers).map(part, range(workers)))
+    else:
+        part(0)
+    return out
+
+
 def adam_native(param: Tensor, grad: Tensor, exp_avg: Tensor, exp_avg_sq: Tensor, *, beta1: float, beta2: float,
                 step_size: float, bias2_sqrt: float, eps: float, masked: bool, clear: bool = False) -> bool:
     """:func:`recon.nerf.masked_adam.adam_step_torch` in C over contiguous float32 CPU tensors, split over threads;
@@ -355,12 +403,17 @@ _pool: ThreadPoolExecutor | None = None
 def _in_slices(n: int, fn: Callable[[int, int], T]) -> list[T]:
     """``fn(lo, hi)`` over contiguous slices of ``range(n)`` on one thread per torch CPU thread; results in order.
     Four slices a thread: an image's rays come in rows, and the rows through the object cost the most."""
-    global _pool
     workers = max(1, min(torch.get_num_threads(), n // 1024))
     if workers == 1:
         return [fn(0, n)]
     slices = 4 * workers
     bounds = [n * i // slices for i in range(slices + 1)]
+    return list(_thread_pool(workers).map(fn, bounds[:-1], bounds[1:]))
+
+
+def _thread_pool(workers: int) -> ThreadPoolExecutor:
+    """The native calls' threads (ctypes releases the GIL), at least ``workers`` of them, made once."""
+    global _pool
     if _pool is None or _pool._max_workers < workers:
         _pool = ThreadPoolExecutor(workers, thread_name_prefix="recon-native")
-    return list(_pool.map(fn, bounds[:-1], bounds[1:]))
+    return _pool
