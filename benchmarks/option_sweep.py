@@ -26,6 +26,12 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))  # this checkout's recon, not an installed one
 
 
+def value_overrides(option: str, item: str) -> list[str]:
+    """One of --values, `VALUE+key=v+...`, as overrides: [option=VALUE, key=v, ...]."""
+    value, *own = item.split("+")
+    return [f"{option}={value}", *own]
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--option", required=True, help="a --set key, e.g. train.fast.distortion_weight")
@@ -49,7 +55,7 @@ def main() -> None:
     rows: list[dict[str, Any]] = []
     for item in args.values.split(","):
         value, *own = item.split("+")
-        overrides = [*args.set, f"{args.option}={value}", *own]
+        overrides = [*args.set, *value_overrides(args.option, item)]
         row = run_bench(args.data, [args.preset], work, overrides, report, until=args.until)[0]
         metrics = json.loads((work / f"{Path(args.data).name}-{args.preset}" / "03_field" / "metrics.json").read_text())
         row["option"], row["value"] = args.option, value

@@ -1,0 +1,99 @@
+"""What an option costs a training step, the values' steps interleaved so a busy or throttled host slows all alike.
+
+    python benchmarks/step_cost.py --scene ~/.cache/recon/bench/lego_half_hash_features_cpu/lego-half-fast \\
+        --option train.fast.grid --values "dense,hash+train.fast.feature_dim=16+train.fast.feature_res=512" \\
+        --out benchmarks/results/lego_half_hash_features_cpu_step_cost.json
+
+A time-budgeted sweep (option_sweep.py) runs one value after the other, so a host that slows down between them (a
+shared machine, a CPU's clock) shifts the steps each gets; here every value's training is built on the same scene (its
+02_scene, as the train stage plans it: `recon.plans.training`), takes `--warmup` steps (occupancy warm, grids shrunk),
+then the values take turns: `--rounds` rounds of `--block` steps each, timed. The record gives each value's
+milliseconds a step (the median of its rounds, and the total) and the ratio of each value's total to the first's.
+Values as option_sweep's: comma-separated, `VALUE+key=v+...` adds overrides to one. A measurement: it asserts nothing.
+"""
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from gpu_syncs import scene_row  # noqa: E402  (gpu_syncs puts this checkout's recon first)
+from option_sweep import value_overrides  # noqa: E402
+
+
+def build_step(scene_dir: Path, preset: str, overrides: list[str]) -> tuple[Any, int, str]:
+    """(a training step taking its index, rays a step, the device) for a preset with overrides on a recon scene."""
+    from recon.capture.scene import load_scene
+    from recon.config import load_config
+    from recon.evaluation.views import load_views
+    from recon.nerf.device import select_device
+    from recon.nerf.trainer import TrainStep, warm_up
+    from recon.plans.training import build_training, plan_training
+
+    cfg = load_config(preset, overrides).train
+    scene = load_scene(scene_dir / "02_scene")
+    views = load_views(scene, scene.split("train"), cfg.max_side)
+    device = select_device(cfg.device)
+    plan = plan_training(cfg, scene, views, device)
+    setup = build_training(plan, device)
+    if device.type == "cuda":
+        warm_up(setup.model, setup.batcher, plan.batch_rays, plan.autocast)
+    return TrainStep(setup.model, setup.batcher, steps=cfg.steps, **setup.step_kwargs), plan.batch_rays, str(device)
+
+
+def main(argv: list[str] | None = None) -> int:
+    from recon.atomic import write_json_atomic
+
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--scene", type=Path, required=True, help="a scene folder recon made (its 02_scene is read)")
+    parser.add_argument("--out", type=Path, required=True, help="the record to write (JSON)")
+    parser.add_argument("--preset", default="fast")
+    parser.add_argument("--option", required=True, help="a --set key, e.g. train.fast.grid")
+    parser.add_argument("--values", required=True, help="comma-separated; VALUE+key=v+... adds overrides to one value")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="more overrides, for every value")
+    parser.add_argument("--warmup", type=int, default=300, help="untimed steps of each value first")
+    parser.add_argument("--rounds", type=int, default=10)
+    parser.add_argument("--block", type=int, default=20, help="steps of one value in a round")
+    args = parser.parse_args(argv)
+    row = scene_row("step_cost", args)
+    if row is None:
+        return 2
+    values = args.values.split(",")
+    runs = []
+    for value in values:
+        step, rays, device = build_step(args.scene, args.preset, [*args.set, *value_overrides(args.option, value)])
+        for i in range(args.warmup):
+            step(i)
+        runs.append({"value": value, "step": step, "next": args.warmup, "rounds_ms": []})
+    sync = torch.cuda.synchronize if device.startswith("cuda") else (lambda: None)
+    for _ in range(args.rounds):
+        for run in runs:
+            sync()
+            t0 = time.perf_counter()
+            for i in range(run["next"], run["next"] + args.block):
+                run["step"](i)
+            sync()
+            run["rounds_ms"].append(1000.0 * (time.perf_counter() - t0) / args.block)
+            run["next"] += args.block
+    first_total = sum(runs[0]["rounds_ms"])
+    row.update({"option": args.option, "device": device, "batch_rays": rays, "warmup": args.warmup,
+                "rounds": args.rounds, "block": args.block, "values": [
+                    {"value": run["value"], "ms_per_step_median": round(statistics.median(run["rounds_ms"]), 2),
+                     "ms_per_step_mean": round(statistics.fmean(run["rounds_ms"]), 2),
+                     "rounds_ms": [round(ms, 2) for ms in run["rounds_ms"]],
+                     "cost_vs_first": round(sum(run["rounds_ms"]) / first_total, 3)} for run in runs]})
+    write_json_atomic(args.out, [row])
+    for v in row["values"]:
+        print(f"{args.option}={v['value']}: {v['ms_per_step_median']} ms a step (median of {args.rounds} rounds), "
+              f"{v['cost_vs_first']}x the first")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
