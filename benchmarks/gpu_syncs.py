@@ -35,7 +35,9 @@ def recon_frames(depth: int = 4) -> str:
                        for f in reversed(frames[-depth:]))
 
 
-def measure(scene_dir: Path, preset: str, overrides: list[str], warmup: int, steps: int, timed: int) -> dict[str, Any]:
+def build_step(scene_dir: Path, preset: str, overrides: list[str]) -> tuple[Any, Any, torch.device]:
+    """(a training step taking its index, the training plan, the device) for a preset with overrides on a scene recon
+    made, planned and built as the train stage does; on CUDA its kernels compiled (`warm_up`)."""
     from recon.capture.scene import load_scene
     from recon.config import load_config
     from recon.evaluation.views import load_views
@@ -49,10 +51,14 @@ def measure(scene_dir: Path, preset: str, overrides: list[str], warmup: int, ste
     device = select_device(cfg.device)
     plan = plan_training(cfg, scene, views, device)
     setup = build_training(plan, device)
-    cuda = device.type == "cuda"
-    if cuda:
+    if device.type == "cuda":
         warm_up(setup.model, setup.batcher, plan.batch_rays, plan.autocast)
-    step = TrainStep(setup.model, setup.batcher, steps=cfg.steps, **setup.step_kwargs)
+    return TrainStep(setup.model, setup.batcher, steps=cfg.steps, **setup.step_kwargs), plan, device
+
+
+def measure(scene_dir: Path, preset: str, overrides: list[str], warmup: int, steps: int, timed: int) -> dict[str, Any]:
+    step, plan, device = build_step(scene_dir, preset, overrides)
+    cuda = device.type == "cuda"
     sync = (lambda: torch.cuda.synchronize(device)) if cuda else (lambda: None)
     for i in range(warmup):
         step(i)

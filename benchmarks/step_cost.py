@@ -18,33 +18,12 @@ import statistics
 import sys
 import time
 from pathlib import Path
-from typing import Any
 
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from gpu_syncs import scene_row  # noqa: E402  (gpu_syncs puts this checkout's recon first)
+from gpu_syncs import build_step, scene_row  # noqa: E402  (gpu_syncs puts this checkout's recon first)
 from option_sweep import value_overrides  # noqa: E402
-
-
-def build_step(scene_dir: Path, preset: str, overrides: list[str]) -> tuple[Any, int, str]:
-    """(a training step taking its index, rays a step, the device) for a preset with overrides on a recon scene."""
-    from recon.capture.scene import load_scene
-    from recon.config import load_config
-    from recon.evaluation.views import load_views
-    from recon.nerf.device import select_device
-    from recon.nerf.trainer import TrainStep, warm_up
-    from recon.plans.training import build_training, plan_training
-
-    cfg = load_config(preset, overrides).train
-    scene = load_scene(scene_dir / "02_scene")
-    views = load_views(scene, scene.split("train"), cfg.max_side)
-    device = select_device(cfg.device)
-    plan = plan_training(cfg, scene, views, device)
-    setup = build_training(plan, device)
-    if device.type == "cuda":
-        warm_up(setup.model, setup.batcher, plan.batch_rays, plan.autocast)
-    return TrainStep(setup.model, setup.batcher, steps=cfg.steps, **setup.step_kwargs), plan.batch_rays, str(device)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -67,11 +46,11 @@ def main(argv: list[str] | None = None) -> int:
     values = args.values.split(",")
     runs = []
     for value in values:
-        step, rays, device = build_step(args.scene, args.preset, [*args.set, *value_overrides(args.option, value)])
+        step, plan, device = build_step(args.scene, args.preset, [*args.set, *value_overrides(args.option, value)])
         for i in range(args.warmup):
             step(i)
         runs.append({"value": value, "step": step, "next": args.warmup, "rounds_ms": []})
-    sync = torch.cuda.synchronize if device.startswith("cuda") else (lambda: None)
+    sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
     for _ in range(args.rounds):
         for run in runs:
             sync()
@@ -82,7 +61,7 @@ def main(argv: list[str] | None = None) -> int:
             run["rounds_ms"].append(1000.0 * (time.perf_counter() - t0) / args.block)
             run["next"] += args.block
     first_total = sum(runs[0]["rounds_ms"])
-    row.update({"option": args.option, "device": device, "batch_rays": rays, "warmup": args.warmup,
+    row.update({"option": args.option, "device": str(device), "batch_rays": plan.batch_rays, "warmup": args.warmup,
                 "rounds": args.rounds, "block": args.block, "values": [
                     {"value": run["value"], "ms_per_step_median": round(statistics.median(run["rounds_ms"]), 2),
                      "ms_per_step_mean": round(statistics.fmean(run["rounds_ms"]), 2),
