@@ -26,10 +26,10 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))  # this checkout's recon, not an installed one
 
 
-def value_overrides(option: str, item: str) -> list[str]:
-    """One of --values, `VALUE+key=v+...`, as overrides: [option=VALUE, key=v, ...]."""
+def split_value(item: str) -> tuple[str, list[str]]:
+    """One of --values, `VALUE+key=v+...`: (VALUE, its own overrides [key=v, ...])."""
     value, *own = item.split("+")
-    return [f"{option}={value}", *own]
+    return value, own
 
 
 def main() -> None:
@@ -54,8 +54,8 @@ def main() -> None:
     report = Reporter(quiet=True)
     rows: list[dict[str, Any]] = []
     for item in args.values.split(","):
-        value, *own = item.split("+")
-        overrides = [*args.set, *value_overrides(args.option, item)]
+        value, own = split_value(item)
+        overrides = [*args.set, f"{args.option}={value}", *own]
         row = run_bench(args.data, [args.preset], work, overrides, report, until=args.until)[0]
         metrics = json.loads((work / f"{Path(args.data).name}-{args.preset}" / "03_field" / "metrics.json").read_text())
         row["option"], row["value"] = args.option, value

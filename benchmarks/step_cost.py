@@ -23,7 +23,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from gpu_syncs import build_step, scene_row  # noqa: E402  (gpu_syncs puts this checkout's recon first)
-from option_sweep import value_overrides  # noqa: E402
+from option_sweep import split_value  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -46,7 +46,8 @@ def main(argv: list[str] | None = None) -> int:
     values = args.values.split(",")
     runs = []
     for value in values:
-        step, plan, device = build_step(args.scene, args.preset, [*args.set, *value_overrides(args.option, value)])
+        first, own = split_value(value)
+        step, plan, device = build_step(args.scene, args.preset, [*args.set, f"{args.option}={first}", *own])
         for i in range(args.warmup):
             step(i)
         runs.append({"value": value, "step": step, "next": args.warmup, "rounds_ms": []})

@@ -365,9 +365,9 @@ class HashGrid(nn.Module):
         self.levels, self.features, self.log2_table = int(levels), int(features), int(log2_table)
         self.verts, rows, self.hashed = hash_level_layout(levels, base_res, max_res, log2_table)
         offsets = torch.tensor([0] + rows).cumsum(0)
-        self.register_buffer("offsets", offsets[:-1].clone(), persistent=False)
-        self.register_buffer("verts_t", torch.tensor(self.verts), persistent=False)
-        self.register_buffer("hashed_t", torch.tensor(self.hashed, dtype=torch.int64), persistent=False)
+        # per level (3, L) int64: vertices per side, first row, hashed (1) or dense (0); the C read takes it whole
+        self.register_buffer("layout", torch.stack((torch.tensor(self.verts), offsets[:-1],
+                                                    torch.tensor(self.hashed, dtype=torch.int64))), persistent=False)
         self.table = nn.Parameter((torch.rand(int(offsets[-1]), self.features) * 2 - 1) * init_scale)
         self.kernels = "torch"  # as DenseGrid.kernels
         self._grad_buffer: Tensor | None = None  # see _NativeRead
@@ -375,6 +375,21 @@ class HashGrid(nn.Module):
     @property
     def out_dim(self) -> int:
         return self.levels * self.features
+
+    @property
+    def verts_t(self) -> Tensor:
+        """(L,) vertices per side of each level."""
+        return self.layout[0]
+
+    @property
+    def offsets(self) -> Tensor:
+        """(L,) each level's first row in the table."""
+        return self.layout[1]
+
+    @property
+    def hashed_t(self) -> Tensor:
+        """(L,) 1 where a level is hashed, 0 where it is dense-indexed."""
+        return self.layout[2]
 
     def level_rows(self, i0: Tensor, level: int) -> Tensor:
         """Table rows (M, 8) of the cell corners with lower vertex i0 (M, 3) at one level (offset included).
@@ -413,14 +428,11 @@ class HashGrid(nn.Module):
         w = torch.stack(ws, dim=1).reshape(m * self.levels, 8)
         return gather_interp(self.table, idx, w).reshape(m, self.levels * self.features)
 
-    def _native_levels(self) -> Tensor:
-        return torch.stack((self.verts_t, self.offsets, self.hashed_t))
-
     def _native_read(self, x01: Tensor) -> Tensor:
-        return hash_features_native(x01, self.table, self._native_levels(), self.log2_table)
+        return hash_features_native(x01, self.table, self.layout, self.log2_table)
 
     def _native_add_grad(self, x01: Tensor, g: Tensor, out: Tensor) -> None:
-        hash_backward_native(x01, g, self._native_levels(), self.log2_table, out)
+        hash_backward_native(x01, g, self.layout, self.log2_table, out)
 
     def tv_loss(self, n: int = 0) -> Tensor:
         """Hash tables have no spatial neighbourhood: no TV term (weight decay is the usual substitute)."""
