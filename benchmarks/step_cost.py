@@ -17,7 +17,9 @@ import argparse
 import statistics
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import torch
 
@@ -50,29 +52,40 @@ def main(argv: list[str] | None = None) -> int:
         step, plan, device = build_step(args.scene, args.preset, [*args.set, f"{args.option}={first}", *own])
         for i in range(args.warmup):
             step(i)
-        runs.append({"value": value, "step": step, "next": args.warmup, "rounds_ms": []})
+        runs.append({"value": value, "step": step, "next": args.warmup})
     sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
-    for _ in range(args.rounds):
-        for run in runs:
-            sync()
-            t0 = time.perf_counter()
-            for i in range(run["next"], run["next"] + args.block):
-                run["step"](i)
-            sync()
-            run["rounds_ms"].append(1000.0 * (time.perf_counter() - t0) / args.block)
-            run["next"] += args.block
-    first_total = sum(runs[0]["rounds_ms"])
+    take_turns(runs, args.rounds, args.block, sync)
     row.update({"option": args.option, "device": str(device), "batch_rays": plan.batch_rays, "warmup": args.warmup,
-                "rounds": args.rounds, "block": args.block, "values": [
-                    {"value": run["value"], "ms_per_step_median": round(statistics.median(run["rounds_ms"]), 2),
-                     "ms_per_step_mean": round(statistics.fmean(run["rounds_ms"]), 2),
-                     "rounds_ms": [round(ms, 2) for ms in run["rounds_ms"]],
-                     "cost_vs_first": round(sum(run["rounds_ms"]) / first_total, 3)} for run in runs]})
+                "rounds": args.rounds, "block": args.block, "values": turn_rows(runs)})
     write_json_atomic(args.out, [row])
     for v in row["values"]:
         print(f"{args.option}={v['value']}: {v['ms_per_step_median']} ms a step (median of {args.rounds} rounds), "
               f"{v['cost_vs_first']}x the first")
     return 0
+
+
+def take_turns(runs: list[dict[str, Any]], rounds: int, block: int, sync: Callable[[], None]) -> None:
+    """Each round, each run (its ``step``, from its ``next``) takes ``block`` steps, timed into its ``rounds_ms``;
+    a run's ``enter()``, where it has one, is called (untimed) before its turn."""
+    for _ in range(rounds):
+        for run in runs:
+            run.get("enter", lambda: None)()
+            sync()
+            t0 = time.perf_counter()
+            for i in range(run["next"], run["next"] + block):
+                run["step"](i)
+            sync()
+            run.setdefault("rounds_ms", []).append(1000.0 * (time.perf_counter() - t0) / block)
+            run["next"] += block
+
+
+def turn_rows(runs: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Each run's ms a step (median and mean of its rounds, the rounds) and its total against the first run's."""
+    first_total = sum(runs[0]["rounds_ms"])
+    return [{"value": run["value"], "ms_per_step_median": round(statistics.median(run["rounds_ms"]), 2),
+             "ms_per_step_mean": round(statistics.fmean(run["rounds_ms"]), 2),
+             "rounds_ms": [round(ms, 2) for ms in run["rounds_ms"]],
+             "cost_vs_first": round(sum(run["rounds_ms"]) / first_total, 3)} for run in runs]
 
 
 if __name__ == "__main__":

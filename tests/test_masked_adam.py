@@ -1,6 +1,7 @@
 """MaskedAdam (recon/nerf/masked_adam.py): torch's Adam where every value has a gradient, untouched values left alone
 in a masked group; the C update (recon.nerf.native.adam_native) against the torch reference; the train stage's
-choice of optimizer and a fast model trained with it."""
+choice of optimizer and a fast model trained with it; the blocks the grids' C backward flags (TouchedBlocks), which the
+C update then visits alone."""
 from __future__ import annotations
 
 import math
@@ -8,8 +9,8 @@ import math
 import pytest
 import torch
 
-from recon.nerf.masked_adam import MaskedAdam, adam_step_torch
-from recon.nerf.native import adam_native, native_marcher
+from recon.nerf.masked_adam import MaskedAdam, TouchedBlocks, adam_step_torch, touched_blocks
+from recon.nerf.native import ADAM_BLOCK, adam_native, native_marcher
 
 needs_native = pytest.mark.skipif(native_marcher() is None, reason="the native library did not build here (no cc)")
 
@@ -78,6 +79,83 @@ def test_the_c_update_matches_the_torch_reference(masked: bool, n: int) -> None:
         torch.testing.assert_close(a, b, rtol=1e-6, atol=1e-7, msg=lambda msg, name=name: f"{name}: {msg}")
     if masked:
         assert torch.equal(native[0][grad == 0], start[grad == 0])
+
+
+@needs_native
+@pytest.mark.parametrize("n", [1, 64, 65, 5000, 300_001])
+def test_the_c_update_visits_the_flagged_blocks_alone(n: int) -> None:
+    """With flags it updates the flagged blocks as the reference does (gradients 0 there too are left alone), clears
+    those flags and gradients, and does not look at an unflagged block: one with a gradient stays as it was (the
+    flags' promise broken on purpose, to see that they are what it reads). Sizes around the 64-value blocks, and
+    one split over threads."""
+    start, grad = _problem(n, 4, 1 / 3)
+    blocks = -(-n // ADAM_BLOCK)
+    flags = (torch.rand(blocks, generator=torch.Generator().manual_seed(5)) < 0.5).to(torch.uint8)
+    flags[0] = 1
+    flagged = flags.repeat_interleave(ADAM_BLOCK)[:n].bool()
+    kwargs = {"beta1": 0.9, "beta2": 0.999, "step_size": 0.05, "bias2_sqrt": 0.3, "eps": 1e-8, "masked": True}
+    native = [start.clone(), grad.clone(), torch.zeros(n), torch.zeros(n)]
+    reference = [start.clone(), torch.where(flagged, grad, 0.0), torch.zeros(n), torch.zeros(n)]
+    assert adam_native(*native, clear=True, touched=flags, **kwargs)
+    adam_step_torch(*reference, **kwargs)
+    for a, b in zip(native[::2] + native[3:], reference[::2] + reference[3:], strict=True):
+        torch.testing.assert_close(a, b, rtol=1e-6, atol=1e-7)
+    assert not flags.any()
+    assert not native[1][flagged].any() and torch.equal(native[1][~flagged], grad[~flagged])
+    with pytest.raises(ValueError, match="touched flags"):
+        adam_native(*native, clear=True, touched=torch.zeros(blocks + 1, dtype=torch.uint8), **kwargs)
+
+
+@needs_native
+@pytest.mark.parametrize("kind", ["density", "features", "hash"])
+def test_the_grids_c_backward_flags_the_blocks_it_adds_into(kind: str) -> None:
+    """After a read and its backward, the flagged blocks are the blocks holding a non-zero gradient, exactly
+    (points inside cells: every corner gets a weight)."""
+    from recon.nerf.grid import DenseGrid, HashGrid
+
+    torch.manual_seed(0)
+    grid = {"density": lambda: DenseGrid(20, 1), "features": lambda: DenseGrid(20, 12, init_std=0.1),
+            "hash": lambda: HashGrid(levels=4, features=2, log2_table=12, base_res=4, max_res=64, init_scale=1.0)}[kind]()
+    x = torch.rand(30, 3) * 0.9 + 0.05
+    (grid(x) * torch.randn(30, grid.out_dim)).sum().backward()
+    grad = grid.table.grad.view(-1)
+    padded = torch.cat([grad, grad.new_zeros(-grad.numel() % ADAM_BLOCK)]).view(-1, ADAM_BLOCK)
+    touched = grid.table.touched_blocks
+    assert touched.valid_for(grid.table.grad)
+    assert 0 < int(touched.flags.sum()) < touched.flags.numel()
+    assert torch.equal(touched.flags.bool(), (padded != 0).any(1))
+
+
+@needs_native
+def test_a_gradient_another_writer_added_to_is_looked_at_whole() -> None:
+    """A torch write into the flagged gradient (here an in-place add, as autograd's accumulation or a regularizer
+    would make) changes its version: the flags no longer speak for it, the update looks at every block and moves
+    the value the flags never saw; afterwards they are valid again."""
+    from recon.nerf.grid import DenseGrid
+
+    grid = DenseGrid(16, 4, init_std=0.1)
+    opt = MaskedAdam([{"params": list(grid.parameters()), "masked": True}], lr=0.1)
+    x = torch.full((1, 3), 0.1)
+    grid(x).sum().backward()
+    opt.step()
+    opt.zero_grad()
+    grid(x).sum().backward()  # flags the low corner's blocks
+    far = grid.table.shape[0] - 1
+    grid.table.grad[far] += 1.0
+    touched = touched_blocks(grid.table)
+    assert not touched.flags[far * 4 // ADAM_BLOCK] and not touched.valid_for(grid.table.grad)
+    before = grid.table.detach()[far].clone()
+    opt.step()
+    assert not torch.equal(grid.table.detach()[far], before)
+    assert touched.valid_for(grid.table.grad) and not touched.flags.any() and not grid.table.grad.any()
+
+
+def test_touched_blocks_are_made_again_for_a_parameter_that_changed_size() -> None:
+    p = torch.nn.Parameter(torch.zeros(130))
+    first = touched_blocks(p)
+    assert isinstance(first, TouchedBlocks) and first.flags.numel() == 3 and touched_blocks(p) is first
+    p.data = torch.zeros(1000)
+    assert touched_blocks(p).flags.numel() == 16
 
 
 @needs_native
@@ -171,11 +249,30 @@ def test_a_fast_model_learns_with_masked_adam_and_its_untouched_grid_values_stay
 
 
 @needs_native
-def test_keeping_the_zeroed_gradients_changes_nothing(monkeypatch: pytest.MonkeyPatch) -> None:
-    """MaskedAdam keeps the grids' gradients it left all 0 (the next backward adds into them unzeroed): the same
-    training, bit for bit, as dropping them every step."""
-    kept, _, _ = _trained_fast_model(25)
-    monkeypatch.setattr(MaskedAdam, "zero_grad", torch.optim.Optimizer.zero_grad)
-    dropped, _, _ = _trained_fast_model(25)
-    for (name, a), b in zip(kept.state_dict().items(), dropped.state_dict().values(), strict=True):
+@pytest.mark.parametrize("without", ["kept zero gradients", "flags"])
+def test_keeping_the_zeroed_gradients_and_the_flags_changes_nothing(monkeypatch: pytest.MonkeyPatch,
+                                                                    without: str) -> None:
+    """MaskedAdam keeps the grids' gradients it left all 0 (the next backward adds into them unzeroed) and visits
+    only the blocks the backward flagged: the same training, bit for bit, as dropping the gradients every step, or
+    as looking at every block's gradient."""
+    import recon.nerf.masked_adam as masked_adam
+
+    flagged_steps = []
+    native_update = masked_adam.adam_native
+
+    def counted(*args: object, touched: torch.Tensor | None = None, **kwargs: object) -> bool:
+        flagged_steps.append(touched is not None)
+        return native_update(*args, touched=touched, **kwargs)
+
+    monkeypatch.setattr(masked_adam, "adam_native", counted)
+    fast, _, _ = _trained_fast_model(25)
+    assert sum(flagged_steps) >= 25 * 2  # the grids' updates took the flags (after each grid's first step)
+    if without == "flags":
+        monkeypatch.setattr(TouchedBlocks, "valid_for", lambda self, grad: False)
+    else:
+        monkeypatch.setattr(MaskedAdam, "zero_grad", torch.optim.Optimizer.zero_grad)
+    flagged_steps.clear()
+    plain, _, _ = _trained_fast_model(25)
+    assert any(flagged_steps) == (without != "flags")
+    for (name, a), b in zip(fast.state_dict().items(), plain.state_dict().values(), strict=True):
         assert torch.equal(a, b), name

@@ -35,6 +35,7 @@ from torch import Tensor, nn
 from torch.autograd.graph import increment_version
 
 from recon.nerf.kernels import hash_levels_triton, trilinear_levels_triton, use_triton
+from recon.nerf.masked_adam import touched_blocks
 from recon.nerf.model_config import hash_level_layout
 from recon.nerf.native import (hash_backward_native, hash_features_native, native_grid_ok, trilinear_backward_native,
                                trilinear_features_native)
@@ -130,7 +131,8 @@ class _NativeRead(torch.autograd.Function):
     The backward scatters straight into the table's ``.grad``: into the gradient already there (accumulating, as
     autograd would), or, when there is none (optimizers drop gradients between steps), into a buffer the grid keeps
     and hands over as ``.grad``. A fresh zeroed gradient per step (42 MB for the fast preset's feature grid) cost its
-    page faults on every step; autograd would copy a returned buffer that the grid still holds."""
+    page faults on every step; autograd would copy a returned buffer that the grid still holds. It flags the blocks
+    it adds into (:class:`recon.nerf.masked_adam.TouchedBlocks`) while the flags speak for that gradient."""
 
     @staticmethod
     def forward(ctx, table: Tensor, x01: Tensor, grid: "DenseGrid | HashGrid") -> Tensor:  # type: ignore[override]
@@ -143,17 +145,25 @@ class _NativeRead(torch.autograd.Function):
         (x01,) = ctx.saved_tensors
         grid = ctx.grid
         table = grid.table
-        held = table.grad
+        held, touched = table.grad, touched_blocks(table)
         if held is not None and held.is_contiguous() and held.dtype == torch.float32 and held.shape == table.shape:
-            grid._native_add_grad(x01, g, held)
+            flagging = touched.valid_for(held)
+            grid._native_add_grad(x01, g, held, touched.flags if flagging else None)
             increment_version(held)  # written through a pointer: say so (MaskedAdam keeps only unchanged zero grads)
+            if flagging:
+                touched.vouch(held)
         else:
             buffer = grid._grad_buffer
             if buffer is None or buffer.shape != table.shape or buffer is held:
                 buffer = torch.empty_like(table)
             grid._grad_buffer = buffer
-            grid._native_add_grad(x01, g, buffer.zero_())
-            table.grad = buffer if held is None else held + buffer
+            touched.reset(buffer.zero_())
+            grid._native_add_grad(x01, g, buffer, touched.flags)
+            if held is None:
+                table.grad = buffer
+                touched.vouch(buffer)
+            else:
+                table.grad = held + buffer
         return None, None, None
 
 
@@ -201,8 +211,8 @@ class DenseGrid(nn.Module):
     def _native_read(self, x01: Tensor) -> Tensor:
         return trilinear_features_native(x01, self.table, self.res)
 
-    def _native_add_grad(self, x01: Tensor, g: Tensor, out: Tensor) -> None:
-        trilinear_backward_native(x01, g, self.res, out=out, accumulate=True)
+    def _native_add_grad(self, x01: Tensor, g: Tensor, out: Tensor, touched: Tensor | None) -> None:
+        trilinear_backward_native(x01, g, self.res, out=out, accumulate=True, touched=touched)
 
     def sample_scalar(self, g: Tensor) -> Tensor:
         """A one-channel grid at points already in ``grid_sample``'s layout (:func:`grid_sample_coords`) -> (M, 1)."""
@@ -431,8 +441,8 @@ class HashGrid(nn.Module):
     def _native_read(self, x01: Tensor) -> Tensor:
         return hash_features_native(x01, self.table, self.layout, self.log2_table)
 
-    def _native_add_grad(self, x01: Tensor, g: Tensor, out: Tensor) -> None:
-        hash_backward_native(x01, g, self.layout, self.log2_table, out)
+    def _native_add_grad(self, x01: Tensor, g: Tensor, out: Tensor, touched: Tensor | None) -> None:
+        hash_backward_native(x01, g, self.layout, self.log2_table, out, touched)
 
     def tv_loss(self, n: int = 0) -> Tensor:
         """Hash tables have no spatial neighbourhood: no TV term (weight decay is the usual substitute)."""

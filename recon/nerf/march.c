@@ -394,19 +394,34 @@ void recon_trilinear_features(int64_t n, const float *u, const float *table, int
     }
 }
 
+#define ADAM_BLOCK 64
+
+/* Flag the blocks of ADAM_BLOCK values that a row of `width` values starting at value `first` lies in (recon_adam
+ * then visits only flagged blocks). A relaxed atomic store: threads adding into different rows may share a block,
+ * and all of them store the same 1. */
+static inline void flag_blocks(uint8_t *touched, int64_t first, int64_t width) {
+    const uint64_t last = (uint64_t)(first + width - 1) / ADAM_BLOCK;
+    for (uint64_t b = (uint64_t)first / ADAM_BLOCK; b <= last; ++b)
+        __atomic_store_n(touched + b, (uint8_t)1, __ATOMIC_RELAXED);
+}
+
 /* The backward of recon_trilinear_features for the table: grad_table (res³, channels) += each point's upstream
- * gradient grad_out (n, channels) spread over its cell's corners by the trilinear weights. One thread: the
- * scatter is cheaper than the zeroed copy a second thread would need. */
+ * gradient grad_out (n, channels) spread over its cell's corners by the trilinear weights; `touched` (or NULL):
+ * the blocks added into are flagged. One thread: the scatter is cheaper than the zeroed copy a second thread would
+ * need. */
 void recon_trilinear_backward(int64_t n, const float *u, const float *grad_out, int64_t res, int64_t channels,
-                              float *grad_table)
+                              float *grad_table, uint8_t *touched)
 {
     int64_t corner[8];
     float w[8];
     for (int64_t i = 0; i < n; ++i) {
-        float *base = grad_table + cell_weights(u + 3 * i, res, channels, corner, w);
+        const int64_t first = cell_weights(u + 3 * i, res, channels, corner, w);
+        float *base = grad_table + first;
         const float *g = grad_out + i * channels;
         for (int k = 0; k < 8; ++k)
             for (int64_t ch = 0; ch < channels; ++ch) base[corner[k] + ch] += w[k] * g[ch];
+        if (touched)  /* corners 2j and 2j + 1 are neighbouring rows (z): one range each pair */
+            for (int k = 0; k < 8; k += 2) flag_blocks(touched, first + corner[k], 2 * channels);
     }
 }
 
@@ -453,7 +468,7 @@ void recon_hash_features(int64_t n, const float *u, const float *table, int64_t 
  * below levels: levels own disjoint rows, so threads taking different levels never write the same value. */
 void recon_hash_backward(int64_t n, const float *u, const float *grad_out, int64_t levels, const int64_t *res,
                          const int64_t *offset, const int64_t *hashed, int64_t log2_table, int64_t features,
-                         int64_t first, int64_t step, float *grad_table)
+                         int64_t first, int64_t step, float *grad_table, uint8_t *touched)
 {
     const uint64_t mask = (1ull << log2_table) - 1;
     int64_t c[3], row[8];
@@ -463,8 +478,10 @@ void recon_hash_backward(int64_t n, const float *u, const float *grad_out, int64
             const float *g = grad_out + (i * levels + lv) * features;
             unit_cell(u + 3 * i, res[lv], c, w);
             hash_corner_rows(c, res[lv], offset[lv], (int32_t)hashed[lv], mask, row);
-            for (int k = 0; k < 8; ++k)
+            for (int k = 0; k < 8; ++k) {
                 for (int64_t f = 0; f < features; ++f) grad_table[row[k] * features + f] += w[k] * g[f];
+                if (touched) flag_blocks(touched, row[k] * features, features);
+            }
         }
     }
 }
@@ -475,17 +492,22 @@ void recon_hash_backward(int64_t n, const float *u, const float *grad_out, int64
  * one_minus_beta1 and one_minus_beta2 come rounded from double (1.0f - 0.999f is 0.00100005f, not 0.001f).
  * Blocks of ADAM_BLOCK values: a block without a gradient is skipped after one (vectorized) look, and a block with
  * one is updated without branches, so the compiler vectorizes both loops. With `clear` (masked only) the gradients it
- * used are set to 0, so the whole gradient is 0 afterwards and the next backward can add into it unzeroed. */
-#define ADAM_BLOCK 64
+ * used are set to 0, so the whole gradient is 0 afterwards and the next backward can add into it unzeroed.
+ * `touched` (masked and clear only; or NULL): a flag per block, set where the grids' backward added into it, so the
+ * gradient of an unflagged block is known to be 0 without looking; the flags visited are cleared. n is then a
+ * whole number of blocks, or the parameter's end. */
 void recon_adam(int64_t n, float *restrict param, float *restrict grad, float *restrict exp_avg,
                 float *restrict exp_avg_sq, float one_minus_beta1, float beta2, float one_minus_beta2, float step_size,
-                float bias2_sqrt, float eps, int32_t masked, int32_t clear)
+                float bias2_sqrt, float eps, int32_t masked, int32_t clear, uint8_t *touched)
 {
     for (int64_t lo = 0; lo < n; lo += ADAM_BLOCK) {
         const int64_t len = n - lo < ADAM_BLOCK ? n - lo : ADAM_BLOCK;
         float *g = grad + lo;
         float *p = param + lo, *m = exp_avg + lo, *v = exp_avg_sq + lo;
-        if (masked) {
+        if (touched) {
+            if (!touched[lo / ADAM_BLOCK]) continue;
+            touched[lo / ADAM_BLOCK] = 0;
+        } else if (masked) {
             int any = 0;
             for (int64_t j = 0; j < len; ++j) any |= g[j] != 0.0f;
             if (!any) continue;

@@ -34,7 +34,10 @@ from torch import Tensor
 
 __all__ = ["DenseDensity", "load_c_library", "native_marcher", "native_status", "march_dense_native",
            "march_render_native", "native_grid_ok", "trilinear_features_native", "trilinear_backward_native", "hash_features_native",
-           "hash_backward_native", "adam_native"]
+           "hash_backward_native", "adam_native", "ADAM_BLOCK"]
+
+ADAM_BLOCK = 64
+"""Values an Adam block holds (march.c's ADAM_BLOCK): the C update looks at a block's gradient, or its flag, once."""
 
 SOURCE = Path(__file__).with_name("march.c")
 CFLAGS = ["-O3", "-fPIC", "-shared", "-ffp-contract=off", "-fno-math-errno"]
@@ -140,13 +143,13 @@ def native_marcher() -> ctypes.CDLL | None:
     lib.recon_trilinear_features.restype = None
     lib.recon_trilinear_features.argtypes = [i64, p, p, i64, i64, p]
     lib.recon_trilinear_backward.restype = None
-    lib.recon_trilinear_backward.argtypes = [i64, p, p, i64, i64, p]
+    lib.recon_trilinear_backward.argtypes = [i64, p, p, i64, i64, p, p]
     lib.recon_hash_features.restype = None
     lib.recon_hash_features.argtypes = [i64, p, p, i64, p, p, p, i64, i64, p]
     lib.recon_hash_backward.restype = None
-    lib.recon_hash_backward.argtypes = [i64, p, p, i64, p, p, p, i64, i64, i64, i64, p]
+    lib.recon_hash_backward.argtypes = [i64, p, p, i64, p, p, p, i64, i64, i64, i64, p, p]
     lib.recon_adam.restype = None
-    lib.recon_adam.argtypes = [i64, p, p, p, p, f32, f32, f32, f32, f32, f32, i32, i32]
+    lib.recon_adam.argtypes = [i64, p, p, p, p, f32, f32, f32, f32, f32, f32, i32, i32, p]
     _status = (f"native C (recon/nerf/march.c, built {BUILT_FOR.get('recon/nerf/march.c', '')}, cached in "
                f"{_cache_dir()}): rays are marched in C (bounded and "
                "contracted steps), "
@@ -319,10 +322,11 @@ def trilinear_features_native(x01: Tensor, table: Tensor, res: int) -> Tensor | 
 
 
 def trilinear_backward_native(x01: Tensor, grad_out: Tensor, res: int, out: Tensor | None = None,
-                              accumulate: bool = False) -> Tensor:
+                              accumulate: bool = False, touched: Tensor | None = None) -> Tensor:
     """The table's gradient (res³, C) of :func:`trilinear_features_native` given the features' gradient (M, C):
     in a new tensor, or written into ``out`` (a contiguous float32 (res³, C) tensor; zeroed first unless
-    ``accumulate``, which adds to what it holds)."""
+    ``accumulate``, which adds to what it holds). ``touched`` (uint8, a flag per 64 values of the table, or None):
+    the blocks added into are flagged (:class:`recon.nerf.masked_adam.TouchedBlocks`)."""
     lib = native_marcher()
     x01, grad_out = x01.detach().contiguous(), grad_out.detach().to(torch.float32).contiguous()
     if out is None:
@@ -330,7 +334,7 @@ def trilinear_backward_native(x01: Tensor, grad_out: Tensor, res: int, out: Tens
     else:
         grad_table = out if accumulate else out.zero_()
     lib.recon_trilinear_backward(x01.shape[0], x01.data_ptr(), grad_out.data_ptr(), res, grad_out.shape[1],
-                                 grad_table.data_ptr())
+                                 grad_table.data_ptr(), _flags_pointer(touched, grad_table))
     return grad_table
 
 
@@ -355,20 +359,22 @@ def hash_features_native(x01: Tensor, table: Tensor, levels: Tensor, log2_table:
     return out
 
 
-def hash_backward_native(x01: Tensor, grad_out: Tensor, levels: Tensor, log2_table: int, out: Tensor) -> Tensor:
+def hash_backward_native(x01: Tensor, grad_out: Tensor, levels: Tensor, log2_table: int, out: Tensor,
+                         touched: Tensor | None = None) -> Tensor:
     """Add the table's gradient of :func:`hash_features_native`, given the features' gradient (M, L · F), into
-    ``out`` (the contiguous float32 (rows, F) table gradient) and return it. The levels are dealt out to the
-    threads (each level's rows are its own, so no two threads add into one value)."""
+    ``out`` (the contiguous float32 (rows, F) table gradient) and return it; ``touched`` as in
+    :func:`trilinear_backward_native`. The levels are dealt out to the threads (each level's rows are its own, so no
+    two threads add into one value)."""
     lib = native_marcher()
     x01, grad_out = x01.detach().contiguous(), grad_out.detach().to(torch.float32).contiguous()
     levels = levels.contiguous()
-    n_levels = levels.shape[1]
+    n_levels, flags = levels.shape[1], _flags_pointer(touched, out)
     workers = max(1, min(torch.get_num_threads(), n_levels, x01.shape[0] // 1024))
 
     def part(first: int) -> None:
         lib.recon_hash_backward(x01.shape[0], x01.data_ptr(), grad_out.data_ptr(), n_levels, levels[0].data_ptr(),
                                 levels[1].data_ptr(), levels[2].data_ptr(), log2_table, out.shape[1], first, workers,
-                                out.data_ptr())
+                                out.data_ptr(), flags)
 
     if workers > 1:
         list(_thread_pool(workers).map(part, range(workers)))
@@ -378,23 +384,45 @@ def hash_backward_native(x01: Tensor, grad_out: Tensor, levels: Tensor, log2_tab
 
 
 def adam_native(param: Tensor, grad: Tensor, exp_avg: Tensor, exp_avg_sq: Tensor, *, beta1: float, beta2: float,
-                step_size: float, bias2_sqrt: float, eps: float, masked: bool, clear: bool = False) -> bool:
+                step_size: float, bias2_sqrt: float, eps: float, masked: bool, clear: bool = False,
+                touched: Tensor | None = None) -> bool:
     """:func:`recon.nerf.masked_adam.adam_step_torch` in C over contiguous float32 CPU tensors, split over threads;
     False (nothing done) where it does not apply: no library, another device or dtype, a strided tensor.
-    ``clear`` (with ``masked``): set the gradients it used to 0, leaving ``grad`` all 0."""
+    ``clear`` (with ``masked``): set the gradients it used to 0, leaving ``grad`` all 0. ``touched`` (with both): the
+    flags of the blocks of :data:`ADAM_BLOCK` values that may have a gradient; only those are visited, and their
+    flags cleared."""
     tensors = (param, grad, exp_avg, exp_avg_sq)
     if not native_grid_ok(*tensors) or not all(t.is_contiguous() and t.shape == param.shape for t in tensors):
         return False
+    if touched is not None and not (masked and clear):
+        raise ValueError("adam_native: touched flags need masked=True and clear=True (they are cleared as used)")
     lib = native_marcher()
     flat = [t.detach().view(-1) for t in tensors]
+    n, flags = flat[0].shape[0], _flags_pointer(touched, flat[0])
 
     def part(lo: int, hi: int) -> None:
         if hi > lo:
             lib.recon_adam(hi - lo, *(t[lo:].data_ptr() for t in flat), 1.0 - beta1, beta2, 1.0 - beta2, step_size,
-                           bias2_sqrt, eps, int(masked), int(clear))
+                           bias2_sqrt, eps, int(masked), int(clear), None if flags is None else flags + lo // ADAM_BLOCK)
 
-    _in_slices(flat[0].shape[0], part)
+    if flags is None:
+        _in_slices(n, part)
+    else:  # slices of whole blocks, so that each slice's flags start at its own
+        _in_slices(-(-n // ADAM_BLOCK), lambda lo, hi: part(lo * ADAM_BLOCK, min(hi * ADAM_BLOCK, n)))
     return True
+
+
+def _flags_pointer(touched: Tensor | None, values: Tensor) -> int | None:
+    """The address of ``touched``, checked to be a flag (uint8) per :data:`ADAM_BLOCK` values of ``values``; None
+    for None."""
+    if touched is None:
+        return None
+    blocks = -(-values.numel() // ADAM_BLOCK)
+    if touched.dtype != torch.uint8 or touched.device.type != "cpu" or not touched.is_contiguous() or \
+            touched.numel() != blocks:
+        raise ValueError(f"touched flags: need {blocks} contiguous uint8 CPU values, one per {ADAM_BLOCK} of the "
+                         f"{values.numel()}; got {touched.numel()} {touched.dtype} on {touched.device}")
+    return touched.data_ptr()
 
 
 _pool: ThreadPoolExecutor | None = None

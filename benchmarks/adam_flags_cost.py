@@ -1,0 +1,74 @@
+"""What MaskedAdam's block flags save a CPU training step: the same training twice, its steps taken in turns, one
+visiting only the blocks the grids' C backward flagged, the other looking at every block's gradient.
+
+    python benchmarks/adam_flags_cost.py --scene ~/.cache/recon/bench/sample_hash_features_cpu/sample-fast \\
+        --warmup 600 --out benchmarks/results/sample_adam_flags_step_cost.json
+
+Both trainings are built as the train stage builds them (`recon.plans.training`) on the scene's 02_scene and take
+`--warmup` steps each; then they take turns, `--rounds` rounds of `--block` steps (step_cost.py's `take_turns`), the
+flags switched off for the second's turns (`TouchedBlocks.valid_for` answering no, as it does after a write the flags
+did not see: the update then looks at every block). The two give the same values bit for bit
+(tests/test_masked_adam.py); the record gives each one's ms a step and the ratio. A measurement: it asserts nothing.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from gpu_syncs import build_step, scene_row  # noqa: E402  (gpu_syncs puts this checkout's recon first)
+from step_cost import take_turns, turn_rows  # noqa: E402
+
+
+def main(argv: list[str] | None = None) -> int:
+    from recon.atomic import write_json_atomic
+    from recon.nerf.masked_adam import TouchedBlocks
+
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--scene", type=Path, required=True, help="a scene folder recon made (its 02_scene is read)")
+    parser.add_argument("--out", type=Path, required=True, help="the record to write (JSON)")
+    parser.add_argument("--preset", default="fast")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="overrides, for both")
+    parser.add_argument("--warmup", type=int, default=600, help="untimed steps of each first")
+    parser.add_argument("--rounds", type=int, default=10)
+    parser.add_argument("--block", type=int, default=20, help="steps of one in a round")
+    args = parser.parse_args(argv)
+    row = scene_row("adam_flags_cost", args)
+    if row is None:
+        return 2
+    flagged = TouchedBlocks.valid_for
+    switches = {"flagged blocks": flagged, "every block": lambda self, grad: False}
+    runs = []
+    for value, valid_for in switches.items():
+        step, plan, device = build_step(args.scene, args.preset, args.set)
+        if step.opt.__class__.__name__ != "MaskedAdam":
+            print(f"error: {args.preset} trains with {step.opt.__class__.__name__} here, not MaskedAdam: nothing to "
+                  "compare (a CPU with the native library takes MaskedAdam)", file=sys.stderr)
+            return 2
+
+        def enter(valid_for=valid_for) -> None:
+            TouchedBlocks.valid_for = valid_for
+
+        enter()
+        for i in range(args.warmup):
+            step(i)
+        runs.append({"value": value, "step": step, "next": args.warmup, "enter": enter})
+    sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
+    try:
+        take_turns(runs, args.rounds, args.block, sync)
+    finally:
+        TouchedBlocks.valid_for = flagged
+    row.update({"device": str(device), "batch_rays": plan.batch_rays, "warmup": args.warmup, "rounds": args.rounds,
+                "block": args.block, "values": turn_rows(runs)})
+    write_json_atomic(args.out, [row])
+    for v in row["values"]:
+        print(f"{v['value']}: {v['ms_per_step_median']} ms a step (median of {args.rounds} rounds), "
+              f"{v['cost_vs_first']}x the first")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
