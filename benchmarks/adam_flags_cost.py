@@ -8,13 +8,15 @@ Both trainings are built as the train stage builds them (`recon.plans.training`)
 `--warmup` steps each; then they take turns, `--rounds` rounds of `--block` steps (step_cost.py's `take_turns`), the
 flags switched off for the second's turns (`TouchedBlocks.valid_for` answering no, as it does after a write the flags
 did not see: the update then looks at every block). The two give the same values bit for bit
-(tests/test_masked_adam.py); the record gives each one's ms a step and the ratio. A measurement: it asserts nothing.
+(tests/test_masked_adam.py); the record gives each one's ms a step and the ratio, and the share of each grid's blocks
+flagged in one more step. A measurement: it asserts nothing.
 """
 from __future__ import annotations
 
 import argparse
 import sys
 from pathlib import Path
+from typing import Any
 
 import torch
 
@@ -62,12 +64,38 @@ def main(argv: list[str] | None = None) -> int:
     finally:
         TouchedBlocks.valid_for = flagged
     row.update({"device": str(device), "batch_rays": plan.batch_rays, "warmup": args.warmup, "rounds": args.rounds,
-                "block": args.block, "values": turn_rows(runs)})
+                "block": args.block, "values": turn_rows(runs), "flagged_share": flagged_share(runs[0])})
     write_json_atomic(args.out, [row])
     for v in row["values"]:
         print(f"{v['value']}: {v['ms_per_step_median']} ms a step (median of {args.rounds} rounds), "
               f"{v['cost_vs_first']}x the first")
+    for grid in row["flagged_share"]:
+        print(f"grid {grid['shape']}: {grid['blocks_flagged']:.1%} of its blocks flagged")
     return 0
+
+
+def flagged_share(run: dict[str, Any]) -> list[dict[str, Any]]:
+    """One more step of the flagged training, its update watched: each masked parameter's shape and the share of its
+    blocks flagged (what the update visits) as the update starts."""
+    from recon.nerf.masked_adam import MaskedAdam
+
+    seen: list[dict[str, Any]] = []
+    update = MaskedAdam.step
+
+    def watched(self: MaskedAdam, closure: Any = None) -> Any:
+        for group in self.param_groups:
+            for p in group["params"] if group.get("masked") else []:
+                touched = getattr(p, "touched_blocks", None)
+                if p.grad is not None and touched is not None and touched.valid_for(p.grad):
+                    seen.append({"shape": list(p.shape), "blocks_flagged": round(touched.flags.float().mean().item(), 4)})
+        return update(self, closure)
+
+    MaskedAdam.step = watched  # type: ignore[method-assign]
+    try:
+        run["step"](run["next"])
+    finally:
+        MaskedAdam.step = update  # type: ignore[method-assign]
+    return seen
 
 
 if __name__ == "__main__":

@@ -4,9 +4,11 @@ from __future__ import annotations
 
 import types
 
+import pytest
 import torch
 
-from recon.app.profiling import _labelled, attribute
+from recon.app.profiling import BACKWARD_KINDS, _labelled, attribute
+from recon.nerf.native import native_marcher
 
 
 def test_labels_attribute_time_and_count_rows_then_restore() -> None:
@@ -26,3 +28,20 @@ def test_labels_attribute_time_and_count_rows_then_restore() -> None:
     assert parts["recon:heavy part"[len("recon:"):]] > 0
     assert "other ops (loss, glue)" in parts  # the unlabelled op is counted apart
     assert set(parts) == {"heavy part", "other ops (loss, glue)"}
+
+
+@pytest.mark.skipif(native_marcher() is None, reason="the native library did not build here (no cc)")
+def test_a_grids_backward_in_c_is_a_part_of_its_own() -> None:
+    """The grids' C backward (recon.nerf.grid._NativeRead's node) is named by BACKWARD_KINDS, not left in the
+    catch-all 'compositing bwd'."""
+    from recon.nerf.grid import DenseGrid
+
+    grid = DenseGrid(48, 8, init_std=0.1)
+    x = torch.rand(50_000, 3)
+    prof = torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CPU])
+    with prof:
+        grid(x).sum().backward()
+    parts = attribute(prof)
+    native_part = dict(BACKWARD_KINDS)["NativeRead"]
+    assert parts.get(native_part, 0) > 0
+    assert parts[native_part] > parts.get("compositing bwd", 0)

@@ -32,7 +32,7 @@ if TYPE_CHECKING:
 BACKWARD_KINDS = (
     ("GridSampler", "density grid bwd"),
     ("GatherInterp", "feature grid bwd"),
-    ("NativeTrilinear", "grid bwd (native: density levels + features)"),
+    ("NativeRead", "grid bwd (native: density levels + features)"),
     ("Addmm", "MLP bwd"), ("Mm", "MLP bwd"), ("Relu", "MLP bwd"), ("Threshold", "MLP bwd"), ("TBackward", "MLP bwd"),
     ("Sigmoid", "MLP bwd"), ("CatBackward", "MLP bwd"), ("SliceBackward", "MLP bwd"),  # the MLP's slices
 )
