@@ -13,7 +13,6 @@ flagged in one more step. A measurement: it asserts nothing.
 """
 from __future__ import annotations
 
-import argparse
 import sys
 from pathlib import Path
 from typing import Any
@@ -21,22 +20,16 @@ from typing import Any
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from gpu_syncs import build_step, scene_row  # noqa: E402  (gpu_syncs puts this checkout's recon first)
-from step_cost import take_turns, turn_rows  # noqa: E402
+from gpu_syncs import build_step, scene_row, step_parser  # noqa: E402  (gpu_syncs puts this checkout's recon first)
+from step_cost import take_turns, turn_arguments, turn_rows  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> int:
     from recon.atomic import write_json_atomic
     from recon.nerf.masked_adam import TouchedBlocks
 
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--scene", type=Path, required=True, help="a scene folder recon made (its 02_scene is read)")
-    parser.add_argument("--out", type=Path, required=True, help="the record to write (JSON)")
-    parser.add_argument("--preset", default="fast")
-    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="overrides, for both")
-    parser.add_argument("--warmup", type=int, default=600, help="untimed steps of each first")
-    parser.add_argument("--rounds", type=int, default=10)
-    parser.add_argument("--block", type=int, default=20, help="steps of one in a round")
+    parser = step_parser(__doc__)
+    turn_arguments(parser, warmup=600)
     args = parser.parse_args(argv)
     row = scene_row("adam_flags_cost", args)
     if row is None:

@@ -24,23 +24,17 @@ from typing import Any
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from gpu_syncs import build_step, scene_row  # noqa: E402  (gpu_syncs puts this checkout's recon first)
+from gpu_syncs import build_step, scene_row, step_parser  # noqa: E402  (gpu_syncs puts this checkout's recon first)
 from option_sweep import split_value  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> int:
     from recon.atomic import write_json_atomic
 
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--scene", type=Path, required=True, help="a scene folder recon made (its 02_scene is read)")
-    parser.add_argument("--out", type=Path, required=True, help="the record to write (JSON)")
-    parser.add_argument("--preset", default="fast")
+    parser = step_parser(__doc__)
     parser.add_argument("--option", required=True, help="a --set key, e.g. train.fast.grid")
     parser.add_argument("--values", required=True, help="comma-separated; VALUE+key=v+... adds overrides to one value")
-    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="more overrides, for every value")
-    parser.add_argument("--warmup", type=int, default=300, help="untimed steps of each value first")
-    parser.add_argument("--rounds", type=int, default=10)
-    parser.add_argument("--block", type=int, default=20, help="steps of one value in a round")
+    turn_arguments(parser, warmup=300)
     args = parser.parse_args(argv)
     row = scene_row("step_cost", args)
     if row is None:
@@ -62,6 +56,13 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{args.option}={v['value']}: {v['ms_per_step_median']} ms a step (median of {args.rounds} rounds), "
               f"{v['cost_vs_first']}x the first")
     return 0
+
+
+def turn_arguments(parser: argparse.ArgumentParser, warmup: int) -> None:
+    """--warmup, --rounds and --block, for :func:`take_turns`."""
+    parser.add_argument("--warmup", type=int, default=warmup, help="untimed steps of each training first")
+    parser.add_argument("--rounds", type=int, default=10)
+    parser.add_argument("--block", type=int, default=20, help="steps of one training in a round")
 
 
 def take_turns(runs: list[dict[str, Any]], rounds: int, block: int, sync: Callable[[], None]) -> None:
