@@ -39,10 +39,11 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))  # measure this checkout's recon (its commit is the one recorded), not another install
 LEGO_HALF = REPO.parent / "shared" / "data" / "nerf_synthetic_lego_half"
 
-SMOKE = ["train.budget=5s", "train.max_side=50", "train.eval_every=0", "train.appearance=off",
+SMOKE = ["train.budget=", "train.steps=80", "train.max_side=50", "train.eval_every=0", "train.appearance=off",
          "train.fast.max_samples=32", "mesh.max_resolution=32", "mesh.texture_faces=0"]
-"""--smoke: a few seconds of training on 50-px photos and a 32³ mesh: that every part runs, not what it measures.
-A field trained for seconds is still fog: every ray marches to its sample cap, and each render (the final
+"""--smoke: 80 steps on 50-px photos and a 32³ mesh: that every part runs, not what it measures. Steps, not
+seconds: on a busy host a few seconds train too few steps to leave anything to mesh. A field trained for 80 steps is
+still fog: every ray marches to its sample cap, and each render (the final
 evaluation, the timing, the mesh stage's depth maps of its baking views) pays that cap; 32 samples a ray keep them
 to seconds on a CPU. The appearance check (feature matching between photos) is skipped: the Lego's exposure is
 constant."""
