@@ -10,8 +10,7 @@ groups (the colour network) get torch's Adam update. Without weight decay or ams
 :func:`adam_step_torch` is the reference; :func:`recon.nerf.native.adam_native` the same update in C (blocks of values
 without a gradient are skipped after one look), used for float32 CPU tensors when the native library loaded. Where
 the grids' C backward flagged the blocks it added into (:class:`TouchedBlocks`), the update visits only those: a
-step's rays reach a few percent of a feature grid's blocks, and looking at every other block's gradient was half the
-update's time.
+step's rays reach few of a fine grid's blocks, and the gradients of the others need not be read to know they are 0.
 """
 from __future__ import annotations
 
@@ -56,6 +55,7 @@ class TouchedBlocks:
         self._for: tuple[Tensor, int] | None = None
 
     def valid_for(self, grad: Tensor) -> bool:
+        """Whether the flags cover every non-zero block of ``grad``: it is the tensor vouched for, unchanged since."""
         return self._for is not None and self._for[0] is grad and self._for[1] == grad._version
 
     def vouch(self, grad: Tensor) -> None:
