@@ -26,7 +26,7 @@ from step_cost import take_turns, turn_arguments, turn_rows  # noqa: E402
 
 def main(argv: list[str] | None = None) -> int:
     from recon.atomic import write_json_atomic
-    from recon.nerf.masked_adam import TouchedBlocks
+    from recon.nerf.masked_adam import MaskedAdam, TouchedBlocks
 
     parser = step_parser(__doc__)
     turn_arguments(parser, warmup=600)
@@ -39,8 +39,8 @@ def main(argv: list[str] | None = None) -> int:
     runs = []
     for value, valid_for in switches.items():
         step, plan, device = build_step(args.scene, args.preset, args.set)
-        if step.opt.__class__.__name__ != "MaskedAdam":
-            print(f"error: {args.preset} trains with {step.opt.__class__.__name__} here, not MaskedAdam: nothing to "
+        if not isinstance(step.opt, MaskedAdam):
+            print(f"error: {args.preset} trains with {type(step.opt).__name__} here, not MaskedAdam: nothing to "
                   "compare (a CPU with the native library takes MaskedAdam)", file=sys.stderr)
             return 2
 

@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from recon.nerf.masked_adam import MaskedAdam, TouchedBlocks, adam_step_torch, touched_blocks
-from recon.nerf.native import ADAM_BLOCK, adam_native, native_marcher
+from recon.nerf.native import ADAM_BLOCK, adam_blocks, adam_native, native_marcher
 
 needs_native = pytest.mark.skipif(native_marcher() is None, reason="the native library did not build here (no cc)")
 
@@ -89,7 +89,7 @@ def test_the_c_update_visits_the_flagged_blocks_alone(n: int) -> None:
     flags' promise broken on purpose, to see that they are what it reads). Sizes around the 64-value blocks, and
     one split over threads."""
     start, grad = _problem(n, 4, 1 / 3)
-    blocks = -(-n // ADAM_BLOCK)
+    blocks = adam_blocks(n)
     flags = (torch.rand(blocks, generator=torch.Generator().manual_seed(5)) < 0.5).to(torch.uint8)
     flags[0] = 1
     flagged = flags.repeat_interleave(ADAM_BLOCK)[:n].bool()

@@ -21,7 +21,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from recon.nerf.native import ADAM_BLOCK, adam_native
+from recon.nerf.native import adam_blocks, adam_native
 
 __all__ = ["MaskedAdam", "TouchedBlocks", "adam_step_torch", "touched_blocks"]
 
@@ -43,15 +43,16 @@ def adam_step_torch(param: Tensor, grad: Tensor, exp_avg: Tensor, exp_avg_sq: Te
 
 
 class TouchedBlocks:
-    """Which blocks of :data:`ADAM_BLOCK` values of a parameter's gradient may hold a non-zero value: a flag per
-    block, set by the grids' C backward where it adds, cleared by :class:`MaskedAdam`'s C update as it visits them.
+    """Which blocks of :data:`recon.nerf.native.ADAM_BLOCK` values of a parameter's gradient may hold a non-zero
+    value: a flag per block, set by the grids' C backward where it adds, cleared by :class:`MaskedAdam`'s C update as
+    it visits them.
 
     The flags speak for one gradient tensor at one version (:meth:`valid_for`): any other writer into the gradient (a
     torch read's autograd, a regularizer) changes its version, and the update then looks at every block, after which
     the gradient is all 0 and the flags, cleared, are valid again."""
 
     def __init__(self, numel: int) -> None:
-        self.flags = torch.zeros(-(-numel // ADAM_BLOCK), dtype=torch.uint8)
+        self.flags = torch.zeros(adam_blocks(numel), dtype=torch.uint8)
         self._for: tuple[Tensor, int] | None = None
 
     def valid_for(self, grad: Tensor) -> bool:
@@ -71,7 +72,7 @@ class TouchedBlocks:
 def touched_blocks(param: Tensor) -> TouchedBlocks:
     """The parameter's :class:`TouchedBlocks` (made on first use, and again if the parameter changed size)."""
     touched = getattr(param, "touched_blocks", None)
-    if touched is None or touched.flags.numel() != -(-param.numel() // ADAM_BLOCK):
+    if touched is None or touched.flags.numel() != adam_blocks(param.numel()):
         touched = TouchedBlocks(param.numel())
         param.touched_blocks = touched  # type: ignore[attr-defined]
     return touched

@@ -34,10 +34,16 @@ from torch import Tensor
 
 __all__ = ["DenseDensity", "load_c_library", "native_marcher", "native_status", "march_dense_native",
            "march_render_native", "native_grid_ok", "trilinear_features_native", "trilinear_backward_native", "hash_features_native",
-           "hash_backward_native", "adam_native", "ADAM_BLOCK"]
+           "hash_backward_native", "adam_native", "ADAM_BLOCK", "adam_blocks"]
 
 ADAM_BLOCK = 64
 """Values an Adam block holds (march.c's ADAM_BLOCK): the C update looks at a block's gradient, or its flag, once."""
+
+
+def adam_blocks(numel: int) -> int:
+    """How many blocks of :data:`ADAM_BLOCK` values ``numel`` values make (the last one may be short)."""
+    return -(-numel // ADAM_BLOCK)
+
 
 SOURCE = Path(__file__).with_name("march.c")
 CFLAGS = ["-O3", "-fPIC", "-shared", "-ffp-contract=off", "-fno-math-errno"]
@@ -408,7 +414,7 @@ def adam_native(param: Tensor, grad: Tensor, exp_avg: Tensor, exp_avg_sq: Tensor
     if flags is None:
         _in_slices(n, part)
     else:  # slices of whole blocks, so that each slice's flags start at its own
-        _in_slices(-(-n // ADAM_BLOCK), lambda lo, hi: part(lo * ADAM_BLOCK, min(hi * ADAM_BLOCK, n)))
+        _in_slices(adam_blocks(n), lambda lo, hi: part(lo * ADAM_BLOCK, min(hi * ADAM_BLOCK, n)))
     return True
 
 
@@ -417,7 +423,7 @@ def _flags_pointer(touched: Tensor | None, values: Tensor) -> int | None:
     for None."""
     if touched is None:
         return None
-    blocks = -(-values.numel() // ADAM_BLOCK)
+    blocks = adam_blocks(values.numel())
     if touched.dtype != torch.uint8 or touched.device.type != "cpu" or not touched.is_contiguous() or \
             touched.numel() != blocks:
         raise ValueError(f"touched flags: need {blocks} contiguous uint8 CPU values, one per {ADAM_BLOCK} of the "
