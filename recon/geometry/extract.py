@@ -325,9 +325,13 @@ def fill_enclosed(grid: np.ndarray, level: float, hole_cells: int) -> tuple[np.n
     k = int(hole_cells)
     # ball centres: empty nodes at least k cells (6-connected steps) from material; the border counts as empty
     centres = binary_erosion(empty, iterations=k, border_value=1) if k else empty
-    labels, _ = label(centres)
-    border = np.unique(np.concatenate([labels[[0, -1]].ravel(), labels[:, [0, -1]].ravel(), labels[:, :, [0, -1]].ravel()]))
-    outside = np.isin(labels, border[border > 0])
+    labels, count = label(centres)
+    touches_border = np.zeros(count + 1, bool)  # per label: a lookup, not np.isin (which sorts the whole grid)
+    touches_border[labels[[0, -1]].ravel()] = True
+    touches_border[labels[:, [0, -1]].ravel()] = True
+    touches_border[labels[:, :, [0, -1]].ravel()] = True
+    touches_border[0] = False
+    outside = touches_border[labels]
     del labels
     if k:
         outside = binary_dilation(outside, iterations=k, mask=empty)
