@@ -190,3 +190,29 @@ def test_the_torch_bake_equals_the_numpy_reference(ball, views, device, case):
     np.testing.assert_array_equal(got[1], want[1])
     assert 0 < want[1].sum() < len(verts)
     np.testing.assert_allclose(got[0], want[0], rtol=0, atol=1e-6)
+
+
+@pytest.mark.parametrize("kind", ["ray", "z"])
+def test_the_torch_view_count_equals_the_numpy_reference(ball, views, device, kind):
+    """`seen_by_views` with a device (the mesh stage's CUDA path) against the numpy loop, on each device: the same
+    count for every vertex, with a view whose depth map holds an occluder in front of part of the ball (those
+    vertices fail its depth test), a point behind every camera, and the 3×3 window at the map's edge."""
+    verts, normals = ball
+    c2ws, _, ray_depths, z_depths = views
+    maps = [np.asarray(d, np.float32) for d in (ray_depths if kind == "ray" else z_depths)]
+    maps[0] = maps[0].copy()
+    maps[0][: H // 2] = np.minimum(maps[0][: H // 2], 1.0)  # an occluder over the top half of view 0
+    maps[1] = maps[1].copy()
+    maps[1][:, 0] = 0.5  # an edge column: the window there reads only the image's own pixels
+    verts = np.concatenate([verts, [[5.0, 5.0, 5.0]]])
+    normals = np.concatenate([normals, [[0.0, 0.0, 1.0]]])
+    intr = np.tile(INTR, (len(maps), 1))
+    from recon.geometry.color import seen_by_views
+
+    want = seen_by_views(verts, normals, maps, c2ws, intr, 0.02, depth_kind=kind)
+    got = seen_by_views(verts, normals, maps, c2ws, intr, 0.02, depth_kind=kind, device=device)
+    np.testing.assert_array_equal(got, want)
+    unoccluded = seen_by_views(verts, normals, [np.asarray(d, np.float32) for d in (ray_depths if kind == "ray" else z_depths)],
+                               c2ws, intr, 0.02, depth_kind=kind)
+    assert (want <= unoccluded).all() and (want < unoccluded).sum() > 10  # the occluder hid some vertices from view 0
+    assert want.max() >= 2 and want[-1] == 0

@@ -104,15 +104,54 @@ def _photo_samples_numpy(
     return colors, seen
 
 
+class _TorchCameras:
+    """K cameras of one image size on a device, for testing points against every view at once (`visible`): the
+    torch twin of `_visible_in_view`, shared by the bake and the view count. ``lows``/``highs``: the K depth maps'
+    lowest and highest depth a point may match (one map for both in the bake), or None."""
+
+    def __init__(self, c2ws: np.ndarray, intrinsics: np.ndarray, hw: tuple[int, int], device: torch.device,
+                 lows: torch.Tensor | None = None, highs: torch.Tensor | None = None) -> None:
+        f64 = {"dtype": torch.float64, "device": device}
+        self.k, (self.h, self.w) = len(c2ws), hw
+        self.rot = torch.as_tensor(c2ws[:, :3, :3], **f64)  # (K, 3, 3)
+        self.centre = torch.as_tensor(c2ws[:, :3, 3], **f64)[:, None, :]  # (K, 1, 3)
+        self.fx, self.fy, self.cx, self.cy = (torch.as_tensor(intrinsics[:, i], **f64)[:, None] for i in range(4))
+        self.base = (torch.arange(self.k, device=device) * (self.h * self.w))[:, None]  # each view's first pixel
+        self.lows = None if lows is None else lows.reshape(-1)
+        self.highs = None if highs is None else highs.reshape(-1)
+
+    def visible(self, x: torch.Tensor, n: torch.Tensor, depth_tol: float, depth_kind: Literal["ray", "z"],
+                min_cos: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Points x, n (N, 3) float64 in every view: ok (K, N) (in front, facing the camera, inside the image, the
+        depth maps' pixel within ``depth_tol``), u, v (K, N) pixel coordinates and cos θ (K, N)."""
+        h, w = self.h, self.w
+        cam = torch.matmul(x[None] - self.centre, self.rot)  # world_to_camera in every view: (K, N, 3)
+        z = -cam[..., 2]
+        safe = torch.where(z.abs() > MIN_DEPTH, z, torch.full_like(z, MIN_DEPTH))
+        u, v = self.cx + self.fx * cam[..., 0] / safe, self.cy - self.fy * cam[..., 1] / safe
+        to_cam = self.centre - x[None]
+        dist = torch.linalg.vector_norm(to_cam, dim=-1)
+        cos = (n[None] * to_cam).sum(-1) / dist.clamp_min(1e-12)
+        ok = (z > 0) & (cos > min_cos) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+        if self.lows is not None and self.highs is not None:
+            col = torch.where(ok, u, 0.0).long().clamp(0, w - 1)
+            row = torch.where(ok, v, 0.0).long().clamp(0, h - 1)
+            pixel = self.base + row * w + col
+            mine = dist if depth_kind == "ray" else z
+            # in the maps' own dtype, as the reference subtracts the tolerance
+            ok &= (mine > (self.lows[pixel] - depth_tol).to(mine.dtype)) & (mine < (self.highs[pixel] + depth_tol).to(mine.dtype))
+        return ok, u, v, cos
+
+
 def photo_samples_torch(
     verts: np.ndarray, nrm: np.ndarray, images: Sequence[np.ndarray], scales: Sequence[float], c2ws: np.ndarray,
     intrinsics: np.ndarray, depths: Sequence[np.ndarray] | None, depth_tol: float, depth_kind: Literal["ray", "z"],
     min_cos: float, reduce: Literal["median", "mean"], device: torch.device, chunk: int | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """`colors_from_photos`' colours and seen flags (before the unseen points' fallback) in torch on ``device``, every
-    view of a chunk of points at once: the same visibility test (in front, facing the camera, inside the image, the
-    depth map's pixel within ``depth_tol``), bilinear samples and cos-weighted median or mean, in float64 where the
-    numpy reference computes in float64. Images: K arrays of one size (H, W, ≥3)."""
+    view of a chunk of points at once: the same visibility test (`_TorchCameras.visible`), bilinear samples and
+    cos-weighted median or mean, in float64 where the numpy reference computes in float64. Images: K arrays of one
+    size (H, W, ≥3)."""
     f64 = {"dtype": torch.float64, "device": device}
     k = len(images)
     chunk = chunk or max(1024, 2**23 // k)  # points a pass: its (K, N, 3) float64 tensors stay ~200 MB each
@@ -120,30 +159,15 @@ def photo_samples_torch(
     pixels = torch.stack([torch.as_tensor(np.ascontiguousarray(im[..., :3])) for im in images]).to(device)
     pixels = pixels.reshape(k * h * w, 3)
     scale = torch.as_tensor(np.asarray(scales, np.float64), **f64)[:, None, None]
-    maps = None if depths is None else torch.stack([torch.as_tensor(np.asarray(d)) for d in depths]).to(device).reshape(-1)
-    rot = torch.as_tensor(c2ws[:, :3, :3], **f64)  # (K, 3, 3)
-    centre = torch.as_tensor(c2ws[:, :3, 3], **f64)[:, None, :]  # (K, 1, 3)
-    fx, fy, cx, cy = (torch.as_tensor(intrinsics[:, i], **f64)[:, None] for i in range(4))
-    base = (torch.arange(k, device=device) * (h * w))[:, None]
+    maps = None if depths is None else torch.stack([torch.as_tensor(np.asarray(d)) for d in depths]).to(device)
+    cameras = _TorchCameras(c2ws, intrinsics, (h, w), device, maps, maps)
+    base = cameras.base
     colors = np.zeros((len(verts), 3), np.float32)
     seen = np.zeros(len(verts), bool)
     for s in range(0, len(verts), chunk):
         x = torch.as_tensor(verts[s : s + chunk], **f64)
         n = torch.as_tensor(nrm[s : s + chunk], **f64)
-        cam = torch.matmul(x[None] - centre, rot)  # world_to_camera in every view: (K, N, 3)
-        z = -cam[..., 2]
-        safe = torch.where(z.abs() > MIN_DEPTH, z, torch.full_like(z, MIN_DEPTH))
-        u, v = cx + fx * cam[..., 0] / safe, cy - fy * cam[..., 1] / safe
-        to_cam = centre - x[None]
-        dist = torch.linalg.vector_norm(to_cam, dim=-1)
-        cos = (n[None] * to_cam).sum(-1) / dist.clamp_min(1e-12)
-        ok = (z > 0) & (cos > min_cos) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
-        if maps is not None:
-            col = torch.where(ok, u, 0.0).long().clamp(0, w - 1)
-            row = torch.where(ok, v, 0.0).long().clamp(0, h - 1)
-            ref = maps[base + row * w + col]  # the map's own dtype, as the reference subtracts the tolerance
-            mine = dist if depth_kind == "ray" else z
-            ok &= (mine > (ref - depth_tol).to(mine.dtype)) & (mine < (ref + depth_tol).to(mine.dtype))
+        ok, u, v, cos = cameras.visible(x, n, depth_tol, depth_kind, min_cos)
         # bilinear, edge-clamped (sample_bilinear)
         bx = (u - 0.5).clamp(0, w - 1)
         by = (v - 0.5).clamp(0, h - 1)
@@ -206,14 +230,19 @@ def seen_by_views(
     depth_kind: Literal["ray", "z"] = "ray",
     min_cos: float = 0.0,
     chunk: int = 2**16,
+    device: torch.device | str | None = None,
 ) -> np.ndarray:
     """How many views see each vertex (V,) int: it projects into the view, faces the camera
     (cos θ > min_cos, normals outward) and its distance matches the view's depth map (H, W) within
     depth_tol (scene units) of the depths in the 3×3 pixels around it (so grazing faces and silhouettes,
     where depth jumps between neighbouring pixels, still match). The inner walls of a hollow or soft
-    field fail both tests: they lie behind the surface the photos show and face away from the cameras."""
+    field fail both tests: they lie behind the surface the photos show and face away from the cameras.
+    ``device``: count in torch there, every view of a chunk at once (maps of one size; the numpy loop,
+    ``device=None``, is its reference): the mesh stage passes its CUDA device."""
     verts, nrm = np.asarray(vertices, np.float64), np.asarray(normals, np.float64)
     c2ws, intr = np.asarray(c2ws, np.float64), np.asarray(intrinsics, np.float64)
+    if device is not None and len(depths) and len({np.shape(d) for d in depths}) == 1 and len(verts):
+        return _seen_by_views_torch(verts, nrm, depths, c2ws, intr, depth_tol, depth_kind, min_cos, torch.device(device))
     ranges = [(minimum_filter(np.asarray(d), size=3, mode="nearest"), maximum_filter(np.asarray(d), size=3, mode="nearest"))
               for d in depths]
     counts = np.zeros(len(verts), np.int32)
@@ -222,6 +251,27 @@ def seen_by_views(
         for rng, c2w, k in zip(ranges, c2ws, intr):
             ok, _, _ = _visible_in_view(x, n, rng[0].shape[:2], c2w, k, rng, depth_tol, depth_kind, min_cos)
             counts[s : s + chunk] += ok
+    return counts
+
+
+def _seen_by_views_torch(
+    verts: np.ndarray, nrm: np.ndarray, depths: Sequence[np.ndarray], c2ws: np.ndarray, intrinsics: np.ndarray,
+    depth_tol: float, depth_kind: Literal["ray", "z"], min_cos: float, device: torch.device,
+) -> np.ndarray:
+    """`seen_by_views` in torch on ``device``: the 3×3 lowest and highest depths by pooling (a window's padding
+    never wins, so the image's edge acts as scipy's "nearest" mode), then `_TorchCameras.visible`."""
+    maps = torch.stack([torch.as_tensor(np.asarray(d)) for d in depths]).to(device)[:, None]  # (K, 1, H, W)
+    highs = torch.nn.functional.max_pool2d(maps, 3, stride=1, padding=1)[:, 0]
+    lows = -torch.nn.functional.max_pool2d(-maps, 3, stride=1, padding=1)[:, 0]
+    cameras = _TorchCameras(c2ws, intrinsics, tuple(maps.shape[-2:]), device, lows, highs)
+    chunk = max(1024, 2**24 // cameras.k)
+    counts = np.zeros(len(verts), np.int32)
+    f64 = {"dtype": torch.float64, "device": device}
+    for s in range(0, len(verts), chunk):
+        x = torch.as_tensor(verts[s : s + chunk], **f64)
+        n = torch.as_tensor(nrm[s : s + chunk], **f64)
+        ok = cameras.visible(x, n, depth_tol, depth_kind, min_cos)[0]
+        counts[s : s + chunk] = ok.sum(0, dtype=torch.int32).cpu().numpy()
     return counts
 
 

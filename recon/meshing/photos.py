@@ -94,11 +94,15 @@ def render_depths(
 
 
 # ---------------------------------------------------------------------------------------- cleaning
-def see_with_views(views: Sequence[View], depths: Sequence[np.ndarray], tol: float) -> SeenFn:
-    """``seen_fn`` of `clean_mesh`: how many of these views see each vertex (`seen_by_views` on their rendered depth)."""
+def see_with_views(views: Sequence[View], depths: Sequence[np.ndarray], tol: float,
+                   device: torch.device | None = None) -> SeenFn:
+    """``seen_fn`` of `clean_mesh`: how many of these views see each vertex (`seen_by_views` on their rendered depth),
+    on a CUDA ``device`` every view at once; a CPU keeps the numpy loop, which is faster there."""
+    on = device if device is not None and device.type == "cuda" else None
+
     def seen(vertices: np.ndarray, normals: np.ndarray) -> np.ndarray:
         return seen_by_views(vertices, normals, depths, np.stack([v.c2w for v in views]),
-                             np.asarray([v.intrinsics for v in views], np.float64), tol)
+                             np.asarray([v.intrinsics for v in views], np.float64), tol, device=on)
     return seen
 
 

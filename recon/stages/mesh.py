@@ -99,7 +99,7 @@ def run(ctx: StageContext) -> dict:
         min_component_fraction=cfg.min_component_fraction,
         smooth_iters=cfg.smooth_iters,
         target_faces=cfg.target_faces or None,
-        seen_fn=see_with_views(views, depths, plan.hidden_tolerance) if plan.hidden_tolerance is not None else None,
+        seen_fn=see_with_views(views, depths, plan.hidden_tolerance, device) if plan.hidden_tolerance is not None else None,
         ground=plan.ground,
         ground_margin=plan.ground_margin,
         keep_fn=inside_masks(views, cfg.mask_keep_fraction) if plan.masked else None,
