@@ -17,6 +17,10 @@ from recon.camera import project
 
 __all__ = ["carve", "hull_bounds", "hull_silhouettes", "silhouette", "visual_hull_sdf"]
 
+SIGHTING_CHUNK = 1 << 16
+"""Grid points `_sightings` projects into every photo at a time: a 96³ grid's arrays whole outrun the cache, a
+chunk's stay in it (the counts are the same)."""
+
 
 def carve(box: np.ndarray, res: int, c2ws: Sequence[np.ndarray], intrinsics: Sequence[Sequence[float]],
           objects: Sequence[np.ndarray], min_views: int = 1, margin_px: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -72,16 +76,20 @@ def _sightings(pts: np.ndarray, c2ws: Sequence[np.ndarray], intrinsics: Sequence
     carved_by = np.zeros(len(pts), np.int32)
     seen_by = np.zeros(len(pts), np.int32)
     kernel = np.ones((2 * margin_px + 1, 2 * margin_px + 1), np.uint8) if margin_px > 0 else None
+    photos = []
     for c2w, intr, obj in zip(c2ws, intrinsics, objects, strict=True):
         obj = np.asarray(obj, np.uint8)
-        if kernel is not None:
-            obj = cv2.dilate(obj, kernel)
-        h, w = obj.shape
-        uv, z = project(pts, np.asarray(c2w, np.float64), np.asarray(intr, np.float64))
-        col, row = np.floor(uv[:, 0]).astype(np.int64), np.floor(uv[:, 1]).astype(np.int64)
-        seen = (z > 0) & (col >= 0) & (col < w) & (row >= 0) & (row < h)
-        seen_by += seen
-        carved_by[seen] += obj[row[seen], col[seen]] == 0
+        photos.append((np.asarray(c2w, np.float64), np.asarray(intr, np.float64),
+                       obj if kernel is None else cv2.dilate(obj, kernel)))
+    for s in range(0, len(pts), SIGHTING_CHUNK):  # every photo for a chunk of points: its arrays stay in the cache
+        chunk, carved, seen_in = pts[s : s + SIGHTING_CHUNK], carved_by[s : s + SIGHTING_CHUNK], seen_by[s : s + SIGHTING_CHUNK]
+        for c2w, intr, obj in photos:
+            h, w = obj.shape
+            uv, z = project(chunk, c2w, intr)
+            col, row = np.floor(uv[:, 0]).astype(np.int64), np.floor(uv[:, 1]).astype(np.int64)
+            seen = (z > 0) & (col >= 0) & (col < w) & (row >= 0) & (row < h)
+            seen_in += seen
+            carved[seen] += obj[row[seen], col[seen]] == 0
     return carved_by, seen_by
 
 

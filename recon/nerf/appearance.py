@@ -22,6 +22,8 @@ The field itself never sees the transforms: rendering a mesh or a novel view use
 """
 from __future__ import annotations
 
+import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any, Literal, Sequence
 
@@ -260,7 +262,8 @@ def exposure_spread(images: Sequence[np.ndarray], c2w: np.ndarray, neighbours: i
     n = len(images)
     if n < 3:
         return ExposureSpread(np.zeros((n, 3)), np.zeros(n), threshold, 0, 0)
-    feats = [_features(*_float_rgb(im)) for im in images]
+    with ThreadPoolExecutor(max_workers=os.cpu_count() or 1) as pool:  # OpenCV's SIFT lets go of the GIL
+        feats = list(pool.map(lambda im: _features(*_float_rgb(im)), images))
     c2w = np.asarray(c2w, dtype=np.float64)
     pos, fwd = c2w[:, :3, 3], -c2w[:, :3, 2]
     scale = float(np.median(np.linalg.norm(pos - pos.mean(axis=0), axis=1))) or 1.0
