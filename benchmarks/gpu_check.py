@@ -368,6 +368,7 @@ def run_one(args: argparse.Namespace, column: str, until: str | None, sweep: boo
         "evals": metrics.get("evals", []),
         "peak_gpu_memory_gib": peak_gib,
         "stage_wall_s": stage_s,
+        "train_phases_s": metrics.get("phases_s"),
         "wall_s": round(wall, 1),
         "cpu_vs_device": device_agreement(scene / "03_field", agree_views, device),
         "reasons": metrics["reasons"],
@@ -459,6 +460,8 @@ def table(row: dict[str, Any]) -> str:
         ("mesh stage", lambda r: "not run (training only)" if r["mesh_stage_s"] is None else f"{r['mesh_stage_s']} s"),
         ("CPU vs device", lambda r: agreement(r["cpu_vs_device"])),
         ("wall", lambda r: f"{r['wall_s']:.0f} s (its stages)"),
+        ("train stage's parts", lambda r: ", ".join(f"{k.replace('_', ' ')} {v:.1f} s"
+                                                    for k, v in (r.get("train_phases_s") or {}).items()) or "—"),
     ]
     lines = [f"device {row['device']} ({row['device_name']}); preset {row['name']}: {row['batch_rays']:,} rays/step; "
              f"check {row['wall_s']:.0f} s in all",

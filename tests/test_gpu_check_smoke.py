@@ -23,4 +23,8 @@ def test_the_gpu_check_runs_on_a_cpu_and_records_its_table(shared_data: Path, tm
     assert run["steps"] == 80 and run["test_views"] == 2
     assert math.isfinite(run["psnr"]) and run["psnr"] > 10.0  # 80 steps learn the white backdrop at least
     assert run["mesh_stage_s"] is not None and run["render_ms_per_view"] > 0
+    phases = run["train_phases_s"]  # where the train stage's time goes besides its budget
+    assert {"plan", "build", "train", "final_evaluation", "save"} <= set(phases) and "warm_up" not in phases  # a CPU
+    assert sum(phases.values()) <= run["stage_wall_s"]["train"] + 0.1
+    assert "train stage's parts" in (out / "gpu_check.md").read_text()
     assert (out / "gpu_check.md").read_text().count("|") > 10
