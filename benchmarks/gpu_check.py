@@ -376,6 +376,40 @@ def run_one(args: argparse.Namespace, column: str, until: str | None, sweep: boo
     return column, config, device
 
 
+def host_probe() -> dict[str, Any]:
+    """The host's CPU side, where the stages around training and most of the mesh stage run: the CPUs this process
+    may use (affinity, a cgroup's quota), torch's threads, and one projection of a million points timed through BLAS
+    (`recon.camera.world_to_camera`, what the masks' hull and the mesh stage's visibility tests do per photo) and
+    without it. The H100 hosts measured so far ran the normalize stage several times slower than a 2-core CPU does
+    (docs/gpu.md); a quota below the CPU count, or BLAS threads fighting over few cores, would show here."""
+    import numpy as np
+
+    from recon.camera import world_to_camera
+
+    quota = Path("/sys/fs/cgroup/cpu.max")
+    rng = np.random.default_rng(0)
+    points, c2w = rng.random((1_000_000, 3)), np.eye(4)
+    c2w[:3, :3] = np.linalg.qr(rng.random((3, 3)))[0]
+
+    def best_ms(fn: Any) -> float:
+        times = []
+        for _ in range(5):
+            t = time.perf_counter()
+            fn()
+            times.append(time.perf_counter() - t)
+        return round(1000 * min(times), 1)
+
+    plain = lambda: sum((points[:, i : i + 1] - c2w[i, 3]) * c2w[i, :3] for i in range(3))  # noqa: E731
+    return {
+        "cpu_count": os.cpu_count(),
+        "affinity_cpus": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None,
+        "cgroup_cpu_max": quota.read_text().strip() if quota.exists() else None,
+        "torch_threads": torch.get_num_threads(),
+        "project_1m_blas_ms": best_ms(lambda: world_to_camera(points, c2w)),
+        "project_1m_plain_ms": best_ms(plain),
+    }
+
+
 def run_check(args: argparse.Namespace) -> dict[str, Any]:
     """Kernel timings, then a column per `--columns` entry; gpu_check.json is rewritten after each part, so a check
     cut short (a time limit on a lent machine) keeps what it measured."""
@@ -394,6 +428,7 @@ def run_check(args: argparse.Namespace) -> dict[str, Any]:
         "device": str(device),
         "device_name": torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu",
         "load_average_start": [round(x, 2) for x in os.getloadavg()],
+        "host": host_probe(),
         "sizing": probe.train.adjusted,
         "batch_rays": probe.train.batch_rays,
         "kernel_timings": {},
@@ -463,8 +498,13 @@ def table(row: dict[str, Any]) -> str:
         ("train stage's parts", lambda r: ", ".join(f"{k.replace('_', ' ')} {v:.1f} s"
                                                     for k, v in (r.get("train_phases_s") or {}).items()) or "—"),
     ]
+    host = row.get("host") or {}
     lines = [f"device {row['device']} ({row['device_name']}); preset {row['name']}: {row['batch_rays']:,} rays/step; "
              f"check {row['wall_s']:.0f} s in all",
+             "",
+             f"host: {host.get('cpu_count')} CPUs ({host.get('affinity_cpus')} this process may use, cgroup quota "
+             f"{host.get('cgroup_cpu_max')}), {host.get('torch_threads')} torch threads; 1 M points projected through "
+             f"BLAS in {host.get('project_1m_blas_ms')} ms, without it in {host.get('project_1m_plain_ms')} ms",
              "",
              "| measure | " + " | ".join(f"{n} ({column_label(n)})" if n in COLUMNS else n for n in names) + " |",
              "|---|" + "---|" * len(names)]

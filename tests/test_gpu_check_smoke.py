@@ -27,4 +27,5 @@ def test_the_gpu_check_runs_on_a_cpu_and_records_its_table(shared_data: Path, tm
     assert {"plan", "build", "train", "final_evaluation", "save"} <= set(phases) and "warm_up" not in phases  # a CPU
     assert sum(phases.values()) <= run["stage_wall_s"]["train"] + 0.1
     assert "train stage's parts" in (out / "gpu_check.md").read_text()
+    assert row["host"]["cpu_count"] >= 1 and row["host"]["project_1m_blas_ms"] > 0  # the host's CPU side, probed
     assert (out / "gpu_check.md").read_text().count("|") > 10
