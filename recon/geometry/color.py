@@ -264,7 +264,7 @@ def _seen_by_views_torch(
     highs = torch.nn.functional.max_pool2d(maps, 3, stride=1, padding=1)[:, 0]
     lows = -torch.nn.functional.max_pool2d(-maps, 3, stride=1, padding=1)[:, 0]
     cameras = _TorchCameras(c2ws, intrinsics, tuple(maps.shape[-2:]), device, lows, highs)
-    chunk = max(1024, 2**24 // cameras.k)
+    chunk = max(1024, 2**23 // cameras.k)  # points a pass, as the bake's: its (K, N, 3) float64 tensors stay ~200 MB
     counts = np.zeros(len(verts), np.int32)
     f64 = {"dtype": torch.float64, "device": device}
     for s in range(0, len(verts), chunk):
