@@ -25,7 +25,7 @@ import trimesh
 
 from recon.camera import image_rays, project
 from recon.geometry.clean import component_areas
-from recon.geometry.raster import mesh_depth
+from recon.geometry.raster import mesh_depth, per_camera
 
 __all__ = ["largest_piece", "depth_points", "object_pixels", "mesh_zbuffers", "projected_coverage", "point_agreement"]
 
@@ -66,7 +66,7 @@ def mesh_zbuffers(
     covers a pixel (`raster.mesh_depth`): what `projected_coverage` and `point_agreement` read."""
     verts = np.asarray(vertices, np.float64)
     tri = np.asarray(faces, np.int64).reshape(-1, 3)
-    return [mesh_depth(verts, tri, c2w, intr, tuple(hw)) for c2w, intr, hw in cameras]
+    return per_camera(lambda cam: mesh_depth(verts, tri, cam[0], cam[1], tuple(cam[2])), cameras)
 
 
 def projected_coverage(zbuffers: Sequence[np.ndarray], objects: Sequence[np.ndarray]) -> dict:

@@ -14,9 +14,12 @@ outside the object).
 from __future__ import annotations
 
 import ctypes
+import os
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from functools import lru_cache
 from pathlib import Path
-from typing import Sequence
+from typing import Sequence, TypeVar
 
 import numpy as np
 
@@ -25,6 +28,9 @@ from recon.geometry.color import sample_bilinear
 
 CANDIDATES_PER_CHUNK = 2**22
 """Pixel-triangle candidates (bounding-box pixels) tested at once: bounds memory to a few hundred MB."""
+
+T = TypeVar("T")
+R = TypeVar("R")
 
 
 @lru_cache(maxsize=1)
@@ -191,6 +197,17 @@ def render_mesh(
         at = interpolate(uv, faces, face_id, bary)[mask]
         rgb[mask] = sample_bilinear(tex, uv_to_pixels(at, tex.shape[:2]))[:, :3] * scale
     return np.clip(rgb, 0.0, 1.0), mask
+
+
+def per_camera(fn: Callable[[T], R], items: Sequence[T]) -> list[R]:
+    """``[fn(item) for item in items]`` on a thread per core when the C rasterizer is loaded (its calls let go of the
+    GIL, so a mesh rasterized into many cameras takes a fraction of the time), results in order. The numpy fallback
+    takes them one at a time: each of its calls already holds a few hundred MB (CANDIDATES_PER_CHUNK)."""
+    workers = min(len(items), os.cpu_count() or 1) if native_rasterizer() is not None else 1
+    if workers <= 1:
+        return [fn(item) for item in items]
+    with ThreadPoolExecutor(workers, thread_name_prefix="recon-raster") as pool:
+        return list(pool.map(fn, items))
 
 
 def mesh_depth(

@@ -23,7 +23,7 @@ from recon.evaluation.views import View, load_views, render_view, target_rgb
 from recon.geometry.clean import SeenFn
 from recon.geometry.coherence import largest_piece, mesh_zbuffers, object_pixels, point_agreement, projected_coverage
 from recon.geometry.color import colors_from_field, colors_from_photos, seen_by_views
-from recon.geometry.raster import mesh_depth, render_mesh
+from recon.geometry.raster import per_camera, render_mesh
 from recon.geometry.texture import TexturedMesh, UnwrappedMesh, bake_unwrapped, unwrap_mesh
 
 BAKE_TOL_FRACTION = 0.01
@@ -190,11 +190,8 @@ def mesh_depths(vertices: np.ndarray, faces: np.ndarray, views: Sequence[View]) 
     too (inf): at the silhouette the photo's pixel blends the object with what lies behind it."""
     from scipy.ndimage import maximum_filter
 
-    out = []
-    for v in views:
-        z = mesh_depth(vertices, faces, v.c2w, v.intrinsics, v.hw)
-        out.append(np.where(np.isinf(maximum_filter(z, size=3, mode="nearest")), np.inf, z))
-    return out
+    zbuffers = mesh_zbuffers(vertices, faces, [(v.c2w, v.intrinsics, v.hw) for v in views])
+    return [np.where(np.isinf(maximum_filter(z, size=3, mode="nearest")), np.inf, z) for z in zbuffers]
 
 
 def bake_colors(
@@ -280,27 +277,27 @@ def compare_in_views(
     def db(err: np.ndarray) -> float:
         return round(float(mse_to_psnr(float(np.mean(err)))), 3) if err.size else math.nan
 
-    per_view, strips = [], []
-    with report.task("rendering the meshes into the held-out views", total=len(views), unit="views") as bar:
-        for view in views:
-            gt = target_rgb(view, background)[..., :3]
-            cam = (view.c2w, view.intrinsics, view.hw)
-            vc, vc_mask = render_mesh(*vertex_mesh[:2], *cam, colors=vertex_mesh[2], background=background)
-            tx, tx_mask = render_mesh(textured.vertices, textured.faces, *cam, uv=textured.uv, texture=textured.texture,
-                                      background=background)
-            both = vc_mask & tx_mask
-            row = {"view": view.name,
-                   "psnr_vertex_colors": db((vc - gt) ** 2), "psnr_textured": db((tx - gt) ** 2),
-                   "psnr_vertex_colors_covered": db((vc - gt)[both] ** 2), "psnr_textured_covered": db((tx - gt)[both] ** 2),
-                   "covered_fraction": round(float(both.mean()), 4)}
-            if light_colors is not None:
-                lv, _ = render_mesh(textured.vertices, textured.faces, *cam, colors=light_colors, background=background)
-                row["psnr_light_vertex_colors"] = db((lv - gt) ** 2)
-                row["psnr_light_vertex_colors_covered"] = db((lv - gt)[both] ** 2)
-            per_view.append(row)
-            gap = np.ones((gt.shape[0], 4, 3))
-            strips.append(np.concatenate([gt, gap, vc, gap, tx], axis=1))
-            bar.advance()
+    def compare(view: View) -> tuple[dict, np.ndarray]:
+        gt = target_rgb(view, background)[..., :3]
+        cam = (view.c2w, view.intrinsics, view.hw)
+        vc, vc_mask = render_mesh(*vertex_mesh[:2], *cam, colors=vertex_mesh[2], background=background)
+        tx, tx_mask = render_mesh(textured.vertices, textured.faces, *cam, uv=textured.uv, texture=textured.texture,
+                                  background=background)
+        both = vc_mask & tx_mask
+        row = {"view": view.name,
+               "psnr_vertex_colors": db((vc - gt) ** 2), "psnr_textured": db((tx - gt) ** 2),
+               "psnr_vertex_colors_covered": db((vc - gt)[both] ** 2), "psnr_textured_covered": db((tx - gt)[both] ** 2),
+               "covered_fraction": round(float(both.mean()), 4)}
+        if light_colors is not None:
+            lv, _ = render_mesh(textured.vertices, textured.faces, *cam, colors=light_colors, background=background)
+            row["psnr_light_vertex_colors"] = db((lv - gt) ** 2)
+            row["psnr_light_vertex_colors_covered"] = db((lv - gt)[both] ** 2)
+        gap = np.ones((gt.shape[0], 4, 3))
+        return row, np.concatenate([gt, gap, vc, gap, tx], axis=1)
+
+    with report.task(f"rendering the meshes into the {len(views)} held-out views", total=None):
+        compared = per_camera(compare, views)
+    per_view, strips = [row for row, _ in compared], [strip for _, strip in compared]
     keys = [k for k in per_view[0] if k.startswith("psnr")] if per_view else []
     metrics = {k: round(float(np.mean([v[k] for v in per_view])), 3) for k in keys}
     return {**metrics, "views": per_view}, strips
