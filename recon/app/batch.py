@@ -305,8 +305,10 @@ def capture_facts(scene_dir: Path, actions: dict[str, dict]) -> dict[str, Any]:
 def start_ray(address: str | None) -> Any:
     """Join the cluster at `address` ("auto" or HOST:PORT), or start Ray on this machine; reuse a live connection.
 
-    Workers get this recon on their PYTHONPATH (on a cluster: a path all nodes see, like the outputs) and
-    OMP_WAIT_POLICY=PASSIVE; Ray itself sets OMP_NUM_THREADS to each task's CPUs, which recon's torch honors.
+    Workers get this recon on their PYTHONPATH (on a cluster: a path all nodes see, like the outputs); Ray itself
+    sets OMP_NUM_THREADS to each task's CPUs, which recon's torch honors. OpenMP keeps its default wait policy: a
+    task's threads have their CPUs to themselves, and sleeping between torch's operations (OMP_WAIT_POLICY=PASSIVE)
+    made a training step markedly longer (benchmarks/results/sample_omp_wait_policy.json).
     A Ray started here listens on loopback only (`_init_on_loopback`): joining a cluster is always explicit.
     """
     import logging
@@ -315,7 +317,7 @@ def start_ray(address: str | None) -> Any:
     if ray.is_initialized():
         return ray
     code = str(Path(__file__).resolve().parents[2])
-    env = {"PYTHONPATH": os.pathsep.join(p for p in (code, os.environ.get("PYTHONPATH", "")) if p), "OMP_WAIT_POLICY": "PASSIVE"}
+    env = {"PYTHONPATH": os.pathsep.join(p for p in (code, os.environ.get("PYTHONPATH", "")) if p)}
     kwargs: dict[str, Any] = {"runtime_env": {"env_vars": env}, "logging_level": logging.WARNING, "log_to_driver": False}
     if address and not _is_loopback(address):
         ray.init(address=address, **kwargs)

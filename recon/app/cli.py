@@ -476,7 +476,6 @@ def presets() -> None:
 
 
 def main() -> None:
-    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     app(prog_name="recon")
 
 

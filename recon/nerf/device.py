@@ -47,8 +47,9 @@ def select_device(preference: str = "auto") -> torch.device:
 
     preference: "auto" (CUDA when available, else CPU), "cpu", "cuda" or "cuda:K".
     On the CPU this also sets torch's intra-op threads to `cpu_threads()` (the physical cores): extra
-    hyper-threads slow dense float math down, and OpenMP spin-waiting on a shared machine
-    wastes them (set OMP_WAIT_POLICY=PASSIVE in the environment too).
+    hyper-threads slow dense float math down. OpenMP's default wait policy stays: its threads spin briefly between
+    torch's operations, which a training step's hundreds of small operations need (sleeping at once,
+    OMP_WAIT_POLICY=PASSIVE, made a step markedly longer; on a machine shared with other work it still spares them).
     Raises ValueError for an unknown preference or when CUDA is requested but absent.
     """
     pref = preference.strip().lower()
