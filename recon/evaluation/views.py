@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import contextlib
 import math
-import os
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
@@ -236,6 +235,7 @@ def evaluate(model: torch.nn.Module, views: list[View], aabb: torch.Tensor | Non
 
 def write_previews(renders: list, folder: Path, near: float | None = None, far: float | None = None) -> None:
     """One PNG per rendered view, `folder/NAME.png`: photo | render | colored depth (renders from `evaluate(keep=True)`)."""
+    from recon.nerf.device import cpu_threads
     from recon.plots import comparison_panel, depth_to_color
 
     folder.mkdir(parents=True, exist_ok=True)
@@ -245,5 +245,5 @@ def write_previews(renders: list, folder: Path, near: float | None = None, far: 
         comparison_panel(out["rgb"], gt, depth_to_color(out["depth"], out["opacity"], near, far), folder / f"{view.name}.png")
 
     # on every core: PNG compression lets go of the GIL, and a full evaluation writes one panel per test view
-    with ThreadPoolExecutor(max_workers=max(1, min(len(renders), os.cpu_count() or 1))) as pool:
+    with ThreadPoolExecutor(max_workers=max(1, min(len(renders), cpu_threads()))) as pool:
         list(pool.map(write, renders))

@@ -14,7 +14,6 @@ outside the object).
 from __future__ import annotations
 
 import ctypes
-import os
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from functools import lru_cache
@@ -200,10 +199,12 @@ def render_mesh(
 
 
 def per_camera(fn: Callable[[T], R], items: Sequence[T]) -> list[R]:
-    """``[fn(item) for item in items]`` on a thread per core when the C rasterizer is loaded (its calls let go of the
+    """``[fn(item) for item in items]`` on a thread per core (`cpu_threads`: a Ray task's share) when the C rasterizer is loaded (its calls let go of the
     GIL, so a mesh rasterized into many cameras takes a fraction of the time), results in order. The numpy fallback
     takes them one at a time: each of its calls already holds a few hundred MB (CANDIDATES_PER_CHUNK)."""
-    workers = min(len(items), os.cpu_count() or 1) if native_rasterizer() is not None else 1
+    from recon.nerf.device import cpu_threads
+
+    workers = min(len(items), cpu_threads()) if native_rasterizer() is not None else 1
     if workers <= 1:
         return [fn(item) for item in items]
     with ThreadPoolExecutor(workers, thread_name_prefix="recon-raster") as pool:

@@ -22,7 +22,6 @@ The field itself never sees the transforms: rendering a mesh or a novel view use
 """
 from __future__ import annotations
 
-import os
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any, Literal, Sequence
@@ -262,7 +261,9 @@ def exposure_spread(images: Sequence[np.ndarray], c2w: np.ndarray, neighbours: i
     n = len(images)
     if n < 3:
         return ExposureSpread(np.zeros((n, 3)), np.zeros(n), threshold, 0, 0)
-    with ThreadPoolExecutor(max_workers=os.cpu_count() or 1) as pool:  # OpenCV's SIFT lets go of the GIL
+    from recon.nerf.device import cpu_threads
+
+    with ThreadPoolExecutor(max_workers=cpu_threads()) as pool:  # OpenCV's SIFT lets go of the GIL
         feats = list(pool.map(lambda im: _features(*_float_rgb(im)), images))
     c2w = np.asarray(c2w, dtype=np.float64)
     pos, fwd = c2w[:, :3, 3], -c2w[:, :3, 2]
