@@ -53,7 +53,7 @@ def card_models(memory_gib: float, small: bool = False) -> list[tuple[str, Any]]
 
     models = []
     for what, overrides in (("card-sized fast preset", []),
-                            ("dense colour features", ["train.fast.feature_dim=8"]),
+                            ("dense colour features", ["train.fast.grid=dense"]),  # gpu_check's dense column
                             ("unbounded scene", [])):
         config = load_config("fast", overrides)
         keep = frozenset(o.partition("=")[0] for o in overrides)
