@@ -45,6 +45,24 @@ def test_small_fraction_keeps_floater_and_crop_cuts_open_surface():
     assert not cut["output"]["watertight"] and cut["output"]["bbox"][1][2] <= 0.25
 
 
+def test_what_the_photos_see_of_an_inner_wall_is_removed_as_crumbs_after_the_hidden_faces():
+    """An inner wall (a ball a quarter of the outer's area, so the floater rule keeps it) of which the photos see
+    only a small cap, as they see a fast field's walls through its soft shell: removing the faces no photo sees
+    leaves the cap, a crumb the floater rule then removes; with the rule off it stays."""
+    mesh = trimesh.util.concatenate([sphere(0.5), sphere(0.25)])
+
+    def seen(vertices: np.ndarray, normals: np.ndarray) -> np.ndarray:  # the outer ball, and the inner's top cap
+        r = np.linalg.norm(vertices, axis=1)
+        return (r > 0.4) | (vertices[:, 2] > 0.24)
+
+    verts, faces, report = clean_mesh(mesh.vertices, mesh.faces, AABB, min_component_fraction=0.05, seen_fn=seen)
+    assert report["components"]["removed"] == 0 and report["hidden"]["removed_faces"] > 0
+    assert report["crumbs"]["components"] == 2 and report["crumbs"]["removed"] == 1
+    assert len(faces) == len(sphere(0.5).faces) and np.allclose(np.linalg.norm(verts, axis=1), 0.5)
+    _, faces_kept, kept = clean_mesh(mesh.vertices, mesh.faces, AABB, min_component_fraction=0.0, seen_fn=seen)
+    assert kept["crumbs"]["removed"] == 0 and len(faces_kept) > len(faces)
+
+
 def test_component_areas_sum_to_total_area():
     mesh = scene_with_floaters()
     labels, areas = component_areas(mesh)

@@ -189,6 +189,9 @@ def clean_mesh(
     if target_faces is not None and len(mesh.faces):
         mesh, folded = decimate(mesh, target_faces)
         report["decimated"] = {**_counts(mesh), "target_faces": int(target_faces), "duplicate_faces_removed": folded}
+    if (seen_fn is not None or target_faces is not None) and len(mesh.faces):
+        # what the photos saw of the walls inside the shell, and slivers decimation cut off, are left as crumbs
+        mesh, report["crumbs"] = remove_small_components(mesh, min_component_fraction)
     report["output"] = {
         **_counts(mesh),
         "watertight": bool(mesh.is_watertight) if len(mesh.faces) else False,

@@ -159,7 +159,7 @@ def run(ctx: StageContext) -> dict:
     timings["total_s"] = round(time.perf_counter() - t_all, 3)
 
     out = clean["output"]
-    removed = clean["components"]["removed"]
+    removed = clean["components"]["removed"] + clean.get("crumbs", {}).get("removed", 0)
     write_json_atomic(ctx.out / REPORT_FILE, {
         "vertices": out["vertices"],
         "faces": out["faces"],
@@ -213,6 +213,9 @@ def _say_cleaning(ctx: StageContext, clean: dict, plan: MeshPlan, n_views: int) 
     if "hidden" in clean:
         ctx.report.info(f"hidden faces: {clean['hidden']['removed_faces']:,} faces that no photo sees removed (inner walls "
                         f"of the field; {n_views} views, depth tolerance {plan.hidden_tolerance:.3g} units)")
+    if clean.get("crumbs", {}).get("removed"):
+        ctx.report.info(f"crumbs: {clean['crumbs']['removed']} of {clean['crumbs']['components']} pieces left by the "
+                        "hidden faces' removal or the decimation removed, by the same rule")
 
 
 def _start_unwrap(vertices: np.ndarray, faces: np.ndarray, target_faces: int, side: int) -> Future[UnwrappedMesh]:
