@@ -35,7 +35,7 @@ sys.path.insert(0, str(REPO))  # this checkout's recon (its commit is the one re
 
 TARGETS = (90, 80)
 """Compute capabilities compiled for by default: Hopper (H100, H200) and Ampere (A100)."""
-LAUNCH_OPTIONS = ("num_warps", "num_stages")
+LAUNCH_OPTIONS = ("num_warps", "num_stages", "enable_fp_fusion")
 """Launch keywords that are compiler options, not kernel arguments."""
 
 

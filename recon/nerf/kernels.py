@@ -69,6 +69,9 @@ MAX_LEVELS = 4
 """Grid levels one launch reads (more are summed over launches)."""
 MARCH_BLOCK = 32
 """Rays a marching program takes, a ray a lane of one warp: a program loops until its longest ray ends."""
+LAUNCH: dict[str, Any] = {"enable_fp_fusion": True}
+"""Compiler options every launch passes: fused multiply-adds, as the kernels were tested and measured with. Triton
+3.9 warns on the terminal when a launch leaves this unsaid (its default turns to no fusion in 3.10)."""
 
 
 def _four_levels(items: Sequence[Any]) -> list[Any]:
@@ -157,7 +160,7 @@ class _CompositePacked(torch.autograd.Function):
         opacity, depth = sigma.new_empty(n_rays), sigma.new_empty(n_rays)
         if n_rays:
             _jit().composite_fwd[(n_rays,)](sigma, delta, t, offsets, weights, trans, opacity, depth,
-                                             SIGMA_MAX=SIGMA_MAX, TAU_MAX=TAU_MAX, BLOCK=COMPOSITE_BLOCK)
+                                             SIGMA_MAX=SIGMA_MAX, TAU_MAX=TAU_MAX, BLOCK=COMPOSITE_BLOCK, **LAUNCH)
         ctx.save_for_backward(sigma, delta, t, offsets, weights, trans)
         ctx.set_materialize_grads(False)
         return weights, trans, opacity, depth
@@ -175,7 +178,7 @@ class _CompositePacked(torch.autograd.Function):
                 g_w.contiguous() if g_w is not None else sigma, g_trans.contiguous() if g_trans is not None else sigma,
                 g_op.contiguous() if g_op is not None else zeros, g_dep.contiguous() if g_dep is not None else zeros,
                 g_sigma, g_delta, g_t, SIGMA_MAX=SIGMA_MAX, TAU_MAX=TAU_MAX, BLOCK=COMPOSITE_BLOCK,
-                HAS_GW=g_w is not None, HAS_GT=g_trans is not None)
+                HAS_GW=g_w is not None, HAS_GT=g_trans is not None, **LAUNCH)
         else:
             g_sigma.zero_(), g_delta.zero_(), g_t.zero_()
         need = ctx.needs_input_grad
@@ -205,7 +208,7 @@ class _AccumulatePacked(torch.autograd.Function):
         out = values.new_empty(n_rays, c)
         if n_rays:
             _jit().accumulate_fwd[(n_rays,)](weights, values, offsets, out, C=c, CP=max(2, 1 << (c - 1).bit_length()),
-                                              BLOCK=ACCUMULATE_BLOCK)
+                                              BLOCK=ACCUMULATE_BLOCK, **LAUNCH)
         ctx.save_for_backward(weights, values, ray_indices)
         return out
 
@@ -217,7 +220,7 @@ class _AccumulatePacked(torch.autograd.Function):
         if m:
             _jit().accumulate_bwd[(-(-m // ACCUMULATE_BLOCK),)](
                 weights, values, ray_indices, g.contiguous(), g_w, g_v, m, C=c,
-                CP=max(2, 1 << (c - 1).bit_length()), BLOCK=ACCUMULATE_BLOCK)
+                CP=max(2, 1 << (c - 1).bit_length()), BLOCK=ACCUMULATE_BLOCK, **LAUNCH)
         need = ctx.needs_input_grad
         return g_w if need[0] else None, g_v if need[1] else None, None, None
 
@@ -245,7 +248,7 @@ class _DistortionPacked(torch.autograd.Function):
         offsets = ray_offsets(ray_indices, n_rays)
         loss = weights.new_empty(n_rays)
         if n_rays:
-            _jit().distortion_fwd[(n_rays,)](weights, t_mid, delta, offsets, loss, BLOCK=COMPOSITE_BLOCK)
+            _jit().distortion_fwd[(n_rays,)](weights, t_mid, delta, offsets, loss, BLOCK=COMPOSITE_BLOCK, **LAUNCH)
         ctx.save_for_backward(weights, t_mid, delta, offsets)
         return loss
 
@@ -256,7 +259,7 @@ class _DistortionPacked(torch.autograd.Function):
         g_w, g_m, g_d = torch.empty_like(weights), torch.empty_like(weights), torch.empty_like(weights)
         if n:  # every sample is some ray's: all are written
             _jit().distortion_bwd[(n,)](weights, t_mid, delta, offsets, g.contiguous(), g_w, g_m, g_d,
-                                        BLOCK=COMPOSITE_BLOCK)
+                                        BLOCK=COMPOSITE_BLOCK, **LAUNCH)
         need = ctx.needs_input_grad
         return g_w if need[0] else None, g_m if need[1] else None, g_d if need[2] else None, None, None
 
@@ -284,7 +287,7 @@ class _TrilinearLevels(torch.autograd.Function):
         if m:
             _jit().trilinear_fwd[(-(-m // GRID_BLOCK),)](x01, out, m, *_four_levels(tables),
                                                           *_four_levels(resolutions), LEVELS=len(tables), C=c,
-                                                          CP=max(2, 1 << (c - 1).bit_length()), BLOCK=GRID_BLOCK)
+                                                          CP=max(2, 1 << (c - 1).bit_length()), BLOCK=GRID_BLOCK, **LAUNCH)
         ctx.save_for_backward(x01, *tables)
         ctx.resolutions = resolutions
         return out
@@ -299,7 +302,7 @@ class _TrilinearLevels(torch.autograd.Function):
             _jit().trilinear_bwd[(-(-m // GRID_BLOCK),)](x01, g.contiguous(), m, *_four_levels(grads),
                                                           *_four_levels(ctx.resolutions),
                                                           LEVELS=len(tables), C=c, CP=max(2, 1 << (c - 1).bit_length()),
-                                                          BLOCK=GRID_BLOCK)
+                                                          BLOCK=GRID_BLOCK, **LAUNCH)
         return (None, None, *(gr if n else None for gr, n in zip(grads, need)))
 
 
@@ -332,7 +335,7 @@ class _HashLevels(torch.autograd.Function):
         out = table.new_empty(m, levels * f)
         if m:
             _jit().hash_fwd[(-(-m // GRID_BLOCK),)](x01, table, out, *layout, m, mask, LEVELS=levels, F=f,
-                                                     BLOCK=GRID_BLOCK)
+                                                     BLOCK=GRID_BLOCK, **LAUNCH)
         ctx.save_for_backward(x01, table)
         ctx.layout, ctx.mask = layout, mask
         return out
@@ -346,7 +349,7 @@ class _HashLevels(torch.autograd.Function):
         m, f, levels = x01.shape[0], table.shape[1], ctx.layout[0].shape[0]
         if m:
             _jit().hash_bwd[(-(-m // GRID_BLOCK),)](x01, g.contiguous(), grad, *ctx.layout, m, ctx.mask, LEVELS=levels,
-                                                     F=f, BLOCK=GRID_BLOCK)
+                                                     F=f, BLOCK=GRID_BLOCK, **LAUNCH)
         return None, grad, None, None
 
 
@@ -409,7 +412,7 @@ def march_dense_triton(rays_o: Tensor, rays_d: Tensor, t_near: Tensor, t_far: Te
             counts, offsets, *outs,
             n, occupied.shape[0], float(step_size), int(max_samples), float(field.bias), float(field.density_scale),
             LEVELS=len(tables), EXP=bool(field.exp_activation), JITTER=u is not None, WRITE=write,
-            SIGMA_MAX=SIGMA_MAX, TAU_MAX=TAU_MAX, BLOCK=MARCH_BLOCK, num_warps=1)
+            SIGMA_MAX=SIGMA_MAX, TAU_MAX=TAU_MAX, BLOCK=MARCH_BLOCK, num_warps=1, **LAUNCH)
 
     launch(counts, [counts] * 4, False)
     ends = torch.cumsum(counts, 0)
