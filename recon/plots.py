@@ -95,7 +95,11 @@ def tradeoff_plot(runs: Sequence[dict], path: Path, title: str = "PSNR vs wall t
             ax.plot([e["time_s"] for e in evals], [e["psnr"] for e in evals], "o-", label=run["name"])
     ax.set(xlabel="training wall time (s)", ylabel="held-out PSNR (dB)", title=title)
     ax.grid(alpha=0.3)
-    ax.legend()
+    if ax.get_legend_handles_labels()[0]:
+        ax.legend()
+    else:  # runs too short for an evaluation (train.eval_every): say so rather than leave the axes blank
+        ax.text(0.5, 0.5, "no held-out evaluation during training\n(fewer steps than train.eval_every)",
+                ha="center", va="center", transform=ax.transAxes)
     _save(fig, path)
     plt.close(fig)
 
