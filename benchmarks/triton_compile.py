@@ -74,6 +74,7 @@ def record_launches(memory_gib: float, rays: int, small: bool = False) -> list[d
     from recon.nerf import kernels
     from recon.nerf.fast import FastModel
     from recon.nerf.grid import hash_kernel_check
+    from recon.nerf.model_config import HASH_FEATURES
 
     seen: dict[str, dict[str, Any]] = {}
     run = interpreter.InterpretedFunction.run
@@ -94,9 +95,10 @@ def record_launches(memory_gib: float, rays: int, small: bool = False) -> list[d
     kernels.KERNEL_DEVICES = ("cuda", "cpu")
     interpreter.InterpretedFunction.run = noted_run
     try:
-        where[0] = "the hash grid's probe"
-        hash_kernel_check("cpu")
         for what, cfg in card_models(memory_gib, small):
+            if cfg.grid == "hash":  # as the train stage probes it, before training
+                where[0] = f"{what}: the hash grid's probe"
+                hash_kernel_check("cpu", cfg.feature_dim, HASH_FEATURES)
             torch.manual_seed(0)
             model = FastModel(cfg)
             model.progress = 0.5  # the distortion loss on (a card starts it at a tenth of training)

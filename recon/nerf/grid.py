@@ -417,7 +417,7 @@ class HashGrid(nn.Module):
         (:func:`recon.nerf.kernels.hash_levels_triton`), in C where no point gradient is needed, else in torch (the
         reference)."""
         if (self.kernels != "torch" and not x01.requires_grad and use_triton(self.kernels, x01, self.table)
-                and hash_kernel_check(str(x01.device))[0]):
+                and hash_kernel_check(str(x01.device), self.levels, self.features)[0]):
             return hash_levels_triton(x01, self.table, self.verts_t, self.offsets, self.hashed_t, self.log2_table)
         native = _read_in_c(self, x01)
         return native if native is not None else self.read_torch(x01)
@@ -445,12 +445,15 @@ class HashGrid(nn.Module):
         return self.table.new_zeros(())
 
 
-@lru_cache(maxsize=4)
-def hash_kernel_check(device: str) -> tuple[bool, str]:
+@lru_cache(maxsize=8)
+def hash_kernel_check(device: str, levels: int = 4, features: int = 2) -> tuple[bool, str]:
     """(does the hash grid's Triton kernel agree with its torch read on ``device``?, why, in one sentence): a probe
-    of hashed and dense levels, forward and table gradient, once per device; where the kernel fails to compile or
-    disagrees, hash grids read in torch there (slower, the same values) and the train stage says so."""
-    probe = HashGrid(levels=4, features=2, log2_table=10, base_res=4, max_res=40, init_scale=1.0).to(device)
+    of hashed and dense levels, forward and table gradient, once per device and grid shape; where the kernel fails
+    to compile or disagrees, hash grids read in torch there (slower, the same values) and the train stage says so.
+    ``levels``, ``features``: the grid's own, so the probe compiles (and checks) the very kernel training launches
+    (the kernel is specialized on both) instead of a second one."""
+    probe = HashGrid(levels=levels, features=features, log2_table=10, base_res=4, max_res=40,
+                     init_scale=1.0).to(device)
     x = torch.rand(300, 3, generator=torch.Generator().manual_seed(0)).to(device)
     try:
         fused = hash_levels_triton(x, probe.table, probe.verts_t, probe.offsets, probe.hashed_t, probe.log2_table)

@@ -483,9 +483,10 @@ def plan_training(cfg: TrainConfig, scene: Scene, views: list[View], device: tor
         fused, why = kernels_choice(cfg.fast.kernels, device.type)
         reasons.append(why)
         if fused and cfg.fast.grid == "hash":
+            from recon.nerf.model_config import HASH_FEATURES
             from recon.nerf.grid import hash_kernel_check
 
-            reasons.append(hash_kernel_check(str(device))[1])
+            reasons.append(hash_kernel_check(str(device), cfg.fast.feature_dim, HASH_FEATURES)[1])
     optimizer, optimizer_why = choose_optimizer(cfg, kind, device)
     if optimizer_why:
         reasons.append(optimizer_why)
