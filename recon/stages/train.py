@@ -152,7 +152,7 @@ def run(ctx: StageContext) -> dict:
     return {
         "headline": (f"{plan.kind} model, {result['step']} steps in {train_time:.0f} s: "
                      f"{'test' if scene.split('test') else 'training-photo (none held out)'} PSNR {final['psnr']:.2f} dB, "
-                     f"SSIM {final['ssim']:.3f} ({len(test_views)} views"
+                     f"SSIM {final['ssim']:.3f} ({len(test_views)} view{'s' if len(test_views) != 1 else ''}"
                      f"{_held_out_note(plan.appearance, plan.pose_refine)})"),
         "psnr": round(final["psnr"], 3),
         "ssim": round(final["ssim"], 4),
