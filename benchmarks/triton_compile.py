@@ -188,8 +188,10 @@ def main(argv: list[str] | None = None) -> int:
 
     row: dict[str, Any] = {"name": "triton_compile", "date": time.strftime("%Y-%m-%dT%H:%M:%S%z"), **provenance(),
                            "load_average_start": [round(x, 2) for x in os.getloadavg()],
-                           "memory_gib": args.memory_gib, "small_grids": args.small, "targets": [int(t) for t in args.targets.split(",")]}
-    launches_file = args.out.with_suffix(".launches.json")
+                           "memory_gib": args.memory_gib, "small_grids": args.small,
+                           "targets": [int(t) for t in args.targets.split(",")]}
+    scratch = tempfile.TemporaryDirectory(prefix="triton_compile_")
+    launches_file = Path(scratch.name) / "launches.json"
     t0 = time.perf_counter()
     child = subprocess.run([sys.executable, __file__, "--record-launches", str(launches_file),
                             "--memory-gib", str(args.memory_gib), "--rays", str(args.rays),
@@ -201,7 +203,7 @@ def main(argv: list[str] | None = None) -> int:
         print("error: recording the launches under Triton's interpreter failed (above)", file=sys.stderr)
         return 1
     launches = json.loads(launches_file.read_text())
-    launches_file.unlink()
+    scratch.cleanup()
     row["record_seconds"] = round(time.perf_counter() - t0, 1)
     import triton
 
