@@ -108,7 +108,8 @@ def main(argv: list[str] | None = None) -> int:
     write_json_atomic(args.out, [row])
     for c in row["checkouts"]:
         print(f"{c['commit'][:7]}: " + ", ".join(f"{k} {v}" for k, v in c["median_timings_s"].items()))
-        print("    mesh: " + ", ".join(f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}" for k, v in c["mesh"].items()))
+        print("    mesh: " + ", ".join(f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}"
+                                     for k, v in c["mesh"].items()))
     return 0
 
 

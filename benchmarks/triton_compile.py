@@ -1,4 +1,5 @@
-"""Compile the fast model's Triton kernels for NVIDIA cards on a machine without one, as a card's training launches them.
+"""Compile the fast model's Triton kernels for NVIDIA cards on a machine without one, as a card's training launches
+them.
 
     python benchmarks/triton_compile.py --out benchmarks/results/triton_compile.json        # sm_90 (H100/H200), sm_80
 
@@ -218,8 +219,8 @@ def main(argv: list[str] | None = None) -> int:
         for capability in row["targets"]:
             result = compile_launch(launch, capability)
             rows.append({**launch, "target": f"sm_{capability}", **result})
-            shown = (f"{result['registers']} registers, {result['local_bytes']} B local, {result['shared_bytes']} B shared"
-                     if result["ok"] else result["error"].splitlines()[0][:200])
+            shown = (f"{result['registers']} registers, {result['local_bytes']} B local, "
+                     f"{result['shared_bytes']} B shared" if result["ok"] else result["error"].splitlines()[0][:200])
             print(f"{launch['kernel']:16s} sm_{capability}  {'ok ' if result['ok'] else 'FAILED'}  {shown}  "
                   f"({result['seconds']} s; {launch['from']})", flush=True)
     cache.cleanup()

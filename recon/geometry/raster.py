@@ -199,9 +199,10 @@ def render_mesh(
 
 
 def per_camera(fn: Callable[[T], R], items: Sequence[T]) -> list[R]:
-    """``[fn(item) for item in items]`` on a thread per core (`cpu_threads`: a Ray task's share) when the C rasterizer is loaded (its calls let go of the
-    GIL, so a mesh rasterized into many cameras takes a fraction of the time), results in order. The numpy fallback
-    takes them one at a time: each of its calls already holds a few hundred MB (CANDIDATES_PER_CHUNK)."""
+    """``[fn(item) for item in items]`` on a thread per core (`cpu_threads`: a Ray task's share) when the C
+    rasterizer is loaded (its calls let go of the GIL, so a mesh rasterized into many cameras takes a fraction of the
+    time), results in order. The numpy fallback takes them one at a time: each of its calls already holds a few
+    hundred MB (CANDIDATES_PER_CHUNK)."""
     from recon.nerf.device import cpu_threads
 
     workers = min(len(items), cpu_threads()) if native_rasterizer() is not None else 1

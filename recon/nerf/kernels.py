@@ -287,7 +287,8 @@ class _TrilinearLevels(torch.autograd.Function):
         if m:
             _jit().trilinear_fwd[(-(-m // GRID_BLOCK),)](x01, out, m, *_four_levels(tables),
                                                           *_four_levels(resolutions), LEVELS=len(tables), C=c,
-                                                          CP=max(2, 1 << (c - 1).bit_length()), BLOCK=GRID_BLOCK, **LAUNCH)
+                                                          CP=max(2, 1 << (c - 1).bit_length()), BLOCK=GRID_BLOCK,
+                                                          **LAUNCH)
         ctx.save_for_backward(x01, *tables)
         ctx.resolutions = resolutions
         return out
