@@ -44,6 +44,10 @@ class PosesConfig(SfmOptions):
     video_min_change: float = 1.0
     """A video frame whose mean absolute gray difference to the last kept frame (0-255 levels, on a 128-px copy)
     is below this is a near-duplicate and skipped: the camera stood still."""
+    turntable: Literal["auto", "off"] = "auto"
+    """auto: where most photos show the same background pixel for pixel with the object changing in front of it (a
+    camera on a tripod, the object on a turntable), features are taken only where the photos change
+    (`recon.capture.turntable`); off: from every pixel."""
 
 
 @dataclass

@@ -34,8 +34,9 @@ DATASETS = {
     "lego-half": (SHARED / "nerf_synthetic_lego_half", None),
     "fox": (SHARED / "fox" / "images", None),
 }
-GENERATED = {"tabletop_realistic": "gen_tabletop"}
-"""Data sets rendered on first use (then cached) by fixtures/<generator>.py's `bench_dataset`: photos without masks.
+GENERATED = {"tabletop_realistic": ("gen_tabletop", {}), "tabletop_turntable": ("gen_tabletop", {"turntable": True})}
+"""Data sets rendered on first use (then cached) by fixtures/<generator>.py's `bench_dataset` (with these keyword
+arguments): photos without masks.
 ``NAME@SEED`` renders the same capture from another seed (other camera path, textures, exposures and noise)."""
 
 
@@ -48,11 +49,12 @@ def _generated_dataset(name: str) -> tuple[Path, Path]:
     if seed and not seed.isdigit():
         raise ReconError(f"Benchmark data '{name}': the part after '@' is the generator's seed, a whole number "
                          f"(e.g. {base}@2).")
-    script = REPO / "fixtures" / f"{GENERATED[base]}.py"
+    generator, kwargs = GENERATED[base]
+    script = REPO / "fixtures" / f"{generator}.py"
     if not script.is_file():
         raise ReconError(f"Benchmark data '{name}' is rendered by {script}, which this installation lacks; "
                          f"run recon bench from a source checkout.")
-    module_name = f"_recon_fixture_{GENERATED[base]}"
+    module_name = f"_recon_fixture_{generator}"
     module = sys.modules.get(module_name)
     if module is None:
         spec = importlib.util.spec_from_file_location(module_name, script)
@@ -60,7 +62,7 @@ def _generated_dataset(name: str) -> tuple[Path, Path]:
         sys.modules[module_name] = module  # its dataclasses look their module up while it loads
         spec.loader.exec_module(module)
     cache = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "recon" / "datasets" / name
-    return module.bench_dataset(cache, **({"seed": int(seed)} if seed else {}))
+    return module.bench_dataset(cache, **kwargs, **({"seed": int(seed)} if seed else {}))
 
 
 def resolve_dataset(name: str) -> tuple[Path, Path | None]:

@@ -82,9 +82,11 @@ class ObjectMasks:
 PhotoLoader = Callable[[Frame], np.ndarray]
 
 
-def object_on_background(scene: Scene) -> bool:
-    """An object capture whose photos show a lot of table and room (normalize contracted it around the object)."""
-    return scene.capture == "unbounded" and scene.region is not None and not scene.has_alpha
+def object_on_background(scene: Scene, turntable: bool = False) -> bool:
+    """An object capture whose photos show a lot of table and room: normalize contracted it around the object, or
+    the photos were taken on a ``turntable`` (`recon.capture.turntable`), whose still room turns with the cameras in
+    the object's frame, so no field can hold it."""
+    return (scene.capture == "unbounded" or turntable) and scene.region is not None and not scene.has_alpha
 
 
 def segment_object(scene: Scene, load_photo: PhotoLoader | None = None, side: int = SEGMENT_SIDE,

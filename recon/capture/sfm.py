@@ -294,9 +294,10 @@ def register_best(run_attempt: Callable[[Attempt], pycolmap.Reconstruction | Non
 
 def extract(
     database: Path, image_dir: Path, names: list[str], groups: list[list[int]], model: str, options: SfmOptions,
-    attempt: Attempt = ATTEMPTS[0],
+    attempt: Attempt = ATTEMPTS[0], mask_dir: Path | None = None,
 ) -> None:
-    """SIFT features into `database`, one COLMAP camera per group of `camera_groups` (EXIF focal priors read)."""
+    """SIFT features into `database`, one COLMAP camera per group of `camera_groups` (EXIF focal priors read);
+    with ``mask_dir``, only where its `NAME.png` masks are not black (COLMAP's feature masks)."""
     import pycolmap
 
     extraction = pycolmap.FeatureExtractionOptions()
@@ -307,6 +308,8 @@ def extract(
     if attempt.peak_threshold is not None:
         extraction.sift.peak_threshold = attempt.peak_threshold
     reader = pycolmap.ImageReaderOptions(camera_model=model)
+    if mask_dir is not None:
+        reader.mask_path = str(mask_dir)
     if all(len(g) == 1 for g in groups):
         calls = [(names, pycolmap.CameraMode.PER_IMAGE)]
     else:  # each call with SINGLE opens one new camera for its images
@@ -543,6 +546,7 @@ def run_sfm(
     options: SfmOptions,
     progress: ProgressFn | None = None,
     log_file: Path | None = None,
+    mask_dir: Path | None = None,
 ) -> SfmResult:
     """Recover camera poses, intrinsics and sparse points for `names` (paths relative to image_dir).
 
@@ -552,7 +556,7 @@ def run_sfm(
     options.min_registered_fraction of them, get a pose.
     progress(phase, fraction) is called at the start and end of "extract", "match" and "map"
     (and with ("map", 0.5) when mapping is retried with relaxed thresholds). Everything COLMAP prints is
-    appended to `log_file` (see `native_output_to`).
+    appended to `log_file` (see `native_output_to`). ``mask_dir``: features only where its masks allow (`extract`).
     """
     import pycolmap
 
@@ -592,7 +596,7 @@ def run_sfm(
         database.unlink(missing_ok=True)  # a stale database would keep old images and features
         report("extract", 0.0)
         start = time.perf_counter()
-        extract(database, image_dir, names, groups, model, options, attempt)
+        extract(database, image_dir, names, groups, model, options, attempt, mask_dir)
         timings["extract"] += time.perf_counter() - start
         report("extract", 1.0)
 

@@ -30,7 +30,7 @@ def run(ctx: StageContext) -> dict:
     source = load_scene(ctx.inputs["poses"])
     scene = normalize(source, ctx.config)
     masked, why = 0, ""
-    if ctx.config.masks == "auto" and object_on_background(scene):
+    if ctx.config.masks == "auto" and object_on_background(scene, turntable=bool(source.notes.get("turntable"))):
         masked, why = _auto_masks(ctx, source, scene)
         if masked:
             scene = normalize(source, ctx.config)

@@ -172,6 +172,25 @@ def prepare_photo(path: Path, image_dir: Path, max_side: int) -> tuple[str, tupl
     return name, original, (small.shape[1], small.shape[0])
 
 
+def _turntable_masks(ctx: StageContext, image_dir: Path, names: list[str], mask_dir: Path) -> tuple[Path | None, str]:
+    """With `poses.turntable` auto, COLMAP's feature masks (in ``mask_dir``) for a turntable capture
+    (`recon.capture.turntable`) and the reason, said; (None, "") for any other capture."""
+    from recon.capture.turntable import SIDE, feature_mask, find_turntable
+
+    cfg: PosesConfig = ctx.config
+    if cfg.turntable == "off":
+        return None, ""
+    with ctx.report.task("comparing the photos' backgrounds", total=None):
+        found = find_turntable([read_image(image_dir / n, max_side=2 * SIDE) for n in names])
+    if found is None:
+        return None, ""
+    ctx.report.info(found.reason())
+    mask_dir.mkdir(parents=True)
+    for i, name in enumerate(names):
+        save_image(mask_dir / f"{name}.png", feature_mask(found, i, oriented_size(image_dir / name)).astype(np.float32))
+    return mask_dir, found.reason()
+
+
 def _video(ctx: StageContext) -> tuple[Scene, dict]:
     """Decode the clip(s) into the kept frames (01_poses/frames/, with time stamps), then SfM on them in order."""
     from recon.capture.video import SelectOptions, frame_name, list_videos, probe, select_frames, share_frames
@@ -266,6 +285,7 @@ def _structure_from_motion(ctx: StageContext, photos: list[Path] | None = None) 
             names.append((path, name))
             bar.advance()
     by_sfm_name = {name: path for path, name in names}
+    turntable, turntable_reason = _turntable_masks(ctx, image_dir, [n for _, n in names], sfm_dir / "feature_masks")
     options = SfmOptions(**{f.name: getattr(cfg, f.name) for f in dataclasses.fields(SfmOptions)})
     if ordered and options.matcher == "auto":
         options.matcher = "sequential"
@@ -280,7 +300,8 @@ def _structure_from_motion(ctx: StageContext, photos: list[Path] | None = None) 
                        info=SFM_PHASES.get(phase, phase) if fraction < 1.0 else None)
 
         log_file = ctx.scene_dir / LOG_DIR / f"{ctx.folder}.log"
-        result = run_sfm(image_dir, [n for _, n in names], sfm_dir, options, progress=progress, log_file=log_file)
+        result = run_sfm(image_dir, [n for _, n in names], sfm_dir, options, progress=progress, log_file=log_file,
+                         mask_dir=turntable)
     ctx.report.info(f"Camera model: {result.camera_model} — {result.choice_reason}")
     if len(result.attempts) > 1:
         first, last = result.attempts[0], result.attempts[-1]
@@ -325,14 +346,17 @@ def _structure_from_motion(ctx: StageContext, photos: list[Path] | None = None) 
         source_kind="photos",
         has_alpha=mask_dir is not None,
         notes={"camera_model": result.camera_model, "camera_choice": result.choice_reason,
-               **({"masks": str(mask_dir)} if mask_dir is not None else {})},
+               **({"masks": str(mask_dir)} if mask_dir is not None else {}),
+               **({"turntable": turntable_reason} if turntable_reason else {})},
     )
     summary = {
         "headline": (
             f"{len(result.registered)}/{len(names)} photos registered"
             + (f" ({len(result.excluded)} more left out: pose disagrees)" if result.excluded else "")
             + f", {result.num_points} points, reprojection error {result.mean_reprojection_error:.2f} px"
+            + (", a turntable capture" if turntable_reason else "")
         ),
+        "turntable": bool(turntable_reason),
         "registered": len(result.registered),
         "total": len(names),
         "dropped": [by_sfm_name[n].name for n in result.dropped],

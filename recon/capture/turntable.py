@@ -1,0 +1,163 @@
+"""Turntable captures: a camera standing still while the object turns in front of it.
+
+Structure from motion needs the scene to hold still while the camera moves. On a turntable the object turns and the
+room stays put, so every photo of one camera position shows the room at the same pixels: SfM matches the room, finds
+that the camera never moved, and poses every photo in one place. What the photos of one camera position share pixel
+for pixel is that still background; what changes between them is the turning object. Features are then taken only
+where the photos change, and SfM recovers the cameras as they move around the object in the object's own frame.
+
+Pure numpy/OpenCV on the photos COLMAP reads; the poses stage decides what to do with the answer.
+"""
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+SIDE = 320
+"""Photos are compared at this longest side (pixels)."""
+LOG_FLOOR = 0.02
+"""Added to the gray level (0-1) before its logarithm, so that the noise of dark pixels does not dominate."""
+AGREE = 0.08
+"""Two photos show the same thing at a pixel where their log gray levels differ by less than this (about 8%), once
+their exposures are matched."""
+TEXTURE = 0.03
+"""A pixel counts as textured where its log gray level changes by more than this to the next pixel: only there can
+a moved camera be told from a still one (a plain wall agrees with itself wherever the camera stands)."""
+STILL_SHARE = 0.65
+"""Two photos are from one camera position when over this share of their textured pixels agree."""
+NEIGHBOURS = 3
+"""Each photo is compared with this many photos after it in name order (the order they were taken in)."""
+MIN_GROUP = 3
+"""A camera position counts when at least this many photos were taken from it."""
+MIN_SHARE = 0.5
+"""A capture is a turntable capture when photos from such positions are at least this share of it."""
+MIN_MOVING = 0.02
+"""... and what changes between the photos of a position is at least this share of a photo: several photos of a
+still scene from one place are copies, not a turntable."""
+GROW = 0.02
+"""The changing region is grown by this fraction of the photo's longest side: the object's outline and what its
+features' windows reach beyond it."""
+
+
+@dataclass
+class Turntable:
+    """The answer for a capture that is a turntable capture."""
+
+    groups: list[list[int]]
+    """The photos (indices) taken from each still camera position."""
+    moving: dict[int, np.ndarray]
+    """Per photo of a group, where it differs from its position's still background: (h, w) bool at the compared
+    size (`SIDE`)."""
+    photos: int
+    """How many photos the capture has."""
+
+    def moving_share(self, i: int) -> float:
+        return float(self.moving[i].mean())
+
+    def reason(self) -> str:
+        held = sum(len(g) for g in self.groups)
+        share = np.median([self.moving_share(i) for i in self.moving])
+        positions = f"{len(self.groups)} camera position" + ("s" if len(self.groups) > 1 else "")
+        return (f"turntable: {held} of {self.photos} photos show the same background pixel for pixel from "
+                f"{positions}, the object changing in front of it ({share:.0%} of a photo on the median): a camera "
+                f"standing still while the object turns. Features are taken only where the photos change, so "
+                f"structure from motion places the cameras around the object instead of all in one place.")
+
+
+def _log_gray(image: np.ndarray) -> np.ndarray:
+    """(h, w) float32 log gray level at `SIDE`, lightly blurred (noise, JPEG blocks)."""
+    import cv2
+
+    img = np.asarray(image, np.float32)  # in [0, 1], as `recon.capture.images.read_image` reads photos
+    gray = img[..., :3].mean(axis=2) if img.ndim == 3 else img
+    h, w = gray.shape
+    scale = SIDE / max(h, w)
+    if scale < 1.0:
+        gray = cv2.resize(gray, (max(1, round(w * scale)), max(1, round(h * scale))), interpolation=cv2.INTER_AREA)
+    return cv2.GaussianBlur(np.log(gray + LOG_FLOOR), (0, 0), 1.0)
+
+
+def _textured(log_gray: np.ndarray) -> np.ndarray:
+    dx = np.abs(np.diff(log_gray, axis=1, append=log_gray[:, -1:]))
+    dy = np.abs(np.diff(log_gray, axis=0, append=log_gray[-1:, :]))
+    return np.maximum(dx, dy) > TEXTURE
+
+
+def agreement(a: np.ndarray, b: np.ndarray) -> float:
+    """The share of a's textured pixels at which b shows the same (log gray images of one size), exposures matched
+    by the median difference."""
+    textured = _textured(a)
+    if textured.sum() < 0.01 * textured.size:
+        return 0.0  # a plain photo says nothing about whether the camera moved
+    d = (a - b)[textured]
+    return float(np.mean(np.abs(d - np.median(d)) < AGREE))
+
+
+def _groups(logs: Sequence[np.ndarray]) -> list[list[int]]:
+    """Connected photos of one camera position (each compared with its `NEIGHBOURS` successors)."""
+    parent = list(range(len(logs)))
+
+    def root(i: int) -> int:
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    for i in range(len(logs)):
+        for j in range(i + 1, min(len(logs), i + 1 + NEIGHBOURS)):
+            if logs[i].shape == logs[j].shape and min(agreement(logs[i], logs[j]), agreement(logs[j], logs[i])) > STILL_SHARE:
+                parent[root(j)] = root(i)
+    members: dict[int, list[int]] = {}
+    for i in range(len(logs)):
+        members.setdefault(root(i), []).append(i)
+    return [m for m in members.values() if len(m) >= MIN_GROUP]
+
+
+def _moving(logs: Sequence[np.ndarray]) -> list[np.ndarray]:
+    """Per photo of one position, where it differs from the position's still background (the per-pixel median of
+    its photos, their exposures matched), cleaned of specks and holes and grown by `GROW`."""
+    import cv2
+
+    stack = np.stack(logs)
+    median = np.median(stack, axis=0)
+    gains = np.median((stack - median).reshape(len(logs), -1), axis=1)
+    median = np.median(stack - gains[:, None, None], axis=0)
+    h, w = median.shape
+    grow = max(1, round(GROW * max(h, w)))
+    disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * grow + 1, 2 * grow + 1))
+    small = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (3, 3))
+    out = []
+    for log, gain in zip(stack, gains):
+        changed = (np.abs(log - gain - median) >= AGREE).astype(np.uint8)
+        changed = cv2.morphologyEx(changed, cv2.MORPH_OPEN, small)  # noise: single pixels
+        changed = cv2.morphologyEx(changed, cv2.MORPH_CLOSE, disc)  # the object's parts that match the room by chance
+        out.append(cv2.dilate(changed, disc).astype(bool))
+    return out
+
+
+def find_turntable(images: Sequence[np.ndarray]) -> Turntable | None:
+    """A `Turntable` when most of these photos (in the order taken) come in groups from still camera positions with
+    something changing in front of the camera; None for a camera that moved (or copies of one still scene)."""
+    logs = [_log_gray(img) for img in images]
+    groups, moving = [], {}
+    for group in _groups(logs):
+        masks = _moving([logs[i] for i in group])
+        if np.median([m.mean() for m in masks]) < MIN_MOVING:
+            continue  # nothing turned: copies
+        groups.append(group)
+        moving.update(zip(group, masks))
+    if sum(len(g) for g in groups) < MIN_SHARE * len(images) or not groups:
+        return None
+    return Turntable(groups=groups, moving=moving, photos=len(images))
+
+
+def feature_mask(turntable: Turntable, i: int, size: tuple[int, int]) -> np.ndarray:
+    """Where features of photo i are taken, (height, width) bool for a photo of (width, height): where it changes.
+    A photo of no group (taken by hand between the turns) keeps every pixel."""
+    import cv2
+
+    if i not in turntable.moving:
+        return np.ones((size[1], size[0]), bool)
+    return cv2.resize(turntable.moving[i].astype(np.uint8), size, interpolation=cv2.INTER_NEAREST).astype(bool)

@@ -1,0 +1,117 @@
+"""Turntable captures (`recon.capture.turntable`): a camera on a tripod, the object turning in front of the still room.
+
+The generated turntable capture (fixtures/gen_tabletop.py, turntable=True) knows its object's masks and its cameras in
+the object's frame; a handheld capture of the same room, the shipped sample and copies of one photo are the captures
+that must not be taken for one.
+"""
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from recon.app.cli import app
+from recon.capture.images import read_image
+from recon.capture.scene import load_scene
+from recon.capture.turntable import SIDE, feature_mask, find_turntable
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO / "fixtures"))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import gen_tabletop  # noqa: E402
+
+from test_sfm import pose_errors  # noqa: E402
+
+VIEWS = 24
+
+
+@pytest.fixture(scope="module")
+def turntable(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return gen_tabletop.generate(tmp_path_factory.mktemp("turntable"), views=VIEWS, size="480x360", realistic=True,
+                                 turntable=True, mesh_res=64)
+
+
+def photos(capture: Path) -> list[np.ndarray]:
+    return [read_image(p) for p in sorted((capture / "images").glob("*.jpg"))]
+
+
+def test_a_turntable_capture_is_found_with_its_camera_positions_and_the_object(turntable: Path) -> None:
+    found = find_turntable(photos(turntable))
+    assert found is not None
+    info = json.loads((turntable / "scene_info.json").read_text())
+    rings = np.asarray(info["turntable"]["ring"])
+    assert sorted(sorted(g) for g in found.groups) == [np.flatnonzero(rings == r).tolist() for r in range(rings.max() + 1)]
+    for i, mask_path in enumerate(sorted((turntable / "masks").glob("*.png"))):
+        true = np.asarray(read_image(mask_path))[..., 0] > 0.5
+        true = cv2.resize(true.astype(np.uint8), found.moving[i].shape[::-1], interpolation=cv2.INTER_AREA) > 0
+        moving = found.moving[i]
+        assert (moving & true).sum() >= 0.97 * true.sum(), i  # the object's pixels keep their features
+        assert (moving & ~true).sum() <= 1.0 * true.sum(), i  # and little of the room does
+    assert "turntable" in found.reason() and f"{VIEWS} of {VIEWS} photos" in found.reason()
+    full = feature_mask(found, 0, (480, 360))
+    assert full.shape == (360, 480) and 0.02 < full.mean() < 0.6
+
+
+def test_photos_from_a_moving_camera_are_not_a_turntable(tmp_path: Path) -> None:
+    handheld = gen_tabletop.generate(tmp_path / "handheld", views=8, size="480x360", realistic=True, mesh_res=64)
+    assert find_turntable(photos(handheld)) is None
+    assert find_turntable(photos(REPO / "fixtures" / "sample")) is None
+
+
+def test_copies_of_one_still_scene_are_not_a_turntable(turntable: Path) -> None:
+    """A burst from a tripod with nothing turning: the photos agree everywhere, and nothing is left to match."""
+    photo = photos(turntable)[0]
+    rng = np.random.default_rng(0)
+    burst = [np.clip(photo * gain + rng.normal(0, 0.01, photo.shape), 0, 1).astype(np.float32)
+             for gain in (1.0, 0.95, 1.05, 1.0, 0.9, 1.1)]
+    assert find_turntable(burst) is None
+
+
+def test_structure_from_motion_places_the_cameras_around_the_turning_object(turntable: Path, tmp_path: Path) -> None:
+    """Features from the whole photo pin every camera to the tripod; from where the photos change, SfM recovers
+    the cameras in the object's frame."""
+    truth = json.loads((turntable / "transforms.json").read_text())
+    ref = {Path(f["file_path"]).stem: np.asarray(f["transform_matrix"]) for f in truth["frames"]}
+    photos_alone = tmp_path / "photos"  # without the capture's masks/ beside them, as a user's photos come
+    photos_alone.mkdir()
+    for photo in (turntable / "images").glob("*.jpg"):
+        (photos_alone / photo.name).symlink_to(photo)
+    errors = {}
+    for mode in ("auto", "off"):
+        out = tmp_path / mode
+        result = CliRunner().invoke(app, ["run", str(photos_alone), "--out", str(out), "--until", "poses",
+                                          "--set", f"poses.turntable={mode}"])
+        assert result.exit_code == 0, result.output
+        assert ("turntable:" in " ".join(result.output.split())) == (mode == "auto")
+        scene = load_scene(out / "01_poses")
+        est = {Path(f.file_path).stem: np.asarray(f.c2w) for f in scene.frames}
+        errors[mode] = pose_errors(est, ref)
+    centre, rotation, compared = errors["auto"]
+    assert compared == VIEWS and centre < 0.02 and rotation < 1.0, errors
+    assert errors["off"][0] > 10 * centre, errors  # the still room wins without the masks
+
+
+def test_a_turntable_capture_gets_object_masks_without_a_table_in_its_sparse_points(turntable: Path,
+                                                                                    tmp_path: Path) -> None:
+    """The still room is in every photo but in no sparse point; in the object's frame it turns with the cameras, so
+    normalize cuts the object out of the photos as it does for a capture that shows its table and room."""
+    photos_alone = tmp_path / "photos"
+    photos_alone.mkdir()
+    for photo in (turntable / "images").glob("*.jpg"):
+        (photos_alone / photo.name).symlink_to(photo)
+    result = CliRunner().invoke(app, ["run", str(photos_alone), "--out", str(tmp_path / "scene"), "--until",
+                                      "normalize"])
+    assert result.exit_code == 0, result.output
+    masks = sorted((tmp_path / "scene" / "02_scene" / "masks").glob("*.png"))
+    assert len(masks) == VIEWS, result.output
+    ious = []
+    for mask in masks:
+        cut = np.asarray(read_image(mask))[..., 0] >= 0.5
+        true = np.asarray(read_image(turntable / "masks" / mask.name))[..., 0] >= 0.5
+        ious.append((cut & true).sum() / (cut | true).sum())
+    assert np.median(ious) > 0.9 and min(ious) > 0.8, ious
