@@ -90,11 +90,14 @@ def object_on_background(scene: Scene, turntable: bool = False) -> bool:
 
 
 def segment_object(scene: Scene, load_photo: PhotoLoader | None = None, side: int = SEGMENT_SIDE,
-                   progress: Callable[[], object] | None = None) -> ObjectMasks:
+                   progress: Callable[[], object] | None = None,
+                   background: Callable[[Frame], np.ndarray | None] | None = None) -> ObjectMasks:
     """Segment the object region of a normalized scene in every photo (see the module docstring).
 
     scene: normalized, with `region` (2, 3) and sparse points with per-photo visibility; load_photo(frame) -> the
     photo as float (H, W, 3) in [0, 1] at any size with the frame's aspect (default: read from disk at `side`).
+    background(frame) -> pixels known to be background ((h, w) bool at any size with the frame's aspect, e.g. a
+    turntable's still room: `recon.capture.turntable`) or None: they seed the background and leave the cut.
     """
     import cv2
 
@@ -121,7 +124,11 @@ def segment_object(scene: Scene, load_photo: PhotoLoader | None = None, side: in
         fg = _visible_uv(points[object_pts], frame.c2w, intr, w, h)
         bg = _visible_uv(points[seen[background_pts[seen]]], frame.c2w, intr, w, h)
         box_uv = _visible_uv(box_corners(grown), frame.c2w, intr, w, h, clip=False)
-        return _grabcut(cv2, pinhole, fg, bg, box_uv), _edges(cv2, pinhole), intr, (w, h), fg
+        known = background(frame) if background is not None else None
+        if known is not None:
+            known = cv2.resize(np.asarray(known, np.float32), (w, h), interpolation=cv2.INTER_NEAREST)
+            known = undistort(known, *intr, frame.distortion, frame.camera_model) > 0.5
+        return _grabcut(cv2, pinhole, fg, bg, box_uv, known), _edges(cv2, pinhole), intr, (w, h), fg
 
     cuts, intrinsics, sizes, seeds, edges = [], [], [], [], []
     # one photo per core: OpenCV's graph cut runs on one thread and releases the GIL; each cut seeds its own
@@ -238,7 +245,8 @@ def _visible_uv(points: np.ndarray, c2w: np.ndarray, intr: np.ndarray, w: int, h
     return uv[keep]
 
 
-def _grabcut(cv2, photo: np.ndarray, fg: np.ndarray, bg: np.ndarray, box_uv: np.ndarray) -> np.ndarray:
+def _grabcut(cv2, photo: np.ndarray, fg: np.ndarray, bg: np.ndarray, box_uv: np.ndarray,
+             known_background: np.ndarray | None = None) -> np.ndarray:
     """(h, w) bool object pixels of one undistorted photo from its seeds (see the module docstring)."""
     h, w = photo.shape[:2]
     label = np.full((h, w), cv2.GC_BGD, np.uint8)
@@ -251,6 +259,8 @@ def _grabcut(cv2, photo: np.ndarray, fg: np.ndarray, bg: np.ndarray, box_uv: np.
     hull = cv2.convexHull(np.round(fg).astype(np.int32))
     cv2.fillConvexPoly(label, hull, int(cv2.GC_PR_FGD))
     radius = max(1, round(SEED_RADIUS * float(np.hypot(w, h))))
+    if known_background is not None:
+        label[known_background] = cv2.GC_BGD
     for u, v in np.round(bg).astype(np.int32):
         cv2.circle(label, (int(u), int(v)), radius, int(cv2.GC_BGD), -1)
     for u, v in np.round(fg).astype(np.int32):
@@ -260,6 +270,8 @@ def _grabcut(cv2, photo: np.ndarray, fg: np.ndarray, bg: np.ndarray, box_uv: np.
     cv2.setRNGSeed(0)
     cv2.grabCut(image, label, None, bgd, fgd, 5, cv2.GC_INIT_WITH_MASK)
     cut = (label == cv2.GC_FGD) | (label == cv2.GC_PR_FGD)
+    if known_background is not None:
+        cut &= ~known_background
     return _keep_seeded_pieces(cv2, cut, fg)
 
 

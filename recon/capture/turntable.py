@@ -40,6 +40,13 @@ GROW = 0.02
 """The changing region is grown by this fraction of the photo's longest side: the object's outline and what its
 features' windows reach beyond it."""
 
+ROOM_SHARE = 0.5
+"""A pixel shows a position's still background in the median of its photos where at least this share of them agree
+there (the object turns through it in the others); where the object always stands, they agree only by chance."""
+STILL_FOLDER = "still"
+"""Where the poses stage writes each turntable photo's `Turntable.background` (white), named like the photo (PNG):
+normalize's automatic masks take it as background."""
+
 
 @dataclass
 class Turntable:
@@ -50,6 +57,10 @@ class Turntable:
     moving: dict[int, np.ndarray]
     """Per photo of a group, where it differs from its position's still background: (h, w) bool at the compared
     size (`SIDE`)."""
+    background: dict[int, np.ndarray]
+    """Per photo of a group, where it shows its position's still background ((h, w) bool at `SIDE`): it agrees with
+    the median where most photos do (`ROOM_SHARE`), over 3×3 pixels (a speck of the object may match by chance).
+    It is what tells the object's holes (the table seen through them) from the object: no sparse point lies there."""
     photos: int
     """How many photos the capture has."""
 
@@ -115,9 +126,10 @@ def _groups(logs: Sequence[np.ndarray]) -> list[list[int]]:
     return [m for m in members.values() if len(m) >= MIN_GROUP]
 
 
-def _moving(logs: Sequence[np.ndarray]) -> list[np.ndarray]:
+def _moving(logs: Sequence[np.ndarray]) -> tuple[list[np.ndarray], list[np.ndarray]]:
     """Per photo of one position, where it differs from the position's still background (the per-pixel median of
-    its photos, their exposures matched), cleaned of specks and holes and grown by `GROW`."""
+    its photos, their exposures matched), cleaned of specks and holes and grown by `GROW`; and where it shows that
+    background (`Turntable.background`)."""
     import cv2
 
     stack = np.stack(logs)
@@ -128,29 +140,33 @@ def _moving(logs: Sequence[np.ndarray]) -> list[np.ndarray]:
     grow = max(1, round(GROW * max(h, w)))
     disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * grow + 1, 2 * grow + 1))
     small = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (3, 3))
-    out = []
-    for log, gain in zip(stack, gains):
-        changed = (np.abs(log - gain - median) >= AGREE).astype(np.uint8)
+    agrees = np.abs(stack - gains[:, None, None] - median) < AGREE
+    room = agrees.mean(axis=0) >= ROOM_SHARE  # where the median is the room's, not the object's
+    out, still = [], []
+    for agree in agrees:
+        still.append(cv2.erode((agree & room).astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool))
+        changed = (~agree).astype(np.uint8)
         changed = cv2.morphologyEx(changed, cv2.MORPH_OPEN, small)  # noise: single pixels
         changed = cv2.morphologyEx(changed, cv2.MORPH_CLOSE, disc)  # the object's parts that match the room by chance
         out.append(cv2.dilate(changed, disc).astype(bool))
-    return out
+    return out, still
 
 
 def find_turntable(images: Sequence[np.ndarray]) -> Turntable | None:
     """A `Turntable` when most of these photos (in the order taken) come in groups from still camera positions with
     something changing in front of the camera; None for a camera that moved (or copies of one still scene)."""
     logs = [_log_gray(img) for img in images]
-    groups, moving = [], {}
+    groups, moving, background = [], {}, {}
     for group in _groups(logs):
-        masks = _moving([logs[i] for i in group])
+        masks, still = _moving([logs[i] for i in group])
         if np.median([m.mean() for m in masks]) < MIN_MOVING:
             continue  # nothing turned: copies
         groups.append(group)
         moving.update(zip(group, masks))
+        background.update(zip(group, still))
     if sum(len(g) for g in groups) < MIN_SHARE * len(images) or not groups:
         return None
-    return Turntable(groups=groups, moving=moving, photos=len(images))
+    return Turntable(groups=groups, moving=moving, background=background, photos=len(images))
 
 
 def feature_mask(turntable: Turntable, i: int, size: tuple[int, int]) -> np.ndarray:

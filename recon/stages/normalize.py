@@ -2,6 +2,7 @@
 object photographed without masks in front of its table and room — the object's masks cut from the photos."""
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 
@@ -10,7 +11,8 @@ import numpy as np
 from recon.capture.auto_masks import HULL_RES, SEGMENT_SIDE, matte_photos, object_on_background, segment_object
 from recon.capture.images import read_image, save_image
 from recon.capture.normalization import box_corners, normalize
-from recon.capture.scene import Scene, load_scene
+from recon.capture.scene import Frame, Scene, load_scene
+from recon.capture.turntable import STILL_FOLDER
 from recon.evaluation.views import load_view
 from recon.geometry.visual_hull import hull_bounds
 from recon.plots import mask_overview
@@ -59,7 +61,7 @@ def _auto_masks(ctx: StageContext, source: Scene, scene: Scene) -> tuple[int, st
     """Cut the object out of every photo; when the cuts agree, give `source`'s frames the masks (written to
     02_scene/masks/). Returns how many photos got one (0: none) and why."""
     with ctx.report.task("automatic masks: cutting the object out of each photo", total=len(scene.frames)) as bar:
-        found = segment_object(scene, progress=bar.advance)
+        found = segment_object(scene, progress=bar.advance, background=_still_background(ctx))
     final = ctx.scene_dir / ctx.folder / MASK_FOLDER  # where the masks live once the stage folder is sealed
     if not found.confident:
         _write(ctx.out / "masks_unsure", found.masks, scene)  # for a look; not used
@@ -77,6 +79,19 @@ def _auto_masks(ctx: StageContext, source: Scene, scene: Scene) -> tuple[int, st
         f"{found.reason}: trained and meshed as a masked object. To fix a mask, copy {final} next to the photos "
         f"folder as masks/, edit it (white = object) and run again"
     )
+
+
+def _still_background(ctx: StageContext) -> Callable[[Frame], np.ndarray | None] | None:
+    """A turntable capture's still background, per photo (the poses stage's `recon.capture.turntable.STILL_FOLDER`);
+    None for any other capture."""
+    folder = Path(ctx.inputs["poses"]) / STILL_FOLDER
+    if not folder.is_dir():
+        return None
+
+    def still(frame: Frame) -> np.ndarray | None:
+        path = folder / f"{Path(frame.file_path).stem}.png"
+        return read_image(path)[..., 0] > 0.5 if path.is_file() else None
+    return still
 
 
 def _masks_hull(ctx: StageContext, scene: Scene) -> np.ndarray | None:

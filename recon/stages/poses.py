@@ -175,7 +175,7 @@ def prepare_photo(path: Path, image_dir: Path, max_side: int) -> tuple[str, tupl
 def _turntable_masks(ctx: StageContext, image_dir: Path, names: list[str], mask_dir: Path) -> tuple[Path | None, str]:
     """With `poses.turntable` auto, COLMAP's feature masks (in ``mask_dir``) for a turntable capture
     (`recon.capture.turntable`) and the reason, said; (None, "") for any other capture."""
-    from recon.capture.turntable import SIDE, feature_mask, find_turntable
+    from recon.capture.turntable import SIDE, STILL_FOLDER, feature_mask, find_turntable
 
     cfg: PosesConfig = ctx.config
     if cfg.turntable == "off":
@@ -186,8 +186,11 @@ def _turntable_masks(ctx: StageContext, image_dir: Path, names: list[str], mask_
         return None, ""
     ctx.report.info(found.reason())
     mask_dir.mkdir(parents=True)
+    (ctx.out / STILL_FOLDER).mkdir()
     for i, name in enumerate(names):
         save_image(mask_dir / f"{name}.png", feature_mask(found, i, oriented_size(image_dir / name)).astype(np.float32))
+        if i in found.background:
+            save_image(ctx.out / STILL_FOLDER / f"{Path(name).stem}.png", found.background[i].astype(np.float32))
     return mask_dir, found.reason()
 
 
