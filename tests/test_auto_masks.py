@@ -149,8 +149,8 @@ def test_the_other_photos_fill_a_hole_one_cut_leaves_in_the_object(monkeypatch: 
     photos[name][patch] = marker
     grabcut = auto_masks._grabcut
 
-    def cut_with_a_hole(cv2, photo, fg, bg, box_uv):
-        return grabcut(cv2, photo, fg, bg, box_uv) & ~np.all(np.abs(photo - marker) < 1e-3, axis=-1)
+    def cut_with_a_hole(cv2, photo, fg, bg, box_uv, known_background):
+        return grabcut(cv2, photo, fg, bg, box_uv, known_background) & ~np.all(np.abs(photo - marker) < 1e-3, axis=-1)
 
     monkeypatch.setattr(auto_masks, "_grabcut", cut_with_a_hole)
     found = segment_object(scene, load_photo=lambda f: photos[f.name])

@@ -75,6 +75,14 @@ def test_copies_of_one_still_scene_are_not_a_turntable(turntable: Path) -> None:
     assert find_turntable(burst) is None
 
 
+def test_exposure_brackets_from_a_moving_camera_are_not_a_turntable(tmp_path: Path) -> None:
+    """Three shots a position, two stops apart (clipped where too bright or dark): each position's photos agree
+    wherever they are not clipped, but nothing turns."""
+    handheld = gen_tabletop.generate(tmp_path / "handheld", views=6, size="480x360", realistic=True, mesh_res=64)
+    brackets = [np.clip(photo * gain, 0, 1).astype(np.float32) for photo in photos(handheld) for gain in (0.5, 1, 2)]
+    assert find_turntable(brackets) is None
+
+
 def test_structure_from_motion_places_the_cameras_around_the_turning_object(turntable: Path, tmp_path: Path) -> None:
     """Features from the whole photo pin every camera to the tripod; from where the photos change, SfM recovers
     the cameras in the object's frame."""

@@ -29,8 +29,9 @@ STILL_SHARE = 0.65
 """Two photos are from one camera position when over this share of their textured pixels agree."""
 NEIGHBOURS = 3
 """Each photo is compared with this many photos after it in name order (the order they were taken in)."""
-MIN_GROUP = 3
-"""A camera position counts when at least this many photos were taken from it."""
+MIN_GROUP = 6
+"""A camera position counts when at least this many photos were taken from it: a turn in fewer stops leaves SfM too
+little overlap between them, and exposure brackets (several shots from one place, 3, 5 or 7) are no turntable."""
 MIN_SHARE = 0.5
 """A capture is a turntable capture when photos from such positions are at least this share of it."""
 MIN_MOVING = 0.02
