@@ -44,6 +44,8 @@ features' windows reach beyond it."""
 ROOM_SHARE = 0.5
 """A pixel shows a position's still background in the median of its photos where at least this share of them agree
 there (the object turns through it in the others); where the object always stands, they agree only by chance."""
+STILL_PIECE = 0.002
+"""A piece of still background counts when it covers at least this share of the photo."""
 STILL_FOLDER = "still"
 """Where the poses stage writes each turntable photo's `Turntable.background` (white), named like the photo (PNG):
 normalize's automatic masks take it as background."""
@@ -60,7 +62,8 @@ class Turntable:
     size (`SIDE`)."""
     background: dict[int, np.ndarray]
     """Per photo of a group, where it shows its position's still background ((h, w) bool at `SIDE`): it agrees with
-    the median where most photos do (`ROOM_SHARE`), over 3×3 pixels (a speck of the object may match by chance).
+    the median where most photos do (`ROOM_SHARE`), over 3×3 pixels (a speck of the object may match by chance),
+    at textured pixels (a plain part of the object that stays in place as it turns agrees as well).
     It is what tells the object's holes (the table seen through them) from the object: no sparse point lies there."""
     photos: int
     """How many photos the capture has."""
@@ -144,8 +147,14 @@ def _moving(logs: Sequence[np.ndarray]) -> tuple[list[np.ndarray], list[np.ndarr
     agrees = np.abs(stack - gains[:, None, None] - median) < AGREE
     room = agrees.mean(axis=0) >= ROOM_SHARE  # where the median is the room's, not the object's
     out, still = [], []
-    for agree in agrees:
-        still.append(cv2.erode((agree & room).astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool))
+    window = np.ones((3, 3), np.uint8)
+    for agree, log in zip(agrees, stack):
+        # only where textured: a plain part of the object that stays in place as it turns (a vase's body) agrees too
+        sure = cv2.erode((agree & room).astype(np.uint8), window) & _textured(log).astype(np.uint8)
+        # and in the room's large pieces, not in specks where the object's own texture blurs into a plain part of it
+        count, labels, stats, _ = cv2.connectedComponentsWithStats(sure, connectivity=8)
+        large = np.flatnonzero(stats[:, cv2.CC_STAT_AREA] >= STILL_PIECE * sure.size)
+        still.append(np.isin(labels, large[large > 0]))
         changed = (~agree).astype(np.uint8)
         changed = cv2.morphologyEx(changed, cv2.MORPH_OPEN, small)  # noise: single pixels
         changed = cv2.morphologyEx(changed, cv2.MORPH_CLOSE, disc)  # the object's parts that match the room by chance
