@@ -153,3 +153,26 @@ def test_a_turntable_capture_gets_object_masks_without_a_table_in_its_sparse_poi
         true = np.asarray(read_image(turntable / "masks" / mask.name))[..., 0] >= 0.5
         ious.append((cut & true).sum() / (cut | true).sum())
     assert np.median(ious) > 0.95 and min(ious) > 0.9, ious
+
+
+def test_unsure_masks_of_a_turntable_are_used_with_a_warning(turntable: Path, tmp_path: Path,
+                                                              monkeypatch: pytest.MonkeyPatch) -> None:
+    """Unmasked, a turntable's room would train as fog around the object (it turns with the cameras), so masks the
+    checks call unsure are used all the same, and the user is told where to look."""
+    import dataclasses
+
+    import recon.stages.normalize as normalize_stage
+
+    segment = normalize_stage.segment_object
+    monkeypatch.setattr(normalize_stage, "segment_object",
+                        lambda *a, **k: dataclasses.replace(segment(*a, **k), confident=False))
+    photos_alone = tmp_path / "photos"
+    photos_alone.mkdir()
+    for photo in (turntable / "images").glob("*.jpg"):
+        (photos_alone / photo.name).symlink_to(photo)
+    result = CliRunner().invoke(app, ["run", str(photos_alone), "--out", str(tmp_path / "scene"), "--until",
+                                      "normalize"])
+    assert result.exit_code == 0, result.output
+    flat = " ".join(result.output.split())
+    assert "used all the same" in flat and "masks.png" in flat, result.output
+    assert len(list((tmp_path / "scene" / "02_scene" / "masks").glob("*.png"))) == VIEWS

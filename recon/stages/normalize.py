@@ -32,8 +32,9 @@ def run(ctx: StageContext) -> dict:
     source = load_scene(ctx.inputs["poses"])
     scene = normalize(source, ctx.config)
     masked, why = 0, ""
-    if ctx.config.masks == "auto" and object_on_background(scene, turntable=bool(source.notes.get("turntable"))):
-        masked, why = _auto_masks(ctx, source, scene)
+    turntable = bool(source.notes.get("turntable"))
+    if ctx.config.masks == "auto" and object_on_background(scene, turntable=turntable):
+        masked, why = _auto_masks(ctx, source, scene, turntable)
         if masked:
             scene = normalize(source, ctx.config)
     if scene.has_alpha and scene.capture == "object":
@@ -57,13 +58,18 @@ def run(ctx: StageContext) -> dict:
     }
 
 
-def _auto_masks(ctx: StageContext, source: Scene, scene: Scene) -> tuple[int, str]:
-    """Cut the object out of every photo; when the cuts agree, give `source`'s frames the masks (written to
-    02_scene/masks/). Returns how many photos got one (0: none) and why."""
+def _auto_masks(ctx: StageContext, source: Scene, scene: Scene, turntable: bool = False) -> tuple[int, str]:
+    """Cut the object out of every photo; when the cuts agree (or the capture is a turntable's, which nothing else
+    can train), give `source`'s frames the masks (written to 02_scene/masks/). Returns how many photos got one (0:
+    none) and why."""
     with ctx.report.task("automatic masks: cutting the object out of each photo", total=len(scene.frames)) as bar:
         found = segment_object(scene, progress=bar.advance, background=_still_background(ctx))
     final = ctx.scene_dir / ctx.folder / MASK_FOLDER  # where the masks live once the stage folder is sealed
-    if not found.confident:
+    if not found.confident and turntable:
+        ctx.report.warn(f"{found.reason}: used all the same, since on a turntable the room turns with the cameras and "
+                        f"no field can hold it. Check {final}.png; to fix a mask, copy {final} next to the photos "
+                        f"folder as masks/, edit it (white = object) and run again.")
+    elif not found.confident:
         _write(ctx.out / "masks_unsure", found.masks, scene)  # for a look; not used
         return 0, (
             f"{found.reason}: kept the photos unmasked, so the table and room are modelled too (contracted). "
