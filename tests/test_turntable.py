@@ -40,13 +40,22 @@ def photos(capture: Path) -> list[np.ndarray]:
     return [read_image(p) for p in sorted((capture / "images").glob("*.jpg"))]
 
 
+def photos_alone(capture: Path, folder: Path) -> Path:
+    """The capture's photos linked into ``folder``, without its masks/ beside them, as a user's photos come."""
+    folder.mkdir()
+    for photo in (capture / "images").glob("*.jpg"):
+        (folder / photo.name).symlink_to(photo)
+    return folder
+
+
 def test_a_turntable_capture_is_found_with_its_camera_positions_and_the_object(turntable: Path) -> None:
     images = photos(turntable)
     found = find_turntable(images)
     assert found is not None
     info = json.loads((turntable / "scene_info.json").read_text())
     rings = np.asarray(info["turntable"]["ring"])
-    assert sorted(sorted(g) for g in found.groups) == [np.flatnonzero(rings == r).tolist() for r in range(rings.max() + 1)]
+    positions = [np.flatnonzero(rings == r).tolist() for r in range(rings.max() + 1)]
+    assert sorted(sorted(g) for g in found.groups) == positions
     for i, mask_path in enumerate(sorted((turntable / "masks").glob("*.png"))):
         true = np.asarray(read_image(mask_path))[..., 0] > 0.5
         true = cv2.resize(true.astype(np.uint8), found.moving[i].shape[::-1], interpolation=cv2.INTER_AREA) > 0
@@ -114,14 +123,11 @@ def test_structure_from_motion_places_the_cameras_around_the_turning_object(turn
     the cameras in the object's frame."""
     truth = json.loads((turntable / "transforms.json").read_text())
     ref = {Path(f["file_path"]).stem: np.asarray(f["transform_matrix"]) for f in truth["frames"]}
-    photos_alone = tmp_path / "photos"  # without the capture's masks/ beside them, as a user's photos come
-    photos_alone.mkdir()
-    for photo in (turntable / "images").glob("*.jpg"):
-        (photos_alone / photo.name).symlink_to(photo)
+    alone = photos_alone(turntable, tmp_path / "photos")
     errors = {}
     for mode in ("auto", "off"):
         out = tmp_path / mode
-        result = CliRunner().invoke(app, ["run", str(photos_alone), "--out", str(out), "--until", "poses",
+        result = CliRunner().invoke(app, ["run", str(alone), "--out", str(out), "--until", "poses",
                                           "--set", f"poses.turntable={mode}"])
         assert result.exit_code == 0, result.output
         assert ("turntable:" in " ".join(result.output.split())) == (mode == "auto")
@@ -138,11 +144,8 @@ def test_a_turntable_capture_gets_object_masks_without_a_table_in_its_sparse_poi
     """The still room is in every photo but in no sparse point; in the object's frame it turns with the cameras, so
     normalize cuts the object out of the photos as it does for a capture that shows its table and room, the still
     room (the poses stage's) seeding the background where no table point can."""
-    photos_alone = tmp_path / "photos"
-    photos_alone.mkdir()
-    for photo in (turntable / "images").glob("*.jpg"):
-        (photos_alone / photo.name).symlink_to(photo)
-    result = CliRunner().invoke(app, ["run", str(photos_alone), "--out", str(tmp_path / "scene"), "--until",
+    alone = photos_alone(turntable, tmp_path / "photos")
+    result = CliRunner().invoke(app, ["run", str(alone), "--out", str(tmp_path / "scene"), "--until",
                                       "normalize"])
     assert result.exit_code == 0, result.output
     masks = sorted((tmp_path / "scene" / "02_scene" / "masks").glob("*.png"))
@@ -166,11 +169,8 @@ def test_unsure_masks_of_a_turntable_are_used_with_a_warning(turntable: Path, tm
     segment = normalize_stage.segment_object
     monkeypatch.setattr(normalize_stage, "segment_object",
                         lambda *a, **k: dataclasses.replace(segment(*a, **k), confident=False))
-    photos_alone = tmp_path / "photos"
-    photos_alone.mkdir()
-    for photo in (turntable / "images").glob("*.jpg"):
-        (photos_alone / photo.name).symlink_to(photo)
-    result = CliRunner().invoke(app, ["run", str(photos_alone), "--out", str(tmp_path / "scene"), "--until",
+    alone = photos_alone(turntable, tmp_path / "photos")
+    result = CliRunner().invoke(app, ["run", str(alone), "--out", str(tmp_path / "scene"), "--until",
                                       "normalize"])
     assert result.exit_code == 0, result.output
     flat = " ".join(result.output.split())

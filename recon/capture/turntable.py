@@ -122,7 +122,9 @@ def _groups(logs: Sequence[np.ndarray]) -> list[list[int]]:
 
     for i in range(len(logs)):
         for j in range(i + 1, min(len(logs), i + 1 + NEIGHBOURS)):
-            if logs[i].shape == logs[j].shape and min(agreement(logs[i], logs[j]), agreement(logs[j], logs[i])) > STILL_SHARE:
+            if logs[i].shape != logs[j].shape:
+                continue  # photos of two sizes: two cameras, or one turned
+            if min(agreement(logs[i], logs[j]), agreement(logs[j], logs[i])) > STILL_SHARE:
                 parent[root(j)] = root(i)
     members: dict[int, list[int]] = {}
     for i in range(len(logs)):

@@ -288,7 +288,7 @@ def _structure_from_motion(ctx: StageContext, photos: list[Path] | None = None) 
             names.append((path, name))
             bar.advance()
     by_sfm_name = {name: path for path, name in names}
-    turntable, turntable_reason = _turntable_masks(ctx, image_dir, [n for _, n in names], sfm_dir / "feature_masks")
+    feature_masks, turntable_reason = _turntable_masks(ctx, image_dir, [n for _, n in names], sfm_dir / "feature_masks")
     options = SfmOptions(**{f.name: getattr(cfg, f.name) for f in dataclasses.fields(SfmOptions)})
     if ordered and options.matcher == "auto":
         options.matcher = "sequential"
@@ -304,7 +304,7 @@ def _structure_from_motion(ctx: StageContext, photos: list[Path] | None = None) 
 
         log_file = ctx.scene_dir / LOG_DIR / f"{ctx.folder}.log"
         result = run_sfm(image_dir, [n for _, n in names], sfm_dir, options, progress=progress, log_file=log_file,
-                         mask_dir=turntable)
+                         mask_dir=feature_masks)
     ctx.report.info(f"Camera model: {result.camera_model} — {result.choice_reason}")
     if len(result.attempts) > 1:
         first, last = result.attempts[0], result.attempts[-1]
