@@ -25,8 +25,16 @@ their exposures are matched."""
 TEXTURE = 0.03
 """A pixel counts as textured where its log gray level changes by more than this to the next pixel: only there can
 a moved camera be told from a still one (a plain wall agrees with itself wherever the camera stands)."""
-STILL_SHARE = 0.65
-"""Two photos are from one camera position when over this share of their textured pixels agree."""
+CELLS = 8
+"""Photos are compared in a grid of this many cells a side: a still camera's photos agree all over the cells that
+show only the room, a moved camera's nowhere entirely, however close it stayed."""
+CELL_TEXTURED = 0.1
+"""A cell counts where at least this share of its pixels is textured."""
+CELL_AGREE = 0.9
+"""A cell shows the same thing in two photos where over this share of its textured pixels agree."""
+STILL_SHARE = 0.2
+"""Two photos are from one camera position when over this share of their counted cells show the same thing: the
+object (and the platter turning with it) may fill most of the frame, as long as some of the room shows."""
 NEIGHBOURS = 3
 """Each photo is compared with this many photos after it in name order (the order they were taken in)."""
 MIN_GROUP = 6
@@ -101,13 +109,23 @@ def _textured(log_gray: np.ndarray) -> np.ndarray:
 
 
 def agreement(a: np.ndarray, b: np.ndarray) -> float:
-    """The share of a's textured pixels at which b shows the same (log gray images of one size), exposures matched
-    by the median difference."""
+    """The share of a's textured cells (`CELLS`) in which b shows the same (log gray images of one size),
+    exposures matched by the median difference."""
     textured = _textured(a)
     if textured.sum() < 0.01 * textured.size:
         return 0.0  # a plain photo says nothing about whether the camera moved
-    d = (a - b)[textured]
-    return float(np.mean(np.abs(d - np.median(d)) < AGREE))
+    d = a - b
+    agree = (np.abs(d - np.median(d[textured])) < AGREE) & textured
+    h, w = a.shape
+    rows, cols = np.arange(h) * CELLS // h, np.arange(w) * CELLS // w
+    cell = (rows[:, None] * CELLS + cols[None, :]).ravel()
+    pixels = np.bincount(cell, minlength=CELLS * CELLS)
+    tex = np.bincount(cell, textured.ravel(), minlength=CELLS * CELLS)
+    same = np.bincount(cell, agree.ravel(), minlength=CELLS * CELLS)
+    counted = tex >= CELL_TEXTURED * pixels
+    if not counted.any():
+        return 0.0
+    return float(np.mean(same[counted] > CELL_AGREE * tex[counted]))
 
 
 def _groups(logs: Sequence[np.ndarray]) -> list[list[int]]:
