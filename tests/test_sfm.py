@@ -378,6 +378,34 @@ def test_a_camera_moved_far_off_a_real_model_is_deregistered(sample_poses: tuple
     assert all(el.image_id != image.image_id for point in model.points3D.values() for el in point.track.elements)
 
 
+def test_a_final_adjustment_that_runs_away_is_undone(sample_poses: tuple[Path, str, str, str],
+                                                     monkeypatch: pytest.MonkeyPatch) -> None:
+    """On a degenerate model the robust bundle adjustment can run away (a turntable's photos matched on the room:
+    a mean error of 1e147 px); the model before it is kept, and a sound adjustment is kept as it is."""
+    import pycolmap
+
+    from recon.capture.sfm import refine_robust
+
+    scene_dir, *_ = sample_poses
+    model = pycolmap.Reconstruction(str(scene_dir / "01_poses" / "colmap" / "sparse"))
+    error = model.compute_mean_reprojection_error()
+    kept, info = refine_robust(model)
+    assert kept is model and not info["undone"] and info["error_after_px"] <= 1.5 * error
+
+    def run_away(rec: pycolmap.Reconstruction, options: object) -> None:
+        for camera_id in list(rec.cameras):
+            camera = rec.cameras[camera_id]
+            camera.params = np.asarray(camera.params) * np.r_[30.0, np.ones(len(camera.params) - 1)]
+        rec.update_point_3d_errors()
+
+    monkeypatch.setattr(pycolmap, "bundle_adjustment", run_away)
+    before = model.compute_mean_reprojection_error()
+    kept, info = refine_robust(model)
+    assert info["undone"] and info["error_after_px"] > 100 * before
+    assert kept is not model and kept.compute_mean_reprojection_error() == pytest.approx(before)
+    assert kept.num_reg_images() == model.num_reg_images()
+
+
 # ----------------------------------------------------------------------------------------------
 # end to end
 # ----------------------------------------------------------------------------------------------

@@ -15,6 +15,7 @@ written to `work_dir/sparse/` so other tools can open it.
 from __future__ import annotations
 
 import contextlib
+import copy
 import os
 import shutil
 import sys
@@ -467,10 +468,15 @@ def leave_out_outliers(rec: pycolmap.Reconstruction) -> dict[str, str]:
 
 ROBUST_LOSS_SCALE_PX = 0.5
 """Cauchy scale of the final bundle adjustment: observations a few times the usual 0.3 px error count less."""
+REFINE_KEEP_WORSE = 2.0
+"""The final bundle adjustment is undone when it leaves the mean reprojection error over this many times what it
+was (or not finite): on a degenerate model (every camera in one place) the solver can run away."""
 
 
-def refine_robust(reconstruction: pycolmap.Reconstruction, scale_px: float = ROBUST_LOSS_SCALE_PX) -> dict:
-    """One more global bundle adjustment of `reconstruction` (in place) with a Cauchy loss; returns what changed.
+def refine_robust(reconstruction: pycolmap.Reconstruction,
+                  scale_px: float = ROBUST_LOSS_SCALE_PX) -> tuple[pycolmap.Reconstruction, dict]:
+    """One more global bundle adjustment of `reconstruction` with a Cauchy loss; returns the model to keep (the
+    adjusted one, or the one before where the adjustment ran away: `REFINE_KEEP_WORSE`) and what changed.
 
     COLMAP's bundle adjustment minimises squared reprojection error, so the few matches that are off by a pixel
     or two pull the shared focal length and k1, which the data barely constrain when every camera looks at the
@@ -483,13 +489,17 @@ def refine_robust(reconstruction: pycolmap.Reconstruction, scale_px: float = ROB
     def focal() -> float:
         return float(np.median([cam.mean_focal_length() for cam in reconstruction.cameras.values()]))
 
+    unadjusted = copy.deepcopy(reconstruction)
     before = {"focal_before": focal(), "error_before_px": float(reconstruction.compute_mean_reprojection_error())}
     ba = pycolmap.BundleAdjustmentOptions()
     ba.ceres.loss_function_type = pycolmap.LossFunctionType.CAUCHY
     ba.ceres.loss_function_scale = scale_px
     pycolmap.bundle_adjustment(reconstruction, ba)
-    return {"loss": "cauchy", "scale_px": scale_px, **before, "focal_after": focal(),
-            "error_after_px": float(reconstruction.compute_mean_reprojection_error())}
+    after = {"focal_after": focal(), "error_after_px": float(reconstruction.compute_mean_reprojection_error())}
+    ran_away = not (np.isfinite(after["focal_after"]) and after["focal_after"] > 0
+                    and after["error_after_px"] <= REFINE_KEEP_WORSE * before["error_before_px"])
+    return (unadjusted if ran_away else reconstruction), {"loss": "cauchy", "scale_px": scale_px, **before, **after,
+                                                          "undone": ran_away}
 
 
 @contextlib.contextmanager
@@ -646,7 +656,7 @@ def run_sfm(
         if best is None or num_registered < needed:
             raise ReconError(_too_few_message(num_registered, len(names), needed))
         start = time.perf_counter()
-        refinement = refine_robust(best)
+        best, refinement = refine_robust(best)
         timings["map"] += time.perf_counter() - start
 
     sparse_dir = work_dir / "sparse"

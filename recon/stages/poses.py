@@ -315,7 +315,14 @@ def _structure_from_motion(ctx: StageContext, photos: list[Path] | None = None) 
             f"retried with {last['settings']}: {last['registered']}/{len(names)} ({helped})"
         )
     ref = result.refinement
-    if ref:
+    if ref and ref.get("undone"):
+        ctx.report.warn(
+            f"the final robust bundle adjustment ran away (mean reprojection error {ref['error_before_px']:.3f} -> "
+            f"{ref['error_after_px']:.3g} px, focal {ref['focal_before']:.1f} -> {ref['focal_after']:.3g} px): it is "
+            f"undone and the model before it kept. Such a run-away comes from a model with little to hold it, e.g. "
+            f"every camera in one place; check the cameras in 01_poses"
+        )
+    elif ref:
         ctx.report.info(
             f"final bundle adjustment with a robust (Cauchy, {ref['scale_px']} px) loss, so a few off matches do not "
             f"pull the focal length: focal {ref['focal_before']:.1f} -> {ref['focal_after']:.1f} px, mean "
