@@ -7,6 +7,7 @@ that must not be taken for one.
 from __future__ import annotations
 
 import json
+import shutil
 import sys
 from pathlib import Path
 
@@ -37,6 +38,23 @@ and so the masks, differ)."""
 def turntable(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return gen_tabletop.generate(tmp_path_factory.mktemp("turntable"), views=VIEWS, size="480x360", realistic=True,
                                  turntable=True, mesh_res=64)
+
+
+@pytest.fixture(scope="module")
+def posed(turntable: Path, tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, str]:
+    """`recon run --until poses` on the turntable's photos alone, once for the module: (photos, scene, output).
+    A test that goes on from it works on a copy (`scene_copy`)."""
+    folder = tmp_path_factory.mktemp("turntable_posed")
+    alone = photos_alone(turntable, folder / "photos")
+    result = CliRunner().invoke(app, ["run", str(alone), "--out", str(folder / "scene"), "--until", "poses",
+                                      *ONE_THREAD])
+    assert result.exit_code == 0, result.output
+    return alone, folder / "scene", result.output
+
+
+def scene_copy(posed: tuple[Path, Path, str], into: Path) -> Path:
+    """A copy of the posed scene the same command resumes (its poses stage up to date)."""
+    return Path(shutil.copytree(posed[1], into, ignore=shutil.ignore_patterns(".lock", ".work")))
 
 
 def photos(capture: Path) -> list[np.ndarray]:
@@ -145,19 +163,19 @@ def test_exposure_brackets_from_a_moving_camera_are_not_a_turntable(tmp_path: Pa
     assert find_turntable(brackets) is None
 
 
-def test_structure_from_motion_places_the_cameras_around_the_turning_object(turntable: Path, tmp_path: Path) -> None:
+def test_structure_from_motion_places_the_cameras_around_the_turning_object(turntable: Path, tmp_path: Path,
+                                                                          posed: tuple[Path, Path, str]) -> None:
     """Features from the whole photo pin every camera to the tripod; from where the photos change, SfM recovers
     the cameras in the object's frame."""
     truth = json.loads((turntable / "transforms.json").read_text())
     ref = {Path(f["file_path"]).stem: np.asarray(f["transform_matrix"]) for f in truth["frames"]}
-    alone = photos_alone(turntable, tmp_path / "photos")
+    alone, auto_scene, auto_output = posed
+    off = CliRunner().invoke(app, ["run", str(alone), "--out", str(tmp_path / "off"), "--until", "poses",
+                                   "--set", "poses.turntable=off", *ONE_THREAD])
+    assert off.exit_code == 0, off.output
     errors = {}
-    for mode in ("auto", "off"):
-        out = tmp_path / mode
-        result = CliRunner().invoke(app, ["run", str(alone), "--out", str(out), "--until", "poses",
-                                          "--set", f"poses.turntable={mode}", *ONE_THREAD])
-        assert result.exit_code == 0, result.output
-        assert ("turntable:" in " ".join(result.output.split())) == (mode == "auto")
+    for mode, out, output in (("auto", auto_scene, auto_output), ("off", tmp_path / "off", off.output)):
+        assert ("turntable:" in " ".join(output.split())) == (mode == "auto")
         scene = load_scene(out / "01_poses")
         est = {Path(f.file_path).stem: np.asarray(f.c2w) for f in scene.frames}
         errors[mode] = pose_errors(est, ref)
@@ -166,15 +184,16 @@ def test_structure_from_motion_places_the_cameras_around_the_turning_object(turn
     assert errors["off"][0] > 10 * centre, errors  # the still room wins without the masks
 
 
-def test_a_turntable_capture_gets_object_masks_without_a_table_in_its_sparse_points(turntable: Path,
-                                                                                    tmp_path: Path) -> None:
+def test_a_turntable_capture_gets_object_masks_without_a_table_in_its_sparse_points(
+        turntable: Path, tmp_path: Path, posed: tuple[Path, Path, str]) -> None:
     """The still room is in every photo but in no sparse point; in the object's frame it turns with the cameras, so
     normalize cuts the object out of the photos as it does for a capture that shows its table and room, the still
     room (the poses stage's) seeding the background where no table point can."""
-    alone = photos_alone(turntable, tmp_path / "photos")
-    result = CliRunner().invoke(app, ["run", str(alone), "--out", str(tmp_path / "scene"), "--until",
-                                      "normalize", *ONE_THREAD])
+    scene = scene_copy(posed, tmp_path / "scene")
+    result = CliRunner().invoke(app, ["run", str(posed[0]), "--out", str(scene), "--until", "normalize",
+                                      *ONE_THREAD])
     assert result.exit_code == 0, result.output
+    assert "poses: up to date" in " ".join(result.output.split()), result.output  # went on from the copy
     masks = sorted((tmp_path / "scene" / "02_scene" / "masks").glob("*.png"))
     assert len(masks) == VIEWS, result.output
     ious = []
@@ -185,7 +204,7 @@ def test_a_turntable_capture_gets_object_masks_without_a_table_in_its_sparse_poi
     assert np.median(ious) > 0.93 and min(ious) > 0.8, ious
 
 
-def test_unsure_masks_of_a_turntable_are_used_with_a_warning(turntable: Path, tmp_path: Path,
+def test_unsure_masks_of_a_turntable_are_used_with_a_warning(tmp_path: Path, posed: tuple[Path, Path, str],
                                                               monkeypatch: pytest.MonkeyPatch) -> None:
     """Unmasked, a turntable's room would train as fog around the object (it turns with the cameras), so masks the
     checks call unsure are used all the same, and the user is told where to look."""
@@ -196,9 +215,9 @@ def test_unsure_masks_of_a_turntable_are_used_with_a_warning(turntable: Path, tm
     segment = normalize_stage.segment_object
     monkeypatch.setattr(normalize_stage, "segment_object",
                         lambda *a, **k: dataclasses.replace(segment(*a, **k), confident=False))
-    alone = photos_alone(turntable, tmp_path / "photos")
-    result = CliRunner().invoke(app, ["run", str(alone), "--out", str(tmp_path / "scene"), "--until",
-                                      "normalize", *ONE_THREAD])
+    scene = scene_copy(posed, tmp_path / "scene")
+    result = CliRunner().invoke(app, ["run", str(posed[0]), "--out", str(scene), "--until", "normalize",
+                                      *ONE_THREAD])
     assert result.exit_code == 0, result.output
     flat = " ".join(result.output.split())
     assert "used all the same" in flat and "masks.png" in flat, result.output
