@@ -34,7 +34,8 @@ DATASETS = {
     "lego-half": (SHARED / "nerf_synthetic_lego_half", None),
     "fox": (SHARED / "fox" / "images", None),
 }
-GENERATED = {"tabletop_realistic": ("gen_tabletop", {}), "tabletop_turntable": ("gen_tabletop", {"turntable": True})}
+GENERATED = {"tabletop_realistic": ("gen_tabletop", {}), "tabletop_turntable": ("gen_tabletop", {"turntable": True}),
+             "tabletop_sweep": ("gen_tabletop", {"turntable": True, "backdrop": True})}
 """Data sets rendered on first use (then cached) by fixtures/<generator>.py's `bench_dataset` (with these keyword
 arguments): photos without masks.
 ``NAME@SEED`` renders the same capture from another seed (other camera path, textures, exposures and noise)."""
