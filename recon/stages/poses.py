@@ -383,4 +383,6 @@ def _structure_from_motion(ctx: StageContext, photos: list[Path] | None = None) 
     return scene, summary
 
 
-STAGE = Stage(name="poses", folder="01_poses", inputs=(), version=5, run=run, needs_source=True, source_digest=source_digest)
+# version 6: turntable captures (features where the photos change, the still room kept for normalize); a final bundle
+# adjustment that runs away is undone
+STAGE = Stage(name="poses", folder="01_poses", inputs=(), version=6, run=run, needs_source=True, source_digest=source_digest)
