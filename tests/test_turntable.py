@@ -82,7 +82,7 @@ def turning_pixels(capture: Path) -> list[np.ndarray]:
         c2w = np.asarray(frame["transform_matrix"])
         rays = gen_tabletop.pixel_rays(c2w, k, lens, ii.ravel() + 0.5, jj.ravel() + 0.5)
         labels = gen_tabletop.trace(room, c2w[:3, 3], rays, list(range(len(room.props))), 0.0)[1]
-        turning.append(np.isin(labels, [gen_tabletop.OBJECT, room.platter]).reshape(ii.shape))
+        turning.append(np.isin(labels, room.turning).reshape(ii.shape))
     return turning
 
 
