@@ -70,6 +70,52 @@ def test_selection_skips_blurred_frames_and_the_pause(clip: Path) -> None:
     assert "read 140 frames" in sel.describe() and "camera standing still" in sel.describe()
 
 
+REALISTIC_SMALL = dict(size="192x108", fps=6.0, seconds=8.0, pause_s=1.0, supersample=1, mesh_res=64)
+
+
+@pytest.fixture(scope="module")
+def realistic_clip(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A small phone clip of the realistic tabletop room (54 frames, 192x108)."""
+    return gen_video.generate_tabletop_video(tmp_path_factory.mktemp("tabletop_clip"), **REALISTIC_SMALL)
+
+
+def test_the_realistic_clip_is_a_walk_around_the_table_with_a_stop(realistic_clip: Path) -> None:
+    """The phone moves in small steps once around the object, stands (almost) still in the stop, and frames the
+    object from above the table; its true masks are named like the frames recon keeps."""
+    info = _info(realistic_clip)
+    truth = json.loads((realistic_clip.parent / "transforms.json").read_text())
+    cams = np.array([f["transform_matrix"] for f in truth["frames"]])
+    assert len(cams) == info["frames"] == 54
+    centre = np.asarray(info["object_center"])
+    rel = cams[:, :3, 3] - centre
+    steps = np.linalg.norm(np.diff(cams[:, :3, 3], axis=0), axis=1)
+    pause = info["pause"]
+    moving = [s for i, s in enumerate(steps) if i + 1 not in pause]
+    assert max(moving) < 3.0 * np.median(moving)  # a smooth walk
+    assert max(steps[i - 1] for i in pause) < 0.02 * np.median(moving)  # the stop: only the hand's tremor
+    azimuth = np.unwrap(np.arctan2(rel[:, 1], rel[:, 0]))
+    assert abs(azimuth[-1] - azimuth[0]) == pytest.approx(2 * np.pi, rel=0.05)  # once around, up to a last step
+    elevation = np.degrees(np.arcsin(rel[:, 2] / np.linalg.norm(rel, axis=1)))
+    assert 15.0 < elevation.min() and elevation.max() < 50.0
+    forward = -cams[:, :3, 2]  # OpenGL: the camera looks down -z
+    to_object = -rel / np.linalg.norm(rel, axis=1, keepdims=True)
+    assert np.degrees(np.arccos(np.clip((forward * to_object).sum(axis=1), -1, 1))).max() < 8.0  # aimed, loosely
+    # auto exposure follows the light slowly: no jump between frames
+    exposure = np.log(info["exposures"])
+    assert np.abs(np.diff(exposure)).max() < 0.1 and np.ptp(exposure) > 0.0
+    masks = sorted((realistic_clip.parent / "masks").glob("*.png"))
+    assert [m.stem for m in masks] == [Path(video.frame_name("clip", i)).stem for i in range(54)]
+    covered = [np.mean(cv2.imread(str(m), cv2.IMREAD_GRAYSCALE) > 127) for m in masks]
+    assert 0.02 < min(covered) and max(covered) < 0.4  # the object among the table, its clutter and the room
+
+
+def test_the_realistic_clip_decodes_and_its_jerked_frames_are_dropped(realistic_clip: Path) -> None:
+    info = _info(realistic_clip)
+    sel = video.select_frames(realistic_clip, video.SelectOptions(target_frames=27), lambda f, img: None)
+    assert sel.read == info["frames"]
+    assert not {f.index for f in sel.kept} & set(info["blurred"])
+
+
 def test_sharpness_falls_with_blur_and_change_sees_motion() -> None:
     rng = np.random.default_rng(0)
     img = cv2.resize(rng.integers(0, 255, (60, 80, 3), dtype=np.uint8), (320, 240), interpolation=cv2.INTER_CUBIC)

@@ -35,9 +35,10 @@ DATASETS = {
     "fox": (SHARED / "fox" / "images", None),
 }
 GENERATED = {"tabletop_realistic": ("gen_tabletop", {}), "tabletop_turntable": ("gen_tabletop", {"turntable": True}),
-             "tabletop_sweep": ("gen_tabletop", {"turntable": True, "backdrop": True})}
+             "tabletop_sweep": ("gen_tabletop", {"turntable": True, "backdrop": True}),
+             "tabletop_video": ("gen_video", {})}
 """Data sets rendered on first use (then cached) by fixtures/<generator>.py's `bench_dataset` (with these keyword
-arguments): photos without masks.
+arguments): photos (or a video) without masks.
 ``NAME@SEED`` renders the same capture from another seed (other camera path, textures, exposures and noise)."""
 
 
