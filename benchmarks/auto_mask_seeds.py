@@ -1,0 +1,155 @@
+"""What limits the automatic masks of a capture with true masks: its seeds, or the cut.
+
+    python benchmarks/auto_mask_seeds.py SCENE TRUE_MASKS --name NAME
+
+SCENE: a scene normalized by recon (`recon run PHOTOS --out SCENE --until normalize`, or a `recon bench` scene's
+`*-poses` folder); TRUE_MASKS: the generator's true object masks, named like the photos (gen_tabletop.py's
+`capture/masks/`, gen_video.py's `masks/`). Cuts the object out of every photo again (`segment_object`) as shipped
+and with its seeds changed, and scores each against the true masks: IoU per photo (median, least), how much of the
+outline lies on the photo's edges (the median photo's: what `MIN_EDGE_SUPPORT` judges) and whether the masks would be
+trusted. Variants:
+
+- shipped: as normalize runs it;
+- certain seeds: object seeds only from points whose triangulation places them within half a seed disc in the
+  segmented photo (the depth prior's uncertainty: reprojection error over focal and sine of the widest angle);
+- true object seeds: object seeds that fall outside the true mask dropped (an oracle: the best seeds could do);
+- true seeds and a background ring: also 150 background seeds 3-4 px outside the true mask (an oracle).
+
+Writes benchmarks/results/NAME.json with the commit, machine and load. It measures; it asserts nothing.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import sys
+import time
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))  # this checkout's recon, not an installed one
+
+RING_SEEDS = 150
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("scene", type=Path)
+    ap.add_argument("true_masks", type=Path)
+    ap.add_argument("--name", required=True, help="the record's name: benchmarks/results/NAME.json")
+    a = ap.parse_args(argv)
+
+    import cv2
+
+    from recon.app.bench import provenance
+    from recon.atomic import write_json_atomic
+    from recon.capture import auto_masks as am
+    from recon.capture.images import read_image
+    from recon.capture.scene import load_scene
+    from recon.nerf.depth_prior import MIN_ANGLE_DEG, MIN_PIXEL_ERROR, triangulation_angles
+
+    scene = load_scene(a.scene / "02_scene")
+    where = provenance()
+    load_start = [round(x, 2) for x in os.getloadavg()]
+    truth_of: dict[str, np.ndarray] = {}
+
+    def true_mask(frame, w: int, h: int) -> np.ndarray:
+        """The true mask at (w, h), in the photo's own (distorted) pixels."""
+        t = cv2.imread(str(a.true_masks / f"{Path(frame.name).stem}.png"), cv2.IMREAD_GRAYSCALE)
+        if t is None:
+            raise SystemExit(f"no true mask for {frame.name} in {a.true_masks}")
+        return cv2.resize(t, (w, h), interpolation=cv2.INTER_AREA) > 127
+
+    def load(frame) -> np.ndarray:  # the photo as segment_object reads it; its undistorted true mask on the side
+        photo = read_image(scene.image_path(frame), max_side=am.SEGMENT_SIDE)[..., :3]
+        h, w = photo.shape[:2]
+        intr = np.array(frame.intrinsics_at(w, h))
+        t = true_mask(frame, w, h).astype(np.float32)[..., None].repeat(3, axis=-1)
+        truth_of[frame.name] = am.undistort(t, *intr, frame.distortion, frame.camera_model)[..., 0] > 0.5
+        return photo
+
+    points = np.asarray(scene.points, np.float64).reshape(-1, 3)
+    centres = np.array([f.c2w[:3, 3] for f in scene.frames])
+    theta = triangulation_angles(points, centres, [np.asarray(scene.point_visibility.get(f.name, []), np.int64)
+                                                   for f in scene.frames])
+    error = np.maximum(np.asarray(scene.point_errors, np.float64).reshape(-1) if scene.point_errors is not None
+                       else np.zeros(len(points)), MIN_PIXEL_ERROR)
+    first = scene.frames[0]
+    scale = am.SEGMENT_SIDE / max(first.w, first.h)
+    radius = max(1, round(am.SEED_RADIUS * scale * math.hypot(first.w, first.h)))
+    # a point's depth uncertainty (distance * error / (focal * sin theta)) seen across a view at that distance:
+    # error / sin(theta) full-size pixels, whatever the distance
+    spread_px = error / np.maximum(np.sin(theta), math.sin(math.radians(MIN_ANGLE_DEG))) * scale
+    certain = spread_px <= 0.5 * radius
+
+    original_grabcut, original_label = am._grabcut, am._label_points
+    current: dict[str, str] = {}
+
+    def variant(name: str) -> dict[str, Any]:
+        def label(pts, region, grown, ground):
+            obj, bg = original_label(pts, region, grown, ground)
+            return (obj & certain, bg) if name == "certain seeds" else (obj, bg)
+
+        def grabcut(cv2_, photo, fg, bg, box_uv, known=None):
+            t = truth_of[current["frame"]]
+            h, w = t.shape
+            if name.startswith("true"):
+                px = np.clip(np.round(fg).astype(np.int64), 0, [w - 1, h - 1])
+                fg = fg[t[px[:, 1], px[:, 0]]]
+            if name == "true seeds and a background ring":
+                near = cv2.dilate(t.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
+                ring = (cv2.dilate(t.astype(np.uint8), np.ones((9, 9), np.uint8)) > 0) & ~near
+                ys, xs = np.nonzero(ring)
+                pick = np.random.default_rng(0).choice(len(ys), min(len(ys), RING_SEEDS), replace=False)
+                bg = np.concatenate([bg, np.stack([xs[pick], ys[pick]], axis=1)])
+            return original_grabcut(cv2_, photo, fg, bg, box_uv, known)
+
+        def loader(frame):
+            current["frame"] = frame.name
+            return load(frame)
+
+        am._label_points, am._grabcut = label, grabcut
+        import recon.nerf.device as device
+
+        threads: Callable[[], int] = device.cpu_threads
+        device.cpu_threads = lambda: 1  # one photo at a time: the oracle reads the current photo's truth
+        clock = time.perf_counter()
+        try:
+            found = am.segment_object(scene, load_photo=loader)
+        finally:
+            am._label_points, am._grabcut, device.cpu_threads = original_label, original_grabcut, threads
+        ious = []
+        for frame in scene.frames:
+            mask = found.masks[frame.name]
+            t = true_mask(frame, mask.shape[1], mask.shape[0])
+            ious.append(float((mask & t).sum() / max((mask | t).sum(), 1)))
+        row = {"variant": name, "iou_median": round(float(np.median(ious)), 4), "iou_least": round(min(ious), 4),
+               "edge_support_median": round(float(np.median(list(found.edge_support.values()))), 4),
+               "confident": bool(found.confident), "reason": found.reason,
+               "seconds": round(time.perf_counter() - clock, 1)}
+        print(f"{name}: IoU median {row['iou_median']:.3f} (least {row['iou_least']:.3f}), outline on edges "
+              f"{row['edge_support_median']:.0%}, {'trusted' if row['confident'] else 'not trusted'}", flush=True)
+        return row
+
+    rows = [variant(v) for v in ("shipped", "certain seeds", "true object seeds", "true seeds and a background ring")]
+    region = np.asarray(scene.region, np.float64)
+    extent = region[1] - region[0]
+    grown = np.stack([region[0] - am.REGION_MARGIN * extent, region[1] + am.REGION_MARGIN * extent])
+    obj, _ = original_label(points, region, grown, scene.ground)
+    record = {
+        "scene": str(a.scene), "true_masks": str(a.true_masks), "photos": len(scene.frames), **where,
+        "load_average_start": load_start, "load_average_end": [round(x, 2) for x in os.getloadavg()],
+        "object_points": int(obj.sum()), "object_points_certain": int((obj & certain).sum()),
+        "seed_radius_px": radius, "variants": rows,
+    }
+    out = REPO / "benchmarks" / "results" / f"{a.name}.json"
+    write_json_atomic(out, record)
+    print(f"record: {out}")
+
+
+if __name__ == "__main__":
+    main()
