@@ -25,6 +25,7 @@ import math
 import os
 import sys
 import time
+from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any, Callable
 
@@ -142,6 +143,7 @@ def main(argv: list[str] | None = None) -> None:
     obj, _ = original_label(points, region, grown, scene.ground)
     record = {
         "scene": str(a.scene), "true_masks": str(a.true_masks), "photos": len(scene.frames), **where,
+        "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
         "load_average_start": load_start, "load_average_end": [round(x, 2) for x in os.getloadavg()],
         "object_points": int(obj.sum()), "object_points_certain": int((obj & certain).sum()),
         "seed_radius_px": radius, "variants": rows,
