@@ -9,10 +9,10 @@ and with its seeds changed, and scores each against the true masks: IoU per phot
 outline lies on the photo's edges (the median photo's: what `MIN_EDGE_SUPPORT` judges) and whether the masks would be
 trusted. Variants:
 
-- shipped: as normalize runs it;
-- certain seeds: object seeds only from points whose triangulation places them within half a seed disc in the
-  segmented photo (the depth prior's uncertainty: reprojection error over focal and sine of the widest angle);
-- true object seeds: object seeds that fall outside the true mask dropped (an oracle: the best seeds could do);
+- shipped: as normalize runs it (object seeds: the points SfM placed within `SEED_SPREAD_PX`, each its own pixel);
+- every point, seed discs: the cut before that (every object point seeds a disc of `SEED_RADIUS`, as the background
+  points do);
+- true object seeds: shipped, with the object seeds that fall outside the true mask dropped (an oracle);
 - true seeds and a background ring: also 150 background seeds 3-4 px outside the true mask (an oracle).
 
 Writes benchmarks/results/NAME.json with the commit, machine and load. It measures; it asserts nothing.
@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import os
 import sys
 import time
@@ -51,7 +50,6 @@ def main(argv: list[str] | None = None) -> None:
     from recon.capture import auto_masks as am
     from recon.capture.images import read_image
     from recon.capture.scene import load_scene
-    from recon.nerf.depth_prior import MIN_ANGLE_DEG, MIN_PIXEL_ERROR, triangulation_angles
 
     scene = load_scene(a.scene / "02_scene")
     where = provenance()
@@ -73,31 +71,22 @@ def main(argv: list[str] | None = None) -> None:
         truth_of[frame.name] = am.undistort(t, *intr, frame.distortion, frame.camera_model)[..., 0] > 0.5
         return photo
 
-    points = np.asarray(scene.points, np.float64).reshape(-1, 3)
-    centres = np.array([f.c2w[:3, 3] for f in scene.frames])
-    theta = triangulation_angles(points, centres, [np.asarray(scene.point_visibility.get(f.name, []), np.int64)
-                                                   for f in scene.frames])
-    error = np.maximum(np.asarray(scene.point_errors, np.float64).reshape(-1) if scene.point_errors is not None
-                       else np.zeros(len(points)), MIN_PIXEL_ERROR)
-    first = scene.frames[0]
-    scale = am.SEGMENT_SIDE / max(first.w, first.h)
-    radius = max(1, round(am.SEED_RADIUS * scale * math.hypot(first.w, first.h)))
-    # a point's depth uncertainty (distance * error / (focal * sin theta)) seen across a view at that distance:
-    # error / sin(theta) full-size pixels, whatever the distance
-    spread_px = error / np.maximum(np.sin(theta), math.sin(math.radians(MIN_ANGLE_DEG))) * scale
-    certain = spread_px <= 0.5 * radius
-
-    original_grabcut, original_label = am._grabcut, am._label_points
+    original_grabcut, original_spread = am._grabcut, am._triangulation_spread
     current: dict[str, str] = {}
 
     def variant(name: str) -> dict[str, Any]:
-        def label(pts, region, grown, ground):
-            obj, bg = original_label(pts, region, grown, ground)
-            return (obj & certain, bg) if name == "certain seeds" else (obj, bg)
+        def spread(scene_, points_):
+            return np.zeros(len(points_)) if name == "every point, seed discs" else original_spread(scene_, points_)
 
         def grabcut(cv2_, photo, fg, bg, box_uv, known=None):
             t = truth_of[current["frame"]]
             h, w = t.shape
+            if name == "every point, seed discs":  # each seed grown to a disc of SEED_RADIUS
+                radius = max(1, round(am.SEED_RADIUS * float(np.hypot(w, h))))
+                dy, dx = np.mgrid[-radius:radius + 1, -radius:radius + 1]
+                disc = np.stack([dx[dx**2 + dy**2 <= radius**2], dy[dx**2 + dy**2 <= radius**2]], axis=1)
+                fg = (np.round(fg)[:, None, :] + disc[None]).reshape(-1, 2)
+                fg = fg[(fg[:, 0] >= 0) & (fg[:, 0] < w) & (fg[:, 1] >= 0) & (fg[:, 1] < h)]
             if name.startswith("true"):
                 px = np.clip(np.round(fg).astype(np.int64), 0, [w - 1, h - 1])
                 fg = fg[t[px[:, 1], px[:, 0]]]
@@ -113,7 +102,7 @@ def main(argv: list[str] | None = None) -> None:
             current["frame"] = frame.name
             return load(frame)
 
-        am._label_points, am._grabcut = label, grabcut
+        am._triangulation_spread, am._grabcut = spread, grabcut
         import recon.nerf.device as device
 
         threads: Callable[[], int] = device.cpu_threads
@@ -122,7 +111,7 @@ def main(argv: list[str] | None = None) -> None:
         try:
             found = am.segment_object(scene, load_photo=loader)
         finally:
-            am._label_points, am._grabcut, device.cpu_threads = original_label, original_grabcut, threads
+            am._triangulation_spread, am._grabcut, device.cpu_threads = original_spread, original_grabcut, threads
         ious = []
         for frame in scene.frames:
             mask = found.masks[frame.name]
@@ -136,17 +125,22 @@ def main(argv: list[str] | None = None) -> None:
               f"{row['edge_support_median']:.0%}, {'trusted' if row['confident'] else 'not trusted'}", flush=True)
         return row
 
-    rows = [variant(v) for v in ("shipped", "certain seeds", "true object seeds", "true seeds and a background ring")]
+    rows = [variant(v) for v in ("shipped", "every point, seed discs", "true object seeds",
+                                 "true seeds and a background ring")]
     region = np.asarray(scene.region, np.float64)
     extent = region[1] - region[0]
     grown = np.stack([region[0] - am.REGION_MARGIN * extent, region[1] + am.REGION_MARGIN * extent])
-    obj, _ = original_label(points, region, grown, scene.ground)
+    points = np.asarray(scene.points, np.float64).reshape(-1, 3)
+    obj, _ = am._label_points(points, region, grown, scene.ground)
+    first = scene.frames[0]
+    certain = original_spread(scene, points) * (min(am.SEGMENT_SIDE, max(first.w, first.h)) / max(first.w, first.h)) \
+        <= am.SEED_SPREAD_PX
     record = {
         "scene": str(a.scene), "true_masks": str(a.true_masks), "photos": len(scene.frames), **where,
         "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
         "load_average_start": load_start, "load_average_end": [round(x, 2) for x in os.getloadavg()],
         "object_points": int(obj.sum()), "object_points_certain": int((obj & certain).sum()),
-        "seed_radius_px": radius, "variants": rows,
+        "variants": rows,
     }
     out = REPO / "benchmarks" / "results" / f"{a.name}.json"
     write_json_atomic(out, record)

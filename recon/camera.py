@@ -21,6 +21,7 @@ callers (the fixture generators, normalization) stay light. The rest (`look_at`,
 """
 from __future__ import annotations
 
+import math
 import sys
 from collections.abc import Sequence
 from types import ModuleType
@@ -283,3 +284,25 @@ def image_rays(c2w: Array, fl_x: Any, fl_y: Any, cx: Any, cy: Any, w: int, h: in
     ``[j, i]`` = row j, column i (the layout of an (h, w, 3) image). c2w (4, 4) or (3, 4) sets numpy or torch
     (and for torch the device and dtype)."""
     return pixel_rays(c2w, fl_x, fl_y, cx, cy, *pixel_centres(w, h, like=c2w))
+
+
+def triangulation_angles(points: np.ndarray, centers: np.ndarray, visible: Sequence[np.ndarray]) -> np.ndarray:
+    """Widest angle (radians) between the rays from the cameras that observe each point to it.
+
+    points (P, 3); centers (V, 3) camera centres; visible[v]: indices into points that camera v observes.
+    A point observed by one camera gets 0.
+    """
+    pts = np.asarray(points, np.float64)
+    dirs: list[list[np.ndarray]] = [[] for _ in range(len(pts))]
+    for c, idx in zip(np.asarray(centers, np.float64), visible, strict=True):
+        idx = np.asarray(idx, np.int64)
+        d = pts[idx] - c
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        for i, di in zip(idx, d):
+            dirs[i].append(di)
+    angles = np.zeros(len(pts))
+    for i, ds in enumerate(dirs):
+        if len(ds) > 1:
+            a = np.stack(ds)
+            angles[i] = math.acos(float(np.clip((a @ a.T).min(), -1.0, 1.0)))
+    return angles

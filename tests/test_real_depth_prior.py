@@ -9,7 +9,8 @@ import pytest
 import torch
 
 from recon.camera import look_at
-from recon.nerf.depth_prior import DepthPrior, depth_loss, sparse_depth_targets, triangulation_angles
+from recon.camera import triangulation_angles
+from recon.nerf.depth_prior import DepthPrior, depth_loss, sparse_depth_targets
 from recon.nerf.fast import FastConfig, FastModel
 from recon.nerf.fitting import RayBatcher
 from recon.nerf.pieces import DepthPriorLoss

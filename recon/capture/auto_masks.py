@@ -1,8 +1,8 @@
 """Object masks for captures that come without them: the object the cameras look at, cut out of every photo.
 
-No learned weights. The sparse points of the object region (`recon.capture.region`) seen by a photo seed the object; the
-points on the cut support plane, the points outside the region and every pixel outside the region's projected box
-seed the background; GrabCut (colour models and a graph cut, OpenCV) segments between them. Then the photos vote:
+No learned weights. The sparse points of the object region (`recon.capture.region`) that SfM placed surely seed the
+object, each its own pixel; the points on the cut support plane, the points outside the region and every pixel outside
+the region's projected box seed the background; GrabCut (colour models and a graph cut, OpenCV) segments between them. Then the photos vote:
 a pixel stays object only where its ray passes through space that (almost) no photo calls background — the masks'
 visual hull. How well each photo's cut agrees with the hull the others carve says how sure the segmentation is.
 Finally each cut's outline is snapped to its photo's edges and made as soft as they are (`matte`, a guided filter).
@@ -10,13 +10,14 @@ Pure numpy/OpenCV on a normalized `Scene` and its photos; the caller decides wha
 """
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from recon.camera import intrinsic_matrix, pixel_centres, project
+from recon.camera import intrinsic_matrix, pixel_centres, project, triangulation_angles
 from recon.capture.images import read_image, undistort
 from recon.capture.normalization import box_corners
 from recon.capture.scene import Frame, Scene
@@ -29,9 +30,17 @@ REGION_MARGIN = 0.1
 GROUND_BAND = 0.02
 """Sparse points within this fraction of the region's size of the support plane are the plane's (background)."""
 SEED_RADIUS = 0.004
-"""Seed discs around projected sparse points, as a fraction of the photo's diagonal."""
+"""Background seed discs around projected sparse points, as a fraction of the photo's diagonal. An object point seeds
+only its own pixel: where object points are dense (a video's many frames) discs about the ones near the outline would
+paint a band of table as sure object."""
+SEED_SPREAD_PX = 1.5
+"""An object point seeds the cut only when its triangulation places it within this many pixels of the segmented
+photo: its reprojection error (at least `MIN_KEYPOINT_ERROR_PX`) over the sine of the widest angle between the rays
+that observe it (at least `MIN_TRIANGULATION_DEG`), in the photo's pixels scaled to the segmented size. A video's short
+baselines leave such uncertain points at the object's foot and silhouette, and each lands wherever its error puts it."""
+MIN_KEYPOINT_ERROR_PX, MIN_TRIANGULATION_DEG = 0.5, 1.0
 MIN_PIECE = 0.02
-"""Pieces of a cut smaller than this fraction of its largest seeded piece are dropped (a stray point's seed disc)."""
+"""Pieces of a cut smaller than this fraction of its largest seeded piece are dropped (a stray point's seed)."""
 MAX_SPECK = 2e-4
 """Enclosed background pieces smaller than this fraction of the photo are noise in the cut and become object."""
 HULL_RES = 96
@@ -111,6 +120,11 @@ def segment_object(scene: Scene, load_photo: PhotoLoader | None = None, side: in
     grown = np.stack([region[0] - REGION_MARGIN * extent, region[1] + REGION_MARGIN * extent])
     points = np.asarray(scene.points, np.float64).reshape(-1, 3)
     object_pts, background_pts = _label_points(points, region, grown, scene.ground)
+    spread = _triangulation_spread(scene, points)  # photo pixels
+
+    def certain(frame: Frame, w: int) -> np.ndarray:
+        """The object points this photo's cut takes as seeds (P,) bool: those placed within SEED_SPREAD_PX."""
+        return object_pts & (spread * (w / frame.w) <= SEED_SPREAD_PX)
 
     def cut_one(frame: Frame) -> tuple[np.ndarray, np.ndarray, np.ndarray, tuple[int, int], np.ndarray]:
         photo = np.asarray(load(frame), np.float32)[..., :3]
@@ -121,7 +135,7 @@ def segment_object(scene: Scene, load_photo: PhotoLoader | None = None, side: in
         seen = np.arange(len(points)) if seen is None else np.asarray(seen, np.int64)
         # every object point lands inside the object's outline (the object hides its own back, not its outline);
         # background points only where the photo sees them (a hidden table point may lie behind the object)
-        fg = _visible_uv(points[object_pts], frame.c2w, intr, w, h)
+        fg = _visible_uv(points[certain(frame, w)], frame.c2w, intr, w, h)
         bg = _visible_uv(points[seen[background_pts[seen]]], frame.c2w, intr, w, h)
         box_uv = _visible_uv(box_corners(grown), frame.c2w, intr, w, h, clip=False)
         known = background(frame) if background is not None else None
@@ -234,6 +248,19 @@ def _label_points(points: np.ndarray, region: np.ndarray, grown: np.ndarray,
     return inside & ~on_plane, outside | on_plane
 
 
+def _triangulation_spread(scene: Scene, points: np.ndarray) -> np.ndarray:
+    """(P,) how far each point's triangulation may place it off its true position, seen across a view at its distance,
+    in the photos' pixels (see SEED_SPREAD_PX); points without a reprojection error count MIN_KEYPOINT_ERROR_PX. A
+    scene that does not say which photo observes which point (an import) gives no spread: every point is taken."""
+    if not scene.point_visibility:
+        return np.zeros(len(points))
+    angles = triangulation_angles(points, np.array([f.c2w[:3, 3] for f in scene.frames]),
+                                  [np.asarray(scene.point_visibility.get(f.name, ()), np.int64) for f in scene.frames])
+    error = (np.zeros(len(points)) if scene.point_errors is None or len(scene.point_errors) != len(points)
+             else np.asarray(scene.point_errors, np.float64).reshape(-1))
+    return np.maximum(error, MIN_KEYPOINT_ERROR_PX) / np.maximum(np.sin(angles), math.sin(math.radians(MIN_TRIANGULATION_DEG)))
+
+
 def _visible_uv(points: np.ndarray, c2w: np.ndarray, intr: np.ndarray, w: int, h: int, clip: bool = True) -> np.ndarray:
     """(M, 2) pixel coordinates of the points in front of the camera (and, with clip, inside the frame)."""
     if not len(points):
@@ -263,8 +290,8 @@ def _grabcut(cv2, photo: np.ndarray, fg: np.ndarray, bg: np.ndarray, box_uv: np.
         label[known_background] = cv2.GC_BGD
     for u, v in np.round(bg).astype(np.int32):
         cv2.circle(label, (int(u), int(v)), radius, int(cv2.GC_BGD), -1)
-    for u, v in np.round(fg).astype(np.int32):
-        cv2.circle(label, (int(u), int(v)), radius, int(cv2.GC_FGD), -1)
+    px = np.clip(np.round(fg).astype(np.int64), 0, [w - 1, h - 1])
+    label[px[:, 1], px[:, 0]] = cv2.GC_FGD  # each object point its own pixel (SEED_RADIUS)
     image = np.round(np.clip(photo, 0, 1) * 255).astype(np.uint8)
     bgd, fgd = np.zeros((1, 65), np.float64), np.zeros((1, 65), np.float64)
     cv2.setRNGSeed(0)
@@ -283,7 +310,7 @@ def _keep_seeded_pieces(cv2, cut: np.ndarray, fg: np.ndarray) -> np.ndarray:
     px = np.clip(np.round(fg).astype(np.int64), 0, [w - 1, h - 1])
     seeded = np.unique(labels[px[:, 1], px[:, 0]])
     seeded = seeded[seeded > 0]
-    if len(seeded):  # a stray point's lone seed disc is no piece of the object
+    if len(seeded):  # a stray point's lone seed is no piece of the object
         area = pieces[seeded, cv2.CC_STAT_AREA]
         seeded = seeded[area >= MIN_PIECE * area.max()]
     keep = np.isin(labels, seeded)

@@ -25,12 +25,12 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from recon.camera import project
+from recon.camera import project, triangulation_angles
 
 from .rays import ray_aabb
 from .render import RadianceModel
 
-__all__ = ["DepthTargets", "DepthPrior", "depth_loss", "sparse_depth_targets", "triangulation_angles"]
+__all__ = ["DepthTargets", "DepthPrior", "depth_loss", "sparse_depth_targets"]
 
 MIN_PIXEL_ERROR = 0.5
 """Floor on a point's reprojection error (training pixels): the keypoint's position is no better than that."""
@@ -51,28 +51,6 @@ class DepthTargets:
 
     def __len__(self) -> int:
         return int(self.depth.shape[0])
-
-
-def triangulation_angles(points: np.ndarray, centers: np.ndarray, visible: Sequence[np.ndarray]) -> np.ndarray:
-    """Widest angle (radians) between the rays from the cameras that observe each point to it.
-
-    points (P, 3); centers (V, 3) camera centres; visible[v]: indices into points that camera v observes.
-    A point observed by one camera gets 0.
-    """
-    pts = np.asarray(points, np.float64)
-    dirs: list[list[np.ndarray]] = [[] for _ in range(len(pts))]
-    for c, idx in zip(np.asarray(centers, np.float64), visible, strict=True):
-        idx = np.asarray(idx, np.int64)
-        d = pts[idx] - c
-        d /= np.linalg.norm(d, axis=1, keepdims=True)
-        for i, di in zip(idx, d):
-            dirs[i].append(di)
-    angles = np.zeros(len(pts))
-    for i, ds in enumerate(dirs):
-        if len(ds) > 1:
-            a = np.stack(ds)
-            angles[i] = math.acos(float(np.clip((a @ a.T).min(), -1.0, 1.0)))
-    return angles
 
 
 def sparse_depth_targets(

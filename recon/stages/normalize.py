@@ -152,4 +152,5 @@ def _write(folder: Path, masks: dict[str, np.ndarray], scene: Scene) -> None:
 
 # version 6: automatic masks are soft at their outlines, snapped to the photos' edges
 # version 7: a masked object's box holds the masks' visual hull
-STAGE = Stage(name="normalize", folder="02_scene", inputs=("poses",), version=7, run=run)
+# version 8: automatic masks seeded by surely placed points only, each its own pixel
+STAGE = Stage(name="normalize", folder="02_scene", inputs=("poses",), version=8, run=run)
