@@ -143,7 +143,7 @@ def main(argv: list[str] | None = None) -> None:
         "variants": rows,
     }
     out = REPO / "benchmarks" / "results" / f"{a.name}.json"
-    write_json_atomic(out, record)
+    write_json_atomic(out, [record])  # a record is a list of rows
     print(f"record: {out}")
 
 

@@ -21,7 +21,6 @@ callers (the fixture generators, normalization) stay light. The rest (`look_at`,
 """
 from __future__ import annotations
 
-import math
 import sys
 from collections.abc import Sequence
 from types import ModuleType
@@ -304,5 +303,5 @@ def triangulation_angles(points: np.ndarray, centers: np.ndarray, visible: Seque
     for i, ds in enumerate(dirs):
         if len(ds) > 1:
             a = np.stack(ds)
-            angles[i] = math.acos(float(np.clip((a @ a.T).min(), -1.0, 1.0)))
+            angles[i] = float(np.arccos(np.clip((a @ a.T).min(), -1.0, 1.0)))
     return angles
