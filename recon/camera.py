@@ -285,6 +285,12 @@ def image_rays(c2w: Array, fl_x: Any, fl_y: Any, cx: Any, cy: Any, w: int, h: in
     return pixel_rays(c2w, fl_x, fl_y, cx, cy, *pixel_centres(w, h, like=c2w))
 
 
+MIN_KEYPOINT_ERROR_PX = 0.5
+"""Floor on a sparse point's reprojection error (pixels): a keypoint's position is no better than that."""
+MIN_TRIANGULATION_DEG = 1.0
+"""Floor on a point's triangulation angle: a point seen along nearly one direction has a very uncertain depth."""
+
+
 def triangulation_angles(points: np.ndarray, centers: np.ndarray, visible: Sequence[np.ndarray]) -> np.ndarray:
     """Widest angle (radians) between the rays from the cameras that observe each point to it.
 

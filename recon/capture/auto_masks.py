@@ -2,10 +2,11 @@
 
 No learned weights. The sparse points of the object region (`recon.capture.region`) that SfM placed surely seed the
 object, each its own pixel; the points on the cut support plane, the points outside the region and every pixel outside
-the region's projected box seed the background; GrabCut (colour models and a graph cut, OpenCV) segments between them. Then the photos vote:
-a pixel stays object only where its ray passes through space that (almost) no photo calls background — the masks'
-visual hull. How well each photo's cut agrees with the hull the others carve says how sure the segmentation is.
-Finally each cut's outline is snapped to its photo's edges and made as soft as they are (`matte`, a guided filter).
+the region's projected box seed the background; GrabCut (colour models and a graph cut, OpenCV) segments between them.
+Then the photos vote: a pixel stays object only where its ray passes through space that (almost) no photo calls
+background — the masks' visual hull. How well each photo's cut agrees with the hull the others carve says how sure the
+segmentation is. Finally each cut's outline is snapped to its photo's edges and made as soft as they are (`matte`, a
+guided filter).
 Pure numpy/OpenCV on a normalized `Scene` and its photos; the caller decides what to do with unsure masks.
 """
 from __future__ import annotations
@@ -17,7 +18,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from recon.camera import intrinsic_matrix, pixel_centres, project, triangulation_angles
+from recon.camera import (MIN_KEYPOINT_ERROR_PX, MIN_TRIANGULATION_DEG, intrinsic_matrix, pixel_centres, project,
+                          triangulation_angles)
 from recon.capture.images import read_image, undistort
 from recon.capture.normalization import box_corners
 from recon.capture.scene import Frame, Scene
@@ -38,7 +40,6 @@ SEED_SPREAD_PX = 1.5
 photo: its reprojection error (at least `MIN_KEYPOINT_ERROR_PX`) over the sine of the widest angle between the rays
 that observe it (at least `MIN_TRIANGULATION_DEG`), in the photo's pixels scaled to the segmented size. A video's short
 baselines leave such uncertain points at the object's foot and silhouette, and each lands wherever its error puts it."""
-MIN_KEYPOINT_ERROR_PX, MIN_TRIANGULATION_DEG = 0.5, 1.0
 MIN_PIECE = 0.02
 """Pieces of a cut smaller than this fraction of its largest seeded piece are dropped (a stray point's seed)."""
 MAX_SPECK = 2e-4
@@ -258,7 +259,8 @@ def _triangulation_spread(scene: Scene, points: np.ndarray) -> np.ndarray:
                                   [np.asarray(scene.point_visibility.get(f.name, ()), np.int64) for f in scene.frames])
     error = (np.zeros(len(points)) if scene.point_errors is None or len(scene.point_errors) != len(points)
              else np.asarray(scene.point_errors, np.float64).reshape(-1))
-    return np.maximum(error, MIN_KEYPOINT_ERROR_PX) / np.maximum(np.sin(angles), math.sin(math.radians(MIN_TRIANGULATION_DEG)))
+    floor = math.sin(math.radians(MIN_TRIANGULATION_DEG))
+    return np.maximum(error, MIN_KEYPOINT_ERROR_PX) / np.maximum(np.sin(angles), floor)
 
 
 def _visible_uv(points: np.ndarray, c2w: np.ndarray, intr: np.ndarray, w: int, h: int, clip: bool = True) -> np.ndarray:

@@ -25,17 +25,13 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from recon.camera import project, triangulation_angles
+from recon.camera import MIN_KEYPOINT_ERROR_PX, MIN_TRIANGULATION_DEG, project, triangulation_angles
 
 from .rays import ray_aabb
 from .render import RadianceModel
 
 __all__ = ["DepthTargets", "DepthPrior", "depth_loss", "sparse_depth_targets"]
 
-MIN_PIXEL_ERROR = 0.5
-"""Floor on a point's reprojection error (training pixels): the keypoint's position is no better than that."""
-MIN_ANGLE_DEG = 1.0
-"""Triangulation angles are floored here: a point seen along nearly one direction has a very uncertain depth."""
 
 
 @dataclass
@@ -72,7 +68,7 @@ def sparse_depth_targets(
         c2w: (V, 4, 4) OpenGL camera-to-world; intrinsics (V, 4) fl_x, fl_y, cx, cy and sizes (V, 2) w, h,
             in pixels of the training images.
         pixel_error: (P,) or scalar reprojection error of the points, in training pixels (floored at
-            MIN_PIXEL_ERROR).
+            MIN_KEYPOINT_ERROR_PX).
         alpha: per photo an (H, W) uint8 mask (>= 128 = object) or None: points that project onto the
             masked-out background are left out (those rays train as empty).
         min_sigma: floor on the depth uncertainty (e.g. the field's voxel: it cannot place a surface finer).
@@ -80,13 +76,13 @@ def sparse_depth_targets(
     The ray to a point p from a camera at o is d = (p - o) / |p - o| with target |p - o|: it passes through
     the point's projection, where the keypoint was. Its uncertainty is that of triangulation,
     sigma = |p - o| · e / (f · sin θ) (e: reprojection error in pixels, f: focal in pixels, θ: the widest
-    angle between the point's observing rays, floored at MIN_ANGLE_DEG). Points behind a camera or outside
+    angle between the point's observing rays, floored at MIN_TRIANGULATION_DEG). Points behind a camera or outside
     its image are skipped.
     """
     pts = np.asarray(points, np.float64).reshape(-1, 3)
     c2w = np.asarray(c2w, np.float64)
-    err = np.broadcast_to(np.maximum(np.asarray(pixel_error, np.float64), MIN_PIXEL_ERROR), (len(pts),))
-    theta = np.maximum(triangulation_angles(pts, c2w[:, :3, 3], visible), math.radians(MIN_ANGLE_DEG))
+    err = np.broadcast_to(np.maximum(np.asarray(pixel_error, np.float64), MIN_KEYPOINT_ERROR_PX), (len(pts),))
+    theta = np.maximum(triangulation_angles(pts, c2w[:, :3, 3], visible), math.radians(MIN_TRIANGULATION_DEG))
     out: dict[str, list[np.ndarray]] = {"o": [], "d": [], "depth": [], "sigma": [], "view": []}
     for v, idx in enumerate(visible):
         idx = np.asarray(idx, np.int64)
