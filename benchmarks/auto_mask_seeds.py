@@ -1,17 +1,20 @@
 """What limits the automatic masks of a capture with true masks: its seeds, or the cut.
 
-    python benchmarks/auto_mask_seeds.py SCENE TRUE_MASKS --name NAME
+    python benchmarks/auto_mask_seeds.py SCENE [TRUE_MASKS] --name NAME
 
 SCENE: a scene normalized by recon (`recon run PHOTOS --out SCENE --until normalize`, or a `recon bench` scene's
 `*-poses` folder); TRUE_MASKS: the generator's true object masks, named like the photos (gen_tabletop.py's
-`capture/masks/`, gen_video.py's `masks/`). Cuts the object out of every photo again (`segment_object`) as shipped
-and with its seeds changed, and scores each against the true masks: IoU per photo (median, least), how much of the
-outline lies on the photo's edges (the median photo's: what `MIN_EDGE_SUPPORT` judges) and whether the masks would be
-trusted. Variants:
+`capture/masks/`, gen_video.py's `masks/`; a real capture without them, e.g. the fox, gets no IoU and no oracles).
+Cuts the object out of every photo again (`segment_object`) as shipped and with its seeds changed, and scores each
+against the true masks: IoU per photo (median, least), how much of the outline lies on the photo's edges (the median
+photo's: what `MIN_EDGE_SUPPORT` judges), how much of the median photo's cut lies in the hull (what `MIN_AGREEMENT`
+judges) and whether the masks would be trusted. Variants:
 
-- shipped: as normalize runs it (object seeds: the points SfM placed within `SEED_SPREAD_PX`, each its own pixel);
-- every point, seed discs: the cut before that (every object point seeds a disc of `SEED_RADIUS`, as the background
-  points do);
+- shipped: as normalize runs it (object seeds: the points SfM placed within `SEED_SPREAD_PX`, each its own pixel;
+  every photo cut again from the hull of the first cuts, `CONSENSUS_ROUNDS`);
+- one cut: shipped without the second cut (`CONSENSUS_ROUNDS` = 0);
+- every point, seed discs: the seeds before `SEED_SPREAD_PX` (every object point seeds a disc of `SEED_RADIUS`, as
+  the background points do), one cut;
 - true object seeds: shipped, with the object seeds that fall outside the true mask dropped (an oracle);
 - true seeds and a background ring: also 150 background seeds 3-4 px outside the true mask (an oracle).
 
@@ -39,7 +42,7 @@ RING_SEEDS = 150
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("scene", type=Path)
-    ap.add_argument("true_masks", type=Path)
+    ap.add_argument("true_masks", type=Path, nargs="?")
     ap.add_argument("--name", required=True, help="the record's name: benchmarks/results/NAME.json")
     a = ap.parse_args(argv)
 
@@ -67,8 +70,9 @@ def main(argv: list[str] | None = None) -> None:
         photo = read_image(scene.image_path(frame), max_side=am.SEGMENT_SIDE)[..., :3]
         h, w = photo.shape[:2]
         intr = np.array(frame.intrinsics_at(w, h))
-        t = true_mask(frame, w, h).astype(np.float32)[..., None].repeat(3, axis=-1)
-        truth_of[frame.name] = am.undistort(t, *intr, frame.distortion, frame.camera_model)[..., 0] > 0.5
+        if a.true_masks is not None:
+            t = true_mask(frame, w, h).astype(np.float32)[..., None].repeat(3, axis=-1)
+            truth_of[frame.name] = am.undistort(t, *intr, frame.distortion, frame.camera_model)[..., 0] > 0.5
         return photo
 
     original_grabcut, original_spread = am._grabcut, am._triangulation_spread
@@ -78,9 +82,8 @@ def main(argv: list[str] | None = None) -> None:
         def spread(scene_, points_):
             return np.zeros(len(points_)) if name == "every point, seed discs" else original_spread(scene_, points_)
 
-        def grabcut(cv2_, photo, fg, bg, box_uv, known=None):
-            t = truth_of[current["frame"]]
-            h, w = t.shape
+        def grabcut(cv2_, photo, fg, bg, box_uv, known=None, prior=None):
+            h, w = photo.shape[:2]
             if name == "every point, seed discs":  # each seed grown to a disc of SEED_RADIUS
                 radius = max(1, round(am.SEED_RADIUS * float(np.hypot(w, h))))
                 dy, dx = np.mgrid[-radius:radius + 1, -radius:radius + 1]
@@ -88,6 +91,7 @@ def main(argv: list[str] | None = None) -> None:
                 fg = (np.round(fg)[:, None, :] + disc[None]).reshape(-1, 2)
                 fg = fg[(fg[:, 0] >= 0) & (fg[:, 0] < w) & (fg[:, 1] >= 0) & (fg[:, 1] < h)]
             if name.startswith("true"):
+                t = truth_of[current["frame"]]
                 px = np.clip(np.round(fg).astype(np.int64), 0, [w - 1, h - 1])
                 fg = fg[t[px[:, 1], px[:, 0]]]
             if name == "true seeds and a background ring":
@@ -96,13 +100,16 @@ def main(argv: list[str] | None = None) -> None:
                 ys, xs = np.nonzero(ring)
                 pick = np.random.default_rng(0).choice(len(ys), min(len(ys), RING_SEEDS), replace=False)
                 bg = np.concatenate([bg, np.stack([xs[pick], ys[pick]], axis=1)])
-            return original_grabcut(cv2_, photo, fg, bg, box_uv, known)
+            return original_grabcut(cv2_, photo, fg, bg, box_uv, known, prior)
 
         def loader(frame):
             current["frame"] = frame.name
             return load(frame)
 
+        rounds = am.CONSENSUS_ROUNDS
         am._triangulation_spread, am._grabcut = spread, grabcut
+        if name in ("one cut", "every point, seed discs"):
+            am.CONSENSUS_ROUNDS = 0
         import recon.nerf.device as device
 
         threads: Callable[[], int] = device.cpu_threads
@@ -112,21 +119,26 @@ def main(argv: list[str] | None = None) -> None:
             found = am.segment_object(scene, load_photo=loader)
         finally:
             am._triangulation_spread, am._grabcut, device.cpu_threads = original_spread, original_grabcut, threads
+            am.CONSENSUS_ROUNDS = rounds
         ious = []
-        for frame in scene.frames:
+        for frame in scene.frames if a.true_masks is not None else ():
             mask = found.masks[frame.name]
             t = true_mask(frame, mask.shape[1], mask.shape[0])
             ious.append(float((mask & t).sum() / max((mask | t).sum(), 1)))
-        row = {"variant": name, "iou_median": round(float(np.median(ious)), 4), "iou_least": round(min(ious), 4),
+        row = {"variant": name,
+               "iou_median": round(float(np.median(ious)), 4) if ious else None,
+               "iou_least": round(min(ious), 4) if ious else None,
+               "agreement_median": round(float(np.median(list(found.agreement.values()))), 4),
                "edge_support_median": round(float(np.median(list(found.edge_support.values()))), 4),
                "confident": bool(found.confident), "reason": found.reason,
                "seconds": round(time.perf_counter() - clock, 1)}
-        print(f"{name}: IoU median {row['iou_median']:.3f} (least {row['iou_least']:.3f}), outline on edges "
+        iou = f"IoU median {row['iou_median']:.3f} (least {row['iou_least']:.3f}), " if ious else ""
+        print(f"{name}: {iou}cut in the hull {row['agreement_median']:.0%}, outline on edges "
               f"{row['edge_support_median']:.0%}, {'trusted' if row['confident'] else 'not trusted'}", flush=True)
         return row
 
-    rows = [variant(v) for v in ("shipped", "every point, seed discs", "true object seeds",
-                                 "true seeds and a background ring")]
+    oracles = ("true object seeds", "true seeds and a background ring") if a.true_masks is not None else ()
+    rows = [variant(v) for v in ("shipped", "one cut", "every point, seed discs", *oracles)]
     region = np.asarray(scene.region, np.float64)
     extent = region[1] - region[0]
     grown = np.stack([region[0] - am.REGION_MARGIN * extent, region[1] + am.REGION_MARGIN * extent])
@@ -136,7 +148,8 @@ def main(argv: list[str] | None = None) -> None:
     certain = original_spread(scene, points) * (min(am.SEGMENT_SIDE, max(first.w, first.h)) / max(first.w, first.h)) \
         <= am.SEED_SPREAD_PX
     record = {
-        "scene": str(a.scene), "true_masks": str(a.true_masks), "photos": len(scene.frames), **where,
+        "scene": str(a.scene), "true_masks": str(a.true_masks) if a.true_masks else None,
+        "photos": len(scene.frames), **where,
         "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
         "load_average_start": load_start, "load_average_end": [round(x, 2) for x in os.getloadavg()],
         "object_points": int(obj.sum()), "object_points_certain": int((obj & certain).sum()),
