@@ -137,3 +137,28 @@ def test_bench_provenance_names_this_commit_and_machine() -> None:
     row = {"name": "fast", **where, "date": "now", "device": "cpu", "load_average_start": [3.5, 2.0, 1.0]}
     (line,) = provenance_lines([row, {"name": "old row without provenance"}])
     assert line.startswith("- fast: commit ") and "load average 3.5" in line and "device cpu" in line
+
+
+def test_a_record_written_earlier_does_not_make_the_next_measurement_uncommitted(tmp_path, monkeypatch) -> None:
+    """Records are written one after another from one commit: a changed record is no changed code, a changed source
+    file is."""
+    import subprocess
+
+    from recon.app import bench
+
+    def git(*args: str) -> None:
+        subprocess.run(["git", "-C", str(tmp_path), "-c", "user.name=t", "-c", "user.email=t@t", *args], check=True,
+                       capture_output=True)
+
+    (tmp_path / bench.RECORDS).mkdir(parents=True)
+    (tmp_path / bench.RECORDS / "a.json").write_text("[]")
+    (tmp_path / "code.py").write_text("x = 1\n")
+    git("init", "-q")
+    git("add", "-A")
+    git("commit", "-qm", "start")
+    monkeypatch.setattr(bench, "REPO", tmp_path)
+    assert provenance()["uncommitted_changes"] is False
+    (tmp_path / bench.RECORDS / "a.json").write_text("[{}]")
+    assert provenance()["uncommitted_changes"] is False
+    (tmp_path / "code.py").write_text("x = 2\n")
+    assert provenance()["uncommitted_changes"] is True

@@ -104,9 +104,15 @@ def _cpu_model() -> str:
     return platform.processor() or platform.machine()
 
 
+RECORDS = "benchmarks/results"
+"""Where the committed benchmark records live, relative to the checkout."""
+
+
 def provenance() -> dict[str, Any]:
-    """The commit and machine a measurement ran on: what a reader needs to tell whether two numbers compare."""
-    status = _git("status", "--porcelain", "--untracked-files=no")
+    """The commit and machine a measurement ran on: what a reader needs to tell whether two numbers compare. Changes
+    under ``RECORDS`` do not count as uncommitted: a record written by an earlier command of the same sitting changes
+    no code that the next one measures."""
+    status = _git("status", "--porcelain", "--untracked-files=no", "--", ".", f":(exclude){RECORDS}")
     try:
         torch_version: str | None = metadata.version("torch")
     except metadata.PackageNotFoundError:
