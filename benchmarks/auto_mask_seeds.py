@@ -1,20 +1,21 @@
-"""What limits the automatic masks of a capture with true masks: its seeds, or the cut.
+"""What limits the automatic masks of a capture: its object region, its seeds, or the cut.
 
     python benchmarks/auto_mask_seeds.py SCENE [TRUE_MASKS] --name NAME
 
-SCENE: a scene normalized by recon (`recon run PHOTOS --out SCENE --until normalize`, or a `recon bench` scene's
-`*-poses` folder); TRUE_MASKS: the generator's true object masks, named like the photos (gen_tabletop.py's
-`capture/masks/`, gen_video.py's `masks/`; a real capture without them, e.g. the fox, gets no IoU and no oracles).
-Cuts the object out of every photo again (`segment_object`) as shipped and with its seeds changed, and scores each
-against the true masks: IoU per photo (median, least), how much of the outline lies on the photo's edges (the median
-photo's: what `MIN_EDGE_SUPPORT` judges), how much of the median photo's cut lies in the hull (what `MIN_AGREEMENT`
-judges) and whether the masks would be trusted. Variants:
+SCENE: a scene with recon's poses (`recon run PHOTOS --out SCENE --until poses`, or a `recon bench` scene's `*-poses`
+folder), normalized here from its `01_poses` as the normalize stage does before it cuts; TRUE_MASKS: the generator's
+true object masks, named like the photos (gen_tabletop.py's `capture/masks/`, gen_video.py's `masks/`; a real capture
+without them, e.g. the fox, gets no IoU and no oracles).
+Cuts the object out of every photo again (`segment_object`) as shipped, from another object region and with its seeds
+changed, and scores each against the true masks: IoU per photo (median, least), how much of the outline lies on the
+photo's edges (the median photo's: what `MIN_EDGE_SUPPORT` judges), how much of the median photo's cut lies in the
+hull (what `MIN_AGREEMENT` judges) and whether the masks would be trusted. Variants:
 
-- shipped: as normalize runs it (object seeds: the points SfM placed within `SEED_SPREAD_PX`, each its own pixel;
-  every photo cut again from the hull of the first cuts, `CONSENSUS_ROUNDS`);
-- one cut: shipped without the second cut (`CONSENSUS_ROUNDS` = 0);
+- shipped: as normalize runs it (object seeds: the points SfM placed within `SEED_SPREAD_PX`, each its own pixel);
+- in-frame region: the object region of only the points most photos keep in frame, without the points linked to
+  them (`recon.capture.region.LINK_SPACINGS` = 0): the region before those links;
 - every point, seed discs: the seeds before `SEED_SPREAD_PX` (every object point seeds a disc of `SEED_RADIUS`, as
-  the background points do), one cut;
+  the background points do);
 - true object seeds: shipped, with the object seeds that fall outside the true mask dropped (an oracle);
 - true seeds and a background ring: also 150 background seeds 3-4 px outside the true mask (an oracle).
 
@@ -52,9 +53,19 @@ def main(argv: list[str] | None = None) -> None:
     from recon.atomic import write_json_atomic
     from recon.capture import auto_masks as am
     from recon.capture.images import read_image
+    from recon.capture import region as object_region
+    from recon.capture.normalization import normalize
     from recon.capture.scene import load_scene
+    from recon.config import NormalizeConfig
 
-    scene = load_scene(a.scene / "02_scene")
+    source = load_scene(a.scene / "01_poses")
+    scene = normalize(source, NormalizeConfig())
+    links = object_region.LINK_SPACINGS
+    object_region.LINK_SPACINGS = 0.0
+    try:
+        in_frame = normalize(source, NormalizeConfig())
+    finally:
+        object_region.LINK_SPACINGS = links
     where = provenance()
     load_start = [round(x, 2) for x in os.getloadavg()]
     truth_of: dict[str, np.ndarray] = {}
@@ -78,11 +89,11 @@ def main(argv: list[str] | None = None) -> None:
     original_grabcut, original_spread = am._grabcut, am._triangulation_spread
     current: dict[str, str] = {}
 
-    def variant(name: str) -> dict[str, Any]:
+    def variant(name: str, scene: Any = scene) -> dict[str, Any]:
         def spread(scene_, points_):
             return np.zeros(len(points_)) if name == "every point, seed discs" else original_spread(scene_, points_)
 
-        def grabcut(cv2_, photo, fg, bg, box_uv, known=None, prior=None):
+        def grabcut(cv2_, photo, fg, bg, box_uv, known=None):
             h, w = photo.shape[:2]
             if name == "every point, seed discs":  # each seed grown to a disc of SEED_RADIUS
                 radius = max(1, round(am.SEED_RADIUS * float(np.hypot(w, h))))
@@ -100,16 +111,13 @@ def main(argv: list[str] | None = None) -> None:
                 ys, xs = np.nonzero(ring)
                 pick = np.random.default_rng(0).choice(len(ys), min(len(ys), RING_SEEDS), replace=False)
                 bg = np.concatenate([bg, np.stack([xs[pick], ys[pick]], axis=1)])
-            return original_grabcut(cv2_, photo, fg, bg, box_uv, known, prior)
+            return original_grabcut(cv2_, photo, fg, bg, box_uv, known)
 
         def loader(frame):
             current["frame"] = frame.name
             return load(frame)
 
-        rounds = am.CONSENSUS_ROUNDS
         am._triangulation_spread, am._grabcut = spread, grabcut
-        if name in ("one cut", "every point, seed discs"):
-            am.CONSENSUS_ROUNDS = 0
         import recon.nerf.device as device
 
         threads: Callable[[], int] = device.cpu_threads
@@ -119,7 +127,6 @@ def main(argv: list[str] | None = None) -> None:
             found = am.segment_object(scene, load_photo=loader)
         finally:
             am._triangulation_spread, am._grabcut, device.cpu_threads = original_spread, original_grabcut, threads
-            am.CONSENSUS_ROUNDS = rounds
         ious = []
         for frame in scene.frames if a.true_masks is not None else ():
             mask = found.masks[frame.name]
@@ -138,7 +145,8 @@ def main(argv: list[str] | None = None) -> None:
         return row
 
     oracles = ("true object seeds", "true seeds and a background ring") if a.true_masks is not None else ()
-    rows = [variant(v) for v in ("shipped", "one cut", "every point, seed discs", *oracles)]
+    rows = [variant("shipped"), variant("in-frame region", in_frame),
+            *[variant(v) for v in ("every point, seed discs", *oracles)]]
     region = np.asarray(scene.region, np.float64)
     extent = region[1] - region[0]
     grown = np.stack([region[0] - am.REGION_MARGIN * extent, region[1] + am.REGION_MARGIN * extent])

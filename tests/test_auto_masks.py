@@ -149,9 +149,8 @@ def test_the_other_photos_fill_a_hole_one_cut_leaves_in_the_object(monkeypatch: 
     photos[name][patch] = marker
     grabcut = auto_masks._grabcut
 
-    def cut_with_a_hole(cv2, photo, fg, bg, box_uv, known_background, prior=None):
-        marked = np.all(np.abs(photo - marker) < 1e-3, axis=-1)
-        return grabcut(cv2, photo, fg, bg, box_uv, known_background, prior) & ~marked
+    def cut_with_a_hole(cv2, photo, fg, bg, box_uv, known_background):
+        return grabcut(cv2, photo, fg, bg, box_uv, known_background) & ~np.all(np.abs(photo - marker) < 1e-3, axis=-1)
 
     monkeypatch.setattr(auto_masks, "_grabcut", cut_with_a_hole)
     found = segment_object(scene, load_photo=lambda f: photos[f.name])
@@ -179,35 +178,6 @@ def test_an_opening_the_hull_sees_through_stays_background() -> None:
     assert np.array_equal(_fill_agreed_holes(cv2, ring, everything), disc)
     narrow_tunnel = disc & (r >= 3)  # the hull sees through a narrower opening: the hole is not the hull's to fill
     assert np.array_equal(_fill_agreed_holes(cv2, ring, narrow_tunnel), ring)
-
-
-def test_the_second_cut_learns_the_objects_colours_from_the_hull_not_from_its_own_seeds() -> None:
-    """A disc half red, half yellow whose few object seeds all lie on the red half: cut from its seeds the yellow half
-    is background; cut from the silhouette of a hull fatter than the disc (the consensus round) both halves are object
-    and the surplus of the silhouette is not, since the graph cut still decides by the photo's colours."""
-    import cv2
-
-    from recon.capture.auto_masks import _grabcut
-
-    side = 120
-    v, u = np.mgrid[0:side, 0:side] + 0.5
-    rng = np.random.default_rng(0)
-    grain = rng.uniform(0, 1, (side, side))
-    photo = np.stack([0.2 + 0.1 * grain, 0.5 + 0.2 * grain, 0.5 + 0.1 * grain], -1).astype(np.float32)
-    disc = (u - 60) ** 2 + (v - 60) ** 2 < 30**2
-    photo[disc & (u < 60)] = [0.8, 0.15, 0.1]
-    photo[disc & (u >= 60)] = [0.9, 0.85, 0.2]
-    photo += rng.normal(0, 0.02, photo.shape).astype(np.float32)
-    fg = np.array([[45, 50], [40, 65], [50, 70], [48, 55], [42, 60]], float)  # on the red half only
-    around = np.linspace(0, 2 * np.pi, 40, endpoint=False)
-    bg = np.stack([60 + 45 * np.cos(around), 60 + 45 * np.sin(around)], axis=1)
-    box = np.array([[5, 5], [115, 5], [115, 115], [5, 115]] * 2, float)
-    alone = _grabcut(cv2, photo, fg, bg, box)
-    assert _iou(alone, disc) < 0.6 and not alone[disc & (u > 70)].any()
-    silhouette = (u - 60) ** 2 + (v - 60) ** 2 < 40**2
-    assert _iou(silhouette, disc) < 0.6
-    again = _grabcut(cv2, photo, fg, bg, box, prior=silhouette)
-    assert _iou(again, disc) > 0.97
 
 
 def test_photos_that_do_not_fit_their_cameras_are_not_trusted() -> None:

@@ -176,3 +176,52 @@ def test_cameras_around_an_object_find_no_wall() -> None:
     board = np.column_stack([np.full(3000, -0.5) + rng.normal(0, 0.003, 3000), rng.uniform(-3, 3, (3000, 2))])
     region = region_of(np.concatenate([ball, board]), cameras())
     assert region is not None and region.ground is None
+
+
+def test_the_region_holds_a_part_that_close_ups_leave_out_of_frame(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A ball with a long handle on a table in a room, photographed from a ring and from close up: the close-ups keep
+    the ball in frame but not the handle's end, so too few photos show it to make the region by themselves; it is
+    linked to the ball's points, so the region holds it, and still neither table nor room."""
+    from recon.capture import region as object_region_module
+    from recon.capture.region import in_view_fraction
+
+    rng = np.random.default_rng(5)
+    ball, labels = tabletop_points(rng)
+    along = np.linspace(0.3, 0.9, 41)
+    handle = np.column_stack([along, np.zeros_like(along), np.zeros_like(along)]) + rng.normal(0, 0.004, (41, 3))
+    points = np.concatenate([ball, handle])
+    labels = np.concatenate([labels, np.full(len(handle), 3)])
+    frames = cameras() + cameras(radius=1.0)
+    c2ws = np.stack([f.c2w for f in frames])
+    seen = in_view_fraction(handle, c2ws, np.array([[f.fl_x, f.fl_y, f.cx, f.cy] for f in frames]),
+                            np.array([[f.w, f.h] for f in frames]))
+    far = handle[:, 0] > 0.75
+    assert seen[far].max() < object_region_module.IN_VIEW_FRACTION  # the close-ups lose the handle's end
+    region = region_of(points, frames)
+    assert region is not None
+    assert region.points[labels == 3].mean() > 0.95 and region.points[labels == 0].mean() > 0.8
+    assert not region.points[(labels == 1) | (labels == 2)].any()
+    assert "linked to them" in region.reason
+    monkeypatch.setattr(object_region_module, "LINK_SPACINGS", 0.0)
+    in_frame = region_of(points, frames)
+    assert not in_frame.points[len(ball):][far].any()
+
+
+def test_a_board_the_object_touches_joins_the_region_only_near_it(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A ball touching a large board that stands on the table behind it (cameras all around, so the board is no wall
+    the object hangs on): the board's points are linked to the ball's, but the region grows at most MAX_GROWTH of the
+    in-frame region's size a side, so it does not become the board."""
+    from recon.capture import region as object_region_module
+
+    rng = np.random.default_rng(6)
+    ball, _ = tabletop_points(rng, room=False)
+    board = np.column_stack([np.full(12000, -0.3), rng.uniform(-6, 6, 12000), rng.uniform(TABLE_Z, 2.0, 12000)])
+    points = np.concatenate([ball, board])
+    region = region_of(points, cameras())
+    monkeypatch.setattr(object_region_module, "LINK_SPACINGS", 0.0)
+    in_frame = region_of(points, cameras())
+    assert region is not None and in_frame is not None
+    assert region.points.sum() > in_frame.points.sum()
+    grown, before = np.ptp(points[region.points], axis=0), np.ptp(points[in_frame.points], axis=0)
+    assert np.all(grown <= (1 + 2 * object_region_module.MAX_GROWTH) * before + 1e-9)
+    assert grown[1] < 0.75 * np.ptp(board[:, 1])

@@ -4,10 +4,9 @@ No learned weights. The sparse points of the object region (`recon.capture.regio
 object, each its own pixel; the points on the cut support plane, the points outside the region and every pixel outside
 the region's projected box seed the background; GrabCut (colour models and a graph cut, OpenCV) segments between them.
 Then the photos vote: a pixel stays object only where its ray passes through space that (almost) no photo calls
-background — the masks' visual hull — and every photo is cut again with its colour models learnt from that hull's
-silhouette instead of its own few seeds. How well each photo's cut agrees with the hull the others carve says how
-sure the segmentation is. Finally each cut's outline is snapped to its photo's edges and made as soft as they are
-(`matte`, a guided filter).
+background — the masks' visual hull. How well each photo's cut agrees with the hull the others carve says how sure the
+segmentation is. Finally each cut's outline is snapped to its photo's edges and made as soft as they are (`matte`, a
+guided filter).
 Pure numpy/OpenCV on a normalized `Scene` and its photos; the caller decides what to do with unsure masks.
 """
 from __future__ import annotations
@@ -45,11 +44,6 @@ MIN_PIECE = 0.02
 """Pieces of a cut smaller than this fraction of its largest seeded piece are dropped (a stray point's seed)."""
 MAX_SPECK = 2e-4
 """Enclosed background pieces smaller than this fraction of the photo are noise in the cut and become object."""
-CONSENSUS_ROUNDS = 1
-"""After the first cuts every photo is cut again this many times, its colour models started from the silhouette of
-the hull all cuts carve rather than from its own seeds: where a photo's few seeds taught its cut that a shadow or a
-frame on the wall looks like the object, the other photos' agreement teaches it otherwise. The graph cut still
-decides every pixel by the photo's colours, so a photo that shows something else keeps disagreeing."""
 HULL_RES = 96
 """Grid vertices per side of the visual hull the photos vote on."""
 HULL_TOLERANCE = 0.1
@@ -133,9 +127,7 @@ def segment_object(scene: Scene, load_photo: PhotoLoader | None = None, side: in
         """The object points this photo's cut takes as seeds (P,) bool: those placed within SEED_SPREAD_PX."""
         return object_pts & (spread * (w / frame.w) <= SEED_SPREAD_PX)
 
-    def seeded(frame: Frame) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray | None, np.ndarray]:
-        """One undistorted photo and what seeds its cut: (photo, object seeds, background seeds, the grown box's
-        corners, known background or None, intrinsics), in the pixels of the photo as loaded."""
+    def cut_one(frame: Frame) -> tuple[np.ndarray, np.ndarray, np.ndarray, tuple[int, int], np.ndarray]:
         photo = np.asarray(load(frame), np.float32)[..., :3]
         h, w = photo.shape[:2]
         intr = np.array(frame.intrinsics_at(w, h))
@@ -151,33 +143,23 @@ def segment_object(scene: Scene, load_photo: PhotoLoader | None = None, side: in
         if known is not None:
             known = cv2.resize(np.asarray(known, np.float32), (w, h), interpolation=cv2.INTER_NEAREST)
             known = undistort(known, *intr, frame.distortion, frame.camera_model) > 0.5
-        return pinhole, fg, bg, box_uv, known, intr
+        return _grabcut(cv2, pinhole, fg, bg, box_uv, known), _edges(cv2, pinhole), intr, (w, h), fg
 
-    def cut_one(frame: Frame, prior: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        pinhole, fg, bg, box_uv, known, intr = seeded(frame)
-        edge = _edges(cv2, pinhole) if prior is None else np.zeros((0, 0), bool)  # the photo's edges: once
-        return _grabcut(cv2, pinhole, fg, bg, box_uv, known, prior=prior), edge, intr, fg
-
-    n = len(scene.frames)
-    priors: list[np.ndarray | None] = [None] * n
-    edges: list[np.ndarray] = []
+    cuts, intrinsics, sizes, seeds, edges = [], [], [], [], []
     # one photo per core: OpenCV's graph cut runs on one thread and releases the GIL; each cut seeds its own
     # thread's RNG, so the masks do not depend on the thread count
     with ThreadPoolExecutor(max_workers=cpu_threads()) as pool:
-        for _ in range(1 + CONSENSUS_ROUNDS):
-            cuts, intrinsics, seeds = [], [], []
-            for cut, edge, intr, fg in pool.map(cut_one, scene.frames, priors):
-                cuts.append(cut)
-                intrinsics.append(intr)
-                seeds.append(fg)
-                if edge.size:
-                    edges.append(edge)
-                if progress is not None:
-                    progress()
-            priors, _ = hull_silhouettes(grown, HULL_RES, [f.c2w for f in scene.frames], intrinsics, cuts,
-                                         HULL_TOLERANCE)
-    silhouettes = priors
-    sizes = [(cut.shape[1], cut.shape[0]) for cut in cuts]
+        for cut, edge, intr, size, fg in pool.map(cut_one, scene.frames):
+            cuts.append(cut)
+            edges.append(edge)
+            intrinsics.append(intr)
+            sizes.append(size)
+            seeds.append(fg)
+            if progress is not None:
+                progress()
+
+    n = len(cuts)
+    silhouettes, _ = hull_silhouettes(grown, HULL_RES, [f.c2w for f in scene.frames], intrinsics, cuts, HULL_TOLERANCE)
 
     finals, agreement, support, kept, total = [], {}, {}, 0, 0
     for frame, cut, silhouette, (w, h), fg, edge in zip(scene.frames, cuts, silhouettes, sizes, seeds, edges,
@@ -293,11 +275,8 @@ def _visible_uv(points: np.ndarray, c2w: np.ndarray, intr: np.ndarray, w: int, h
 
 
 def _grabcut(cv2, photo: np.ndarray, fg: np.ndarray, bg: np.ndarray, box_uv: np.ndarray,
-             known_background: np.ndarray | None = None, prior: np.ndarray | None = None) -> np.ndarray:
-    """(h, w) bool object pixels of one undistorted photo from its seeds (see the module docstring). The pixels not
-    seeded start as probably object inside the seeds' convex hull, or inside ``prior`` ((h, w) bool: the silhouette of
-    the hull the photos' earlier cuts carve) when given, and probably background elsewhere; the colour models are
-    first fitted to that start, then the graph cut may move any of them."""
+             known_background: np.ndarray | None = None) -> np.ndarray:
+    """(h, w) bool object pixels of one undistorted photo from its seeds (see the module docstring)."""
     h, w = photo.shape[:2]
     label = np.full((h, w), cv2.GC_BGD, np.uint8)
     if len(box_uv) == 8:  # the whole grown box in front of the camera: outside its outline is background
@@ -306,10 +285,8 @@ def _grabcut(cv2, photo: np.ndarray, fg: np.ndarray, bg: np.ndarray, box_uv: np.
         label[:] = cv2.GC_PR_BGD
     if len(fg) < 3:
         return np.zeros((h, w), bool)
-    if prior is None:
-        cv2.fillConvexPoly(label, cv2.convexHull(np.round(fg).astype(np.int32)), int(cv2.GC_PR_FGD))
-    else:
-        label[prior] = cv2.GC_PR_FGD
+    hull = cv2.convexHull(np.round(fg).astype(np.int32))
+    cv2.fillConvexPoly(label, hull, int(cv2.GC_PR_FGD))
     radius = max(1, round(SEED_RADIUS * float(np.hypot(w, h))))
     if known_background is not None:
         label[known_background] = cv2.GC_BGD

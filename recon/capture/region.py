@@ -2,7 +2,8 @@
 
 Phone captures of an object show the table, the floor and the room too. The object is what every photo
 keeps in frame: the sparse points that (nearly) all cameras see inside their image around the cameras'
-common focus. The ground is the largest plane of sparse points roughly normal to "up" below the focus,
+common focus, and the points linked to them off the support (close-ups leave an object's ends out of frame). The
+ground is the largest plane of sparse points roughly normal to "up" below the focus,
 found by RANSAC; an object with no ground under it may hang on a wall (a mounted head, a picture, a relief):
 then the support is the largest plane that every camera faces and the object stands out from. Pure numpy on
 sparse points and cameras (any frame; lengths in that frame's units).
@@ -25,6 +26,13 @@ GROUND_MIN_FRACTION = 0.1
 WALL_MAX_BEHIND = 0.05
 """A wall has at most this fraction of the object region's points behind it (the rest on it or in front)."""
 MIN_REGION_POINTS = 20
+LINK_SPACINGS = 6.0
+"""Points above the support closer than this many times the median spacing of the region's points are linked: the
+object is the region's points and every point linked to them, so the parts of it that close-ups leave out of frame
+(a head's ears and snout, a long handle) belong to it too (the stray-point link of `recon.capture.normalization`)."""
+MAX_GROWTH = 0.5
+"""... up to this fraction of the region's size beyond its box on each side: an object that touches a wall or a
+shelf must not make the room the object."""
 
 
 @dataclass
@@ -175,8 +183,8 @@ def object_region(
     points: np.ndarray, c2ws: np.ndarray, intrinsics: np.ndarray, sizes: np.ndarray, focus: np.ndarray, up: np.ndarray
 ) -> Region | None:
     """The sparse points of the object the cameras look at: in frame of IN_VIEW_FRACTION of the cameras and above
-    the ground plane, or in front of the wall when there is no ground (when one is found). None when fewer than
-    MIN_REGION_POINTS qualify."""
+    the ground plane, or in front of the wall when there is no ground (when one is found), and those linked to them
+    there (`linked_points`). None when fewer than MIN_REGION_POINTS qualify."""
     pts = np.asarray(points, np.float64)
     finite = np.all(np.isfinite(pts), axis=1)
     if finite.sum() < MIN_REGION_POINTS:
@@ -187,16 +195,21 @@ def object_region(
     ground = fit_ground_plane(pts, up, focus, threshold=0.01 * dist, background=~common)
     if ground is None:
         ground = fit_wall_plane(pts, c2ws[:, :3, 3], common, threshold=0.01 * dist)
-    keep = common.copy()
+    off_support = finite.copy()
     if ground is not None:
-        keep &= ground.height(np.where(finite[:, None], pts, 0.0)) > 2 * ground.threshold
+        off_support &= ground.height(np.where(finite[:, None], pts, 0.0)) > 2 * ground.threshold
+    keep = common & off_support
     if keep.sum() < MIN_REGION_POINTS:
         return None
+    in_frame = int(keep.sum())
+    keep = linked_points(pts, keep, off_support)
     background = 1.0 - keep.sum() / finite.sum()
     why = (
-        f"object of interest: the {int(keep.sum())} sparse points that at least {IN_VIEW_FRACTION:.0%} of the photos "
+        f"object of interest: the {in_frame} sparse points that at least {IN_VIEW_FRACTION:.0%} of the photos "
         f"keep in frame (around the cameras' common focus)"
     )
+    if keep.sum() > in_frame:
+        why += f" and the {int(keep.sum()) - in_frame} linked to them that fewer photos show"
     if ground is not None:
         tilt = np.degrees(np.arccos(np.clip(ground.normal @ up / np.linalg.norm(up), -1.0, 1.0)))
         what = ("ground plane" if ground.kind == "ground" else
@@ -205,3 +218,26 @@ def object_region(
                 f"{ground.threshold:.3g} units, tilt {tilt:.1f}° from up): cut away")
     why += f"; {background:.0%} of the points are background"
     return Region(keep, ground, float(background), why)
+
+
+def linked_points(points: np.ndarray, seeds: np.ndarray, candidates: np.ndarray) -> np.ndarray:
+    """(N,) bool: the seed points and the candidate points linked to them by chains of links shorter than
+    LINK_SPACINGS times the seeds' median nearest-neighbour spacing, within MAX_GROWTH of the seeds' box a side."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    seeds = np.asarray(seeds, bool)
+    lo, hi = points[seeds].min(axis=0), points[seeds].max(axis=0)
+    reach = MAX_GROWTH * (hi - lo)
+    near = np.all((points >= lo - reach) & (points <= hi + reach), axis=1)
+    pool = np.flatnonzero((np.asarray(candidates, bool) & near) | seeds)
+    spacing = float(np.median(cKDTree(points[seeds]).query(points[seeds], k=2)[0][:, 1]))
+    if spacing <= 0 or len(pool) == seeds.sum():
+        return seeds.copy()
+    pairs = cKDTree(points[pool]).query_pairs(LINK_SPACINGS * spacing, output_type="ndarray")
+    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(pool), len(pool)))
+    _, label = connected_components(graph, directed=False)
+    out = seeds.copy()
+    out[pool[np.isin(label, np.unique(label[seeds[pool]]))]] = True
+    return out

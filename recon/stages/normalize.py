@@ -8,8 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from recon.capture.auto_masks import (CONSENSUS_ROUNDS, HULL_RES, SEGMENT_SIDE, matte_photos, object_on_background,
-                                     segment_object)
+from recon.capture.auto_masks import HULL_RES, SEGMENT_SIDE, matte_photos, object_on_background, segment_object
 from recon.capture.images import read_image, save_image
 from recon.capture.normalization import box_corners, normalize
 from recon.capture.scene import Frame, Scene, load_scene
@@ -63,8 +62,7 @@ def _auto_masks(ctx: StageContext, source: Scene, scene: Scene, turntable: bool 
     """Cut the object out of every photo; when the cuts agree (or the capture is a turntable's, which nothing else
     can train), give `source`'s frames the masks (written to 02_scene/masks/). Returns how many photos got one (0:
     none) and why."""
-    cuts = (1 + CONSENSUS_ROUNDS) * len(scene.frames)  # every photo cut once, then again from the cuts' hull
-    with ctx.report.task("automatic masks: cutting the object out of each photo", total=cuts) as bar:
+    with ctx.report.task("automatic masks: cutting the object out of each photo", total=len(scene.frames)) as bar:
         found = segment_object(scene, progress=bar.advance, background=_still_background(ctx))
     final = ctx.scene_dir / ctx.folder / MASK_FOLDER  # where the masks live once the stage folder is sealed
     if not found.confident and turntable:
@@ -155,5 +153,6 @@ def _write(folder: Path, masks: dict[str, np.ndarray], scene: Scene) -> None:
 # version 6: automatic masks are soft at their outlines, snapped to the photos' edges
 # version 7: a masked object's box holds the masks' visual hull
 # version 8: automatic masks seeded by surely placed points only, each its own pixel
-# version 9: automatic masks cut twice, the second time from the hull of the first cuts
-STAGE = Stage(name="normalize", folder="02_scene", inputs=("poses",), version=9, run=run)
+# version 9: automatic masks cut twice, the second time from the hull of the first cuts (undone in version 10)
+# version 10: the object region holds the points linked to those most photos keep in frame
+STAGE = Stage(name="normalize", folder="02_scene", inputs=("poses",), version=10, run=run)
