@@ -1,12 +1,12 @@
 """The object of interest in a capture with background: what the cameras look at, and the ground it stands on.
 
-Phone captures of an object show the table, the floor and the room too. The object is what every photo
-keeps in frame: the sparse points that (nearly) all cameras see inside their image around the cameras'
-common focus, and the points linked to them off the support (close-ups leave an object's ends out of frame). The
-ground is the largest plane of sparse points roughly normal to "up" below the focus,
-found by RANSAC; an object with no ground under it may hang on a wall (a mounted head, a picture, a relief):
-then the support is the largest plane that every camera faces and the object stands out from. Pure numpy on
-sparse points and cameras (any frame; lengths in that frame's units).
+Phone captures of an object show the table, the floor and the room too. The object is what every photo keeps in
+frame: the sparse points that (nearly) all cameras see inside their image around the cameras' common focus, and the
+points linked to them off the support (close-ups leave an object's ends out of frame). The ground is the largest
+plane of sparse points roughly normal to "up" below the focus, found by RANSAC; an object with no ground under it may
+hang on a wall (a mounted head, a picture, a relief): then the support is the largest plane that every camera faces
+and the object stands out from. Numpy (and scipy's k-d tree) on sparse points and cameras (any frame; lengths in
+that frame's units).
 """
 from __future__ import annotations
 
