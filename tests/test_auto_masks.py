@@ -327,6 +327,7 @@ def test_the_normalize_stage_masks_an_object_on_a_table_and_trains_it_bounded(tm
     summary, folder = run("auto")
     result = load_scene(folder)
     assert summary["auto_masks"] == 12 and result.capture == "object" and result.has_alpha
+    assert 0.9 <= summary["auto_masks_in_hull"] <= 1.0
     assert "automatic object masks" in result.notes["masks"]
     assert (folder / "masks.png").is_file()
     for f in result.frames:
@@ -339,6 +340,7 @@ def test_the_normalize_stage_masks_an_object_on_a_table_and_trains_it_bounded(tm
     summary, folder = run("off")
     result = load_scene(folder)
     assert summary["auto_masks"] == 0 and result.capture == "unbounded" and not result.has_alpha
+    assert summary["auto_masks_in_hull"] is None  # no cut was made
     assert not (folder / "masks").exists()
 
 

@@ -665,3 +665,19 @@ def test_broken_links_are_a_clear_error_and_leave_nothing_behind(capture: Path, 
     assert_refused(*recon("run", capture, "--out", bad, *QUICK), str(bad), needle)
     assert sorted(p.name for p in links.iterdir()) == ["out"] and not (tmp_path / "batch").exists()
     assert not (tmp_path / "nowhere").exists()
+
+
+def test_a_bench_row_reads_what_the_normalize_stage_reported_and_nothing_when_it_is_missing(tmp_path: Path) -> None:
+    """The automatic masks' count and in-hull share come from the scene's manifest; a scene without one (or a stage
+    that did not report them) gives nothing rather than an error."""
+    import json
+
+    from recon.app.bench import _stage_summary
+
+    assert _stage_summary(tmp_path, "normalize") == {}
+    (tmp_path / "manifest.json").write_text(json.dumps(
+        {"stages": {"normalize": {"summary": {"auto_masks": 67, "auto_masks_in_hull": 0.95}}, "poses": {}}}))
+    assert _stage_summary(tmp_path, "normalize") == {"auto_masks": 67, "auto_masks_in_hull": 0.95}
+    assert _stage_summary(tmp_path, "poses") == {} and _stage_summary(tmp_path, "train") == {}
+    (tmp_path / "manifest.json").write_text("{not json")
+    assert _stage_summary(tmp_path, "normalize") == {}

@@ -108,6 +108,14 @@ RECORDS = "benchmarks/results"
 """Where the committed benchmark records live, relative to the checkout."""
 
 
+def _stage_summary(scene: Path, stage: str) -> dict[str, Any]:
+    """What a stage of `scene` reported when it ran (its manifest's summary), or {} when the manifest lacks it."""
+    try:
+        return json.loads((scene / "manifest.json").read_text())["stages"][stage].get("summary") or {}
+    except (OSError, ValueError, KeyError, TypeError):
+        return {}
+
+
 def provenance() -> dict[str, Any]:
     """The commit and machine a measurement ran on: what a reader needs to tell whether two numbers compare. Changes
     under ``RECORDS`` do not count as uncommitted: a record written by an earlier command of the same sitting changes
@@ -231,6 +239,9 @@ def run_bench(
             "rays_per_s": metrics["rays_per_s"],
             "evals": metrics["evals"],
         }
+        normalized = _stage_summary(scene, "normalize")
+        row["auto_masks"] = normalized.get("auto_masks")
+        row["auto_masks_in_hull"] = normalized.get("auto_masks_in_hull")
         report_path = scene / "04_mesh" / "mesh_report.json"
         if until == "mesh" and report_path.is_file():  # how whole the mesh is, with or without a true surface
             coherence = json.loads(report_path.read_text()).get("coherence", {})

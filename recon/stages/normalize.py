@@ -31,10 +31,10 @@ MIN_HULL_PHOTOS = 3
 def run(ctx: StageContext) -> dict:
     source = load_scene(ctx.inputs["poses"])
     scene = normalize(source, ctx.config)
-    masked, why = 0, ""
+    masked, why, in_hull = 0, "", None
     turntable = bool(source.notes.get("turntable"))
     if ctx.config.masks == "auto" and object_on_background(scene, turntable=turntable):
-        masked, why = _auto_masks(ctx, source, scene, turntable)
+        masked, why, in_hull = _auto_masks(ctx, source, scene, turntable)
         if masked:
             scene = normalize(source, ctx.config)
     if scene.has_alpha and scene.capture == "object":
@@ -55,15 +55,17 @@ def run(ctx: StageContext) -> dict:
         "split": counts,
         "aabb": scene.aabb.round(4).tolist(),
         "auto_masks": masked,
+        "auto_masks_in_hull": in_hull,  # the median photo's share of its cut in the hull (None: no cut was made)
     }
 
 
-def _auto_masks(ctx: StageContext, source: Scene, scene: Scene, turntable: bool = False) -> tuple[int, str]:
+def _auto_masks(ctx: StageContext, source: Scene, scene: Scene, turntable: bool = False) -> tuple[int, str, float]:
     """Cut the object out of every photo; when the cuts agree (or the capture is a turntable's, which nothing else
     can train), give `source`'s frames the masks (written to 02_scene/masks/). Returns how many photos got one (0:
-    none) and why."""
+    none), why, and the median photo's share of its cut inside the hull (what `MIN_AGREEMENT` judges)."""
     with ctx.report.task("automatic masks: cutting the object out of each photo", total=len(scene.frames)) as bar:
         found = segment_object(scene, progress=bar.advance, background=_still_background(ctx))
+    in_hull = round(float(np.median(list(found.agreement.values()))), 4) if found.agreement else 0.0
     final = ctx.scene_dir / ctx.folder / MASK_FOLDER  # where the masks live once the stage folder is sealed
     if not found.confident and turntable:
         ctx.report.warn(f"{found.reason}: used all the same, since on a turntable the room turns with the cameras and "
@@ -74,7 +76,7 @@ def _auto_masks(ctx: StageContext, source: Scene, scene: Scene, turntable: bool 
         return 0, (
             f"{found.reason}: kept the photos unmasked, so the table and room are modelled too (contracted). "
             f"Give the photos a masks/ folder (white = object) to mesh the object alone"
-        )
+        ), in_hull
     with ctx.report.task("automatic masks: snapping each outline to the photo's edges", total=len(found.masks)) as bar:
         mattes = matte_photos(scene, found.masks, progress=bar.advance)
     _write(ctx.out / MASK_FOLDER, mattes, scene)
@@ -84,7 +86,7 @@ def _auto_masks(ctx: StageContext, source: Scene, scene: Scene, turntable: bool 
     return len(found.masks), (
         f"{found.reason}: trained and meshed as a masked object. To fix a mask, copy {final} next to the photos "
         f"folder as masks/, edit it (white = object) and run again"
-    )
+    ), in_hull
 
 
 def _still_background(ctx: StageContext) -> Callable[[Frame], np.ndarray | None] | None:
