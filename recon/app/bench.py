@@ -118,8 +118,8 @@ def _stage_summary(scene: Path, stage: str) -> dict[str, Any]:
 
 def provenance() -> dict[str, Any]:
     """The commit and machine a measurement ran on: what a reader needs to tell whether two numbers compare. Changes
-    under ``RECORDS`` do not count as uncommitted: a record written by an earlier command of the same sitting changes
-    no code that the next one measures."""
+    under ``RECORDS`` do not count as uncommitted: a record one command writes changes no code that the next one
+    measures."""
     status = _git("status", "--porcelain", "--untracked-files=no", "--", ".", f":(exclude){RECORDS}")
     try:
         torch_version: str | None = metadata.version("torch")

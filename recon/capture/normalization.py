@@ -8,11 +8,8 @@ from __future__ import annotations
 from dataclasses import replace
 
 import numpy as np
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
-from scipy.spatial import cKDTree
 
-from recon.capture.region import object_region
+from recon.capture.region import linked_groups, median_spacing, object_region
 from recon.capture.scene import Frame, Scene
 from recon.config import NormalizeConfig
 from recon.errors import InputError
@@ -158,12 +155,9 @@ def _box_from_points(points: np.ndarray, link_spacings: float) -> np.ndarray | N
     finite = points[np.all(np.isfinite(points), axis=1)]
     if len(finite) < 20:
         return None
-    tree = cKDTree(finite)
-    spacing = float(np.median(tree.query(finite, k=2)[0][:, 1]))
+    spacing = median_spacing(finite)
     if spacing > 0:
-        pairs = tree.query_pairs(link_spacings * spacing, output_type="ndarray")
-        graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(finite), len(finite)))
-        _, label = connected_components(graph, directed=False)
+        label = linked_groups(finite, link_spacings * spacing)
         size = np.bincount(label)
         finite = finite[size[label] >= MIN_GROUP_FRACTION * len(finite)]
     lo, hi = finite.min(axis=0), finite.max(axis=0)

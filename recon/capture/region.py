@@ -223,21 +223,33 @@ def object_region(
 def linked_points(points: np.ndarray, seeds: np.ndarray, candidates: np.ndarray) -> np.ndarray:
     """(N,) bool: the seed points and the candidate points linked to them by chains of links shorter than
     LINK_SPACINGS times the seeds' median nearest-neighbour spacing, within MAX_GROWTH of the seeds' box a side."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-    from scipy.spatial import cKDTree
-
     seeds = np.asarray(seeds, bool)
     lo, hi = points[seeds].min(axis=0), points[seeds].max(axis=0)
     reach = MAX_GROWTH * (hi - lo)
     near = np.all((points >= lo - reach) & (points <= hi + reach), axis=1)
     pool = np.flatnonzero((np.asarray(candidates, bool) & near) | seeds)
-    spacing = float(np.median(cKDTree(points[seeds]).query(points[seeds], k=2)[0][:, 1]))
+    spacing = median_spacing(points[seeds])
     if spacing <= 0 or len(pool) == seeds.sum():
         return seeds.copy()
-    pairs = cKDTree(points[pool]).query_pairs(LINK_SPACINGS * spacing, output_type="ndarray")
-    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(pool), len(pool)))
-    _, label = connected_components(graph, directed=False)
+    label = linked_groups(points[pool], LINK_SPACINGS * spacing)
     out = seeds.copy()
     out[pool[np.isin(label, np.unique(label[seeds[pool]]))]] = True
     return out
+
+
+def median_spacing(points: np.ndarray) -> float:
+    """The median distance from each of the points (N, 3) to its nearest other one."""
+    from scipy.spatial import cKDTree
+
+    return float(np.median(cKDTree(points).query(points, k=2)[0][:, 1]))
+
+
+def linked_groups(points: np.ndarray, distance: float) -> np.ndarray:
+    """(N,) the group label of each point when points closer than `distance` are linked and links chain."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    pairs = cKDTree(points).query_pairs(distance, output_type="ndarray")
+    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(points), len(points)))
+    return connected_components(graph, directed=False)[1]
