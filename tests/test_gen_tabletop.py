@@ -143,6 +143,32 @@ def test_photos_are_auto_exposed_white_balanced_and_carry_camera_exif(capture: P
     assert info["gains"][0] == pytest.approx(np.multiply(exposures[0], info["photos"][0]["white_balance"]).tolist())
 
 
+def test_closeups_crop_the_object_and_their_masks_stay_true(tmp_path: Path) -> None:
+    """With closeups every second photo steps in on one part of the object: its mask runs off the frame, the far end
+    of the object leaves the frame in most close-ups (what the fox's close-ups do to its ears), and the masks are
+    still the object's silhouette; the orbit's photos keep the whole object in frame."""
+    from recon.capture.region import in_view_fraction
+
+    out = tt.generate(tmp_path / "cu", views=8, size="96x72", mesh_res=64, realistic=True, closeups=True)
+    doc, rows = frames(out)
+    info = json.loads((out / "scene_info.json").read_text())
+    assert info["closeups"] == [1, 3, 5, 7]
+    mesh = trimesh.load(out / "gt_mesh.ply")
+    for i, (c2w, mask, _) in enumerate(rows):
+        border = np.concatenate([mask[0], mask[-1], mask[:, 0], mask[:, -1]])
+        assert border.any() == (i in info["closeups"]), i
+        assert iou(mask, silhouette(mesh, c2w, doc, doc["k1"], doc["k2"])) > 0.95
+    cover = [mask.mean() for _, mask, _ in rows]
+    assert min(cover[1::2]) > 3 * max(cover[0::2])
+    close = np.array([rows[i][0] for i in info["closeups"]])
+    intrinsics = np.tile([doc["fl_x"], doc["fl_y"], doc["cx"], doc["cy"]], (len(close), 1))
+    sizes = np.tile([doc["w"], doc["h"]], (len(close), 1))
+    points, _ = trimesh.sample.sample_surface(mesh, 2000, seed=0)
+    assert np.mean(in_view_fraction(points, close, intrinsics, sizes) <= 0.5) > 0.2
+    with pytest.raises(ValueError, match="closeups"):
+        tt.generate(tmp_path / "no", views=2, size="32x24", realistic=True, turntable=True, closeups=True)
+
+
 def test_bench_dataset_is_the_photos_alone_with_the_truth_beside(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """`recon bench --data tabletop_realistic` gets a photos folder with no masks anywhere recon looks for them, and
     compare_to_gt finds the true poses next to the true mesh."""

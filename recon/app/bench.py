@@ -36,6 +36,7 @@ DATASETS = {
 }
 GENERATED = {"tabletop_realistic": ("gen_tabletop", {}), "tabletop_turntable": ("gen_tabletop", {"turntable": True}),
              "tabletop_sweep": ("gen_tabletop", {"turntable": True, "backdrop": True}),
+             "tabletop_closeups": ("gen_tabletop", {"closeups": True}),
              "tabletop_video": ("gen_video", {})}
 """Data sets rendered on first use (then cached) by fixtures/<generator>.py's `bench_dataset` (with these keyword
 arguments): photos (or a video) without masks.
