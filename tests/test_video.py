@@ -265,6 +265,35 @@ def test_rerun_decodes_nothing_and_a_changed_video_is_stale(posed: tuple[Path, P
     assert state["poses"] == "stale"
 
 
+def test_masks_next_to_the_video_mask_its_kept_frames(posed: tuple[Path, Path], tmp_path: Path) -> None:
+    """A masks/ folder next to the clip, one mask per kept frame named like it, is what the frames train with, and
+    the masks are inputs of the poses stage (an edited mask runs it again); one missing is exit 2, naming it."""
+    frames = load_scene(posed[0] / "01_poses").frames
+    source = tmp_path / "clip.mp4"
+    shutil.copy(posed[1].parent / "clip.mp4", source)
+    masks = tmp_path / "masks"
+    masks.mkdir()
+    disc = np.zeros((120, 160), np.uint8)
+    cv2.circle(disc, (80, 60), 40, 255, -1)
+    for frame in frames[1:]:
+        cv2.imwrite(str(masks / f"{frame.stem}.png"), disc)
+    args = ("run", str(source), "--out", str(tmp_path / "scene"), "--until", "poses", "--quiet",
+            *(a for o in POSES_OPTIONS for a in ("--set", o)))
+    code, out = _recon(*args)
+    assert code == 2 and f"{frames[0].stem}.png" in out and "video frames recon kept" in out, out
+    assert "Traceback" not in out and not (tmp_path / "scene" / "01_poses").exists()
+    cv2.imwrite(str(masks / f"{frames[0].stem}.png"), disc)
+    code, out = _recon(*args)
+    assert code == 0, out
+    scene = load_scene(tmp_path / "scene" / "01_poses")
+    assert scene.has_alpha and len(scene.frames) == len(frames)
+    assert {Path(f.mask_path) for f in scene.frames} == {(masks / f"{f.stem}.png").resolve() for f in frames}
+    config = load_config("balanced", POSES_OPTIONS)
+    cv2.imwrite(str(masks / f"{frames[3].stem}.png"), 255 - disc)
+    state = {r["stage"]: r["state"] for r in default_pipeline().state(tmp_path / "scene", config, source)}
+    assert state["poses"] == "stale"
+
+
 ACCEPT = dict(size=(400, 300), fps=15.0, seconds=20.0, pause_s=2.0, supersample=1)
 """The acceptance clip: `python fixtures/gen_video.py --supersample 1 --out DIR` (330 frames, 2 MB)."""
 

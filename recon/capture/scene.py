@@ -428,20 +428,44 @@ def _mask_path(base: Path, fd: dict, source: Path | str, check_files: bool) -> s
 MASK_FOLDER = "masks"
 
 
-def find_masks(photos: Sequence[Path]) -> tuple[Path | None, dict[str, Path]]:
-    """The masks folder beside the photos (`masks/` inside their folder or next to it) and each photo's mask
-    (same stem, any image suffix; white = object). Raises InputError naming the photos a present folder lacks."""
+def mask_homes(photos: Sequence[Path]) -> list[Path]:
+    """Where a photos folder's masks folder may be: inside it, or next to it."""
+    folder = photos[0].parent
+    return [folder / MASK_FOLDER, folder.parent / MASK_FOLDER]
+
+
+def video_mask_homes(source: Path) -> list[Path]:
+    """Where a video's masks folder may be: next to the clip, or inside (or next to) a folder of clips. Its masks are
+    named like the frames recon keeps (`recon.capture.video.frame_name`: the clip's name and the frame's index)."""
+    if source.is_file():
+        return [source.parent / MASK_FOLDER]
+    return [source / MASK_FOLDER, source.parent / MASK_FOLDER]
+
+
+def find_masks(photos: Sequence[Path], homes: Sequence[Path] | None = None) -> tuple[Path | None, dict[str, Path]]:
+    """The masks folder (the first of `homes` that holds one, by default `mask_homes`) and each photo's mask (same
+    stem, any image suffix; white = object). Raises InputError naming the photos a present folder lacks (`homes`
+    given: the video frames recon kept)."""
     if not photos:
         return None, {}
     folder = photos[0].parent
     # a photos folder that is itself named masks/ is not its own masks folder
-    found = next((c for c in (folder / MASK_FOLDER, folder.parent / MASK_FOLDER) if c.is_dir() and not c.samefile(folder)), None)
+    candidates = mask_homes(photos) if homes is None else homes
+    found = next((c for c in candidates if c.is_dir() and not c.samefile(folder)), None)
     if found is None:
         return None, {}
     by_stem = {p.stem: p for p in sorted(found.iterdir()) if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES}
     if not by_stem:  # an empty folder: nothing to use
         return None, {}
     missing = [p.name for p in photos if p.stem not in by_stem]
+    if missing and homes is not None:
+        raise InputError(
+            f"The masks folder {found} has no mask for {len(missing)} of the {len(photos)} video frames recon kept: "
+            f"{', '.join(Path(m).stem + '.png' for m in missing[:5])}{'…' if len(missing) > 5 else ''}. A frame's "
+            f"mask is named after the clip and the frame's index; a run without the masks folder writes its "
+            f"automatic masks under these names (SCENE/02_scene/masks/) to start from. Give every kept frame a mask "
+            f"(white = object), or move the masks folder away to run without masks."
+        )
     if missing:
         raise InputError(
             f"The masks folder {found} has no mask for {len(missing)} photo(s): {', '.join(missing[:5])}"

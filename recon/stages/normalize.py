@@ -67,15 +67,17 @@ def _auto_masks(ctx: StageContext, source: Scene, scene: Scene, turntable: bool 
         found = segment_object(scene, progress=bar.advance, background=_still_background(ctx))
     in_hull = round(float(np.median(list(found.agreement.values()))), 4) if found.agreement else 0.0
     final = ctx.scene_dir / ctx.folder / MASK_FOLDER  # where the masks live once the stage folder is sealed
+    home = "the video" if source.source_kind == "video" else "the photos folder"
     if not found.confident and turntable:
         ctx.report.warn(f"{found.reason}: used all the same, since on a turntable the room turns with the cameras and "
-                        f"no field can hold it. Check {final}.png; to fix a mask, copy {final} next to the photos "
-                        f"folder as masks/, edit it (white = object) and run again.")
+                        f"no field can hold it. Check {final}.png; to fix a mask, copy {final} next to {home} as "
+                        f"masks/, edit it (white = object) and run again.")
     elif not found.confident:
         _write(ctx.out / "masks_unsure", found.masks, scene)  # for a look; not used
         return 0, (
             f"{found.reason}: kept the photos unmasked, so the table and room are modelled too (contracted). "
-            f"Give the photos a masks/ folder (white = object) to mesh the object alone"
+            f"Give {home} a masks/ folder next to it (white = object; {final.with_name('masks_unsure')} holds these "
+            f"cuts, named as recon names the photos, to start from) to mesh the object alone"
         ), in_hull
     with ctx.report.task("automatic masks: snapping each outline to the photo's edges", total=len(found.masks)) as bar:
         mattes = matte_photos(scene, found.masks, progress=bar.advance)
@@ -84,8 +86,8 @@ def _auto_masks(ctx: StageContext, source: Scene, scene: Scene, turntable: bool 
         frame.mask_path = str(final / f"{Path(frame.file_path).stem}.png")
     source.has_alpha = True
     return len(found.masks), (
-        f"{found.reason}: trained and meshed as a masked object. To fix a mask, copy {final} next to the photos "
-        f"folder as masks/, edit it (white = object) and run again"
+        f"{found.reason}: trained and meshed as a masked object. To fix a mask, copy {final} next to {home} as "
+        f"masks/, edit it (white = object) and run again"
     ), in_hull
 
 

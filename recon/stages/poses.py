@@ -16,6 +16,7 @@ from recon.atomic import sha256_file
 from recon.capture.colmap import find_colmap_model
 from recon.capture.images import READABLE_FORMATS, camera_exif, list_photos, oriented_size, read_image, save_image
 from recon.capture.scene import (
+    MASK_FOLDER,
     Scene,
     check_cameras,
     detect_source,
@@ -25,6 +26,7 @@ from recon.capture.scene import (
     import_nerf_synthetic,
     import_npz,
     import_transforms,
+    video_mask_homes,
 )
 from recon.config import PosesConfig
 from recon.errors import InputError
@@ -90,8 +92,10 @@ def source_digest(source: Path, cfg: PosesConfig | None) -> str:
     for path in sorted(set(input_files(source, kind))):
         h.update(str(path).encode())
         h.update(sha256_file(path).encode())
-    if kind == "photos" and (source.parent / "masks").is_dir():  # masks beside the photos folder are inputs too
-        for path in sorted(p for p in (source.parent / "masks").iterdir() if p.is_file()):
+    homes = {"photos": [source.parent / MASK_FOLDER], "video": video_mask_homes(source)}.get(kind, [])
+    home = next((c for c in homes if c.is_dir()), None)  # masks beside the photos folder or the video are inputs too
+    if home is not None:
+        for path in sorted(p for p in home.iterdir() if p.is_file()):
             h.update(f"masks/{path.name}".encode())
             h.update(sha256_file(path).encode())
     return h.hexdigest()
@@ -225,7 +229,7 @@ def _video(ctx: StageContext) -> tuple[Scene, dict]:
             f"Only {len(kept)} distinct frame(s) came out of {ctx.source}: the camera barely moved. Film a slow walk "
             f"all around the object (or lower poses.video_min_change, now {cfg.video_min_change})."
         )
-    scene, summary = _structure_from_motion(ctx, photos=[p for p, _ in kept])
+    scene, summary = _structure_from_motion(ctx, photos=[p for p, _ in kept], mask_homes=video_mask_homes(ctx.source))
     times = {p.name: t for p, t in kept}
     for frame in scene.frames:
         frame.time_s = round(times[frame.name], 6)
@@ -239,8 +243,10 @@ def _video(ctx: StageContext) -> tuple[Scene, dict]:
     return scene, summary
 
 
-def _structure_from_motion(ctx: StageContext, photos: list[Path] | None = None) -> tuple[Scene, dict]:
-    """SfM on the photos of ctx.source, or on `photos` given in order (video frames: matched sequentially)."""
+def _structure_from_motion(ctx: StageContext, photos: list[Path] | None = None,
+                           mask_homes: list[Path] | None = None) -> tuple[Scene, dict]:
+    """SfM on the photos of ctx.source, or on `photos` given in order (video frames: matched sequentially, their
+    masks looked for in `mask_homes`)."""
     from recon.capture.sfm import SfmOptions, run_sfm
 
     cfg: PosesConfig = ctx.config
@@ -270,7 +276,7 @@ def _structure_from_motion(ctx: StageContext, photos: list[Path] | None = None) 
             f"Photos in {ctx.source} share a name apart from the extension ({'; '.join(' and '.join(c) for c in clashes[:5])}); "
             f"recon names views, renders and COLMAP's images by the name without extension. Rename or remove one of each."
         )
-    mask_dir, masks = find_masks(photos)
+    mask_dir, masks = find_masks(photos, mask_homes)
     if mask_dir is not None:
         ctx.report.info(
             f"masks: {len(masks)} masks in {mask_dir} (white = object): masked-out pixels train as background and "
