@@ -169,6 +169,25 @@ def test_closeups_crop_the_object_and_their_masks_stay_true(tmp_path: Path) -> N
         tt.generate(tmp_path / "no", views=2, size="32x24", realistic=True, turntable=True, closeups=True)
 
 
+def test_mounted_photos_face_the_wall_level_with_its_up(tmp_path: Path) -> None:
+    """With mounted the table top is a wall: every camera is in front of it within the cone, held level with the
+    wall's up (+Y) up to the hand's roll, and the masks are still the object's silhouette."""
+    out = tt.generate(tmp_path / "mt", views=6, size="96x72", mesh_res=64, realistic=True, mounted=True)
+    doc, rows = frames(out)
+    info = json.loads((out / "scene_info.json").read_text())
+    center, up = np.asarray(info["object_center"]), np.asarray(tt.MOUNT_UP)
+    assert info["world_up"] == list(tt.MOUNT_UP)
+    mesh = trimesh.load(out / "gt_mesh.ply")
+    tilts = []
+    for c2w, mask, _ in rows:
+        away = c2w[:3, 3] - center
+        tilts.append(np.degrees(np.arccos(away[2] / np.linalg.norm(away))))
+        assert abs(c2w[:3, 0] @ up) < np.sin(np.radians(tt.REAL_ROLL_DEG + 1))  # level with the wall's up
+        assert c2w[:3, 1] @ up > 0.4  # the photo's top is the wall's top
+        assert iou(mask, silhouette(mesh, c2w, doc, doc["k1"], doc["k2"])) > 0.95
+    assert max(tilts) < tt.MOUNT_CONE_DEG + 5 and max(tilts) - min(tilts) > 25  # in front, from spread directions
+
+
 def test_bench_dataset_is_the_photos_alone_with_the_truth_beside(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """`recon bench --data tabletop_realistic` gets a photos folder with no masks anywhere recon looks for them, and
     compare_to_gt finds the true poses next to the true mesh."""

@@ -37,6 +37,7 @@ DATASETS = {
 GENERATED = {"tabletop_realistic": ("gen_tabletop", {}), "tabletop_turntable": ("gen_tabletop", {"turntable": True}),
              "tabletop_sweep": ("gen_tabletop", {"turntable": True, "backdrop": True}),
              "tabletop_closeups": ("gen_tabletop", {"closeups": True}),
+             "wall_mounted": ("gen_tabletop", {"mounted": True, "closeups": True}),
              "tabletop_video": ("gen_video", {})}
 """Data sets rendered on first use (then cached) by fixtures/<generator>.py's `bench_dataset` (with these keyword
 arguments): photos (or a video) without masks.
