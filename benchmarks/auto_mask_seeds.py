@@ -9,7 +9,8 @@ without them, e.g. the fox, gets no IoU and no oracles).
 Cuts the object out of every photo again (`segment_object`) as shipped, from another object region and with its seeds
 changed, and scores each against the true masks: IoU per photo (median, least), how much of the outline lies on the
 photo's edges (the median photo's: what `MIN_EDGE_SUPPORT` judges), how much of the median photo's cut lies in the
-hull (what `MIN_AGREEMENT` judges) and whether the masks would be trusted. Variants:
+hull (what `MIN_AGREEMENT` judges) and whether the masks would be trusted; and how many sparse points the object
+region holds, with and without the points linked to the in-frame ones (what close-ups leave out of frame). Variants:
 
 - shipped: as normalize runs it (object seeds: the points SfM placed within `SEED_SPREAD_PX`, each its own pixel);
 - in-frame region: the object region of only the points most photos keep in frame, without the points linked to
@@ -147,11 +148,16 @@ def main(argv: list[str] | None = None) -> None:
     oracles = ("true object seeds", "true seeds and a background ring") if a.true_masks is not None else ()
     rows = [variant("shipped"), variant("in-frame region", in_frame),
             *[variant(v) for v in ("every point, seed discs", *oracles)]]
-    region = np.asarray(scene.region, np.float64)
-    extent = region[1] - region[0]
-    grown = np.stack([region[0] - am.REGION_MARGIN * extent, region[1] + am.REGION_MARGIN * extent])
+
+    def object_points(scene: Any) -> np.ndarray:
+        """(N,) bool: the sparse points the cut takes for object seeds (inside the scene's object region)."""
+        region = np.asarray(scene.region, np.float64)
+        extent = region[1] - region[0]
+        grown = np.stack([region[0] - am.REGION_MARGIN * extent, region[1] + am.REGION_MARGIN * extent])
+        return am._label_points(np.asarray(scene.points, np.float64).reshape(-1, 3), region, grown, scene.ground)[0]
+
     points = np.asarray(scene.points, np.float64).reshape(-1, 3)
-    obj, _ = am._label_points(points, region, grown, scene.ground)
+    obj = object_points(scene)
     first = scene.frames[0]
     certain = original_spread(scene, points) * (min(am.SEGMENT_SIDE, max(first.w, first.h)) / max(first.w, first.h)) \
         <= am.SEED_SPREAD_PX
@@ -161,6 +167,7 @@ def main(argv: list[str] | None = None) -> None:
         "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
         "load_average_start": load_start, "load_average_end": [round(x, 2) for x in os.getloadavg()],
         "object_points": int(obj.sum()), "object_points_certain": int((obj & certain).sum()),
+        "object_points_in_frame_region": int(object_points(in_frame).sum()),
         "variants": rows,
     }
     out = REPO / "benchmarks" / "results" / f"{a.name}.json"
