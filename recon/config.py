@@ -65,8 +65,9 @@ class NormalizeConfig:
     """Per-camera near/far come from this low/high percentile of the depths of the points it sees."""
     test_every: int = 8
     """Every Nth photo (sorted by name) is held out for testing (when the source gives no split); 0: none."""
-    val_every: int = 8
-    """Every Nth photo, offset by half of it, is held out for validation; 0: none."""
+    val_every: int = 0
+    """Every Nth photo, offset by half of it, is held out for validation (the training's progress, else shown on the
+    test photos); 0: none, so that those photos train the field too."""
     masks: Literal["auto", "off"] = "auto"
     """auto: an object capture without masks that shows a lot of table and room gets object masks cut from its
     photos (`recon.capture.auto_masks`, written to 02_scene/masks/) when they agree across photos; off: never."""
@@ -762,7 +763,7 @@ def _check_cross(config: RunConfig) -> None:
         if ((ranks % test == 0) | (ranks % val == val // 2)).all():
             raise ConfigError(
                 f"Options 'normalize.test_every'={test} and 'normalize.val_every'={val} hold out every photo: none "
-                f"would be left to train on. Raise one of them (the default is 8 and 8) or set it to 0."
+                f"would be left to train on. Raise one of them (the defaults are 8 and 0) or set it to 0."
             )
     available = machine_memory_bytes()
     for keys, what, need in implied_memory(config):

@@ -60,7 +60,7 @@ def test_sfm_poses_match_the_true_poses(posed: tuple[Path, Path, float]) -> None
 def test_normalized_sample_is_an_upright_object(posed: tuple[Path, Path, float]) -> None:
     scene = load_scene(posed[1] / "02_scene")
     assert scene.capture == "object"
-    assert {s: len(scene.split(s)) for s in ("train", "val", "test")} == {"train": 30, "val": 5, "test": 5}
+    assert {s: len(scene.split(s)) for s in ("train", "val", "test")} == {"train": 35, "val": 0, "test": 5}
     ups = np.stack([f.c2w[:3, 1] for f in scene.frames])
     assert ups[:, 2].mean() > 0.8
     assert all(0 < f.near < f.far for f in scene.frames)

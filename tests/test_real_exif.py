@@ -127,9 +127,30 @@ def test_few_photos_all_train_and_say_how_psnr_is_measured() -> None:
     few = frames(15)
     why = assign_split(few, test_every=8, val_every=8)
     assert all(f.split == "train" for f in few) and "training photos" in why and "15" in why
-    many = frames(FEW_PHOTOS)
-    assign_split(many, test_every=8, val_every=8)
-    assert sum(f.split == "test" for f in many) == 3 and sum(f.split == "train" for f in many) < FEW_PHOTOS
+    many = frames(FEW_PHOTOS + 4)
+    assign_split(many, test_every=8, val_every=0)
+    assert sum(f.split == "test" for f in many) == 3 and sum(f.split == "train" for f in many) == FEW_PHOTOS + 1
+
+
+def test_one_more_photo_never_trains_on_fewer() -> None:
+    """Above FEW_PHOTOS the held-out photos are capped so that FEW_PHOTOS still train: the number of training photos
+    never falls as photos are added (with or without validation photos), and the held-out ones stay spread."""
+    from recon.capture.normalization import FEW_PHOTOS, assign_split
+    from recon.capture.scene import Frame
+
+    for val_every in (0, 8):
+        trained = []
+        for n in range(1, 90):
+            frames = [Frame(f"/p/{i:02d}.jpg", np.eye(4), 100.0, 100.0, 50.0, 50.0, 100, 100) for i in range(n)]
+            assign_split(frames, test_every=8, val_every=val_every)
+            held = [i for i, f in enumerate(frames) if f.split != "train"]
+            trained.append(n - len(held))
+            assert trained[-1] >= min(n, FEW_PHOTOS)
+            if len(held) > 1:
+                assert max(np.diff(held + [held[0] + n])) <= 2 * n / len(held) + 1  # spread over the capture
+            if n > FEW_PHOTOS + 8:
+                assert sum(f.split == "test" for f in frames) == -(-n // 8)  # uncapped: every 8th, as before
+        assert all(b >= a for a, b in zip(trained, trained[1:])), trained
 
 
 def test_iphone_heic_photos_are_read_upright_posed_and_exported_as_jpeg(tmp_path: Path) -> None:

@@ -201,31 +201,42 @@ def _box_distance_range(c2w: np.ndarray, aabb: np.ndarray) -> tuple[float, float
 
 
 FEW_PHOTOS = 20
-"""Below this many photos every photo trains the field: a casual capture cannot spare views, and the mesh needs
-them all. Its PSNR is then measured on training photos (said in the reasons), never called held-out."""
+"""Up to this many photos every photo trains the field: a casual capture cannot spare views, and the mesh needs
+them all. Its PSNR is then measured on training photos (said in the reasons), never called held-out. Above it, no
+more photos are held out than leave this many to train: one more photo never trains the field on fewer."""
 
 
 def assign_split(frames: list[Frame], test_every: int, val_every: int) -> str:
-    """Keep a split the source gave; otherwise hold out every Nth photo by name (deterministic)."""
+    """Keep a split the source gave; otherwise hold out every Nth photo by name (deterministic), as many as leave
+    FEW_PHOTOS to train (then spread evenly by name)."""
     if any(f.split for f in frames):
         for f in frames:
             f.split = f.split or "train"
         return "split given by the source"
     order = sorted(range(len(frames)), key=lambda i: frames[i].name)
-    if len(frames) < FEW_PHOTOS:
+    if len(frames) <= FEW_PHOTOS:
         for f in frames:
             f.split = "train"
-        return (f"only {len(frames)} photos (< {FEW_PHOTOS}): all train the field that makes the mesh; PSNR is measured "
+        return (f"only {len(frames)} photos (<= {FEW_PHOTOS}): all train the field that makes the mesh; PSNR is measured "
                 f"on training photos, not held-out ones")
+    wanted = {rank: "test" for rank in range(0, len(frames), test_every)} if test_every else {}
+    if val_every:
+        wanted.update({rank: "val" for rank in range(val_every // 2, len(frames), val_every) if rank not in wanted})
+    spare = len(frames) - FEW_PHOTOS
+    capped = len(wanted) > spare
+    if capped:  # as many as leave FEW_PHOTOS to train, spread by name; tests first
+        kinds = sorted(wanted.values(), key=lambda k: k != "test")[:spare]
+        ranks = np.linspace(0, len(frames), len(kinds), endpoint=False).round().astype(int) if kinds else []
+        wanted = {int(rank): kind for rank, kind in zip(ranks, sorted(kinds, key=lambda k: k == "val"))}
     for rank, i in enumerate(order):
-        if test_every and rank % test_every == 0:
-            frames[i].split = "test"
-        elif val_every and rank % val_every == val_every // 2:
-            frames[i].split = "val"
-        else:
-            frames[i].split = "train"
+        frames[i].split = wanted.get(rank, "train")
     counts = {s: sum(f.split == s for f in frames) for s in ("train", "val", "test")}
-    return f"every {test_every}th photo held out for test, every {val_every}th (offset) for validation: {counts}"
+    held = (f"every {test_every}th photo held out for test" if test_every else "no photo held out for test") + (
+        f", every {val_every}th (offset) for validation" if val_every else
+        " (they also show the training's progress; normalize.val_every holds out others for that)")
+    if capped:
+        held += f", at most {spare} so that {FEW_PHOTOS} train"
+    return f"{held}: {counts}"
 
 
 def _drop_nonfinite_points(scene: Scene) -> Scene:
