@@ -224,19 +224,22 @@ def assign_split(frames: list[Frame], test_every: int, val_every: int) -> str:
         wanted.update({rank: "val" for rank in range(val_every // 2, len(frames), val_every) if rank not in wanted})
     spare = len(frames) - FEW_PHOTOS
     capped = len(wanted) > spare
-    if capped:  # as many as leave FEW_PHOTOS to train, spread by name; tests first
-        kinds = sorted(wanted.values(), key=lambda k: k != "test")[:spare]
-        ranks = np.linspace(0, len(frames), len(kinds), endpoint=False).round().astype(int) if kinds else []
-        wanted = {int(rank): kind for rank, kind in zip(ranks, sorted(kinds, key=lambda k: k == "val"))}
+    if capped:  # as many as leave FEW_PHOTOS to train, tests first, spread evenly by name
+        kinds = sorted(wanted.values(), key=lambda kind: kind != "test")[:spare]
+        wanted = dict(zip(np.linspace(0, len(frames), len(kinds), endpoint=False).round().astype(int).tolist(), kinds))
     for rank, i in enumerate(order):
         frames[i].split = wanted.get(rank, "train")
     counts = {s: sum(f.split == s for f in frames) for s in ("train", "val", "test")}
-    held = (f"every {test_every}th photo held out for test" if test_every else "no photo held out for test") + (
-        f", every {val_every}th (offset) for validation" if val_every else
-        " (they also show the training's progress; normalize.val_every holds out others for that)")
+    held = [f"every {test_every}th photo held out for test"] if test_every else []
+    held += [f"every {val_every}th (offset) for validation" if test_every else
+             f"every {val_every}th photo (offset) held out for validation"] if val_every else []
+    if not held:
+        return f"no photo held out (normalize.test_every=0): PSNR is measured on training photos: {counts}"
+    if not val_every:
+        held[-1] += " (they also show the training's progress; normalize.val_every holds out others for that)"
     if capped:
-        held += f", at most {spare} so that {FEW_PHOTOS} train"
-    return f"{held}: {counts}"
+        held.append(f"at most {spare} so that {FEW_PHOTOS} train")
+    return f"{', '.join(held)}: {counts}"
 
 
 def _drop_nonfinite_points(scene: Scene) -> Scene:
