@@ -1,0 +1,89 @@
+"""What close-ups do to the mesh: the generated close-up capture trained on its orbit photos alone, then on all of them.
+
+    python benchmarks/closeups_share.py --name closeups_share [--preset fast] [--data tabletop_closeups]
+
+The capture (`recon bench --data tabletop_closeups`, or `wall_mounted`: fixtures/gen_tabletop.py `--closeups`) has
+12 photos around the object and 12 close-ups of one part of it between them. Both runs train on every photo they
+get (`normalize.test_every=0`), so the only difference is the close-ups: each is `recon run` from the photos alone
+(its own SfM and automatic masks), then scored against the true surface as `recon eval --gt-mesh` does. Rows: photos,
+steps, rays/s, the mesh's F-score at 1% and 0.5% of the diagonal, Chamfer, normal agreement. Writes
+benchmarks/results/NAME.json with the commit, machine and load after each run. It measures; it asserts nothing.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import subprocess
+import sys
+from datetime import datetime, timezone
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))  # this checkout's recon, not an installed one
+
+
+def link_photos(photos: list[Path], folder: Path) -> Path:
+    """A photos folder holding exactly these photos (hard links, or copies on another file system)."""
+    if folder.exists():
+        shutil.rmtree(folder)
+    folder.mkdir(parents=True)
+    for photo in photos:
+        try:
+            os.link(photo, folder / photo.name)
+        except OSError:
+            shutil.copyfile(photo, folder / photo.name)
+    return folder
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--name", required=True, help="the record's name: benchmarks/results/NAME.json")
+    ap.add_argument("--preset", default="fast")
+    ap.add_argument("--data", default="tabletop_closeups", help="a generated capture with close-ups")
+    ap.add_argument("--work", type=Path, default=None, help="scratch folder (default: ~/.cache/recon/bench/NAME)")
+    a = ap.parse_args(argv)
+
+    from recon.app.bench import provenance, resolve_dataset
+    from recon.atomic import write_json_atomic
+    from recon.evaluation.mesh_eval import compare_to_gt
+
+    photos, gt_mesh = resolve_dataset(a.data)
+    info = json.loads((gt_mesh.parent / "scene_info.json").read_text())
+    closeups = {Path(info["frames"][i]["file_path"]).name for i in info.get("closeups", [])}
+    if not closeups:
+        raise SystemExit(f"{a.data} has no close-ups (scene_info.json lists none)")
+    every = sorted(photos.glob("*.jpg"))
+    work = a.work or Path.home() / ".cache" / "recon" / "bench" / a.name
+    where = provenance()
+    rows = []
+    for variant, chosen in (("orbit photos alone", [p for p in every if p.name not in closeups]),
+                            ("orbit photos and close-ups", every)):
+        slug = "orbit" if len(chosen) < len(every) else "all"
+        folder = link_photos(chosen, work / slug / "photos")
+        scene = work / slug / "scene"
+        load_start = [round(x, 2) for x in os.getloadavg()]
+        subprocess.run([sys.executable, "-c", "from recon.app.cli import main; main()", "run", str(folder), "--out",
+                        str(scene), "--preset", a.preset, "--set", "normalize.test_every=0", "--quiet"],
+                       check=True, cwd=REPO)
+        metrics = json.loads((scene / "03_field" / "metrics.json").read_text())
+        result = compare_to_gt(scene, gt_mesh)
+        row = {"variant": variant, "data": a.data, "preset": a.preset, "photos": len(chosen),
+               "closeups": len([p for p in chosen if p.name in closeups]), **where,
+               "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+               "load_average_start": load_start, "load_average_end": [round(x, 2) for x in os.getloadavg()],
+               "steps": metrics["steps"], "rays_per_s": round(metrics["rays_per_s"], 1),
+               "fscore_1pct": round(result["fscore@0.01"], 4), "fscore_05pct": round(result["fscore@0.005"], 4),
+               "chamfer_rel": round(result["chamfer_l1_rel"], 5),
+               "normal_consistency": round(result.get("normal_consistency", float("nan")), 4)}
+        rows.append(row)
+        print(f"{variant}: {row['photos']} photos, {row['steps']} steps, {row['rays_per_s']:,.0f} rays/s, "
+              f"F@1% {row['fscore_1pct']:.3f}, F@0.5% {row['fscore_05pct']:.3f}, Chamfer {row['chamfer_rel']:.2%}",
+              flush=True)
+        write_json_atomic(REPO / "benchmarks" / "results" / f"{a.name}.json", rows)  # a record is a list of rows
+    print(f"record: benchmarks/results/{a.name}.json")
+
+
+if __name__ == "__main__":
+    main()
