@@ -8,6 +8,8 @@ get (`normalize.test_every=0`), so the only difference is the close-ups: each is
 (its own SfM and automatic masks), then scored against the true surface as `recon eval --gt-mesh` does. Rows: photos,
 steps, rays/s, the mesh's F-score at 1% and 0.5% of the diagonal, Chamfer, normal agreement. Writes
 benchmarks/results/NAME.json with the commit, machine and load after each run. It measures; it asserts nothing.
+`--figure PATH` also draws an orbit photo, a close-up and the two meshes (their `preview_front.png`) side by side;
+with `--figure-only` from the scenes an earlier run left in `--work`.
 """
 from __future__ import annotations
 
@@ -37,12 +39,37 @@ def link_photos(photos: list[Path], folder: Path) -> Path:
     return folder
 
 
+def figure(work: Path, photos: list[Path], out: Path) -> None:
+    """An orbit photo, a close-up, and the mesh from the orbit photos alone and with the close-ups, in a row."""
+    import cv2
+    import numpy as np
+
+    side = 400
+    tiles = []
+    for path in [*photos, work / "orbit" / "scene" / "04_mesh" / "preview_front.png",
+                 work / "all" / "scene" / "04_mesh" / "preview_front.png"]:
+        img = cv2.imread(str(path))
+        if img is None:
+            raise SystemExit(f"cannot read {path}: run without --figure-only first")
+        scale = side / max(img.shape[:2])
+        img = cv2.resize(img, (round(img.shape[1] * scale), round(img.shape[0] * scale)), interpolation=cv2.INTER_AREA)
+        tile = np.full((side, side, 3), 255, np.uint8)
+        y, x = (side - img.shape[0]) // 2, (side - img.shape[1]) // 2
+        tile[y:y + img.shape[0], x:x + img.shape[1]] = img
+        tiles.append(tile)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    cv2.imwrite(str(out), np.hstack(tiles))
+    print(f"figure: {out}")
+
+
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--name", required=True, help="the record's name: benchmarks/results/NAME.json")
     ap.add_argument("--preset", default="fast")
     ap.add_argument("--data", default="tabletop_closeups", help="a generated capture with close-ups")
     ap.add_argument("--work", type=Path, default=None, help="scratch folder (default: ~/.cache/recon/bench/NAME)")
+    ap.add_argument("--figure", type=Path, default=None, help="also draw the photos and meshes into this PNG")
+    ap.add_argument("--figure-only", action="store_true", help="only draw --figure from an earlier run's scenes")
     a = ap.parse_args(argv)
 
     from recon.app.bench import provenance, resolve_dataset
@@ -56,6 +83,12 @@ def main(argv: list[str] | None = None) -> None:
         raise SystemExit(f"{a.data} has no close-ups (scene_info.json lists none)")
     every = sorted(photos.glob("*.jpg"))
     work = a.work or Path.home() / ".cache" / "recon" / "bench" / a.name
+    shown = [next(p for p in every if p.name not in closeups), next(p for p in every if p.name in closeups)]
+    if a.figure_only:
+        if a.figure is None:
+            raise SystemExit("--figure-only needs --figure PATH")
+        figure(work, shown, a.figure)
+        return
     where = provenance()
     rows = []
     for variant, chosen in (("orbit photos alone", [p for p in every if p.name not in closeups]),
@@ -83,6 +116,8 @@ def main(argv: list[str] | None = None) -> None:
               flush=True)
         write_json_atomic(REPO / "benchmarks" / "results" / f"{a.name}.json", rows)  # a record is a list of rows
     print(f"record: benchmarks/results/{a.name}.json")
+    if a.figure is not None:
+        figure(work, shown, a.figure)
 
 
 if __name__ == "__main__":
