@@ -6,7 +6,7 @@ The capture (`recon bench --data tabletop_closeups`, or `wall_mounted`: fixtures
 12 photos around the object and 12 close-ups of one part of it between them. Both runs train on every photo they
 get (`normalize.test_every=0`), so the only difference is the close-ups: each is `recon run` from the photos alone
 (its own SfM and automatic masks), then scored against the true surface as `recon eval --gt-mesh` does. Rows: photos,
-steps, rays/s, the mesh's F-score at 1% and 0.5% of the diagonal, Chamfer, normal agreement. Writes
+steps, rays/s, PSNR (on training photos: none is held out), the mesh's F-score at 1% and 0.5% of the diagonal, Chamfer, normal agreement. Writes
 benchmarks/results/NAME.json with the commit, machine and load after each run. It measures; it asserts nothing.
 `--figure PATH` also draws an orbit photo, a close-up and the two meshes (their `preview_front.png`) side by side;
 with `--figure-only` from the scenes an earlier run left in `--work`.
@@ -107,6 +107,7 @@ def main(argv: list[str] | None = None) -> None:
                "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
                "load_average_start": load_start, "load_average_end": [round(x, 2) for x in os.getloadavg()],
                "steps": metrics["steps"], "rays_per_s": round(metrics["rays_per_s"], 1),
+               "psnr": round(metrics["test"]["psnr"], 2), "psnr_on": "training photos (none held out)",
                "fscore_1pct": round(result["fscore@0.01"], 4), "fscore_05pct": round(result["fscore@0.005"], 4),
                "chamfer_rel": round(result["chamfer_l1_rel"], 5),
                "normal_consistency": round(result.get("normal_consistency", float("nan")), 4)}

@@ -230,7 +230,7 @@ def test_the_surface_preset_starts_from_the_keyed_photos_visual_hull_and_keeps_i
     metrics = json.loads((out / "03_field" / "metrics.json").read_text())
     assert [(s.name, s.action) for s in result.stages.values()] == [
         ("poses", "cached"), ("normalize", "cached"), ("train", "ran"), ("mesh", "ran")]
-    assert any(r.startswith("initial surface: the visual hull of the 30 training photos' silhouettes") for r in metrics["reasons"])
+    assert any(r.startswith("initial surface: the visual hull of the 35 training photos' silhouettes") for r in metrics["reasons"])
     model, _ = load_field(out / "03_field")
     assert model.config.init_shape == "visual_hull" and torch.isfinite(model.prior_volume).all()
     assert float(model.prior_volume.min()) < 0 < float(model.prior_volume.max())
