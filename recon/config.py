@@ -151,6 +151,10 @@ class TrainConfig:
     """Weight of the sparse-depth loss (robust, in units of each point's depth uncertainty)."""
     depth_rays: int = 512
     """Sparse-point rays rendered per step for the depth loss (on top of batch_rays)."""
+    photo_footprint: Literal["auto", "off"] = "auto"
+    """auto: a photo that sees the object finer than most (a close-up) trains downscaled to their pixel footprint
+    (`recon.plans.training.photo_sides`), so its detail is no finer than the rest and its rays no more; off: every
+    photo at max_side."""
     appearance: Literal["auto", "on", "off"] = "auto"
     """Per-photo colour transforms for exposure / white-balance changes (grid models). auto: on when the colours
     of matched points differ between neighbouring photos (recon/nerf/appearance.py); the mesh uses the neutral one."""

@@ -153,3 +153,28 @@ def test_distortion_loss_has_a_weight_for_objects_and_one_for_unbounded_captures
                                    footprint=0.01)
     assert any(r.startswith("distortion loss 0.03") and "from 30% of training on (train.fast.distortion_from)" in r
                for r in why_late)
+
+
+def test_close_ups_train_at_the_other_photos_pixel_footprint() -> None:
+    """photo_sides: on a ring of photos with every second one stepped in to 0.4 of the distance, the close-ups (and
+    only they) train at 0.4 of max_side, so their pixels on the object are as large as the others'; a ring at one
+    distance, or train.photo_footprint=off, keeps every photo at max_side."""
+    from recon.plans.training import photo_sides
+
+    def ring(closer: float) -> Scene:
+        frames = []
+        for i in range(16):
+            az = 2 * math.pi * i / 16
+            eye = 4.0 * (closer if i % 2 else 1.0) * np.array([math.cos(az), math.sin(az), 0.5])
+            frames.append(Frame(f"/p/{i:02d}.jpg", look_at(eye, np.zeros(3)), 1600.0, 1600.0, 800.0, 600.0, 1600, 1200))
+        return Scene(frames=frames, points=np.zeros((0, 3)), point_colors=np.zeros((0, 3), np.uint8),
+                     aabb=np.array([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]]))
+
+    cfg = TrainConfig(max_side=400)
+    scene = ring(0.4)
+    sides, why = photo_sides(cfg, scene, scene.frames)
+    assert set(sides) == {f.name for f in scene.frames[1::2]}
+    assert all(v == round(0.4 * 400) for v in sides.values()) and "8 of 16" in why and "2.5x finer" in why
+    even = ring(1.0)
+    assert photo_sides(cfg, even, even.frames) == ({}, "")
+    assert photo_sides(replace(cfg, photo_footprint="off"), scene, scene.frames)[0] == {}

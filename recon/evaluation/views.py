@@ -50,12 +50,13 @@ def load_view(scene: Scene, frame: Frame, max_side: int, keep_alpha: bool) -> Vi
     return View(frame.stem, np.round(np.clip(image, 0, 1) * 255).astype(np.uint8), frame.c2w, (fl_x, fl_y, cx, cy), frame.near or 0.0, frame.far or 0.0)
 
 
-def load_views(scene: Scene, frames: list[Frame], max_side: int, report: Any = None, what: str = "photos") -> list[View]:
+def load_views(scene: Scene, frames: list[Frame], max_side: int, report: Any = None, what: str = "photos",
+               sides: dict[str, int] | None = None) -> list[View]:
     """Every frame's photo at training resolution, with a progress bar when a reporter is given."""
     views = []
     with report.task(f"loading {what}", total=len(frames)) if report else contextlib.nullcontext() as bar:
         for f in frames:
-            views.append(load_view(scene, f, max_side, scene.has_alpha))
+            views.append(load_view(scene, f, (sides or {}).get(f.name, max_side), scene.has_alpha))
             if bar is not None:
                 bar.advance()
     return views

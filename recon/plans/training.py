@@ -23,6 +23,7 @@ from recon.evaluation.views import (
     border_color,
     key_backdrop,
     plain_backdrop,
+    training_focal,
     view_tensors,
 )
 from recon.geometry.visual_hull import hull_silhouettes
@@ -142,6 +143,35 @@ def transparent_for(cfg: TrainConfig, kind: str, scene: Scene,
 def with_sky(kwargs: dict[str, Any]) -> dict[str, Any]:
     """`model_spec`'s model kwargs with the fast field's background set to its sky colour (`sky_for` said on)."""
     return {**kwargs, "config": {**kwargs["config"], "background": "sky"}}
+
+
+FOOTPRINT_PERCENTILE = 75
+FOOTPRINT_SLACK = 1.25
+"""A photo trains at the pixel footprint on the object (its distance to the box's centre over its focal length at
+max_side) of the FOOTPRINT_PERCENTILE-th percentile photo when its own is over FOOTPRINT_SLACK times finer."""
+
+
+def photo_sides(cfg: TrainConfig, scene: Scene, frames: list[Frame]) -> tuple[dict[str, int], str]:
+    """({frame name: the longest side it trains at}, for the close-ups only; why), `train.photo_footprint`.
+
+    A close-up at max_side sees the object several times finer than the photos around it: the field's grids cannot
+    hold that detail, its colour loss pulls the surface apart trying, and with as many pixels as a whole-object photo
+    it takes as many of every step's rays for one part of the object. Downscaled to the others' footprint it adds
+    its view of that part and no more. Empty when every photo sees the object at about the same scale."""
+    if cfg.photo_footprint == "off" or len(frames) < 2:
+        return {}, "" if cfg.photo_footprint != "off" else "photo footprint: every photo at max_side (train.photo_footprint=off)"
+    center = np.asarray(scene.aabb, np.float64).mean(axis=0)
+    footprint = {f.name: float(np.linalg.norm(f.c2w[:3, 3] - center)) / training_focal([f], cfg.max_side) for f in frames}
+    target = float(np.percentile(list(footprint.values()), FOOTPRINT_PERCENTILE))
+    sides = {name: max(16, round(cfg.max_side * fp / target)) for name, fp in footprint.items()
+             if fp * FOOTPRINT_SLACK < target}
+    if not sides:
+        return {}, ""
+    finest = target / min(footprint[n] for n in sides)
+    return sides, (f"photo footprint: {len(sides)} of {len(frames)} training photos see the object up to "
+                   f"{finest:.1f}x finer than most (close-ups): they train downscaled to the others' pixel footprint "
+                   f"({min(sides.values())}-{max(sides.values())} px instead of {cfg.max_side}), so their detail and "
+                   f"their share of the rays match the rest (train.photo_footprint=off keeps them at max_side)")
 
 
 def choose_background(cfg: TrainConfig, scene: Scene, views: list[View], backdrop: np.ndarray | None = None) -> tuple[np.ndarray, bool, str]:

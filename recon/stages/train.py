@@ -23,7 +23,7 @@ from recon.config import TrainConfig
 from recon.errors import ReconError
 from recon.evaluation.views import View, evaluate, load_views, supersampling_note, training_focal, write_previews
 from recon.field import FIELD_FILE, save_field
-from recon.plans.training import TrainPlan, TrainSetup, build_training, plan_training
+from recon.plans.training import TrainPlan, TrainSetup, build_training, photo_sides, plan_training
 from recon.runner.pipeline import Stage, StageContext
 
 CHECKPOINT = "checkpoint.pt"
@@ -101,11 +101,14 @@ def run(ctx: StageContext) -> dict:
     test_frames = scene.split("test") or held_out
     if not train_frames:
         raise ReconError("The scene has no training views. Re-run normalize (recon normalize SCENE).")
-    photos = load_views(scene, train_frames, cfg.max_side, ctx.report, "training photos")
+    sides, sides_why = photo_sides(cfg, scene, train_frames)
+    photos = load_views(scene, train_frames, cfg.max_side, ctx.report, "training photos", sides=sides)
     phases.done("load_photos")
     plan = plan_training(cfg, scene, photos, device)
     phases.done("plan")
     ctx.report.info(f"device: {device}; background: {plan.background_why}")
+    if sides_why:
+        plan.reasons.append(sides_why)
     for r in plan.reasons:
         ctx.report.info(f"model: {r}")
     for protocol in _held_out_protocols(plan):
@@ -323,4 +326,5 @@ def _metrics(scene: Scene, device: torch.device, plan: TrainPlan, setup: TrainSe
 # version 4: train.sky=auto gives an unbounded capture with a clear sky a sky colour and trains its sky pixels empty
 # version 5: train.depth_prior=auto turns the prior on for unbounded captures without masks
 # version 6: the surface model starts from the photos' visual hull when they have silhouettes
-STAGE = Stage(name="train", folder="03_field", inputs=("normalize",), version=6, run=run)
+# version 7: close-ups train at the other photos' pixel footprint (train.photo_footprint)
+STAGE = Stage(name="train", folder="03_field", inputs=("normalize",), version=7, run=run)
