@@ -158,8 +158,10 @@ def photo_sides(cfg: TrainConfig, scene: Scene, frames: list[Frame]) -> tuple[di
     hold that detail, its colour loss pulls the surface apart trying, and with as many pixels as a whole-object photo
     it takes as many of every step's rays for one part of the object. Downscaled to the others' footprint it adds
     its view of that part and no more. Empty when every photo sees the object at about the same scale."""
-    if cfg.photo_footprint == "off" or len(frames) < 2:
-        return {}, "" if cfg.photo_footprint != "off" else "photo footprint: every photo at max_side (train.photo_footprint=off)"
+    if cfg.photo_footprint == "off":
+        return {}, "photo footprint: every photo at max_side (train.photo_footprint=off)"
+    if len(frames) < 2:
+        return {}, ""
     center = np.asarray(scene.aabb, np.float64).mean(axis=0)
     footprint = {f.name: float(np.linalg.norm(f.c2w[:3, 3] - center)) / training_focal([f], cfg.max_side) for f in frames}
     target = float(np.percentile(list(footprint.values()), FOOTPRINT_PERCENTILE))
