@@ -188,6 +188,36 @@ def test_mounted_photos_face_the_wall_level_with_its_up(tmp_path: Path) -> None:
     assert max(tilts) < tt.MOUNT_CONE_DEG + 5 and max(tilts) - min(tilts) > 25  # in front, from spread directions
 
 
+def test_a_mounted_object_hangs_on_paper_of_its_own_hues_and_casts_a_soft_shadow() -> None:
+    """The mounted capture's wall is papered in flowers coloured like the object (a wooden table's colours are far
+    from them), and its light is broad: the object's shadow on the wall has a penumbra of points that see part of
+    the light, as much shadow in all as a point light casts, where the point light's shadow has none."""
+    hard, soft = tt.Room(), tt.Room(mounted=True)
+    for room in (hard, soft):
+        room.textures(0)
+    wall = soft.props[0]
+    cx, cy, _ = soft.top.center
+    xx, yy = np.meshgrid(np.linspace(cx - 2, cx + 2, 80), np.linspace(cy - 2, cy + 2, 80))
+    on_wall = np.stack([xx.ravel(), yy.ravel(), np.full(xx.size, wall.center[2] + wall.size[2] + tt.SHADOW_BIAS)],
+                       axis=1).astype(np.float32)
+    point, broad = tt.light_seen(hard, on_wall), tt.light_seen(soft, on_wall)
+    assert set(np.unique(point)) == {0.0, 1.0}
+    assert ((broad > 0) & (broad < 1)).mean() > 0.01 and (broad == 0).mean() > 0.01  # a penumbra round an umbra
+    assert abs(broad.mean() - point.mean()) < 0.2 * (1 - point.mean())
+    dirs = tt.light_directions(on_wall[:50], tt.MOUNT_LIGHT_DEG)
+    assert dirs.shape == (tt.SOFT_SHADOW_RAYS, 50, 3)
+    assert np.degrees(np.arccos(np.clip(dirs @ gen.LIGHT_DIR.astype(np.float32), -1, 1))).max() < tt.MOUNT_LIGHT_DEG
+    rng = np.random.default_rng(0)
+    lo, hi = soft.top.object_aabb
+    object_colours = gen.albedo((lo + rng.random((1500, 3)) * (hi - lo)).astype(np.float32), soft.tables["object"])
+
+    def nearest_wall_colour(room: tt.Room) -> float:
+        colours = room.props[0].albedo(on_wall[rng.choice(len(on_wall), 1500)], room.tables["prop0"])
+        return float(np.median(np.linalg.norm(object_colours[:, None] - colours[None], axis=2).min(axis=1)))
+
+    assert nearest_wall_colour(soft) < 0.5 * nearest_wall_colour(hard)
+
+
 def test_bench_dataset_is_the_photos_alone_with_the_truth_beside(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """`recon bench --data tabletop_realistic` gets a photos folder with no masks anywhere recon looks for them, and
     compare_to_gt finds the true poses next to the true mesh."""
