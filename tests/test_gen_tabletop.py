@@ -191,15 +191,21 @@ def test_mounted_photos_face_the_wall_level_with_its_up(tmp_path: Path) -> None:
 def test_a_mounted_object_hangs_on_paper_of_its_own_hues_and_casts_a_soft_shadow() -> None:
     """The mounted capture's wall is papered in flowers coloured like the object (a wooden table's colours are far
     from them), and its light is broad: the object's shadow on the wall has a penumbra of points that see part of
-    the light, as much shadow in all as a point light casts, where the point light's shadow has none."""
-    hard, soft = tt.Room(), tt.Room(mounted=True)
-    for room in (hard, soft):
+    the light, as much shadow in all as a point light casts, where the point light's shadow has none. The object
+    hangs on a board that is part of it (it reaches past the object's extent on the wall)."""
+    table, soft, hard = tt.Room(), tt.Room(mounted=True), tt.Room(mounted=True)
+    hard.light_spread_deg = 0.0
+    for room in (table, soft, hard):
         room.textures(0)
     wall = soft.props[0]
     cx, cy, _ = soft.top.center
-    xx, yy = np.meshgrid(np.linspace(cx - 2, cx + 2, 80), np.linspace(cy - 2, cy + 2, 80))
-    on_wall = np.stack([xx.ravel(), yy.ravel(), np.full(xx.size, wall.center[2] + wall.size[2] + tt.SHADOW_BIAS)],
-                       axis=1).astype(np.float32)
+    xx, yy = np.meshgrid(np.linspace(cx - 1.5, cx + 1.5, 80), np.linspace(cy - 1.5, cy + 1.5, 80))
+    grid = np.stack([xx.ravel(), yy.ravel(), np.full(xx.size, wall.center[2] + wall.size[2] + tt.SHADOW_BIAS)],
+                    axis=1).astype(np.float32)
+    under_board = soft.top.object_sdf(grid) < 0
+    assert under_board.mean() > 0.05 and (table.top.object_sdf(grid) < 0).mean() < 0.5 * under_board.mean()
+    grid[under_board, 2] = soft.top.table_z + tt.MOUNT_BOARD[2] + tt.SHADOW_BIAS  # on the board's face
+    on_wall = grid[soft.top.object_sdf(grid) > 0]  # the wall and the board around the object
     point, broad = tt.light_seen(hard, on_wall), tt.light_seen(soft, on_wall)
     assert set(np.unique(point)) == {0.0, 1.0}
     assert ((broad > 0) & (broad < 1)).mean() > 0.01 and (broad == 0).mean() > 0.01  # a penumbra round an umbra
@@ -208,14 +214,14 @@ def test_a_mounted_object_hangs_on_paper_of_its_own_hues_and_casts_a_soft_shadow
     assert dirs.shape == (tt.SOFT_SHADOW_RAYS, 50, 3)
     assert np.degrees(np.arccos(np.clip(dirs @ gen.LIGHT_DIR.astype(np.float32), -1, 1))).max() < tt.MOUNT_LIGHT_DEG
     rng = np.random.default_rng(0)
-    lo, hi = soft.top.object_aabb
+    lo, hi = table.top.object_aabb
     object_colours = gen.albedo((lo + rng.random((1500, 3)) * (hi - lo)).astype(np.float32), soft.tables["object"])
 
     def nearest_wall_colour(room: tt.Room) -> float:
         colours = room.props[0].albedo(on_wall[rng.choice(len(on_wall), 1500)], room.tables["prop0"])
         return float(np.median(np.linalg.norm(object_colours[:, None] - colours[None], axis=2).min(axis=1)))
 
-    assert nearest_wall_colour(soft) < 0.5 * nearest_wall_colour(hard)
+    assert nearest_wall_colour(soft) < 0.5 * nearest_wall_colour(table)
 
 
 def test_bench_dataset_is_the_photos_alone_with_the_truth_beside(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
