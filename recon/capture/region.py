@@ -5,7 +5,8 @@ frame: the sparse points that (nearly) all cameras see inside their image around
 points linked to them off the support (close-ups leave an object's ends out of frame). The ground is the largest
 plane of sparse points roughly normal to "up" below the focus, found by RANSAC; an object with no ground under it may
 hang on a wall (a mounted head, a picture, a relief): then the support is the largest plane that every camera faces
-and the object stands out from. Numpy (and scipy's k-d tree) on sparse points and cameras (any frame; lengths in
+and the object stands out from, and what it hangs on (a plaque, a board) belongs to it though its plain faces give
+too few points to link. Numpy (and scipy's k-d tree) on sparse points and cameras (any frame; lengths in
 that frame's units).
 """
 from __future__ import annotations
@@ -33,6 +34,14 @@ object is the region's points and every point linked to them, so the parts of it
 MAX_GROWTH = 0.5
 """... up to this fraction of the region's size beyond its box on each side: an object that touches a wall or a
 shelf must not make the room the object."""
+MOUNT_IN_VIEW_FRACTION = 0.6
+"""What an object on a wall hangs on (`mounted_points`) shows beside it: at least this fraction of the photos (framed on
+the object, `IN_VIEW_FRACTION`) keep it in frame; the room beside the object leaves most close photos' frames."""
+MOUNT_GAP_SPACINGS = 2.0
+"""Wall shows between a point and the object (so the point is no part of its mount) when a wall point lies within
+this many times the wall points' median spacing of the line between them, seen along the wall's normal."""
+MOUNT_GAP_SAMPLES = 512
+"""... tested at most at this many places along the line (a denser wall widens the test instead)."""
 
 
 @dataclass
@@ -177,6 +186,9 @@ class Region:
     background_fraction: float
     """Share of the sparse points outside the object region (table, floor, walls, sky)."""
     reason: str
+    mount: np.ndarray | None = None
+    """(N,) bool: the object's points that are what it hangs on (`mounted_points`); too few and apart to survive a
+    stray-point filter, so a box of the object holds them as they are."""
 
 
 def object_region(
@@ -203,13 +215,21 @@ def object_region(
         return None
     in_frame = int(keep.sum())
     keep = linked_points(pts, keep, off_support)
+    linked = int(keep.sum())
+    mount = np.zeros_like(keep)
+    if ground is not None and ground.kind == "wall":
+        mount = mounted_points(pts, keep, off_support & (seen >= MOUNT_IN_VIEW_FRACTION), ground)
+        keep |= mount
     background = 1.0 - keep.sum() / finite.sum()
     why = (
         f"object of interest: the {in_frame} sparse points that at least {IN_VIEW_FRACTION:.0%} of the photos "
         f"keep in frame (around the cameras' common focus)"
     )
-    if keep.sum() > in_frame:
-        why += f" and the {int(keep.sum()) - in_frame} linked to them that fewer photos show"
+    if linked > in_frame:
+        why += f" and the {linked - in_frame} linked to them that fewer photos show"
+    if keep.sum() > linked:
+        why += (f", and the {int(keep.sum()) - linked} that stand off the wall behind it and beside it: what it is "
+                f"mounted on (a board, a plaque), too plain for SfM to place enough points on to link")
     if ground is not None:
         tilt = np.degrees(np.arccos(np.clip(ground.normal @ up / np.linalg.norm(up), -1.0, 1.0)))
         what = ("ground plane" if ground.kind == "ground" else
@@ -217,17 +237,14 @@ def object_region(
         why += (f"; {what} found by RANSAC ({ground.inliers} of {int(finite.sum())} points within "
                 f"{ground.threshold:.3g} units, tilt {tilt:.1f}° from up): cut away")
     why += f"; {background:.0%} of the points are background"
-    return Region(keep, ground, float(background), why)
+    return Region(keep, ground, float(background), why, mount)
 
 
 def linked_points(points: np.ndarray, seeds: np.ndarray, candidates: np.ndarray) -> np.ndarray:
     """(N,) bool: the seed points and the candidate points linked to them by chains of links shorter than
     LINK_SPACINGS times the seeds' median nearest-neighbour spacing, within MAX_GROWTH of the seeds' box a side."""
     seeds = np.asarray(seeds, bool)
-    lo, hi = points[seeds].min(axis=0), points[seeds].max(axis=0)
-    reach = MAX_GROWTH * (hi - lo)
-    near = np.all((points >= lo - reach) & (points <= hi + reach), axis=1)
-    pool = np.flatnonzero((np.asarray(candidates, bool) & near) | seeds)
+    pool = np.flatnonzero((np.asarray(candidates, bool) & _near_box(points, seeds)) | seeds)
     spacing = median_spacing(points[seeds])
     if spacing <= 0 or len(pool) == seeds.sum():
         return seeds.copy()
@@ -235,6 +252,50 @@ def linked_points(points: np.ndarray, seeds: np.ndarray, candidates: np.ndarray)
     out = seeds.copy()
     out[pool[np.isin(label, np.unique(label[seeds[pool]]))]] = True
     return out
+
+
+def mounted_points(points: np.ndarray, obj: np.ndarray, off_wall: np.ndarray, wall: Plane) -> np.ndarray:
+    """(N,) bool: what the object hangs on (a plaque, a board): the points (N, 3) off the wall (``off_wall``), not the
+    object's (``obj``) but within MAX_GROWTH of its box a side, no farther from the wall than its median point, and
+    with no wall showing between them and the object (seen along the wall's normal, no wall point within
+    MOUNT_GAP_SPACINGS of the wall points' spacing of the line to the object's middle). Its plain faces give
+    SfM too few points to link (`linked_points`); a curtain, a door frame or a picture beside the object stand off the
+    wall too, but wall shows between them and it."""
+    from scipy.spatial import cKDTree
+
+    obj = np.asarray(obj, bool)
+    height = wall.height(points)
+    mount = np.asarray(off_wall, bool) & ~obj & _near_box(points, obj) & (height <= np.median(height[obj]))
+    on_wall = np.abs(np.nan_to_num(height, nan=np.inf)) <= wall.threshold
+    if not mount.any() or on_wall.sum() < 2:
+        return mount
+    feet = points - height[:, None] * wall.normal  # each point's foot on the wall
+    gap = MOUNT_GAP_SPACINGS * median_spacing(feet[on_wall])
+    if not gap > 0:  # wall points all on top of each other: no telling wall from a gap in it
+        return np.zeros_like(mount)
+    candidates = np.flatnonzero(mount)
+    start = feet[candidates]
+    end = np.median(feet[obj], axis=0)[None]  # the object's middle: a stray point of it is no way through
+    length = np.linalg.norm(end - start, axis=1)
+    # samples a gap apart (at most MOUNT_GAP_SAMPLES a line, then each reaches half their spacing), both ends included
+    steps = np.clip(np.ceil(length / gap).astype(np.int64), 1, MOUNT_GAP_SAMPLES - 1) + 1
+    reach = np.maximum(gap, 0.5 * length / (steps - 1))
+    line = np.repeat(np.arange(len(candidates)), steps)
+    t = (np.arange(len(line)) - np.repeat(np.cumsum(steps) - steps, steps)) / np.repeat(steps - 1, steps)
+    along = start[line] + t[:, None] * (end - start)[line]
+    inner = (t * length[line] >= gap) & ((1 - t) * length[line] >= gap)  # a wall point beside either end is no gap
+    distance = cKDTree(feet[on_wall]).query(along, distance_upper_bound=float(reach.max()))[0]
+    hit = (distance <= reach[line]) & inner
+    blocked = np.bincount(line, weights=hit, minlength=len(candidates)) > 0
+    mount[candidates[blocked]] = False
+    return mount
+
+
+def _near_box(points: np.ndarray, seeds: np.ndarray) -> np.ndarray:
+    """(N,) bool: the points within MAX_GROWTH of the seed points' box a side."""
+    lo, hi = points[seeds].min(axis=0), points[seeds].max(axis=0)
+    reach = MAX_GROWTH * (hi - lo)
+    return np.all((points >= lo - reach) & (points <= hi + reach), axis=1)
 
 
 def median_spacing(points: np.ndarray) -> float:
