@@ -20,7 +20,8 @@ region holds, with and without the points linked to the in-frame ones (what clos
 - true object seeds: shipped, with the object seeds that fall outside the true mask dropped (an oracle);
 - true seeds and a background ring: also 150 background seeds 3-4 px outside the true mask (an oracle).
 
-Writes benchmarks/results/NAME.json with the commit, machine and load. It measures; it asserts nothing.
+Writes benchmarks/results/NAME.json with the commit, machine, load and why normalize chose the object region. It measures;
+it asserts nothing.
 """
 from __future__ import annotations
 
@@ -163,7 +164,7 @@ def main(argv: list[str] | None = None) -> None:
         <= am.SEED_SPREAD_PX
     record = {
         "scene": str(a.scene), "true_masks": str(a.true_masks) if a.true_masks else None,
-        "photos": len(scene.frames), **where,
+        "photos": len(scene.frames), "region": scene.notes.get("region"), **where,
         "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
         "load_average_start": load_start, "load_average_end": [round(x, 2) for x in os.getloadavg()],
         "object_points": int(obj.sum()), "object_points_certain": int((obj & certain).sum()),

@@ -1,0 +1,71 @@
+"""Photos beside their true masks and the masks recon made for them: a PNG, a row per photo.
+
+    python benchmarks/mask_figure.py --masks SCENE/02_scene/masks --photos DATA/photos --truth DATA/capture/masks \
+        --views view_000,view_004,view_016 --out docs/wall_mounted_board.png
+
+MASKS is a scene's automatic masks (the normalize stage's `02_scene/masks`, or `masks_unsure` when they were not
+trusted), named like the photos; TRUTH the generator's true masks (gen_tabletop.py's `capture/masks`). Each row: the
+photo, the true mask, recon's mask, and recon's IoU against the truth printed on it.
+"""
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+from PIL import Image, ImageDraw
+
+TILE_WIDTH = 320
+
+
+def _read(path: Path, size: tuple[int, int] | None = None) -> Image.Image:
+    image = Image.open(path)
+    return image.resize(size, Image.BILINEAR) if size is not None else image
+
+
+def _find(folder: Path, stem: str) -> Path:
+    for path in sorted(folder.glob(f"{stem}.*")):
+        return path
+    raise SystemExit(f"no image named {stem}.* in {folder}")
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--masks", type=Path, required=True, help="recon's masks folder")
+    parser.add_argument("--photos", type=Path, required=True)
+    parser.add_argument("--truth", type=Path, required=True, help="the true masks folder")
+    parser.add_argument("--views", required=True, help="comma-separated photo stems, e.g. view_000,view_004")
+    parser.add_argument("--out", type=Path, required=True, help="the PNG to write")
+    a = parser.parse_args()
+
+    rows = []
+    for stem in a.views.split(","):
+        photo = _read(_find(a.photos, stem)).convert("RGB")
+        size = photo.size
+        truth = np.asarray(_read(_find(a.truth, stem), size).convert("L")) > 127
+        mask = np.asarray(_read(_find(a.masks, stem), size).convert("L")) > 127
+        iou = float((mask & truth).sum() / max((mask | truth).sum(), 1))
+        tiles = [photo, Image.fromarray(truth.astype(np.uint8) * 255).convert("RGB"),
+                 Image.fromarray(mask.astype(np.uint8) * 255).convert("RGB")]
+        height = round(TILE_WIDTH * size[1] / size[0])
+        tiles = [t.resize((TILE_WIDTH, height), Image.BILINEAR) for t in tiles]
+        row = Image.new("RGB", (TILE_WIDTH * len(tiles), height))
+        for i, tile in enumerate(tiles):
+            row.paste(tile, (i * TILE_WIDTH, 0))
+        ImageDraw.Draw(row).text((2 * TILE_WIDTH + 6, 6), f"{stem}: IoU {iou:.3f}", fill=(255, 64, 64))
+        rows.append(row)
+    figure = Image.new("RGB", (rows[0].width, sum(r.height for r in rows)))
+    y = 0
+    for row in rows:
+        figure.paste(row, (0, y))
+        y += row.height
+    a.out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = a.out.with_name(f".{a.out.name}.tmp.png")
+    figure.save(tmp)
+    tmp.replace(a.out)
+    print(f"figure: {a.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
