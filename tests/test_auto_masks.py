@@ -161,27 +161,6 @@ def test_the_other_photos_fill_a_hole_one_cut_leaves_in_the_object(monkeypatch: 
     assert unfilled.masks[name][patch].mean() < 0.1
 
 
-def test_a_photo_votes_background_near_its_sure_background_and_through_openings_only() -> None:
-    """The hull's vote: a photo calls a pixel background where its cut does and the pixel lies within VOTE_REACH of
-    the photo's diagonal from its sure background, or inside an opening its cut encloses; elsewhere its cut guessed
-    from colour alone, and the pixel carves nothing (a close-up's plain mount taken for background)."""
-    import cv2
-
-    from recon.capture.auto_masks import VOTE_REACH, _votes
-
-    h, w = 100, 200
-    label = np.full((h, w), cv2.GC_PR_BGD, np.uint8)
-    label[:, :10] = cv2.GC_BGD
-    cut = np.zeros((h, w), bool)
-    cut[30:70, 120:180] = True
-    cut[45:55, 145:155] = False  # an opening
-    votes = _votes(cv2, cut, label)
-    reach = VOTE_REACH * np.hypot(w, h)
-    assert not votes[:, :10].any() and not votes[:, 10:10 + int(reach)].any()  # near the sure background
-    assert votes[:, 10 + int(reach) + 2:120].all() and votes[:5, 120:].all()  # a guess: no vote
-    assert votes[cut].all() and not votes[45:55, 145:155].any()  # the object, and the opening it encloses
-
-
 def test_an_opening_the_hull_sees_through_stays_background() -> None:
     """A ring's opening is background where the hull's silhouette has it too (a handle the photos see through), even
     where the carved tunnel is narrower than the opening this photo sees; the same opening is filled where the

@@ -4,10 +4,9 @@ No learned weights. The sparse points of the object region (`recon.capture.regio
 object, each its own pixel; the points on the cut support plane, the points outside the region and every pixel outside
 the region's projected box seed the background; GrabCut (colour models and a graph cut, OpenCV) segments between them.
 Then the photos vote: a pixel stays object only where its ray passes through space that (almost) no photo calls
-background — the masks' visual hull; a photo calls background only near its sure background or through an opening its
-cut encloses (elsewhere its cut guessed from colour alone). How well each photo's cut agrees with the hull the others
-carve says how sure the segmentation is. Finally each cut's outline is snapped to its photo's edges and made as soft
-as they are (`matte`, a guided filter).
+background — the masks' visual hull. How well each photo's cut agrees with the hull the others carve says how sure the
+segmentation is. Finally each cut's outline is snapped to its photo's edges and made as soft as they are (`matte`, a
+guided filter).
 Pure numpy/OpenCV on a normalized `Scene` and its photos; the caller decides what to do with unsure masks.
 """
 from __future__ import annotations
@@ -47,10 +46,6 @@ MAX_SPECK = 2e-4
 """Enclosed background pieces smaller than this fraction of the photo are noise in the cut and become object."""
 HULL_RES = 96
 """Grid vertices per side of the visual hull the photos vote on."""
-VOTE_REACH = 0.05
-"""A photo calls a pixel background in the hull's vote only within this fraction of its diagonal of its sure
-background (background points, outside the box): farther, its cut guessed from colour alone — a close-up that shows
-part of a plain mount and none of its points takes its colour for the background's."""
 HULL_TOLERANCE = 0.1
 """A hull vertex survives while at most this fraction of the photos (at least one) call it background: one bad
 cut must not carve the object out of every other photo."""
@@ -148,17 +143,14 @@ def segment_object(scene: Scene, load_photo: PhotoLoader | None = None, side: in
         if known is not None:
             known = cv2.resize(np.asarray(known, np.float32), (w, h), interpolation=cv2.INTER_NEAREST)
             known = undistort(known, *intr, frame.distortion, frame.camera_model) > 0.5
-        cut = _grabcut(cv2, pinhole, fg, bg, box_uv, known)
-        votes = _votes(cv2, cut, _seed_labels(cv2, h, w, fg, bg, box_uv, known))
-        return cut, votes, _edges(cv2, pinhole), intr, (w, h), fg
+        return _grabcut(cv2, pinhole, fg, bg, box_uv, known), _edges(cv2, pinhole), intr, (w, h), fg
 
-    cuts, votes, intrinsics, sizes, seeds, edges = [], [], [], [], [], []
+    cuts, intrinsics, sizes, seeds, edges = [], [], [], [], []
     # one photo per core: OpenCV's graph cut runs on one thread and releases the GIL; each cut seeds its own
     # thread's RNG, so the masks do not depend on the thread count
     with ThreadPoolExecutor(max_workers=cpu_threads()) as pool:
-        for cut, vote, edge, intr, size, fg in pool.map(cut_one, scene.frames):
+        for cut, edge, intr, size, fg in pool.map(cut_one, scene.frames):
             cuts.append(cut)
-            votes.append(vote)
             edges.append(edge)
             intrinsics.append(intr)
             sizes.append(size)
@@ -167,8 +159,7 @@ def segment_object(scene: Scene, load_photo: PhotoLoader | None = None, side: in
                 progress()
 
     n = len(cuts)
-    silhouettes, _ = hull_silhouettes(grown, HULL_RES, [f.c2w for f in scene.frames], intrinsics, votes,
-                                      HULL_TOLERANCE)
+    silhouettes, _ = hull_silhouettes(grown, HULL_RES, [f.c2w for f in scene.frames], intrinsics, cuts, HULL_TOLERANCE)
 
     finals, agreement, support, kept, total = [], {}, {}, 0, 0
     for frame, cut, silhouette, (w, h), fg, edge in zip(scene.frames, cuts, silhouettes, sizes, seeds, edges,
@@ -287,9 +278,22 @@ def _grabcut(cv2, photo: np.ndarray, fg: np.ndarray, bg: np.ndarray, box_uv: np.
              known_background: np.ndarray | None = None) -> np.ndarray:
     """(h, w) bool object pixels of one undistorted photo from its seeds (see the module docstring)."""
     h, w = photo.shape[:2]
+    label = np.full((h, w), cv2.GC_BGD, np.uint8)
+    if len(box_uv) == 8:  # the whole grown box in front of the camera: outside its outline is background
+        cv2.fillConvexPoly(label, cv2.convexHull(np.round(box_uv).astype(np.int32)), int(cv2.GC_PR_BGD))
+    else:  # the camera is inside or beside the box: no pixel is sure background by the outline
+        label[:] = cv2.GC_PR_BGD
     if len(fg) < 3:
         return np.zeros((h, w), bool)
-    label = _seed_labels(cv2, h, w, fg, bg, box_uv, known_background)
+    hull = cv2.convexHull(np.round(fg).astype(np.int32))
+    cv2.fillConvexPoly(label, hull, int(cv2.GC_PR_FGD))
+    radius = max(1, round(SEED_RADIUS * float(np.hypot(w, h))))
+    if known_background is not None:
+        label[known_background] = cv2.GC_BGD
+    for u, v in np.round(bg).astype(np.int32):
+        cv2.circle(label, (int(u), int(v)), radius, int(cv2.GC_BGD), -1)
+    px = np.clip(np.round(fg).astype(np.int64), 0, [w - 1, h - 1])
+    label[px[:, 1], px[:, 0]] = cv2.GC_FGD  # each object point its own pixel (SEED_RADIUS)
     image = np.round(np.clip(photo, 0, 1) * 255).astype(np.uint8)
     bgd, fgd = np.zeros((1, 65), np.float64), np.zeros((1, 65), np.float64)
     cv2.setRNGSeed(0)
@@ -298,40 +302,6 @@ def _grabcut(cv2, photo: np.ndarray, fg: np.ndarray, bg: np.ndarray, box_uv: np.
     if known_background is not None:
         cut &= ~known_background
     return _keep_seeded_pieces(cv2, cut, fg)
-
-
-def _seed_labels(cv2, h: int, w: int, fg: np.ndarray, bg: np.ndarray, box_uv: np.ndarray,
-                 known_background: np.ndarray | None = None) -> np.ndarray:
-    """(h, w) uint8 GrabCut labels of one photo from its seeds: sure background outside the grown box's outline, on
-    the background points' discs and the known background; probably object in the object seeds' convex hull, sure
-    object on each seed's own pixel; probably background elsewhere."""
-    label = np.full((h, w), cv2.GC_BGD, np.uint8)
-    if len(box_uv) == 8:  # the whole grown box in front of the camera: outside its outline is background
-        cv2.fillConvexPoly(label, cv2.convexHull(np.round(box_uv).astype(np.int32)), int(cv2.GC_PR_BGD))
-    else:  # the camera is inside or beside the box: no pixel is sure background by the outline
-        label[:] = cv2.GC_PR_BGD
-    if len(fg) >= 3:
-        cv2.fillConvexPoly(label, cv2.convexHull(np.round(fg).astype(np.int32)), int(cv2.GC_PR_FGD))
-    radius = max(1, round(SEED_RADIUS * float(np.hypot(w, h))))
-    if known_background is not None:
-        label[known_background] = cv2.GC_BGD
-    for u, v in np.round(bg).astype(np.int32):
-        cv2.circle(label, (int(u), int(v)), radius, int(cv2.GC_BGD), -1)
-    if len(fg):
-        px = np.clip(np.round(fg).astype(np.int64), 0, [w - 1, h - 1])
-        label[px[:, 1], px[:, 0]] = cv2.GC_FGD  # each object point its own pixel (SEED_RADIUS)
-    return label
-
-
-def _votes(cv2, cut: np.ndarray, label: np.ndarray) -> np.ndarray:
-    """(h, w) bool: the pixels a photo's cut does not call background when the photos vote on the hull: its object
-    and whatever lies farther than VOTE_REACH of the photo's diagonal from its sure background (`_seed_labels`)."""
-    h, w = cut.shape
-    far = cv2.distanceTransform((label != cv2.GC_BGD).astype(np.uint8), cv2.DIST_L2, 3) > VOTE_REACH * np.hypot(w, h)
-    _, pieces = cv2.connectedComponents((~cut).astype(np.uint8), connectivity=4)
-    border = np.unique(np.concatenate([pieces[0], pieces[-1], pieces[:, 0], pieces[:, -1]]))
-    enclosed = ~cut & ~np.isin(pieces, border)  # an opening the photo sees through the object
-    return cut | (far & ~enclosed)
 
 
 def _keep_seeded_pieces(cv2, cut: np.ndarray, fg: np.ndarray) -> np.ndarray:
