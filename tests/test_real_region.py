@@ -175,7 +175,7 @@ def test_the_board_an_object_hangs_on_belongs_to_it_though_too_plain_to_link() -
     photos show still belong to the region and its normalized box. The picture frame on the wall stays out; so does a
     shelf as proud as the board beside it, with wall showing between; and a stray point before the head is no part of
     the mount."""
-    from recon.capture.region import IN_VIEW_FRACTION, MOUNT_IN_VIEW_FRACTION, in_view_fraction
+    from recon.capture.region import IN_VIEW_FRACTION, MOUNT_IN_VIEW_FRACTION, MOUNT_MIN_POINTS, in_view_fraction
 
     rng = np.random.default_rng(6)
     _, points, labels = wall_capture(rng)
@@ -221,6 +221,9 @@ def test_the_board_an_object_hangs_on_belongs_to_it_though_too_plain_to_link() -
     assert len(shelf) >= 10 and not region.points[labels == 5].any()
     assert not region.points[labels == 2].any() and (labels[region.points] == 1).mean() < 0.02
     assert "mounted on" in region.reason
+    dropped = (labels == 3) & ~np.isin(np.arange(len(labels)), np.flatnonzero(region.mount)[:MOUNT_MIN_POINTS - 1])
+    few = region_of(points[~dropped], frames)  # too few points for a surface: stray triangulations
+    assert few is not None and few.mount is not None and not few.mount.any()
     scene = normalize(Scene(frames=frames, points=points, point_colors=np.zeros((len(points), 3), np.uint8)),
                       NormalizeConfig())
     box, held = np.asarray(scene.region), scene.points[labels == 3][shown]

@@ -37,6 +37,9 @@ shelf must not make the room the object."""
 MOUNT_IN_VIEW_FRACTION = 0.6
 """What an object on a wall hangs on (`mounted_points`) shows beside it: at least this fraction of the photos (framed on
 the object, `IN_VIEW_FRACTION`) keep it in frame; the room beside the object leaves most close photos' frames."""
+MOUNT_MIN_POINTS = 5
+"""A mount is a surface: SfM places at least this many points on it; fewer are stray triangulations between the wall
+and the object (two such grew a fox's region to the wall and meshed a strip of it)."""
 MOUNT_GAP_SPACINGS = 2.0
 """Wall shows between a point and the object (so the point is no part of its mount) when a wall point lies within
 this many times the wall points' median spacing of the line between them, seen along the wall's normal."""
@@ -258,7 +261,8 @@ def mounted_points(points: np.ndarray, obj: np.ndarray, off_wall: np.ndarray, wa
     """(N,) bool: what the object hangs on (a plaque, a board): the points (N, 3) off the wall (``off_wall``), not the
     object's (``obj``) but within MAX_GROWTH of its box a side, no farther from the wall than its median point, and
     with no wall showing between them and the object (seen along the wall's normal, no wall point within
-    MOUNT_GAP_SPACINGS of the wall points' spacing of the line to the object's middle). Its plain faces give
+    MOUNT_GAP_SPACINGS of the wall points' spacing of the line to the object's middle); none when fewer than
+    MOUNT_MIN_POINTS are. Its plain faces give
     SfM too few points to link (`linked_points`); a curtain, a door frame or a picture beside the object stand off the
     wall too, but wall shows between them and it."""
     from scipy.spatial import cKDTree
@@ -288,7 +292,7 @@ def mounted_points(points: np.ndarray, obj: np.ndarray, off_wall: np.ndarray, wa
     hit = (distance <= reach[line]) & inner
     blocked = np.bincount(line, weights=hit, minlength=len(candidates)) > 0
     mount[candidates[blocked]] = False
-    return mount
+    return mount if mount.sum() >= MOUNT_MIN_POINTS else np.zeros_like(mount)
 
 
 def _near_box(points: np.ndarray, seeds: np.ndarray) -> np.ndarray:

@@ -160,4 +160,5 @@ def _write(folder: Path, masks: dict[str, np.ndarray], scene: Scene) -> None:
 # version 9: automatic masks cut twice, the second time from the hull of the first cuts (undone in version 10)
 # version 10: the object region holds the points linked to those most photos keep in frame
 # version 11: no more photos held out than leave FEW_PHOTOS to train
-STAGE = Stage(name="normalize", folder="02_scene", inputs=("poses",), version=11, run=run)
+# version 12: the object region holds what an object on a wall hangs on
+STAGE = Stage(name="normalize", folder="02_scene", inputs=("poses",), version=12, run=run)
