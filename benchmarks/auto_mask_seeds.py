@@ -20,8 +20,8 @@ region holds, with and without the points linked to the in-frame ones (what clos
 - true object seeds: shipped, with the object seeds that fall outside the true mask dropped (an oracle);
 - true seeds and a background ring: also 150 background seeds 3-4 px outside the true mask (an oracle).
 
-Writes benchmarks/results/NAME.json with the commit, machine, load and why normalize chose the object region. It measures;
-it asserts nothing.
+Writes benchmarks/results/NAME.json with the commit, machine, load and why normalize chose the object region. It
+measures; it asserts nothing.
 """
 from __future__ import annotations
 

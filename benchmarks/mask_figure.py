@@ -10,10 +10,16 @@ photo, the true mask, recon's mask, and recon's IoU against the truth printed on
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 import numpy as np
 from PIL import Image, ImageDraw
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))  # this checkout's recon, not an installed one
+
+from recon.atomic import atomic_open  # noqa: E402
 
 TILE_WIDTH = 320
 
@@ -24,9 +30,10 @@ def _read(path: Path, size: tuple[int, int] | None = None) -> Image.Image:
 
 
 def _find(folder: Path, stem: str) -> Path:
-    for path in sorted(folder.glob(f"{stem}.*")):
-        return path
-    raise SystemExit(f"no image named {stem}.* in {folder}")
+    found = sorted(folder.glob(f"{stem}.*"))
+    if not found:
+        raise SystemExit(f"no image named {stem}.* in {folder}")
+    return found[0]
 
 
 def main() -> int:
@@ -60,9 +67,8 @@ def main() -> int:
         figure.paste(row, (0, y))
         y += row.height
     a.out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = a.out.with_name(f".{a.out.name}.tmp.png")
-    figure.save(tmp)
-    tmp.replace(a.out)
+    with atomic_open(a.out) as f:
+        figure.save(f, format="PNG")
     print(f"figure: {a.out}")
     return 0
 

@@ -296,11 +296,10 @@ def normalize(scene: Scene, cfg: NormalizeConfig, holds: np.ndarray | None = Non
         )
         if found is not None:
             # the object the cameras look at (and, below it, down to the ground it stands on)
-            mount = found.mount if found.mount is not None else np.zeros(len(points), bool)
-            box = _box_from_points((points[found.points & ~mount] - center) @ R.T, cfg.link_spacings)
-            if box is not None and mount.any():  # what the object hangs on: too few points to pass as a group
-                held = (points[mount] - center) @ R.T
-                box = np.stack([np.minimum(box[0], held.min(axis=0)), np.maximum(box[1], held.max(axis=0))])
+            box = _box_from_points((points[found.points & ~found.mount] - center) @ R.T, cfg.link_spacings)
+            if box is not None and found.mount.any():  # what the object hangs on: too few points to pass as a group
+                mount = (points[found.mount] - center) @ R.T
+                box = np.stack([np.minimum(box[0], mount.min(axis=0)), np.maximum(box[1], mount.max(axis=0))])
             notes["region"] = found.reason
             if box is not None and found.ground is not None:
                 n = R @ found.ground.normal

@@ -39,7 +39,7 @@ MOUNT_IN_VIEW_FRACTION = 0.6
 the object, `IN_VIEW_FRACTION`) keep it in frame; the room beside the object leaves most close photos' frames."""
 MOUNT_MIN_POINTS = 5
 """A mount is a surface: SfM places at least this many points on it; fewer are stray triangulations between the wall
-and the object (two such grew a fox's region to the wall and meshed a strip of it)."""
+and the object, which would grow the region to the wall (benchmarks/results/fox_fast_mount.json)."""
 MOUNT_GAP_SPACINGS = 2.0
 """Wall shows between a point and the object (so the point is no part of its mount) when a wall point lies within
 this many times the wall points' median spacing of the line between them, seen along the wall's normal."""
@@ -156,8 +156,8 @@ def fit_wall_plane(
     WALL_MAX_BEHIND of the object region's points (``common`` (N,) bool) behind it, and scored, like the ground,
     by the points outside the region on it (a wall extends beyond the object; a flat face of the object does not).
 
-    On the fox (a mounted head) it finds the wallpapered wall: 57% of the sparse points within 1% of the camera
-    distance, the picture frame above the head on it too. The normal points toward the cameras. None when no plane
+    On the fox (a mounted head) it finds the wallpapered wall, the picture frame above the head on it too (the
+    region's `reason` says how many points lie on it). The normal points toward the cameras. None when no plane
     holds GROUND_MIN_FRACTION of the points, or when the cameras surround the object (no plane has them all in front
     and the object's points on its front side).
     """
@@ -189,7 +189,7 @@ class Region:
     background_fraction: float
     """Share of the sparse points outside the object region (table, floor, walls, sky)."""
     reason: str
-    mount: np.ndarray | None = None
+    mount: np.ndarray
     """(N,) bool: the object's points that are what it hangs on (`mounted_points`); too few and apart to survive a
     stray-point filter, so a box of the object holds them as they are."""
 
@@ -262,20 +262,17 @@ def mounted_points(points: np.ndarray, obj: np.ndarray, off_wall: np.ndarray, wa
     object's (``obj``) but within MAX_GROWTH of its box a side, no farther from the wall than its median point, and
     with no wall showing between them and the object (seen along the wall's normal, no wall point within
     MOUNT_GAP_SPACINGS of the wall points' spacing of the line to the object's middle); none when fewer than
-    MOUNT_MIN_POINTS are. Its plain faces give
-    SfM too few points to link (`linked_points`); a curtain, a door frame or a picture beside the object stand off the
-    wall too, but wall shows between them and it."""
+    MOUNT_MIN_POINTS are. Its plain faces give SfM too few points to link (`linked_points`); a curtain, a door frame or
+    a picture beside the object stand off the wall too, but wall shows between them and it."""
     from scipy.spatial import cKDTree
 
     obj = np.asarray(obj, bool)
     height = wall.height(points)
     mount = np.asarray(off_wall, bool) & ~obj & _near_box(points, obj) & (height <= np.median(height[obj]))
     on_wall = np.abs(np.nan_to_num(height, nan=np.inf)) <= wall.threshold
-    if not mount.any() or on_wall.sum() < 2:
-        return mount
     feet = points - height[:, None] * wall.normal  # each point's foot on the wall
-    gap = MOUNT_GAP_SPACINGS * median_spacing(feet[on_wall])
-    if not gap > 0:  # wall points all on top of each other: no telling wall from a gap in it
+    gap = MOUNT_GAP_SPACINGS * median_spacing(feet[on_wall]) if on_wall.sum() >= 2 else 0.0
+    if mount.sum() < MOUNT_MIN_POINTS or not gap > 0:  # too few for a surface, or no telling wall from a gap in it
         return np.zeros_like(mount)
     candidates = np.flatnonzero(mount)
     start = feet[candidates]
