@@ -593,6 +593,7 @@ BOUNDS: dict[str, Bound] = {
     "train.fast.tv_weight": WEIGHT,
     "train.fast.distortion_weight": WEIGHT,
     "train.fast.distortion_from": _fraction(),
+    "train.fast.hull_start_alpha": _range(0, 0.99),
     "train.fast.distortion_until": Bound(0.0, 1.0, low_open=True),
     "train.fast.unbounded_distortion_weight": WEIGHT,
     "train.fast.entropy_weight": WEIGHT,

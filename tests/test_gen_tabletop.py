@@ -169,6 +169,35 @@ def test_closeups_crop_the_object_and_their_masks_stay_true(tmp_path: Path) -> N
         tt.generate(tmp_path / "no", views=2, size="32x24", realistic=True, turntable=True, closeups=True)
 
 
+def test_a_painted_object_has_the_same_shape_in_a_few_flat_colours_with_few_features(tmp_path: Path) -> None:
+    """painted changes the object's albedo alone: the same masks, pixels near the palette's colours, and under a
+    third of the SIFT features the richly textured object gives inside its masks (the room is the same)."""
+    import cv2
+
+    def capture(painted: bool) -> list[tuple[np.ndarray, np.ndarray]]:
+        out = tt.generate(tmp_path / str(painted), views=2, size="320x240", mesh_res=64, realistic=True,
+                          painted=painted)
+        return [(np.asarray(Image.open(path).convert("L")), mask) for _, mask, path in frames(out)[1]]
+
+    textured, painted = capture(False), capture(True)
+    sift = cv2.SIFT_create()
+    counts = {}
+    for name, views in (("textured", textured), ("painted", painted)):
+        counts[name] = 0
+        for gray, mask in views:
+            inside = binary_erosion(mask, iterations=3).astype(np.uint8) * 255
+            counts[name] += len(sift.detect(gray, inside))
+    assert [m.tolist() for _, m in textured] == [m.tolist() for _, m in painted]
+    assert counts["painted"] < counts["textured"] / 3, counts
+    palette = np.asarray(tt.PAINT, np.float32)
+    albedo = tt.painted_albedo(np.random.default_rng(0).uniform(-1, 1, (4000, 3)).astype(np.float32),
+                               gen.noise_table(0))
+    nearest = np.min(np.linalg.norm(albedo[:, None] - palette[None], axis=2), axis=1)
+    assert np.mean(nearest < 0.05) > 0.8  # flat paint, the edges between colours aside
+    with pytest.raises(ValueError, match="painted"):
+        tt.generate(tmp_path / "no", views=2, size="32x24", painted=True)
+
+
 def test_mounted_photos_face_the_wall_level_with_its_up(tmp_path: Path) -> None:
     """With mounted the table top is a wall: every camera is in front of it within the cone, held level with the
     wall's up (+Y) up to the hand's roll, and the masks are still the object's silhouette."""

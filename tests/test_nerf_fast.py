@@ -82,6 +82,46 @@ def test_initial_opacity_per_step_and_zero_outside_box() -> None:
     assert float(model.density(torch.tensor([[3.0, 0.0, 0.0]])).detach()[0]) == 0.0
 
 
+@pytest.mark.parametrize("activation", ["softplus", "trunc_exp"])
+@pytest.mark.parametrize("levels", [1, 3])
+def test_a_start_shape_holds_its_opacity_inside_and_the_initial_one_outside(activation: str, levels: int) -> None:
+    """start_inside: opacity hull_start_alpha a step at the vertices inside the shape (the coarsest level's grid over
+    the box), init_alpha far from it; the wrong shape, no alpha or a shrunk grid are refused."""
+    cfg = FastConfig(init_alpha=0.01, hull_start_alpha=0.2, density_activation=activation, density_levels=levels,
+                     **TINY)
+    model = FastModel(cfg)
+    r = model.start_resolution
+    assert r == (TINY["density_res"] if levels == 1 else min(model.density_grid.resolutions))
+    axis = torch.linspace(0.0, 1.0, r)
+    u = torch.stack(torch.meshgrid(axis, axis, axis, indexing="ij"), dim=-1)  # [ix, iy, iz] -> unit point
+    inside = ((u - torch.tensor([0.5, 0.5, 0.3])).norm(dim=-1) < 0.25) & (u[..., 0] > 0.4)  # not symmetric in x, z
+    model.start_inside(inside)
+    box = model.grid_box
+    world = box[0] + u * (box[1] - box[0])
+
+    def alpha(x: torch.Tensor) -> torch.Tensor:
+        return 1 - torch.exp(-model.density(x).detach() * model.step_size)
+
+    deep = inside.clone()  # vertices whose whole neighbourhood is inside: trilinear reads there see the shape alone
+    for axis_ in range(3):
+        for shift in (1, -1):
+            deep &= torch.roll(inside, shift, axis_)
+    far = ~inside
+    for axis_ in range(3):
+        for shift in (1, -1):
+            far &= ~torch.roll(inside, shift, axis_)
+    assert deep.any() and far.any()
+    torch.testing.assert_close(alpha(world[deep]), torch.full((int(deep.sum()),), 0.2), rtol=1e-4, atol=1e-5)
+    torch.testing.assert_close(alpha(world[far]), torch.full((int(far.sum()),), 0.01), rtol=1e-4, atol=1e-6)
+    with pytest.raises(ValueError, match="start shape must be"):
+        model.start_inside(inside[:-1])
+    with pytest.raises(ValueError, match="hull_start_alpha"):
+        FastModel(FastConfig(**TINY)).start_inside(inside)
+    model.shrunk.fill_(True)
+    with pytest.raises(ValueError, match="shrunk"):
+        model.start_inside(inside)
+
+
 def test_trunc_exp_density_never_overflows() -> None:
     model = FastModel(FastConfig(density_activation="trunc_exp", **TINY))
     with torch.no_grad():

@@ -126,6 +126,37 @@ def test_a_masked_fast_plan_trains_as_empty_space_the_transparent_pixels_the_pho
     assert classic.empty is None and "(the classic model)" in " ".join(classic.reasons)
 
 
+def test_a_masked_fast_field_starts_with_matter_inside_the_photos_visual_hull_and_says_so() -> None:
+    """train.fast.hull_start_alpha > 0 and silhouettes: the built field is that opaque a step inside the masks'
+    visual hull (the ball's middle) and as empty as ever outside it (the box's corners); without silhouettes, or at
+    0, the field starts empty everywhere."""
+    images, c2w, intr = masked_ball_photos(size=32, fl=40.0)
+    frames, views = [], []
+    for i, (image, pose, k) in enumerate(zip(images, c2w.double().numpy(), intr.tolist(), strict=True)):
+        frames.append(Frame(f"/p/{i:02d}.png", pose, *k, 32, 32, split="train"))
+        views.append(View(f"{i:02d}", image, pose, tuple(k), 1.0, 4.0))
+    scene = Scene(frames=frames, aabb=np.array([[-1.0] * 3, [1.0] * 3]), capture="object", has_alpha=True)
+    base = TrainConfig()
+
+    def opacity(cfg: TrainConfig, photos: list[View], masked: bool = True) -> tuple[list[float], list[str]]:
+        plan = plan_training(cfg, replace(scene, has_alpha=masked), photos, CPU)
+        model = build_training(plan, CPU).model
+        x = torch.tensor([[0.0, 0.0, 0.0], [0.95, 0.95, 0.95], [-0.95, 0.95, -0.95]])
+        return (1 - torch.exp(-model.density(x).detach() * model.step_size)).tolist(), plan.reasons
+
+    on = replace(base, fast=replace(base.fast, hull_start_alpha=0.2, init_alpha=0.01))
+    (middle, *corners), reasons = opacity(on, views)
+    assert middle == pytest.approx(0.2, rel=1e-3) and corners == pytest.approx([0.01, 0.01], rel=1e-3)
+    said = "start: opacity 0.2 a step inside the visual hull of the 12 training photos"
+    assert any(r.startswith(said) for r in reasons)
+    (middle, *_), reasons = opacity(replace(on, fast=replace(on.fast, hull_start_alpha=0.0)), views)
+    assert middle == pytest.approx(0.01, rel=1e-3)
+    assert "start: an empty field (train.fast.hull_start_alpha=0)" in reasons
+    opaque = [replace(v, image=np.ascontiguousarray(v.image[..., :3])) for v in views]
+    (middle, *_), reasons = opacity(on, opaque, masked=False)
+    assert middle == pytest.approx(0.01, rel=1e-3) and not any(r.startswith("start:") for r in reasons)
+
+
 def test_distortion_loss_has_a_weight_for_objects_and_one_for_unbounded_captures_and_says_which() -> None:
     from recon.nerf.fast import FastModel
     from recon.nerf.model_config import FastConfig

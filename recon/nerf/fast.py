@@ -297,6 +297,36 @@ class FastModel(RadianceModel):
                 grid.kernels = cfg.kernels  # their CUDA reads (recon.nerf.kernels); a CPU reads in torch or C
 
     @property
+    def start_resolution(self) -> int:
+        """Vertices a side of the coarsest dense density level: the grid `start_inside` takes its shape on."""
+        grid = self.density_grid
+        if isinstance(grid, MultiDenseGrid):
+            return grid.resolutions[0]
+        if isinstance(grid, DenseGrid):
+            return grid.res
+        raise ValueError(f"a start shape needs a dense density grid, not {self.config.density_grid!r}")
+
+    @torch.no_grad()
+    def start_inside(self, inside: Tensor) -> None:
+        """Raise the density at the vertices ``inside`` ((r, r, r) bool indexed [ix, iy, iz] over the grid box, r =
+        `start_resolution`) to ``config.hull_start_alpha`` opacity a step; the rest keeps ``init_alpha``. Before the
+        grids shrink (the box they cover then moves)."""
+        alpha = self.config.hull_start_alpha
+        if not 0.0 < alpha < 1.0:
+            raise ValueError(f"hull_start_alpha must lie in (0, 1) for a start shape, got {alpha}")
+        r = self.start_resolution
+        inside = torch.as_tensor(inside).bool()  # a numpy array too
+        if tuple(inside.shape) != (r, r, r):
+            raise ValueError(f"the start shape must be {r}³ (the coarsest density level), got {tuple(inside.shape)}")
+        if bool(self.shrunk):
+            raise ValueError("the start shape is set before training: the grids have already shrunk")
+        sigma = -math.log1p(-alpha) / self.step_size / self.density_scale
+        raw = (math.log(math.expm1(sigma)) if self.config.density_activation == "softplus" else math.log(sigma))
+        grid = self.density_grid.grids[0] if isinstance(self.density_grid, MultiDenseGrid) else self.density_grid
+        table = grid.table.view(r ** 3, -1)
+        table[inside.reshape(-1).to(table.device), 0] += raw - self.density_bias
+
+    @property
     def voxel_size(self) -> float:
         """Edge of the finest density voxel (scene units; contracted units when unbounded): the thinnest
         layer this field can make opaque. Shrinking the grids onto the object makes it smaller."""

@@ -236,6 +236,26 @@ def surface_spec(cfg: TrainConfig, scene: Scene) -> tuple[str, dict[str, Any], f
     return "surface", {"config": asdict(surf)}, cfg.lr or FAST_LR, [why]
 
 
+def has_silhouettes(views: list[View]) -> bool:
+    """Whether every training photo has its silhouette (alpha: masks, or the backdrop keyed)."""
+    return bool(views) and all(v.image.shape[-1] == 4 for v in views)
+
+
+def hull_start_for(kind: str, kwargs: dict[str, Any], views: list[View]) -> tuple[bool, str]:
+    """(whether the fast model starts with matter inside the photos' visual hull, why; "" where nothing to say)."""
+    if kind != "fast":
+        return False, ""
+    fast = kwargs["config"]
+    alpha = float(fast.get("hull_start_alpha", 0.0))
+    if fast.get("unbounded") or fast.get("density_grid", "dense") != "dense" or not has_silhouettes(views):
+        return False, ""
+    if alpha <= 0:
+        return False, "start: an empty field (train.fast.hull_start_alpha=0)"
+    return True, (f"start: opacity {alpha:g} a step inside the visual hull of the {len(views)} training photos' "
+                  f"silhouettes (train.fast.hull_start_alpha): a plain surface gives the colours nothing to place it "
+                  f"by, and where matter first grows it stays; from an empty start it forms in dents behind the hull")
+
+
 def surface_start(kwargs: dict[str, Any], scene: Scene, views: list[View]) -> tuple[dict[str, Any], np.ndarray | None, str]:
     """(the surface model's kwargs with its start shape settled, the visual hull's SDF volume or None, why).
 
@@ -247,7 +267,7 @@ def surface_start(kwargs: dict[str, Any], scene: Scene, views: list[View]) -> tu
     shape = surf.get("init_shape", "auto")
     box = np.asarray(surf["aabb"], np.float64)
     res = int(surf["sdf_res"])
-    with_alpha = bool(views) and all(v.image.shape[-1] == 4 for v in views)
+    with_alpha = has_silhouettes(views)
     if shape == "visual_hull" and not with_alpha:
         raise ReconError("train.surface.init_shape=visual_hull needs silhouettes: a masks/ folder beside the photos, or "
                          "a plain backdrop to key (train.backdrop_key). Use train.surface.init_shape=auto.")
@@ -454,6 +474,8 @@ class TrainPlan:
     empty_weight: float
     start_sdf: np.ndarray | None
     """The surface model's start shape as an SDF volume (the visual hull), or None."""
+    hull_start: bool
+    """The fast model starts with matter inside the training photos' visual hull (`hull_start_for`)."""
     appearance: bool
     appearance_why: str
     pose_refine: bool
@@ -490,6 +512,9 @@ def plan_training(cfg: TrainConfig, scene: Scene, views: list[View], device: tor
     if kind == "surface":
         kwargs, start_sdf, start_why = surface_start(kwargs, scene, views)
         reasons.append(start_why)
+    hull_start, hull_why = hull_start_for(kind, kwargs, views)
+    if hull_why:
+        reasons.append(hull_why)
     background, random_bg, bg_why = choose_background(cfg, scene, views, backdrop)
     sky, sky_why = sky_for(cfg, kind, scene, frames, views)
     reasons.append(sky_why)
@@ -529,7 +554,8 @@ def plan_training(cfg: TrainConfig, scene: Scene, views: list[View], device: tor
         views=views, aabb=np.asarray(scene.aabb) if scene.capture == "object" else None,
         background=background, random_background=random_bg, background_why=bg_why, empty=empty,
         empty_weight=empty_weight,
-        start_sdf=start_sdf, appearance=appearance, appearance_why=appearance_why, pose_refine=pose_refine,
+        start_sdf=start_sdf, hull_start=hull_start, appearance=appearance, appearance_why=appearance_why,
+        pose_refine=pose_refine,
         pose_why=pose_why, depth_prior=depth_prior,
         compile=cfg.compile if kind == "fast" and compile_wanted(cfg.compile, device)[0] else None,
         autocast=torch.bfloat16 if cfg.precision == "bf16" else None, optimizer=optimizer, budget_s=budget_s,
@@ -582,8 +608,19 @@ def build_training(plan: TrainPlan, device: torch.device) -> TrainSetup:
     model = build_model(plan.kind, plan.kwargs)
     if plan.start_sdf is not None:
         model.set_initial_sdf(plan.start_sdf)
+    notes = []
+    if plan.hull_start:
+        from recon.geometry.visual_hull import carve
+
+        inside, _ = carve(model.grid_box.numpy().astype(np.float64), model.start_resolution,
+                          [v.c2w for v in plan.views], [v.intrinsics for v in plan.views],
+                          [v.image[..., 3] >= 128 for v in plan.views])
+        model.start_inside(inside)
+        notes.append(f"start: the visual hull holds {inside.mean():.1%} of the box "
+                     f"({model.start_resolution}³ vertices)")
     model = model.to(device)
-    notes = [compile_color_network(model, device, plan.compile)] if plan.compile else []
+    if plan.compile:
+        notes.append(compile_color_network(model, device, plan.compile))
     images, c2w, intr, near_far = view_tensors(plan.views, device)
     aabb = None if plan.aabb is None else torch.tensor(plan.aabb, dtype=torch.float32, device=device)
     batcher = RayBatcher(
