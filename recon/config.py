@@ -151,6 +151,12 @@ class TrainConfig:
     """Weight of the sparse-depth loss (robust, in units of each point's depth uncertainty)."""
     depth_rays: int = 512
     """Sparse-point rays rendered per step for the depth loss (on top of batch_rays)."""
+    hull_start: Literal["auto", "on", "off"] = "auto"
+    """Where the fast field's matter starts (photos with silhouettes: masks or alpha). on: inside their visual hull, at
+    `train.fast.hull_start_alpha` opacity a step, so a plain surface, which the colours cannot place, forms on the
+    hull rather than in dents behind it; off: empty everywhere. auto: on for a plain object (fewer than
+    `recon.plans.training.PLAIN_POINTS` sparse points per 10,000 of its pixels in the median training photo),
+    off for a textured one, whose colours place its surfaces, and where no sparse points tell (known poses)."""
     photo_footprint: Literal["auto", "off"] = "auto"
     """auto: a photo that sees the object finer than most (a close-up) trains downscaled to their pixel footprint
     (`recon.plans.training.photo_sides`), so its detail is no finer than the rest and its rays no more; off: every
@@ -593,7 +599,7 @@ BOUNDS: dict[str, Bound] = {
     "train.fast.tv_weight": WEIGHT,
     "train.fast.distortion_weight": WEIGHT,
     "train.fast.distortion_from": _fraction(),
-    "train.fast.hull_start_alpha": _range(0, 0.99),
+    "train.fast.hull_start_alpha": _range(0.001, 0.99),
     "train.fast.distortion_until": Bound(0.0, 1.0, low_open=True),
     "train.fast.unbounded_distortion_weight": WEIGHT,
     "train.fast.entropy_weight": WEIGHT,

@@ -116,7 +116,7 @@ def test_a_start_shape_holds_its_opacity_inside_and_the_initial_one_outside(acti
     with pytest.raises(ValueError, match="start shape must be"):
         model.start_inside(inside[:-1])
     with pytest.raises(ValueError, match="hull_start_alpha"):
-        FastModel(FastConfig(**TINY)).start_inside(inside)
+        FastModel(FastConfig(hull_start_alpha=0.0, **TINY)).start_inside(inside)
     model.shrunk.fill_(True)
     with pytest.raises(ValueError, match="shrunk"):
         model.start_inside(inside)

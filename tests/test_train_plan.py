@@ -126,35 +126,43 @@ def test_a_masked_fast_plan_trains_as_empty_space_the_transparent_pixels_the_pho
     assert classic.empty is None and "(the classic model)" in " ".join(classic.reasons)
 
 
-def test_a_masked_fast_field_starts_with_matter_inside_the_photos_visual_hull_and_says_so() -> None:
-    """train.fast.hull_start_alpha > 0 and silhouettes: the built field is that opaque a step inside the masks'
-    visual hull (the ball's middle) and as empty as ever outside it (the box's corners); without silhouettes, or at
-    0, the field starts empty everywhere."""
+@pytest.mark.parametrize("points", [0, 6, 3000])
+def test_a_plain_object_starts_with_matter_inside_the_photos_visual_hull_and_a_textured_one_empty(
+        points: int) -> None:
+    """train.hull_start=auto: a ball whose photos see few sparse points on it (plain) starts at hull_start_alpha a step
+    inside the masks' visual hull (its middle) and as empty as ever outside it (the box's corners); one that shows
+    thousands (textured) or none to judge by starts empty; on and off force it; without silhouettes it starts empty."""
     images, c2w, intr = masked_ball_photos(size=32, fl=40.0)
     frames, views = [], []
     for i, (image, pose, k) in enumerate(zip(images, c2w.double().numpy(), intr.tolist(), strict=True)):
         frames.append(Frame(f"/p/{i:02d}.png", pose, *k, 32, 32, split="train"))
         views.append(View(f"{i:02d}", image, pose, tuple(k), 1.0, 4.0))
-    scene = Scene(frames=frames, aabb=np.array([[-1.0] * 3, [1.0] * 3]), capture="object", has_alpha=True)
+    on_ball = np.random.default_rng(0).normal(size=(points, 3))
+    on_ball = 0.45 * on_ball / np.linalg.norm(on_ball, axis=1, keepdims=True)
+    scene = Scene(frames=frames, aabb=np.array([[-1.0] * 3, [1.0] * 3]), capture="object", has_alpha=True,
+                  points=on_ball, point_visibility={f.name: np.arange(points) for f in frames} if points else {})
     base = TrainConfig()
+    base = replace(base, fast=replace(base.fast, hull_start_alpha=0.2, init_alpha=0.01))
 
-    def opacity(cfg: TrainConfig, photos: list[View], masked: bool = True) -> tuple[list[float], list[str]]:
-        plan = plan_training(cfg, replace(scene, has_alpha=masked), photos, CPU)
+    def start(cfg: TrainConfig, photos: list[View] = views) -> tuple[list[float], str]:
+        plan = plan_training(cfg, replace(scene, has_alpha=photos is views), photos, CPU)
         model = build_training(plan, CPU).model
         x = torch.tensor([[0.0, 0.0, 0.0], [0.95, 0.95, 0.95], [-0.95, 0.95, -0.95]])
-        return (1 - torch.exp(-model.density(x).detach() * model.step_size)).tolist(), plan.reasons
+        said = [r for r in plan.reasons if r.startswith("start:")]
+        return (1 - torch.exp(-model.density(x).detach() * model.step_size)).tolist(), " ".join(said)
 
-    on = replace(base, fast=replace(base.fast, hull_start_alpha=0.2, init_alpha=0.01))
-    (middle, *corners), reasons = opacity(on, views)
-    assert middle == pytest.approx(0.2, rel=1e-3) and corners == pytest.approx([0.01, 0.01], rel=1e-3)
-    said = "start: opacity 0.2 a step inside the visual hull of the 12 training photos"
-    assert any(r.startswith(said) for r in reasons)
-    (middle, *_), reasons = opacity(replace(on, fast=replace(on.fast, hull_start_alpha=0.0)), views)
-    assert middle == pytest.approx(0.01, rel=1e-3)
-    assert "start: an empty field (train.fast.hull_start_alpha=0)" in reasons
+    plain = points == 6
+    (middle, *corners), said = start(base)
+    assert middle == pytest.approx(0.2 if plain else 0.01, rel=1e-3) and corners == pytest.approx([0.01] * 2, rel=1e-3)
+    assert ("the object is plain" in said) == plain and ("the object is textured" in said) == (points == 3000)
+    assert ("no sparse points tell" in said) == (points == 0)
+    (middle, *_), said = start(replace(base, hull_start="on"))
+    assert middle == pytest.approx(0.2, rel=1e-3) and "inside the visual hull of the 12 training photos" in said
+    (middle, *_), said = start(replace(base, hull_start="off"))
+    assert middle == pytest.approx(0.01, rel=1e-3) and "an empty field (train.hull_start=off)" in said
     opaque = [replace(v, image=np.ascontiguousarray(v.image[..., :3])) for v in views]
-    (middle, *_), reasons = opacity(on, opaque, masked=False)
-    assert middle == pytest.approx(0.01, rel=1e-3) and not any(r.startswith("start:") for r in reasons)
+    (middle, *_), said = start(base, opaque)
+    assert middle == pytest.approx(0.01, rel=1e-3) and said == ""
 
 
 def test_distortion_loss_has_a_weight_for_objects_and_one_for_unbounded_captures_and_says_which() -> None:

@@ -241,6 +241,7 @@ def run_bench(
             "test_views": len(metrics["test"]["views"]),
             "rays_per_s": metrics["rays_per_s"],
             "evals": metrics["evals"],
+            "object_point_density": metrics.get("object_point_density"),  # how textured the object is (hull start)
         }
         normalized = _stage_summary(scene, "normalize")
         row["auto_masks"] = normalized.get("auto_masks")

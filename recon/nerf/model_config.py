@@ -101,11 +101,10 @@ class FastConfig:
     """The same for an unbounded capture, on contracted distance (`recon.nerf.contraction.contracted_distance`)."""
     entropy_weight: float = 0.0
     """Weight of the binary entropy of ray opacity (pushes opacity to 0 or 1; 0 = off)."""
-    hull_start_alpha: float = 0.0
-    """Opacity a step inside the training photos' visual hull when training starts (0: empty everywhere, as without
-    silhouettes). A plain surface gives the colours nothing to place it by, so where the field first grows matter
-    is where it stays: started inside the hull, plain surfaces form on it instead of in dents behind it
-    (`FastModel.start_inside`)."""
+    hull_start_alpha: float = 0.1
+    """Opacity a step inside the training photos' visual hull where the field starts from it (`FastModel.start_inside`;
+    whether it does: train.hull_start). A plain surface gives the colours nothing to place it by, so where matter
+    first grows is where it stays."""
     background: Literal["white", "black", "learned", "random", "sky"] = "white"
     """Background used when render_rays gets none; "learned" always uses the model's own color, "sky" its own
     colour per ray direction (`recon.nerf.fast.SkyColor`; the train stage's sky, `recon.capture.sky`)."""

@@ -314,6 +314,7 @@ def _metrics(scene: Scene, device: torch.device, plan: TrainPlan, setup: TrainSe
         "evals": evals,
         "history": history,
         "n_train_views": len(views),
+        "object_point_density": plan.object_point_density,
         "n_rays_dropped_missing_box": int(setup.batcher.n_dropped),
         "appearance": _appearance_metrics(setup.appearance, plan.appearance_why, views),
         "pose_refine": _pose_metrics(setup.pose_refine, plan.pose_why, views, [float(v.intrinsics[0]) for v in views],

@@ -1,0 +1,62 @@
+"""A photo beside the meshes of scenes made from it: a PNG, one panel each, labelled.
+
+    python benchmarks/mesh_figure.py --photo DATA/photos/view_000.jpg \
+        --scene "empty start=/tmp/p0/tabletop_painted-fast" --scene "hull start=/tmp/p1/tabletop_painted-fast" \
+        --out docs/painted_hull_start.png
+
+Each scene's panel is its mesh stage's preview (`04_mesh/preview_front.png`, or `--view side`), as the stage drew
+it; the photo is cropped to a square around its middle (`--crop`: its side, a fraction of the shorter side). It measures nothing: the numbers are in the records.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from PIL import Image, ImageDraw
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))  # this checkout's recon, not an installed one
+
+from recon.atomic import atomic_open  # noqa: E402
+
+PANEL = 360
+"""Each panel's side in pixels."""
+
+
+def _square(image: Image.Image, fraction: float = 1.0) -> Image.Image:
+    side = round(min(image.size) * fraction)
+    left, top = (image.width - side) // 2, (image.height - side) // 2
+    return image.crop((left, top, left + side, top + side)).resize((PANEL, PANEL), Image.BILINEAR)
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--photo", type=Path, required=True)
+    parser.add_argument("--scene", action="append", required=True, help="LABEL=SCENE_DIR (repeatable, in order)")
+    parser.add_argument("--view", choices=["front", "side"], default="front")
+    parser.add_argument("--crop", type=float, default=1.0, help="the photo's square, a fraction of its shorter side")
+    parser.add_argument("--out", type=Path, required=True, help="the PNG to write")
+    a = parser.parse_args()
+
+    panels = [("photo", _square(Image.open(a.photo).convert("RGB"), a.crop))]
+    for spec in a.scene:
+        label, sep, folder = spec.rpartition("=")
+        preview = Path(folder) / "04_mesh" / f"preview_{a.view}.png"
+        if not sep or not preview.is_file():
+            raise SystemExit(f"--scene {spec!r}: give LABEL=SCENE_DIR of a scene whose mesh stage wrote {preview.name}")
+        panels.append((label, _square(Image.open(preview).convert("RGB"))))
+    figure = Image.new("RGB", (PANEL * len(panels), PANEL), (255, 255, 255))
+    draw = ImageDraw.Draw(figure)
+    for i, (label, panel) in enumerate(panels):
+        figure.paste(panel, (i * PANEL, 0))
+        draw.text((i * PANEL + 8, 8), label, fill=(200, 30, 30))
+    a.out.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_open(a.out) as f:
+        figure.save(f, format="PNG")
+    print(f"figure: {a.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
