@@ -244,7 +244,7 @@ def has_silhouettes(views: list[View]) -> bool:
 PLAIN_POINTS = 3.0
 """Sparse points per 10,000 object pixels (at a 1000-px longer side) in the median training photo under which an
 object counts as plain for train.hull_start=auto: far under a textured object's, far over a painted one's
-(docs/real_captures.md#a-plain-object)."""
+(docs/real_captures.md, "A plain object")."""
 
 
 def object_point_density(scene: Scene, frames: list[Frame], views: list[View]) -> float | None:
@@ -286,13 +286,15 @@ def hull_start_for(cfg: TrainConfig, kind: str, kwargs: dict[str, Any], scene: S
         return on, f"start: {hull if on else 'an empty field'} (train.hull_start={cfg.hull_start})", density
     if density is None:
         return False, ("start: an empty field (no sparse points tell how textured the object is; "
-                       "train.hull_start=on)"), None
+                       "train.hull_start=on starts it in the hull)"), None
     if density < PLAIN_POINTS:
         return True, (f"start: {hull}: the object is plain ({density:.1f} sparse points per 10,000 of its pixels in "
                       f"the median photo, under {PLAIN_POINTS:g}): its colours cannot place its surfaces, and from an "
-                      f"empty start the field forms them in dents behind the hull (train.hull_start=off)"), density
+                      f"empty start the field forms them in dents behind the hull (train.hull_start=off starts it "
+                      f"empty)"), density
     return False, (f"start: an empty field: the object is textured ({density:.1f} sparse points per 10,000 of its "
-                   f"pixels in the median photo), its colours place its surfaces (train.hull_start=on)"), density
+                   f"pixels in the median photo), its colours place its surfaces (train.hull_start=on starts it in "
+                   f"the hull)"), density
 
 
 def surface_start(kwargs: dict[str, Any], scene: Scene, views: list[View]) -> tuple[dict[str, Any], np.ndarray | None, str]:
