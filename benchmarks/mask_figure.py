@@ -16,10 +16,8 @@ from pathlib import Path
 import numpy as np
 from PIL import Image, ImageDraw
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))  # this checkout's recon, not an installed one
-
-from recon.atomic import atomic_open  # noqa: E402
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from figures import side_by_side, write_png  # noqa: E402
 
 TILE_WIDTH = 320
 
@@ -55,10 +53,7 @@ def main() -> int:
         tiles = [photo, Image.fromarray(truth.astype(np.uint8) * 255).convert("RGB"),
                  Image.fromarray(mask.astype(np.uint8) * 255).convert("RGB")]
         height = round(TILE_WIDTH * size[1] / size[0])
-        tiles = [t.resize((TILE_WIDTH, height), Image.BILINEAR) for t in tiles]
-        row = Image.new("RGB", (TILE_WIDTH * len(tiles), height))
-        for i, tile in enumerate(tiles):
-            row.paste(tile, (i * TILE_WIDTH, 0))
+        row = side_by_side([t.resize((TILE_WIDTH, height), Image.BILINEAR) for t in tiles])
         ImageDraw.Draw(row).text((2 * TILE_WIDTH + 6, 6), f"{stem}: IoU {iou:.3f}", fill=(255, 64, 64))
         rows.append(row)
     figure = Image.new("RGB", (rows[0].width, sum(r.height for r in rows)))
@@ -66,10 +61,7 @@ def main() -> int:
     for row in rows:
         figure.paste(row, (0, y))
         y += row.height
-    a.out.parent.mkdir(parents=True, exist_ok=True)
-    with atomic_open(a.out) as f:
-        figure.save(f, format="PNG")
-    print(f"figure: {a.out}")
+    write_png(figure, a.out)
     return 0
 
 

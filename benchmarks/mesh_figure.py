@@ -15,10 +15,8 @@ from pathlib import Path
 
 from PIL import Image, ImageDraw
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))  # this checkout's recon, not an installed one
-
-from recon.atomic import atomic_open  # noqa: E402
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from figures import side_by_side, write_png  # noqa: E402
 
 PANEL = 360
 """Each panel's side in pixels."""
@@ -46,15 +44,11 @@ def main() -> int:
         if not sep or not preview.is_file():
             raise SystemExit(f"--scene {spec!r}: give LABEL=SCENE_DIR of a scene whose mesh stage wrote {preview.name}")
         panels.append((label, _square(Image.open(preview).convert("RGB"))))
-    figure = Image.new("RGB", (PANEL * len(panels), PANEL), (255, 255, 255))
+    figure = side_by_side([panel for _, panel in panels])
     draw = ImageDraw.Draw(figure)
-    for i, (label, panel) in enumerate(panels):
-        figure.paste(panel, (i * PANEL, 0))
+    for i, (label, _) in enumerate(panels):
         draw.text((i * PANEL + 8, 8), label, fill=(200, 30, 30))
-    a.out.parent.mkdir(parents=True, exist_ok=True)
-    with atomic_open(a.out) as f:
-        figure.save(f, format="PNG")
-    print(f"figure: {a.out}")
+    write_png(figure, a.out)
     return 0
 
 

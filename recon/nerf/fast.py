@@ -267,8 +267,7 @@ class FastModel(RadianceModel):
         """σ = activation(raw) / voxel size: raw values count opacity per voxel, not per world unit. Adam moves
         a raw value by about lr per step, so in world units (σ of hundreds for an opaque voxel) surfaces
         would need thousands of steps to become sharp; per voxel a raw value of ~3 already is opaque."""
-        s0 = -math.log1p(-cfg.init_alpha) / self.step_size / self.density_scale  # opacity init_alpha per step
-        self.density_bias = math.log(math.expm1(s0)) if cfg.density_activation == "softplus" else math.log(s0)
+        self.density_bias = self._raw_density(cfg.init_alpha)  # opacity init_alpha per step
 
         self.color_grid = _make_grid(cfg.grid, cfg.feature_res, cfg.feature_dim, density=False, levels=cfg.feature_levels,
                                      table_log2=cfg.hash_table_log2)
@@ -320,11 +319,14 @@ class FastModel(RadianceModel):
             raise ValueError(f"the start shape must be {r}³ (the coarsest density level), got {tuple(inside.shape)}")
         if bool(self.shrunk):
             raise ValueError("the start shape is set before training: the grids have already shrunk")
-        sigma = -math.log1p(-alpha) / self.step_size / self.density_scale
-        raw = (math.log(math.expm1(sigma)) if self.config.density_activation == "softplus" else math.log(sigma))
         grid = self.density_grid.grids[0] if isinstance(self.density_grid, MultiDenseGrid) else self.density_grid
         table = grid.table.view(r ** 3, -1)
-        table[inside.reshape(-1).to(table.device), 0] += raw - self.density_bias
+        table[inside.reshape(-1).to(table.device), 0] += self._raw_density(alpha) - self.density_bias
+
+    def _raw_density(self, alpha: float) -> float:
+        """The raw density (before the activation) whose opacity over one step is ``alpha``."""
+        sigma = -math.log1p(-alpha) / self.step_size / self.density_scale
+        return math.log(math.expm1(sigma)) if self.config.density_activation == "softplus" else math.log(sigma)
 
     @property
     def voxel_size(self) -> float:

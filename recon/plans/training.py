@@ -119,14 +119,13 @@ def transparent_for(cfg: TrainConfig, kind: str, scene: Scene,
         return None, f"transparent pixels: trained by their colour on random backgrounds (the {kind} model)"
     if cfg.transparent_weight <= 0:
         return None, "transparent pixels: trained by their colour alone (train.transparent_weight=0)"
-    silhouettes, _ = hull_silhouettes(np.asarray(scene.aabb, np.float64), HULL_RES, [v.c2w for v in views],
-                                      [v.intrinsics for v in views], [v.image[..., 3] >= 128 for v in views],
-                                      HULL_TOLERANCE)
+    in_hull, _ = hull_silhouettes(np.asarray(scene.aabb, np.float64), HULL_RES, [v.c2w for v in views],
+                                  [v.intrinsics for v in views], silhouettes(views), HULL_TOLERANCE)
     transparent = [v.image[..., 3] == 0 for v in views]
-    agreed = [t & ~s for t, s in zip(transparent, silhouettes, strict=True)]
+    agreed = [t & ~s for t, s in zip(transparent, in_hull, strict=True)]
     total = max(1, sum(m.size for m in agreed))
     share, disputed = (float(sum(m.sum() for m in agreed)) / total,
-                       float(sum((t & s).sum() for t, s in zip(transparent, silhouettes, strict=True))) / total)
+                       float(sum((t & s).sum() for t, s in zip(transparent, in_hull, strict=True))) / total)
     why = (f"transparent pixels: {share:.0%} of the training pixels lie outside the masks and outside the hull they "
            f"carve together, and train as empty space (weight {cfg.transparent_weight:g}): random backgrounds alone "
            f"leave a faint haze there; {disputed:.1%} more are transparent in their photo but inside the hull")
@@ -241,6 +240,11 @@ def has_silhouettes(views: list[View]) -> bool:
     return bool(views) and all(v.image.shape[-1] == 4 for v in views)
 
 
+def silhouettes(views: list[View]) -> list[np.ndarray]:
+    """Each photo's object pixels (H, W) bool: its alpha at least half."""
+    return [v.image[..., 3] >= 128 for v in views]
+
+
 PLAIN_POINTS = 3.0
 """Sparse points per 10,000 object pixels (at a 1000-px longer side) in the median training photo under which an
 object counts as plain for train.hull_start=auto: far under a textured object's, far over a painted one's
@@ -255,9 +259,8 @@ def object_point_density(scene: Scene, frames: list[Frame], views: list[View]) -
     if not has_silhouettes(views) or not len(points) or not scene.point_visibility:
         return None
     densities = []
-    for frame, view in zip(frames, views, strict=True):
+    for frame, view, inside in zip(frames, views, silhouettes(views), strict=True):
         seen = scene.point_visibility.get(frame.name)
-        inside = view.image[..., 3] >= 128
         if seen is None or not inside.any():
             continue
         h, w = inside.shape
@@ -315,8 +318,7 @@ def surface_start(kwargs: dict[str, Any], scene: Scene, views: list[View]) -> tu
     not_visual = ("train.surface.init_shape=" + shape if shape != "auto"
                   else "the photos have no silhouettes (masks or a keyed backdrop) for a visual hull")
     if shape in ("auto", "visual_hull") and with_alpha:
-        inside, _ = carve(box, res, [v.c2w for v in views], [v.intrinsics for v in views],
-                          [v.image[..., 3] >= 128 for v in views])
+        inside, _ = carve(box, res, [v.c2w for v in views], [v.intrinsics for v in views], silhouettes(views))
         core = inside[1:-1, 1:-1, 1:-1]
         if core.any():
             why = (f"initial surface: the visual hull of the {len(views)} training photos' silhouettes ({core.mean():.1%} "
@@ -655,8 +657,7 @@ def build_training(plan: TrainPlan, device: torch.device) -> TrainSetup:
         from recon.geometry.visual_hull import carve
 
         inside, _ = carve(model.grid_box.numpy().astype(np.float64), model.start_resolution,
-                          [v.c2w for v in plan.views], [v.intrinsics for v in plan.views],
-                          [v.image[..., 3] >= 128 for v in plan.views])
+                          [v.c2w for v in plan.views], [v.intrinsics for v in plan.views], silhouettes(plan.views))
         model.start_inside(inside)
         notes.append(f"start: the visual hull holds {inside.mean():.1%} of the box "
                      f"({model.start_resolution}³ vertices)")
