@@ -3,6 +3,7 @@ known gains, and a held-out protocol whose scored pixels never shape the transfo
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -238,3 +239,29 @@ def test_auto_needs_the_pairs_to_differ_not_only_the_least_squares_gains() -> No
     for pairs, changed_pairs in ((118, 17), (146, 22)):  # the fox's phone photos, two SfM runs: on both times
         fox_like = ExposureSpread(gains, per_photo, 0.08, changed=27, pairs=pairs, pairs_changed=changed_pairs)
         assert decide("auto", fox_like)[0]
+
+
+def test_photos_cut_out_by_masks_are_measured_whole_and_no_measurement_is_not_called_constant() -> None:
+    """A plain object alone gives SIFT no matches: its photos' exposure, when their alpha is only their masks, is
+    measured on the whole photo (the camera's gain is the whole photo's); a render's own alpha hides colours that
+    are not the photo's, and with nothing to match the switch says it could not measure, not that all is constant."""
+    from recon.capture.scene import Frame
+    from recon.config import TrainConfig
+    from recon.evaluation.views import View
+    from recon.plans.training import choose_appearance
+
+    images, c2w = _sample_photos(12)
+    gains = {2: (0.7, 0.75, 0.8), 5: (1.25, 1.15, 1.0), 9: (0.85, 0.9, 1.1)}
+    h, w = images[0].shape[:2]
+    alpha = np.zeros((h, w, 1), np.uint8)
+    alpha[h // 2 - 3 : h // 2 + 3, w // 2 - 3 : w // 2 + 3] = 255  # the "object": a few pixels, nothing to match
+    views, frames = [], []
+    for i, im in enumerate(images):
+        scaled = np.clip(np.round(im * np.array(gains.get(i, (1.0, 1.0, 1.0)))), 0, 255).astype(np.uint8)
+        views.append(View(f"{i:02d}", np.concatenate([scaled, alpha], axis=-1), c2w[i], (w, w, w / 2, h / 2), 0.1, 9.0))
+        frames.append(Frame(f"/p/{i:02d}.png", c2w[i], w, w, w / 2, h / 2, w, h, split="train", mask_path=f"/m/{i:02d}.png"))
+    on, why = choose_appearance(TrainConfig(), "fast", views, frames)
+    assert on and "measured on the colours of SIFT matches" in why
+    own_alpha = [replace(f, mask_path=None) for f in frames]
+    on, why = choose_appearance(TrainConfig(), "fast", views, own_alpha)
+    assert not on and "could not be measured" in why and "constant" not in why

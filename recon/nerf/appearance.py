@@ -59,6 +59,9 @@ between on and off from one SfM run of the same photos to the next."""
 NEIGHBOURS = 4
 """Each photo is matched with this many nearest cameras (by position and viewing direction)."""
 
+MIN_MATCHES = 20
+"""A neighbouring pair measures its photos' gain ratio from at least this many SIFT matches of unclipped colour."""
+
 
 class PhotoAppearance(nn.Module):
     """Per-photo affine colour transforms ``A_i c + b_i``, identity at initialization.
@@ -229,7 +232,7 @@ def _features(rgb: np.ndarray, usable: np.ndarray) -> tuple[np.ndarray, np.ndarr
     return xy, desc, colour
 
 
-def _pair_log_ratio(a: tuple, b: tuple, min_matches: int = 20) -> np.ndarray | None:
+def _pair_log_ratio(a: tuple, b: tuple, min_matches: int = MIN_MATCHES) -> np.ndarray | None:
     """Median per-channel log(colour in a / colour in b) over a's and b's SIFT matches (ratio test), or None."""
     import cv2
 
@@ -301,6 +304,9 @@ def decide(setting: str, spread: ExposureSpread) -> tuple[bool, str]:
         return False, f"per-photo appearance off (train.appearance=off); {stat}"
     if setting != "auto":
         raise ValueError(f"train.appearance must be auto, on or off, got {setting!r}")
+    if spread.pairs == 0:
+        return False, ("per-photo appearance off: the photos' exposure could not be measured (no two neighbouring photos "
+                       f"share {MIN_MATCHES} SIFT matches of unclipped colour); train.appearance=on models it all the same")
     need = max(2, int(np.ceil(MIN_CHANGED_FRACTION * spread.n)))
     need_pairs = max(1, int(np.ceil(MIN_PAIR_FRACTION * spread.pairs)))
     if spread.changed >= need and spread.pairs_changed >= need_pairs:

@@ -467,13 +467,19 @@ def depth_prior_for(cfg: TrainConfig, kind: str, scene: Scene, frames: list[Fram
                    f"units), {cfg.depth_rays} of them rendered per step, weight {cfg.depth_weight:g}")
 
 
-def choose_appearance(cfg: TrainConfig, kind: str, views: list[View]) -> tuple[bool, str]:
-    """(model the photos' exposure / white balance per photo?, why) — see recon.nerf.appearance."""
+def choose_appearance(cfg: TrainConfig, kind: str, views: list[View], frames: list[Frame]) -> tuple[bool, str]:
+    """(model the photos' exposure / white balance per photo?, why) — see recon.nerf.appearance. `frames`: the
+    views' frames, in the same order.
+
+    A photo whose alpha is its mask is measured whole: the camera's exposure is the whole photo's, and a plain
+    object alone gives SIFT too few matches to measure it by. A photo's own alpha (a render's) is kept: the colours
+    under it are not the photo's."""
     if kind == "classic" and cfg.appearance != "off":
         return False, "per-photo appearance off: it is built for the grid models (fast, surface), not the classic MLP"
     if cfg.appearance == "off":
         return False, "per-photo appearance off (train.appearance=off)"
-    return decide(cfg.appearance, exposure_spread([v.image for v in views], np.stack([v.c2w for v in views])))
+    images = [v.image[..., :3] if f.mask_path else v.image for v, f in zip(views, frames, strict=True)]
+    return decide(cfg.appearance, exposure_spread(images, np.stack([v.c2w for v in views])))
 
 
 POSE_REFINE_WHY = (
@@ -547,7 +553,7 @@ def plan_training(cfg: TrainConfig, scene: Scene, views: list[View], device: tor
     kind, kwargs, lr, reasons = model_spec(cfg, scene, views)
     if cfg.adjusted:
         reasons.insert(0, cfg.adjusted)
-    appearance, appearance_why = choose_appearance(cfg, kind, views)
+    appearance, appearance_why = choose_appearance(cfg, kind, views, frames)
     reasons.append(appearance_why)
     pose_refine, pose_why = choose_pose_refine(cfg, kind)
     reasons.append(pose_why)

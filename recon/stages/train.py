@@ -328,4 +328,5 @@ def _metrics(scene: Scene, device: torch.device, plan: TrainPlan, setup: TrainSe
 # version 5: train.depth_prior=auto turns the prior on for unbounded captures without masks
 # version 6: the surface model starts from the photos' visual hull when they have silhouettes
 # version 7: close-ups train at the other photos' pixel footprint (train.photo_footprint)
-STAGE = Stage(name="train", folder="03_field", inputs=("normalize",), version=7, run=run)
+# version 8: train.appearance=auto measures the exposure of photos cut out by masks on the whole photo
+STAGE = Stage(name="train", folder="03_field", inputs=("normalize",), version=8, run=run)
