@@ -13,6 +13,8 @@ hull (what `MIN_AGREEMENT` judges) and whether the masks would be trusted; and h
 region holds, with and without the points linked to the in-frame ones (what close-ups leave out of frame). Variants:
 
 - shipped: as normalize runs it (object seeds: the points SfM placed within `SEED_SPREAD_PX`, each its own pixel);
+- no support prior: shipped, but the cut starts with the object seeds' hull alone as probable object, not their
+  hull with their feet on the support plane (`STANDS_ON_SUPPORT`);
 - in-frame region: the object region of only the points most photos keep in frame, without the points linked to
   them (`recon.capture.region.LINK_SPACINGS` = 0): the region before those links;
 - every point, seed discs: the seeds before `SEED_SPREAD_PX` (every object point seeds a disc of `SEED_RADIUS`, as
@@ -47,6 +49,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("scene", type=Path)
     ap.add_argument("true_masks", type=Path, nargs="?")
     ap.add_argument("--name", required=True, help="the record's name: benchmarks/results/NAME.json")
+    ap.add_argument("--variants", default="", help="comma-separated variants to run (default: all)")
     a = ap.parse_args(argv)
 
     import cv2
@@ -95,7 +98,7 @@ def main(argv: list[str] | None = None) -> None:
         def spread(scene_, points_):
             return np.zeros(len(points_)) if name == "every point, seed discs" else original_spread(scene_, points_)
 
-        def grabcut(cv2_, photo, fg, bg, box_uv, known=None):
+        def grabcut(cv2_, photo, fg, bg, box_uv, known=None, feet=None):
             h, w = photo.shape[:2]
             if name == "every point, seed discs":  # each seed grown to a disc of SEED_RADIUS
                 radius = max(1, round(am.SEED_RADIUS * float(np.hypot(w, h))))
@@ -113,7 +116,9 @@ def main(argv: list[str] | None = None) -> None:
                 ys, xs = np.nonzero(ring)
                 pick = np.random.default_rng(0).choice(len(ys), min(len(ys), RING_SEEDS), replace=False)
                 bg = np.concatenate([bg, np.stack([xs[pick], ys[pick]], axis=1)])
-            return original_grabcut(cv2_, photo, fg, bg, box_uv, known)
+            if name == "no support prior":  # the cut's probable object: the seeds' hull alone, not their feet's too
+                feet = None
+            return original_grabcut(cv2_, photo, fg, bg, box_uv, known, feet)
 
         def loader(frame):
             current["frame"] = frame.name
@@ -147,8 +152,11 @@ def main(argv: list[str] | None = None) -> None:
         return row
 
     oracles = ("true object seeds", "true seeds and a background ring") if a.true_masks is not None else ()
-    rows = [variant("shipped"), variant("in-frame region", in_frame),
-            *[variant(v) for v in ("every point, seed discs", *oracles)]]
+    names = ("shipped", "no support prior", "in-frame region", "every point, seed discs", *oracles)
+    chosen = a.variants.split(",") if a.variants else names
+    if unknown := set(chosen) - set(names):
+        raise SystemExit(f"unknown variants {sorted(unknown)}; known: {', '.join(names)}")
+    rows = [variant(v, in_frame) if v == "in-frame region" else variant(v) for v in names if v in chosen]
 
     def object_points(scene: Any) -> np.ndarray:
         """(N,) bool: the sparse points the cut takes for object seeds (inside the scene's object region)."""

@@ -62,6 +62,8 @@ def main() -> None:
         if own:
             row["value_overrides"] = own
         row["psnr_per_view"] = {v["view"]: round(v["psnr"], 2) for v in metrics["test"]["views"]}
+        if "psnr_neutral" in metrics["test"]:  # with per-photo appearance: the neutral render on the whole photo
+            row["psnr_neutral"] = round(metrics["test"]["psnr_neutral"], 2)
         rows.append(row)
         mesh = f", F@1% {row['fscore_1pct']:.3f}" if row.get("fscore_1pct") is not None else ""
         print(f"{args.option}={item}: {row['steps']} steps, {row['rays_per_s']:,.0f} rays/s, "

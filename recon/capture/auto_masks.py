@@ -2,7 +2,9 @@
 
 No learned weights. The sparse points of the object region (`recon.capture.region`) that SfM placed surely seed the
 object, each its own pixel; the points on the cut support plane, the points outside the region and every pixel outside
-the region's projected box seed the background; GrabCut (colour models and a graph cut, OpenCV) segments between them.
+the region's projected box seed the background; GrabCut (colour models and a graph cut, OpenCV) segments between them,
+starting from the hull of the object seeds and their feet on the ground as probable object (an object stands on its
+table: a plain, shadowed base has no seeds of its own).
 Then the photos vote: a pixel stays object only where its ray passes through space that (almost) no photo calls
 background — the masks' visual hull. How well each photo's cut agrees with the hull the others carve says how sure the
 segmentation is. Finally each cut's outline is snapped to its photo's edges and made as soft as they are (`matte`, a
@@ -22,6 +24,7 @@ from recon.camera import (MIN_KEYPOINT_ERROR_PX, MIN_TRIANGULATION_DEG, intrinsi
                           triangulation_angles)
 from recon.capture.images import read_image, undistort
 from recon.capture.normalization import box_corners
+from recon.capture.region import support_kind
 from recon.capture.scene import Frame, Scene
 from recon.geometry.visual_hull import hull_silhouettes
 
@@ -40,6 +43,9 @@ SEED_SPREAD_PX = 1.5
 photo: its reprojection error (at least `MIN_KEYPOINT_ERROR_PX`) over the sine of the widest angle between the rays
 that observe it (at least `MIN_TRIANGULATION_DEG`), in the photo's pixels scaled to the segmented size. A video's short
 baselines leave such uncertain points at the object's foot and silhouette, and each lands wherever its error puts it."""
+STANDS_ON_SUPPORT = True
+"""The cut starts with the hull of the object seeds and their feet on the ground as probable object: an object stands
+on its table, and a plain or shadowed base holds no seeds of its own."""
 MIN_PIECE = 0.02
 """Pieces of a cut smaller than this fraction of its largest seeded piece are dropped (a stray point's seed)."""
 MAX_SPECK = 2e-4
@@ -136,14 +142,16 @@ def segment_object(scene: Scene, load_photo: PhotoLoader | None = None, side: in
         seen = np.arange(len(points)) if seen is None else np.asarray(seen, np.int64)
         # every object point lands inside the object's outline (the object hides its own back, not its outline);
         # background points only where the photo sees them (a hidden table point may lie behind the object)
-        fg = _visible_uv(points[certain(frame, w)], frame.c2w, intr, w, h)
+        sure = points[certain(frame, w)]
+        fg = _visible_uv(sure, frame.c2w, intr, w, h)
         bg = _visible_uv(points[seen[background_pts[seen]]], frame.c2w, intr, w, h)
+        feet = _visible_uv(_feet(sure, scene.ground), frame.c2w, intr, w, h) if STANDS_ON_SUPPORT else np.zeros((0, 2))
         box_uv = _visible_uv(box_corners(grown), frame.c2w, intr, w, h, clip=False)
         known = background(frame) if background is not None else None
         if known is not None:
             known = cv2.resize(np.asarray(known, np.float32), (w, h), interpolation=cv2.INTER_NEAREST)
             known = undistort(known, *intr, frame.distortion, frame.camera_model) > 0.5
-        return _grabcut(cv2, pinhole, fg, bg, box_uv, known), _edges(cv2, pinhole), intr, (w, h), fg
+        return _grabcut(cv2, pinhole, fg, bg, box_uv, known, feet), _edges(cv2, pinhole), intr, (w, h), fg
 
     cuts, intrinsics, sizes, seeds, edges = [], [], [], [], []
     # one photo per core: OpenCV's graph cut runs on one thread and releases the GIL; each cut seeds its own
@@ -274,9 +282,19 @@ def _visible_uv(points: np.ndarray, c2w: np.ndarray, intr: np.ndarray, w: int, h
     return uv[keep]
 
 
+def _feet(points: np.ndarray, support: np.ndarray | None) -> np.ndarray:
+    """(P, 3) the points dropped along the support plane's normal onto it; none without a plane or on a wall (what
+    lies between a wall and the object beside it is the wall, seen past the object)."""
+    if support is None or not len(points) or support_kind(support) != "ground":
+        return np.zeros((0, 3))
+    n = np.asarray(support[:3], np.float64)
+    return points - (points @ n - float(support[3]))[:, None] * n
+
+
 def _grabcut(cv2, photo: np.ndarray, fg: np.ndarray, bg: np.ndarray, box_uv: np.ndarray,
-             known_background: np.ndarray | None = None) -> np.ndarray:
-    """(h, w) bool object pixels of one undistorted photo from its seeds (see the module docstring)."""
+             known_background: np.ndarray | None = None, feet: np.ndarray | None = None) -> np.ndarray:
+    """(h, w) bool object pixels of one undistorted photo from its seeds (see the module docstring); `feet`: the
+    object seeds dropped onto the support plane, whose hull with the seeds starts as probable object."""
     h, w = photo.shape[:2]
     label = np.full((h, w), cv2.GC_BGD, np.uint8)
     if len(box_uv) == 8:  # the whole grown box in front of the camera: outside its outline is background
@@ -285,7 +303,7 @@ def _grabcut(cv2, photo: np.ndarray, fg: np.ndarray, bg: np.ndarray, box_uv: np.
         label[:] = cv2.GC_PR_BGD
     if len(fg) < 3:
         return np.zeros((h, w), bool)
-    hull = cv2.convexHull(np.round(fg).astype(np.int32))
+    hull = cv2.convexHull(np.round(np.concatenate([fg, feet]) if feet is not None and len(feet) else fg).astype(np.int32))
     cv2.fillConvexPoly(label, hull, int(cv2.GC_PR_FGD))
     radius = max(1, round(SEED_RADIUS * float(np.hypot(w, h))))
     if known_background is not None:

@@ -161,4 +161,5 @@ def _write(folder: Path, masks: dict[str, np.ndarray], scene: Scene) -> None:
 # version 10: the object region holds the points linked to those most photos keep in frame
 # version 11: no more photos held out than leave FEW_PHOTOS to train
 # version 12: the object region holds what an object on a wall hangs on
-STAGE = Stage(name="normalize", folder="02_scene", inputs=("poses",), version=12, run=run)
+# version 13: automatic masks start the cut with the object seeds' feet on the ground as probable object
+STAGE = Stage(name="normalize", folder="02_scene", inputs=("poses",), version=13, run=run)
