@@ -132,6 +132,7 @@ def test_a_plain_dark_base_on_its_shadow_stays_object_because_the_object_stands_
     assert kept_base(with_feet) > 0.8 and kept_base(with_feet) > kept_base(seeds_only) + 0.2, \
         (kept_base(with_feet), kept_base(seeds_only))
     assert np.median([_iou(with_feet.masks[n], truth[n]) for n in truth]) > 0.85
+    assert "feet on the ground" in with_feet.reason and "feet" not in seeds_only.reason
 
 
 def test_the_masks_do_not_depend_on_how_many_photos_are_cut_at_once(monkeypatch: pytest.MonkeyPatch) -> None:

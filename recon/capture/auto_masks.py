@@ -198,6 +198,8 @@ def segment_object(scene: Scene, load_photo: PhotoLoader | None = None, side: in
         f"(median {median:.0%}, least {agreement.get(worst, 0.0):.0%} in {worst}), keep {recall:.0%} of the "
         f"object's sparse points and their outlines follow the photos' edges ({on_edges:.0%})"
     )
+    if STANDS_ON_SUPPORT and scene.ground is not None and support_kind(scene.ground) == "ground":
+        reason += "; each cut started from the object's points and their feet on the ground (it stands on it)"
     if not confident:
         why = ([f"median {median:.0%} in the hull < {MIN_AGREEMENT:.0%}"] if median < MIN_AGREEMENT else []) + (
             [f"{recall:.0%} of the object's points kept < {MIN_SEED_RECALL:.0%}"] if recall < MIN_SEED_RECALL else []) + (
