@@ -241,7 +241,8 @@ def run_bench(
             "test_views": len(metrics["test"]["views"]),
             "rays_per_s": metrics["rays_per_s"],
             "evals": metrics["evals"],
-            "object_point_density": metrics.get("object_point_density"),  # how textured the object is (hull start)
+            # the sparse points SfM found on the object per 10,000 of its pixels: what train.hull_start=auto decides by
+            "object_point_density": metrics.get("object_point_density"),
         }
         normalized = _stage_summary(scene, "normalize")
         row["auto_masks"] = normalized.get("auto_masks")

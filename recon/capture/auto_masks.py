@@ -127,6 +127,8 @@ def segment_object(scene: Scene, load_photo: PhotoLoader | None = None, side: in
     grown = np.stack([region[0] - REGION_MARGIN * extent, region[1] + REGION_MARGIN * extent])
     points = np.asarray(scene.points, np.float64).reshape(-1, 3)
     object_pts, background_pts = _label_points(points, region, grown, scene.ground)
+    # on a wall, what lies between the object and the wall beside it is the wall, seen past the object
+    on_ground = STANDS_ON_SUPPORT and scene.ground is not None and support_kind(scene.ground) == "ground"
     spread = _triangulation_spread(scene, points)  # photo pixels
 
     def certain(frame: Frame, w: int) -> np.ndarray:
@@ -145,7 +147,7 @@ def segment_object(scene: Scene, load_photo: PhotoLoader | None = None, side: in
         sure = points[certain(frame, w)]
         fg = _visible_uv(sure, frame.c2w, intr, w, h)
         bg = _visible_uv(points[seen[background_pts[seen]]], frame.c2w, intr, w, h)
-        feet = _visible_uv(_feet(sure, scene.ground), frame.c2w, intr, w, h) if STANDS_ON_SUPPORT else np.zeros((0, 2))
+        feet = _visible_uv(_feet(sure, scene.ground), frame.c2w, intr, w, h) if on_ground else None
         box_uv = _visible_uv(box_corners(grown), frame.c2w, intr, w, h, clip=False)
         known = background(frame) if background is not None else None
         if known is not None:
@@ -198,7 +200,7 @@ def segment_object(scene: Scene, load_photo: PhotoLoader | None = None, side: in
         f"(median {median:.0%}, least {agreement.get(worst, 0.0):.0%} in {worst}), keep {recall:.0%} of the "
         f"object's sparse points and their outlines follow the photos' edges ({on_edges:.0%})"
     )
-    if STANDS_ON_SUPPORT and scene.ground is not None and support_kind(scene.ground) == "ground":
+    if on_ground:
         reason += "; each cut started from the object's points and their feet on the ground (it stands on it)"
     if not confident:
         why = ([f"median {median:.0%} in the hull < {MIN_AGREEMENT:.0%}"] if median < MIN_AGREEMENT else []) + (
@@ -284,11 +286,8 @@ def _visible_uv(points: np.ndarray, c2w: np.ndarray, intr: np.ndarray, w: int, h
     return uv[keep]
 
 
-def _feet(points: np.ndarray, support: np.ndarray | None) -> np.ndarray:
-    """(P, 3) the points dropped along the support plane's normal onto it; none without a plane or on a wall (what
-    lies between a wall and the object beside it is the wall, seen past the object)."""
-    if support is None or not len(points) or support_kind(support) != "ground":
-        return np.zeros((0, 3))
+def _feet(points: np.ndarray, support: np.ndarray) -> np.ndarray:
+    """(P, 3) the points dropped along the support plane's (4,) normal onto it."""
     n = np.asarray(support[:3], np.float64)
     return points - (points @ n - float(support[3]))[:, None] * n
 
@@ -305,7 +304,7 @@ def _grabcut(cv2, photo: np.ndarray, fg: np.ndarray, bg: np.ndarray, box_uv: np.
         label[:] = cv2.GC_PR_BGD
     if len(fg) < 3:
         return np.zeros((h, w), bool)
-    hull = cv2.convexHull(np.round(np.concatenate([fg, feet]) if feet is not None and len(feet) else fg).astype(np.int32))
+    hull = cv2.convexHull(np.round(fg if feet is None else np.concatenate([fg, feet])).astype(np.int32))
     cv2.fillConvexPoly(label, hull, int(cv2.GC_PR_FGD))
     radius = max(1, round(SEED_RADIUS * float(np.hypot(w, h))))
     if known_background is not None:
