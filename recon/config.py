@@ -256,10 +256,11 @@ class MeshConfig:
     keep_ground: bool = False
     """Keep the ground plane the object stands on, or the wall it hangs on (normalize finds either by RANSAC); by
     default it is cut away."""
-    ground_margin_cells: float = 2.0
+    ground_margin_cells: float = -1.0
     """Faces up to this many surface cells (the mesh cell, or the field's voxel when coarser) above the ground (or in
-    front of the wall) are cut with it: the field makes a table top a layer about a voxel thick. Lower it when the
-    object's base is cut, raise it when a layer of table stays."""
+    front of the wall) are cut with it. -1: automatic (`recon.plans.mesh.capture_ground_margin`): 2 without masks,
+    where the field makes a table top a layer about a voxel thick; 0 when masks trained the table empty, so what
+    stands on the plane is the object's base. Raise it when a layer of table stays."""
     texture_faces: int = 50000
     """Also write mesh_textured.glb/.obj: the mesh decimated to this many faces, UV-unwrapped, its color
     baked into a texture (0: no textured mesh)."""
@@ -650,7 +651,7 @@ BOUNDS: dict[str, Bound] = {
     "mesh.gpu_bake_views": _range(1, 10**5, off=0, off_means="automatic"),
     "mesh.cpu_depth_side": _range(8, 16384, off=0, off_means="automatic"),
     "mesh.region_margin": _range(0, 10),
-    "mesh.ground_margin_cells": _range(0, 100),
+    "mesh.ground_margin_cells": _range(0, 100, off=-1, off_means="automatic"),
     "mesh.target_faces": _range(4, 10**8, off=0, off_means="keep all"),
     "mesh.real_size": _range(0, 1e9),
     "mesh.texture_faces": _range(4, 150000, off=0, off_means="no textured mesh"),

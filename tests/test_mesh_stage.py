@@ -370,6 +370,32 @@ def test_plan_crops_to_the_object_region_cuts_the_ground_and_says_why() -> None:
     assert everything.ground is None and everything.region_why == "the whole scene box (mesh.region=all)"
 
 
+def test_plan_cuts_a_masked_capture_at_its_table_and_an_unmasked_one_a_layer_above_it() -> None:
+    """Masks train the table empty, so the faces just above its plane are the object's base: cut at the plane. Without
+    masks the field holds the table top as a layer about a voxel thick: cut it with the plane."""
+    region, ground = np.array([[-0.5] * 3, [0.5] * 3]), np.array([0.0, 0.0, 1.0, -0.5])
+    cfg = MeshConfig(resolution=65)
+    plain = mesh_plan.plan_mesh(cfg, _capture(masks=False, region=region, ground=ground), PLAN_META, on_cpu=True,
+                                voxel=0.0)
+    assert plain.ground_margin == pytest.approx(mesh_plan.GROUND_LAYER_CELLS * plain.cell) and plain.ground_margin > 0
+    assert plain.ground_margin_why == "" and plain.ground_layer == pytest.approx(plain.ground_margin)
+    masked = mesh_plan.plan_mesh(cfg, _capture(masks=True, region=region, ground=ground), PLAN_META, on_cpu=True,
+                                 voxel=0.0)
+    assert masked.ground_margin == 0.0 and "table cut at its plane" in masked.ground_margin_why
+    assert masked.ground_layer == pytest.approx(plain.ground_layer)  # the coherence check still leaves the table out
+    assert masked.notes == [f"mesh region: {masked.region_why}", f"resolution: {masked.resolution_why}",
+                            masked.ground_margin_why, masked.iso_why]
+    wall = mesh_plan.plan_mesh(cfg, _capture(masks=True, region=region, ground=np.array([1.0, 0.0, 0.0, -0.5])),
+                               PLAN_META, on_cpu=True, voxel=0.0)
+    assert wall.ground_margin == 0.0 and "wall cut at its plane" in wall.ground_margin_why
+    chosen = mesh_plan.plan_mesh(MeshConfig(resolution=65, ground_margin_cells=1.0),
+                                 _capture(masks=True, region=region, ground=ground), PLAN_META, on_cpu=True, voxel=0.0)
+    assert chosen.ground_margin == pytest.approx(chosen.cell) and chosen.ground_margin_why == ""  # the user's wins
+    kept = mesh_plan.plan_mesh(MeshConfig(resolution=65, keep_ground=True),
+                               _capture(masks=True, region=region, ground=ground), PLAN_META, on_cpu=True, voxel=0.0)
+    assert kept.ground is None and kept.ground_margin_why == ""  # nothing is cut, nothing to say
+
+
 def test_plan_picks_the_photos_to_check_and_color_against() -> None:
     scene = _capture(masks=False)
     cpu = mesh_plan.plan_mesh(MeshConfig(resolution=65), scene, PLAN_META, on_cpu=True, voxel=0.0)

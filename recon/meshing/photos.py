@@ -130,15 +130,15 @@ def inside_masks(views: Sequence[View], keep_fraction: float) -> Callable[[np.nd
 # ---------------------------------------------------------------------------------------- coherence
 def coherence(
     vertices: np.ndarray, faces: np.ndarray, views: Sequence[View], depths: Sequence[np.ndarray], region: np.ndarray,
-    ground: np.ndarray | None, ground_margin: float, masked: bool, opacities: Sequence[np.ndarray] | None = None,
+    ground: np.ndarray | None, ground_layer: float, masked: bool, opacities: Sequence[np.ndarray] | None = None,
     seen_points: Sequence[np.ndarray] | None = None, point_tolerance: float = 0.0,
 ) -> dict:
     """Is the mesh one surface covering what the photos show of the object (`geometry.coherence`)? The object's
     pixels are the masks' (``masked``), else the pixels at least OBJECT_OPACITY opaque (``opacities``) whose rendered
-    depth lands in the mesh region above the cut ground. Without the opacity a transparent ray's depth is its exit
-    from the scene box, which lies on the region's boundary when the region is the box, so the backdrop around the
-    object would count as object. ``seen_points``: per view the
-    SfM points it observes; those in the mesh region are checked against the mesh (`point_agreement`, within
+    depth lands in the mesh region more than ``ground_layer`` above the ground (its table top's thickness). Without
+    the opacity a transparent ray's depth is its exit from the scene box, which lies on the region's boundary when the
+    region is the box, so the backdrop around the object would count as object. ``seen_points``: per view the SfM
+    points it observes (those within ``ground_layer`` of the ground are the ground's); those in the mesh region are checked against the mesh (`point_agreement`, within
     ``point_tolerance``; None: the scene records no visibility, an import)."""
     out: dict[str, Any] = {"largest_piece": largest_piece(vertices, faces)}
     if not views:
@@ -148,7 +148,7 @@ def coherence(
 
     def inside(p: np.ndarray) -> np.ndarray:
         ok = np.all((p >= lo) & (p <= hi), axis=1)
-        return ok if ground is None else ok & (p @ ground[:3] - ground[3] >= ground_margin)
+        return ok if ground is None else ok & (p @ ground[:3] - ground[3] >= ground_layer)
 
     pick = spread_evenly(list(range(len(views))), COHERENCE_VIEWS)
     cams = [(views[i].c2w, views[i].intrinsics, views[i].hw) for i in pick]

@@ -40,6 +40,10 @@ HIDDEN_TOL_CELLS = 1.0
 result is insensitive to it near one voxel: the inner walls lie several voxels behind the visible surface."""
 POINT_TOL_CELLS = 1.0
 """The mesh passes through an SfM point (coherence's point agreement) when within this many surface cells of it."""
+GROUND_LAYER_CELLS = 2.0
+"""How thick a table top (or wall) the field makes, in surface cells: about a voxel. Without masks the faces this
+close above the ground are cut with it (mesh.ground_margin_cells=-1); with or without, the SfM points and pixels this
+close are the ground's, not the object's, in the coherence check (a table's points scatter about its plane)."""
 TEXTURE_COVERAGE = 0.5
 """The share of a texture's texels on the surface once xatlas has packed the charts with gaps between them
 (`recon.geometry.texture.CHARTS_PER_ATLAS`): about half on a marching-cubes mesh (each mesh's share is its
@@ -128,6 +132,19 @@ def capture_iso_opacity(cfg: MeshConfig, masked: bool) -> tuple[float, str]:
                                 "(mesh.iso_opacity)")
 
 
+def capture_ground_margin(cfg: MeshConfig, masked: bool, ground: np.ndarray | None) -> tuple[float, str]:
+    """mesh.ground_margin_cells for this capture and why it differs from the unmasked default ("" when it does not or
+    no ``ground`` is cut): as set, else 0 with masks (they trained the table empty: what the field holds at the plane
+    is the object's base, and a margin would cut it off), else GROUND_LAYER_CELLS (the field's table top)."""
+    if cfg.ground_margin_cells >= 0 or not masked:
+        return (cfg.ground_margin_cells if cfg.ground_margin_cells >= 0 else GROUND_LAYER_CELLS), ""
+    if ground is None:
+        return 0.0, ""
+    plane = "table" if support_kind(ground) == "ground" else "wall"
+    return 0.0, (f"{plane} cut at its plane, not {GROUND_LAYER_CELLS:g} cells above it: the masks trained the {plane} "
+                 f"empty, so what touches it is the object's (mesh.ground_margin_cells)")
+
+
 def hollow_fill_applies(scene: Scene, cfg: MeshConfig, bounded: bool) -> tuple[bool, str]:
     """Whether mesh.fill_cavities applies, and why: it fills what an object's material encloses, so it runs when
     the mesh region is an object's (an object capture, normalize's object region, or a box given) and not on the
@@ -192,6 +209,9 @@ class MeshPlan:
     """Depth tolerance of the hidden-face test; None: hidden faces stay (mesh.drop_hidden off, or a zero set)."""
     ground_margin: float
     """Faces this close above the ground are cut with it (scene units)."""
+    ground_margin_why: str
+    ground_layer: float
+    """SfM points and pixels this close above the ground are the ground's in the coherence check (scene units)."""
     point_tolerance: float
     """The mesh passes through an SfM point this close to it (coherence)."""
     masked: bool
@@ -215,7 +235,8 @@ class MeshPlan:
     def notes(self) -> list[str]:
         """The decisions' reasons the stage prints before it starts, in order."""
         return [line for line in (self.unbounded_why, f"mesh region: {self.region_why}",
-                                  f"resolution: {self.resolution_why}", self.iso_why, self.fill_why) if line]
+                                  f"resolution: {self.resolution_why}", self.ground_margin_why, self.iso_why,
+                                  self.fill_why) if line]
 
 
 def plan_mesh(cfg: MeshConfig, scene: Scene, meta: dict[str, Any], *, on_cpu: bool, voxel: float) -> MeshPlan:
@@ -234,6 +255,7 @@ def plan_mesh(cfg: MeshConfig, scene: Scene, meta: dict[str, Any], *, on_cpu: bo
 
     zero_set = meta.get("kind") == "surface"
     masked = bool(train_frames) and all(f.mask_path for f in train_frames)
+    margin_cells, margin_why = capture_ground_margin(cfg, masked, ground)
     extraction, iso_why, fill_why = cfg, "", ""
     if not zero_set:
         opacity, iso_why = capture_iso_opacity(cfg, masked)
@@ -271,7 +293,8 @@ def plan_mesh(cfg: MeshConfig, scene: Scene, meta: dict[str, Any], *, on_cpu: bo
         shape=shape, footprint=footprint, photo_footprint=photo_footprint, resolution_why=resolution_why,
         zero_set=zero_set, extraction=extraction, iso_why=iso_why, fill_why=fill_why,
         cell=cell, hidden_tolerance=HIDDEN_TOL_CELLS * cell if drop_hidden else None,
-        ground_margin=cfg.ground_margin_cells * cell, point_tolerance=POINT_TOL_CELLS * cell,
+        ground_margin=margin_cells * cell, ground_margin_why=margin_why, ground_layer=GROUND_LAYER_CELLS * cell,
+        point_tolerance=POINT_TOL_CELLS * cell,
         masked=masked, max_side=max_side, uses_views=uses_views, view_frames=view_frames, depth_side=depth_side,
         views_why=views_why, texture=texture, held_out_frames=held_out_frames, held_out_why=held_out_why,
     )

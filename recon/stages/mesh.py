@@ -117,7 +117,7 @@ def run(ctx: StageContext) -> dict:
     t = time.perf_counter()
     observed = ([np.zeros((0, 3)) if p is None else p for p in map(scene.observed_points, plan.view_frames)]
                 if scene.point_visibility else None)
-    coherent = coherence(vertices, faces, views, depths, plan.region, plan.ground, plan.ground_margin, plan.masked,
+    coherent = coherence(vertices, faces, views, depths, plan.region, plan.ground, plan.ground_layer, plan.masked,
                          opacities or None, observed, plan.point_tolerance)
     timings["coherence_s"] = round(time.perf_counter() - t, 3)
     ctx.report.info(describe_coherence(coherent))
