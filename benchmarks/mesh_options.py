@@ -1,0 +1,99 @@
+"""What one mesh option buys on fields already trained: each scene's mesh stage run once per value of the option, on
+a copy of the scene (the same field every time, so the rows differ by the option alone, not by a training's noise).
+
+    python benchmarks/mesh_options.py --option mesh.ground_margin_cells --values 2,-1 --name ground_margin \
+        --scene painted=~/.cache/recon/bench/painted_view/tabletop_painted-fast \
+        --gt painted=~/.cache/recon/datasets/tabletop_painted/capture/gt_mesh.ply
+
+A scene is LABEL=DIR (a scene folder whose train stage is done, e.g. one a `recon bench` or option_sweep.py run
+kept); --gt LABEL=PLY scores that scene's meshes against a true surface (aligned through the true poses beside it),
+and without one the row holds what the mesh stage measures itself (pieces, coverage of the object's pixels, SfM
+points it passes by). Writes benchmarks/results/<name>.json after each mesh. It measures; it asserts nothing.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import sys
+from pathlib import Path
+from typing import Any
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))  # this checkout's recon, not an installed one
+
+
+def labelled(items: list[str], what: str) -> dict[str, Path]:
+    """LABEL=PATH items -> {label: path}."""
+    out = {}
+    for item in items:
+        label, sep, path = item.partition("=")
+        if not sep or not label or not path:
+            sys.exit(f"{what} takes LABEL=PATH, got {item!r}")
+        out[label] = Path(path).expanduser()
+    return out
+
+
+def mesh_row(scene: Path, gt: Path | None) -> dict[str, Any]:
+    """The mesh stage's own checks, and the comparison with the true surface when there is one."""
+    report = json.loads((scene / "04_mesh" / "mesh_report.json").read_text())
+    coherence, clean = report.get("coherence", {}), report.get("clean", {})
+    row: dict[str, Any] = {
+        "faces": clean.get("output", {}).get("faces") or report.get("faces"),
+        "ground_cut_faces": clean.get("ground_cut", {}).get("faces_removed"),
+        "mesh_pieces": coherence.get("largest_piece", {}).get("pieces"),
+        "mesh_coverage": (coherence.get("projected") or {}).get("coverage"),
+        "mesh_points_missing": (coherence.get("points") or {}).get("missing"),
+    }
+    if gt is not None:
+        from recon.evaluation.mesh_eval import compare_to_gt
+
+        acc = compare_to_gt(scene, gt)
+        row.update({"fscore_1pct": acc["fscore@0.01"], "fscore_05pct": acc["fscore@0.005"],
+                    "precision_05pct": acc["precision@0.005"], "recall_05pct": acc["recall@0.005"],
+                    "chamfer_rel": acc["chamfer_l1_rel"], "normal_consistency": acc.get("normal_consistency")})
+    return row
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--option", required=True, help="a mesh.* --set key, e.g. mesh.ground_margin_cells")
+    parser.add_argument("--values", required=True, help="comma-separated values, run in this order")
+    parser.add_argument("--scene", action="append", required=True, help="LABEL=DIR, a trained scene (repeatable)")
+    parser.add_argument("--gt", action="append", default=[], help="LABEL=PLY, the true surface of that scene")
+    parser.add_argument("--set", action="append", default=[], help="more mesh.* overrides, the same for every value")
+    parser.add_argument("--name", required=True, help="the record: benchmarks/results/<name>.json")
+    parser.add_argument("--work", type=Path, default=None,
+                        help="where the scenes are copied (default: ~/.cache/recon/bench/<name>)")
+    args = parser.parse_args()
+    if not args.option.startswith("mesh."):
+        sys.exit("--option must be a mesh.* option: the fields are reused, only the mesh stage runs again")
+
+    from recon.app.api import run
+    from recon.atomic import write_json_atomic
+    from recon.app.bench import provenance
+
+    scenes, truths = labelled(args.scene, "--scene"), labelled(args.gt, "--gt")
+    result = REPO / "benchmarks" / "results" / f"{args.name}.json"
+    work = args.work or Path.home() / ".cache" / "recon" / "bench" / args.name
+    rows: list[dict[str, Any]] = []
+    for label, original in scenes.items():
+        scene = work / label
+        if scene.exists():
+            shutil.rmtree(scene)
+        shutil.copytree(original, scene, ignore=shutil.ignore_patterns(".lock", ".work", "04_mesh"))
+        preset = json.loads((scene / "manifest.json").read_text()).get("preset")
+        for value in args.values.split(","):
+            overrides = dict(item.split("=", 1) for item in [*args.set, f"{args.option}={value}"])
+            run(None, scene, preset, overrides, from_stage="mesh", until_stage="mesh", force=True)
+            row = {"scene": label, "source_scene": str(original), "preset": preset, "option": args.option,
+                   "value": value, "overrides": args.set, **provenance(), **mesh_row(scene, truths.get(label))}
+            rows.append(row)
+            f = f", F@0.5% {row['fscore_05pct']:.3f}" if "fscore_05pct" in row else ""
+            print(f"{label} {args.option}={value}: {row['mesh_pieces']} piece(s), coverage {row['mesh_coverage']}{f}")
+            write_json_atomic(result, rows)
+    print(f"wrote {result}")
+
+
+if __name__ == "__main__":
+    main()
