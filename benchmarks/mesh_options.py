@@ -16,6 +16,7 @@ import argparse
 import json
 import shutil
 import sys
+from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
@@ -71,7 +72,7 @@ def main() -> None:
 
     from recon.app.api import run
     from recon.atomic import write_json_atomic
-    from recon.app.bench import provenance
+    from recon.app.bench import _load_average, provenance
 
     scenes, truths = labelled(args.scene, "--scene"), labelled(args.gt, "--gt")
     result = REPO / "benchmarks" / "results" / f"{args.name}.json"
@@ -79,15 +80,19 @@ def main() -> None:
     rows: list[dict[str, Any]] = []
     for label, original in scenes.items():
         scene = work / label
+        if scene.resolve() == original.resolve() or scene.resolve() in original.resolve().parents:
+            sys.exit(f"--scene {label}={original} lies in the work folder {work}: give --work another folder")
         if scene.exists():
             shutil.rmtree(scene)
         shutil.copytree(original, scene, ignore=shutil.ignore_patterns(".lock", ".work", "04_mesh"))
         preset = json.loads((scene / "manifest.json").read_text()).get("preset")
         for value in args.values.split(","):
             overrides = dict(item.split("=", 1) for item in [*args.set, f"{args.option}={value}"])
+            load_start, date = _load_average(), datetime.now(timezone.utc).isoformat(timespec="seconds")
             run(None, scene, preset, overrides, from_stage="mesh", until_stage="mesh", force=True)
             row = {"scene": label, "source_scene": str(original), "preset": preset, "option": args.option,
-                   "value": value, "overrides": args.set, **provenance(), **mesh_row(scene, truths.get(label))}
+                   "value": value, "overrides": args.set, "date": date, **provenance(),
+                   "load_average_start": load_start, **mesh_row(scene, truths.get(label))}
             rows.append(row)
             f = f", F@0.5% {row['fscore_05pct']:.3f}" if "fscore_05pct" in row else ""
             print(f"{label} {args.option}={value}: {row['mesh_pieces']} piece(s), coverage {row['mesh_coverage']}{f}")
