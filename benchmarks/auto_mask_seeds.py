@@ -7,7 +7,8 @@ folder), normalized here from its `01_poses` as the normalize stage does before 
 true object masks, named like the photos (gen_tabletop.py's `capture/masks/`, gen_video.py's `masks/`; a real capture
 without them, e.g. the fox, gets no IoU and no oracles).
 Cuts the object out of every photo again (`segment_object`) as shipped, from another object region and with its seeds
-changed, and scores each against the true masks: IoU per photo (median, least), how much of the outline lies on the
+changed, and scores each against the true masks: IoU per photo (median, least), the share of the true mask's lowest fifth each
+leaves out (median, most: `missed_at_base`), how much of the outline lies on the
 photo's edges (the median photo's: what `MIN_EDGE_SUPPORT` judges), how much of the median photo's cut lies in the
 hull (what `MIN_AGREEMENT` judges) and whether the masks would be trusted; and how many sparse points the object
 region holds, with and without the points linked to the in-frame ones (what close-ups leave out of frame). Variants:
@@ -42,6 +43,17 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))  # this checkout's recon, not an installed one
 
 RING_SEEDS = 150
+
+
+def missed_at_base(mask: np.ndarray, truth: np.ndarray) -> float:
+    """The share of the true mask's lowest fifth (of its rows) that the mask leaves out: a plain or shadowed base given
+    to the table bites there, and one photo's bite carves the field."""
+    rows = np.flatnonzero(truth.any(axis=1))
+    if not len(rows):
+        return 0.0
+    base = truth.copy()
+    base[: rows[-1] - (rows[-1] - rows[0]) // 5] = False
+    return float((base & ~mask).sum() / max(base.sum(), 1))
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -134,14 +146,18 @@ def main(argv: list[str] | None = None) -> None:
             found = am.segment_object(scene, load_photo=loader)
         finally:
             am._triangulation_spread, am._grabcut, device.cpu_threads = original_spread, original_grabcut, threads
-        ious = []
+        ious, base_missed = [], {}
         for frame in scene.frames if a.true_masks is not None else ():
             mask = found.masks[frame.name]
             t = true_mask(frame, mask.shape[1], mask.shape[0])
             ious.append(float((mask & t).sum() / max((mask | t).sum(), 1)))
+            base_missed[frame.name] = missed_at_base(mask, t)
+        worst = max(base_missed, key=base_missed.get) if base_missed else None
         row = {"variant": name,
                "iou_median": round(float(np.median(ious)), 4) if ious else None,
                "iou_least": round(min(ious), 4) if ious else None,
+               "base_missed_median": round(float(np.median(list(base_missed.values()))), 4) if base_missed else None,
+               "base_missed_most": round(base_missed[worst], 4) if worst else None, "base_missed_most_photo": worst,
                "agreement_median": round(float(np.median(list(found.agreement.values()))), 4),
                "edge_support_median": round(float(np.median(list(found.edge_support.values()))), 4),
                "confident": bool(found.confident), "reason": found.reason,
