@@ -7,11 +7,11 @@ folder), normalized here from its `01_poses` as the normalize stage does before 
 true object masks, named like the photos (gen_tabletop.py's `capture/masks/`, gen_video.py's `masks/`; a real capture
 without them, e.g. the fox, gets no IoU and no oracles).
 Cuts the object out of every photo again (`segment_object`) as shipped, from another object region and with its seeds
-changed, and scores each against the true masks: IoU per photo (median, least), the share of the true mask's lowest fifth each
-leaves out (median, most: `missed_at_base`), how much of the outline lies on the
-photo's edges (the median photo's: what `MIN_EDGE_SUPPORT` judges), how much of the median photo's cut lies in the
-hull (what `MIN_AGREEMENT` judges) and whether the masks would be trusted; and how many sparse points the object
-region holds, with and without the points linked to the in-frame ones (what close-ups leave out of frame). Variants:
+changed, and scores each against the true masks: IoU per photo (median, least), the share of the true mask's lowest
+fifth each leaves out (median, most: `missed_at_base`), how much of the outline lies on the photo's edges (the median
+photo's: what `MIN_EDGE_SUPPORT` judges), how much of the median photo's cut lies in the hull (what `MIN_AGREEMENT`
+judges) and whether the masks would be trusted; and how many sparse points the object region holds, with and
+without the points linked to the in-frame ones (what close-ups leave out of frame). Variants:
 
 - shipped: as normalize runs it (object seeds: the points SfM placed within `SEED_SPREAD_PX`, each its own pixel);
 - no support prior: shipped, but the cut starts with the object seeds' hull alone as probable object, not their

@@ -138,8 +138,9 @@ def coherence(
     depth lands in the mesh region more than ``ground_layer`` above the ground (its table top's thickness). Without
     the opacity a transparent ray's depth is its exit from the scene box, which lies on the region's boundary when the
     region is the box, so the backdrop around the object would count as object. ``seen_points``: per view the SfM
-    points it observes (those within ``ground_layer`` of the ground are the ground's); those in the mesh region are checked against the mesh (`point_agreement`, within
-    ``point_tolerance``; None: the scene records no visibility, an import)."""
+    points it observes (those within ``ground_layer`` of the ground are the ground's); those in the mesh region are
+    checked against the mesh (`point_agreement`, within ``point_tolerance``; None: the scene records no visibility,
+    an import)."""
     out: dict[str, Any] = {"largest_piece": largest_piece(vertices, faces)}
     if not views:
         out["projected"] = None
