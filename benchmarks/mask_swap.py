@@ -17,7 +17,6 @@ import argparse
 import json
 import shutil
 import sys
-from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
@@ -58,15 +57,13 @@ def main() -> None:
     parser.add_argument("--work", type=Path, default=None, help="scratch (default: ~/.cache/recon/bench/<name>)")
     args = parser.parse_args()
 
-    from mesh_options import mesh_row
-    from recon.app.api import run
-    from recon.app.bench import _load_average, provenance
+    from mesh_options import mesh_row, recorded_preset, run_stages
     from recon.atomic import write_json_atomic
 
     source = args.scene.expanduser()
     result = REPO / "benchmarks" / "results" / f"{args.name}.json"
     work = args.work or Path.home() / ".cache" / "recon" / "bench" / args.name
-    preset = json.loads((source / "manifest.json").read_text()).get("preset")
+    preset = recorded_preset(source)
     overrides = dict(item.split("=", 1) for item in args.set)
     rows: list[dict[str, Any]] = []
     for masks in ("own", "given"):
@@ -75,12 +72,11 @@ def main() -> None:
             shutil.rmtree(scene)
         shutil.copytree(source, scene, ignore=shutil.ignore_patterns(".lock", ".work", "03_field", "04_mesh"))
         swapped = swap_masks(scene, args.masks.expanduser()) if masks == "given" else None
-        load_start, date = _load_average(), datetime.now(timezone.utc).isoformat(timespec="seconds")
-        run(None, scene, preset, overrides, from_stage="train", until_stage="mesh", force=True)
+        ran = run_stages(scene, preset, overrides, "train")
         metrics = json.loads((scene / "03_field" / "metrics.json").read_text())
         row = {"masks": masks, "given_masks": str(args.masks) if swapped else None, "photos_swapped": swapped,
-               "source_scene": str(source), "preset": preset, "overrides": args.set, "date": date, **provenance(),
-               "load_average_start": load_start, "steps": metrics["steps"], "rays_per_s": metrics["rays_per_s"],
+               "source_scene": str(source), "preset": preset, "overrides": args.set, **ran,
+               "steps": metrics["steps"], "rays_per_s": metrics["rays_per_s"],
                "psnr": metrics["test"]["psnr"], **mesh_row(scene, args.gt.expanduser() if args.gt else None)}
         rows.append(row)
         f = f", F@1% {row['fscore_1pct']:.3f}, F@0.5% {row['fscore_05pct']:.3f}" if "fscore_1pct" in row else ""

@@ -56,6 +56,22 @@ def mesh_row(scene: Path, gt: Path | None) -> dict[str, Any]:
     return row
 
 
+def recorded_preset(scene: Path) -> str | None:
+    """The preset the scene was made with (its manifest's)."""
+    return json.loads((scene / "manifest.json").read_text()).get("preset")
+
+
+def run_stages(scene: Path, preset: str | None, overrides: dict[str, str], from_stage: str) -> dict[str, Any]:
+    """Run the scene's stages from `from_stage` through the mesh, forced; the fields every record's row carries (when,
+    on which commit and machine, under what load)."""
+    from recon.app.api import run
+    from recon.app.bench import _load_average, provenance
+
+    load_start, date = _load_average(), datetime.now(timezone.utc).isoformat(timespec="seconds")
+    run(None, scene, preset, overrides, from_stage=from_stage, until_stage="mesh", force=True)
+    return {"date": date, **provenance(), "load_average_start": load_start}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--option", required=True, help="a mesh.* --set key, e.g. mesh.ground_margin_cells")
@@ -70,9 +86,7 @@ def main() -> None:
     if not args.option.startswith("mesh."):
         sys.exit("--option must be a mesh.* option: the fields are reused, only the mesh stage runs again")
 
-    from recon.app.api import run
     from recon.atomic import write_json_atomic
-    from recon.app.bench import _load_average, provenance
 
     scenes, truths = labelled(args.scene, "--scene"), labelled(args.gt, "--gt")
     result = REPO / "benchmarks" / "results" / f"{args.name}.json"
@@ -85,14 +99,12 @@ def main() -> None:
         if scene.exists():
             shutil.rmtree(scene)
         shutil.copytree(original, scene, ignore=shutil.ignore_patterns(".lock", ".work", "04_mesh"))
-        preset = json.loads((scene / "manifest.json").read_text()).get("preset")
+        preset = recorded_preset(scene)
         for value in args.values.split(","):
             overrides = dict(item.split("=", 1) for item in [*args.set, f"{args.option}={value}"])
-            load_start, date = _load_average(), datetime.now(timezone.utc).isoformat(timespec="seconds")
-            run(None, scene, preset, overrides, from_stage="mesh", until_stage="mesh", force=True)
+            ran = run_stages(scene, preset, overrides, "mesh")
             row = {"scene": label, "source_scene": str(original), "preset": preset, "option": args.option,
-                   "value": value, "overrides": args.set, "date": date, **provenance(),
-                   "load_average_start": load_start, **mesh_row(scene, truths.get(label))}
+                   "value": value, "overrides": args.set, **ran, **mesh_row(scene, truths.get(label))}
             rows.append(row)
             f = f", F@0.5% {row['fscore_05pct']:.3f}" if "fscore_05pct" in row else ""
             print(f"{label} {args.option}={value}: {row['mesh_pieces']} piece(s), coverage {row['mesh_coverage']}{f}")

@@ -241,7 +241,7 @@ def run_bench(
             "test_views": len(metrics["test"]["views"]),
             "rays_per_s": metrics["rays_per_s"],
             "evals": metrics["evals"],
-            # the sparse points SfM found on the object per 10,000 of its pixels: what train.hull_start=auto decides by
+            # how textured the object is: what train.hull_start=auto decides by (training.object_point_density)
             "object_point_density": metrics.get("object_point_density"),
         }
         normalized = _stage_summary(scene, "normalize")

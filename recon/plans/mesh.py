@@ -136,8 +136,10 @@ def capture_ground_margin(cfg: MeshConfig, masked: bool, ground: np.ndarray | No
     """mesh.ground_margin_cells for this capture and why it differs from the unmasked default ("" when it does not or
     no ``ground`` is cut): as set, else 0 with masks (they trained the table empty: what the field holds at the plane
     is the object's base, and a margin would cut it off), else GROUND_LAYER_CELLS (the field's table top)."""
-    if cfg.ground_margin_cells >= 0 or not masked:
-        return (cfg.ground_margin_cells if cfg.ground_margin_cells >= 0 else GROUND_LAYER_CELLS), ""
+    if cfg.ground_margin_cells >= 0:
+        return cfg.ground_margin_cells, ""
+    if not masked:
+        return GROUND_LAYER_CELLS, ""
     if ground is None:
         return 0.0, ""
     plane = "table" if support_kind(ground) == "ground" else "wall"
