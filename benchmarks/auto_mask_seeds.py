@@ -14,6 +14,12 @@ judges) and whether the masks would be trusted; and how many sparse points the o
 without the points linked to the in-frame ones (what close-ups leave out of frame). Variants:
 
 - shipped: as normalize runs it (object seeds: the points SfM placed within `SEED_SPREAD_PX`, each its own pixel);
+- no grounded bites: shipped, but no cut is given back the silhouette pixels beside it whose rays meet the table
+  where the other photos show none (`FILL_GROUNDED_BITES`);
+- no table drop: shipped, but the cut pixels whose texture lines up with the other photos' views of the table stay
+  (`DROP_TABLE`); neither: without both (the masks before they came);
+- lone points counted: shipped, but the object points far from every other one count in the share of points the masks
+  keep (`LONE_POINT_SPACING`), which says whether they are trusted;
 - no support prior: shipped, but the cut starts with the object seeds' hull alone as probable object, not their
   hull with their feet on the support plane (`STANDS_ON_SUPPORT`);
 - in-frame region: the object region of only the points most photos keep in frame, without the points linked to
@@ -104,6 +110,7 @@ def main(argv: list[str] | None = None) -> None:
         return photo
 
     original_grabcut, original_spread = am._grabcut, am._triangulation_spread
+    filling, dropping, lone_spacing = am.FILL_GROUNDED_BITES, am.DROP_TABLE, am.LONE_POINT_SPACING
     current: dict[str, str] = {}
 
     def variant(name: str, scene: Any = scene) -> dict[str, Any]:
@@ -137,6 +144,9 @@ def main(argv: list[str] | None = None) -> None:
             return load(frame)
 
         am._triangulation_spread, am._grabcut = spread, grabcut
+        am.FILL_GROUNDED_BITES = name not in ("no grounded bites", "neither")
+        am.DROP_TABLE = name not in ("no table drop", "neither")
+        am.LONE_POINT_SPACING = np.inf if name == "lone points counted" else lone_spacing
         import recon.nerf.device as device
 
         threads: Callable[[], int] = device.cpu_threads
@@ -146,6 +156,7 @@ def main(argv: list[str] | None = None) -> None:
             found = am.segment_object(scene, load_photo=loader)
         finally:
             am._triangulation_spread, am._grabcut, device.cpu_threads = original_spread, original_grabcut, threads
+            am.FILL_GROUNDED_BITES, am.DROP_TABLE, am.LONE_POINT_SPACING = filling, dropping, lone_spacing
         ious, base_missed = [], {}
         for frame in scene.frames if a.true_masks is not None else ():
             mask = found.masks[frame.name]
@@ -158,6 +169,8 @@ def main(argv: list[str] | None = None) -> None:
                "iou_least": round(min(ious), 4) if ious else None,
                "base_missed_median": round(float(np.median(list(base_missed.values()))), 4) if base_missed else None,
                "base_missed_most": round(base_missed[worst], 4) if worst else None, "base_missed_most_photo": worst,
+               "iou_mean": round(float(np.mean(ious)), 4) if ious else None,
+               "seed_recall": round(float(found.seed_recall), 4),
                "agreement_median": round(float(np.median(list(found.agreement.values()))), 4),
                "edge_support_median": round(float(np.median(list(found.edge_support.values()))), 4),
                "confident": bool(found.confident), "reason": found.reason,
@@ -168,7 +181,7 @@ def main(argv: list[str] | None = None) -> None:
         return row
 
     oracles = ("true object seeds", "true seeds and a background ring") if a.true_masks is not None else ()
-    names = ("shipped", "no support prior", "in-frame region", "every point, seed discs", *oracles)
+    names = ("shipped", "no grounded bites", "no table drop", "neither", "lone points counted", "no support prior", "in-frame region", "every point, seed discs", *oracles)
     chosen = a.variants.split(",") if a.variants else names
     if unknown := set(chosen) - set(names):
         raise SystemExit(f"unknown variants {sorted(unknown)}; known: {', '.join(names)}")

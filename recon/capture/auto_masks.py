@@ -7,7 +7,10 @@ starting from the hull of the object seeds and their feet on the ground as proba
 table: a plain, shadowed base has no seeds of its own).
 Then the photos vote: a pixel stays object only where its ray passes through space that (almost) no photo calls
 background — the masks' visual hull. How well each photo's cut agrees with the hull the others carve says how sure the
-segmentation is. Finally each cut's outline is snapped to its photo's edges and made as soft as they are (`matte`, a
+segmentation is. On a table, the plane settles what colour cannot: pixels whose texture lines up with the other photos'
+views of the table through its homography are table (a cast shadow the cut took), and the hull's pixels beside a cut
+whose rays go on to meet the table where no other photo sees it bare are object (a shadowed base the cut left out).
+Finally each cut's outline is snapped to its photo's edges and made as soft as they are (`matte`, a
 guided filter).
 Pure numpy/OpenCV on a normalized `Scene` and its photos; the caller decides what to do with unsure masks.
 """
@@ -20,8 +23,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from recon.camera import (MIN_KEYPOINT_ERROR_PX, MIN_TRIANGULATION_DEG, intrinsic_matrix, pixel_centres, project,
-                          triangulation_angles)
+from recon.camera import (MIN_KEYPOINT_ERROR_PX, MIN_TRIANGULATION_DEG, intrinsic_matrix, pixel_centres, pixel_rays,
+                          project, triangulation_angles)
 from recon.capture.images import read_image, undistort
 from recon.capture.normalization import box_corners
 from recon.capture.region import support_kind
@@ -57,11 +60,34 @@ HULL_TOLERANCE = 0.1
 cut must not carve the object out of every other photo."""
 HOLE_IN_HULL = 0.95
 """A hole a cut leaves inside the object is filled when at least this share of it lies in the hull's silhouette."""
+FILL_GROUNDED_BITES = True
+"""A cut's bite out of the object's base is given back: the silhouette pixels beside the cut whose rays meet the table
+where (almost) no other photo sees table (see `_fill_grounded_bites`)."""
+MIN_GROUND_VIEWS = 0.25
+"""... a ray's table point counts only when at least this share of the other photos frame it."""
+TABLE_PARTNERS = 4
+"""Each photo is matched on the support plane with this many others, those whose cameras see the object from the
+nearest directions (`_table_agreement`)."""
+TABLE_WINDOW = 0.015
+"""... in windows this fraction of the segmented photo's longer side across (9 px at 640)."""
+MIN_TABLE_HALF_WINDOW = 3
+"""... and at least this many pixels either side of the centre: a smaller window correlates by chance."""
+TABLE_TEXTURE = 2.0
+"""... where both photos' grey levels (0-255) vary by at least this standard deviation in the window."""
+TABLE_NCC = 0.5
+"""A pixel shows the table when its window correlates at least this well with two partners' views of the same patch of
+the plane: shadowed table (a cast shadow is where it is from every side) as much as lit."""
+DROP_TABLE = True
+"""Cut pixels that show the table are dropped from the masks (`_drop_table`)."""
 MIN_AGREEMENT = 0.9
 """The masks are trusted when, in the median photo, at least this fraction of the cut lies inside the hull all photos
 carve (the hull is fatter than the object where no photo looks edge-on, so only the cut's excess counts)."""
 MIN_SEED_RECALL = 0.9
 """... and the masks keep at least this fraction of the object's sparse points where the photos see them."""
+LONE_POINT_SPACING = 5.0
+"""An object point farther than this many times the object points' median spacing from every other one is a false
+match in the air and does not count in that fraction: every mask leaves it out, and a plain object has so few points
+that three such points weigh a tenth."""
 EDGE_PERCENTILE = 80
 """A pixel is an edge when its colour gradient is in the photo's top (100 - this) percent."""
 MIN_EDGE_SUPPORT = 0.5
@@ -131,6 +157,8 @@ def segment_object(scene: Scene, load_photo: PhotoLoader | None = None, side: in
     on_ground = STANDS_ON_SUPPORT and scene.ground is not None and support_kind(scene.ground) == "ground"
     spread = _triangulation_spread(scene, points)  # photo pixels
 
+    counted = ~_lone_points(points, object_pts)
+
     def certain(frame: Frame, w: int) -> np.ndarray:
         """The object points this photo's cut takes as seeds (P,) bool: those placed within SEED_SPREAD_PX."""
         return object_pts & (spread * (w / frame.w) <= SEED_SPREAD_PX)
@@ -144,22 +172,27 @@ def segment_object(scene: Scene, load_photo: PhotoLoader | None = None, side: in
         seen = np.arange(len(points)) if seen is None else np.asarray(seen, np.int64)
         # every object point lands inside the object's outline (the object hides its own back, not its outline);
         # background points only where the photo sees them (a hidden table point may lie behind the object)
-        sure = points[certain(frame, w)]
-        fg = _visible_uv(sure, frame.c2w, intr, w, h)
+        seeded = certain(frame, w)
+        fg = _visible_uv(points[seeded], frame.c2w, intr, w, h)
+        judged = _visible_uv(points[seeded & counted], frame.c2w, intr, w, h)  # the seeds the recall counts
         bg = _visible_uv(points[seen[background_pts[seen]]], frame.c2w, intr, w, h)
-        feet = _visible_uv(_feet(sure, scene.ground), frame.c2w, intr, w, h) if on_ground else None
+        feet = _visible_uv(_feet(points[seeded], scene.ground), frame.c2w, intr, w, h) if on_ground else None
         box_uv = _visible_uv(box_corners(grown), frame.c2w, intr, w, h, clip=False)
         known = background(frame) if background is not None else None
         if known is not None:
             known = cv2.resize(np.asarray(known, np.float32), (w, h), interpolation=cv2.INTER_NEAREST)
             known = undistort(known, *intr, frame.distortion, frame.camera_model) > 0.5
-        return _grabcut(cv2, pinhole, fg, bg, box_uv, known, feet), _edges(cv2, pinhole), intr, (w, h), fg
+        grey = np.round(np.clip(pinhole @ np.float32([0.299, 0.587, 0.114]), 0, 1) * 255).astype(np.uint8)
+        cut = _grabcut(cv2, pinhole, fg, bg, box_uv, known, feet)
+        return cut, _edges(cv2, pinhole), intr, (w, h), fg, grey, judged
 
-    cuts, intrinsics, sizes, seeds, edges = [], [], [], [], []
+    cuts, intrinsics, sizes, seeds, edges, greys, judged_seeds = [], [], [], [], [], [], []
     # one photo per core: OpenCV's graph cut runs on one thread and releases the GIL; each cut seeds its own
     # thread's RNG, so the masks do not depend on the thread count
     with ThreadPoolExecutor(max_workers=cpu_threads()) as pool:
-        for cut, edge, intr, size, fg in pool.map(cut_one, scene.frames):
+        for cut, edge, intr, size, fg, grey, judged in pool.map(cut_one, scene.frames):
+            greys.append(grey)
+            judged_seeds.append(judged)
             cuts.append(cut)
             edges.append(edge)
             intrinsics.append(intr)
@@ -171,18 +204,30 @@ def segment_object(scene: Scene, load_photo: PhotoLoader | None = None, side: in
     n = len(cuts)
     silhouettes, _ = hull_silhouettes(grown, HULL_RES, [f.c2w for f in scene.frames], intrinsics, cuts, HULL_TOLERANCE)
 
-    finals, agreement, support, kept, total = [], {}, {}, 0, 0
-    for frame, cut, silhouette, (w, h), fg, edge in zip(scene.frames, cuts, silhouettes, sizes, seeds, edges,
-                                                         strict=True):
+    agreement, filled = {}, []
+    for frame, cut, silhouette in zip(scene.frames, cuts, silhouettes, strict=True):
         agreed = cut & silhouette
         agreement[frame.name] = float(agreed.sum() / cut.sum()) if cut.any() else 0.0
-        final = _fill_agreed_holes(cv2, agreed, silhouette)
+        filled.append(_fill_agreed_holes(cv2, agreed, silhouette))
+    if on_ground:
+        c2ws = [f.c2w for f in scene.frames]
+        on_table = _table_agreement(cv2, greys, c2ws, intrinsics, scene.ground, region)
+        del greys
+        if DROP_TABLE:
+            filled = [_drop_table(cv2, mask, table >= TABLE_NCC, table <= -1, fg)
+                      for mask, table, fg in zip(filled, on_table, seeds, strict=True)]
+        if FILL_GROUNDED_BITES:
+            filled = _fill_grounded_bites(cv2, filled, silhouettes, c2ws, intrinsics, scene.ground,
+                                          max(1, int(HULL_TOLERANCE * n)), [t < TABLE_NCC for t in on_table])
+
+    finals, support, kept, total = [], {}, 0, 0
+    for frame, final, (w, h), judged, edge in zip(scene.frames, filled, sizes, judged_seeds, edges, strict=True):
         outline = _outline(cv2, final)
         support[frame.name] = float(edge[outline].mean()) if outline.any() else 0.0
-        if len(fg):
-            px = np.clip(fg.astype(np.int64), 0, [w - 1, h - 1])
+        if len(judged):
+            px = np.clip(judged.astype(np.int64), 0, [w - 1, h - 1])
             kept += int(final[px[:, 1], px[:, 0]].sum())
-            total += len(fg)
+            total += len(judged)
         finals.append(final)
     with ThreadPoolExecutor(max_workers=cpu_threads()) as pool:  # full-size resampling: OpenCV, GIL released
         full = pool.map(lambda args: _to_photo_pixels(cv2, *args), zip(finals, scene.frames, intrinsics))
@@ -259,6 +304,20 @@ def _label_points(points: np.ndarray, region: np.ndarray, grown: np.ndarray,
         height = safe @ np.asarray(ground[:3], np.float64) - float(ground[3])
         on_plane = finite & (height < band)
     return inside & ~on_plane, outside | on_plane
+
+
+def _lone_points(points: np.ndarray, chosen: np.ndarray) -> np.ndarray:
+    """(P,) bool: the chosen points (P,) bool farther than LONE_POINT_SPACING times their median nearest-neighbour
+    distance from every other chosen point."""
+    from scipy.spatial import cKDTree
+
+    lone = np.zeros(len(points), bool)
+    idx = np.flatnonzero(chosen)
+    if len(idx) < 3:
+        return lone
+    nearest = cKDTree(points[idx]).query(points[idx], k=2)[0][:, 1]
+    lone[idx] = nearest > LONE_POINT_SPACING * max(float(np.median(nearest)), 1e-12)
+    return lone
 
 
 def _triangulation_spread(scene: Scene, points: np.ndarray) -> np.ndarray:
@@ -358,6 +417,122 @@ def _fill_agreed_holes(cv2, mask: np.ndarray, silhouette: np.ndarray) -> np.ndar
         return np.flatnonzero(inside >= HOLE_IN_HULL * stats[:, cv2.CC_STAT_AREA])
 
     return _fill_holes(cv2, mask, in_hull)
+
+
+def _fill_grounded_bites(cv2, masks: list[np.ndarray], silhouettes: list[np.ndarray], c2ws: list[np.ndarray],
+                         intrinsics: list[np.ndarray], ground: np.ndarray, allowed: int,
+                         off_table: list[np.ndarray]) -> list[np.ndarray]:
+    """Each mask with the pixels of its hull silhouette beside it whose rays reach the support plane (4,) where at
+    most `allowed` of the other photos' masks show table.
+
+    Why: a graph cut gives a plain or shadowed base the table's colour model, and one photo's bite carves the base
+    out of the field. The hull cannot tell such a bite from space the other photos merely fail to carve (it is fatter
+    than the object wherever no photo looks edge-on), but where the ray goes on to meet the table tells them apart:
+    past a bitten base it meets the table under the object, which every other photo sees covered by the object;
+    past the object's side or under a raised base it meets table that other photos see bare. Only pixels that do not
+    show the table (`off_table`, per photo (h, w) bool) are given back: a cast shadow in front of the base meets the
+    table where the photos whose cuts took the shadow for object show none."""
+    n = len(masks)
+    normal, offset = np.asarray(ground[:3], np.float64), float(ground[3])
+    min_views = max(2, math.ceil(MIN_GROUND_VIEWS * (n - 1)))
+    ring = np.ones((3, 3), np.uint8)
+    out = []
+    for k, (mask, sil) in enumerate(zip(masks, silhouettes, strict=True)):
+        rows, cols = np.nonzero(sil & ~mask & off_table[k])
+        if not len(rows) or not mask.any():
+            out.append(mask)
+            continue
+        fx, fy, cx, cy = intrinsics[k]
+        o, d = pixel_rays(np.asarray(c2ws[k], np.float64), fx, fy, cx, cy, cols + 0.5, rows + 0.5)
+        towards = d @ normal  # the plane's normal points at the object: rays to the table run against it
+        t = np.where(towards < -1e-9, (offset - o @ normal) / np.where(towards < -1e-9, towards, -1.0), -1.0)
+        table = o + np.maximum(t, 0.0)[:, None] * d
+        seen_by, bare_in = np.zeros(len(rows), np.int32), np.zeros(len(rows), np.int32)
+        for j in range(n):
+            if j == k:
+                continue
+            h, w = masks[j].shape
+            uv, z = project(table, np.asarray(c2ws[j], np.float64), intrinsics[j])
+            col, row = np.floor(uv[:, 0]).astype(np.int64), np.floor(uv[:, 1]).astype(np.int64)
+            seen = (t > 0) & (z > 0) & (col >= 0) & (col < w) & (row >= 0) & (row < h)
+            seen_by += seen
+            bare_in[seen] += ~masks[j][row[seen], col[seen]]
+        grounded = np.zeros_like(mask)
+        grounded[rows, cols] = (seen_by >= min_views) & (bare_in <= allowed)
+        _, pieces = cv2.connectedComponents(grounded.astype(np.uint8), connectivity=8)
+        beside = np.unique(pieces[(cv2.dilate(mask.astype(np.uint8), ring) > 0) & grounded])
+        out.append(mask | np.isin(pieces, beside[beside > 0]))
+    return out
+
+
+def _table_agreement(cv2, greys: list[np.ndarray], c2ws: list[np.ndarray], intrinsics: list[np.ndarray],
+                     ground: np.ndarray, region: np.ndarray) -> list[np.ndarray]:
+    """Per photo, (h, w) float32: how well each pixel's window matches, in the second best of its `TABLE_PARTNERS`,
+    the partner's view of the support plane (4,) there (normalized cross-correlation of grey levels, the partner
+    warped onto this photo by the plane's homography); -1 where either window is flat or the partner does not see it.
+
+    Why: the table is the one surface every photo sees through the same homography, so its texture lines up across
+    photos, lit or in the object's shadow (colour models cannot tell a cast shadow from a dark base); the object, off
+    the plane, lines up only where it touches it. Correlation ignores each photo's exposure and white balance."""
+    normal, offset = np.asarray(ground[:3], np.float64), float(ground[3])
+    centre = region.mean(axis=0)
+    centre = centre - (centre @ normal - offset) * normal
+    u = np.cross(normal, [1.0, 0.0, 0.0] if abs(normal[0]) < 0.9 else [0.0, 1.0, 0.0])
+    u /= np.linalg.norm(u)
+    v = np.cross(normal, u)
+    size = float(np.max(region[1] - region[0]))
+    square = centre + size * np.array([u + v, u - v, -u - v, -u + v])  # four points on the plane
+    views = [(np.asarray(c2w, np.float64), np.asarray(intr, np.float64)) for c2w, intr in zip(c2ws, intrinsics)]
+    corners = [project(square, c2w, intr) for c2w, intr in views]
+    seen_from = np.array([c2w[:3, 3] - region.mean(axis=0) for c2w, _ in views])
+    seen_from /= np.maximum(np.linalg.norm(seen_from, axis=1, keepdims=True), 1e-12)
+    out = []
+    for k, grey in enumerate(greys):
+        h, w = grey.shape
+        side = _table_window(h, w)
+        a = grey.astype(np.float32)
+        mean_a = cv2.boxFilter(a, -1, (side, side))
+        var_a = cv2.boxFilter(a * a, -1, (side, side)) - mean_a**2
+        order = [j for j in np.argsort(-(seen_from @ seen_from[k])) if j != k][:TABLE_PARTNERS]
+        scores = []
+        for j in order:
+            (uv_k, z_k), (uv_j, z_j) = corners[k], corners[j]
+            if np.any(z_k <= 0) or np.any(z_j <= 0):
+                continue
+            homography = cv2.getPerspectiveTransform(uv_k.astype(np.float32), uv_j.astype(np.float32))
+            b = cv2.warpPerspective(greys[j].astype(np.float32), homography, (w, h),
+                                    flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP, borderValue=-1.0)
+            inside = cv2.erode((b >= 0).astype(np.uint8), np.ones((side, side), np.uint8)) > 0
+            b = np.maximum(b, 0.0)
+            mean_b = cv2.boxFilter(b, -1, (side, side))
+            var_b = cv2.boxFilter(b * b, -1, (side, side)) - mean_b**2
+            cov = cv2.boxFilter(a * b, -1, (side, side)) - mean_a * mean_b
+            textured = (var_a >= TABLE_TEXTURE**2) & (var_b >= TABLE_TEXTURE**2) & inside
+            scores.append(np.where(textured, cov / np.sqrt(np.maximum(var_a * var_b, 1e-6)), -1.0))
+        if len(scores) < 2:
+            out.append(np.full((h, w), -1.0, np.float32))
+            continue
+        out.append(np.sort(np.stack(scores), axis=0)[-2].astype(np.float32))  # the second best: two partners agree
+    return out
+
+
+def _table_window(h: int, w: int) -> int:
+    """The side (pixels, odd) of `_table_agreement`'s windows in an (h, w) photo."""
+    return 2 * max(MIN_TABLE_HALF_WINDOW, round(0.5 * TABLE_WINDOW * max(h, w))) + 1
+
+
+def _drop_table(cv2, mask: np.ndarray, table: np.ndarray, flat: np.ndarray, fg: np.ndarray) -> np.ndarray:
+    """The mask without the pixels that show the table (`table`, (h, w) bool): the table's pixels closed over the
+    `flat` specks (too little texture to match: a shadow's darkest) among them, then eroded by a window (one straddling the outline matches as table, and specks of the object that
+    match by chance do not pierce it), and the mask kept to its seeded pieces (`_keep_seeded_pieces`)."""
+    h, w = mask.shape
+    reach = _table_window(h, w)  # a window that straddles the outline correlates as the table's
+    window = np.ones((reach, reach), np.uint8)
+    closed = table | (flat & (cv2.morphologyEx(table.astype(np.uint8), cv2.MORPH_CLOSE, window) > 0))
+    drop = mask & (cv2.erode(closed.astype(np.uint8), window) > 0)
+    if not drop.any():
+        return mask
+    return _keep_seeded_pieces(cv2, mask & ~drop, fg)
 
 
 def _edges(cv2, photo: np.ndarray) -> np.ndarray:
