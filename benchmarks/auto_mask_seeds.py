@@ -29,6 +29,8 @@ without the points linked to the in-frame ones (what close-ups leave out of fram
 - true object seeds: shipped, with the object seeds that fall outside the true mask dropped (an oracle);
 - true seeds and a background ring: also 150 background seeds 3-4 px outside the true mask (an oracle).
 
+With --write-masks DIR, each variant's masks are also written as normalize writes them (matted PNGs, white =
+object) to DIR/<variant, spaces as underscores>/, for `mask_swap.py --masks`.
 Writes benchmarks/results/NAME.json with the commit, machine, load and why normalize chose the object region. It
 measures; it asserts nothing.
 """
@@ -68,6 +70,8 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("true_masks", type=Path, nargs="?")
     ap.add_argument("--name", required=True, help="the record's name: benchmarks/results/NAME.json")
     ap.add_argument("--variants", default="", help="comma-separated variants to run (default: all)")
+    ap.add_argument("--write-masks", type=Path, help="also write each variant's masks, matted as normalize writes "
+                    "them, to DIR/<variant>/<photo stem>.png (for mask_swap.py --masks)")
     a = ap.parse_args(argv)
 
     import cv2
@@ -75,7 +79,7 @@ def main(argv: list[str] | None = None) -> None:
     from recon.app.bench import provenance
     from recon.atomic import write_json_atomic
     from recon.capture import auto_masks as am
-    from recon.capture.images import read_image
+    from recon.capture.images import read_image, save_image
     from recon.capture import region as object_region
     from recon.capture.normalization import normalize
     from recon.capture.scene import load_scene
@@ -157,6 +161,11 @@ def main(argv: list[str] | None = None) -> None:
         finally:
             am._triangulation_spread, am._grabcut, device.cpu_threads = original_spread, original_grabcut, threads
             am.FILL_GROUNDED_BITES, am.DROP_TABLE, am.LONE_POINT_SPACING = filling, dropping, lone_spacing
+        if a.write_masks is not None:
+            folder = a.write_masks / name.replace(" ", "_").replace(",", "")
+            folder.mkdir(parents=True, exist_ok=True)
+            for frame_name, soft in am.matte_photos(scene, found.masks).items():
+                save_image(folder / f"{Path(frame_name).stem}.png", (soft.astype(np.float32) / 255.0)[..., None])
         ious, base_missed = [], {}
         for frame in scene.frames if a.true_masks is not None else ():
             mask = found.masks[frame.name]

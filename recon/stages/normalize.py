@@ -162,4 +162,6 @@ def _write(folder: Path, masks: dict[str, np.ndarray], scene: Scene) -> None:
 # version 11: no more photos held out than leave FEW_PHOTOS to train
 # version 12: the object region holds what an object on a wall hangs on
 # version 13: automatic masks start the cut with the object seeds' feet on the ground as probable object
-STAGE = Stage(name="normalize", folder="02_scene", inputs=("poses",), version=13, run=run)
+# version 14: automatic masks drop what lines up with the table, give back bites whose rays meet it under the object,
+#             and trust leaves lone points out
+STAGE = Stage(name="normalize", folder="02_scene", inputs=("poses",), version=14, run=run)
