@@ -259,6 +259,7 @@ def test_a_cast_shadow_every_cut_takes_is_dropped_because_the_table_lines_up_acr
     iou = {k: float(np.mean([_iou(f.masks[n], truth[n]) for n in truth]))
            for k, f in (("found", found), ("kept", kept))}
     assert iou["found"] > iou["kept"], iou
+    assert "gave back table" in found.reason and "gave back table" not in kept.reason
 
 
 def test_a_bite_out_of_a_base_comes_back_where_its_rays_meet_the_table_under_the_object() -> None:
@@ -323,6 +324,7 @@ def test_lone_points_in_the_air_do_not_make_good_masks_unsure(monkeypatch: pytes
     monkeypatch.setattr(auto_masks, "LONE_POINT_SPACING", np.inf)
     counted = segment_object(scene, load_photo=lambda f: photos[f.name])
     assert found.seed_recall > counted.seed_recall + 0.03, (found.seed_recall, counted.seed_recall)
+    assert f"{len(lone)} lone point(s)" in found.reason and "lone" not in counted.reason
     assert all(np.array_equal(found.masks[n], counted.masks[n]) for n in truth)
 
 

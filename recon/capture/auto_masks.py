@@ -209,16 +209,20 @@ def segment_object(scene: Scene, load_photo: PhotoLoader | None = None, side: in
         agreed = cut & silhouette
         agreement[frame.name] = float(agreed.sum() / cut.sum()) if cut.any() else 0.0
         filled.append(_fill_agreed_holes(cv2, agreed, silhouette))
-    if on_ground:
+    table_dropped = bites_filled = 0  # photos whose masks each step changed by over a percent
+    if on_ground and (DROP_TABLE or FILL_GROUNDED_BITES):
         c2ws = [f.c2w for f in scene.frames]
         on_table = _table_agreement(cv2, greys, c2ws, intrinsics, scene.ground, region)
         del greys
         if DROP_TABLE:
-            filled = [_drop_table(cv2, mask, table >= TABLE_NCC, table <= -1, fg)
-                      for mask, table, fg in zip(filled, on_table, seeds, strict=True)]
+            before, filled = filled, [_drop_table(cv2, mask, table >= TABLE_NCC, table <= -1, fg)
+                                      for mask, table, fg in zip(filled, on_table, seeds, strict=True)]
+            table_dropped = _changed(before, filled)
         if FILL_GROUNDED_BITES:
-            filled = _fill_grounded_bites(cv2, filled, silhouettes, c2ws, intrinsics, scene.ground,
-                                          max(1, int(HULL_TOLERANCE * n)), [t < TABLE_NCC for t in on_table])
+            before, filled = filled, _fill_grounded_bites(cv2, filled, silhouettes, c2ws, intrinsics, scene.ground,
+                                                          max(1, int(HULL_TOLERANCE * n)),
+                                                          [t < TABLE_NCC for t in on_table])
+            bites_filled = _changed(before, filled)
 
     finals, support, kept, total = [], {}, 0, 0
     for frame, final, (w, h), judged, edge in zip(scene.frames, filled, sizes, judged_seeds, edges, strict=True):
@@ -240,13 +244,22 @@ def segment_object(scene: Scene, load_photo: PhotoLoader | None = None, side: in
     empty = [name for name, c in coverage.items() if c <= 0.0]
     on_edges = float(np.median(list(support.values()))) if support else 0.0
     confident = median >= MIN_AGREEMENT and recall >= MIN_SEED_RECALL and on_edges >= MIN_EDGE_SUPPORT and not empty
+    lone = int(np.sum(object_pts & ~counted))
     reason = (
         f"automatic object masks for {n} photos: the photos' cuts lie in the hull they carve together "
         f"(median {median:.0%}, least {agreement.get(worst, 0.0):.0%} in {worst}), keep {recall:.0%} of the "
-        f"object's sparse points and their outlines follow the photos' edges ({on_edges:.0%})"
+        f"object's sparse points" + (f" ({lone} lone point(s) far from the others, false matches in the air, not "
+                                     "counted)" if lone else "") +
+        f" and their outlines follow the photos' edges ({on_edges:.0%})"
     )
     if on_ground:
         reason += "; each cut started from the object's points and their feet on the ground (it stands on it)"
+    if table_dropped:
+        reason += (f"; {table_dropped} photo(s) gave back table their cut had taken (its texture lines up with "
+                   "the other photos' views of the table: a cast shadow)")
+    if bites_filled:
+        reason += (f"; {bites_filled} photo(s) got back a bite their cut had taken out of the object (its rays "
+                   "meet the table where the other photos see the object)")
     if not confident:
         why = ([f"median {median:.0%} in the hull < {MIN_AGREEMENT:.0%}"] if median < MIN_AGREEMENT else []) + (
             [f"{recall:.0%} of the object's points kept < {MIN_SEED_RECALL:.0%}"] if recall < MIN_SEED_RECALL else []) + (
@@ -465,6 +478,11 @@ def _fill_grounded_bites(cv2, masks: list[np.ndarray], silhouettes: list[np.ndar
     return out
 
 
+def _changed(before: list[np.ndarray], after: list[np.ndarray]) -> int:
+    """How many masks changed by more than a percent of their pixels."""
+    return sum(int((a != b).sum() > 0.01 * max(int(a.sum()), 1)) for a, b in zip(before, after, strict=True))
+
+
 def _table_agreement(cv2, greys: list[np.ndarray], c2ws: list[np.ndarray], intrinsics: list[np.ndarray],
                      ground: np.ndarray, region: np.ndarray) -> list[np.ndarray]:
     """Per photo, (h, w) float32: how well each pixel's window matches, in the second best of its `TABLE_PARTNERS`,
@@ -523,8 +541,9 @@ def _table_window(h: int, w: int) -> int:
 
 def _drop_table(cv2, mask: np.ndarray, table: np.ndarray, flat: np.ndarray, fg: np.ndarray) -> np.ndarray:
     """The mask without the pixels that show the table (`table`, (h, w) bool): the table's pixels closed over the
-    `flat` specks (too little texture to match: a shadow's darkest) among them, then eroded by a window (one straddling the outline matches as table, and specks of the object that
-    match by chance do not pierce it), and the mask kept to its seeded pieces (`_keep_seeded_pieces`)."""
+    `flat` specks among them (too little texture to match: a shadow's darkest), then eroded by a window (one that
+    straddles the outline matches as table, and specks of the object that match by chance do not pierce it), and the
+    mask kept to its seeded pieces (`_keep_seeded_pieces`)."""
     h, w = mask.shape
     reach = _table_window(h, w)  # a window that straddles the outline correlates as the table's
     window = np.ones((reach, reach), np.uint8)
