@@ -57,7 +57,7 @@ def main() -> None:
     parser.add_argument("--work", type=Path, default=None, help="scratch (default: ~/.cache/recon/bench/<name>)")
     args = parser.parse_args()
 
-    from mesh_options import mesh_row, recorded_preset, run_stages
+    from mesh_options import fresh_copy, mesh_row, recorded_preset, run_stages
     from recon.atomic import write_json_atomic
 
     source = args.scene.expanduser()
@@ -68,9 +68,7 @@ def main() -> None:
     rows: list[dict[str, Any]] = []
     for masks in ("own", "given"):
         scene = work / masks
-        if scene.exists():
-            shutil.rmtree(scene)
-        shutil.copytree(source, scene, ignore=shutil.ignore_patterns(".lock", ".work", "03_field", "04_mesh"))
+        fresh_copy(source, scene, "03_field", "04_mesh")
         swapped = swap_masks(scene, args.masks.expanduser()) if masks == "given" else None
         ran = run_stages(scene, preset, overrides, "train")
         metrics = json.loads((scene / "03_field" / "metrics.json").read_text())

@@ -56,6 +56,14 @@ def mesh_row(scene: Path, gt: Path | None) -> dict[str, Any]:
     return row
 
 
+def fresh_copy(source: Path, scene: Path, *stale: str) -> None:
+    """Copy the scene folder `source` to `scene` (replacing what is there), without its lock, its work folder and the
+    stage folders in `stale`, which the run redoes."""
+    if scene.exists():
+        shutil.rmtree(scene)
+    shutil.copytree(source, scene, ignore=shutil.ignore_patterns(".lock", ".work", *stale))
+
+
 def recorded_preset(scene: Path) -> str | None:
     """The preset the scene was made with (its manifest's)."""
     return json.loads((scene / "manifest.json").read_text()).get("preset")
@@ -96,9 +104,7 @@ def main() -> None:
         scene = work / label
         if scene.resolve() == original.resolve() or scene.resolve() in original.resolve().parents:
             sys.exit(f"--scene {label}={original} lies in the work folder {work}: give --work another folder")
-        if scene.exists():
-            shutil.rmtree(scene)
-        shutil.copytree(original, scene, ignore=shutil.ignore_patterns(".lock", ".work", "04_mesh"))
+        fresh_copy(original, scene, "04_mesh")
         preset = recorded_preset(scene)
         for value in args.values.split(","):
             overrides = dict(item.split("=", 1) for item in [*args.set, f"{args.option}={value}"])
