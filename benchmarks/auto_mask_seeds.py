@@ -20,6 +20,8 @@ without the points linked to the in-frame ones (what close-ups leave out of fram
   (`DROP_TABLE`); neither: without both (the masks before they came);
 - lone points counted: shipped, but the object points far from every other one count in the share of points the masks
   keep (`LONE_POINT_SPACING`), which says whether they are trusted;
+- least parallax: shipped, but each photo's table is matched with the photos that see the object's points move
+  nearest `MIN_TABLE_PARALLAX` windows off the plane's homography (not `TABLE_PARALLAX`);
 - no support prior: shipped, but the cut starts with the object seeds' hull alone as probable object, not their
   hull with their feet on the support plane (`STANDS_ON_SUPPORT`);
 - in-frame region: the object region of only the points most photos keep in frame, without the points linked to
@@ -115,6 +117,7 @@ def main(argv: list[str] | None = None) -> None:
 
     original_grabcut, original_spread = am._grabcut, am._triangulation_spread
     filling, dropping, lone_spacing = am.FILL_GROUNDED_BITES, am.DROP_TABLE, am.LONE_POINT_SPACING
+    parallax = am.TABLE_PARALLAX
     current: dict[str, str] = {}
 
     def variant(name: str, scene: Any = scene) -> dict[str, Any]:
@@ -151,6 +154,7 @@ def main(argv: list[str] | None = None) -> None:
         am.FILL_GROUNDED_BITES = name not in ("no grounded bites", "neither")
         am.DROP_TABLE = name not in ("no table drop", "neither")
         am.LONE_POINT_SPACING = np.inf if name == "lone points counted" else lone_spacing
+        am.TABLE_PARALLAX = am.MIN_TABLE_PARALLAX if name == "least parallax" else parallax
         import recon.nerf.device as device
 
         threads: Callable[[], int] = device.cpu_threads
@@ -161,6 +165,7 @@ def main(argv: list[str] | None = None) -> None:
         finally:
             am._triangulation_spread, am._grabcut, device.cpu_threads = original_spread, original_grabcut, threads
             am.FILL_GROUNDED_BITES, am.DROP_TABLE, am.LONE_POINT_SPACING = filling, dropping, lone_spacing
+            am.TABLE_PARALLAX = parallax
         if a.write_masks is not None:
             folder = a.write_masks / name.replace(" ", "_").replace(",", "")
             folder.mkdir(parents=True, exist_ok=True)
@@ -190,7 +195,8 @@ def main(argv: list[str] | None = None) -> None:
         return row
 
     oracles = ("true object seeds", "true seeds and a background ring") if a.true_masks is not None else ()
-    names = ("shipped", "no grounded bites", "no table drop", "neither", "lone points counted", "no support prior", "in-frame region", "every point, seed discs", *oracles)
+    names = ("shipped", "no grounded bites", "no table drop", "neither", "lone points counted", "least parallax",
+             "no support prior", "in-frame region", "every point, seed discs", *oracles)
     chosen = a.variants.split(",") if a.variants else names
     if unknown := set(chosen) - set(names):
         raise SystemExit(f"unknown variants {sorted(unknown)}; known: {', '.join(names)}")

@@ -66,8 +66,7 @@ where (almost) no other photo sees table (see `_fill_grounded_bites`)."""
 MIN_GROUND_VIEWS = 0.25
 """... a ray's table point counts only when at least this share of the other photos frame it."""
 TABLE_PARTNERS = 4
-"""Each photo is matched on the support plane with this many others, those whose cameras see the object from the
-nearest directions (`_table_agreement`)."""
+"""Each photo is matched on the support plane with this many others (`_table_agreement`) ..."""
 TABLE_WINDOW = 0.015
 """... in windows this fraction of the segmented photo's longer side across (9 px at 640)."""
 MIN_TABLE_HALF_WINDOW = 3
@@ -77,6 +76,18 @@ TABLE_TEXTURE = 2.0
 TABLE_NCC = 0.5
 """A pixel shows the table when its window correlates at least this well with two partners' views of the same patch of
 the plane: shadowed table (a cast shadow is where it is from every side) as much as lit."""
+TABLE_PARALLAX = 12.0
+"""The partners are the photos that see the object's points moved off the plane's homography (their median) nearest
+this many windows: the object's foot lines up with the table as far up as its parallax stays under half a window, so
+the more parallax, the thinner the band of the foot the table step takes ..."""
+MIN_TABLE_PARALLAX = 2.0
+"""... and at least this many: from a nearby camera (a video's next frames) the whole object lines up through the
+table's homography as well as the table does, and its texture would be taken for table ..."""
+MAX_TABLE_TURN = 90.0
+"""... among the photos that see the object from within this many degrees of this one: from farther round, the object
+hides the table beside it that this photo sees."""
+PARALLAX_POINTS = 500
+"""The parallax is measured on at most this many of the object's points."""
 DROP_TABLE = True
 """Cut pixels that show the table are dropped from the masks (`_drop_table`)."""
 MIN_AGREEMENT = 0.9
@@ -212,7 +223,7 @@ def segment_object(scene: Scene, load_photo: PhotoLoader | None = None, side: in
     table_dropped = bites_filled = 0  # photos whose masks each step changed by over a percent
     if on_ground and (DROP_TABLE or FILL_GROUNDED_BITES):
         c2ws = [f.c2w for f in scene.frames]
-        on_table = _table_agreement(cv2, greys, c2ws, intrinsics, scene.ground, region)
+        on_table = _table_agreement(cv2, greys, c2ws, intrinsics, scene.ground, region, points[object_pts])
         del greys
         if DROP_TABLE:
             before, filled = filled, [_drop_table(cv2, mask, table >= TABLE_NCC, table <= -1, fg)
@@ -484,10 +495,12 @@ def _changed(before: list[np.ndarray], after: list[np.ndarray]) -> int:
 
 
 def _table_agreement(cv2, greys: list[np.ndarray], c2ws: list[np.ndarray], intrinsics: list[np.ndarray],
-                     ground: np.ndarray, region: np.ndarray) -> list[np.ndarray]:
+                     ground: np.ndarray, region: np.ndarray, object_points: np.ndarray) -> list[np.ndarray]:
     """Per photo, (h, w) float32: how well each pixel's window matches, in the second best of its `TABLE_PARTNERS`,
     the partner's view of the support plane (4,) there (normalized cross-correlation of grey levels, the partner
     warped onto this photo by the plane's homography); -1 where either window is flat or the partner does not see it.
+    Partners: see `TABLE_PARTNERS`; the parallax is measured on the `object_points` (M, 3) (on the region's corners
+    when there are none).
 
     Why: the table is the one surface every photo sees through the same homography, so its texture lines up across
     photos, lit or in the object's shadow (colour models cannot tell a cast shadow from a dark base); the object, off
@@ -504,6 +517,9 @@ def _table_agreement(cv2, greys: list[np.ndarray], c2ws: list[np.ndarray], intri
     corners = [project(square, c2w, intr) for c2w, intr in views]
     seen_from = np.array([c2w[:3, 3] - region.mean(axis=0) for c2w, _ in views])
     seen_from /= np.maximum(np.linalg.norm(seen_from, axis=1, keepdims=True), 1e-12)
+    marks = object_points if len(object_points) else box_corners(region)
+    marks = marks[:: max(1, len(marks) // PARALLAX_POINTS)]
+    seen = [project(marks, c2w, intr) for c2w, intr in views]
     out = []
     for k, grey in enumerate(greys):
         h, w = grey.shape
@@ -511,13 +527,16 @@ def _table_agreement(cv2, greys: list[np.ndarray], c2ws: list[np.ndarray], intri
         a = grey.astype(np.float32)
         mean_a = cv2.boxFilter(a, -1, (side, side))
         var_a = cv2.boxFilter(a * a, -1, (side, side)) - mean_a**2
-        order = [j for j in np.argsort(-(seen_from @ seen_from[k])) if j != k][:TABLE_PARTNERS]
-        scores = []
-        for j in order:
+        homographies = {}
+        for j in range(len(greys)):
             (uv_k, z_k), (uv_j, z_j) = corners[k], corners[j]
-            if np.any(z_k <= 0) or np.any(z_j <= 0):
-                continue
-            homography = cv2.getPerspectiveTransform(uv_k.astype(np.float32), uv_j.astype(np.float32))
+            if j != k and np.all(z_k > 0) and np.all(z_j > 0) \
+                    and seen_from[j] @ seen_from[k] >= math.cos(math.radians(MAX_TABLE_TURN)):
+                homographies[j] = cv2.getPerspectiveTransform(uv_k.astype(np.float32), uv_j.astype(np.float32))
+        parallax = {j: _parallax(cv2, hom, seen[k], seen[j]) / side for j, hom in homographies.items()}
+        scores = []
+        for j in _table_partners(parallax):
+            homography = homographies[j]
             b = cv2.warpPerspective(greys[j].astype(np.float32), homography, (w, h),
                                     flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP, borderValue=-1.0)
             inside = cv2.erode((b >= 0).astype(np.uint8), np.ones((side, side), np.uint8)) > 0
@@ -532,6 +551,26 @@ def _table_agreement(cv2, greys: list[np.ndarray], c2ws: list[np.ndarray], intri
             continue
         out.append(np.sort(np.stack(scores), axis=0)[-2].astype(np.float32))  # the second best: two partners agree
     return out
+
+
+def _table_partners(parallax: dict[int, float]) -> list[int]:
+    """The `TABLE_PARTNERS` photos whose parallax (photo index -> windows; the photos within `MAX_TABLE_TURN`) is nearest
+    `TABLE_PARALLAX` and at least `MIN_TABLE_PARALLAX`."""
+    fit = [(abs(math.log(p / TABLE_PARALLAX)), j) for j, p in parallax.items() if p >= max(MIN_TABLE_PARALLAX, 1e-9)]
+    return [j for _, j in sorted(fit)[:TABLE_PARTNERS]]
+
+
+def _parallax(cv2, homography: np.ndarray, seen_here: tuple[np.ndarray, np.ndarray],
+              seen_there: tuple[np.ndarray, np.ndarray]) -> float:
+    """The median distance (pixels of the partner) between where the partner sees points and where the plane's
+    `homography` (3, 3) puts them from this photo; `seen_*`: `project`'s (uv (M, 2), depth (M,)); 0 if none is in
+    front of both cameras."""
+    (here, z_here), (there, z_there) = seen_here, seen_there
+    front = (z_here > 0) & (z_there > 0)
+    if not front.any():
+        return 0.0
+    moved = cv2.perspectiveTransform(here[front][None].astype(np.float64), homography)[0]
+    return float(np.median(np.linalg.norm(moved - there[front], axis=1)))
 
 
 def _table_window(h: int, w: int) -> int:

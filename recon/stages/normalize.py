@@ -164,4 +164,5 @@ def _write(folder: Path, masks: dict[str, np.ndarray], scene: Scene) -> None:
 # version 13: automatic masks start the cut with the object seeds' feet on the ground as probable object
 # version 14: automatic masks drop what lines up with the table, give back bites whose rays meet it under the object,
 #             and trust leaves lone points out
-STAGE = Stage(name="normalize", folder="02_scene", inputs=("poses",), version=14, run=run)
+# version 15: automatic masks match the table only with photos that see the object move off its homography
+STAGE = Stage(name="normalize", folder="02_scene", inputs=("poses",), version=15, run=run)
