@@ -319,3 +319,21 @@ def test_video_to_mesh_matches_the_true_surface(pytestconfig: pytest.Config, tmp
     result = compare_to_gt(scene_dir, folder / "gt_mesh.ply")
     assert result["alignment"]["residual_rms_rel"] < 0.01, result["alignment"]
     assert result["fscore@0.01"] >= 0.85, result
+
+
+def test_the_bench_clip_has_no_masks_beside_it(tmp_path, monkeypatch) -> None:
+    """`recon bench --data tabletop_video` measures the automatic masks: the generator's true masks lie beside its
+    clip, where recon would read them as the user's, so the bench gets the clip from a folder of its own."""
+    from recon.capture.scene import video_mask_homes
+
+    def render(folder, **_) -> Path:  # the generator's layout: the clip with the true masks beside it
+        (Path(folder) / "masks").mkdir(parents=True, exist_ok=True)
+        (Path(folder) / "clip.mp4").write_bytes(b"a clip")
+        return Path(folder) / "clip.mp4"
+
+    monkeypatch.setattr(gen_video, "generate_tabletop_video", render)
+    clip, gt = gen_video.bench_dataset(tmp_path / "data", verbose=False)
+    assert any(home.is_dir() for home in video_mask_homes(tmp_path / "data" / "clip.mp4"))
+    assert clip.read_bytes() == b"a clip" and gt.parent == tmp_path / "data"
+    assert not any(home.is_dir() for home in video_mask_homes(clip))
+    assert gen_video.bench_dataset(tmp_path / "data", verbose=False)[0] == clip  # cached: the same file
