@@ -36,6 +36,7 @@ def _noise_photos(folder: Path, n: int, size: int = 160, seed: int = 0) -> None:
 
 def test_missing_and_empty_folder(tmp_path: Path) -> None:
     assert_clean_error(*recon("run", str(tmp_path / "nope"), "--out", str(tmp_path / "s")), "does not exist")
+    assert not (tmp_path / "s").exists()  # a mistyped input leaves no scene folder behind
     (tmp_path / "empty").mkdir()
     assert_clean_error(*recon("run", str(tmp_path / "empty"), "--out", str(tmp_path / "s")), "No photos found")
 

@@ -159,6 +159,8 @@ def _run(
             from recon.runner.ownership import resolve_path
 
             source = resolve_path(source, "The photos folder")  # a link loop is the user's to fix, not a crash
+            if not source.exists():  # before the scene folder is made: a typo leaves nothing behind
+                raise ReconError(f"The input {source} does not exist. Check the path.")
             check_batch_against_pixels(config, count_photos(source, config.poses.video_frames))
         report = Reporter(console, quiet=quiet)
         report.observers = list(observers or [])
