@@ -5,7 +5,7 @@
         --out docs/painted_hull_start.png
 
 Each scene's panel is its mesh stage's preview (`04_mesh/preview_front.png`, or `--view side`), as the stage drew
-it; the photo is cropped to a square around its middle (`--crop`: its side, a fraction of the shorter side). It measures nothing: the numbers are in the records.
+it, or with `--view below` its mesh.ply drawn from under the table; the photo is cropped to a square around its middle (`--crop`: its side, a fraction of the shorter side). It measures nothing: the numbers are in the records.
 """
 from __future__ import annotations
 
@@ -16,6 +16,7 @@ from pathlib import Path
 from PIL import Image, ImageDraw
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(1, str(Path(__file__).resolve().parents[1]))  # this checkout's recon, not an installed one
 from figures import side_by_side, write_png  # noqa: E402
 
 PANEL = 360
@@ -28,11 +29,25 @@ def _square(image: Image.Image, fraction: float = 1.0) -> Image.Image:
     return image.crop((left, top, left + side, top + side)).resize((PANEL, PANEL), Image.BILINEAR)
 
 
+def _from_below(ply: Path) -> Image.Image:
+    """The mesh (+Z up, vertex colours) drawn as the stage's previews are, from 35° under it."""
+    import numpy as np
+    import trimesh
+
+    from recon.geometry.preview import render_preview
+
+    mesh = trimesh.load(ply, process=False)
+    colors = np.asarray(mesh.visual.vertex_colors)[:, :3] / 255.0
+    return Image.fromarray(render_preview(mesh.vertices, mesh.faces, colors, azimuth_deg=30.0, elevation_deg=-35.0,
+                                          size=PANEL))
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--photo", type=Path, required=True)
     parser.add_argument("--scene", action="append", required=True, help="LABEL=SCENE_DIR (repeatable, in order)")
-    parser.add_argument("--view", choices=["front", "side"], default="front")
+    parser.add_argument("--view", choices=["front", "side", "below"], default="front",
+                        help="front, side: the stage's previews; below: mesh.ply drawn from under the table")
     parser.add_argument("--crop", type=float, default=1.0, help="the photo's square, a fraction of its shorter side")
     parser.add_argument("--out", type=Path, required=True, help="the PNG to write")
     a = parser.parse_args()
@@ -40,10 +55,11 @@ def main() -> int:
     panels = [("photo", _square(Image.open(a.photo).convert("RGB"), a.crop))]
     for spec in a.scene:
         label, sep, folder = spec.rpartition("=")
-        preview = Path(folder) / "04_mesh" / f"preview_{a.view}.png"
+        preview = Path(folder) / "04_mesh" / ("mesh.ply" if a.view == "below" else f"preview_{a.view}.png")
         if not sep or not preview.is_file():
             raise SystemExit(f"--scene {spec!r}: give LABEL=SCENE_DIR of a scene whose mesh stage wrote {preview.name}")
-        panels.append((label, _square(Image.open(preview).convert("RGB"))))
+        panels.append((label, _from_below(preview) if a.view == "below" else
+                       _square(Image.open(preview).convert("RGB"))))
     figure = side_by_side([panel for _, panel in panels])
     draw = ImageDraw.Draw(figure)
     for i, (label, _) in enumerate(panels):

@@ -45,13 +45,20 @@ def mesh_row(scene: Path, gt: Path | None) -> dict[str, Any]:
         "mesh_pieces": coherence.get("largest_piece", {}).get("pieces"),
         "mesh_coverage": (coherence.get("projected") or {}).get("coverage"),
         "mesh_points_missing": (coherence.get("points") or {}).get("missing"),
+        "watertight": report.get("watertight"),
+        "area": clean.get("output", {}).get("area"),
     }
+    if row["watertight"]:  # the solid's volume, scene units³ (normalized frame)
+        import trimesh
+
+        row["volume"] = float(trimesh.load(scene / "04_mesh" / "mesh.ply", process=False).volume)
     if gt is not None:
         from recon.evaluation.mesh_eval import compare_to_gt
 
         acc = compare_to_gt(scene, gt)
         row.update({"fscore_1pct": acc["fscore@0.01"], "fscore_05pct": acc["fscore@0.005"],
                     "precision_05pct": acc["precision@0.005"], "recall_05pct": acc["recall@0.005"],
+                    "precision_1pct": acc["precision@0.01"], "recall_1pct": acc["recall@0.01"],
                     "chamfer_rel": acc["chamfer_l1_rel"], "normal_consistency": acc.get("normal_consistency")})
     return row
 

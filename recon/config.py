@@ -228,6 +228,10 @@ class MeshConfig:
     """Remove faces that no photo sees (depth-tested against the field's rendered depth): the walls and
     islands marching cubes finds inside a soft, unconstrained interior; they cost most of the mesh's precision.
     Off, the mesh is closed where the field is, but full of inner walls."""
+    closed: bool = False
+    """A closed (watertight) solid, for 3D printing or a physics engine: the field filled down to the ground or wall the
+    object stands on and capped flat there, closed at the mesh region's box, and no face dropped for being unseen or
+    outside a mask. Off: the surface the photos saw, open where none looked (often the underside)."""
     mask_keep_fraction: float = 0.5
     """With masks, a vertex stays when it falls inside the object's mask in at least this fraction of the photos
     that have it in frame (below 1: room for a pixel of mask edge; lower it when imperfect masks bite into the mesh)."""

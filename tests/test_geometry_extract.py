@@ -8,8 +8,11 @@ import pytest
 import torch
 import trimesh
 
+from recon.camera import image_rays, look_at
 from recon.geometry.extract import (
     auto_iso_level,
+    behind_views,
+    close_solid,
     density_grid,
     density_grid_sparse,
     fill_enclosed,
@@ -179,3 +182,70 @@ def test_fill_enclosed_fills_a_sealed_void_without_a_ball() -> None:
     sealed = _shell_grid()
     out, info = fill_enclosed(sealed.copy(), SIGMA / 2, 0)
     assert info["filled_nodes"] > 0 and _inner_wall_vertices(out) == 0
+
+
+def _node_radius(n: int = 64) -> tuple[np.ndarray, np.ndarray]:
+    lin = np.linspace(-1.0, 1.0, n)
+    x, y, z = np.meshgrid(lin, lin, lin, indexing="ij")
+    return np.sqrt(x * x + y * y + z * z), z
+
+
+def test_a_closed_solid_is_filled_where_its_shell_is_open_capped_on_its_support_and_closed_at_the_box() -> None:
+    grid = _shell_grid(hole=0.2)  # a hole 13 cells wide: the hollow fill cannot close it
+    r, z = _node_radius()
+    plane = np.array([0.0, 0.0, 1.0, -0.3])  # the support: everything below z = -0.3 goes
+    hidden = r < 0.45  # what no photo sees empty: the inside
+    cell = 2.0 / 63
+    solid = ((r < 0.6) & (z >= -0.3)).sum() * cell**3  # the ball above the support, to a cell
+
+    closed, info = close_solid(grid.copy(), SIGMA / 2, AABB, plane, 3, hidden)
+    mesh = trimesh.Trimesh(*marching_cubes(closed, SIGMA / 2, AABB))
+    assert mesh.is_watertight and mesh.vertices[:, 2].min() > -0.3 - cell
+    assert abs(mesh.volume / solid - 1) < 0.05 and info["hidden_nodes"] > 0
+    cap = np.abs(mesh.vertices[:, 2] + 0.3) < 0.5 * cell
+    assert cap.sum() > 100  # a flat base where the support was
+
+    hollow, _ = close_solid(grid.copy(), SIGMA / 2, AABB, plane, 3)  # the same without the views' inside
+    shell = trimesh.Trimesh(*marching_cubes(hollow, SIGMA / 2, AABB))
+    assert shell.is_watertight and shell.volume < 0.6 * mesh.volume  # closed, but only around the shell
+
+    touching = _shell_grid(outer=1.2)  # material out to the box: closed there too
+    boxed, _ = close_solid(touching, SIGMA / 2, AABB, None, 0)
+    assert trimesh.Trimesh(*marching_cubes(boxed, SIGMA / 2, AABB)).is_watertight
+
+
+def test_close_solid_empties_the_material_keep_rejects_before_filling() -> None:
+    grid = _shell_grid()
+    grid[(np.abs(_node_radius()[0] - 0.8) < 0.05)] = SIGMA  # a second shell around the first, as a halo
+    closed, info = close_solid(grid.copy(), SIGMA / 2, AABB, None, 0, keep=lambda p: np.linalg.norm(p, axis=1) < 0.7)
+    mesh = trimesh.Trimesh(*marching_cubes(closed, SIGMA / 2, AABB))
+    assert info["dropped_nodes"] > 0 and np.linalg.norm(mesh.vertices, axis=1).max() < 0.7
+    assert mesh.is_watertight and abs(mesh.volume / (4 / 3 * math.pi * 0.6**3) - 1) < 0.05
+
+
+def _sphere_depths(radius: float, eyes: list[np.ndarray], size: int = 48, focal: float = 60.0):
+    """Each camera's ray distance to a ball of ``radius`` at the origin (inf where its rays miss it)."""
+    k = np.array([focal, focal, size / 2, size / 2])
+    c2ws, depths = [], []
+    for eye in eyes:
+        c2w = look_at(np.asarray(eye, np.float64), np.zeros(3), (0.0, 0.0, 1.0) if abs(eye[2]) < 2 else (0.0, 1.0, 0.0))
+        o, d = image_rays(c2w, *k, size, size)
+        b = np.einsum("hwc,hwc->hw", o, d)
+        disc = b * b - (np.einsum("hwc,hwc->hw", o, o) - radius**2)
+        depths.append(np.where(disc > 0, -b - np.sqrt(np.maximum(disc, 0)), np.inf))
+        c2ws.append(c2w)
+    return depths, np.stack(c2ws), np.tile(k, (len(eyes), 1))
+
+
+def test_behind_views_finds_the_inside_of_what_the_views_show_and_nothing_outside() -> None:
+    eyes = [np.array(e, np.float64) * 3 for e in
+            [(1, 0, 0), (-1, 0, 0), (0, 1, 0), (0, -1, 0), (0, 0, 1), (0, 0, -1), (1, 1, 1), (-1, -1, 1)]]
+    depths, c2ws, intr = _sphere_depths(0.5, eyes)
+    hidden = behind_views(AABB, (64, 64, 64), depths, c2ws, intr, tol=0.02)
+    r, _ = _node_radius()
+    assert not hidden[r > 0.5].any()  # nothing a view sees empty
+    assert hidden[r < 0.3].mean() > 0.95  # the inside, less a shell a coarse step thick
+    one, c2w1, k1 = _sphere_depths(0.5, eyes[:1] * 2)  # a photo taken twice from one place
+    seen_once = behind_views(AABB, (64, 64, 64), one, c2w1, k1, tol=0.02)
+    assert seen_once[r > 0.6].sum() > 1000  # from one place the ball's whole shadow is hidden: other views carve it
+    assert not behind_views(AABB, (64, 64, 64), one[:1], c2w1[:1], k1[:1], tol=0.02).any()  # one view frames too few

@@ -313,6 +313,20 @@ def test_hollow_fill_runs_for_objects_and_not_on_a_whole_unbounded_scene() -> No
     assert not mesh_plan.hollow_fill_applies(found, MeshConfig(fill_cavities=0), bounded=True)[0]
 
 
+def test_a_closed_mesh_is_planned_for_an_object_keeps_every_face_and_caps_at_the_cut() -> None:
+    region, ground = np.array([[-0.5] * 3, [0.5] * 3]), np.array([0.0, 0.0, 1.0, -0.5])
+    scene = _capture(masks=True, region=region, ground=ground)
+    plan = mesh_plan.plan_mesh(MeshConfig(resolution=65, closed=True), scene, PLAN_META, on_cpu=True, voxel=0.0)
+    assert plan.closed and plan.hidden_tolerance is None and plan.uses_views  # its inside comes from the views
+    assert "watertight solid" in plan.closed_why and "ground" in plan.closed_why and plan.closed_why in plan.notes
+    np.testing.assert_allclose(plan.support_plane, [0.0, 0.0, 1.0, -0.5 + plan.ground_margin])  # where open ones are cut
+    assert not mesh_plan.plan_mesh(MeshConfig(resolution=65), scene, PLAN_META, on_cpu=True, voxel=0.0).closed
+    whole = _capture(masks=False)
+    scattered = mesh_plan.plan_mesh(MeshConfig(resolution=65, closed=True), whole, {**PLAN_META, "bounded": False},
+                                    on_cpu=True, voxel=0.0)
+    assert not scattered.closed and "unbounded" in scattered.closed_why  # no object to close: said, not done
+
+
 def test_iso_opacity_is_lower_with_masks_unless_set() -> None:
     choose = mesh_plan.capture_iso_opacity
     assert choose(MeshConfig(), masked=False)[0] == 0.0  # 0: the stage's ISO_OPACITY
@@ -545,3 +559,39 @@ def test_an_object_density_mesh_in_pieces_points_to_the_surface_preset() -> None
     assert pieces_advice(0.5, zero_set=True, capture="object") == ""
     assert pieces_advice(0.5, zero_set=False, capture="unbounded") == ""
     assert pieces_advice(0.5, zero_set=False, capture=None) == ""
+
+
+class HollowBall(SoftSphere):
+    """A radiance field that is only a shell (material between radii 0.45 and R0 round CENTRE), as a field is opaque
+    only where the photos look: its inside is empty."""
+
+    def density(self, x: Tensor) -> Tensor:
+        r = (x - torch.as_tensor(CENTRE, dtype=x.dtype, device=x.device)).norm(dim=-1)
+        return self.amplitude * torch.sigmoid((R0 - r) / self.width) * torch.sigmoid((r - 0.45) / self.width)
+
+
+def test_a_closed_mesh_is_a_watertight_solid_capped_on_the_ground_the_open_one_is_not(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    model = HollowBall(amplitude=3000.0, width=0.004, samples=384)
+    base = CENTRE[2] - 0.3
+    meshes = {}
+    for closed in (False, True):
+        scene_dir = _scene_dir(tmp_path / str(closed), model, np.eye(4), kind="transforms")
+        doc = json.loads((scene_dir / "02_scene" / "scene.json").read_text())
+        doc["ground"] = [0.0, 0.0, 1.0, base]  # it stands on a table through the ball's lower part
+        (scene_dir / "02_scene" / "scene.json").write_text(json.dumps(doc))
+        cfg = MeshConfig(resolution=97, target_faces=0, color="field", texture_faces=0, closed=closed,
+                         ground_margin_cells=0.0)
+        summary, out = _run_stage(scene_dir, model, cfg, monkeypatch)
+        meshes[closed] = (summary, trimesh.load(out / "mesh.ply", process=False))
+        radius = model.radius_at(json.loads((out / "mesh_report.json").read_text())["iso"])
+    (open_summary, open_mesh), (closed_summary, solid) = meshes[False], meshes[True]
+    assert not open_summary["watertight"]  # open where the table was, its empty inside seen by no photo
+    assert closed_summary["watertight"] and solid.is_watertight
+    height = radius + 0.3  # the ball above the table: a sphere less its cap below the cut
+    below = math.pi * (radius - 0.3) ** 2 * (3 * radius - (radius - 0.3)) / 3
+    assert solid.volume == pytest.approx(4 / 3 * math.pi * radius**3 - below, rel=0.03)
+    assert solid.vertices[:, 2].min() == pytest.approx(base, abs=2 / 96) and np.ptp(solid.vertices[:, 2]) == pytest.approx(height, abs=2 / 96)
+    flat = np.abs(solid.vertices[:, 2] - base) < 1e-3
+    assert flat.sum() > 50 and flat.sum() < 0.5 * len(solid.vertices)  # a flat base, and the ball above it

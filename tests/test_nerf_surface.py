@@ -166,6 +166,17 @@ def test_zero_set_is_closed_where_the_object_leaves_the_box() -> None:
     assert mesh.is_watertight and float(v[:, 2].min()) < -0.95
 
 
+def test_a_closed_zero_set_is_capped_flat_on_its_support() -> None:
+    """mesh.closed on a surface field: the ball cut at a table 0.3 under its centre, a flat base at the table."""
+    base = np.array([0.0, 0.0, 1.0, -0.3])
+    v, f, info = extract_zero_set(_Sphere((0.0, 0.0, 0.0), 0.6), torch.tensor(BOX), (65,) * 3, MeshConfig(),
+                                  Reporter(quiet=True), closed=True, support=base)
+    mesh = trimesh.Trimesh(v, f)
+    cap = math.pi * 0.3**2 * (3 * 0.6 - 0.3) / 3  # the part of the ball below the table
+    assert mesh.is_watertight and mesh.volume == pytest.approx(4 / 3 * math.pi * 0.6**3 - cap, rel=0.02)
+    assert float(v[:, 2].min()) == pytest.approx(-0.3, abs=2 / 64) and info["fill"]["below_plane_nodes"] > 0
+
+
 def _sphere_views(radius: float, n: int = 20, w: int = 32, f: float = 40.0):
     """n photos of a sphere (colour = its normal, on white) from cameras 3 units away, spread over the sphere."""
     golden = math.pi * (3 - math.sqrt(5))

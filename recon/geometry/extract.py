@@ -10,12 +10,14 @@ Densities are volume densities σ (1 / scene unit), high inside the object.
 from __future__ import annotations
 
 import math
-from typing import Callable, Protocol
+from typing import Callable, Protocol, Sequence
 
 import numpy as np
 import torch
-from scipy.ndimage import binary_dilation, binary_erosion, label
+from scipy.ndimage import binary_dilation, binary_erosion, label, maximum_filter
 from skimage import measure
+
+from recon.camera import project
 
 
 class GridSettings(Protocol):
@@ -347,6 +349,112 @@ def fill_enclosed(grid: np.ndarray, level: float, hole_cells: int) -> tuple[np.n
     if n:
         grid[enclosed] = np.float32(2.0 * level) if level > 0 else np.float32(level + 1.0)
     return grid, {"filled_nodes": n, "filled_fraction": n / grid.size, "hole_cells": k}
+
+
+def cut_at_plane(grid: np.ndarray, level: float, aabb: np.ndarray | torch.Tensor, plane: np.ndarray,
+                 slope: float) -> int:
+    """Empty the grid below ``plane`` (nx, ny, nz, d; n·x = d, unit n pointing at what stays) so that marching cubes
+    crosses ``level`` on the plane itself: within a cell and a half of it, and everywhere below, each node takes at
+    most ``level + slope · s / cell`` (s its signed distance to the plane), a level set through the plane. A slice
+    of x at a time, in place. Returns how many nodes lie below the plane."""
+    box = _as_aabb(aabb)
+    axes = [np.linspace(box[0, a], box[1, a], grid.shape[a]) for a in range(3)]
+    n, d = np.asarray(plane[:3], np.float64), float(plane[3])
+    cell = float(grid_spacing(box, grid.shape).max())
+    rest = n[1] * axes[1][:, None] + n[2] * axes[2][None, :] - d
+    below = 0
+    for i, x in enumerate(axes[0]):
+        signed = rest + n[0] * x
+        near = signed < 1.5 * cell
+        cap = (level + slope * signed[near] / cell).astype(grid.dtype)
+        grid[i][near] = np.minimum(grid[i][near], cap)
+        below += int((signed < 0).sum())
+    return below
+
+
+HIDDEN_NODES = 96
+"""`behind_views` tests every s-th grid node, s such that this many lie along the longest axis: it only has to find
+the inside, well away from the surface the density grid resolves."""
+HIDDEN_FRAMED = 0.5
+"""`behind_views` calls a node hidden only when at least this share of the views frame it: behind an object from the
+few views that frame a node far off to its side lies space that no view could see, not the object's inside."""
+
+
+def behind_views(aabb: np.ndarray | torch.Tensor, shape: tuple[int, int, int], depths: Sequence[np.ndarray],
+                 c2ws: np.ndarray, intrinsics: np.ndarray, tol: float,
+                 nodes: int = HIDDEN_NODES, framed_share: float = HIDDEN_FRAMED) -> np.ndarray:
+    """(Rx, Ry, Rz) bool: the grid nodes that no view sees as empty space. Each view's depth map (H, W) holds the
+    distance from its camera to the surface it shows (inf where it shows none); a node in its frame nearer than the
+    farthest depth of the 3×3 pixels around it, less ``tol``, is seen empty. A node is behind the views when at
+    least ``framed_share`` of them (and two) frame it and none sees it empty: the inside of what the photos show, shape from their depths
+    alone (space carving), so holes in the field's shell do not leave it hollow. Tested on every s-th node (about
+    ``nodes`` along the longest axis), shrunk by one such step, so what it marks lies inside the surface."""
+    box, res = _as_aabb(aabb), _as_resolution(shape)
+    step = max(1, math.ceil(max(res) / nodes))
+    axes = [np.linspace(box[0, a], box[1, a], res[a])[::step] for a in range(3)]
+    points = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    framed = np.zeros(len(points), np.int32)
+    empty = np.zeros(len(points), bool)
+    for depth, c2w, k in zip(depths, np.asarray(c2ws, np.float64), np.asarray(intrinsics, np.float64), strict=True):
+        far = maximum_filter(np.asarray(depth, np.float64), size=3, mode="nearest")
+        h, w = far.shape
+        uv, z = project(points, c2w, k)
+        inside = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
+        px = uv[inside].astype(np.int64)
+        dist = np.linalg.norm(points[inside] - c2w[:3, 3], axis=1)
+        framed[inside] += 1
+        empty[np.flatnonzero(inside)[dist < far[px[:, 1], px[:, 0]] - tol]] = True
+    enough = max(2, math.ceil(framed_share * len(depths)))
+    coarse = ((framed >= enough) & ~empty).reshape([len(a) for a in axes])
+    coarse = binary_erosion(coarse, border_value=0)
+    out = coarse
+    for axis in range(3):
+        out = np.repeat(out, step, axis=axis)
+    return np.ascontiguousarray(out[: res[0], : res[1], : res[2]])
+
+
+def close_solid(grid: np.ndarray, level: float, aabb: np.ndarray | torch.Tensor, plane: np.ndarray | None,
+                hole_cells: int, hidden: np.ndarray | None = None,
+                keep: Callable[[np.ndarray], np.ndarray] | None = None, chunk: int = 2**20) -> tuple[np.ndarray, dict]:
+    """Make the grid's level set a closed solid: empty the material ``keep(points (N, 3)) -> (N,) bool`` rejects
+    (e.g. what the photos' masks call background), raise the ``hidden`` nodes ((Rx, Ry, Rz) bool, `behind_views`:
+    the inside no photo sees) and the hollow the material encloses (`fill_enclosed`, holes up to ``hole_cells``
+    closed), then empty everything below the plane (nx, ny, nz, d; the ground or wall the object stands on, n
+    pointing at it; None: no support) and the grid's outer node layer, so marching cubes caps the object flat on its
+    support and closes it at the box.
+
+    Why: the underside of an object on a table is never photographed, so its field is a shell open towards the table,
+    often with holes where few photos agree; the space behind every photo's view of it is the object's inside (or
+    what no photo can tell from it), so filling it and cutting at the table leaves a solid with a flat base. Returns
+    the grid (modified in place) and what was done."""
+    inside = np.float32(2.0 * level) if level > 0 else np.float32(level + 1.0)
+    outside = np.float32(0.5 * level) if level > 0 else np.float32(level - 1.0)
+    dropped = 0
+    if keep is not None:
+        box = _as_aabb(aabb)
+        spacing = grid_spacing(box, grid.shape)
+        material = np.flatnonzero(grid > level)
+        for s in range(0, len(material), chunk):
+            flat = material[s : s + chunk]
+            points = box[0] + np.stack(np.unravel_index(flat, grid.shape), -1) * spacing
+            gone = flat[~np.asarray(keep(points), bool)]
+            grid.flat[gone] = outside
+            dropped += len(gone)
+        del material
+    hidden_nodes = 0
+    if hidden is not None:  # no photo sees it empty: inside, whatever the field's shell leaves open
+        fill_in = hidden & ~(grid > level)
+        hidden_nodes = int(fill_in.sum())
+        grid[fill_in] = inside
+        del fill_in
+    grid, fill = fill_enclosed(grid, level, hole_cells)
+    below = cut_at_plane(grid, level, aabb, plane, float(inside - level)) if plane is not None else 0
+    for axis in range(3):
+        index: list = [slice(None)] * 3
+        for end in (0, -1):
+            index[axis] = end
+            grid[tuple(index)] = np.minimum(grid[tuple(index)], outside)
+    return grid, {**fill, "dropped_nodes": dropped, "hidden_nodes": hidden_nodes, "below_plane_nodes": below}
 
 
 # ---------------------------------------------------------------------------------------- resolution

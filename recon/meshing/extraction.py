@@ -18,6 +18,7 @@ from recon.config import MeshConfig
 from recon.errors import ReconError
 from recon.geometry.extract import (
     auto_iso_level,
+    close_solid,
     density_grid,
     density_grid_sparse,
     fill_enclosed,
@@ -63,14 +64,18 @@ def _counting(density_fn: Callable[[torch.Tensor], torch.Tensor], bar: Any) -> C
 
 
 def extract_mesh(
-    model: torch.nn.Module, aabb: torch.Tensor, shape: tuple[int, int, int], cfg: MeshConfig, report: Any
+    model: torch.nn.Module, aabb: torch.Tensor, shape: tuple[int, int, int], cfg: MeshConfig, report: Any,
+    closed: bool = False, support: np.ndarray | None = None, hidden: Callable[[tuple[int, int, int]], np.ndarray] | None = None,
+    keep: Callable[[np.ndarray], np.ndarray] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, dict]:
     """Density grid over aabb (2, 3) (on aabb's device) → iso-level → marching cubes.
 
     ``model.density(x (M, 3)) -> (M,)`` in 1/scene unit. Coarse-to-fine (`extraction_mode`) needs the level
     before the fine grid: it is estimated with `auto_iso_level` on a 64³ preview grid (same rule, `surface_cell`)
     unless ``cfg.iso > 0`` gives it; ``cfg.iso_opacity`` 0 is ISO_OPACITY; ``cfg.fill_cavities`` fills the hollow
-    (`fill_enclosed`). Returns vertices (V, 3) float32 and faces (F, 3) int64 in the scene frame, and info (grid,
+    (`fill_enclosed`); ``closed`` makes it a solid capped on the ``support`` plane and closed at the box
+    (`close_solid`), its inside also what ``hidden(shape)`` marks (`behind_views`), its material only where
+    ``keep(points)`` agrees (the masks). Returns vertices (V, 3) float32 and faces (F, 3) int64 in the scene frame, and info (grid,
     iso and its reason, counts, timings).
     """
     cell = float(grid_spacing(aabb, shape).max())
@@ -107,7 +112,16 @@ def extract_mesh(
         info["time_grid_s"] = round(time.perf_counter() - t0, 3)
         info["iso"], info["iso_reason"] = float(level), why
         report.info(f"density grid: {info['evaluated']:,} of {dense:,} nodes evaluated in {info['time_grid_s']:.1f} s; {why}")
-        if cfg.fill_cavities:
+        if closed:
+            grid, info["fill"] = close_solid(grid, level, aabb, support, cfg.fill_cavities,
+                                             hidden(shape) if hidden is not None else None, keep)
+            report.info("closed solid: " + (f"{info['fill']['dropped_nodes']:,} grid nodes of material the masks "
+                                             "call background emptied, " if keep is not None else "")
+                        + f"{info['fill']['hidden_nodes']:,} grid nodes filled that no photo sees empty, "
+                        f"{info['fill']['filled_nodes']:,} more that the material encloses (holes up to "
+                        f"~{2 * cfg.fill_cavities} cells closed to tell)"
+                        + (", cut flat on the support" if support is not None else ""))
+        elif cfg.fill_cavities:
             grid, info["fill"] = fill_enclosed(grid, level, cfg.fill_cavities)
             report.info(f"hollow filled: {info['fill']['filled_nodes']:,} grid nodes of empty space that the material "
                         f"encloses (holes up to ~{2 * cfg.fill_cavities} cells closed to tell; mesh.fill_cavities=0 "
@@ -127,11 +141,14 @@ def extract_mesh(
 
 
 def extract_zero_set(
-    model: torch.nn.Module, aabb: torch.Tensor, shape: tuple[int, int, int], cfg: MeshConfig, report: Any
+    model: torch.nn.Module, aabb: torch.Tensor, shape: tuple[int, int, int], cfg: MeshConfig, report: Any,
+    closed: bool = False, support: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, dict]:
     """A surface field's zero level set: -f (positive inside) on the grid over aabb (2, 3), coarse to fine
     as `extract_mesh`, marching cubes at 0. The grid's outer node layer is set outside (f > 0), so the mesh
-    is closed even where the object meets the box. Returns vertices (V, 3), faces (F, 3), info."""
+    is closed even where the object meets the box; ``closed`` also caps it on the ``support`` plane
+    (`close_solid`, no hollow fill: a signed distance has a real inside). Returns vertices (V, 3), faces (F, 3),
+    info."""
     cell = float(grid_spacing(aabb, shape).max())
     mode, _ = extraction_mode(cfg.coarse_to_fine, shape)
     sparse_ok = mode == "coarse-to-fine"
@@ -154,6 +171,8 @@ def extract_zero_set(
         for end in (0, -1):
             idx[axis] = end
             np.minimum(grid[tuple(idx)], -0.5 * cell, out=grid[tuple(idx)])
+    if closed:
+        grid, info["fill"] = close_solid(grid, 0.0, aabb, support, 0)
     info["time_grid_s"] = round(time.perf_counter() - t0, 3)
     info["iso"], info["iso_reason"] = 0.0, "the signed distance's zero level set (surface field)"
     report.info(f"signed distance grid: {info['evaluated']:,} of {math.prod(shape):,} nodes evaluated in {info['time_grid_s']:.1f} s")

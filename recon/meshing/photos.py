@@ -23,6 +23,7 @@ from recon.evaluation.views import View, load_views, render_view, target_rgb
 from recon.geometry.clean import SeenFn
 from recon.geometry.coherence import largest_piece, mesh_zbuffers, object_pixels, point_agreement, projected_coverage
 from recon.geometry.color import colors_from_field, colors_from_photos, seen_by_views
+from recon.geometry.extract import behind_views
 from recon.geometry.raster import per_camera, render_mesh
 from recon.geometry.texture import TexturedMesh, UnwrappedMesh, bake_unwrapped, unwrap_mesh
 
@@ -104,6 +105,17 @@ def see_with_views(views: Sequence[View], depths: Sequence[np.ndarray], tol: flo
         return seen_by_views(vertices, normals, depths, np.stack([v.c2w for v in views]),
                              np.asarray([v.intrinsics for v in views], np.float64), tol, device=on)
     return seen
+
+
+def hidden_from_views(views: Sequence[View], depths: Sequence[np.ndarray], opacities: Sequence[np.ndarray],
+                      region: np.ndarray, tol: float) -> Callable[[tuple[int, int, int]], np.ndarray]:
+    """``hidden`` of `extract_mesh`: the grid nodes over ``region`` (2, 3) that none of these views sees as empty
+    (`behind_views`); a pixel less than OBJECT_OPACITY opaque shows no surface (its depth is the ray's far end)."""
+    def hidden(shape: tuple[int, int, int]) -> np.ndarray:
+        shown = [np.where(o >= OBJECT_OPACITY, d, np.inf) for d, o in zip(depths, opacities, strict=True)]
+        return behind_views(region, shape, shown, np.stack([v.c2w for v in views]),
+                            np.asarray([v.intrinsics for v in views], np.float64), tol)
+    return hidden
 
 
 def inside_masks(views: Sequence[View], keep_fraction: float) -> Callable[[np.ndarray], np.ndarray]:

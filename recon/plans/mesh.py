@@ -161,6 +161,21 @@ def hollow_fill_applies(scene: Scene, cfg: MeshConfig, bounded: bool) -> tuple[b
     return True, ""
 
 
+def closes_solid(scene: Scene, cfg: MeshConfig, bounded: bool, ground: np.ndarray | None) -> tuple[bool, str]:
+    """Whether mesh.closed applies, and why: it closes an object's mesh (an object region or a box given), not the
+    whole box of an unbounded scene, which holds no object to close."""
+    if not cfg.closed:
+        return False, ""
+    choice = parse_region(cfg.region)
+    if not bounded and (choice == "all" or (choice == "auto" and scene.region is None)):
+        return False, ("closed: not done, the mesh region is the whole scene box of an unbounded scene, not an object "
+                       "(give mesh.region a box around the object to close it)")
+    base = ("filled down to the " + support_kind(ground) + " it stands on and capped flat there"
+            if ground is not None else "filled")
+    return True, (f"closed: the mesh is a watertight solid (mesh.closed), {base}, closed at the region's box; no face "
+                  f"is dropped for being unseen or outside a mask, so the parts no photo saw are guessed flat")
+
+
 SPLIT_AREA = 0.95
 """A density mesh whose largest piece holds less of its area than this is in pieces a user sees: `pieces_advice`."""
 
@@ -205,6 +220,10 @@ class MeshPlan:
     """The options the extraction runs with: mesh.* with the iso opacity and hollow fill below."""
     iso_why: str
     fill_why: str
+    closed: bool
+    """mesh.closed applies: the extraction closes the solid on its support (`support_plane`) and at the box, and
+    no face is dropped afterwards (hidden, masked, ground cut)."""
+    closed_why: str
     cell: float
     """`surface_cell`: the unit of the tolerances below (scene units)."""
     hidden_tolerance: float | None
@@ -221,7 +240,7 @@ class MeshPlan:
     max_side: int
     """The photos' longest side at training size, as the views are loaded."""
     uses_views: bool
-    """Photos are needed: to color from, for the hidden-face test, or for the masks."""
+    """Photos are needed: to color from, for the hidden-face test, for the masks or for a closed mesh's inside."""
     view_frames: list[Frame]
     """The training photos the mesh is checked (hidden faces, masks, coherence) and colored against."""
     depth_side: int | None
@@ -238,7 +257,14 @@ class MeshPlan:
         """The decisions' reasons the stage prints before it starts, in order."""
         return [line for line in (self.unbounded_why, f"mesh region: {self.region_why}",
                                   f"resolution: {self.resolution_why}", self.ground_margin_why, self.iso_why,
-                                  self.fill_why) if line]
+                                  self.fill_why, self.closed_why) if line]
+
+    @property
+    def support_plane(self) -> np.ndarray | None:
+        """The plane (4,) a closed mesh is capped on: the ground raised by the margin its faces are cut within."""
+        if self.ground is None:
+            return None
+        return np.append(self.ground[:3], self.ground[3] + self.ground_margin)
 
 
 def plan_mesh(cfg: MeshConfig, scene: Scene, meta: dict[str, Any], *, on_cpu: bool, voxel: float) -> MeshPlan:
@@ -266,12 +292,13 @@ def plan_mesh(cfg: MeshConfig, scene: Scene, meta: dict[str, Any], *, on_cpu: bo
                                          fill_cavities=cfg.fill_cavities if fill else 0)
 
     cell = surface_cell(region, shape, voxel)[0]
-    drop_hidden = cfg.drop_hidden and not zero_set
+    closed, closed_why = closes_solid(scene, cfg, bounded, ground)
+    drop_hidden = cfg.drop_hidden and not zero_set and not closed
 
     kind = "classic" if meta.get("kind") == "classic" else "fast"
     limit = (cfg.cpu_bake_views or CPU_BAKE_VIEWS[kind]) if on_cpu else (cfg.gpu_bake_views or GPU_BAKE_VIEWS)
     depth_side = (cfg.cpu_depth_side or CPU_DEPTH_SIDE[kind]) if on_cpu else None
-    uses_views = cfg.color == "photos" or drop_hidden or masked
+    uses_views = cfg.color == "photos" or drop_hidden or masked or closed
     view_frames, views_why = [], ""
     if uses_views:
         view_frames = spread_evenly(train_frames, limit)
@@ -294,6 +321,7 @@ def plan_mesh(cfg: MeshConfig, scene: Scene, meta: dict[str, Any], *, on_cpu: bo
         region=region, ground=ground, region_why=region_why,
         shape=shape, footprint=footprint, photo_footprint=photo_footprint, resolution_why=resolution_why,
         zero_set=zero_set, extraction=extraction, iso_why=iso_why, fill_why=fill_why,
+        closed=closed, closed_why=closed_why,
         cell=cell, hidden_tolerance=HIDDEN_TOL_CELLS * cell if drop_hidden else None,
         ground_margin=margin_cells * cell, ground_margin_why=margin_why, ground_layer=GROUND_LAYER_CELLS * cell,
         point_tolerance=POINT_TOL_CELLS * cell,

@@ -44,6 +44,7 @@ from recon.meshing.photos import (
     compare_in_views,
     describe_coherence,
     field_views,
+    hidden_from_views,
     inside_masks,
     mesh_depths,
     render_depths,
@@ -89,8 +90,15 @@ def run(ctx: StageContext) -> dict:
 
     t = time.perf_counter()
     region_t = torch.tensor(plan.region, dtype=torch.float32, device=device)
-    extract = extract_zero_set if plan.zero_set else extract_mesh
-    vertices, faces, extraction = extract(model, region_t, plan.shape, plan.extraction, ctx.report)
+    if plan.zero_set:
+        vertices, faces, extraction = extract_zero_set(model, region_t, plan.shape, plan.extraction, ctx.report,
+                                                       closed=plan.closed, support=plan.support_plane)
+    else:
+        hidden = hidden_from_views(views, depths, opacities, plan.region, plan.cell) if plan.closed and views else None
+        vertices, faces, extraction = extract_mesh(model, region_t, plan.shape, plan.extraction, ctx.report,
+                                                   closed=plan.closed, support=plan.support_plane, hidden=hidden,
+                                                   keep=inside_masks(views, cfg.mask_keep_fraction)
+                                                   if plan.closed and plan.masked else None)
     timings["extract_s"] = round(time.perf_counter() - t, 3)
 
     t = time.perf_counter()
@@ -100,9 +108,9 @@ def run(ctx: StageContext) -> dict:
         smooth_iters=cfg.smooth_iters,
         target_faces=cfg.target_faces or None,
         seen_fn=see_with_views(views, depths, plan.hidden_tolerance, device) if plan.hidden_tolerance is not None else None,
-        ground=plan.ground,
+        ground=None if plan.closed else plan.ground,  # a closed solid was capped there already
         ground_margin=plan.ground_margin,
-        keep_fn=inside_masks(views, cfg.mask_keep_fraction) if plan.masked else None,
+        keep_fn=inside_masks(views, cfg.mask_keep_fraction) if plan.masked and not plan.closed else None,
     )
     timings["clean_s"] = round(time.perf_counter() - t, 3)
     if len(faces) == 0:
