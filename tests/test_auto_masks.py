@@ -463,10 +463,11 @@ def _box_holds(scene: Scene, frame, mask: np.ndarray) -> float:
     return float(np.mean(leave > np.maximum(enter, 0.0)))
 
 
-def test_the_normalize_stage_masks_an_object_on_a_table_and_trains_it_bounded(tmp_path) -> None:
+def test_the_normalize_stage_masks_an_object_on_a_table_and_trains_it_bounded(tmp_path, monkeypatch) -> None:
     """Through the stage: the photos on disk, SfM-like points, no masks. normalize writes the masks and their
     contact sheet, points every frame at its mask, and the scene becomes a masked object capture; with
-    normalize.masks=off it stays unbounded and unmasked."""
+    normalize.masks=off it stays unbounded and unmasked. The scene folder is given relative to the working folder, as
+    `recon run PHOTOS --out scene` gives it; its masks are found from any other folder."""
     from PIL import Image
 
     from recon.app.progress import Reporter
@@ -489,22 +490,24 @@ def test_the_normalize_stage_masks_an_object_on_a_table_and_trains_it_bounded(tm
         out.mkdir()
         ctx = StageContext(name="normalize", folder=f"02_scene_{masks}", out=out, work=tmp_path / "work",
                            inputs={"poses": tmp_path / "01_poses"}, config=NormalizeConfig(masks=masks),
-                           run_config=load_config(None, []), source=None, scene_dir=tmp_path,
+                           run_config=load_config(None, []), source=None, scene_dir=Path(tmp_path.name),
                            report=Reporter(quiet=True))
         summary = stage.run(ctx)
         out.rename(tmp_path / ctx.folder)
         return summary, tmp_path / ctx.folder
 
+    monkeypatch.chdir(tmp_path.parent)
     summary, folder = run("auto")
+    monkeypatch.chdir(tmp_path / "photos")
     result = load_scene(folder)
     assert summary["auto_masks"] == 12 and result.capture == "object" and result.has_alpha
     assert 0.9 <= summary["auto_masks_in_hull"] <= 1.0
     assert "automatic object masks" in result.notes["masks"]
     assert (folder / "masks.png").is_file()
     for f in result.frames:
-        values = np.asarray(Image.open(f.mask_path))
+        values = np.asarray(Image.open(result.mask_file(f)))
         mask = values > 127
-        assert Path(f.mask_path).parent == folder / "masks"
+        assert result.mask_file(f).parent == folder / "masks" and not Path(f.mask_path).is_absolute()
         assert _iou(mask, truth[f.name]) > 0.85
         assert ((values > 0) & (values < 255)).any()  # soft along the outline (`matte`)
         assert _box_holds(result, f, truth[f.name]) > 0.999  # the field's box holds what the masks show

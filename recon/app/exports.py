@@ -160,7 +160,9 @@ def write_transforms(scene: Scene, frames: list[Frame], names: list[str], folder
     Splits go in nerfstudio's `train_filenames` / `val_filenames` / `test_filenames` and per frame
     (`split`, which recon reads back); the sparse points in `ply_file_path` (splatfacto's initialisation).
     """
-    doc = Scene(frames=[dataclasses.replace(f, file_path=f"images/{n}") for f, n in zip(frames, names, strict=True)],
+    masks = [scene.mask_file(f) for f in frames]  # recon's own are relative to the scene folder: written absolute
+    doc = Scene(frames=[dataclasses.replace(f, file_path=f"images/{n}", mask_path=str(m.absolute()) if m else None)
+                        for f, n, m in zip(frames, names, masks, strict=True)],
                 aabb=scene.aabb, capture=scene.capture, world_from_source=scene.world_from_source).to_json()
     for key in ("format", "version", "source_kind", "has_alpha", "notes"):
         doc.pop(key, None)

@@ -64,7 +64,8 @@ class Frame:
     OPENCV_FISHEYE (equidistant k1 k2 k3 k4). See `recon.capture.colmap.LENS_MODELS`."""
     split: str | None = None
     mask_path: str | None = None
-    """Mask image of the photo (white = object; nerfstudio's `mask_path`): pixels outside are background."""
+    """Mask image of the photo (white = object; nerfstudio's `mask_path`): pixels outside are background. Relative:
+    to the scene folder (`Scene.mask_file`)."""
     near: float | None = None
     far: float | None = None
     """near/far: the ray segment to model, as a distance along unit-length rays (`RAY_DISTANCE`)."""
@@ -137,6 +138,14 @@ class Scene:
         if path.is_absolute() or self.root is None:
             return path
         return self.root / path
+
+    def mask_file(self, frame: Frame) -> Path | None:
+        """The frame's mask, a relative path (the masks recon wrote into the scene folder) resolved as `image_path`
+        resolves photos: the scene folder works from any folder and wherever it is moved."""
+        if not frame.mask_path:
+            return None
+        path = Path(frame.mask_path)
+        return path if path.is_absolute() or self.root is None else self.root / path
 
     @property
     def source_from_world(self) -> np.ndarray:

@@ -238,8 +238,9 @@ def silhouette_iou(scene_dir: Path, masks_dir: Path) -> dict[str, Any]:
         row: dict[str, float] = {}
         if meshed:
             row = _overlap(np.isfinite(mesh_depth(vertices, faces, frame.c2w, frame.intrinsics_at(w, h), (h, w))), true)
-        if frame.mask_path and Path(frame.mask_path).is_file():  # the masks the scene trained with
-            row.update({f"masks_{k}": v for k, v in _overlap(_pinhole_mask(Path(frame.mask_path), frame, w, h), true).items()})
+        mask = scene.mask_file(frame)
+        if mask is not None and mask.is_file():  # the masks the scene trained with
+            row.update({f"masks_{k}": v for k, v in _overlap(_pinhole_mask(mask, frame, w, h), true).items()})
         rows[frame.name] = row
     if not rows:
         raise ReconError(f"No mask in {masks_dir} has the name of a photo of {scene_dir}. Give masks named like the photos.")

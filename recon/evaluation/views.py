@@ -40,7 +40,7 @@ def load_view(scene: Scene, frame: Frame, max_side: int, keep_alpha: bool) -> Vi
     image = read_image(scene.image_path(frame), max_side=max_side)
     h, w = image.shape[:2]
     if frame.mask_path:  # the mask becomes the alpha channel: what it calls background trains as background
-        image = np.concatenate([image[..., :3], read_mask(Path(frame.mask_path), (w, h))[..., None]], axis=-1)
+        image = np.concatenate([image[..., :3], read_mask(scene.mask_file(frame), (w, h))[..., None]], axis=-1)
     fl_x, fl_y, cx, cy = frame.intrinsics_at(w, h)
     image = undistort(image, fl_x, fl_y, cx, cy, frame.distortion, frame.camera_model)
     if not keep_alpha:

@@ -83,7 +83,7 @@ def _auto_masks(ctx: StageContext, source: Scene, scene: Scene, turntable: bool 
         mattes = matte_photos(scene, found.masks, progress=bar.advance)
     _write(ctx.out / MASK_FOLDER, mattes, scene)
     for frame in source.frames:
-        frame.mask_path = str(final / f"{Path(frame.file_path).stem}.png")
+        frame.mask_path = str(Path(ctx.folder) / MASK_FOLDER / f"{Path(frame.file_path).stem}.png")  # in the scene
     source.has_alpha = True
     return len(found.masks), (
         f"{found.reason}: trained and meshed as a masked object. To fix a mask, copy {final} next to {home} as "
@@ -110,13 +110,13 @@ def _masks_hull(ctx: StageContext, scene: Scene) -> np.ndarray | None:
     when the masks agree on nothing (the box stays as it is). Held-out photos score the result; they do not shape it."""
     box = np.asarray(scene.aabb, np.float64)
     search = box + np.stack([-(box[1] - box[0]), box[1] - box[0]]) * HULL_SEARCH
-    written = ctx.scene_dir / ctx.folder / MASK_FOLDER  # this run's automatic masks are still in ctx.out
+    written = Path(ctx.folder) / MASK_FOLDER  # this run's automatic masks are still in ctx.out
     objects, intrinsics, c2ws = [], [], []
     frames = scene.split("train") or scene.frames
     with ctx.report.task("fitting the box to the masks", total=len(frames)) as bar:
         for frame in frames:
             if frame.mask_path and Path(frame.mask_path).parent == written:
-                frame = replace(frame, mask_path=str(ctx.out / MASK_FOLDER / Path(frame.mask_path).name))
+                frame = replace(frame, mask_path=str((ctx.out / MASK_FOLDER / Path(frame.mask_path).name).absolute()))
             view = load_view(scene, frame, SEGMENT_SIDE, keep_alpha=True)
             obj = view.image[..., 3] >= 128
             if not obj.all():  # a mask that calls the whole photo object says nothing of where the object ends
@@ -165,4 +165,5 @@ def _write(folder: Path, masks: dict[str, np.ndarray], scene: Scene) -> None:
 # version 14: automatic masks drop what lines up with the table, give back bites whose rays meet it under the object,
 #             and trust leaves lone points out
 # version 15: automatic masks match the table only with photos that see the object move off its homography
-STAGE = Stage(name="normalize", folder="02_scene", inputs=("poses",), version=15, run=run)
+# version 16: automatic masks are recorded relative to the scene folder (were relative to the working folder)
+STAGE = Stage(name="normalize", folder="02_scene", inputs=("poses",), version=16, run=run)
