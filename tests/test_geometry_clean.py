@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from recon.geometry.clean import clean_mesh, component_areas, remove_duplicate_faces
+from recon.geometry.clean import clean_mesh, component_areas, decimate_closed, remove_duplicate_faces, split_pinched_edges
 
 AABB = np.array([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
 
@@ -126,3 +126,23 @@ def test_a_zero_area_face_marching_cubes_leaves_in_a_closed_mesh_keeps_it_closed
     assert len(mesh.faces) == 6 and mesh.is_watertight
     collapsed = _mesh(np.concatenate([v, v[:1]]), np.concatenate([faces, [[0, 5, 3]]]))  # vertex 5 merges into 0
     assert len(collapsed.faces) == 6 and collapsed.is_watertight  # the face merging collapsed is dropped
+
+
+def test_two_sheets_pinched_on_one_edge_are_parted_and_the_mesh_is_watertight_again() -> None:
+    a = trimesh.creation.box(extents=(1, 1, 1))
+    b = trimesh.creation.box(extents=(1, 1, 1))
+    b.apply_translation((1.0, 1.0, 0.0))  # touches the first cube along one edge only
+    pinched = trimesh.util.concatenate([a, b])
+    pinched.merge_vertices()  # the edge's two vertices are shared: four faces on one edge
+    assert not pinched.is_watertight
+    parted, made = split_pinched_edges(pinched)
+    assert parted.is_watertight and made >= 1 and parted.volume == pytest.approx(2.0, rel=1e-3)
+    again = parted.copy()
+    again.merge_vertices()  # a tool that merges coincident vertices does not pinch it again
+    assert again.is_watertight
+
+
+def test_a_closed_mesh_stays_watertight_through_decimation() -> None:
+    sphere = trimesh.creation.icosphere(subdivisions=5)
+    out, _, tries = decimate_closed(sphere, 2000)
+    assert out.is_watertight and tries >= 1 and len(out.faces) <= 2100

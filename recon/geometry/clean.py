@@ -133,6 +133,66 @@ def decimate(mesh: trimesh.Trimesh, target_faces: int) -> tuple[trimesh.Trimesh,
     return _mesh(pts, tris), removed
 
 
+def split_pinched_edges(mesh: trimesh.Trimesh, rounds: int = 8) -> tuple[trimesh.Trimesh, int]:
+    """Part the sheets that meet on one edge (an edge of more than two faces, where a decimation's collapse pinched two
+    sheets together): at one end of each such edge, the faces round the vertex are grouped by the ordinary edges they
+    share, and every group but the first gets its own copy of the vertex. The sheets then touch at a point and each
+    edge has two faces. Returns the mesh and how many vertex copies were made (each moved a hundredth of the way to its
+    faces' middle, so that a program that merges coincident vertices does not pinch them again)."""
+    faces, vertices, made = mesh.faces.copy(), mesh.vertices.copy(), 0
+    for _ in range(rounds):
+        edges = np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+        unique, counts = np.unique(edges, axis=0, return_counts=True)
+        pinched = unique[counts > 2]
+        if not len(pinched):
+            break
+        bad = {tuple(e) for e in pinched.tolist()}
+        for v in np.unique(pinched[:, 0]):
+            fan = np.flatnonzero((faces == v).any(axis=1))
+            parent = list(range(len(fan)))
+
+            def root(i: int) -> int:
+                while parent[i] != i:
+                    parent[i] = parent[parent[i]]
+                    i = parent[i]
+                return i
+            sides: dict[int, list[int]] = {}
+            for i, f in enumerate(faces[fan]):
+                for w in f[f != v]:
+                    sides.setdefault(int(w), []).append(i)
+            for w, around in sides.items():
+                if len(around) == 2 and (min(v, w), max(v, w)) not in bad:
+                    parent[root(around[0])] = root(around[1])
+            groups: dict[int, list[int]] = {}
+            for i in range(len(fan)):
+                groups.setdefault(root(i), []).append(i)
+            for members in list(groups.values())[1:]:
+                rows = fan[members]
+                toward = vertices[faces[rows]].reshape(-1, 3).mean(axis=0)  # a hair into its own sheet: a tool that
+                vertices = np.vstack([vertices, vertices[v] + 0.01 * (toward - vertices[v])])  # merges copies keeps it
+                faces[rows] = np.where(faces[rows] == v, len(vertices) - 1, faces[rows])
+                made += 1
+    return trimesh.Trimesh(vertices, faces, process=False), made
+
+
+CLOSED_DECIMATION_TARGETS = (1.0, 0.97, 1.03)
+"""`decimate_closed` tries these multiples of the face target in turn (another target collapses other edges)."""
+
+
+def decimate_closed(mesh: trimesh.Trimesh, target_faces: int) -> tuple[trimesh.Trimesh, int, int]:
+    """`decimate` for a watertight mesh that must stay so: an edge collapse can pinch two sheets onto one edge (four
+    faces on it), which `split_pinched_edges` parts again; should the mesh still not be watertight, the next target of
+    CLOSED_DECIMATION_TARGETS is tried, and when none works the mesh is kept as it is. Returns the mesh, the duplicate
+    faces removed and the tries made (0: kept undecimated)."""
+    for i, factor in enumerate(CLOSED_DECIMATION_TARGETS, start=1):
+        out, folded = decimate(mesh, max(4, int(target_faces * factor)))
+        if not out.is_watertight:
+            out, _ = split_pinched_edges(out)
+        if out.is_watertight:
+            return out, folded, i
+    return mesh, 0, 0
+
+
 def _bbox(mesh: trimesh.Trimesh) -> list[list[float]]:
     if len(mesh.vertices) == 0:
         return []
@@ -150,9 +210,10 @@ def clean_mesh(
     ground: np.ndarray | None = None,
     ground_margin: float = 0.0,
     keep_fn: Callable[[np.ndarray], np.ndarray] | None = None,
+    closed: bool = False,
 ) -> tuple[np.ndarray, np.ndarray, dict]:
     """Crop to the scene box, remove floaters and (with ``seen_fn``) hidden faces, optionally
-    Taubin-smooth and decimate.
+    Taubin-smooth and decimate. ``closed``: a watertight mesh stays watertight (`decimate_closed`).
 
     vertices: (V, 3) scene units; faces: (F, 3) vertex indices; aabb: (2, 3) scene box.
     Floater rule: a face-connected component is kept when its area is at least
@@ -187,8 +248,13 @@ def clean_mesh(
         smoothing.filter_taubin(mesh, lamb=0.5, nu=0.53, iterations=smooth_iters)
         report["smoothed"] = {"iterations": int(smooth_iters)}
     if target_faces is not None and len(mesh.faces):
-        mesh, folded = decimate(mesh, target_faces)
+        if closed and mesh.is_watertight:
+            mesh, folded, tries = decimate_closed(mesh, target_faces)
+        else:
+            (mesh, folded), tries = decimate(mesh, target_faces), None
         report["decimated"] = {**_counts(mesh), "target_faces": int(target_faces), "duplicate_faces_removed": folded}
+        if tries is not None:
+            report["decimated"]["closed_tries"] = tries
     if (seen_fn is not None or target_faces is not None) and len(mesh.faces):
         # what the photos saw of the walls inside the shell, and slivers decimation cut off, are left as crumbs
         mesh, report["crumbs"] = remove_small_components(mesh, min_component_fraction)

@@ -111,6 +111,7 @@ def run(ctx: StageContext) -> dict:
         ground=None if plan.closed else plan.ground,  # a closed solid was capped there already
         ground_margin=plan.ground_margin,
         keep_fn=inside_masks(views, cfg.mask_keep_fraction) if plan.masked and not plan.closed else None,
+        closed=plan.closed,
     )
     timings["clean_s"] = round(time.perf_counter() - t, 3)
     if len(faces) == 0:
@@ -224,6 +225,10 @@ def _say_cleaning(ctx: StageContext, clean: dict, plan: MeshPlan, n_views: int) 
     if clean.get("crumbs", {}).get("removed"):
         ctx.report.info(f"crumbs: {clean['crumbs']['removed']} of {clean['crumbs']['components']} pieces left by the "
                         "hidden faces' removal or the decimation removed, by the same rule")
+    if clean.get("decimated", {}).get("closed_tries") == 0:
+        ctx.report.warn(f"decimation: every try pinched the closed mesh (two sheets on one edge), so it is kept at "
+                        f"{clean['decimated']['faces']:,} faces, watertight (mesh.target_faces={clean['decimated']['target_faces']:,} "
+                        "not reached)")
 
 
 def _start_unwrap(vertices: np.ndarray, faces: np.ndarray, target_faces: int, side: int) -> Future[UnwrappedMesh]:
