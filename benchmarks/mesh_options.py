@@ -59,7 +59,8 @@ def mesh_row(scene: Path, gt: Path | None) -> dict[str, Any]:
         row.update({"fscore_1pct": acc["fscore@0.01"], "fscore_05pct": acc["fscore@0.005"],
                     "precision_05pct": acc["precision@0.005"], "recall_05pct": acc["recall@0.005"],
                     "precision_1pct": acc["precision@0.01"], "recall_1pct": acc["recall@0.01"],
-                    "chamfer_rel": acc["chamfer_l1_rel"], "normal_consistency": acc.get("normal_consistency")})
+                    "chamfer_rel": acc["chamfer_l1_rel"], "normal_consistency": acc.get("normal_consistency"),
+                    "volume_ratio": acc.get("volume_ratio")})
     return row
 
 

@@ -228,7 +228,8 @@ def test_stage_writes_reloadable_meshes_report_and_previews_and_gt_comparison_is
     result = compare_to_gt(scene_dir, gt_path)
     assert result["alignment"]["method"].startswith("exact")
     assert result["fscore@0.01"] > 0.99 and result["chamfer_l1_rel"] < 3e-3
-    assert "F-score" in format_comparison(result)
+    assert result["volume_ratio"] == pytest.approx(1.0, abs=0.02)  # both closed: the solids compare too
+    assert "F-score" in format_comparison(result) and "of the true solid's" in format_comparison(result)
 
     # the same scene as if from SfM: the GT lives in another frame, the true poses say which
     true_from_source = similarity(3.0, trimesh.transformations.rotation_matrix(-1.1, [1.0, 0.0, 0.4])[:3, :3], np.array([5.0, 1.0, -2.0]))

@@ -117,7 +117,8 @@ def compare_to_gt(
 
     thresholds: fractions of the GT bounding-box diagonal (1 % and 0.5 % by default). Returns a flat,
     JSON-ready dict (see `format_comparison`): the alignment used and its residual, ``chamfer_l1``
-    (GT units), ``chamfer_l1_rel`` (÷ GT diagonal), ``precision@τ``, ``recall@τ``, ``fscore@τ``.
+    (GT units), ``chamfer_l1_rel`` (÷ GT diagonal), ``precision@τ``, ``recall@τ``, ``fscore@τ``, and when both
+    meshes are watertight ``volume_ratio`` (ours ÷ the truth's).
     """
     scene_dir, gt_mesh = Path(scene_dir), Path(gt_mesh)
     vertices, faces, report = our_mesh_in_scene_frame(scene_dir)
@@ -159,6 +160,9 @@ def compare_to_gt(
         "thresholds": list(thresholds),
         **metrics,
     }
+    ours = trimesh.Trimesh(v_gt, faces)
+    if ours.is_watertight and gt.is_watertight and abs(gt.volume) > 0:  # two solids: how much of the true one
+        out["volume_ratio"] = float(ours.volume / gt.volume)
     if scene.source_kind not in KNOWN_POSES:  # SfM: also the shape's accuracy free of SfM's scale error
         out["icp_refined"] = icp_refined(v_gt, faces, gt, thresholds, n_samples)
     return out
@@ -200,6 +204,8 @@ def format_comparison(result: dict[str, Any]) -> str:
             f"@{tau:.1%} of diagonal: precision {result[f'precision@{tau:g}']:.3f}  recall {result[f'recall@{tau:g}']:.3f}  "
             f"F-score {result[f'fscore@{tau:g}']:.3f}"
         )
+    if "volume_ratio" in result:
+        lines.append(f"volume: {result['volume_ratio']:.3f} of the true solid's (both meshes closed)")
     icp = result.get("icp_refined")
     if icp:
         lines.append(
