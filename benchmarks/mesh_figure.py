@@ -5,7 +5,8 @@
         --out docs/painted_hull_start.png
 
 Each scene's panel is its mesh stage's preview (`04_mesh/preview_front.png`, or `--view side`), as the stage drew
-it, or with `--view below` its mesh.ply drawn from under the table; the photo is cropped to a square around its middle (`--crop`: its side, a fraction of the shorter side). It measures nothing: the numbers are in the records.
+it, or with `--view below` its mesh.ply drawn from under the table; the photo is cropped to a square around its
+middle (`--crop`: its side, a fraction of the shorter side). It measures nothing: the numbers are in the records.
 """
 from __future__ import annotations
 

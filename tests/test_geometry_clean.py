@@ -5,7 +5,13 @@ import numpy as np
 import pytest
 import trimesh
 
-from recon.geometry.clean import clean_mesh, component_areas, decimate_closed, remove_duplicate_faces, split_pinched_edges
+from recon.geometry.clean import (
+    clean_mesh,
+    component_areas,
+    decimate_closed,
+    remove_duplicate_faces,
+    split_pinched_edges,
+)
 
 AABB = np.array([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
 

@@ -386,9 +386,10 @@ def behind_views(aabb: np.ndarray | torch.Tensor, shape: tuple[int, int, int], d
     """(Rx, Ry, Rz) bool: the grid nodes that no view sees as empty space. Each view's depth map (H, W) holds the
     distance from its camera to the surface it shows (inf where it shows none); a node in its frame nearer than the
     farthest depth of the 3×3 pixels around it, less ``tol``, is seen empty. A node is behind the views when at
-    least ``framed_share`` of them (and two) frame it and none sees it empty: the inside of what the photos show, shape from their depths
-    alone (space carving), so holes in the field's shell do not leave it hollow. Tested on every s-th node (about
-    ``nodes`` along the longest axis), shrunk by one such step, so what it marks lies inside the surface."""
+    least ``framed_share`` of them (and two) frame it and none sees it empty: the inside of what the photos show,
+    shaped by their depths alone (space carving), so holes in the field's shell do not leave it hollow. Tested on
+    every s-th node (about ``nodes`` along the longest axis), shrunk by one such step, so what it marks lies inside
+    the surface."""
     box, res = _as_aabb(aabb), _as_resolution(shape)
     step = max(1, math.ceil(max(res) / nodes))
     axes = [np.linspace(box[0, a], box[1, a], res[a])[::step] for a in range(3)]

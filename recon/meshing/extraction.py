@@ -65,7 +65,8 @@ def _counting(density_fn: Callable[[torch.Tensor], torch.Tensor], bar: Any) -> C
 
 def extract_mesh(
     model: torch.nn.Module, aabb: torch.Tensor, shape: tuple[int, int, int], cfg: MeshConfig, report: Any,
-    closed: bool = False, support: np.ndarray | None = None, hidden: Callable[[tuple[int, int, int]], np.ndarray] | None = None,
+    closed: bool = False, support: np.ndarray | None = None,
+    hidden: Callable[[tuple[int, int, int]], np.ndarray] | None = None,
     keep: Callable[[np.ndarray], np.ndarray] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, dict]:
     """Density grid over aabb (2, 3) (on aabb's device) → iso-level → marching cubes.
@@ -75,8 +76,8 @@ def extract_mesh(
     unless ``cfg.iso > 0`` gives it; ``cfg.iso_opacity`` 0 is ISO_OPACITY; ``cfg.fill_cavities`` fills the hollow
     (`fill_enclosed`); ``closed`` makes it a solid capped on the ``support`` plane and closed at the box
     (`close_solid`), its inside also what ``hidden(shape)`` marks (`behind_views`), its material only where
-    ``keep(points)`` agrees (the masks). Returns vertices (V, 3) float32 and faces (F, 3) int64 in the scene frame, and info (grid,
-    iso and its reason, counts, timings).
+    ``keep(points)`` agrees (the masks). Returns vertices (V, 3) float32 and faces (F, 3) int64 in the scene frame,
+    and info (grid, iso and its reason, counts, timings).
     """
     cell = float(grid_spacing(aabb, shape).max())
     iso_cell, iso_cell_why = surface_cell(aabb, shape, field_voxel(model))

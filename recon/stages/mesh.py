@@ -226,8 +226,9 @@ def _say_cleaning(ctx: StageContext, clean: dict, plan: MeshPlan, n_views: int) 
         ctx.report.info(f"crumbs: {clean['crumbs']['removed']} of {clean['crumbs']['components']} pieces left by the "
                         "hidden faces' removal or the decimation removed, by the same rule")
     if clean.get("decimated", {}).get("closed_tries") == 0:
+        decimated = clean["decimated"]
         ctx.report.warn(f"decimation: every try pinched the closed mesh (two sheets on one edge), so it is kept at "
-                        f"{clean['decimated']['faces']:,} faces, watertight (mesh.target_faces={clean['decimated']['target_faces']:,} "
+                        f"{decimated['faces']:,} faces, watertight (mesh.target_faces={decimated['target_faces']:,} "
                         "not reached)")
 
 
