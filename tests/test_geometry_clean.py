@@ -146,6 +146,12 @@ def test_two_sheets_pinched_on_one_edge_are_parted_and_the_mesh_is_watertight_ag
     again = parted.copy()
     again.merge_vertices()  # a tool that merges coincident vertices does not pinch it again
     assert again.is_watertight
+    fine_a, fine_b = a.subdivide().subdivide(), b.subdivide().subdivide()  # the pinch is a chain of four edges
+    chained = trimesh.util.concatenate([fine_a, fine_b])
+    chained.merge_vertices()
+    assert not chained.is_watertight
+    parted, made = split_pinched_edges(chained)
+    assert parted.is_watertight and made >= 4 and parted.volume == pytest.approx(2.0, rel=1e-3)
 
 
 def test_a_closed_mesh_stays_watertight_through_decimation() -> None:

@@ -133,46 +133,60 @@ def decimate(mesh: trimesh.Trimesh, target_faces: int) -> tuple[trimesh.Trimesh,
     return _mesh(pts, tris), removed
 
 
-def split_pinched_edges(mesh: trimesh.Trimesh, rounds: int = 8) -> tuple[trimesh.Trimesh, int]:
+def split_pinched_edges(mesh: trimesh.Trimesh, limit: int = 1000) -> tuple[trimesh.Trimesh, int]:
     """Part the sheets that meet on one edge (an edge of more than two faces, where a decimation's collapse pinched two
-    sheets together): at one end of each such edge, the faces round the vertex are grouped by the ordinary edges they
-    share, and every group but the first gets its own copy of the vertex. The sheets then touch at a point and each
-    edge has two faces. Returns the mesh and how many vertex copies were made (each moved a hundredth of the way to its
+    sheets together): at the end of a chain of such edges, the faces round the vertex are grouped by the ordinary edges
+    they share, and every group but the first gets its own copy of the vertex; then the edges are counted again (a
+    split frees the next vertex of the chain), at most ``limit`` vertices. The sheets then touch at a point and each edge has
+    two faces. Returns the mesh and how many vertex copies were made (each moved a hundredth of the way to its
     faces' middle, so that a program that merges coincident vertices does not pinch them again)."""
-    faces, vertices, made = mesh.faces.copy(), mesh.vertices.copy(), 0
-    for _ in range(rounds):
-        edges = np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+    def pinched_edges(tris: np.ndarray) -> np.ndarray:
+        edges = np.sort(tris[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
         unique, counts = np.unique(edges, axis=0, return_counts=True)
-        pinched = unique[counts > 2]
+        return unique[counts > 2]
+
+    pinched = pinched_edges(mesh.faces)
+    if not len(pinched):
+        return mesh, 0
+    # every face on an edge of a pinched edge's vertex is a face round that vertex: work on those alone
+    rows = np.flatnonzero(np.isin(mesh.faces, np.unique(pinched)).any(axis=1))
+    faces, vertices, made = mesh.faces[rows].copy(), mesh.vertices.copy(), 0
+    for _ in range(limit):
+        pinched = pinched_edges(faces) if made else pinched
         if not len(pinched):
             break
         bad = {tuple(e) for e in pinched.tolist()}
-        for v in np.unique(pinched[:, 0]):
-            fan = np.flatnonzero((faces == v).any(axis=1))
-            parent = list(range(len(fan)))
+        ends, times = np.unique(pinched, return_counts=True)
+        v = int(ends[np.argmin(times)])  # the end of a chain of pinched edges: round it one cut leaves a sheet whole
+        fan = np.flatnonzero((faces == v).any(axis=1))
+        parent = list(range(len(fan)))
 
-            def root(i: int) -> int:
-                while parent[i] != i:
-                    parent[i] = parent[parent[i]]
-                    i = parent[i]
-                return i
-            sides: dict[int, list[int]] = {}
-            for i, f in enumerate(faces[fan]):
-                for w in f[f != v]:
-                    sides.setdefault(int(w), []).append(i)
-            for w, around in sides.items():
-                if len(around) == 2 and (min(v, w), max(v, w)) not in bad:
-                    parent[root(around[0])] = root(around[1])
-            groups: dict[int, list[int]] = {}
-            for i in range(len(fan)):
-                groups.setdefault(root(i), []).append(i)
-            for members in list(groups.values())[1:]:
-                rows = fan[members]
-                toward = vertices[faces[rows]].reshape(-1, 3).mean(axis=0)  # a hair into its own sheet: a tool that
-                vertices = np.vstack([vertices, vertices[v] + 0.01 * (toward - vertices[v])])  # merges copies keeps it
-                faces[rows] = np.where(faces[rows] == v, len(vertices) - 1, faces[rows])
-                made += 1
-    return trimesh.Trimesh(vertices, faces, process=False), made
+        def root(i: int) -> int:
+            while parent[i] != i:
+                parent[i] = parent[parent[i]]
+                i = parent[i]
+            return i
+        sides: dict[int, list[int]] = {}
+        for i, f in enumerate(faces[fan]):
+            for w in f[f != v]:
+                sides.setdefault(int(w), []).append(i)
+        for w, around in sides.items():
+            if len(around) == 2 and (min(v, w), max(v, w)) not in bad:
+                parent[root(around[0])] = root(around[1])
+        groups: dict[int, list[int]] = {}
+        for i in range(len(fan)):
+            groups.setdefault(root(i), []).append(i)
+        if len(groups) < 2:
+            break  # a pinch this cannot part: the caller sees the mesh is still not watertight
+        for members in list(groups.values())[1:]:
+            group = fan[members]
+            toward = vertices[faces[group]].reshape(-1, 3).mean(axis=0)  # a hair into its own sheet: a tool that
+            vertices = np.vstack([vertices, vertices[v] + 0.01 * (toward - vertices[v])])  # merges copies keeps it
+            faces[group] = np.where(faces[group] == v, len(vertices) - 1, faces[group])
+            made += 1
+    out = mesh.faces.copy()
+    out[rows] = faces
+    return trimesh.Trimesh(vertices, out, process=False), made
 
 
 CLOSED_DECIMATION_TARGETS = (1.0, 0.97, 1.03)
