@@ -137,8 +137,8 @@ def split_pinched_edges(mesh: trimesh.Trimesh, limit: int = 1000) -> tuple[trime
     """Part the sheets that meet on one edge (an edge of more than two faces, where a decimation's collapse pinched two
     sheets together): at the end of a chain of such edges, the faces round the vertex are grouped by the ordinary edges
     they share, and every group but the first gets its own copy of the vertex; then the edges are counted again (a
-    split frees the next vertex of the chain), at most ``limit`` vertices. The sheets then touch at a point and each edge has
-    two faces. Returns the mesh and how many vertex copies were made (each moved a hundredth of the way to its
+    split frees the next vertex of the chain), at most ``limit`` vertices. The sheets then touch at a point and each
+    edge has two faces. Returns the mesh and how many vertex copies were made (each moved a hundredth of the way to its
     faces' middle, so that a program that merges coincident vertices does not pinch them again)."""
     def pinched_edges(tris: np.ndarray) -> np.ndarray:
         edges = np.sort(tris[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
@@ -159,23 +159,15 @@ def split_pinched_edges(mesh: trimesh.Trimesh, limit: int = 1000) -> tuple[trime
         ends, times = np.unique(pinched, return_counts=True)
         v = int(ends[np.argmin(times)])  # the end of a chain of pinched edges: round it one cut leaves a sheet whole
         fan = np.flatnonzero((faces == v).any(axis=1))
-        parent = list(range(len(fan)))
-
-        def root(i: int) -> int:
-            while parent[i] != i:
-                parent[i] = parent[parent[i]]
-                i = parent[i]
-            return i
         sides: dict[int, list[int]] = {}
         for i, f in enumerate(faces[fan]):
             for w in f[f != v]:
                 sides.setdefault(int(w), []).append(i)
-        for w, around in sides.items():
-            if len(around) == 2 and (min(v, w), max(v, w)) not in bad:
-                parent[root(around[0])] = root(around[1])
+        links = [around for w, around in sides.items() if len(around) == 2 and (min(v, w), max(v, w)) not in bad]
+        labels = graph.connected_component_labels(np.asarray(links, np.int64).reshape(-1, 2), node_count=len(fan))
         groups: dict[int, list[int]] = {}
-        for i in range(len(fan)):
-            groups.setdefault(root(i), []).append(i)
+        for i, label in enumerate(labels):
+            groups.setdefault(int(label), []).append(i)
         if len(groups) < 2:
             break  # a pinch this cannot part: the caller sees the mesh is still not watertight
         for members in list(groups.values())[1:]:

@@ -148,7 +148,7 @@ def extract_zero_set(
     """A surface field's zero level set: -f (positive inside) on the grid over aabb (2, 3), coarse to fine
     as `extract_mesh`, marching cubes at 0. The grid's outer node layer is set outside (f > 0), so the mesh
     is closed even where the object meets the box; ``closed`` also caps it on the ``support`` plane
-    (`close_solid`, no hollow fill: a signed distance has a real inside). Returns vertices (V, 3), faces (F, 3),
+    (`close_solid`: no views' inside and no ball, a signed distance has a real inside). Returns vertices (V, 3), faces (F, 3),
     info."""
     cell = float(grid_spacing(aabb, shape).max())
     mode, _ = extraction_mode(cfg.coarse_to_fine, shape)

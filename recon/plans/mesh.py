@@ -147,6 +147,12 @@ def capture_ground_margin(cfg: MeshConfig, masked: bool, ground: np.ndarray | No
                  f"empty, so what touches it is the object's (mesh.ground_margin_cells)")
 
 
+def _whole_unbounded_box(scene: Scene, cfg: MeshConfig, bounded: bool) -> bool:
+    """The mesh region is the whole box of an unbounded scene (no object region, none given): no object's inside."""
+    choice = parse_region(cfg.region)
+    return not bounded and (choice == "all" or (choice == "auto" and scene.region is None))
+
+
 def hollow_fill_applies(scene: Scene, cfg: MeshConfig, bounded: bool) -> tuple[bool, str]:
     """Whether mesh.fill_cavities applies, and why: it fills what an object's material encloses, so it runs when
     the mesh region is an object's (an object capture, normalize's object region, or a box given) and not on the
@@ -154,8 +160,7 @@ def hollow_fill_applies(scene: Scene, cfg: MeshConfig, bounded: bool) -> tuple[b
     there joins background into the mesh and splits its largest piece)."""
     if not cfg.fill_cavities:
         return False, ""
-    choice = parse_region(cfg.region)
-    if not bounded and (choice == "all" or (choice == "auto" and scene.region is None)):
+    if _whole_unbounded_box(scene, cfg, bounded):
         return False, ("hollow fill off: the mesh region is the whole scene box of an unbounded scene, not an object "
                        "(give mesh.region a box around the object to fill its hollow)")
     return True, ""
@@ -166,8 +171,7 @@ def closes_solid(scene: Scene, cfg: MeshConfig, bounded: bool, ground: np.ndarra
     whole box of an unbounded scene, which holds no object to close."""
     if not cfg.closed:
         return False, ""
-    choice = parse_region(cfg.region)
-    if not bounded and (choice == "all" or (choice == "auto" and scene.region is None)):
+    if _whole_unbounded_box(scene, cfg, bounded):
         return False, ("closed: not done, the mesh region is the whole scene box of an unbounded scene, not an object "
                        "(give mesh.region a box around the object to close it)")
     base = ("filled down to the " + support_kind(ground) + " it stands on and capped flat there"
