@@ -16,7 +16,7 @@ from typer.testing import CliRunner
 
 from recon.app.cli import app
 from recon.app.exports import scene_in_frame
-from recon.capture.images import read_image, undistort
+from recon.capture.images import read_image, read_mask, save_image, undistort
 from recon.capture.scene import Frame, detect_source, import_colmap, import_transforms, load_scene
 from tests.assets_scene import tiny_scene
 
@@ -84,6 +84,46 @@ def test_exported_images_are_the_undistorted_photos(scene_dir: Path, tmp_path: P
     moved = np.abs(expected - original).max(axis=-1) > 0.1  # where undistortion visibly moved the picture
     assert moved.sum() > 100
     assert np.abs(exported - original)[moved].mean() > 3 * np.abs(exported - expected)[moved].mean()
+
+
+def test_exported_masks_are_undistorted_like_the_photos_and_inside_the_export(scene_dir: Path, tmp_path: Path) -> None:
+    # masks as recon's automatic ones are: half the photos' size, relative to the scene folder; a visible distortion
+    scene_copy = tmp_path / "scene"
+    shutil.copytree(scene_dir, scene_copy)
+    doc = json.loads((scene_copy / "02_scene" / "scene.json").read_text())
+    (scene_copy / "02_scene" / "masks").mkdir()
+    for f in [doc, *doc["frames"]]:
+        if "k1" in f:
+            f["k1"] = -0.08
+    for f in doc["frames"]:
+        w, h = doc.get("w", f.get("w")), doc.get("h", f.get("h"))
+        mask = np.zeros((h // 2, w // 2), np.float32)
+        mask[2: h // 2 - 2, 2: w // 5] = 1.0  # a band along the left border, where the lens moves the picture most
+        name = Path(f["file_path"]).stem + ".png"
+        save_image(scene_copy / "02_scene" / "masks" / name, mask)
+        f["mask_path"] = f"02_scene/masks/{name}"
+    (scene_copy / "02_scene" / "scene.json").write_text(json.dumps(doc))
+    out = tmp_path / "ns"
+    export(scene_copy, "nerfstudio", out)
+    shutil.rmtree(scene_copy)  # the export stands alone
+    written = json.loads((out / "transforms.json").read_text())
+    paths = [f["mask_path"] for f in written["frames"]]
+    assert all(p.startswith("masks/") and p.endswith(".png") and (out / p).is_file() for p in paths)
+    assert len(set(paths)) == len(paths)
+    reimported = import_transforms(out)
+    frame = reimported.frames[0]
+    assert reimported.mask_file(frame) == out / paths[0]
+    w, h = frame.w, frame.h
+    before = np.zeros((h, w), np.float32)
+    before[4: h - 4, 4: 2 * (w // 5)] = 1.0  # the band at the photo's size
+    scene = load_scene(scene_dir / "02_scene")
+    lens = scene.frames[0]
+    expected = undistort(before, lens.fl_x, lens.fl_y, lens.cx, lens.cy, (-0.08, *lens.distortion[1:]))
+    got = read_mask(out / paths[0], (w, h))
+    assert got.shape == (h, w)
+    moved = np.abs(expected - before) > 0.5
+    assert moved.sum() > 50  # the lens moved the band's edges
+    assert np.abs(got - expected)[moved].mean() < 0.2 < np.abs(got - before)[moved].mean()
 
 
 @pytest.mark.parametrize("frame", ["normalized", "source"])

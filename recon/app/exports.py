@@ -4,7 +4,8 @@ Cameras come from the scene folder in the frame asked for: `normalized` (recon's
 the field and the default mesh live in) or `source` (the SfM or imported poses as they were, read from
 `01_poses/`). Images are written undistorted beside the poses (copied byte for byte when they have no
 distortion and no EXIF rotation), so every export describes plain pinhole cameras — what Gaussian-splatting
-trainers and nerfstudio's `splatfacto` expect. (The mesh exporter is `recon.geometry.export`.)
+trainers and nerfstudio's `splatfacto` expect; a nerfstudio export's masks are undistorted with them into `masks/`.
+(The mesh exporter is `recon.geometry.export`.)
 
 An export folder follows recon's ownership rule (`recon.runner.ownership`): it is new, empty or an earlier export
 (its `.recon-export.json` lists the files recon wrote); the export is built in a staging folder inside it and
@@ -88,7 +89,8 @@ def export_scene(scene_dir: Path, fmt: ExportFormat, out: Path, frame: ExportFra
             names = export_names(scene)
             frames = write_undistorted_images(scene, tmp / "images", names, report)
             if fmt == "nerfstudio":
-                written = [write_transforms(scene, frames, names, tmp, frame)]
+                masks = write_undistorted_masks(scene, tmp, names)
+                written = [write_transforms(scene, frames, names, masks, tmp, frame)]
             else:
                 written = write_colmap_text(scene, frames, names, tmp / "sparse" / "0")
         owned.record = {"format": fmt, "frame": frame, "scene": str(scene_dir.resolve()), "cameras": len(scene.frames)}
@@ -154,14 +156,47 @@ def write_undistorted_images(scene: Scene, folder: Path, names: list[str], repor
     return out_frames
 
 
-def write_transforms(scene: Scene, frames: list[Frame], names: list[str], folder: Path, frame_name: str) -> Path:
+MASKS_FOLDER = "masks"
+
+
+def write_undistorted_masks(scene: Scene, folder: Path, names: list[str]) -> list[str | None]:
+    """Each camera's mask as an 8-bit PNG (white = object) at its photo's size, undistorted like the photo, under
+    `folder/masks/`; returns each mask's path relative to `folder` (None for a camera without one).
+
+    The masks the scene points to live in the photos' lens space (and recon's automatic ones at their own size, in
+    the scene folder): the exported images are undistorted, so the masks must be too, and inside the export.
+    """
+    from recon.capture.images import read_mask, save_image, undistort
+
+    written: list[str | None] = []
+    for frame, name in zip(scene.frames, names, strict=True):
+        src = scene.mask_file(frame)
+        if src is None:
+            written.append(None)
+            continue
+        try:
+            mask = read_mask(src, (frame.w, frame.h))
+        except ReconError as exc:
+            raise ReconError(f"{exc} The scene's camera {frame.name} names this mask; restore it and export again.") from None
+        mask = undistort(mask, frame.fl_x, frame.fl_y, frame.cx, frame.cy, frame.distortion, frame.camera_model)
+        rel = Path(MASKS_FOLDER) / Path(name).with_suffix(".png")
+        if rel.as_posix() in written:  # photos a.jpg and a.png side by side
+            rel = Path(MASKS_FOLDER) / f"{name}.png"
+        (folder / rel).parent.mkdir(parents=True, exist_ok=True)
+        save_image(folder / rel, mask)
+        written.append(rel.as_posix())
+    return written
+
+
+def write_transforms(scene: Scene, frames: list[Frame], names: list[str], masks: list[str | None], folder: Path,
+                     frame_name: str) -> Path:
     """transforms.json (nerfstudio / instant-ngp: OpenGL c2w, OPENCV intrinsics with zero distortion) + sparse points.
 
     Splits go in nerfstudio's `train_filenames` / `val_filenames` / `test_filenames` and per frame
-    (`split`, which recon reads back); the sparse points in `ply_file_path` (splatfacto's initialisation).
+    (`split`, which recon reads back); masks in `mask_path`, relative like the images; the sparse points in
+    `ply_file_path` (splatfacto's initialisation).
     """
-    masks = [scene.mask_file(f) for f in frames]  # recon's own are relative to the scene folder: written absolute
-    doc = Scene(frames=[dataclasses.replace(f, file_path=f"images/{n}", mask_path=str(m.absolute()) if m else None)
+    doc = Scene(frames=[dataclasses.replace(f, file_path=f"images/{n}", mask_path=m)
                         for f, n, m in zip(frames, names, masks, strict=True)],
                 aabb=scene.aabb, capture=scene.capture, world_from_source=scene.world_from_source).to_json()
     for key in ("format", "version", "source_kind", "has_alpha", "notes"):
