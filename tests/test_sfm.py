@@ -25,10 +25,12 @@ from recon.camera import opencv_w2c_to_opengl_c2w
 from recon.capture.colmap import camera_params_to_intrinsics
 from recon.capture.sfm import (
     ATTEMPTS,
+    GLOBAL_BA_TUNING,
     SMALL_CAPTURE,
     THOROUGH,
     SfmOptions,
     SfmResult,
+    _map,
     attempts_for,
     choose_camera,
     pose_outliers,
@@ -512,3 +514,22 @@ def test_sfm_bar_goes_back_on_a_retry_instead_of_counting_past_three() -> None:
     assert positions[len(calls)] == 0.0  # the retry's extraction starts the bar again
     assert positions[:len(calls)] == sorted(positions[:len(calls)])
     assert sfm_bar_position("something else", 0.0) is None
+
+
+def test_mapping_sets_recons_global_adjustment_tuning_and_refuses_an_unknown_option(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import pycolmap
+
+    seen = []
+    monkeypatch.setattr(pycolmap, "incremental_mapping", lambda db, images, out, options: seen.append(options) or {})
+    assert _map(tmp_path / "database.db", tmp_path, tmp_path / "models", SfmOptions(), 3, relaxed=False) is None
+    assert seen[-1].ba_global_frames_ratio == pytest.approx(GLOBAL_BA_TUNING["ba_global_frames_ratio"]) != 1.1
+    assert seen[-1].mapper.ba_global_ignore_redundant_points3D is True
+    assert seen[-1].mapper.abs_pose_min_num_inliers == 30
+    _map(tmp_path / "database.db", tmp_path, tmp_path / "models", SfmOptions(), 3, relaxed=True,
+         tuning={"mapper.ba_local_num_images": 9, "ba_global_frames_ratio": 1.1})
+    assert seen[-1].mapper.ba_local_num_images == 9 and seen[-1].ba_global_frames_ratio == pytest.approx(1.1)
+    assert seen[-1].mapper.abs_pose_min_num_inliers == 15  # relaxed still applies
+    with pytest.raises(ValueError, match="no 'mapper.no_such_option'"):
+        _map(tmp_path / "database.db", tmp_path, tmp_path / "models", SfmOptions(), 3, relaxed=False,
+             tuning={"mapper.no_such_option": 1})

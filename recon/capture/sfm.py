@@ -23,7 +23,7 @@ import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 from PIL import Image
@@ -352,13 +352,38 @@ def _too_few_message(num_registered: int, num_images: int, need: int) -> str:
     )
 
 
+GLOBAL_BA_TUNING: dict[str, Any] = {
+    "ba_global_frames_ratio": 1.4, "ba_global_points_ratio": 1.4, "mapper.ba_global_ignore_redundant_points3D": True,
+}
+"""COLMAP's mapping options recon sets: a global bundle adjustment once the model has grown by 40% in frames or points
+since the last (COLMAP's default is 10%), over the points that are not redundant. Why: on two cores the global
+adjustments are most of the mapping of a long capture (a phone clip's ~150 frames), while the local adjustment after
+each registration and recon's final robust adjustment of the whole model (`refine_robust`) keep the poses as accurate
+(`benchmarks/sfm_mapping.py`)."""
+
+
+def _set_option(options: Any, name: str, value: Any) -> bool:
+    """Set a COLMAP option by dotted name ("mapper.ba_local_num_images"); False when there is no such option."""
+    *path, key = name.split(".")
+    target = options
+    for part in path:
+        target = getattr(target, part, None)
+    if target is None or not hasattr(target, key):
+        return False
+    setattr(target, key, value)
+    return True
+
+
 def _map(
-    database: Path, image_dir: Path, models_dir: Path, options: SfmOptions, needed: int, relaxed: bool
+    database: Path, image_dir: Path, models_dir: Path, options: SfmOptions, needed: int, relaxed: bool,
+    tuning: dict[str, Any] | None = None,
 ) -> pycolmap.Reconstruction | None:
     """Incremental mapping; returns the model with the most registered images, or None.
 
     relaxed lowers the inliers needed to start a model (100 -> 50) and to register an image
     (30 -> 15): still RANSAC-verified, but reachable with a few hundred features per image.
+    tuning: COLMAP's mapping options set after recon's (`GLOBAL_BA_TUNING`), by dotted name, for
+    `benchmarks/sfm_mapping.py` to weigh them on a capture's own database.
     """
     import pycolmap
 
@@ -369,6 +394,11 @@ def _map(
     if relaxed:
         mapping.mapper.init_min_num_inliers = 50
         mapping.mapper.abs_pose_min_num_inliers = 15
+    for name, value in GLOBAL_BA_TUNING.items():
+        _set_option(mapping, name, value)  # an older pycolmap without one keeps its default
+    for name, value in (tuning or {}).items():
+        if not _set_option(mapping, name, value):
+            raise ValueError(f"COLMAP's mapping options have no {name!r}")
     shutil.rmtree(models_dir, ignore_errors=True)
     models_dir.mkdir(parents=True)
     models = pycolmap.incremental_mapping(database, image_dir, models_dir, options=mapping)
