@@ -1,17 +1,20 @@
 """What COLMAP's mapping options cost and buy on a capture's own matches: the poses stage's database mapped again with
 each variant, one after the other, timed, and the cameras scored against reference poses.
 
-    python benchmarks/sfm_mapping.py --scene video=SCENE_A --truth video=~/.cache/recon/datasets/tabletop_video@1/transforms.json \
+    python benchmarks/sfm_mapping.py \
+        --scene video=SCENE_A --truth video=~/.cache/recon/datasets/tabletop_video@1/transforms.json \
         --scene fox=SCENE_B --truth fox=../shared/data/fox/transforms.json \
-        --variant colmap=ba_global_frames_ratio=1.1,ba_global_points_ratio=1.1,mapper.ba_global_ignore_redundant_points3D=false \
+        --variant colmap=ba_global_frames_ratio=1.1,ba_global_points_ratio=1.1,\
+mapper.ba_global_ignore_redundant_points3D=false \
         --variant recon= --refine --name sfm_mapping_refined
 
 A SCENE is a recon scene folder whose poses stage ran (`01_poses/colmap/` keeps its database and photos). Each variant
 maps a copy of that database (`recon.capture.sfm._map` with the variant's options set after recon's, its first pass:
-no relaxed retry; with --refine then the stage's final robust adjustment, `refine_robust`) and the rows hold the seconds, the photos registered, points, mean
-reprojection error and, with --truth, the cameras against the reference poses after a robust similarity fit: median
-and worst centre error over the rig's radius, median rotation error. Writes benchmarks/results/<name>.json after each
-run. It measures; it asserts nothing.
+no relaxed retry; with --refine then the stage's final robust adjustment, `refine_robust`); --global-mapping adds
+COLMAP's global mapping (GLOMAP) in its defaults as one more row. The rows hold the seconds, the photos registered,
+points, mean reprojection error and, with --truth, the cameras against the reference poses after a robust similarity
+fit: median and worst centre error over the rig's radius, median rotation error. Writes
+benchmarks/results/<name>.json after each run. It measures; it asserts nothing.
 """
 from __future__ import annotations
 
@@ -70,7 +73,19 @@ def pose_scores(frames: dict[str, dict], truth: dict[str, np.ndarray]) -> dict[s
             "centre_error_max": float(err.max()), "rotation_error_median_deg": float(np.median(ang))}
 
 
-def map_once(scene: Path, tuning: dict[str, Any], refine: bool) -> dict[str, Any]:
+def map_global(database: Path, image_dir: Path, models_dir: Path, seed: int) -> Any:
+    """COLMAP's global mapping (GLOMAP: rotation averaging, then all positions at once), its defaults; the model
+    with the most registered photos, or None."""
+    import pycolmap
+
+    options = pycolmap.GlobalPipelineOptions()
+    options.random_seed = seed
+    models_dir.mkdir(parents=True)
+    models = pycolmap.global_mapping(database, image_dir, models_dir, options=options)
+    return max(models.values(), key=lambda r: r.num_reg_images(), default=None)
+
+
+def map_once(scene: Path, tuning: dict[str, Any], refine: bool, mapper: str = "incremental") -> dict[str, Any]:
     from recon.capture.colmap import reconstruction_frames
     from recon.capture.sfm import SfmOptions, _map, refine_robust
 
@@ -80,8 +95,11 @@ def map_once(scene: Path, tuning: dict[str, Any], refine: bool) -> dict[str, Any
         database = Path(work) / "database.db"
         shutil.copyfile(colmap / "database.db", database)
         start = time.perf_counter()
-        rec = _map(database, colmap / "images", Path(work) / "models", SfmOptions(), needed=2, relaxed=False,
-                   tuning=tuning)
+        if mapper == "global":
+            rec = map_global(database, colmap / "images", Path(work) / "models", SfmOptions().seed)
+        else:
+            rec = _map(database, colmap / "images", Path(work) / "models", SfmOptions(), needed=2, relaxed=False,
+                       tuning=tuning)
         if refine and rec is not None:
             rec, _ = refine_robust(rec)
         seconds = time.perf_counter() - start
@@ -97,8 +115,10 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--scene", action="append", required=True, help="NAME=SCENE folder (its poses stage ran)")
     parser.add_argument("--truth", action="append", default=[], help="NAME=transforms.json of reference poses")
-    parser.add_argument("--variant", action="append", required=True, help="NAME=key=value,key=value ('' = defaults)")
+    parser.add_argument("--variant", action="append", default=[], help="NAME=key=value,key=value ('' = defaults)")
     parser.add_argument("--refine", action="store_true", help="then the poses stage's final robust adjustment")
+    parser.add_argument("--global-mapping", action="store_true",
+                        help="one more row a scene: COLMAP's global mapping (GLOMAP) with its defaults")
     parser.add_argument("--name", required=True)
     args = parser.parse_args()
     scenes = dict(item.split("=", 1) for item in args.scene)
@@ -107,7 +127,9 @@ def main() -> None:
         key, path = item.split("=", 1)
         doc = json.loads(Path(path).expanduser().read_text())
         truths[key] = {Path(f["file_path"]).stem: np.asarray(f["transform_matrix"], float) for f in doc["frames"]}
-    variants = [parse_variant(v) for v in args.variant]
+    variants = [("incremental", *parse_variant(v)) for v in args.variant]
+    if args.global_mapping:
+        variants.append(("global", "glomap", {}))
     out = REPO / "benchmarks" / "results" / f"{args.name}.json"
     import pycolmap
 
@@ -115,15 +137,16 @@ def main() -> None:
 
     where, rows = provenance(), []
     for scene_name, folder in scenes.items():
-        for variant, tuning in variants:
+        for mapper, variant, tuning in variants:
             load = [round(x, 2) for x in os.getloadavg()]
             date = datetime.now(timezone.utc).isoformat(timespec="seconds")
-            row = map_once(Path(folder).expanduser(), tuning, args.refine)
+            row = map_once(Path(folder).expanduser(), tuning, args.refine, mapper)
             frames = row.pop("frames", None)
             if frames and scene_name in truths:
                 row.update(pose_scores(frames, truths[scene_name]))
-            row = {"scene": scene_name, "variant": variant, "options": tuning, "refined": args.refine, **row,
-                   "pycolmap": pycolmap.__version__, **where, "date": date, "load_average_start": load}
+            row = {"scene": scene_name, "mapper": mapper, "variant": variant, "options": tuning,
+                   "refined": args.refine, **row, "pycolmap": pycolmap.__version__, **where, "date": date,
+                   "load_average_start": load}
             rows.append(row)
             print(json.dumps(row), flush=True)
             out.write_text(json.dumps(rows, indent=1) + "\n")
