@@ -265,3 +265,22 @@ def test_photos_cut_out_by_masks_are_measured_whole_and_no_measurement_is_not_ca
     own_alpha = [replace(f, mask_path=None) for f in frames]
     on, why = choose_appearance(TrainConfig(), "fast", views, own_alpha)
     assert not on and "could not be measured" in why and "constant" not in why
+
+
+def test_a_field_without_appearance_is_also_scored_with_each_photos_colours_fitted_on_its_left_half() -> None:
+    """`psnr_fitted`: a photo taken at another exposure scores low against the neutral render and high once its
+    colour transform is fitted on the left half; an appearance field's score is that already, so it has none."""
+    from recon.camera import look_at
+    from recon.evaluation.views import View, evaluate, render_view
+    from tests.analytic_sphere import AABB, BACKGROUND, SoftSphere
+
+    sphere, box = SoftSphere(amplitude=400.0, width=0.02, samples=96), torch.tensor(AABB, dtype=torch.float32)
+    pose = look_at(np.array([0.4, -2.6, 1.2]), np.zeros(3))
+    render = render_view(sphere, View("r", np.zeros((48, 48, 3), np.uint8), pose, (60.0, 60.0, 24.0, 24.0), 0, 0),
+                         box, BACKGROUND)["rgb"]
+    darker = np.clip(np.round(render * np.array([0.6, 0.7, 0.8]) * 255), 0, 255).astype(np.uint8)
+    view = View("d", darker, pose, (60.0, 60.0, 24.0, 24.0), 0.0, 0.0)
+    scored = evaluate(sphere, [view], box, BACKGROUND)
+    assert scored["psnr"] < 25.0 and scored["psnr_fitted"] > scored["psnr"] + 15.0
+    assert scored["views"][0]["psnr_fitted"] == pytest.approx(scored["psnr_fitted"])
+    assert "psnr_fitted" not in evaluate(sphere, [view], box, BACKGROUND, appearance=True)

@@ -184,7 +184,9 @@ def evaluate(model: torch.nn.Module, views: list[View], aabb: torch.Tensor | Non
     its left half and the right half is scored (recon.nerf.evaluate.HELD_OUT_PROTOCOL); the full-image
     PSNR of the neutral render is kept as ``psnr_neutral``. align_poses=True (a field trained with refined poses):
     each photo's pose is first fitted on its left half (recon.nerf.evaluate.POSE_PROTOCOL); the right half is
-    scored, and the PSNR at the given pose over the whole photo is kept as ``psnr_given_pose``.
+    scored, and the PSNR at the given pose over the whole photo is kept as ``psnr_given_pose``. A field without
+    either is also scored as an appearance field is, ``psnr_fitted``: its PSNR then says how much of a lower score
+    is the photos' changing exposure, and compares with a run that modelled it.
     """
     from dataclasses import replace
 
@@ -208,13 +210,16 @@ def evaluate(model: torch.nn.Module, views: list[View], aabb: torch.Tensor | Non
             view = replace(view, c2w=c2w.cpu().double().numpy())
         out = render_view(model, view, aabb, background, autocast=autocast, rays_side=k)
         pred, ref = out["rgb"], gt
+        alpha = view.image.shape[-1] == 4  # only the field's part of a photo with alpha goes through the transform
         if appearance:
             extra["psnr_neutral"] = round(float(psnr(torch.from_numpy(pred), torch.from_numpy(gt))), 3)
-            alpha = view.image.shape[-1] == 4
             pred, ref = held_out_right_half(pred, gt, out["opacity"] if alpha else None, background if alpha else None)
         elif align_poses:
             _, right = left_right_split(view.hw[1])
             pred, ref = np.ascontiguousarray(pred[:, right]), np.ascontiguousarray(gt[:, right])
+        else:
+            fitted = held_out_right_half(pred, gt, out["opacity"] if alpha else None, background if alpha else None)
+            extra["psnr_fitted"] = round(float(psnr(*(torch.from_numpy(x) for x in fitted))), 3)
         p = float(psnr(torch.from_numpy(pred), torch.from_numpy(ref)))
         s = float(ssim(torch.from_numpy(pred), torch.from_numpy(ref)))
         per_view.append({"view": view.name, "psnr": round(p, 3), "ssim": round(s, 4), **extra})
@@ -227,6 +232,8 @@ def evaluate(model: torch.nn.Module, views: list[View], aabb: torch.Tensor | Non
     }
     if appearance and per_view:
         result["psnr_neutral"] = float(np.mean([v["psnr_neutral"] for v in per_view]))
+    if not (appearance or align_poses) and per_view:
+        result["psnr_fitted"] = float(np.mean([v["psnr_fitted"] for v in per_view]))
     if align_poses and per_view:
         result["psnr_given_pose"] = float(np.mean([v["psnr_given_pose"] for v in per_view]))
     if keep:
