@@ -174,7 +174,7 @@ def target_rgb(view: View, background: np.ndarray) -> np.ndarray:
 
 def evaluate(model: torch.nn.Module, views: list[View], aabb: torch.Tensor | None, background: np.ndarray, keep: bool = False,
              autocast: torch.dtype | None = None, appearance: bool = False, align_poses: bool = False,
-             focal: float | None = None) -> dict[str, Any]:
+             focal: float | None = None, fitted: bool = True) -> dict[str, Any]:
     """PSNR/SSIM of renders against photos; with keep=True also the renders themselves.
 
     focal: the training photos' focal length in pixels (`training_focal`); a view coarser than them is rendered
@@ -186,7 +186,8 @@ def evaluate(model: torch.nn.Module, views: list[View], aabb: torch.Tensor | Non
     each photo's pose is first fitted on its left half (recon.nerf.evaluate.POSE_PROTOCOL); the right half is
     scored, and the PSNR at the given pose over the whole photo is kept as ``psnr_given_pose``. A field without
     either is also scored as an appearance field is, ``psnr_fitted``: its PSNR then says how much of a lower score
-    is the photos' changing exposure, and compares with a run that modelled it.
+    is the photos' changing exposure, and compares with a run that modelled it (fitted=False skips it, for the
+    evaluations during training, which read the PSNR and SSIM alone).
     """
     from dataclasses import replace
 
@@ -217,9 +218,9 @@ def evaluate(model: torch.nn.Module, views: list[View], aabb: torch.Tensor | Non
         elif align_poses:
             _, right = left_right_split(view.hw[1])
             pred, ref = np.ascontiguousarray(pred[:, right]), np.ascontiguousarray(gt[:, right])
-        else:
-            fitted = held_out_right_half(pred, gt, out["opacity"] if alpha else None, background if alpha else None)
-            extra["psnr_fitted"] = round(float(psnr(*(torch.from_numpy(x) for x in fitted))), 3)
+        elif fitted:
+            halves = held_out_right_half(pred, gt, out["opacity"] if alpha else None, background if alpha else None)
+            extra["psnr_fitted"] = round(float(psnr(*(torch.from_numpy(x) for x in halves))), 3)
         p = float(psnr(torch.from_numpy(pred), torch.from_numpy(ref)))
         s = float(ssim(torch.from_numpy(pred), torch.from_numpy(ref)))
         per_view.append({"view": view.name, "psnr": round(p, 3), "ssim": round(s, 4), **extra})
@@ -232,7 +233,7 @@ def evaluate(model: torch.nn.Module, views: list[View], aabb: torch.Tensor | Non
     }
     if appearance and per_view:
         result["psnr_neutral"] = float(np.mean([v["psnr_neutral"] for v in per_view]))
-    if not (appearance or align_poses) and per_view:
+    if fitted and not (appearance or align_poses) and per_view:
         result["psnr_fitted"] = float(np.mean([v["psnr_fitted"] for v in per_view]))
     if align_poses and per_view:
         result["psnr_given_pose"] = float(np.mean([v["psnr_given_pose"] for v in per_view]))

@@ -228,7 +228,7 @@ def _fit(ctx: StageContext, cfg: TrainConfig, plan: TrainPlan, setup: TrainSetup
 
     def eval_fn(m: torch.nn.Module, step: int) -> dict[str, float]:
         t = time.perf_counter()
-        r = evaluate(m, eval_views, aabb, background, autocast=plan.autocast, appearance=plan.appearance,
+        r = evaluate(m, eval_views, aabb, background, autocast=plan.autocast, appearance=plan.appearance, fitted=False,
                      align_poses=plan.pose_refine, focal=focal)
         eval_time[0] += time.perf_counter() - t
         return {"psnr": r["psnr"], "ssim": r["ssim"]}
