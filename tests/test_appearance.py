@@ -175,6 +175,24 @@ def test_auto_is_off_for_equal_exposures_and_on_for_known_gains() -> None:
         decide("sometimes", equal)
 
 
+def test_a_slow_drift_neighbours_read_as_constant_is_measured_by_far_partners() -> None:
+    """A phone's exposure that follows the light round an object: the log gain drifts with the camera's azimuth
+    (0.15 cos azimuth), so neighbouring photos differ by less than the threshold while photos further apart differ
+    by more. Matched with their nearest cameras alone the photos look constant; with the far partners facing the same
+    way the switch turns on and the fitted gains are the true ones."""
+    meta = json.loads((SAMPLE / "transforms.json").read_text())
+    images = [np.asarray(Image.open(SAMPLE / f["file_path"]).convert("RGB")) for f in meta["frames"]]
+    c2w = np.array([f["transform_matrix"] for f in meta["frames"]], dtype=np.float64)
+    log_gain = 0.15 * np.cos(np.arctan2(c2w[:, 1, 3], c2w[:, 0, 3]))
+    drifted = [np.clip(np.round(im * np.exp(g)), 0, 255).astype(np.uint8) for im, g in zip(images, log_gain)]
+    near_only = exposure_spread(drifted, c2w, far=0)
+    assert not decide("auto", near_only)[0] and near_only.changed >= 10  # the gains are there, the pairs hide them
+    spread = exposure_spread(drifted, c2w)
+    on, why = decide("auto", spread)
+    assert on and spread.pairs > near_only.pairs and spread.pairs_changed > 3 * near_only.pairs_changed
+    np.testing.assert_allclose(spread.log_gain, np.repeat((log_gain - np.median(log_gain))[:, None], 3, 1), atol=0.03)
+
+
 # ----------------------------------------------------------------------------- held-out protocol
 def test_held_out_transform_never_sees_the_scored_half() -> None:
     rng = np.random.default_rng(0)

@@ -333,4 +333,5 @@ def _metrics(scene: Scene, device: torch.device, plan: TrainPlan, setup: TrainSe
 # version 6: the surface model starts from the photos' visual hull when they have silhouettes
 # version 7: close-ups train at the other photos' pixel footprint (train.photo_footprint)
 # version 8: train.appearance=auto measures the exposure of photos cut out by masks on the whole photo
-STAGE = Stage(name="train", folder="03_field", inputs=("normalize",), version=8, run=run)
+# version 9: train.appearance=auto also matches photos further apart, where a slow exposure drift shows
+STAGE = Stage(name="train", folder="03_field", inputs=("normalize",), version=9, run=run)
