@@ -186,7 +186,9 @@ def test_a_slow_drift_neighbours_read_as_constant_is_measured_by_far_partners() 
     log_gain = 0.15 * np.cos(np.arctan2(c2w[:, 1, 3], c2w[:, 0, 3]))
     drifted = [np.clip(np.round(im * np.exp(g)), 0, 255).astype(np.uint8) for im, g in zip(images, log_gain)]
     near_only = exposure_spread(drifted, c2w, far=0)
-    assert not decide("auto", near_only)[0] and near_only.changed >= 10  # the gains are there, the pairs hide them
+    on_near, why_near = decide("auto", near_only)
+    assert not on_near and near_only.changed >= 10  # the gains are there, the pairs hide them
+    assert "its 4 nearest and up to 0 further off" in why_near
     spread = exposure_spread(drifted, c2w)
     on, why = decide("auto", spread)
     assert on and spread.pairs > near_only.pairs and spread.pairs_changed > 3 * near_only.pairs_changed

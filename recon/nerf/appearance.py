@@ -190,7 +190,8 @@ class ExposureSpread:
 
     log_gain: (n, 3) per-photo, per-channel log gain relative to the median photo (0: like most photos);
     per_photo: (n,) its largest |log gain|; pairs: how many pairs (neighbours and far partners) had enough matches;
-    pairs_changed: how many of those differ by more than ``threshold`` themselves.
+    pairs_changed: how many of those differ by more than ``threshold`` themselves; neighbours, far: how the pairs
+    were chosen (each photo's nearest cameras, and its partners further off).
     """
 
     log_gain: np.ndarray
@@ -199,6 +200,8 @@ class ExposureSpread:
     changed: int
     pairs: int
     pairs_changed: int = 0
+    neighbours: int = NEIGHBOURS
+    far: int = FAR_PARTNERS
 
     @property
     def n(self) -> int:
@@ -271,7 +274,7 @@ def exposure_spread(images: Sequence[np.ndarray], c2w: np.ndarray, neighbours: i
     """
     n = len(images)
     if n < 3:
-        return ExposureSpread(np.zeros((n, 3)), np.zeros(n), threshold, 0, 0)
+        return ExposureSpread(np.zeros((n, 3)), np.zeros(n), threshold, 0, 0, 0, neighbours, far)
     from recon.nerf.device import cpu_threads
 
     with ThreadPoolExecutor(max_workers=cpu_threads()) as pool:  # OpenCV's SIFT lets go of the GIL
@@ -296,20 +299,21 @@ def exposure_spread(images: Sequence[np.ndarray], c2w: np.ndarray, neighbours: i
             rows.append(row)
             rhs.append(r)
     if not rows:
-        return ExposureSpread(np.zeros((n, 3)), np.zeros(n), threshold, 0, 0)
+        return ExposureSpread(np.zeros((n, 3)), np.zeros(n), threshold, 0, 0, 0, neighbours, far)
     # gauge: the mean log gain is 0 (lstsq's minimum-norm solution also pins unconnected photos at 0)
     g = np.linalg.lstsq(np.vstack([*rows, np.ones(n)]), np.vstack([*rhs, np.zeros(3)]), rcond=None)[0]
     g -= np.median(g, axis=0)
     per_photo = np.abs(g).max(axis=1)
     pairs_changed = int((np.abs(np.vstack(rhs)).max(axis=1) > threshold).sum())
-    return ExposureSpread(g, per_photo, threshold, int((per_photo > threshold).sum()), len(rows), pairs_changed)
+    return ExposureSpread(g, per_photo, threshold, int((per_photo > threshold).sum()), len(rows), pairs_changed,
+                          neighbours, far)
 
 
 def decide(setting: str, spread: ExposureSpread) -> tuple[bool, str]:
     """(use the appearance model?, why) for train.appearance = auto | on | off."""
     stat = (f"{spread.changed} of {spread.n} photos have an exposure or colour balance more than {spread.threshold:.2f} "
             f"(log gain) from the median photo's, measured on the colours of SIFT matches in {spread.pairs} pairs of "
-            f"photos, each with its {NEIGHBOURS} nearest and up to {FAR_PARTNERS} further off facing its way (largest "
+            f"photos, each with its {spread.neighbours} nearest and up to {spread.far} further off facing its way (largest "
             f"{spread.largest:.3f}, median {spread.median:.3f}); {spread.pairs_changed} of those pairs differ by more "
             f"than {spread.threshold:.2f} themselves")
     if setting == "on":
