@@ -4,13 +4,13 @@ photos matched to their nearest cameras only, and to those plus far partners fac
     python benchmarks/exposure_pairs.py --capture fox --capture lego-half --capture sample \
         --capture tabletop_realistic --capture tabletop_painted --capture tabletop_video --name exposure_pairs
 
-Each capture's photos are read at the fast preset's 400-px long side with their reference or true poses (no SfM), as
-the train stage reads its training photos: the fox's 67, the Lego's 100 training views, the sample's 40, a generated
-capture's photos (``recon bench`` renders and caches them) and every fourth frame of the generated clip (its exposure
-follows the light slowly). A row holds the pairs matched, the pairs that differ by more than the threshold themselves,
-the photos whose fitted gain does, the largest fitted gain, what `auto` decides, the seconds, and for a generated
-capture the fitted log gains against the true ones (median and largest error, the photos the truth calls changed).
-Writes benchmarks/results/<name>.json after each row.
+Each capture's photos are read at the fast preset's 400-px long side (recon.capture.images.read_image) with their
+reference or true poses (no SfM), as the train stage reads its training photos: the fox's 67, the Lego's 100 training
+views, the sample's 40, a generated capture's photos (``recon bench`` renders and caches them) and every fourth frame
+of the generated clip (its exposure follows the light slowly). A row holds the pairs matched, the pairs that differ by
+more than the threshold themselves, the photos whose fitted gain does, the largest fitted gain, what `auto` decides,
+the seconds, and for a generated capture the fitted log gains against the true ones (median and largest error, the
+photos the truth calls changed). Writes benchmarks/results/<name>.json after each row.
 It measures; it asserts nothing.
 """
 from __future__ import annotations
@@ -34,24 +34,10 @@ VIDEO_STRIDE = 4
 
 
 def _read(path: Path) -> np.ndarray:
-    """RGB (or RGBA where the file has alpha) uint8, its long side MAX_SIDE (area-averaged)."""
-    import cv2
+    """The photo as the train stage reads it: float RGB(A) in [0, 1], EXIF-oriented, its long side at most MAX_SIDE."""
+    from recon.capture.images import read_image
 
-    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if image is None:
-        raise SystemExit(f"{path}: not a readable image")
-    image = cv2.cvtColor(image, cv2.COLOR_BGRA2RGBA if image.shape[2] == 4 else cv2.COLOR_BGR2RGB)
-    return _shrink(image)
-
-
-def _shrink(image: np.ndarray) -> np.ndarray:
-    import cv2
-
-    scale = MAX_SIDE / max(image.shape[:2])
-    if scale >= 1:
-        return image
-    size = (round(image.shape[1] * scale), round(image.shape[0] * scale))
-    return cv2.resize(image, size, interpolation=cv2.INTER_AREA)
+    return read_image(path, MAX_SIDE)
 
 
 def _transforms(folder: Path, name: str = "transforms.json") -> tuple[list[Path], np.ndarray]:
@@ -96,6 +82,8 @@ def _video_frames(clip: Path, capture: Path) -> tuple[list[np.ndarray], np.ndarr
     list every frame in order; the clip keeps one white balance)."""
     import cv2
 
+    from recon.capture.images import resize
+
     doc = json.loads((capture / "transforms.json").read_text())
     poses = np.array([f["transform_matrix"] for f in doc["frames"]], dtype=np.float64)
     reader = cv2.VideoCapture(str(clip))
@@ -106,7 +94,10 @@ def _video_frames(clip: Path, capture: Path) -> tuple[list[np.ndarray], np.ndarr
         if not ok:
             break
         if index % VIDEO_STRIDE == 0 and index < len(poses):
-            images.append(_shrink(cv2.cvtColor(frame, cv2.COLOR_BGR2RGB)))
+            h, w = frame.shape[:2]
+            scale = min(1.0, MAX_SIDE / max(h, w))
+            rgb = cv2.cvtColor(frame, cv2.COLOR_BGR2RGB).astype(np.float32) / 255.0
+            images.append(resize(rgb, (round(w * scale), round(h * scale))))
             keep.append(index)
         index += 1
     reader.release()
