@@ -117,9 +117,9 @@ class FastConfig:
     shrink_margin: float = 0.05
     """Margin added around the occupied box before shrinking, as a fraction of the scene box's extent."""
     kernels: Literal["auto", "torch", "triton"] = "auto"
-    """On CUDA: "triton" composites the packed samples and reads the dense grids in fused Triton kernels
-    (`recon.nerf.kernels`, where triton imports), "torch" in torch; "auto" stays on torch until a GPU check measures
-    the kernels faster (docs/gpu.md). A CPU always runs the torch code (and the C marcher)."""
+    """On CUDA: "triton" marches, composites and reads the grids in fused Triton kernels (`recon.nerf.kernels`,
+    where triton imports), "torch" in torch; "auto" takes the kernels where a GPU check measured them faster
+    (`recon.nerf.kernels.MEASURED_FASTER`, docs/gpu.md). A CPU always runs the torch code (and the C marcher)."""
 
 
 @dataclass
