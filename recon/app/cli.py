@@ -138,6 +138,28 @@ def _summary_table(outcomes: list[Any], scene_dir: Path) -> None:
     out_console.print(table)
 
 
+def mesh_deliverables(scene_dir: Path) -> list[str]:
+    """Lines that tell the user where the mesh stage's files are and how to open them (only those that exist): a run
+    ends with a table of stages, which says what was made but not where."""
+    from recon.stages.mesh import MESH_STEM, STAGE, TEXTURED_STEM
+
+    folder = scene_dir / STAGE.folder
+    mesh = folder / f"{MESH_STEM}.glb"
+    if not mesh.is_file():
+        return []
+    lines = [f"your mesh: {mesh} (colours per vertex; in Blender: File → Import → glTF 2.0)"]
+    textured = folder / f"{TEXTURED_STEM}.glb"
+    if textured.is_file():
+        lines.append(f"           {textured} (its colours in a texture image, for tools that show no vertex colours)")
+    others = [f"{MESH_STEM}.{ext}" for ext in ("obj", "ply") if (folder / f"{MESH_STEM}.{ext}").is_file()]
+    if others:
+        lines.append(f"           {' and '.join(others)} beside them, for other tools")
+    previews = [p.name for p in (folder / "preview_front.png", folder / "preview_side.png") if p.is_file()]
+    look = f"{', '.join(previews)} in {folder}, or " if previews else ""
+    lines.append(f"look at it: {look}`recon view {scene_dir}` (a viewer in your browser, on this machine only)")
+    return lines
+
+
 def _run(
     scene_dir: Path,
     source: Path | None,
@@ -178,6 +200,9 @@ def _run(
         )
         if not quiet:
             _summary_table(outcomes, scene_dir)
+            if any(o.name == "mesh" for o in outcomes):
+                for line in mesh_deliverables(scene_dir):
+                    out_console.print(escape(line), soft_wrap=True)
 
 
 @app.command()

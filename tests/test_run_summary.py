@@ -1,0 +1,67 @@
+"""The end of `recon run`: where the mesh's files are and how to open them."""
+from __future__ import annotations
+
+from pathlib import Path
+
+from typer.testing import CliRunner
+
+from recon.app import cli
+from recon.app.cli import app, mesh_deliverables
+from recon.runner.pipeline import StageOutcome
+
+
+def _mesh_folder(scene: Path, names: list[str]) -> Path:
+    folder = scene / "04_mesh"
+    folder.mkdir(parents=True)
+    for name in names:
+        (folder / name).write_bytes(b"x")
+    return folder
+
+
+def test_deliverables_name_the_files_that_exist(tmp_path: Path) -> None:
+    scene = tmp_path / "scene"
+    folder = _mesh_folder(scene, ["mesh.glb", "mesh_textured.glb", "mesh.obj", "mesh.ply", "preview_front.png"])
+    text = "\n".join(mesh_deliverables(scene))
+    assert str(folder / "mesh.glb") in text and "Blender" in text
+    assert str(folder / "mesh_textured.glb") in text
+    assert "mesh.obj and mesh.ply" in text
+    assert "preview_front.png" in text and "preview_side.png" not in text
+    assert f"recon view {scene}" in text
+
+
+def test_deliverables_leave_out_a_textured_copy_that_failed(tmp_path: Path) -> None:
+    scene = tmp_path / "scene"
+    _mesh_folder(scene, ["mesh.glb", "mesh.ply"])
+    text = "\n".join(mesh_deliverables(scene))
+    assert "mesh_textured" not in text and "mesh.obj" not in text
+    assert "mesh.ply beside them" in text
+
+
+def test_no_mesh_no_deliverables(tmp_path: Path) -> None:
+    assert mesh_deliverables(tmp_path / "scene") == []
+    _mesh_folder(tmp_path / "other", ["mesh.ply"])  # a stage cut short before its glb
+    assert mesh_deliverables(tmp_path / "other") == []
+
+
+class _Pipeline:
+    """Stands in for the stages: reports what a run did without running anything."""
+
+    def __init__(self, names: list[str]) -> None:
+        self.names = names
+
+    def run(self, scene_dir: Path, *args, **kwargs) -> list[StageOutcome]:
+        return [StageOutcome(name, "cached", 0.0, {"headline": f"{name} done"}) for name in self.names]
+
+
+def test_a_run_ends_with_where_its_mesh_is_unless_it_stopped_before_the_mesh(tmp_path: Path, monkeypatch) -> None:
+    scene = tmp_path / "scene"
+    _mesh_folder(scene, ["mesh.glb", "mesh.obj", "mesh.ply"])  # a mesh from an earlier run
+    runner = CliRunner()
+    monkeypatch.setattr(cli, "_pipeline", lambda: _Pipeline(["poses", "normalize", "train", "mesh"]))
+    result = runner.invoke(app, ["mesh", str(scene)])
+    assert result.exit_code == 0, result.output
+    assert "your mesh:" in result.output and "mesh.glb" in result.output
+    monkeypatch.setattr(cli, "_pipeline", lambda: _Pipeline(["poses"]))  # --until poses: the old mesh is not this run's
+    result = runner.invoke(app, ["poses", str(scene)])
+    assert result.exit_code == 0, result.output
+    assert "your mesh" not in result.output
