@@ -211,3 +211,32 @@ def test_cached_run_is_fast(tmp_path: Path, source: Path) -> None:
     t0 = time.perf_counter()
     _run(scene, source)
     assert time.perf_counter() - t0 < 1.0
+
+
+def test_every_run_appends_what_it_showed_to_the_scene_log(tmp_path: Path, source: Path, monkeypatch) -> None:
+    scene = tmp_path / "scene"
+    _run(scene, source)  # quiet: the terminal shows nothing, the log keeps it all the same
+    monkeypatch.setenv("RECON_TEST_FAIL_B", "1")
+    with pytest.raises(RuntimeError, match="boom"):
+        _run(scene, source, _Config(b=_B(factor=3)))
+    lines = (scene / "logs" / "run.log").read_text().splitlines()
+    text = "\n".join(lines)
+    assert text.count("run: photos") == 2  # appended, the first run's lines kept
+    assert "a done in" in text and "b done in" in text and "finished" in text
+    assert "a: up to date (cached)" in text  # the second run reused a
+    assert lines[-1].endswith("stopped: RuntimeError: boom")  # how the second run ended
+    assert all(line[:4].isdigit() for line in lines)  # each line dated
+
+
+def test_a_log_keeps_plain_text_of_marked_up_lines(tmp_path: Path) -> None:
+    report = Reporter(quiet=True)
+    report.log_to(tmp_path / "logs" / "run.log")
+    report.info("[bold]preset[/] fast", markup=True)
+    report.info("a path [with brackets]")
+    report.warn("careful")
+    report.log_to(None)
+    report.info("after the log closed")
+    text = (tmp_path / "logs" / "run.log").read_text()
+    assert "preset fast" in text and "[bold]" not in text
+    assert "a path [with brackets]" in text and "warning: careful" in text
+    assert "after the log closed" not in text

@@ -6,8 +6,10 @@ choose how much is shown.
 from __future__ import annotations
 
 import contextlib
+import time
 from collections.abc import Callable, Iterator
-from typing import Any
+from pathlib import Path
+from typing import IO, Any
 
 from rich.console import Console
 from rich.markup import escape
@@ -22,6 +24,7 @@ from rich.progress import (
     TimeRemainingColumn,
 )
 from rich.table import Column
+from rich.text import Text
 
 
 class Task:
@@ -57,22 +60,43 @@ class Reporter:
         self.warnings: list[str] = []
         self.observers: list[Callable[[str, dict], None]] = []
         """Live observers (the viewer): `observe(event, data)` calls each, on the stage's thread."""
+        self._log: IO[str] | None = None
+
+    def log_to(self, path: Path | None) -> None:
+        """Also append every line this reporter shows (not its bars), quiet or not, to `path`: a run's reasons and
+        results outlive the terminal. None closes the log."""
+        if self._log is not None:
+            self._log.close()
+            self._log = None
+        if path is not None:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            self._log = open(path, "a", encoding="utf-8", buffering=1)  # a line at a time: an interrupted run keeps it
+
+    def log(self, text: str) -> None:
+        """A plain line for the log only (nothing when no log is open)."""
+        if self._log is not None:
+            stamp = time.strftime("%Y-%m-%d %H:%M:%S")
+            self._log.writelines(f"{stamp}  {line}\n" for line in text.splitlines() or [""])
 
     def stage_start(self, name: str) -> None:
         self.current_stage = name
+        self.log(f"== {name} ==")
         if not self.quiet:
             self.console.rule(f"[bold]{name}")
 
     def stage_cached(self, name: str, summary: dict) -> None:
+        self.log(f"{name}: up to date (cached) — {format_summary(summary)}")
         if not self.quiet:
             self.console.print(f"[green]✓[/] {name}: up to date (cached) — {escape(format_summary(summary))}")
 
     def stage_done(self, name: str, wall_s: float, summary: dict) -> None:
+        self.log(f"{name} done in {format_seconds(wall_s)} — {format_summary(summary)}")
         if not self.quiet:
             self.console.print(f"[green]✓[/] {name} done in {format_seconds(wall_s)} — {escape(format_summary(summary))}")
 
     def info(self, message: str, markup: bool = False) -> None:
         """Print a line; plain text unless `markup` (paths may hold '[' and ']', which must print as they are)."""
+        self.log(Text.from_markup(message).plain if markup else message)
         if not self.quiet:
             self.console.print(message, markup=markup)
 
@@ -82,6 +106,7 @@ class Reporter:
 
     def warn(self, message: str) -> None:
         self.warnings.append(message)
+        self.log(f"warning: {message}")
         self.console.print(f"[yellow]warning:[/] {escape(message)}")
 
     @contextlib.contextmanager

@@ -199,6 +199,8 @@ def scene_lock(scene_dir: Path) -> Iterator[None]:
 
 
 LOG_NAMES = frozenset({"logs", "recon-error.log", "batch.log"})
+RUN_LOG = "logs/run.log"
+"""Every line a run showed (stage headers, reasons, warnings, results), appended run after run."""
 """recon's own logs in a scene folder (COLMAP's, a crash's, `recon batch`'s), which may precede its manifest."""
 RECON_NAMES = frozenset({MANIFEST, LOCK, ".work"}) | LOG_NAMES
 """Names recon itself creates directly in a scene folder (besides the stage folders and temporary names)."""
@@ -376,29 +378,44 @@ class Pipeline:
         outcomes: list[StageOutcome] = []
         with scene_lock(scene_dir):
             check_scene_dir(scene_dir, source, folders)  # again under the lock: nothing changed it meanwhile
-            manifest = Manifest(scene_dir)
-            if manifest.warning:
-                report.warn(manifest.warning)
-            _remove_leftovers(scene_dir, folders)
-            recorded = _manifest_source(manifest)
-            if source is None and recorded is not None:
-                check_scene_dir(scene_dir, recorded, folders)
-            source = source or recorded
-            selected = self.select(from_stage, until_stage)
-            for stage in selected:
-                forced = force or stage.name == from_stage
-                outcome = self._run_stage(stage, scene_dir, manifest, config, report, source, forced)
-                outcomes.append(outcome)
-                # recorded only once a stage succeeded: a failed run with other photos or another preset leaves
-                # the finished scene's record alone (single-stage commands default to these)
-                changed = False
-                if stage.needs_source and source is not None and manifest.data.get("source") != str(source):
-                    manifest.data["source"], changed = str(source), True
-                if preset is not None and outcome.action == "ran" and manifest.data.get("preset") != preset:
-                    manifest.data["preset"], changed = preset, True
-                if changed:
-                    manifest.save()
+            report.log_to(scene_dir / RUN_LOG)
+            report.log(f"run: photos {source or 'as recorded'}, preset {preset or 'as recorded'}")
+            try:
+                self._run_locked(scene_dir, config, report, source, from_stage, until_stage, force, preset, outcomes)
+            except BaseException as exc:  # the log says how the run ended, an interrupt or an error included
+                report.log(f"stopped: {type(exc).__name__}: {exc}")
+                raise
+            finally:
+                report.log_to(None)
         return outcomes
+
+    def _run_locked(self, scene_dir: Path, config: RunConfig, report: Reporter, source: Path | None,
+                    from_stage: str | None, until_stage: str | None, force: bool, preset: str | None,
+                    outcomes: list[StageOutcome]) -> None:
+        folders = [s.folder for s in self.stages]
+        manifest = Manifest(scene_dir)
+        if manifest.warning:
+            report.warn(manifest.warning)
+        _remove_leftovers(scene_dir, folders)
+        recorded = _manifest_source(manifest)
+        if source is None and recorded is not None:
+            check_scene_dir(scene_dir, recorded, folders)
+        source = source or recorded
+        selected = self.select(from_stage, until_stage)
+        for stage in selected:
+            forced = force or stage.name == from_stage
+            outcome = self._run_stage(stage, scene_dir, manifest, config, report, source, forced)
+            outcomes.append(outcome)
+            # recorded only once a stage succeeded: a failed run with other photos or another preset leaves
+            # the finished scene's record alone (single-stage commands default to these)
+            changed = False
+            if stage.needs_source and source is not None and manifest.data.get("source") != str(source):
+                manifest.data["source"], changed = str(source), True
+            if preset is not None and outcome.action == "ran" and manifest.data.get("preset") != preset:
+                manifest.data["preset"], changed = preset, True
+            if changed:
+                manifest.save()
+        report.log("finished")
 
     def _run_stage(
         self,
