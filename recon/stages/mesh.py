@@ -267,7 +267,9 @@ def _textured(
     info: dict[str, Any] = {**textured.info, "files": {k: p.name for k, p in paths.items()}}
     previews = ["preview_textured.png"]
     ctx.report.info(
-        f"textured mesh: {info['faces']:,} faces (decimated from {info['faces_in']:,}), {side}² texture, "
+        f"textured mesh: {info['faces']:,} faces ("
+        + (f"decimated from {info['faces_in']:,}" if info["faces"] < info["faces_in"] else
+           f"the mesh's own, under mesh.texture_faces={ctx.config.texture_faces:,}") + f"), {side}² texture, "
         f"{info['coverage']:.0%} of its texels on the surface, baked like the vertex colors"
         + (f" ({info['unseen_from_field']:,} texels no photo sees colored by the field)" if "unseen_from_field" in info else "")
     )
