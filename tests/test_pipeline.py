@@ -240,3 +240,12 @@ def test_a_log_keeps_plain_text_of_marked_up_lines(tmp_path: Path) -> None:
     assert "preset fast" in text and "[bold]" not in text
     assert "a path [with brackets]" in text and "warning: careful" in text
     assert "after the log closed" not in text
+
+
+def test_a_log_that_cannot_be_written_does_not_stop_the_run(tmp_path: Path) -> None:
+    (tmp_path / "logs").write_text("a file where the log folder would be")
+    report = Reporter(quiet=True)
+    report.log_to(tmp_path / "logs" / "run.log")
+    report.info("the run goes on")
+    report.log_to(None)
+    assert any("cannot be written" in w for w in report.warnings)

@@ -69,8 +69,11 @@ class Reporter:
             self._log.close()
             self._log = None
         if path is not None:
-            path.parent.mkdir(parents=True, exist_ok=True)
-            self._log = open(path, "a", encoding="utf-8", buffering=1)  # a line at a time: an interrupted run keeps it
+            try:
+                path.parent.mkdir(parents=True, exist_ok=True)
+                self._log = open(path, "a", encoding="utf-8", buffering=1)  # a line at a time: an interrupt keeps it
+            except OSError as exc:  # the log is a record beside the run, not a reason to stop it
+                self.warn(f"the run's log {path} cannot be written ({exc.strerror or exc}); the run goes on without it")
 
     def log(self, text: str) -> None:
         """A plain line for the log only (nothing when no log is open)."""
