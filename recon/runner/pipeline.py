@@ -199,9 +199,9 @@ def scene_lock(scene_dir: Path) -> Iterator[None]:
 
 
 LOG_NAMES = frozenset({"logs", "recon-error.log", "batch.log"})
+"""recon's own logs in a scene folder (COLMAP's, a crash's, `recon batch`'s), which may precede its manifest."""
 RUN_LOG = "logs/run.log"
 """Every line a run showed (stage headers, reasons, warnings, results), appended run after run."""
-"""recon's own logs in a scene folder (COLMAP's, a crash's, `recon batch`'s), which may precede its manifest."""
 RECON_NAMES = frozenset({MANIFEST, LOCK, ".work"}) | LOG_NAMES
 """Names recon itself creates directly in a scene folder (besides the stage folders and temporary names)."""
 
