@@ -108,8 +108,14 @@ def scene_result(scene_dir: Path, stages: dict[str, StageResult], warnings: list
         doc = json.loads((mesh_dir / "mesh_report.json").read_text())
         mesh = {"vertices": doc["vertices"], "faces": doc["faces"], "watertight": doc["watertight"],
                 "frame": doc["export"]["frame"]}
-    files = {ext: mesh_dir / f"mesh.{ext}" for ext in ("glb", "obj", "ply") if (mesh_dir / f"mesh.{ext}").is_file()}
-    return RunResult(scene=scene_dir, stages=stages, mesh_files=files, metrics=metrics, mesh=mesh, warnings=list(warnings or []))
+    return RunResult(scene=scene_dir, stages=stages, mesh_files=mesh_files(scene_dir), metrics=metrics, mesh=mesh,
+                     warnings=list(warnings or []))
+
+
+def mesh_files(scene_dir: Path) -> dict[str, Path]:
+    """The scene's vertex-coloured meshes that exist, by format (glb, obj, ply)."""
+    mesh_dir = scene_dir / STAGE_FOLDERS["mesh"]
+    return {ext: mesh_dir / f"mesh.{ext}" for ext in ("glb", "obj", "ply") if (mesh_dir / f"mesh.{ext}").is_file()}
 
 
 @dataclass

@@ -228,7 +228,7 @@ def run_bench(
             "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
             **where,
             "device": metrics.get("device"),
-            "load_average_start": load_start,  # os.getloadavg(): other jobs on the host slow every rate
+            "load_average_start": load_start,  # the host's 1/5/15-minute load: other jobs slow every rate measured
             "load_average_end": _load_average(),
             "poses_normalize_wall_s": round(prepare_wall, 1),  # shared by every preset; cached on a rerun
             "model": metrics["model"],

@@ -141,17 +141,18 @@ def _summary_table(outcomes: list[Any], scene_dir: Path) -> None:
 def mesh_deliverables(scene_dir: Path) -> list[str]:
     """Lines that tell the user where the mesh stage's files are and how to open them (only those that exist): a run
     ends with a table of stages, which says what was made but not where."""
-    from recon.stages.mesh import MESH_STEM, STAGE, TEXTURED_STEM
+    from recon.app.api import mesh_files
+    from recon.stages.mesh import TEXTURED_STEM
 
-    folder = scene_dir / STAGE.folder
-    mesh = folder / f"{MESH_STEM}.glb"
-    if not mesh.is_file():
+    files = mesh_files(scene_dir)
+    if "glb" not in files:
         return []
-    lines = [f"your mesh: {mesh} (colours per vertex; in Blender: File → Import → glTF 2.0)"]
+    folder = files["glb"].parent
+    lines = [f"your mesh: {files['glb']} (colours per vertex; in Blender: File → Import → glTF 2.0)"]
     textured = folder / f"{TEXTURED_STEM}.glb"
     if textured.is_file():
         lines.append(f"           {textured} (its colours in a texture image, for tools that show no vertex colours)")
-    others = [f"{MESH_STEM}.{ext}" for ext in ("obj", "ply") if (folder / f"{MESH_STEM}.{ext}").is_file()]
+    others = [files[ext].name for ext in ("obj", "ply") if ext in files]
     if others:
         lines.append(f"           {' and '.join(others)} beside them, for other tools")
     previews = [p.name for p in (folder / "preview_front.png", folder / "preview_side.png") if p.is_file()]

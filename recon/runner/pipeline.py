@@ -375,13 +375,12 @@ class Pipeline:
         folders = [s.folder for s in self.stages]
         check_scene_dir(scene_dir, source, folders)
         prepare_scene_dir(scene_dir)
-        outcomes: list[StageOutcome] = []
         with scene_lock(scene_dir):
             check_scene_dir(scene_dir, source, folders)  # again under the lock: nothing changed it meanwhile
             report.log_to(scene_dir / RUN_LOG)
             report.log(f"run: photos {source or 'as recorded'}, preset {preset or 'as recorded'}")
             try:
-                self._run_locked(scene_dir, config, report, source, from_stage, until_stage, force, preset, outcomes)
+                outcomes = self._run_locked(scene_dir, config, report, source, from_stage, until_stage, force, preset)
             except BaseException as exc:  # the log says how the run ended, an interrupt or an error included
                 report.log(f"stopped: {type(exc).__name__}: {exc}")
                 raise
@@ -390,9 +389,11 @@ class Pipeline:
         return outcomes
 
     def _run_locked(self, scene_dir: Path, config: RunConfig, report: Reporter, source: Path | None,
-                    from_stage: str | None, until_stage: str | None, force: bool, preset: str | None,
-                    outcomes: list[StageOutcome]) -> None:
+                    from_stage: str | None, until_stage: str | None, force: bool,
+                    preset: str | None) -> list[StageOutcome]:
+        """`run`'s stages, under the scene's lock."""
         folders = [s.folder for s in self.stages]
+        outcomes: list[StageOutcome] = []
         manifest = Manifest(scene_dir)
         if manifest.warning:
             report.warn(manifest.warning)
@@ -416,6 +417,7 @@ class Pipeline:
             if changed:
                 manifest.save()
         report.log("finished")
+        return outcomes
 
     def _run_stage(
         self,
