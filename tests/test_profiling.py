@@ -45,3 +45,22 @@ def test_a_grids_backward_in_c_is_a_part_of_its_own() -> None:
     native_part = dict(BACKWARD_KINDS)["NativeRead"]
     assert parts.get(native_part, 0) > 0
     assert parts[native_part] > parts.get("compositing bwd", 0)
+
+
+def test_profile_md_says_where_and_under_what_load_it_ran() -> None:
+    """A profile's milliseconds mean nothing without the commit, the CPU and the load they were taken under."""
+    from recon.app.profiling import markdown
+
+    limits = {"threads": 2.0, "matmul_fp32_gflops": 400.0, "matmul_bf16_gflops": 900.0,
+              "matmul_mlp_shape_gflops": 300.0, "copy_gbs": 20.0, "gather_gbs": 3.0}
+    result = {"preset": "fast", "data": "lego-half", "warmup": 150, "steps": 4, "device": "cpu", "batch_rays": 4096,
+              "samples_per_ray": 16.0, "colored_per_ray": 10.0, "params": 3e7, "wall_s": 0.4, "pieces": [],
+              "parts": {"marcher": 0.1, "Adam step": 0.2}, "top_ops": "ops"}
+    where = {"date": "2026-12-04T16:00:00+00:00", "commit": "0123456789abcdef", "uncommitted_changes": True,
+             "machine": {"cpu": "Example CPU"}, "load_average_start": [0.5, 0.7, 0.9],
+             "load_average_end": [1.6, 1.2, 1.1]}
+    text = markdown([result], limits, where)
+    head = text.splitlines()[2]
+    assert "Commit 0123456 with uncommitted changes" in head and "Example CPU" in head
+    assert "0.50 / 0.70 / 0.90 at the start" in head and "1.60 / 1.20 / 1.10 at the end" in head
+    assert "40,960 rays/s while profiled" in text

@@ -17,6 +17,7 @@ import os
 import time
 from collections import defaultdict
 from collections.abc import Callable, Iterator
+from datetime import datetime, timezone
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -304,13 +305,19 @@ def profile_preset(data: str, preset: str, out_dir: Path, overrides: list[str], 
     return res
 
 
-def markdown(results: list[dict[str, Any]], limits: dict[str, float], load: tuple[float, float, float]) -> str:
-    """profile.md: the machine's limits, then per preset the step and render tables and the op tables."""
+def markdown(results: list[dict[str, Any]], limits: dict[str, float], where: dict[str, Any]) -> str:
+    """profile.md: where it ran, the machine's limits, then per preset the step and render tables and the op
+    tables."""
+    start, end = where["load_average_start"], where["load_average_end"]
+    commit = (where.get("commit") or "unknown")[:7] + (" with uncommitted changes" if where.get("uncommitted_changes")
+                                                       else "")
     lines = [
         "# recon bench --profile",
         "",
-        f"Load average at the end: {load[0]:.2f} / {load[1]:.2f} / {load[2]:.2f} (1 / 5 / 15 min), "
-        f"{int(limits['threads'])} torch threads, {os.cpu_count()} CPUs.",
+        f"Commit {commit}, {where['date']}, on {where['machine'].get('cpu') or 'an unnamed CPU'}. "
+        f"Load average (1 / 5 / 15 min) {start[0]:.2f} / {start[1]:.2f} / {start[2]:.2f} at the start, "
+        f"{end[0]:.2f} / {end[1]:.2f} / {end[2]:.2f} at the end; {int(limits['threads'])} torch threads, "
+        f"{os.cpu_count()} CPUs.",
         "",
         "| this CPU, measured in the same process | |",
         "|---|---|",
@@ -354,16 +361,19 @@ def markdown(results: list[dict[str, Any]], limits: dict[str, float], load: tupl
 def run_profile(data: str, presets: list[str], out_dir: Path, overrides: list[str], report: Any, *,
                 warmup: int = 200, steps: int = 8) -> Path:
     """Profile each preset on ``data``; write ``out_dir/profile.md`` (and profile.json) and return its path."""
-    from recon.app.bench import claim_bench_folder, resolve_dataset
+    from recon.app.bench import claim_bench_folder, provenance, resolve_dataset
     from recon.atomic import write_bytes_atomic, write_json_atomic
 
     resolve_dataset(data)  # a data set that is not there fails before the folder is claimed
     claim_bench_folder(out_dir)
+    where = {"date": datetime.now(timezone.utc).isoformat(timespec="seconds"), **provenance(),
+             "load_average_start": [round(x, 2) for x in os.getloadavg()]}
     limits = machine_limits()
     results = [profile_preset(data, p, out_dir, overrides, report, warmup=warmup, steps=steps) for p in presets]
+    where["load_average_end"] = [round(x, 2) for x in os.getloadavg()]
     path = out_dir / "profile.md"
-    write_bytes_atomic(path, markdown(results, limits, os.getloadavg()))
-    write_json_atomic(out_dir / "profile.json", {"limits": limits, "results": [
+    write_bytes_atomic(path, markdown(results, limits, where))
+    write_json_atomic(out_dir / "profile.json", {**where, "limits": limits, "results": [
         {k: v for k, v in r.items() if k != "top_ops"} | ({"render": {k: v for k, v in r["render"].items() if k != "top_ops"}}
                                                           if "render" in r else {})
         for r in results]})
