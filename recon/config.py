@@ -302,6 +302,14 @@ def preset_path(name: str) -> Path:
     return path
 
 
+DEFAULT_PRESET = "fast"
+"""The preset a run takes when none is named: on every capture measured the longer presets' extra minutes made
+no better field or mesh (docs/presets.md), so a user gets the same mesh in 4 minutes of training instead of 10."""
+
+DEFAULT_PRESET_WHY = "the default: on the captures measured, longer training made no better mesh (docs/presets.md)"
+"""What a run says when it takes DEFAULT_PRESET because no preset was named."""
+
+
 def load_config(preset: str | None = None, overrides: list[str] | None = None) -> RunConfig:
     """Defaults, then the preset's TOML, then each `section.key=value` override, all type-checked."""
     config = RunConfig()

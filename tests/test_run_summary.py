@@ -7,6 +7,7 @@ from typer.testing import CliRunner
 
 from recon.app import cli
 from recon.app.cli import app, mesh_deliverables
+from recon.config import DEFAULT_PRESET, load_config
 from recon.runner.pipeline import StageOutcome
 
 
@@ -65,3 +66,27 @@ def test_a_run_ends_with_where_its_mesh_is_unless_it_stopped_before_the_mesh(tmp
     result = runner.invoke(app, ["poses", str(scene)])
     assert result.exit_code == 0, result.output
     assert "your mesh" not in result.output
+
+
+class _Recording(_Pipeline):
+    """A stand-in that keeps the configuration and preset name the run was given."""
+
+    def run(self, scene_dir: Path, config, *args, **kwargs) -> list[StageOutcome]:
+        self.config, self.preset = config, kwargs.get("preset")
+        return super().run(scene_dir)
+
+
+def test_a_run_without_a_preset_takes_the_default_and_says_why(tmp_path: Path, monkeypatch) -> None:
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    pipeline = _Recording(["poses", "normalize", "train", "mesh"])
+    monkeypatch.setattr(cli, "_pipeline", lambda: pipeline)
+    result = CliRunner().invoke(app, ["run", str(photos), "--out", str(tmp_path / "scene")])
+    assert result.exit_code == 0, result.output
+    assert pipeline.preset == DEFAULT_PRESET and pipeline.config.train == load_config(DEFAULT_PRESET).train
+    said = " ".join(result.output.split())
+    assert f"preset {DEFAULT_PRESET} (the default:" in said and "--preset NAME picks another" in said
+    result = CliRunner().invoke(app, ["run", str(photos), "--out", str(tmp_path / "scene2"), "--preset", "balanced"])
+    assert result.exit_code == 0, result.output
+    assert pipeline.preset == "balanced" and pipeline.config.train.budget == "10m"
+    assert "the default:" not in result.output

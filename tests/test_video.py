@@ -20,7 +20,7 @@ from recon.app.cli import app
 from recon.capture import video
 from recon.capture.scene import detect_source, load_scene
 from recon.capture.sfm import loop_pairs
-from recon.config import load_config
+from recon.config import DEFAULT_PRESET, load_config
 from recon.errors import InputError
 from recon.stages import default_pipeline
 
@@ -255,10 +255,10 @@ def test_rerun_decodes_nothing_and_a_changed_video_is_stale(posed: tuple[Path, P
     args = ("run", str(source), "--out", str(scene_dir), "--until", "poses", *(a for o in POSES_OPTIONS for a in ("--set", o)))
     code, out = _recon(*args)
     assert code == 0 and "up to date (cached)" in out, out
-    config = load_config("balanced", POSES_OPTIONS)
+    config = load_config(DEFAULT_PRESET, POSES_OPTIONS)
     state = {r["stage"]: r["state"] for r in default_pipeline().state(scene_dir, config, source)}
     assert state["poses"] == "done"
-    assert {r["stage"]: r["state"] for r in default_pipeline().state(scene_dir, load_config("balanced", ["poses.video_frames=51", *POSES_OPTIONS[1:]]), source)}["poses"] == "stale"
+    assert {r["stage"]: r["state"] for r in default_pipeline().state(scene_dir, load_config(DEFAULT_PRESET, ["poses.video_frames=51", *POSES_OPTIONS[1:]]), source)}["poses"] == "stale"
     with source.open("ab") as f:  # a changed video (bytes appended after the last box still play)
         f.write(b"\0" * 16)
     state = {r["stage"]: r["state"] for r in default_pipeline().state(scene_dir, config, source)}
@@ -288,7 +288,7 @@ def test_masks_next_to_the_video_mask_its_kept_frames(posed: tuple[Path, Path], 
     scene = load_scene(tmp_path / "scene" / "01_poses")
     assert scene.has_alpha and len(scene.frames) == len(frames)
     assert {Path(f.mask_path) for f in scene.frames} == {(masks / f"{f.stem}.png").resolve() for f in frames}
-    config = load_config("balanced", POSES_OPTIONS)
+    config = load_config(DEFAULT_PRESET, POSES_OPTIONS)
     cv2.imwrite(str(masks / f"{frames[3].stem}.png"), 255 - disc)
     state = {r["stage"]: r["state"] for r in default_pipeline().state(tmp_path / "scene", config, source)}
     assert state["poses"] == "stale"

@@ -60,7 +60,7 @@ class RunResult:
 def run(
     photos: str | Path | None,
     out: str | Path,
-    preset: str | None = "balanced",
+    preset: str | None = None,
     overrides: Mapping[str, Any] | None = None,
     *,
     from_stage: str | None = None,
@@ -71,7 +71,9 @@ def run(
 ) -> RunResult:
     """Run the pipeline on `photos` (a photo folder or poses you have) into the scene folder `out`.
 
-    `overrides` are `--set` options as a mapping (`{"train.steps": 500, "mesh.frame": "source"}`).
+    `preset` is a name from `recon presets` or a .toml path; None takes the command line's default
+    (`recon.config.DEFAULT_PRESET`). `overrides` are `--set` options as a mapping
+    (`{"train.steps": 500, "mesh.frame": "source"}`).
     `photos=None` reuses the source recorded in an existing scene. Finished stages are reused, as on the
     command line. `verbose` prints progress bars and the reasons for each choice; `observers` get live
     events (`("train_step", {...})`, see `recon.stages.train`). Raises `recon.errors.ReconError` (or its
@@ -80,9 +82,10 @@ def run(
     from rich.console import Console
 
     from recon.app.progress import Reporter
-    from recon.config import load_config
+    from recon.config import DEFAULT_PRESET, load_config
     from recon.stages import default_pipeline
 
+    preset = preset or DEFAULT_PRESET
     scene_dir = Path(out)
     items = [f"{k}={v if isinstance(v, str) else json.dumps(v)}" for k, v in (overrides or {}).items()]
     config = load_config(preset, items)

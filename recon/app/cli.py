@@ -20,7 +20,8 @@ from rich.markup import escape
 from rich.table import Table
 
 from recon.app.progress import Reporter, format_seconds, format_summary
-from recon.config import RunConfig, available_presets, check_batch_against_pixels, load_config, preset_description
+from recon.config import (DEFAULT_PRESET, DEFAULT_PRESET_WHY, RunConfig, available_presets, check_batch_against_pixels,
+                          load_config, preset_description)
 from recon.errors import ConfigError, ReconError
 from recon.runner.pipeline import install_sigterm_as_interrupt, is_disk_full
 
@@ -36,7 +37,7 @@ out_console = Console(highlight=False)
 EXIT_USER_ERROR = 2
 EXIT_INTERRUPTED = 130
 
-PresetOpt = Annotated[Optional[str], typer.Option("--preset", "-p", help="Preset from pipelines/ (or a .toml path).")]
+PresetOpt = Annotated[Optional[str], typer.Option("--preset", "-p", help=f"Preset from pipelines/ (or a .toml path); default {DEFAULT_PRESET}.")]
 SetOpt = Annotated[Optional[list[str]], typer.Option("--set", help="Override an option: section.key=value (repeatable).")]
 QuietOpt = Annotated[bool, typer.Option("--quiet", "-q", help="Only warnings and errors.")]
 
@@ -95,11 +96,8 @@ def _report_bug(exc: BaseException, scene_dir: Path | None) -> None:
     raise typer.Exit(1) from None
 
 
-DEFAULT_PRESET = "balanced"
-
-
 def _config(preset: str | None, overrides: list[str] | None) -> RunConfig:
-    """The named preset (balanced when none is given) with the `--set` overrides."""
+    """The named preset (DEFAULT_PRESET when none is given) with the `--set` overrides."""
     return load_config(preset or DEFAULT_PRESET, overrides)
 
 
@@ -188,7 +186,9 @@ def _run(
         report = Reporter(console, quiet=quiet)
         report.observers = list(observers or [])
         if not quiet:
-            report.info(f"preset [bold]{escape(preset or DEFAULT_PRESET)}[/]: {escape(preset_description(preset or DEFAULT_PRESET))}", markup=True)
+            why = "" if preset else f" ({DEFAULT_PRESET_WHY}; --preset NAME picks another)"
+            report.info(f"preset [bold]{escape(preset or DEFAULT_PRESET)}[/]{escape(why)}: "
+                        f"{escape(preset_description(preset or DEFAULT_PRESET))}", markup=True)
         outcomes = _pipeline().run(
             scene_dir,
             config,
