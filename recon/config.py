@@ -140,8 +140,8 @@ class TrainConfig:
     (DVGO's masked Adam; recon/nerf/masked_adam.py); adam: torch's Adam moves every value every step. auto:
     masked_adam on a CPU with the native library (the C update skips the untouched values), adam elsewhere."""
     precision: Literal["fp32", "bf16"] = "fp32"
-    """bf16: the networks' matrix math in bfloat16 (autocast; volume rendering stays fp32). Faster on GPUs and
-    CPUs with AMX/AVX512-BF16, slower on older CPUs."""
+    """bf16: the networks' matrix math in bfloat16 (autocast; volume rendering stays fp32). For GPUs: on a CPU, even
+    one with AMX, the casts around the colour network's small layers cost more than they save (docs/profile.md)."""
     depth_prior: Literal["auto", "on", "off"] = "auto"
     """Sparse-depth supervision from the SfM points (DS-NeRF). auto: on when fewer than 20 photos train the field
     (few views leave the geometry ambiguous), the model is `surface` (its SDF starts closed and needs the

@@ -5,6 +5,7 @@ Each test reproduces one case of the issue through the CLI (in-process) or the f
 from __future__ import annotations
 
 import json
+from typing import Any
 import os
 import shutil
 import struct
@@ -681,3 +682,18 @@ def test_a_bench_row_reads_what_the_normalize_stage_reported_and_nothing_when_it
     assert _stage_summary(tmp_path, "poses") == {} and _stage_summary(tmp_path, "train") == {}
     (tmp_path / "manifest.json").write_text("{not json")
     assert _stage_summary(tmp_path, "normalize") == {}
+
+
+@pytest.mark.parametrize("profile", [
+    [{"name": "fast", "limits": {}, "profiled_steps": 4, "commit": "abc"}],  # profile.json's rows
+    {"limits": {}, "results": []},  # an earlier recon's profile.json
+    [{"name": "fast", "psnr": 30.0}],  # not a profile
+])
+def test_a_profile_folder_from_before_records_is_recognised_by_its_profile_json(tmp_path: Path, profile: Any) -> None:
+    from recon.app.bench import _unrecorded_bench
+
+    (tmp_path / "profile.json").write_text(json.dumps(profile))
+    (tmp_path / "profile.md").write_text("# recon bench --profile")
+    found = _unrecorded_bench(tmp_path)
+    assert found == ({"profile.json", "profile.md"} if "profiled_steps" in json.dumps(profile)
+                     or isinstance(profile, dict) else None)

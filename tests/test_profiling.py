@@ -53,7 +53,7 @@ def test_profile_md_says_where_and_under_what_load_it_ran() -> None:
 
     limits = {"threads": 2.0, "matmul_fp32_gflops": 400.0, "matmul_bf16_gflops": 900.0,
               "matmul_mlp_shape_gflops": 300.0, "copy_gbs": 20.0, "gather_gbs": 3.0}
-    result = {"preset": "fast", "data": "lego-half", "warmup": 150, "steps": 4, "device": "cpu", "batch_rays": 4096,
+    result = {"preset": "fast", "data": "lego-half", "warmup": 150, "profiled_steps": 4, "device": "cpu", "batch_rays": 4096,
               "samples_per_ray": 16.0, "colored_per_ray": 10.0, "params": 3e7, "wall_s": 0.4, "pieces": [],
               "parts": {"marcher": 0.1, "Adam step": 0.2}, "top_ops": "ops"}
     where = {"date": "2026-12-04T16:00:00+00:00", "commit": "0123456789abcdef", "uncommitted_changes": True,

@@ -167,7 +167,9 @@ def _unrecorded_bench(folder: Path) -> set[str] | None:
     profile: Any = None
     with contextlib.suppress(OSError, ValueError):
         profile = read_json(folder / "profile.json") if (folder / "profile.json").is_file() else None
-    ours = ours or isinstance(profile, dict) and {"limits", "results"} <= profile.keys()
+    ours = ours or (isinstance(profile, list) and bool(profile)
+                    and all(isinstance(r, dict) and {"name", "limits", "profiled_steps"} <= r.keys() for r in profile)
+                    or isinstance(profile, dict) and {"limits", "results"} <= profile.keys())  # an earlier recon's
     entries = list(folder.iterdir())
     if not ours or not all(p.name in REPORT_FILES and p.is_file() and not p.is_symlink()
                            or p.is_dir() and not p.is_symlink() and (p / "manifest.json").is_file() for p in entries):

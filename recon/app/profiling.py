@@ -240,7 +240,7 @@ def profile_training(cfg: TrainConfig, scene: Scene, views: list[View], report: 
                        or counts["march_dense_native"])[-steps:]
             colored = counts["_rgb_unit"][-steps:]
     res: dict[str, Any] = {
-        "warmup": warmup, "steps": steps, "batch_rays": plan.batch_rays, "wall_s": marks["t1"] - marks["t0"],
+        "warmup": warmup, "profiled_steps": steps, "batch_rays": plan.batch_rays, "wall_s": marks["t1"] - marks["t0"],
         "parts": attribute(prof), "train_psnr": result["psnr"], "device": str(device),
         "samples_per_ray": float(np.mean(samples)) / plan.batch_rays if samples else float("nan"),
         "colored_per_ray": float(np.mean(colored)) / plan.batch_rays if colored else float("nan"),
@@ -330,16 +330,16 @@ def markdown(results: list[dict[str, Any]], limits: dict[str, float], where: dic
     ]
     for r in results:
         lines += [
-            f"## {r['preset']} on {r['data']}: {r['steps']} steps after {r['warmup']}",
+            f"## {r['preset']} on {r['data']}: {r['profiled_steps']} steps after {r['warmup']}",
             "",
             f"Device {r['device']}.",
             "",
             f"{r['batch_rays']} rays/step, {r['samples_per_ray']:.1f} samples/ray after the marcher, "
             f"{r['colored_per_ray']:.1f} colored/ray, {r['params'] / 1e6:.1f} M parameters, "
-            f"{r['steps'] * r['batch_rays'] / r['wall_s']:,.0f} rays/s while profiled; the step's pieces (as the train "
+            f"{r['profiled_steps'] * r['batch_rays'] / r['wall_s']:,.0f} rays/s while profiled; the step's pieces (as the train "
             f"stage plans them): {', '.join(r['pieces']) or 'none'}.",
             "",
-            *_table(r["parts"], r["steps"], r["wall_s"], "step", r.get("gpu_parts")),
+            *_table(r["parts"], r["profiled_steps"], r["wall_s"], "step", r.get("gpu_parts")),
             "",
         ]
         if "render" in r:
@@ -373,8 +373,8 @@ def run_profile(data: str, presets: list[str], out_dir: Path, overrides: list[st
     where["load_average_end"] = [round(x, 2) for x in os.getloadavg()]
     path = out_dir / "profile.md"
     write_bytes_atomic(path, markdown(results, limits, where))
-    write_json_atomic(out_dir / "profile.json", {**where, "limits": limits, "results": [
-        {k: v for k, v in r.items() if k != "top_ops"} | ({"render": {k: v for k, v in r["render"].items() if k != "top_ops"}}
-                                                          if "render" in r else {})
-        for r in results]})
+    write_json_atomic(out_dir / "profile.json", [  # one row a preset, as bench.json
+        {"name": r["preset"], **where, "limits": limits, **{k: v for k, v in r.items() if k != "top_ops"}}
+        | ({"render": {k: v for k, v in r["render"].items() if k != "top_ops"}} if "render" in r else {})
+        for r in results])
     return path
