@@ -5,13 +5,13 @@ Each test reproduces one case of the issue through the CLI (in-process) or the f
 from __future__ import annotations
 
 import json
-from typing import Any
 import os
 import shutil
 import struct
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
