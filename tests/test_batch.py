@@ -23,7 +23,7 @@ import pytest
 
 from recon.app.batch import Resources, capture_name, expand_inputs, run_batch, task_resources
 from recon.app.progress import Reporter
-from recon.config import load_config
+from recon.config import DEFAULT_PRESET, load_config
 from recon.errors import InputError
 from tests import faults
 
@@ -233,7 +233,7 @@ def test_batch_matches_recon_run_and_reports_the_broken_capture(
         assert f"| {name} | poses:ran normalize:ran train:ran mesh:ran |" in md
 
     # the same batch again: every finished stage is reused, nothing runs
-    again = run_batch([Path(p) for p in inputs], out, "balanced", TINY, Reporter(quiet=True), address=ray_address)
+    again = run_batch([Path(p) for p in inputs], out, DEFAULT_PRESET, TINY, Reporter(quiet=True), address=ray_address)
     for name in references:
         assert {s["action"] for s in _record(again, name)["stages"].values()} == {"cached"}
     assert _record(again, "broken")["error"] == broken["error"]
@@ -268,7 +268,7 @@ def test_worker_killed_mid_task_is_retried_and_resumes_from_the_cache(
     out = tmp_path / "out"
     box: dict = {}
     thread = threading.Thread(target=lambda: box.setdefault("result", run_batch(
-        [captures["blocks"]], out, "balanced", TINY, Reporter(quiet=True), address=ray_address, retries=1)))
+        [captures["blocks"]], out, DEFAULT_PRESET, TINY, Reporter(quiet=True), address=ray_address, retries=1)))
     thread.start()
     faults.wait_for(lambda: _pid_in_train(out / "blocks") is not None, timeout=240, what="training to start")
     before = faults.finished_times(out / "blocks")
@@ -297,7 +297,7 @@ def test_killed_driver_then_rerun_finishes_without_redoing_finished_stages(
         faults.kill_tree(driver)
     before = {n: faults.finished_times(out / n) for n in ("blocks", "concave")}
     assert any(before.values()) and not (out / "batch.json").exists()
-    result = run_batch([Path(p) for p in inputs], out, "balanced", TINY, Reporter(quiet=True), address=ray_address)
+    result = run_batch([Path(p) for p in inputs], out, DEFAULT_PRESET, TINY, Reporter(quiet=True), address=ray_address)
     assert result["failed"] == 0, [r.get("error") for r in result["captures"]]
     for name, done in before.items():
         after = faults.finished_times(out / name)
