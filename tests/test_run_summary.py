@@ -90,3 +90,22 @@ def test_a_run_without_a_preset_takes_the_default_and_says_why(tmp_path: Path, m
     assert result.exit_code == 0, result.output
     assert pipeline.preset == "balanced" and pipeline.config.train.budget == "10m"
     assert "the default:" not in result.output
+
+
+
+def test_batch_says_which_preset_it_took_and_why(tmp_path: Path, monkeypatch) -> None:
+    """`recon batch` without --preset starts with the same line as `recon run`: the default and why."""
+    seen: list = []
+
+    def run_batch(inputs, out: Path, preset: str, *args, **kwargs) -> dict:
+        seen.append(preset)
+        out.mkdir()
+        (out / "batch.md").write_text("# batch")
+        return {"failed": 0, "captures": []}
+
+    monkeypatch.setattr("recon.app.batch.run_batch", run_batch)
+    result = CliRunner().invoke(app, ["batch", str(tmp_path), "--out", str(tmp_path / "out")])
+    assert result.exit_code == 0, result.output
+    said = " ".join(result.output.split())
+    assert seen == [DEFAULT_PRESET] and f"preset {DEFAULT_PRESET} (the default:" in said
+    assert "the default:" not in cli.preset_line("balanced") and "balanced" in cli.preset_line("balanced")

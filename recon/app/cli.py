@@ -96,6 +96,13 @@ def _report_bug(exc: BaseException, scene_dir: Path | None) -> None:
     raise typer.Exit(1) from None
 
 
+def preset_line(preset: str | None) -> str:
+    """The line a run starts with: the preset, why when it is the default one (an automatic choice), what it trades."""
+    why = "" if preset else f" ({DEFAULT_PRESET_WHY}; --preset NAME picks another)"
+    name = preset or DEFAULT_PRESET
+    return f"preset [bold]{escape(name)}[/]{escape(why)}: {escape(preset_description(name))}"
+
+
 def _config(preset: str | None, overrides: list[str] | None) -> RunConfig:
     """The named preset (DEFAULT_PRESET when none is given) with the `--set` overrides."""
     return load_config(preset or DEFAULT_PRESET, overrides)
@@ -186,9 +193,7 @@ def _run(
         report = Reporter(console, quiet=quiet)
         report.observers = list(observers or [])
         if not quiet:
-            why = "" if preset else f" ({DEFAULT_PRESET_WHY}; --preset NAME picks another)"
-            report.info(f"preset [bold]{escape(preset or DEFAULT_PRESET)}[/]{escape(why)}: "
-                        f"{escape(preset_description(preset or DEFAULT_PRESET))}", markup=True)
+            report.info(preset_line(preset), markup=True)
         outcomes = _pipeline().run(
             scene_dir,
             config,
@@ -486,7 +491,9 @@ def batch(
     with _guard():
         if retries < 0 or (cpus_per_capture is not None and cpus_per_capture <= 0):
             raise ReconError("--retries must be ≥ 0 and --cpus-per-capture > 0.")
-        result = run_batch(inputs, out, preset or DEFAULT_PRESET, list(set_ or []), Reporter(console, quiet=quiet),
+        report = Reporter(console, quiet=quiet)
+        report.info(preset_line(preset), markup=True)
+        result = run_batch(inputs, out, preset or DEFAULT_PRESET, list(set_ or []), report,
                            address=address, retries=retries, cpus_per_capture=cpus_per_capture)
         out_console.print((out / "batch.md").read_text())
     if result["failed"]:
