@@ -109,3 +109,10 @@ def test_batch_says_which_preset_it_took_and_why(tmp_path: Path, monkeypatch) ->
     said = " ".join(result.output.split())
     assert seen == [DEFAULT_PRESET] and f"preset {DEFAULT_PRESET} (the default:" in said
     assert "the default:" not in cli.preset_line("balanced") and "balanced" in cli.preset_line("balanced")
+
+
+def test_presets_marks_the_default() -> None:
+    result = CliRunner().invoke(app, ["presets"])
+    assert result.exit_code == 0, result.output
+    marked = [line.split(":")[0] for line in result.output.splitlines() if "(default)" in line.split(":")[0]]
+    assert marked == [f"{DEFAULT_PRESET} (default)"]

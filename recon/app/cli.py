@@ -507,7 +507,8 @@ def presets() -> None:
     """List the presets in pipelines/ and what each trades."""
     with _guard():
         for name in available_presets():
-            out_console.print(f"[bold]{escape(name)}[/]: {escape(preset_description(name))}")
+            default = " (default)" if name == DEFAULT_PRESET else ""
+            out_console.print(f"[bold]{escape(name)}[/]{default}: {escape(preset_description(name))}")
 
 
 def main() -> None:
