@@ -81,9 +81,9 @@ def run_stages(scene: Path, preset: str | None, overrides: dict[str, str], from_
     """Run the scene's stages from `from_stage` through the mesh, forced; the fields every record's row carries (when,
     on which commit and machine, under what load)."""
     from recon.app.api import run
-    from recon.app.bench import _load_average, provenance
+    from recon.app.bench import load_average, provenance
 
-    load_start, date = _load_average(), datetime.now(timezone.utc).isoformat(timespec="seconds")
+    load_start, date = load_average(), datetime.now(timezone.utc).isoformat(timespec="seconds")
     run(None, scene, preset, overrides, from_stage=from_stage, until_stage="mesh", force=True)
     return {"date": date, **provenance(), "load_average_start": load_start}
 

@@ -303,8 +303,8 @@ def preset_path(name: str) -> Path:
 
 
 DEFAULT_PRESET = "fast"
-"""The preset a run takes when none is named: on every capture measured the longer presets' extra minutes made
-no better field or mesh (docs/presets.md), so a user gets the same mesh in 4 minutes of training instead of 10."""
+"""The preset a run takes when none is named, for the reason DEFAULT_PRESET_WHY gives (the records behind it:
+docs/presets.md#the-default-fast)."""
 
 DEFAULT_PRESET_WHY = "the default: on the captures measured, longer training made no better mesh (docs/presets.md)"
 """What a run says when it takes DEFAULT_PRESET because no preset was named."""

@@ -91,7 +91,9 @@ def _git(*args: str) -> str | None:
     return done.stdout.strip() if done.returncode == 0 else None
 
 
-def _load_average() -> list[float] | None:
+def load_average() -> list[float] | None:
+    """The host's 1/5/15-minute load average, rounded (None where the OS does not say): other jobs slow every rate
+    a record holds."""
     try:
         return [round(x, 2) for x in os.getloadavg()]
     except (AttributeError, OSError):  # not on every platform
@@ -156,6 +158,16 @@ def claim_bench_folder(out_dir: Path) -> None:
     claim_names(out_dir, "bench", scene_parts, REPORT_FILES, _unrecorded_bench)
 
 
+def _is_profile_json(data: Any) -> bool:
+    """Whether `data` is a profile.json `recon bench --profile` writes: rows with a preset's name, the machine's limits
+    and the steps profiled; or the {"limits", "results"} form it wrote before its rows carried provenance, so a
+    folder profiled then is still recognised as recon's."""
+    if isinstance(data, dict):
+        return {"limits", "results"} <= data.keys()
+    return (isinstance(data, list) and bool(data)
+            and all(isinstance(r, dict) and {"name", "limits", "profiled_steps"} <= r.keys() for r in data))
+
+
 def _unrecorded_bench(folder: Path) -> set[str] | None:
     """The reports of a benchmark folder without a record, when it holds nothing else but recon scenes (a
     manifest.json each) and its bench.json (rows with a preset's name, PSNR and commit) or profile.json is recon's."""
@@ -167,9 +179,7 @@ def _unrecorded_bench(folder: Path) -> set[str] | None:
     profile: Any = None
     with contextlib.suppress(OSError, ValueError):
         profile = read_json(folder / "profile.json") if (folder / "profile.json").is_file() else None
-    ours = ours or (isinstance(profile, list) and bool(profile)
-                    and all(isinstance(r, dict) and {"name", "limits", "profiled_steps"} <= r.keys() for r in profile)
-                    or isinstance(profile, dict) and {"limits", "results"} <= profile.keys())  # an earlier recon's
+    ours = ours or _is_profile_json(profile)
     entries = list(folder.iterdir())
     if not ours or not all(p.name in REPORT_FILES and p.is_file() and not p.is_symlink()
                            or p.is_dir() and not p.is_symlink() and (p / "manifest.json").is_file() for p in entries):
@@ -214,7 +224,7 @@ def run_bench(
             shutil.copytree(base, scene, ignore=shutil.ignore_patterns(".lock", ".work"))
         config = load_config(preset, overrides)
         report.info(f"[bold]benchmark: {escape(preset)}[/] on {escape(data)}", markup=True)
-        load_start = _load_average()
+        load_start = load_average()
         t0 = time.perf_counter()
         # poses/normalize: cached from the shared copy unless this preset changes their options; train (and
         # mesh) always run, so every preset's time is measured
@@ -231,7 +241,7 @@ def run_bench(
             **where,
             "device": metrics.get("device"),
             "load_average_start": load_start,  # the host's 1/5/15-minute load: other jobs slow every rate measured
-            "load_average_end": _load_average(),
+            "load_average_end": load_average(),
             "poses_normalize_wall_s": round(prepare_wall, 1),  # shared by every preset; cached on a rerun
             "model": metrics["model"],
             "steps": metrics["steps"],

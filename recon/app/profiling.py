@@ -308,15 +308,17 @@ def profile_preset(data: str, preset: str, out_dir: Path, overrides: list[str], 
 def markdown(results: list[dict[str, Any]], limits: dict[str, float], where: dict[str, Any]) -> str:
     """profile.md: where it ran, the machine's limits, then per preset the step and render tables and the op
     tables."""
-    start, end = where["load_average_start"], where["load_average_end"]
+    def load(values: list[float] | None) -> str:
+        return " / ".join(f"{v:.2f}" for v in values) if values else "unknown"
+
     commit = (where.get("commit") or "unknown")[:7] + (" with uncommitted changes" if where.get("uncommitted_changes")
                                                        else "")
     lines = [
         "# recon bench --profile",
         "",
         f"Commit {commit}, {where['date']}, on {where['machine'].get('cpu') or 'an unnamed CPU'}. "
-        f"Load average (1 / 5 / 15 min) {start[0]:.2f} / {start[1]:.2f} / {start[2]:.2f} at the start, "
-        f"{end[0]:.2f} / {end[1]:.2f} / {end[2]:.2f} at the end; {int(limits['threads'])} torch threads, "
+        f"Load average (1 / 5 / 15 min) {load(where['load_average_start'])} at the start, "
+        f"{load(where['load_average_end'])} at the end; {int(limits['threads'])} torch threads, "
         f"{os.cpu_count()} CPUs.",
         "",
         "| this CPU, measured in the same process | |",
@@ -361,16 +363,16 @@ def markdown(results: list[dict[str, Any]], limits: dict[str, float], where: dic
 def run_profile(data: str, presets: list[str], out_dir: Path, overrides: list[str], report: Any, *,
                 warmup: int = 200, steps: int = 8) -> Path:
     """Profile each preset on ``data``; write ``out_dir/profile.md`` (and profile.json) and return its path."""
-    from recon.app.bench import claim_bench_folder, provenance, resolve_dataset
+    from recon.app.bench import claim_bench_folder, load_average, provenance, resolve_dataset
     from recon.atomic import write_bytes_atomic, write_json_atomic
 
     resolve_dataset(data)  # a data set that is not there fails before the folder is claimed
     claim_bench_folder(out_dir)
     where = {"date": datetime.now(timezone.utc).isoformat(timespec="seconds"), **provenance(),
-             "load_average_start": [round(x, 2) for x in os.getloadavg()]}
+             "load_average_start": load_average()}
     limits = machine_limits()
     results = [profile_preset(data, p, out_dir, overrides, report, warmup=warmup, steps=steps) for p in presets]
-    where["load_average_end"] = [round(x, 2) for x in os.getloadavg()]
+    where["load_average_end"] = load_average()
     path = out_dir / "profile.md"
     write_bytes_atomic(path, markdown(results, limits, where))
     write_json_atomic(out_dir / "profile.json", [  # one row a preset, as bench.json
