@@ -22,6 +22,8 @@ without the points linked to the in-frame ones (what close-ups leave out of fram
   keep (`LONE_POINT_SPACING`), which says whether they are trusted;
 - least parallax: shipped, but each photo's table is matched with the photos that see the object's points move
   nearest `MIN_TABLE_PARALLAX` windows off the plane's homography (not `TABLE_PARALLAX`);
+- close-ups vote: shipped, but every photo carves the hull, close-ups that crop the object too, and none is cut again
+  inside it (`FRAMED_SHARE` = 0: the masks before close-ups were told apart);
 - no support prior: shipped, but the cut starts with the object seeds' hull alone as probable object, not their
   hull with their feet on the support plane (`STANDS_ON_SUPPORT`);
 - in-frame region: the object region of only the points most photos keep in frame, without the points linked to
@@ -117,14 +119,14 @@ def main(argv: list[str] | None = None) -> None:
 
     original_grabcut, original_spread = am._grabcut, am._triangulation_spread
     filling, dropping, lone_spacing = am.FILL_GROUNDED_BITES, am.DROP_TABLE, am.LONE_POINT_SPACING
-    parallax = am.TABLE_PARALLAX
+    parallax, framed_share = am.TABLE_PARALLAX, am.FRAMED_SHARE
     current: dict[str, str] = {}
 
     def variant(name: str, scene: Any = scene) -> dict[str, Any]:
         def spread(scene_, points_):
             return np.zeros(len(points_)) if name == "every point, seed discs" else original_spread(scene_, points_)
 
-        def grabcut(cv2_, photo, fg, bg, box_uv, known=None, feet=None):
+        def grabcut(cv2_, photo, fg, bg, box_uv, known=None, feet=None, hull=None):
             h, w = photo.shape[:2]
             if name == "every point, seed discs":  # each seed grown to a disc of SEED_RADIUS
                 radius = max(1, round(am.SEED_RADIUS * float(np.hypot(w, h))))
@@ -144,7 +146,7 @@ def main(argv: list[str] | None = None) -> None:
                 bg = np.concatenate([bg, np.stack([xs[pick], ys[pick]], axis=1)])
             if name == "no support prior":  # the cut's probable object: the seeds' hull alone, not their feet's too
                 feet = None
-            return original_grabcut(cv2_, photo, fg, bg, box_uv, known, feet)
+            return original_grabcut(cv2_, photo, fg, bg, box_uv, known, feet, hull)
 
         def loader(frame):
             current["frame"] = frame.name
@@ -155,6 +157,7 @@ def main(argv: list[str] | None = None) -> None:
         am.DROP_TABLE = name not in ("no table drop", "neither")
         am.LONE_POINT_SPACING = np.inf if name == "lone points counted" else lone_spacing
         am.TABLE_PARALLAX = am.MIN_TABLE_PARALLAX if name == "least parallax" else parallax
+        am.FRAMED_SHARE = 0.0 if name == "close-ups vote" else framed_share
         import recon.nerf.device as device
 
         threads: Callable[[], int] = device.cpu_threads
@@ -165,7 +168,7 @@ def main(argv: list[str] | None = None) -> None:
         finally:
             am._triangulation_spread, am._grabcut, device.cpu_threads = original_spread, original_grabcut, threads
             am.FILL_GROUNDED_BITES, am.DROP_TABLE, am.LONE_POINT_SPACING = filling, dropping, lone_spacing
-            am.TABLE_PARALLAX = parallax
+            am.TABLE_PARALLAX, am.FRAMED_SHARE = parallax, framed_share
         if a.write_masks is not None:
             folder = a.write_masks / name.replace(" ", "_").replace(",", "")
             folder.mkdir(parents=True, exist_ok=True)
@@ -184,6 +187,7 @@ def main(argv: list[str] | None = None) -> None:
                "base_missed_median": round(float(np.median(list(base_missed.values()))), 4) if base_missed else None,
                "base_missed_most": round(base_missed[worst], 4) if worst else None, "base_missed_most_photo": worst,
                "iou_mean": round(float(np.mean(ious)), 4) if ious else None,
+               "iou_by_photo": {f.name: round(x, 4) for f, x in zip(scene.frames, ious)} if ious else None,
                "seed_recall": round(float(found.seed_recall), 4),
                "agreement_median": round(float(np.median(list(found.agreement.values()))), 4),
                "edge_support_median": round(float(np.median(list(found.edge_support.values()))), 4),
@@ -196,7 +200,7 @@ def main(argv: list[str] | None = None) -> None:
 
     oracles = ("true object seeds", "true seeds and a background ring") if a.true_masks is not None else ()
     names = ("shipped", "no grounded bites", "no table drop", "neither", "lone points counted", "least parallax",
-             "no support prior", "in-frame region", "every point, seed discs", *oracles)
+             "close-ups vote", "no support prior", "in-frame region", "every point, seed discs", *oracles)
     chosen = a.variants.split(",") if a.variants else names
     if unknown := set(chosen) - set(names):
         raise SystemExit(f"unknown variants {sorted(unknown)}; known: {', '.join(names)}")

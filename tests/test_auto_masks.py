@@ -65,18 +65,21 @@ def _render(c2w: np.ndarray, dark_base: bool = False, shadow: bool = False) -> t
     return rgb.reshape(H, W, 3).astype(np.float32), ball.reshape(H, W)
 
 
-def _scene(n_views: int = 10, dark_base: bool = False,
-           step_deg: float | None = None) -> tuple[Scene, dict[str, np.ndarray], dict[str, np.ndarray]]:
+def _scene(n_views: int = 10, dark_base: bool = False, step_deg: float | None = None,
+           close_ups: int = 0) -> tuple[Scene, dict[str, np.ndarray], dict[str, np.ndarray]]:
     """The ball on its table from a ring of cameras; dark_base: its lower half plain and dark as its shadow, with no
     sparse points (a plain base gives SfM nothing to match); step_deg: the cameras this many degrees apart on an arc
-    at one height instead (a clip's frames)."""
+    at one height instead (a clip's frames); close_ups: this many more photos from near the ball, between the ring's,
+    each of them cropping it."""
     rng = np.random.default_rng(0)
     frames, photos, truth = [], {}, {}
-    for i in range(n_views):
-        az, el = 2 * np.pi * i / n_views, np.radians(25 + 10 * (i % 2))
+    for i in range(n_views + close_ups):
+        az, el, distance = 2 * np.pi * i / n_views, np.radians(25 + 10 * (i % 2)), 2.0
         if step_deg is not None:
             az, el = np.radians(step_deg * i), np.radians(30)
-        eye = BALL_C + 2.0 * np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+        if i >= n_views:
+            az, el, distance = 2 * np.pi * ((i - n_views) / close_ups + 0.5 / n_views), np.radians(20), 0.75
+        eye = BALL_C + distance * np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
         c2w = look_at(eye, BALL_C)
         frame = Frame(f"view_{i:03d}.png", c2w, FOCAL, FOCAL, W / 2, H / 2, W, H)
         frames.append(frame)
@@ -188,8 +191,9 @@ def test_the_other_photos_fill_a_hole_one_cut_leaves_in_the_object(monkeypatch: 
     photos[name][patch] = marker
     grabcut = auto_masks._grabcut
 
-    def cut_with_a_hole(cv2, photo, fg, bg, box_uv, known_background, feet):
-        return grabcut(cv2, photo, fg, bg, box_uv, known_background, feet) & ~np.all(np.abs(photo - marker) < 1e-3, axis=-1)
+    def cut_with_a_hole(cv2, photo, fg, bg, box_uv, known_background, feet, hull=None):
+        found = grabcut(cv2, photo, fg, bg, box_uv, known_background, feet, hull)
+        return found & ~np.all(np.abs(photo - marker) < 1e-3, axis=-1)
 
     monkeypatch.setattr(auto_masks, "_grabcut", cut_with_a_hole)
     found = segment_object(scene, load_photo=lambda f: photos[f.name])
@@ -225,8 +229,8 @@ def _cut_by_photo(monkeypatch: pytest.MonkeyPatch, change: dict[bytes, object]) 
 
     grabcut = auto_masks._grabcut
 
-    def cut(cv2, photo, fg, bg, box_uv, known_background, feet):
-        found = grabcut(cv2, photo, fg, bg, box_uv, known_background, feet)
+    def cut(cv2, photo, fg, bg, box_uv, known_background, feet, hull=None):
+        found = grabcut(cv2, photo, fg, bg, box_uv, known_background, feet, hull)
         edit = change.get(_photo_key(photo))
         return found if edit is None else edit(found)
 
@@ -575,3 +579,39 @@ def test_a_masked_objects_box_holds_its_plain_top_that_has_no_sparse_points(tmp_
     stage.run(replace(ctx, out=opaque))
     assert "visual hull" not in load_scene(opaque).notes["box"]
     np.testing.assert_allclose(load_scene(opaque).aabb, cut.aabb)
+
+
+
+def test_close_ups_that_crop_the_object_do_not_carve_it_and_are_cut_again_inside_the_hull(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """Four close-ups crop the ball, and their own cuts leave out its lower part (as a close-up's cut gives a plain
+    board the object is mounted on to the background: no room around the object to learn the background from). Were
+    they to carve, that part would leave every photo's mask; the ring's photos, which frame the ball, carve the hull
+    alone, and each close-up is cut again inside the hull's silhouette."""
+    from recon.capture import auto_masks
+
+    scene, photos, truth = _scene(close_ups=4)
+    close, ring = [f.name for f in scene.frames[10:]], [f.name for f in scene.frames[:10]]
+    keys = {_photo_key(photos[n]): n for n in close}
+    grabcut = auto_masks._grabcut
+
+    def cut(cv2, photo, fg, bg, box_uv, known_background, feet, hull=None):
+        found = grabcut(cv2, photo, fg, bg, box_uv, known_background, feet, hull)
+        name = keys.get(_photo_key(photo))
+        if name is None or hull is not None:
+            return found
+        rows = np.flatnonzero(truth[name].any(axis=1))
+        found[rows[0] + (rows[-1] - rows[0]) * 3 // 5:] = False  # the close-up's first cut: its lower part is gone
+        return found
+
+    monkeypatch.setattr(auto_masks, "_grabcut", cut)
+    found = segment_object(scene, load_photo=lambda f: photos[f.name])
+    assert "4 close-up(s) crop the object, so only the 10 photos" in found.reason
+    assert "4 close-up(s) were cut again" in found.reason
+    assert min(_iou(found.masks[n], truth[n]) for n in close + ring) > 0.9
+
+    monkeypatch.setattr(auto_masks, "FRAMED_SHARE", 0.0)  # every photo counts as framing: all carve, none is cut again
+    voting = segment_object(scene, load_photo=lambda f: photos[f.name])
+    assert "close-up" not in voting.reason
+    assert max(_iou(voting.masks[n], truth[n]) for n in close) < 0.8
+    assert np.median([_iou(voting.masks[n], truth[n]) for n in ring]) < 0.9

@@ -253,3 +253,7 @@ def test_hull_silhouettes_cover_each_photos_object_and_outvote_one_wrong_mask() 
     wrong[6][:, : SIZE // 2] = False  # a second photo beside it cuts the same side: more than the tolerance
     outvoted, _ = hull_silhouettes(BOX, RES, cams, [INTR] * len(cams), wrong, tolerance=1 / len(cams))
     assert (outvoted[5] & masks[5]).sum() < 0.9 * masks[5].sum()
+    voters = [i not in (5, 6) for i in range(len(cams))]  # the two photos carve nothing, and get their silhouettes
+    unvoted, _ = hull_silhouettes(BOX, RES, cams, [INTR] * len(cams), wrong, tolerance=1 / len(cams), voters=voters)
+    assert len(unvoted) == len(cams)
+    assert (unvoted[5] & masks[5]).sum() >= 0.99 * masks[5].sum()

@@ -7,9 +7,11 @@ starting from the hull of the object seeds and their feet on the ground as proba
 table: a plain, shadowed base has no seeds of its own).
 Then the photos vote: a pixel stays object only where its ray passes through space that (almost) no photo calls
 background — the masks' visual hull. How well each photo's cut agrees with the hull the others carve says how sure the
-segmentation is. On a table, the plane settles what colour cannot: pixels whose texture lines up with the other photos'
-views of the table through its homography are table (a cast shadow the cut took), and the hull's pixels beside a cut
-whose rays go on to meet the table where no other photo sees it bare are object (a shadowed base the cut left out).
+segmentation is. A close-up that crops the object has no background around it to learn from: when enough photos frame
+the object, only they carve, and each close-up is cut again with the hull's silhouette as its probable object.
+On a table, the plane settles what colour cannot: pixels whose texture lines up with the other photos' views of the
+table through its homography are table (a cast shadow the cut took), and the hull's pixels beside a cut whose rays go
+on to meet the table where no other photo sees it bare are object (a shadowed base the cut left out).
 Finally each cut's outline is snapped to its photo's edges and made as soft as they are (`matte`, a
 guided filter).
 Pure numpy/OpenCV on a normalized `Scene` and its photos; the caller decides what to do with unsure masks.
@@ -58,6 +60,19 @@ HULL_RES = 96
 HULL_TOLERANCE = 0.1
 """A hull vertex survives while at most this fraction of the photos (at least one) call it background: one bad
 cut must not carve the object out of every other photo."""
+FRAMED_SHARE = 0.8
+"""A photo frames the object when at least this share of the grown region box's outline lies in the photo: its cut
+has background all round the object to learn the background's colours from. A close-up that crops the object has
+little, and its cut takes what it cannot tell from the background (a plain board the object is mounted on) for
+background: on the generated wall-mounted capture its close-ups' cuts kept 63-79% of the object, the framing
+photos' 99% (`benchmarks/auto_mask_seeds.py`, variant 'close-ups vote')."""
+MIN_FRAMING_VOTERS = 6
+"""When some photos do not frame the object and at least this many do, only the framing photos carve the hull (a
+close-up's cut would carve what it took for background out of every photo's mask), and each close-up is cut again
+with the hull's silhouette as its probable object and everything outside it as background."""
+MIN_HULL_BACKGROUND = 0.01
+"""... unless the silhouette leaves less than this share of the close-up outside it: then there is no background to
+learn from there either, and its first cut stays."""
 HOLE_IN_HULL = 0.95
 """A hole a cut leaves inside the object is filled when at least this share of it lies in the hull's silhouette."""
 FILL_GROUNDED_BITES = True
@@ -121,7 +136,8 @@ class ObjectMasks:
     masks: dict[str, np.ndarray]
     """Frame name -> (h, w) bool at the photo's own size and pixels (lens distortion as in the photo)."""
     agreement: dict[str, float]
-    """Frame name -> fraction of the photo's cut inside the silhouette of the hull all photos carve."""
+    """Frame name -> fraction of the photo's cut inside the silhouette of the hull the photos carve (those that frame
+    the object, when close-ups crop it: FRAMED_SHARE)."""
     seed_recall: float
     """Fraction of the object's sparse-point sightings that fall inside the final masks."""
     edge_support: dict[str, float]
@@ -174,7 +190,11 @@ def segment_object(scene: Scene, load_photo: PhotoLoader | None = None, side: in
         """The object points this photo's cut takes as seeds (P,) bool: those placed within SEED_SPREAD_PX."""
         return object_pts & (spread * (w / frame.w) <= SEED_SPREAD_PX)
 
-    def cut_one(frame: Frame) -> tuple[np.ndarray, np.ndarray, np.ndarray, tuple[int, int], np.ndarray]:
+    def cut_one(frame: Frame, hull: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray,
+                                                                       tuple[int, int], np.ndarray, np.ndarray,
+                                                                       np.ndarray, bool]:
+        """The photo's cut, its edges, intrinsics, size, object seeds, grey image, counted seeds and whether it
+        frames the object; hull: the hull's (h, w) silhouette in it, for a close-up's second cut."""
         photo = np.asarray(load(frame), np.float32)[..., :3]
         h, w = photo.shape[:2]
         intr = np.array(frame.intrinsics_at(w, h))
@@ -194,14 +214,15 @@ def segment_object(scene: Scene, load_photo: PhotoLoader | None = None, side: in
             known = cv2.resize(np.asarray(known, np.float32), (w, h), interpolation=cv2.INTER_NEAREST)
             known = undistort(known, *intr, frame.distortion, frame.camera_model) > 0.5
         grey = np.round(np.clip(pinhole @ np.float32([0.299, 0.587, 0.114]), 0, 1) * 255).astype(np.uint8)
-        cut = _grabcut(cv2, pinhole, fg, bg, box_uv, known, feet)
-        return cut, _edges(cv2, pinhole), intr, (w, h), fg, grey, judged
+        frames_object = _framed_share(box_uv, w, h) >= FRAMED_SHARE
+        cut = _grabcut(cv2, pinhole, fg, bg, box_uv, known, feet, hull)
+        return cut, _edges(cv2, pinhole), intr, (w, h), fg, grey, judged, frames_object
 
-    cuts, intrinsics, sizes, seeds, edges, greys, judged_seeds = [], [], [], [], [], [], []
+    cuts, intrinsics, sizes, seeds, edges, greys, judged_seeds, framing = [], [], [], [], [], [], [], []
     # one photo per core: OpenCV's graph cut runs on one thread and releases the GIL; each cut seeds its own
     # thread's RNG, so the masks do not depend on the thread count
     with ThreadPoolExecutor(max_workers=cpu_threads()) as pool:
-        for cut, edge, intr, size, fg, grey, judged in pool.map(cut_one, scene.frames):
+        for cut, edge, intr, size, fg, grey, judged, frames_object in pool.map(cut_one, scene.frames):
             greys.append(grey)
             judged_seeds.append(judged)
             cuts.append(cut)
@@ -209,11 +230,22 @@ def segment_object(scene: Scene, load_photo: PhotoLoader | None = None, side: in
             intrinsics.append(intr)
             sizes.append(size)
             seeds.append(fg)
+            framing.append(frames_object)
             if progress is not None:
                 progress()
 
     n = len(cuts)
-    silhouettes, _ = hull_silhouettes(grown, HULL_RES, [f.c2w for f in scene.frames], intrinsics, cuts, HULL_TOLERANCE)
+    close_ups = [k for k in range(n) if not framing[k]]
+    voters = framing if close_ups and n - len(close_ups) >= MIN_FRAMING_VOTERS else None
+    silhouettes, _ = hull_silhouettes(grown, HULL_RES, [f.c2w for f in scene.frames], intrinsics, cuts, HULL_TOLERANCE,
+                                      voters)
+    recut = []
+    if voters is not None:
+        recut = [k for k in close_ups if (~silhouettes[k]).mean() >= MIN_HULL_BACKGROUND]
+        with ThreadPoolExecutor(max_workers=cpu_threads()) as pool:
+            again = pool.map(lambda k: cut_one(scene.frames[k], silhouettes[k])[0], recut)
+            for k, cut in zip(recut, again, strict=True):
+                cuts[k] = cut
 
     agreement, filled = {}, []
     for frame, cut, silhouette in zip(scene.frames, cuts, silhouettes, strict=True):
@@ -265,6 +297,10 @@ def segment_object(scene: Scene, load_photo: PhotoLoader | None = None, side: in
     )
     if on_ground:
         reason += "; each cut started from the object's points and their feet on the ground (it stands on it)"
+    if voters is not None:
+        reason += (f"; {len(close_ups)} close-up(s) crop the object, so only the {n - len(close_ups)} photos that "
+                   "frame it carved the hull" + (f", and {len(recut)} close-up(s) were cut again inside its "
+                                                 "silhouette, their background learnt outside it" if recut else ""))
     if table_dropped:
         reason += (f"; {table_dropped} photo(s) gave back table their cut had taken (its texture lines up with "
                    "the other photos' views of the table: a cast shadow)")
@@ -376,9 +412,12 @@ def _feet(points: np.ndarray, support: np.ndarray) -> np.ndarray:
 
 
 def _grabcut(cv2, photo: np.ndarray, fg: np.ndarray, bg: np.ndarray, box_uv: np.ndarray,
-             known_background: np.ndarray | None = None, feet: np.ndarray | None = None) -> np.ndarray:
+             known_background: np.ndarray | None = None, feet: np.ndarray | None = None,
+             hull: np.ndarray | None = None) -> np.ndarray:
     """(h, w) bool object pixels of one undistorted photo from its seeds (see the module docstring); `feet`: the
-    object seeds dropped onto the support plane, whose hull with the seeds starts as probable object."""
+    object seeds dropped onto the support plane, whose hull with the seeds starts as probable object; `hull`: the
+    (h, w) silhouette of the hull other photos carved, probable object inside and background outside (a close-up's
+    second cut: FRAMED_SHARE)."""
     h, w = photo.shape[:2]
     label = np.full((h, w), cv2.GC_BGD, np.uint8)
     if len(box_uv) == 8:  # the whole grown box in front of the camera: outside its outline is background
@@ -387,8 +426,11 @@ def _grabcut(cv2, photo: np.ndarray, fg: np.ndarray, bg: np.ndarray, box_uv: np.
         label[:] = cv2.GC_PR_BGD
     if len(fg) < 3:
         return np.zeros((h, w), bool)
-    hull = cv2.convexHull(np.round(fg if feet is None else np.concatenate([fg, feet])).astype(np.int32))
-    cv2.fillConvexPoly(label, hull, int(cv2.GC_PR_FGD))
+    if hull is not None:
+        label[hull] = cv2.GC_PR_FGD
+        label[~hull] = cv2.GC_BGD
+    seeds_hull = cv2.convexHull(np.round(fg if feet is None else np.concatenate([fg, feet])).astype(np.int32))
+    cv2.fillConvexPoly(label, seeds_hull, int(cv2.GC_PR_FGD))
     radius = max(1, round(SEED_RADIUS * float(np.hypot(w, h))))
     if known_background is not None:
         label[known_background] = cv2.GC_BGD
@@ -404,6 +446,22 @@ def _grabcut(cv2, photo: np.ndarray, fg: np.ndarray, bg: np.ndarray, box_uv: np.
     if known_background is not None:
         cut &= ~known_background
     return _keep_seeded_pieces(cv2, cut, fg)
+
+
+def _framed_share(box_uv: np.ndarray, w: int, h: int) -> float:
+    """The share of the box's projected outline (box_uv: its 8 corners' pixels, fewer when some are behind the camera)
+    that lies inside the w × h photo (see FRAMED_SHARE); 0 when the camera is inside or beside the box."""
+    import cv2
+
+    if len(box_uv) < 8:
+        return 0.0
+    outline = cv2.convexHull(np.asarray(box_uv, np.float32))
+    area = float(cv2.contourArea(outline))
+    if area <= 0.0:
+        return 0.0
+    photo = np.float32([[0, 0], [w, 0], [w, h], [0, h]]).reshape(-1, 1, 2)
+    inside, _ = cv2.intersectConvexConvex(outline, photo)
+    return float(inside) / area
 
 
 def _keep_seeded_pieces(cv2, cut: np.ndarray, fg: np.ndarray) -> np.ndarray:

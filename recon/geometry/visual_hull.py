@@ -118,17 +118,21 @@ def visual_hull_sdf(inside: np.ndarray, box: np.ndarray, smooth_cells: float = 1
 
 
 def hull_silhouettes(box: np.ndarray, res: int, c2ws: Sequence[np.ndarray], intrinsics: Sequence[Sequence[float]],
-                     objects: Sequence[np.ndarray], tolerance: float) -> tuple[list[np.ndarray], np.ndarray]:
+                     objects: Sequence[np.ndarray], tolerance: float,
+                     voters: Sequence[bool] | None = None) -> tuple[list[np.ndarray], np.ndarray]:
     """(per photo, the (H, W) bool pixels the photos' common hull covers; carved_by as `carve` returns it).
 
-    The hull keeps every vertex of a res³ grid over box that at most `tolerance` of the photos (at least one) see as
-    background, so one photo's wrong object pixels carve nothing the others show; each photo's silhouette is the
-    hull's outer vertices splatted into it (`silhouette`), the size of its `objects` mask."""
+    The hull keeps every vertex of a res³ grid over box that at most `tolerance` of the voting photos (at least one)
+    see as background, so one photo's wrong object pixels carve nothing the others show; each photo's silhouette is
+    the hull's outer vertices splatted into it (`silhouette`), the size of its `objects` mask. voters (per photo,
+    default all): the photos whose masks carve; every photo gets its silhouette."""
     from scipy.ndimage import binary_erosion
 
     box = np.asarray(box, np.float64)
-    _, carved_by = carve(box, res, c2ws, intrinsics, objects)
-    inside = carved_by <= max(1, int(tolerance * len(objects)))
+    carving = [k for k in range(len(objects)) if voters is None or voters[k]]
+    _, carved_by = carve(box, res, [c2ws[k] for k in carving], [intrinsics[k] for k in carving],
+                         [objects[k] for k in carving])
+    inside = carved_by <= max(1, int(tolerance * len(carving)))
     shell = inside & ~binary_erosion(inside)  # the hull's outer vertices project onto its whole silhouette
     hull_pts = _grid(box, res)[shell.reshape(-1)]
     cell = float(np.max(box[1] - box[0]) / (res - 1))
