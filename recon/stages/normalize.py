@@ -166,4 +166,5 @@ def _write(folder: Path, masks: dict[str, np.ndarray], scene: Scene) -> None:
 #             and trust leaves lone points out
 # version 15: automatic masks match the table only with photos that see the object move off its homography
 # version 16: automatic masks are recorded relative to the scene folder (were relative to the working folder)
-STAGE = Stage(name="normalize", folder="02_scene", inputs=("poses",), version=16, run=run)
+# version 17: automatic masks: only the photos that frame the object carve the hull; close-ups are cut again inside it
+STAGE = Stage(name="normalize", folder="02_scene", inputs=("poses",), version=17, run=run)
