@@ -107,3 +107,30 @@ def test_fit_sim3_robust_leaves_out_a_misplaced_camera():
     # more than half the pairs are never left out, however they scatter
     wild = truth + rng.normal(scale=1.0, size=truth.shape) * (np.arange(40) % 2)[:, None]
     assert fit_sim3_robust(src, wild)[3].sum() >= 20
+
+
+def test_scores_where_the_photos_can_see_leave_out_the_unseen_base_and_a_fill_behind_the_surface() -> None:
+    """A cube seen from above all round: its base is unseen. A mesh without the base but with a square inside the
+    cube (a fill no photo sees into) loses recall and precision over everything, and none where the photos see."""
+    from recon.camera import look_at
+    from recon.geometry.compare import seen_by
+
+    gt = trimesh.creation.box(extents=(1.0, 1.0, 1.0))
+    cameras = []
+    for az in np.linspace(0, 2 * np.pi, 8, endpoint=False):
+        eye = 4.0 * np.array([np.cos(az) * np.cos(0.5), np.sin(az) * np.cos(0.5), np.sin(0.5)])
+        cameras.append((look_at(eye, np.zeros(3)), (300.0, 300.0, 160.0, 120.0), (240, 320)))
+    open_box = gt.copy()
+    open_box.update_faces(open_box.face_normals[:, 2] > -0.5)  # no base
+    inside = trimesh.creation.box(extents=(0.6, 0.6, 1e-3))
+    pred = trimesh.util.concatenate([open_box, inside])
+    out = chamfer_fscore(pred, gt, thresholds=(0.01,), n_samples=40_000, cameras=cameras)
+    assert 0.8 < out["gt_seen_share"] < 0.86  # the five faces the cameras see of six
+    assert out["recall@0.01"] < 0.9 and out["recall_seen@0.01"] > 0.99
+    assert out["precision@0.01"] < 0.9 and out["precision_seen@0.01"] > 0.99
+    assert out["pred_observable_share"] < 0.9
+    assert "fscore_seen@0.01" not in chamfer_fscore(pred, gt, thresholds=(0.01,), n_samples=2000)
+    top = np.array([[0.0, 0.0, 0.5], [0.0, 0.0, -0.5], [0.0, 0.0, 0.0], [0.0, 0.0, 0.9]])
+    on_surface, observable = seen_by(gt, top, cameras, 0.01)
+    assert on_surface.tolist() == [True, False, False, False]  # the top; not the base, the centre, the air
+    assert observable.tolist() == [True, False, False, True]

@@ -229,6 +229,8 @@ def test_stage_writes_reloadable_meshes_report_and_previews_and_gt_comparison_is
     assert result["alignment"]["method"].startswith("exact")
     assert result["fscore@0.01"] > 0.99 and result["chamfer_l1_rel"] < 3e-3
     assert result["volume_ratio"] == pytest.approx(1.0, abs=0.02)  # both closed: the solids compare too
+    # the cameras, moved into the truth's frame, see the sphere they look at: the scores where they see it agree
+    assert result["gt_seen_share"] > 0.95 and result["fscore_seen@0.01"] > 0.99
     assert "F-score" in format_comparison(result) and "of the true solid's" in format_comparison(result)
 
     # the same scene as if from SfM: the GT lives in another frame, the true poses say which
@@ -244,6 +246,7 @@ def test_stage_writes_reloadable_meshes_report_and_previews_and_gt_comparison_is
     result = compare_to_gt(scene_dir, gt_path)
     assert result["alignment"]["cameras_matched"] == 6 and result["alignment"]["residual_rms_rel"] < 1e-9
     assert result["alignment"]["scale"] == pytest.approx(3.0)
+    assert result["gt_seen_share"] > 0.95 and result["fscore_seen@0.01"] > 0.99  # the true cameras see it too
     assert result["fscore@0.01"] > 0.99 and result["chamfer_l1_rel"] < 3e-3
     # one true camera far from where SfM put it: the fit leaves it out (and names it) instead of moving the mesh
     frames[1]["transform_matrix"][0][3] += 2.0

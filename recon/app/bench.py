@@ -278,6 +278,9 @@ def run_bench(
             row["chamfer_rel"] = acc.get("chamfer_l1_rel")
             row["fscore_05pct"] = acc.get("fscore@0.005")
             row["normal_consistency"] = acc.get("normal_consistency")
+            row["fscore_seen_1pct"] = acc.get("fscore_seen@0.01")  # where the photos can see (`seen_by`)
+            row["precision_seen_1pct"] = acc.get("precision_seen@0.01")
+            row["mesh_observable_share"] = acc.get("pred_observable_share")
             row["pose_residual_rms_rel"] = acc.get("alignment", {}).get("residual_rms_rel")
             if (gt.parent / "masks").is_dir():  # true object masks beside the truth: score the cut-outs too
                 from recon.evaluation.mesh_eval import silhouette_iou

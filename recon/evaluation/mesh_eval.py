@@ -19,7 +19,7 @@ import trimesh
 from recon.atomic import read_json
 from recon.capture.scene import Frame, Scene, load_scene, parse_frames
 from recon.errors import ReconError
-from recon.geometry.compare import chamfer_fscore, fit_sim3_robust, icp_sim3, sample_surface
+from recon.geometry.compare import Camera, chamfer_fscore, fit_sim3_robust, icp_sim3, sample_surface
 
 SCENE_FOLDER = "02_scene"
 MESH_FOLDER = "04_mesh"
@@ -58,8 +58,8 @@ def our_mesh_in_scene_frame(scene_dir: Path) -> tuple[np.ndarray, np.ndarray, di
     return vertices, faces, report
 
 
-def _true_poses(candidates: Sequence[Path]) -> tuple[Path, dict[str, np.ndarray]] | None:
-    """The first transforms.json among candidate folders: path and true camera centres by file name."""
+def _true_poses(candidates: Sequence[Path]) -> tuple[Path, dict[str, np.ndarray], list[Frame]] | None:
+    """The first transforms.json among candidate folders: path, true camera centres by file name, and its frames."""
     for folder in candidates:
         path = folder / "transforms.json" if folder.is_dir() else folder
         if path.name == "transforms.json" and path.is_file():
@@ -68,8 +68,23 @@ def _true_poses(candidates: Sequence[Path]) -> tuple[Path, dict[str, np.ndarray]
                 frames = parse_frames(doc, base=path.parent, source=path, check_files=False)
             except (ValueError, ReconError) as exc:
                 raise ReconError(f"The true poses {path} are unreadable ({exc}).") from None
-            return path, {f.name: f.c2w[:3, 3] for f in frames}
+            return path, {f.name: f.c2w[:3, 3] for f in frames}, frames
     return None
+
+
+def _cameras(frames: Sequence[Frame], to_truth: np.ndarray | None = None) -> list[Camera]:
+    """The frames' cameras (`recon.geometry.compare.Camera`), moved into the truth's frame by the similarity
+    to_truth (4, 4) when given (its scale leaves the rotation: c2w stays rigid)."""
+    cameras = []
+    for f in frames:
+        c2w = np.asarray(f.c2w, np.float64).copy()
+        if to_truth is not None:
+            linear = to_truth[:3, :3]
+            scale = abs(float(np.linalg.det(linear))) ** (1.0 / 3.0)
+            c2w[:3, :3] = linear @ c2w[:3, :3] / scale
+            c2w[:3, 3] = linear @ c2w[:3, 3] + to_truth[:3, 3]
+        cameras.append((c2w, (f.fl_x, f.fl_y, f.cx, f.cy), (f.h, f.w)))
+    return cameras
 
 
 def align_sfm_to_truth(scene: Scene, truth: dict[str, np.ndarray]) -> tuple[np.ndarray, dict]:
@@ -131,6 +146,7 @@ def compare_to_gt(
     if scene.source_kind in KNOWN_POSES:
         v_gt = v_src
         alignment = {"method": f"exact: known poses ({scene.source_kind}), inverse normalization similarity"}
+        cameras = _cameras(scene.frames, to_source)
     else:
         candidates = [gt_mesh.parent]
         try:
@@ -147,12 +163,13 @@ def compare_to_gt(
                 f"transforms.json with the true poses was found in {', '.join(str(c) for c in candidates)} to align it "
                 f"to {gt_mesh}. Put the true poses next to the GT mesh as transforms.json."
             )
-        path, truth = found
+        path, truth, true_frames = found
+        cameras = _cameras(true_frames)
         sim, fit = align_sfm_to_truth(scene, truth)
         v_gt = v_src @ sim[:3, :3].T + sim[:3, 3]
         alignment = {"method": f"Sim(3) fit of our cameras to the true ones in {path}", **fit}
     gt = _load_mesh(gt_mesh)
-    metrics = chamfer_fscore((v_gt, faces), gt, thresholds=thresholds, n_samples=n_samples)
+    metrics = chamfer_fscore((v_gt, faces), gt, thresholds=thresholds, n_samples=n_samples, cameras=cameras)
     out = {
         "mesh": str(scene_dir / MESH_FOLDER / report.get("export", {}).get("files", {}).get("ply", "mesh.ply")),
         "gt_mesh": str(gt_mesh),
@@ -204,6 +221,13 @@ def format_comparison(result: dict[str, Any]) -> str:
             f"@{tau:.1%} of diagonal: precision {result[f'precision@{tau:g}']:.3f}  recall {result[f'recall@{tau:g}']:.3f}  "
             f"F-score {result[f'fscore@{tau:g}']:.3f}"
         )
+    if "gt_seen_share" in result:
+        tau = result["thresholds"][0]
+        lines.append(
+            f"where the photos can see (the {result['gt_seen_share']:.0%} of the true surface some photo sees, the "
+            f"{result['pred_observable_share']:.0%} of the mesh not hidden behind it from every photo): @{tau:.1%} "
+            f"precision {result[f'precision_seen@{tau:g}']:.3f}  recall {result[f'recall_seen@{tau:g}']:.3f}  "
+            f"F-score {result[f'fscore_seen@{tau:g}']:.3f}")
     if "volume_ratio" in result:
         lines.append(f"volume: {result['volume_ratio']:.3f} of the true solid's (both meshes closed)")
     icp = result.get("icp_refined")

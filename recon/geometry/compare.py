@@ -33,12 +33,22 @@ def _diagonal(points: np.ndarray) -> float:
     return float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))
 
 
+Camera = tuple[np.ndarray, Sequence[float], tuple[int, int]]
+"""A photo's camera in the truth's frame: c2w (4, 4, OpenGL), intrinsics (fl_x, fl_y, cx, cy) at its size, (h, w)."""
+SEEN_SIDE = 400
+"""The true surface is rasterized at this longest side in each camera to tell which of it the photos see."""
+SEEN_TOLERANCE = 0.005
+"""... a point lies on the surface a camera sees when its depth is within this fraction of the true surface's
+diagonal of the true depth at its pixel and the 3×3 pixels around it."""
+
+
 def chamfer_fscore(
     pred: Surface,
     gt: Surface,
     thresholds: Sequence[float] = (0.01, 0.005),
     n_samples: int = 200_000,
     seed: int = 0,
+    cameras: Sequence[Camera] | None = None,
 ) -> dict[str, float]:
     """Chamfer-L1 and precision/recall/F-score of pred against gt (same frame and units).
 
@@ -52,6 +62,11 @@ def chamfer_fscore(
     the other surface, averaged over both directions (1 = normals agree everywhere; orientation-free).
     Note the sampling floor: with n samples the nearest-sample distance on a perfect match is about
     the sample spacing, ~ sqrt(area / n).
+    With the photos' ``cameras`` and a true mesh, the scores also come for what the photos can show (`seen_by`):
+    ``recall_seen@τ`` over the true surface some photo sees (not the back of a board against its wall),
+    ``precision_seen@τ`` over the predicted surface some photo could see, not hidden behind the true surface from
+    every one (not a fill of space no photo sees into), ``fscore_seen@τ``, and the shares they keep
+    (``gt_seen_share``, ``pred_observable_share``).
     """
     p, p_n = _sample_with_normals(pred, n_samples, seed)
     g, g_n = _sample_with_normals(gt, n_samples, seed + 1)
@@ -70,8 +85,57 @@ def chamfer_fscore(
         prec, rec = float((d_pg < tau).mean()), float((d_gp < tau).mean())
         out[f"precision@{frac:g}"] = prec
         out[f"recall@{frac:g}"] = rec
-        out[f"fscore@{frac:g}"] = 2 * prec * rec / (prec + rec) if prec + rec > 0 else 0.0
+        out[f"fscore@{frac:g}"] = _fscore(prec, rec)
+    if cameras and not isinstance(gt, np.ndarray):
+        gt_mesh = gt if isinstance(gt, trimesh.Trimesh) else trimesh.Trimesh(*gt, process=False)
+        seen, _ = seen_by(gt_mesh, g, cameras, SEEN_TOLERANCE * diag)
+        _, observable = seen_by(gt_mesh, p, cameras, SEEN_TOLERANCE * diag)
+        out["gt_seen_share"], out["pred_observable_share"] = float(seen.mean()), float(observable.mean())
+        for frac in thresholds:
+            tau = frac * diag
+            prec = float((d_pg[observable] < tau).mean()) if observable.any() else 0.0
+            rec = float((d_gp[seen] < tau).mean()) if seen.any() else 0.0
+            out[f"precision_seen@{frac:g}"] = prec
+            out[f"recall_seen@{frac:g}"] = rec
+            out[f"fscore_seen@{frac:g}"] = _fscore(prec, rec)
     return out
+
+
+def _fscore(precision: float, recall: float) -> float:
+    return 2 * precision * recall / (precision + recall) if precision + recall > 0 else 0.0
+
+
+def seen_by(surface: trimesh.Trimesh, points: np.ndarray, cameras: Sequence[Camera],
+            tolerance: float) -> tuple[np.ndarray, np.ndarray]:
+    """(on the seen surface (N,) bool, observable (N,) bool) for points (N, 3) near a mesh, from the cameras.
+
+    On the seen surface: some camera has the point in frame, in front of it, and within `tolerance` of the mesh's
+    depth at its pixel or the 3×3 pixels around it (grazing faces and outlines, where depth jumps, still count).
+    Observable: some camera has it in frame and not behind the mesh by more than `tolerance` (pixels the mesh
+    leaves empty see through to everything behind them). Each camera's z-buffer is drawn at SEEN_SIDE."""
+    from scipy.ndimage import maximum_filter, minimum_filter
+
+    from recon.camera import project
+    from recon.geometry.raster import mesh_depth
+
+    points = np.asarray(points, np.float64)
+    on_surface, observable = np.zeros(len(points), bool), np.zeros(len(points), bool)
+    vertices, faces = np.asarray(surface.vertices, np.float64), np.asarray(surface.faces, np.int64)
+    for c2w, intrinsics, (h, w) in cameras:
+        scale = min(1.0, SEEN_SIDE / max(h, w))
+        hs, ws = max(1, round(h * scale)), max(1, round(w * scale))
+        k = np.asarray(intrinsics, np.float64) * np.array([ws / w, hs / h, ws / w, hs / h])
+        depth = mesh_depth(vertices, faces, np.asarray(c2w, np.float64), k, (hs, ws))
+        near, far = minimum_filter(depth, size=3, mode="nearest"), maximum_filter(depth, size=3, mode="nearest")
+        uv, z = project(points, np.asarray(c2w, np.float64), k)
+        inside = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < ws) & (uv[:, 1] >= 0) & (uv[:, 1] < hs)
+        idx = np.flatnonzero(inside)
+        col, row = uv[idx, 0].astype(np.int64), uv[idx, 1].astype(np.int64)
+        zi, lo, hi = z[idx], near[row, col], far[row, col]
+        top = np.where(np.isfinite(hi), hi, lo)  # at an outline, where a neighbour is empty: the nearest depth
+        on_surface[idx] |= np.isfinite(lo) & (zi >= lo - tolerance) & (zi <= top + tolerance)
+        observable[idx] |= zi <= hi + tolerance  # an empty pixel's depth is inf: all of it is seen through
+    return on_surface, observable
 
 
 def fit_sim3(src: np.ndarray, dst: np.ndarray, with_scale: bool = True) -> tuple[float, np.ndarray, np.ndarray]:
