@@ -64,8 +64,8 @@ FRAMED_SHARE = 0.8
 """A photo frames the object when at least this share of the grown region box's outline lies in the photo: its cut
 has background all round the object to learn the background's colours from. A close-up that crops the object has
 little, and its cut takes what it cannot tell from the background (a plain board the object is mounted on) for
-background: on the generated wall-mounted capture its close-ups' cuts kept 63-79% of the object, the framing
-photos' 99% (`benchmarks/auto_mask_seeds.py`, variant 'close-ups vote')."""
+background, as the generated wall-mounted capture's close-ups do (`benchmarks/auto_mask_seeds.py`, variant
+'close-ups vote', against 'shipped')."""
 MIN_FRAMING_VOTERS = 6
 """When some photos do not frame the object and at least this many do, only the framing photos carve the hull (a
 close-up's cut would carve what it took for background out of every photo's mask), and each close-up is cut again
