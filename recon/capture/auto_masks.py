@@ -242,6 +242,7 @@ def segment_object(scene: Scene, load_photo: PhotoLoader | None = None, side: in
     recut = []
     if voters is not None:
         recut = [k for k in close_ups if (~silhouettes[k]).mean() >= MIN_HULL_BACKGROUND]
+        # each close-up is read again rather than held from the first pass: a clip's frames would all stay in memory
         with ThreadPoolExecutor(max_workers=cpu_threads()) as pool:
             again = pool.map(lambda k: cut_one(scene.frames[k], silhouettes[k])[0], recut)
             for k, cut in zip(recut, again, strict=True):

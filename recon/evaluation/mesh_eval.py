@@ -17,6 +17,7 @@ import numpy as np
 import trimesh
 
 from recon.atomic import read_json
+from recon.capture.normalization import transform_c2w
 from recon.capture.scene import Frame, Scene, load_scene, parse_frames
 from recon.errors import ReconError
 from recon.geometry.compare import Camera, chamfer_fscore, fit_sim3_robust, icp_sim3, sample_surface
@@ -75,16 +76,8 @@ def _true_poses(candidates: Sequence[Path]) -> tuple[Path, dict[str, np.ndarray]
 def _cameras(frames: Sequence[Frame], to_truth: np.ndarray | None = None) -> list[Camera]:
     """The frames' cameras (`recon.geometry.compare.Camera`), moved into the truth's frame by the similarity
     to_truth (4, 4) when given (its scale leaves the rotation: c2w stays rigid)."""
-    cameras = []
-    for f in frames:
-        c2w = np.asarray(f.c2w, np.float64).copy()
-        if to_truth is not None:
-            linear = to_truth[:3, :3]
-            scale = abs(float(np.linalg.det(linear))) ** (1.0 / 3.0)
-            c2w[:3, :3] = linear @ c2w[:3, :3] / scale
-            c2w[:3, 3] = linear @ c2w[:3, 3] + to_truth[:3, 3]
-        cameras.append((c2w, (f.fl_x, f.fl_y, f.cx, f.cy), (f.h, f.w)))
-    return cameras
+    return [(np.asarray(f.c2w, np.float64) if to_truth is None else transform_c2w(to_truth, f.c2w),
+             (f.fl_x, f.fl_y, f.cx, f.cy), (f.h, f.w)) for f in frames]
 
 
 def align_sfm_to_truth(scene: Scene, truth: dict[str, np.ndarray]) -> tuple[np.ndarray, dict]:

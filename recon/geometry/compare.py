@@ -88,8 +88,8 @@ def chamfer_fscore(
         out[f"fscore@{frac:g}"] = _fscore(prec, rec)
     if cameras and not isinstance(gt, np.ndarray):
         gt_mesh = gt if isinstance(gt, trimesh.Trimesh) else trimesh.Trimesh(*gt, process=False)
-        seen, _ = seen_by(gt_mesh, g, cameras, SEEN_TOLERANCE * diag)
-        _, observable = seen_by(gt_mesh, p, cameras, SEEN_TOLERANCE * diag)
+        on_surface, in_view = seen_by(gt_mesh, np.concatenate([g, p]), cameras, SEEN_TOLERANCE * diag)  # one z-buffer
+        seen, observable = on_surface[: len(g)], in_view[len(g):]  # a camera for both sample sets
         out["gt_seen_share"], out["pred_observable_share"] = float(seen.mean()), float(observable.mean())
         for frac in thresholds:
             tau = frac * diag
