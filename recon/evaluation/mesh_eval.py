@@ -118,16 +118,11 @@ def align_sfm_to_truth(scene: Scene, truth: dict[str, np.ndarray]) -> tuple[np.n
     return sim, info
 
 
-def compare_to_gt(
-    scene_dir: Path, gt_mesh: Path, thresholds: Sequence[float] = (0.01, 0.005), n_samples: int = 200_000
-) -> dict[str, Any]:
-    """Chamfer-L1 and precision/recall/F-score of the scene's mesh against gt_mesh, in the GT's frame.
-
-    thresholds: fractions of the GT bounding-box diagonal (1 % and 0.5 % by default). Returns a flat,
-    JSON-ready dict (see `format_comparison`): the alignment used and its residual, ``chamfer_l1``
-    (GT units), ``chamfer_l1_rel`` (÷ GT diagonal), ``precision@τ``, ``recall@τ``, ``fscore@τ``, and when both
-    meshes are watertight ``volume_ratio`` (ours ÷ the truth's).
-    """
+def in_truth_frame(scene_dir: Path, gt_mesh: Path) -> tuple[trimesh.Trimesh, trimesh.Trimesh, dict[str, Any],
+                                                             list[Camera], dict]:
+    """(our mesh, the true mesh, the alignment used and its residual, the training photos' cameras, our mesh report),
+    both meshes in the truth's frame: exact for known poses, else a Sim(3) fit of our camera centres to the true
+    poses in a transforms.json beside the capture or the true mesh."""
     scene_dir, gt_mesh = Path(scene_dir), Path(gt_mesh)
     vertices, faces, report = our_mesh_in_scene_frame(scene_dir)
     scene = load_scene(scene_dir / SCENE_FOLDER)
@@ -138,7 +133,8 @@ def compare_to_gt(
     alignment: dict[str, Any]
     if scene.source_kind in KNOWN_POSES:
         v_gt = v_src
-        alignment = {"method": f"exact: known poses ({scene.source_kind}), inverse normalization similarity"}
+        alignment = {"method": f"exact: known poses ({scene.source_kind}), inverse normalization similarity",
+                     "exact": True}
         cameras = _cameras(scene.frames, to_source)
     else:
         candidates = [gt_mesh.parent]
@@ -160,8 +156,23 @@ def compare_to_gt(
         cameras = _cameras(true_frames)
         sim, fit = align_sfm_to_truth(scene, truth)
         v_gt = v_src @ sim[:3, :3].T + sim[:3, 3]
-        alignment = {"method": f"Sim(3) fit of our cameras to the true ones in {path}", **fit}
-    gt = _load_mesh(gt_mesh)
+        alignment = {"method": f"Sim(3) fit of our cameras to the true ones in {path}", "exact": False, **fit}
+    return trimesh.Trimesh(v_gt, faces, process=False), _load_mesh(gt_mesh), alignment, cameras, report
+
+
+def compare_to_gt(
+    scene_dir: Path, gt_mesh: Path, thresholds: Sequence[float] = (0.01, 0.005), n_samples: int = 200_000
+) -> dict[str, Any]:
+    """Chamfer-L1 and precision/recall/F-score of the scene's mesh against gt_mesh, in the GT's frame.
+
+    thresholds: fractions of the GT bounding-box diagonal (1 % and 0.5 % by default). Returns a flat,
+    JSON-ready dict (see `format_comparison`): the alignment used and its residual, ``chamfer_l1``
+    (GT units), ``chamfer_l1_rel`` (÷ GT diagonal), ``precision@τ``, ``recall@τ``, ``fscore@τ``, and when both
+    meshes are watertight ``volume_ratio`` (ours ÷ the truth's).
+    """
+    scene_dir, gt_mesh = Path(scene_dir), Path(gt_mesh)
+    aligned, gt, alignment, cameras, report = in_truth_frame(scene_dir, gt_mesh)
+    v_gt, faces = np.asarray(aligned.vertices), np.asarray(aligned.faces)
     metrics = chamfer_fscore((v_gt, faces), gt, thresholds=thresholds, n_samples=n_samples, cameras=cameras)
     out = {
         "mesh": str(scene_dir / MESH_FOLDER / report.get("export", {}).get("files", {}).get("ply", "mesh.ply")),
@@ -170,10 +181,10 @@ def compare_to_gt(
         "thresholds": list(thresholds),
         **metrics,
     }
-    ours = trimesh.Trimesh(v_gt, faces)
+    ours = trimesh.Trimesh(v_gt, faces)  # vertices merged: a solid's seams do not open it
     if ours.is_watertight and gt.is_watertight and abs(gt.volume) > 0:  # two solids: how much of the true one
         out["volume_ratio"] = float(ours.volume / gt.volume)
-    if scene.source_kind not in KNOWN_POSES:  # SfM: also the shape's accuracy free of SfM's scale error
+    if not alignment["exact"]:  # SfM: also the shape's accuracy free of SfM's scale error
         out["icp_refined"] = icp_refined(v_gt, faces, gt, thresholds, n_samples)
     return out
 
