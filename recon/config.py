@@ -153,10 +153,10 @@ class TrainConfig:
     """Sparse-point rays rendered per step for the depth loss (on top of batch_rays)."""
     hull_start: Literal["auto", "on", "off"] = "auto"
     """Where the fast field's matter starts (photos with silhouettes: masks or alpha). on: inside their visual hull, at
-    `train.fast.hull_start_alpha` opacity a step, so a plain surface, which the colours cannot place, forms on the
-    hull rather than in dents behind it; off: empty everywhere. auto: on for a plain object (fewer than
-    `recon.plans.training.PLAIN_POINTS` sparse points per 10,000 of its pixels in the median training photo),
-    off for a textured one, whose colours place its surfaces, and where no sparse points tell (known poses)."""
+    `train.fast.hull_start_alpha` opacity a step, so a surface the colours cannot place (a plain or glossy patch)
+    forms on the hull rather than leaving a hole with walls behind it; off: empty everywhere. auto: on, except for an
+    object that hangs on a wall (normalize's support plane): photos from one side leave a hull that reaches out towards
+    them, and a plain face would form on it, in front of the true one."""
     photo_footprint: Literal["auto", "off"] = "auto"
     """auto: a photo that sees the object finer than most (a close-up) trains downscaled to their pixel footprint
     (`recon.plans.training.photo_sides`), so its detail is no finer than the rest and its rays no more; off: every

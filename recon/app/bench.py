@@ -256,8 +256,8 @@ def run_bench(
             "test_views": len(metrics["test"]["views"]),
             "rays_per_s": metrics["rays_per_s"],
             "evals": metrics["evals"],
-            # how textured the object is: what train.hull_start=auto decides by (training.object_point_density)
-            "object_point_density": metrics.get("object_point_density"),
+            # whether the field started inside the masks' visual hull (train.hull_start)
+            "hull_start": metrics.get("hull_start"),
         }
         normalized = _stage_summary(scene, "normalize")
         row["auto_masks"] = normalized.get("auto_masks")

@@ -12,6 +12,7 @@ import torch
 
 from recon.camera import pixel_footprint, project
 from recon.capture.auto_masks import HULL_RES, HULL_TOLERANCE
+from recon.capture.region import support_kind
 from recon.capture.scene import Frame, Scene
 from recon.capture.sky import SKY_MIN_FRACTION, sky_mask
 from recon.config import TrainConfig
@@ -245,59 +246,28 @@ def silhouettes(views: list[View]) -> list[np.ndarray]:
     return [v.image[..., 3] >= 128 for v in views]
 
 
-PLAIN_POINTS = 3.0
-"""Sparse points per 10,000 object pixels (at a 1000-px longer side) in the median training photo under which an
-object counts as plain for train.hull_start=auto: far under a textured object's, far over a painted one's
-(docs/real_captures.md, "A plain object")."""
-
-
-def object_point_density(scene: Scene, frames: list[Frame], views: list[View]) -> float | None:
-    """The sparse points a training photo observes inside its silhouette per 10,000 silhouette pixels at a 1000-px
-    longer side, in the median photo: how much texture SfM found on the object. None without silhouettes or without
-    sparse points observed by the photos (known poses)."""
-    points = np.asarray(scene.points, np.float64).reshape(-1, 3)
-    if not has_silhouettes(views) or not len(points) or not scene.point_visibility:
-        return None
-    densities = []
-    for frame, view, inside in zip(frames, views, silhouettes(views), strict=True):
-        seen = scene.point_visibility.get(frame.name)
-        if seen is None or not inside.any():
-            continue
-        h, w = inside.shape
-        uv, z = project(points[np.asarray(seen, np.int64)], view.c2w, np.asarray(view.intrinsics, np.float64))
-        px = np.floor(uv[(z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)]).astype(int)
-        area = inside.sum() * (1000.0 / max(h, w)) ** 2
-        densities.append(inside[px[:, 1], px[:, 0]].sum() / area * 1e4)
-    return float(np.median(densities)) if densities else None
-
-
-def hull_start_for(cfg: TrainConfig, kind: str, kwargs: dict[str, Any], scene: Scene, frames: list[Frame],
-                   views: list[View]) -> tuple[bool, str, float | None]:
-    """(whether the fast model starts with matter inside the photos' visual hull, why, `object_point_density`);
-    why is "" where there is nothing to say: another model, an unbounded field, no silhouettes."""
+def hull_start_for(cfg: TrainConfig, kind: str, kwargs: dict[str, Any], scene: Scene,
+                   views: list[View]) -> tuple[bool, str]:
+    """(whether the fast model starts with matter inside the photos' visual hull, why); why is "" where there is
+    nothing to say: another model, an unbounded field, no silhouettes."""
     fast = kwargs["config"] if kind == "fast" else {}
     if kind != "fast" or fast.get("unbounded") or fast.get("density_grid", "dense") != "dense":
-        return False, "", None
+        return False, ""
     if not has_silhouettes(views):
         return False, ("start: an empty field (train.hull_start=on needs silhouettes: masks or alpha)"
-                       if cfg.hull_start == "on" else ""), None
+                       if cfg.hull_start == "on" else "")
     hull = (f"inside the visual hull of the {len(views)} training photos' silhouettes at opacity "
             f"{fast['hull_start_alpha']:g} a step")
-    density = object_point_density(scene, frames, views)
     if cfg.hull_start != "auto":
         on = cfg.hull_start == "on"
-        return on, f"start: {hull if on else 'an empty field'} (train.hull_start={cfg.hull_start})", density
-    if density is None:
-        return False, ("start: an empty field (no sparse points tell how textured the object is; "
-                       "train.hull_start=on starts it in the hull)"), None
-    if density < PLAIN_POINTS:
-        return True, (f"start: {hull}: the object is plain ({density:.1f} sparse points per 10,000 of its pixels in "
-                      f"the median photo, under {PLAIN_POINTS:g}): its colours cannot place its surfaces, and from an "
-                      f"empty start the field forms them in dents behind the hull (train.hull_start=off starts it "
-                      f"empty)"), density
-    return False, (f"start: an empty field: the object is textured ({density:.1f} sparse points per 10,000 of its "
-                   f"pixels in the median photo), its colours place its surfaces (train.hull_start=on starts it in "
-                   f"the hull)"), density
+        return on, f"start: {hull if on else 'an empty field'} (train.hull_start={cfg.hull_start})"
+    if scene.ground is not None and support_kind(scene.ground) == "wall":
+        return False, ("start: an empty field: the object hangs on a wall, so the photos see it from one side and "
+                       "their hull reaches out towards them; a plain face would form on the hull, in front of the true "
+                       "one (train.hull_start=on starts it in the hull)")
+    return True, (f"start: {hull}: where the colours cannot place a surface (a plain or glossy patch), a field grown "
+                  "from empty space leaves a hole there and walls inside the object behind it (train.hull_start=off "
+                  "starts it empty)")
 
 
 def surface_start(kwargs: dict[str, Any], scene: Scene, views: list[View]) -> tuple[dict[str, Any], np.ndarray | None, str]:
@@ -525,8 +495,6 @@ class TrainPlan:
     """The surface model's start shape as an SDF volume (the visual hull), or None."""
     hull_start: bool
     """The fast model starts with matter inside the training photos' visual hull (`hull_start_for`)."""
-    object_point_density: float | None
-    """`object_point_density` where the fast model weighed it (photos with silhouettes), else None."""
     appearance: bool
     appearance_why: str
     pose_refine: bool
@@ -563,7 +531,7 @@ def plan_training(cfg: TrainConfig, scene: Scene, views: list[View], device: tor
     if kind == "surface":
         kwargs, start_sdf, start_why = surface_start(kwargs, scene, views)
         reasons.append(start_why)
-    hull_start, hull_why, point_density = hull_start_for(cfg, kind, kwargs, scene, frames, views)
+    hull_start, hull_why = hull_start_for(cfg, kind, kwargs, scene, views)
     if hull_why:
         reasons.append(hull_why)
     background, random_bg, bg_why = choose_background(cfg, scene, views, backdrop)
@@ -605,7 +573,7 @@ def plan_training(cfg: TrainConfig, scene: Scene, views: list[View], device: tor
         views=views, aabb=np.asarray(scene.aabb) if scene.capture == "object" else None,
         background=background, random_background=random_bg, background_why=bg_why, empty=empty,
         empty_weight=empty_weight,
-        start_sdf=start_sdf, hull_start=hull_start, object_point_density=point_density, appearance=appearance,
+        start_sdf=start_sdf, hull_start=hull_start, appearance=appearance,
         appearance_why=appearance_why, pose_refine=pose_refine, pose_why=pose_why, depth_prior=depth_prior,
         compile=cfg.compile if kind == "fast" and compile_wanted(cfg.compile, device)[0] else None,
         autocast=torch.bfloat16 if cfg.precision == "bf16" else None, optimizer=optimizer, budget_s=budget_s,

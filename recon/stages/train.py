@@ -318,7 +318,7 @@ def _metrics(scene: Scene, device: torch.device, plan: TrainPlan, setup: TrainSe
         "evals": evals,
         "history": history,
         "n_train_views": len(views),
-        "object_point_density": plan.object_point_density,
+        "hull_start": plan.hull_start,
         "n_rays_dropped_missing_box": int(setup.batcher.n_dropped),
         "appearance": _appearance_metrics(setup.appearance, plan.appearance_why, views),
         "pose_refine": _pose_metrics(setup.pose_refine, plan.pose_why, views, [float(v.intrinsics[0]) for v in views],
@@ -334,4 +334,5 @@ def _metrics(scene: Scene, device: torch.device, plan: TrainPlan, setup: TrainSe
 # version 7: close-ups train at the other photos' pixel footprint (train.photo_footprint)
 # version 8: train.appearance=auto measures the exposure of photos cut out by masks on the whole photo
 # version 9: train.appearance=auto also matches photos further apart, where a slow exposure drift shows
-STAGE = Stage(name="train", folder="03_field", inputs=("normalize",), version=9, run=run)
+# version 10: train.hull_start=auto starts the fast field in the masks' hull unless the object hangs on a wall
+STAGE = Stage(name="train", folder="03_field", inputs=("normalize",), version=10, run=run)
