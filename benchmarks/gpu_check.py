@@ -66,6 +66,7 @@ COLUMNS: dict[str, list[str]] = {
     "features288x3": ["train.fast.feature_res=288", "train.fast.feature_levels=3"],
     "features1level": ["train.fast.feature_levels=1"],
     "dense": ["train.fast.grid=dense"],
+    "empty-start": ["train.hull_start=off"],
 }
 """--columns: each column's overrides on top of the check's own. All but `default` compare something CUDA has:
 `torch-march` is the default run with the Triton marcher swapped for the torch one it replaced (the marcher's
@@ -81,7 +82,8 @@ Lego its detail?); `features288` a feature grid of 288³ (and 144³ under it) in
 the coarser level GPU sizing puts under it (each of the three keeps dense feature grids: a --set of a feature key
 does). `dense` the colour features in the sized dense grids (192³ and 96³ under it, 96 M values), as before GPU
 sizing put them in a hash grid (16 levels of 2 features up to what the pixels resolve, 2^19 rows a level: at most
-11.4 M values, read in one Triton kernel)."""
+11.4 M values, read in one Triton kernel). `empty-start` starts the field empty instead of inside the Lego's
+visual hull (`train.hull_start=auto` turns that on for photos with silhouettes)."""
 
 
 PATCHED_LABELS = {
