@@ -388,6 +388,33 @@ def test_a_faint_young_field_is_not_culled_nor_shrunk_onto() -> None:
     assert model.occupancy.occupied_fraction() < 0.2
 
 
+def test_untouched_space_is_culled_only_once_the_threshold_passes_the_initial_opacity() -> None:
+    """At the presets' occupancy opacities, space still at the initial opacity (no ray has touched it, or the
+    colours cannot yet place a surface in it) keeps its samples straight after the warm-up, and is culled once the
+    rising threshold passes ``init_alpha``; space trained empty is culled at once, space trained dense never."""
+    cfg = FastConfig(**{**TINY, "density_levels": 1, "shrink_step": 0})
+    assert cfg.occupancy_alpha_start < cfg.init_alpha < cfg.occupancy_alpha
+    model = FastModel(cfg)
+    with torch.no_grad():
+        volume = model.density_grid.volume()
+        volume[:11, :11, :11] = -30.0  # trained empty
+        volume[12:18, 12:18, 12:18] = 30.0  # trained dense
+    occ = model.occupancy
+    empty, dense, untouched = (occ.query(torch.full((1, 3), v)) for v in (-0.9, 0.3, 1.2))
+    assert bool(empty.all()) and bool(dense.all()) and bool(untouched.all())  # the warm-up keeps all
+    for step in range(0, cfg.occupancy_warmup + 8 * cfg.occupancy_every, cfg.occupancy_every):
+        model.step_update(step)
+    assert occ.is_warm()
+    empty, dense, untouched = (occ.query(torch.full((1, 3), v)) for v in (-0.9, 0.3, 1.2))
+    assert not bool(empty.any()) and bool(dense.all()) and bool(untouched.all())
+    crossing = cfg.occupancy_warmup + cfg.occupancy_ramp
+    for step in range(cfg.occupancy_warmup + 8 * cfg.occupancy_every, crossing + 8 * cfg.occupancy_every,
+                      cfg.occupancy_every):
+        model.step_update(step)
+    untouched = occ.query(torch.full((1, 3), 1.2))
+    assert not bool(untouched.any()) and bool(occ.query(torch.full((1, 3), 0.3)).all())
+
+
 def test_an_unbounded_scene_culls_from_its_own_occupancy_opacity() -> None:
     """A room's fog is culled harder than an object's: the grid's final threshold is that of
     ``unbounded_occupancy_alpha`` in contracted space and of ``occupancy_alpha`` in a box; the warm-up start is shared."""

@@ -59,11 +59,14 @@ class FastConfig:
     """``occupancy_alpha`` of an unbounded scene (contracted space). Why higher than an object's: every ray of a room
     ends on something and crosses its young fog on the way; culling that fog harder trains more steps in the same
     minutes and scores higher on held-out photos (benchmarks/results/sample_culling.json, the fox's rows)."""
-    occupancy_alpha_start: float = 0.02
+    occupancy_alpha_start: float = 0.005
     """The occupancy opacity at the end of the warm-up, raised linearly to ``occupancy_alpha`` over
     ``occupancy_ramp`` steps: an object whose density is still rising is not culled before it can pass the final
-    threshold (culled space gets no samples, so no gradient brings it back)."""
-    occupancy_ramp: int = 200
+    threshold (culled space gets no samples, so no gradient brings it back). Below ``init_alpha``, so that space no
+    ray has touched is not culled straight after the warm-up: a plain or glossy patch the colours cannot yet place
+    fades at first, and culled then it stays a hole that the field explains with walls inside the object
+    (benchmarks/results/closeups_occupancy_ramp.json)."""
+    occupancy_ramp: int = 1000
     """Steps after the warm-up over which the occupancy opacity rises from ``occupancy_alpha_start``."""
     occupancy_warmup: int = 16
     """Steps during which every cell counts as occupied."""
