@@ -370,6 +370,18 @@ def test_shrink_happens_once_and_asks_for_fresh_optimizer_moments() -> None:
     assert bool((box[0] >= model.grid_box[0] - 1e-6).all() and (box[1] <= model.grid_box[1] + 1e-6).all())
 
 
+def test_the_grids_shrink_onto_what_has_grown_not_onto_untouched_space_still_occupied() -> None:
+    """Straight after the warm-up the occupancy ramp still keeps space at the initial opacity; the grids shrink onto
+    the matter that has grown, so the field keeps its fine voxels."""
+    model = FastModel(FastConfig(**{**TINY, "density_levels": 1, "shrink_step": 6}))
+    with torch.no_grad():
+        model.density_grid.volume()[10:14, 10:14, 10:14] = 30.0  # grown; the rest untouched, at the initial opacity
+    moved = [model.step_update(step) for step in range(0, 16, 2)]
+    assert model.occupancy.occupied_fraction() > 0.9  # untouched space is not culled yet
+    assert any(moved) and bool(model.shrunk)
+    assert float((model.grid_box[1] - model.grid_box[0]).max()) < 0.5 * float((model.aabb[1] - model.aabb[0]).max())
+
+
 def test_a_faint_young_field_is_not_culled_nor_shrunk_onto() -> None:
     """A field below the occupancy threshold everywhere at the end of the warm-up keeps the whole box to march
     (and its grids) until part of it passes the threshold; then the grid culls and the grids shrink."""

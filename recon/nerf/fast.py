@@ -570,7 +570,9 @@ class FastModel(RadianceModel):
             if box is not None:
                 if cfg.shrink_step and step >= cfg.shrink_step and not bool(self.shrunk):
                     self.shrunk.fill_(True)
-                    core = self.occupancy.core_aabb()
+                    # onto what has grown: at twice the initial opacity, not the untouched space the ramp still keeps
+                    grown = density_threshold(min(2 * cfg.init_alpha, self.occupancy_alpha), self.step_size)
+                    core = self.occupancy.core_aabb(above=grown)
                     moved = self.shrink_grids(core if core is not None else box)
                 # march only where the grids are: outside them a sample would read the clamped border
                 self.march_box.copy_(torch.stack((torch.maximum(box[0], self.grid_box[0]), torch.minimum(box[1], self.grid_box[1]))))

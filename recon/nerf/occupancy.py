@@ -201,15 +201,17 @@ class OccupancyGrid(nn.Module):
         """Share of occupied cells, in [0, 1]."""
         return float(self.occupied.float().mean())
 
-    def core_aabb(self, min_fraction: float = 0.01) -> Tensor | None:
+    def core_aabb(self, min_fraction: float = 0.01, above: float | None = None) -> Tensor | None:
         """World box (2, 3) around the connected clusters of occupied cells (26-connectivity) that hold at
         least ``min_fraction`` of them: the object without the scattered floaters of early training.
-        None if unbounded or nothing is occupied."""
+        ``above``: count only the occupied cells with a vertex whose density is above it (space that has grown, not
+        space kept because no ray has emptied it yet). None if unbounded or nothing is occupied."""
         from scipy import ndimage
 
         if self.contraction:
             return None
-        occ = self.occupied.cpu().numpy()
+        occ = self.occupied if above is None else self.occupied & cells_with_a_vertex(self.ema > above)
+        occ = occ.cpu().numpy()
         labels, n = ndimage.label(occ, structure=np.ones((3, 3, 3), bool))
         if n == 0:
             return None
