@@ -600,6 +600,8 @@ BOUNDS: dict[str, Bound] = {
     "train.fast.occupancy_alpha_start": Bound(0, 1, low_open=True, high_open=True),
     "train.fast.unbounded_occupancy_alpha": Bound(0, 1, low_open=True, high_open=True),
     "train.fast.occupancy_ramp": STEPS,
+    "train.fast.hull_occupancy_alpha_start": Bound(0, 1, low_open=True, high_open=True),
+    "train.fast.hull_occupancy_ramp": STEPS,
     "train.fast.occupancy_warmup": STEPS,
     "train.fast.occupancy_every": PERIOD,
     "train.fast.warmup_step_scale": _above(0, 100),

@@ -130,7 +130,8 @@ def test_a_masked_fast_plan_trains_as_empty_space_the_transparent_pixels_the_pho
 def test_the_field_starts_inside_the_masks_hull_unless_the_object_hangs_on_a_wall(support: str) -> None:
     """train.hull_start=auto: a masked ball starts at hull_start_alpha a step inside the masks' visual hull (its middle)
     and as empty as ever outside it (the box's corners), standing on a table or on nothing; hung on a wall (a vertical
-    support plane) it starts empty; on and off force it; without silhouettes it starts empty."""
+    support plane) it starts empty; on and off force it; without silhouettes it starts empty. An empty start culls
+    untouched space late (its own occupancy ramp, said), a field started in the hull at the hull's pace."""
     images, c2w, intr = masked_ball_photos(size=32, fl=40.0)
     frames, views = [], []
     for i, (image, pose, k) in enumerate(zip(images, c2w.double().numpy(), intr.tolist(), strict=True)):
@@ -142,25 +143,30 @@ def test_the_field_starts_inside_the_masks_hull_unless_the_object_hangs_on_a_wal
     base = TrainConfig()
     base = replace(base, fast=replace(base.fast, hull_start_alpha=0.2, init_alpha=0.01))
 
-    def start(cfg: TrainConfig, photos: list[View] = views) -> tuple[list[float], str]:
+    def start(cfg: TrainConfig, photos: list[View] = views) -> tuple[list[float], str, int]:
         plan = plan_training(cfg, replace(scene, has_alpha=photos is views), photos, CPU)
         model = build_training(plan, CPU).model
         x = torch.tensor([[0.0, 0.0, 0.0], [0.95, 0.95, 0.95], [-0.95, 0.95, -0.95]])
         said = [r for r in plan.reasons if r.startswith("start:")]
-        return (1 - torch.exp(-model.density(x).detach() * model.step_size)).tolist(), " ".join(said)
+        ramp = model.occupancy.ramp_steps
+        return (1 - torch.exp(-model.density(x).detach() * model.step_size)).tolist(), " ".join(said), ramp
 
     on_wall = support == "wall"
-    (middle, *corners), said = start(base)
+    empty_ramp, hull_ramp = base.fast.occupancy_ramp, base.fast.hull_occupancy_ramp
+    assert empty_ramp != hull_ramp
+    (middle, *corners), said, ramp = start(base)
+    assert ramp == (empty_ramp if on_wall else hull_ramp) and ("rising over" in said) == on_wall
     assert middle == pytest.approx(0.01 if on_wall else 0.2, rel=1e-3)
     assert corners == pytest.approx([0.01] * 2, rel=1e-3)
     assert ("hangs on a wall" in said) == on_wall and ("inside the visual hull" in said) == (not on_wall)
-    (middle, *_), said = start(replace(base, hull_start="on"))
-    assert middle == pytest.approx(0.2, rel=1e-3) and "inside the visual hull of the 12 training photos" in said
-    (middle, *_), said = start(replace(base, hull_start="off"))
+    (middle, *_), said, ramp = start(replace(base, hull_start="on"))
+    assert middle == pytest.approx(0.2, rel=1e-3) and ramp == hull_ramp and "inside the visual hull of the 12 training photos" in said
+    (middle, *_), said, ramp = start(replace(base, hull_start="off"))
     assert middle == pytest.approx(0.01, rel=1e-3) and "an empty field (train.hull_start=off)" in said
+    assert ramp == empty_ramp and f"rising over {empty_ramp:,} steps" in said
     opaque = [replace(v, image=np.ascontiguousarray(v.image[..., :3])) for v in views]
-    (middle, *_), said = start(base, opaque)
-    assert middle == pytest.approx(0.01, rel=1e-3) and said == ""
+    (middle, *_), said, ramp = start(base, opaque)
+    assert middle == pytest.approx(0.01, rel=1e-3) and "no silhouettes" in said and ramp == empty_ramp
 
 
 def test_distortion_loss_has_a_weight_for_objects_and_one_for_unbounded_captures_and_says_which() -> None:

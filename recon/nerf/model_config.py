@@ -68,6 +68,12 @@ class FastConfig:
     (benchmarks/results/closeups_occupancy_ramp.json)."""
     occupancy_ramp: int = 1000
     """Steps after the warm-up over which the occupancy opacity rises from ``occupancy_alpha_start``."""
+    hull_occupancy_alpha_start: float = 0.02
+    """``occupancy_alpha_start`` of a field started inside the photos' visual hull (`FastModel.start_inside`): it
+    has matter where a fading patch would be, so untouched space is culled straight after the warm-up and the young
+    field's fog costs no samples (benchmarks/results/lego_half_occupancy_ramp.json)."""
+    hull_occupancy_ramp: int = 200
+    """``occupancy_ramp`` of a field started inside the photos' visual hull."""
     occupancy_warmup: int = 16
     """Steps during which every cell counts as occupied."""
     occupancy_every: int = 8

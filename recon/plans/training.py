@@ -246,25 +246,39 @@ def silhouettes(views: list[View]) -> list[np.ndarray]:
     return [v.image[..., 3] >= 128 for v in views]
 
 
+def slow_culling(fast: dict[str, Any]) -> str:
+    """Why an empty fast field culls untouched space late (`FastConfig.occupancy_alpha_start`)."""
+    return (f"occupancy culls from {fast['occupancy_alpha_start']:.1%} opacity a step, below the initial "
+            f"{fast['init_alpha']:.0%}, rising over {fast['occupancy_ramp']:,} steps, so a patch the colours cannot "
+            "place yet is not culled into a hole")
+
+
 def hull_start_for(cfg: TrainConfig, kind: str, kwargs: dict[str, Any], scene: Scene,
                    views: list[View]) -> tuple[bool, str]:
-    """(whether the fast model starts with matter inside the photos' visual hull, why); why is "" where there is
-    nothing to say: another model, an unbounded field, no silhouettes."""
-    fast = kwargs["config"] if kind == "fast" else {}
-    if kind != "fast" or fast.get("unbounded") or fast.get("density_grid", "dense") != "dense":
+    """(whether the fast model starts with matter inside the photos' visual hull, why); why is "" for another
+    model. An empty start also says how its occupancy grid culls (`slow_culling`)."""
+    if kind != "fast":
         return False, ""
+    fast = kwargs["config"]
+
+    def empty(why: str) -> tuple[bool, str]:
+        return False, f"start: an empty field ({why}); {slow_culling(fast)}"
+
+    if fast.get("unbounded") or fast.get("density_grid", "dense") != "dense":
+        return empty("an unbounded scene" if fast.get("unbounded") else "no dense density grid to start in")
     if not has_silhouettes(views):
-        return False, ("start: an empty field (train.hull_start=on needs silhouettes: masks or alpha)"
-                       if cfg.hull_start == "on" else "")
+        return empty("train.hull_start=on needs silhouettes: masks or alpha" if cfg.hull_start == "on"
+                     else "no silhouettes to carve a hull from")
+    if cfg.hull_start == "off":
+        return empty("train.hull_start=off")
     hull = (f"inside the visual hull of the {len(views)} training photos' silhouettes at opacity "
             f"{fast['hull_start_alpha']:g} a step")
-    if cfg.hull_start != "auto":
-        on = cfg.hull_start == "on"
-        return on, f"start: {hull if on else 'an empty field'} (train.hull_start={cfg.hull_start})"
+    if cfg.hull_start == "on":
+        return True, f"start: {hull} (train.hull_start=on)"
     if scene.ground is not None and support_kind(scene.ground) == "wall":
-        return False, ("start: an empty field: the object hangs on a wall, so the photos see it from one side and "
-                       "their hull reaches out towards them; a plain face would form on the hull, in front of the true "
-                       "one (train.hull_start=on starts it in the hull)")
+        return empty("the object hangs on a wall, so the photos see it from one side and their hull reaches out "
+                     "towards them; a plain face would form on the hull, in front of the true one; "
+                     "train.hull_start=on starts it in the hull")
     return True, (f"start: {hull}: where the colours cannot place a surface (a plain or glossy patch), a field grown "
                   "from empty space leaves a hole there and walls inside the object behind it (train.hull_start=off "
                   "starts it empty)")
