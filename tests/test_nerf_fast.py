@@ -371,9 +371,10 @@ def test_shrink_happens_once_and_asks_for_fresh_optimizer_moments() -> None:
 
 
 def test_the_grids_shrink_onto_what_has_grown_not_onto_untouched_space_still_occupied() -> None:
-    """Straight after the warm-up the occupancy ramp still keeps space at the initial opacity; the grids shrink onto
-    the matter that has grown, so the field keeps its fine voxels."""
+    """Straight after the warm-up a slow occupancy ramp still keeps space at the initial opacity; the grids shrink
+    onto the matter that has grown, so the field keeps its fine voxels."""
     model = FastModel(FastConfig(**{**TINY, "density_levels": 1, "shrink_step": 6}))
+    model.cull_slowly()
     with torch.no_grad():
         model.density_grid.volume()[10:14, 10:14, 10:14] = 30.0  # grown; the rest untouched, at the initial opacity
     moved = [model.step_update(step) for step in range(0, 16, 2)]
@@ -400,17 +401,23 @@ def test_a_faint_young_field_is_not_culled_nor_shrunk_onto() -> None:
     assert model.occupancy.occupied_fraction() < 0.2
 
 
-def test_untouched_space_is_culled_only_once_the_threshold_passes_the_initial_opacity() -> None:
-    """At the presets' occupancy opacities, space still at the initial opacity (no ray has touched it, or the
-    colours cannot yet place a surface in it) keeps its samples straight after the warm-up, and is culled once the
-    rising threshold passes ``init_alpha``; space trained empty is culled at once, space trained dense never."""
+def test_culling_slowly_keeps_untouched_space_until_the_threshold_passes_the_initial_opacity() -> None:
+    """A field that culls slowly keeps the samples of space still at the initial opacity (no ray has touched it, or
+    the colours cannot yet place a surface in it) straight after the warm-up, and culls it once the rising threshold
+    passes ``init_alpha``; space trained empty is culled at once, space trained dense never. At the usual pace
+    untouched space is culled at once."""
     cfg = FastConfig(**{**TINY, "density_levels": 1, "shrink_step": 0})
-    assert cfg.occupancy_alpha_start < cfg.init_alpha < cfg.occupancy_alpha
-    model = FastModel(cfg)
-    with torch.no_grad():
-        volume = model.density_grid.volume()
-        volume[:11, :11, :11] = -30.0  # trained empty
-        volume[12:18, 12:18, 12:18] = 30.0  # trained dense
+    assert cfg.slow_occupancy_alpha_start < cfg.init_alpha < cfg.occupancy_alpha_start < cfg.occupancy_alpha
+    usual, model = FastModel(cfg), FastModel(cfg)
+    model.cull_slowly()
+    for m in (usual, model):
+        with torch.no_grad():
+            volume = m.density_grid.volume()
+            volume[:11, :11, :11] = -30.0  # trained empty
+            volume[12:18, 12:18, 12:18] = 30.0  # trained dense
+    for step in range(0, cfg.occupancy_warmup + 2 * cfg.occupancy_every, cfg.occupancy_every):
+        usual.step_update(step)
+    assert not bool(usual.occupancy.query(torch.full((1, 3), 1.2)).any())
     occ = model.occupancy
     empty, dense, untouched = (occ.query(torch.full((1, 3), v)) for v in (-0.9, 0.3, 1.2))
     assert bool(empty.all()) and bool(dense.all()) and bool(untouched.all())  # the warm-up keeps all
@@ -419,7 +426,7 @@ def test_untouched_space_is_culled_only_once_the_threshold_passes_the_initial_op
     assert occ.is_warm()
     empty, dense, untouched = (occ.query(torch.full((1, 3), v)) for v in (-0.9, 0.3, 1.2))
     assert not bool(empty.any()) and bool(dense.all()) and bool(untouched.all())
-    crossing = cfg.occupancy_warmup + cfg.occupancy_ramp
+    crossing = cfg.occupancy_warmup + cfg.slow_occupancy_ramp
     for step in range(cfg.occupancy_warmup + 8 * cfg.occupancy_every, crossing + 8 * cfg.occupancy_every,
                       cfg.occupancy_every):
         model.step_update(step)

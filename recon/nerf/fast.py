@@ -308,9 +308,8 @@ class FastModel(RadianceModel):
     @torch.no_grad()
     def start_inside(self, inside: Tensor) -> None:
         """Raise the density at the vertices ``inside`` ((r, r, r) bool indexed [ix, iy, iz] over the grid box, r =
-        `start_resolution`) to ``config.hull_start_alpha`` opacity a step; the rest keeps ``init_alpha``, and the
-        occupancy grid culls at ``hull_occupancy_alpha_start`` / ``hull_occupancy_ramp``. Before the grids shrink (the
-        box they cover then moves)."""
+        `start_resolution`) to ``config.hull_start_alpha`` opacity a step; the rest keeps ``init_alpha``. Before the
+        grids shrink (the box they cover then moves)."""
         alpha = self.config.hull_start_alpha
         if not 0.0 < alpha < 1.0:
             raise ValueError(f"hull_start_alpha must lie in (0, 1) for a start shape, got {alpha}")
@@ -323,10 +322,15 @@ class FastModel(RadianceModel):
         grid = self.density_grid.grids[0] if isinstance(self.density_grid, MultiDenseGrid) else self.density_grid
         table = grid.table.view(r ** 3, -1)
         table[inside.reshape(-1).to(table.device), 0] += self._raw_density(alpha) - self.density_bias
+
+    def cull_slowly(self) -> None:
+        """Let the occupancy grid cull from ``slow_occupancy_alpha_start`` over ``slow_occupancy_ramp`` steps (see
+        there): for a field that starts empty though its photos have silhouettes. Set before training, again when it
+        resumes (it is not part of the state)."""
         cfg = self.config
-        self.occupancy.start_threshold = density_threshold(min(cfg.hull_occupancy_alpha_start, self.occupancy_alpha),
+        self.occupancy.start_threshold = density_threshold(min(cfg.slow_occupancy_alpha_start, self.occupancy_alpha),
                                                            self.step_size)
-        self.occupancy.ramp_steps = int(cfg.hull_occupancy_ramp)
+        self.occupancy.ramp_steps = int(cfg.slow_occupancy_ramp)
 
     def _raw_density(self, alpha: float) -> float:
         """The raw density (before the activation) whose opacity over one step is ``alpha``."""

@@ -59,21 +59,21 @@ class FastConfig:
     """``occupancy_alpha`` of an unbounded scene (contracted space). Why higher than an object's: every ray of a room
     ends on something and crosses its young fog on the way; culling that fog harder trains more steps in the same
     minutes and scores higher on held-out photos (benchmarks/results/sample_culling.json, the fox's rows)."""
-    occupancy_alpha_start: float = 0.005
+    occupancy_alpha_start: float = 0.02
     """The occupancy opacity at the end of the warm-up, raised linearly to ``occupancy_alpha`` over
     ``occupancy_ramp`` steps: an object whose density is still rising is not culled before it can pass the final
-    threshold (culled space gets no samples, so no gradient brings it back). Below ``init_alpha``, so that space no
-    ray has touched is not culled straight after the warm-up: a plain or glossy patch the colours cannot yet place
-    fades at first, and culled then it stays a hole that the field explains with walls inside the object
-    (benchmarks/results/closeups_occupancy_ramp.json)."""
-    occupancy_ramp: int = 1000
+    threshold (culled space gets no samples, so no gradient brings it back)."""
+    occupancy_ramp: int = 200
     """Steps after the warm-up over which the occupancy opacity rises from ``occupancy_alpha_start``."""
-    hull_occupancy_alpha_start: float = 0.02
-    """``occupancy_alpha_start`` of a field started inside the photos' visual hull (`FastModel.start_inside`): it
-    has matter where a fading patch would be, so untouched space is culled straight after the warm-up and the young
-    field's fog costs no samples (benchmarks/results/lego_half_occupancy_ramp.json)."""
-    hull_occupancy_ramp: int = 200
-    """``occupancy_ramp`` of a field started inside the photos' visual hull."""
+    slow_occupancy_alpha_start: float = 0.005
+    """``occupancy_alpha_start`` of a field that starts empty though its photos have silhouettes (the train stage
+    decides: `FastModel.cull_slowly`). Below ``init_alpha``, so space no ray has touched is not culled straight after
+    the warm-up: a plain or glossy patch the colours cannot place yet fades at first, and culled then it stays a hole
+    that the field explains with walls inside the object (benchmarks/results/closeups_occupancy_ramp.json). Photos
+    without silhouettes keep the faster pace: on the shipped sample the slow one marched fewer rays a second for no
+    better field (benchmarks/results/sample_occupancy_ramp.json)."""
+    slow_occupancy_ramp: int = 1000
+    """``occupancy_ramp`` of a field that culls slowly."""
     occupancy_warmup: int = 16
     """Steps during which every cell counts as occupied."""
     occupancy_every: int = 8

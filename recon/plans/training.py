@@ -247,41 +247,36 @@ def silhouettes(views: list[View]) -> list[np.ndarray]:
 
 
 def slow_culling(fast: dict[str, Any]) -> str:
-    """Why an empty fast field culls untouched space late (`FastConfig.occupancy_alpha_start`)."""
-    return (f"occupancy culls from {fast['occupancy_alpha_start']:.1%} opacity a step, below the initial "
-            f"{fast['init_alpha']:.0%}, rising over {fast['occupancy_ramp']:,} steps, so a patch the colours cannot "
-            "place yet is not culled into a hole")
+    """Why an empty fast field with silhouettes culls untouched space late (`FastConfig.slow_occupancy_alpha_start`)."""
+    return (f"occupancy culls from {fast['slow_occupancy_alpha_start']:.1%} opacity a step, below the initial "
+            f"{fast['init_alpha']:.0%}, rising over {fast['slow_occupancy_ramp']:,} steps, so a patch the colours "
+            "cannot place yet is not culled into a hole")
 
 
 def hull_start_for(cfg: TrainConfig, kind: str, kwargs: dict[str, Any], scene: Scene,
-                   views: list[View]) -> tuple[bool, str]:
-    """(whether the fast model starts with matter inside the photos' visual hull, why); why is "" for another
-    model. An empty start also says how its occupancy grid culls (`slow_culling`)."""
-    if kind != "fast":
-        return False, ""
-    fast = kwargs["config"]
-
-    def empty(why: str) -> tuple[bool, str]:
-        return False, f"start: an empty field ({why}); {slow_culling(fast)}"
-
-    if fast.get("unbounded") or fast.get("density_grid", "dense") != "dense":
-        return empty("an unbounded scene" if fast.get("unbounded") else "no dense density grid to start in")
+                   views: list[View]) -> tuple[bool, bool, str]:
+    """(whether the fast model starts with matter inside the photos' visual hull, whether it starts empty though the
+    photos have silhouettes and so culls slowly (`FastModel.cull_slowly`), why); why is "" where there is nothing to
+    say: another model, an unbounded field, no silhouettes."""
+    fast = kwargs["config"] if kind == "fast" else {}
+    if kind != "fast" or fast.get("unbounded") or fast.get("density_grid", "dense") != "dense":
+        return False, False, ""
     if not has_silhouettes(views):
-        return empty("train.hull_start=on needs silhouettes: masks or alpha" if cfg.hull_start == "on"
-                     else "no silhouettes to carve a hull from")
-    if cfg.hull_start == "off":
-        return empty("train.hull_start=off")
+        return False, False, ("start: an empty field (train.hull_start=on needs silhouettes: masks or alpha)"
+                              if cfg.hull_start == "on" else "")
     hull = (f"inside the visual hull of the {len(views)} training photos' silhouettes at opacity "
             f"{fast['hull_start_alpha']:g} a step")
     if cfg.hull_start == "on":
-        return True, f"start: {hull} (train.hull_start=on)"
+        return True, False, f"start: {hull} (train.hull_start=on)"
+    if cfg.hull_start == "off":
+        return False, True, f"start: an empty field (train.hull_start=off); {slow_culling(fast)}"
     if scene.ground is not None and support_kind(scene.ground) == "wall":
-        return empty("the object hangs on a wall, so the photos see it from one side and their hull reaches out "
-                     "towards them; a plain face would form on the hull, in front of the true one; "
-                     "train.hull_start=on starts it in the hull")
-    return True, (f"start: {hull}: where the colours cannot place a surface (a plain or glossy patch), a field grown "
-                  "from empty space leaves a hole there and walls inside the object behind it (train.hull_start=off "
-                  "starts it empty)")
+        return False, True, ("start: an empty field: the object hangs on a wall, so the photos see it from one side "
+                             "and their hull reaches out towards them; a plain face would form on the hull, in front "
+                             f"of the true one (train.hull_start=on starts it in the hull); {slow_culling(fast)}")
+    return True, False, (f"start: {hull}: where the colours cannot place a surface (a plain or glossy patch), a field "
+                         "grown from empty space leaves a hole there and walls inside the object behind it "
+                         "(train.hull_start=off starts it empty)")
 
 
 def surface_start(kwargs: dict[str, Any], scene: Scene, views: list[View]) -> tuple[dict[str, Any], np.ndarray | None, str]:
@@ -509,6 +504,8 @@ class TrainPlan:
     """The surface model's start shape as an SDF volume (the visual hull), or None."""
     hull_start: bool
     """The fast model starts with matter inside the training photos' visual hull (`hull_start_for`)."""
+    slow_culling: bool
+    """The fast model starts empty though the photos have silhouettes, so its occupancy culls slowly (`hull_start_for`)."""
     appearance: bool
     appearance_why: str
     pose_refine: bool
@@ -545,7 +542,7 @@ def plan_training(cfg: TrainConfig, scene: Scene, views: list[View], device: tor
     if kind == "surface":
         kwargs, start_sdf, start_why = surface_start(kwargs, scene, views)
         reasons.append(start_why)
-    hull_start, hull_why = hull_start_for(cfg, kind, kwargs, scene, views)
+    hull_start, cull_slowly, hull_why = hull_start_for(cfg, kind, kwargs, scene, views)
     if hull_why:
         reasons.append(hull_why)
     background, random_bg, bg_why = choose_background(cfg, scene, views, backdrop)
@@ -587,7 +584,7 @@ def plan_training(cfg: TrainConfig, scene: Scene, views: list[View], device: tor
         views=views, aabb=np.asarray(scene.aabb) if scene.capture == "object" else None,
         background=background, random_background=random_bg, background_why=bg_why, empty=empty,
         empty_weight=empty_weight,
-        start_sdf=start_sdf, hull_start=hull_start, appearance=appearance,
+        start_sdf=start_sdf, hull_start=hull_start, slow_culling=cull_slowly, appearance=appearance,
         appearance_why=appearance_why, pose_refine=pose_refine, pose_why=pose_why, depth_prior=depth_prior,
         compile=cfg.compile if kind == "fast" and compile_wanted(cfg.compile, device)[0] else None,
         autocast=torch.bfloat16 if cfg.precision == "bf16" else None, optimizer=optimizer, budget_s=budget_s,
@@ -649,6 +646,8 @@ def build_training(plan: TrainPlan, device: torch.device) -> TrainSetup:
         model.start_inside(inside)
         notes.append(f"start: the visual hull holds {inside.mean():.1%} of the box "
                      f"({model.start_resolution}³ vertices)")
+    if plan.slow_culling:
+        model.cull_slowly()
     model = model.to(device)
     if plan.compile:
         notes.append(compile_color_network(model, device, plan.compile))

@@ -335,5 +335,5 @@ def _metrics(scene: Scene, device: torch.device, plan: TrainPlan, setup: TrainSe
 # version 8: train.appearance=auto measures the exposure of photos cut out by masks on the whole photo
 # version 9: train.appearance=auto also matches photos further apart, where a slow exposure drift shows
 # version 10: train.hull_start=auto starts the fast field in the masks' hull unless the object hangs on a wall
-# version 11: a fast field started empty culls untouched space later (from 0.5% a step, over 1,000 steps)
+# version 11: a fast field started empty though its photos have silhouettes culls untouched space later
 STAGE = Stage(name="train", folder="03_field", inputs=("normalize",), version=11, run=run)
