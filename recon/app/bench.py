@@ -258,6 +258,7 @@ def run_bench(
             "evals": metrics["evals"],
             # whether the field started inside the masks' visual hull (train.hull_start)
             "hull_start": metrics.get("hull_start"),
+            "slow_culling": metrics.get("slow_culling"),  # an empty start with silhouettes culls slowly
         }
         normalized = _stage_summary(scene, "normalize")
         row["auto_masks"] = normalized.get("auto_masks")

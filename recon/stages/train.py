@@ -319,6 +319,7 @@ def _metrics(scene: Scene, device: torch.device, plan: TrainPlan, setup: TrainSe
         "history": history,
         "n_train_views": len(views),
         "hull_start": plan.hull_start,
+        "slow_culling": plan.slow_culling,
         "n_rays_dropped_missing_box": int(setup.batcher.n_dropped),
         "appearance": _appearance_metrics(setup.appearance, plan.appearance_why, views),
         "pose_refine": _pose_metrics(setup.pose_refine, plan.pose_why, views, [float(v.intrinsics[0]) for v in views],
