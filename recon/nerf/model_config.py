@@ -68,7 +68,7 @@ class FastConfig:
     slow_occupancy_alpha_start: float = 0.005
     """``occupancy_alpha_start`` of a field that starts empty though its photos have silhouettes (the train stage
     decides: `FastModel.cull_slowly`). Below ``init_alpha``, so space no ray has touched is not culled straight after
-    the warm-up: a plain or glossy patch the colours cannot place yet fades at first, and culled then it stays a hole
+    the warm-up: a plain or glossy patch the colours cannot place yet fades at first, and culled then it can stay a hole
     that the field explains with walls inside the object (benchmarks/results/closeups_occupancy_ramp.json). Photos
     without silhouettes keep the faster pace: on the shipped sample the slow one marched fewer rays a second for no
     better field (benchmarks/results/sample_occupancy_ramp.json)."""

@@ -250,7 +250,7 @@ def slow_culling(fast: dict[str, Any]) -> str:
     """Why an empty fast field with silhouettes culls untouched space late (`FastConfig.slow_occupancy_alpha_start`)."""
     return (f"occupancy culls from {fast['slow_occupancy_alpha_start']:.1%} opacity a step, below the initial "
             f"{fast['init_alpha']:.0%}, rising over {fast['slow_occupancy_ramp']:,} steps, so a patch the colours "
-            "cannot place yet is not culled into a hole")
+            "cannot place yet is not culled before it forms")
 
 
 def hull_start_for(cfg: TrainConfig, kind: str, kwargs: dict[str, Any], scene: Scene,
