@@ -256,9 +256,10 @@ def run_bench(
             "test_views": len(metrics["test"]["views"]),
             "rays_per_s": metrics["rays_per_s"],
             "evals": metrics["evals"],
-            # whether the field started inside the masks' visual hull (train.hull_start)
+            # how the fast field started: inside the masks' visual hull (train.hull_start), or empty with silhouettes
+            # and so culling slowly (FastConfig.slow_occupancy_alpha_start)
             "hull_start": metrics.get("hull_start"),
-            "slow_culling": metrics.get("slow_culling"),  # an empty start with silhouettes culls slowly
+            "slow_culling": metrics.get("slow_culling"),
         }
         normalized = _stage_summary(scene, "normalize")
         row["auto_masks"] = normalized.get("auto_masks")
