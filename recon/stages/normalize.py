@@ -167,4 +167,5 @@ def _write(folder: Path, masks: dict[str, np.ndarray], scene: Scene) -> None:
 # version 15: automatic masks match the table only with photos that see the object move off its homography
 # version 16: automatic masks are recorded relative to the scene folder (were relative to the working folder)
 # version 17: automatic masks: only the photos that frame the object carve the hull; close-ups are cut again inside it
-STAGE = Stage(name="normalize", folder="02_scene", inputs=("poses",), version=17, run=run)
+# version 18: automatic masks: a photo that frames the object but whose cut left out much of the hull is cut again
+STAGE = Stage(name="normalize", folder="02_scene", inputs=("poses",), version=18, run=run)
