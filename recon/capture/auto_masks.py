@@ -76,10 +76,10 @@ MIN_HULL_BACKGROUND = 0.01
 learn from there either, and its first cut stays."""
 MAX_HULL_MISSED = 0.35
 """A photo that frames the object is cut again the same way when its cut leaves out more than this share of the hull's
-silhouette in it, which the other photos all show as object. A plain board the object hangs on has no sparse points
-to seed it, so a cut keeps it only where its colours tell it from the wall, and one photo's cut gave it all to the
-background (the generated wall-mounted capture: 46% of its silhouette missed); the other framing photos' cuts leave out
-at most 13% on the generated captures and 31% on the fox's 67 photos."""
+silhouette in it, which the other photos all show as object. A plain board the object hangs on has almost no sparse
+points to seed it, so a cut keeps it only where its colours tell it from the wall, and one photo's cut gave it all to
+the background (the generated wall-mounted capture: 46% of its silhouette missed); the other framing photos' cuts leave
+out at most 13% on the generated captures and 31% on the fox's 67 photos."""
 HOLE_IN_HULL = 0.95
 """A hole a cut leaves inside the object is filled when at least this share of it lies in the hull's silhouette."""
 FILL_GROUNDED_BITES = True
