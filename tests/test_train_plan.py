@@ -152,6 +152,7 @@ def test_the_field_starts_inside_the_masks_hull_unless_the_object_hangs_on_a_wal
         return (1 - torch.exp(-model.density(x).detach() * model.step_size)).tolist(), " ".join(said), ramp
 
     on_wall = support == "wall"
+    base = replace(base, fast=replace(base.fast, slow_occupancy_ramp=500))  # told apart from the usual ramp
     slow_ramp, usual_ramp = base.fast.slow_occupancy_ramp, base.fast.occupancy_ramp
     assert slow_ramp != usual_ramp
     (middle, *corners), said, ramp = start(base)

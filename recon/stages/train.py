@@ -337,4 +337,5 @@ def _metrics(scene: Scene, device: torch.device, plan: TrainPlan, setup: TrainSe
 # version 9: train.appearance=auto also matches photos further apart, where a slow exposure drift shows
 # version 10: train.hull_start=auto starts the fast field in the masks' hull unless the object hangs on a wall
 # version 11: a fast field started empty though its photos have silhouettes culls untouched space later
-STAGE = Stage(name="train", folder="03_field", inputs=("normalize",), version=11, run=run)
+# version 12: a field that culls slowly raises its occupancy threshold over 200 steps, not 1,000
+STAGE = Stage(name="train", folder="03_field", inputs=("normalize",), version=12, run=run)
