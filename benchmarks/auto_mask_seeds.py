@@ -203,7 +203,8 @@ def main(argv: list[str] | None = None) -> None:
 
     oracles = ("true object seeds", "true seeds and a background ring") if a.true_masks is not None else ()
     names = ("shipped", "no grounded bites", "no table drop", "neither", "lone points counted", "least parallax",
-             "close-ups vote", "short cuts kept", "no support prior", "in-frame region", "every point, seed discs", *oracles)
+             "close-ups vote", "short cuts kept", "no support prior", "in-frame region", "every point, seed discs",
+             *oracles)
     chosen = a.variants.split(",") if a.variants else names
     if unknown := set(chosen) - set(names):
         raise SystemExit(f"unknown variants {sorted(unknown)}; known: {', '.join(names)}")

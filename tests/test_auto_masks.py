@@ -619,8 +619,8 @@ def test_close_ups_that_crop_the_object_do_not_carve_it_and_are_cut_again_inside
 
 def test_a_photo_that_frames_the_object_but_cuts_away_much_of_it_is_cut_again_inside_the_hull(
         monkeypatch: pytest.MonkeyPatch) -> None:
-    """One photo of the ring frames the ball, but its cut leaves out the lower 40% (as one photo's cut gave away the
-    plain board a wall-mounted object hangs on with the board's sparse points it took for background). The other
+    """One photo of the ring frames the ball, but its cut leaves out the lower 40% (as one photo's cut gave the plain
+    board a wall-mounted object hangs on, which has almost no sparse points to seed it, to the background). The other
     photos all show object there, so the hull keeps it; the photo is cut again inside the hull's silhouette. Were no
     such photo cut again (MAX_HULL_MISSED 1), its mask would stay short."""
     from recon.capture import auto_masks
