@@ -76,10 +76,10 @@ MIN_HULL_BACKGROUND = 0.01
 learn from there either, and its first cut stays."""
 MAX_HULL_MISSED = 0.35
 """A photo that frames the object is cut again the same way when its cut leaves out more than this share of the hull's
-silhouette in it, which the other photos all show as object. A plain board the object hangs on has almost no sparse
-points to seed it, so a cut keeps it only where its colours tell it from the wall, and one photo's cut gave it all to
-the background (the generated wall-mounted capture: 46% of its silhouette missed); the other framing photos' cuts leave
-out at most 13% on the generated captures and 31% on the fox's 67 photos."""
+silhouette in it, which the other photos all show as object: a plain board the object hangs on has almost no sparse
+points to seed it, so one photo's cut can give it all to the background
+(benchmarks/results/auto_mask_short_cuts_wall_mounted.json). Well above what a good cut leaves out, so on the other
+captures no photo is cut again (benchmarks/results/auto_mask_short_cuts_*.json)."""
 HOLE_IN_HULL = 0.95
 """A hole a cut leaves inside the object is filled when at least this share of it lies in the hull's silhouette."""
 FILL_GROUNDED_BITES = True
@@ -253,8 +253,9 @@ def segment_object(scene: Scene, load_photo: PhotoLoader | None = None, side: in
     if recut or under_cut:
         # each photo is read again rather than held from the first pass: a clip's frames would all stay in memory
         with ThreadPoolExecutor(max_workers=cpu_threads()) as pool:
-            again = pool.map(lambda k: cut_one(scene.frames[k], silhouettes[k])[0], recut + under_cut)
-            for k, cut in zip(recut + under_cut, again, strict=True):
+            cut_again = recut + under_cut
+            again = pool.map(lambda k: cut_one(scene.frames[k], silhouettes[k])[0], cut_again)
+            for k, cut in zip(cut_again, again, strict=True):
                 cuts[k] = cut
 
     agreement, filled = {}, []

@@ -74,8 +74,8 @@ class FastConfig:
     better field (benchmarks/results/sample_occupancy_ramp.json)."""
     slow_occupancy_ramp: int = 200
     """``occupancy_ramp`` of a field that culls slowly. As short as the usual one: the low start does the work, and a
-    ramp of 1,000 steps marched 7-9% fewer rays a second for the same field on the wall-mounted capture and the fox
-    (benchmarks/results/wall_mounted_undercut.json, fox_slow_ramp.json)."""
+    longer ramp marched fewer rays a second for the same field (benchmarks/results/wall_mounted_undercut.json,
+    fox_slow_ramp.json, closeups_occupancy_ramp_parts.json)."""
     occupancy_warmup: int = 16
     """Steps during which every cell counts as occupied."""
     occupancy_every: int = 8
