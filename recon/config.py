@@ -151,6 +151,11 @@ class TrainConfig:
     """Weight of the sparse-depth loss (robust, in units of each point's depth uncertainty)."""
     depth_rays: int = 512
     """Sparse-point rays rendered per step for the depth loss (on top of batch_rays)."""
+    smoothness_weight: float = 0.0
+    """Weight of the edge-aware smoothness of depth on patches of the photos (`recon.nerf.smoothness`): where a photo
+    is plain its surface is taken to be smooth; 0 turns it off."""
+    smoothness_patches: int = 32
+    """Patches rendered per step for the smoothness term (each 4 × 4 rays, 8 training pixels apart)."""
     hull_start: Literal["auto", "on", "off"] = "auto"
     """Where the fast field's matter starts (photos with silhouettes: masks or alpha). on: inside their visual hull, at
     `train.fast.hull_start_alpha` opacity a step, so a surface the colours cannot place (a plain or glossy patch)
@@ -577,6 +582,8 @@ BOUNDS: dict[str, Bound] = {
     "train.seed": SEED,
     "train.depth_weight": WEIGHT,
     "train.depth_rays": _range(1, MAX_RAYS_PER_STEP),
+    "train.smoothness_weight": WEIGHT,
+    "train.smoothness_patches": _range(0, MAX_RAYS_PER_STEP // 16),
     "train.sky_weight": WEIGHT,
     "train.transparent_weight": WEIGHT,
     "train.transparent_disputed_share": _range(0, 1),

@@ -30,6 +30,7 @@ from recon.evaluation.views import (
 from recon.geometry.visual_hull import hull_silhouettes
 from recon.nerf.appearance import PhotoAppearance, decide, exposure_spread
 from recon.nerf.depth_prior import DepthPrior, sparse_depth_targets
+from recon.nerf.smoothness import PatchSmoothness
 from recon.nerf.fitting import RayBatcher
 from recon.nerf.pose_refine import PoseRefinement
 from recon.nerf.surface import hull_planes
@@ -446,6 +447,21 @@ def depth_prior_for(cfg: TrainConfig, kind: str, scene: Scene, frames: list[Fram
                    f"units), {cfg.depth_rays} of them rendered per step, weight {cfg.depth_weight:g}")
 
 
+def smoothness_for(cfg: TrainConfig, scene: Scene, views: list[View]) -> tuple[PatchSmoothness | None, str]:
+    """The edge-aware depth smoothness (`recon.nerf.smoothness.PatchSmoothness`) or None, and why ("" when off)."""
+    if cfg.smoothness_weight <= 0 or cfg.smoothness_patches <= 0:
+        return None, ""
+    if scene.capture == "object":
+        bounds: dict[str, torch.Tensor] = {"aabb": torch.tensor(np.asarray(scene.aabb), dtype=torch.float32)}
+    else:
+        bounds = {"near_far": torch.tensor([[v.near, v.far] for v in views], dtype=torch.float32)}
+    smooth = PatchSmoothness([v.image for v in views], np.stack([v.c2w for v in views]),
+                             np.array([v.intrinsics for v in views]), cfg.smoothness_weight, cfg.smoothness_patches,
+                             seed=cfg.seed, **bounds)
+    return smooth, (f"depth smoothness: on, weight {cfg.smoothness_weight:g}: {cfg.smoothness_patches} patches of "
+                    f"{smooth.size}×{smooth.size} rays a step, where the photo is plain ({len(smooth):,} places)")
+
+
 def choose_appearance(cfg: TrainConfig, kind: str, views: list[View], frames: list[Frame]) -> tuple[bool, str]:
     """(model the photos' exposure / white balance per photo?, why) — see recon.nerf.appearance. `frames`: the
     views' frames, in the same order.
@@ -512,6 +528,8 @@ class TrainPlan:
     pose_why: str
     depth_prior: DepthPrior | None
     """The sparse-depth prior on the CPU (`build_training` puts a copy on the device), or None."""
+    smoothness: PatchSmoothness | None
+    """The edge-aware depth smoothness on patches of the photos (`smoothness_for`), or None."""
     compile: str | None
     """train.compile when the fast model's colour network is compiled, else None."""
     autocast: torch.dtype | None
@@ -579,6 +597,9 @@ def plan_training(cfg: TrainConfig, scene: Scene, views: list[View], device: tor
         reasons.append(optimizer_why)
     depth_prior, depth_why = depth_prior_for(cfg, kind, scene, frames, views, kwargs)
     reasons.append(depth_why)
+    smoothness, smooth_why = smoothness_for(cfg, scene, views)
+    if smooth_why:
+        reasons.append(smooth_why)
     return TrainPlan(
         kind=kind, kwargs=kwargs, lr=lr, lr_final=lr * cfg.lr_decay, batch_rays=cfg.batch_rays, seed=cfg.seed,
         views=views, aabb=np.asarray(scene.aabb) if scene.capture == "object" else None,
@@ -586,6 +607,7 @@ def plan_training(cfg: TrainConfig, scene: Scene, views: list[View], device: tor
         empty_weight=empty_weight,
         start_sdf=start_sdf, hull_start=hull_start, slow_culling=cull_slowly, appearance=appearance,
         appearance_why=appearance_why, pose_refine=pose_refine, pose_why=pose_why, depth_prior=depth_prior,
+        smoothness=smoothness,
         compile=cfg.compile if kind == "fast" and compile_wanted(cfg.compile, device)[0] else None,
         autocast=torch.bfloat16 if cfg.precision == "bf16" else None, optimizer=optimizer, budget_s=budget_s,
         reasons=reasons,
@@ -663,6 +685,8 @@ def build_training(plan: TrainPlan, device: torch.device) -> TrainSetup:
         pieces.append(EmptyRays(plan.empty_weight))
     if plan.depth_prior is not None:
         pieces.append(DepthPriorLoss(copy.copy(plan.depth_prior).to(device)))
+    if plan.smoothness is not None:
+        pieces.append(DepthPriorLoss(copy.copy(plan.smoothness).to(device)))
     appearance = None
     if plan.appearance:
         appearance = PhotoAppearance(len(plan.views), include_background=not batcher.has_alpha).to(device)
