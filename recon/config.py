@@ -151,9 +151,13 @@ class TrainConfig:
     """Weight of the sparse-depth loss (robust, in units of each point's depth uncertainty)."""
     depth_rays: int = 512
     """Sparse-point rays rendered per step for the depth loss (on top of batch_rays)."""
-    smoothness_weight: float = 0.0
-    """Weight of the edge-aware smoothness of depth on patches of the photos (`recon.nerf.smoothness`): where a photo
-    is plain its surface is taken to be smooth; 0 turns it off."""
+    smoothness: Literal["auto", "on", "off"] = "auto"
+    """Edge-aware smoothness of depth on patches of the photos (`recon.nerf.smoothness`): where a photo is plain, its
+    surface is taken to be smooth. auto: on for a fast field that starts empty though its photos have silhouettes (an
+    object on a wall, `train.hull_start`): its plain faces, which the colours place at many depths, would grow lumpy;
+    a field started in the hull carves them flat already. on / off force it."""
+    smoothness_weight: float = 0.1
+    """Weight of the depth smoothness (a mean of relative second differences of inverse depth)."""
     smoothness_patches: int = 32
     """Patches rendered per step for the smoothness term (each 4 × 4 rays, 8 training pixels apart)."""
     hull_start: Literal["auto", "on", "off"] = "auto"

@@ -41,7 +41,8 @@ def _unbounded_without_masks(n_views: int = 24) -> tuple[TrainConfig, Scene, lis
 def test_the_profiler_times_the_step_the_stage_plans_depth_prior_included() -> None:
     cfg, scene, views = _unbounded_without_masks()
     plan = plan_training(cfg, scene, views, CPU)  # what the train stage calls
-    assert plan.reasons[-1].startswith("depth prior: on (an unbounded capture without masks")
+    assert [r for r in plan.reasons if r.startswith("depth prior:")][0].startswith(
+        "depth prior: on (an unbounded capture without masks")
     step, profiled_plan, setup = profile_training(cfg, scene, views, Reporter(quiet=True), warmup=2, steps=1,
                                                   title="unbounded")
     assert profiled_plan.reasons == step["reasons"] == plan.reasons

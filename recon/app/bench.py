@@ -260,6 +260,7 @@ def run_bench(
             # and so culling slowly (FastConfig.slow_occupancy_alpha_start)
             "hull_start": metrics.get("hull_start"),
             "slow_culling": metrics.get("slow_culling"),
+            "smoothness": metrics.get("smoothness"),
         }
         normalized = _stage_summary(scene, "normalize")
         row["auto_masks"] = normalized.get("auto_masks")

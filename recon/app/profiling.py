@@ -172,6 +172,7 @@ def _labels(model: Any) -> list[tuple[Any, ...]]:
     import recon.nerf.fast as fast
     from recon.nerf.depth_prior import DepthPrior
     from recon.nerf.fitting import RayBatcher
+    from recon.nerf.smoothness import PatchSmoothness
 
     return [
         (fast, "march", "recon:marcher (occupancy skip + no-grad density pre-pass)"),
@@ -186,6 +187,7 @@ def _labels(model: Any) -> list[tuple[Any, ...]]:
         (type(model), "step_update", "recon:occupancy refresh"),
         (RayBatcher, "next_batch", "recon:ray batch"),
         (DepthPrior, "__call__", "recon:depth prior fwd (its own rays: march, render, loss)", True),
+        (PatchSmoothness, "__call__", "recon:depth smoothness fwd (its own patches: march, render, loss)", True),
     ]
 
 

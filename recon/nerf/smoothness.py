@@ -85,9 +85,13 @@ class PatchSmoothness:
                 ok &= inside
             ys, xs = np.nonzero(ok)
             starts.append(np.stack([np.full(len(ys), v), ys, xs], axis=1).astype(np.int32))
-            grays.append(torch.from_numpy(np.ascontiguousarray(image[..., :3].mean(axis=-1) / 255.0).astype(np.float32)))
+            grays.append(image[..., :3].mean(axis=-1) / 255.0)
         self.starts = torch.from_numpy(np.concatenate(starts) if starts else np.zeros((0, 3), np.int32))
-        self.grays = grays
+        h_max = max((g.shape[0] for g in grays), default=0)
+        w_max = max((g.shape[1] for g in grays), default=0)
+        self.gray = torch.zeros(len(grays), h_max, w_max)  # one tensor, so a step gathers its patches at once
+        for v, g in enumerate(grays):
+            self.gray[v, : g.shape[0], : g.shape[1]] = torch.from_numpy(g.astype(np.float32))
         self.c2w = torch.as_tensor(np.asarray(c2w), dtype=torch.float32)
         self.intrinsics = torch.as_tensor(np.asarray(intrinsics), dtype=torch.float32)
         self.aabb = None if aabb is None else aabb.float()
@@ -111,7 +115,7 @@ class PatchSmoothness:
         view = pick[:, 0, None, None].expand(-1, self.size, self.size)
         ys = (pick[:, 1, None, None] + offs[None, :, None]).expand(-1, self.size, self.size)
         xs = (pick[:, 2, None, None] + offs[None, None, :]).expand(-1, self.size, self.size)
-        gray = torch.stack([self.grays[int(v)][y, x] for v, y, x in zip(pick[:, 0], ys, xs)])
+        gray = self.gray[view, ys, xs]
         v, y, x = view.reshape(-1), ys.reshape(-1), xs.reshape(-1)
         k = self.intrinsics[v]
         c2w = self.c2w[v]

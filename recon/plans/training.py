@@ -447,10 +447,24 @@ def depth_prior_for(cfg: TrainConfig, kind: str, scene: Scene, frames: list[Fram
                    f"units), {cfg.depth_rays} of them rendered per step, weight {cfg.depth_weight:g}")
 
 
-def smoothness_for(cfg: TrainConfig, scene: Scene, views: list[View]) -> tuple[PatchSmoothness | None, str]:
-    """The edge-aware depth smoothness (`recon.nerf.smoothness.PatchSmoothness`) or None, and why ("" when off)."""
-    if cfg.smoothness_weight <= 0 or cfg.smoothness_patches <= 0:
-        return None, ""
+def smoothness_for(cfg: TrainConfig, kind: str, scene: Scene, views: list[View],
+                   cull_slowly: bool) -> tuple[PatchSmoothness | None, str]:
+    """The edge-aware depth smoothness (`recon.nerf.smoothness.PatchSmoothness`) or None, and why ("" where there is
+    nothing to say: auto for another model than the fast one). auto: on for a fast field that starts empty though its
+    photos have silhouettes (`cull_slowly`, `hull_start_for`)."""
+    if cfg.smoothness == "off" or cfg.smoothness_weight <= 0 or cfg.smoothness_patches <= 0:
+        return None, "depth smoothness: off (train.smoothness=off or a zero weight)" if cfg.smoothness == "on" else ""
+    if cfg.smoothness == "auto" and not cull_slowly:
+        if kind != "fast":
+            return None, ""
+        return None, ("depth smoothness: off (the field starts in the photos' visual hull, which carves plain faces "
+                      "flat, or the photos have no silhouettes; train.smoothness=on forces it)"
+                      if has_silhouettes(views) else
+                      "depth smoothness: off (the photos have no silhouettes to keep it off the object's edges; "
+                      "train.smoothness=on forces it)")
+    why = ("train.smoothness=on" if cfg.smoothness == "on" else
+           "the field starts empty though the photos have silhouettes: a plain face, which its colours place at many "
+           "depths, would grow lumpy")
     if scene.capture == "object":
         bounds: dict[str, torch.Tensor] = {"aabb": torch.tensor(np.asarray(scene.aabb), dtype=torch.float32)}
     else:
@@ -458,8 +472,9 @@ def smoothness_for(cfg: TrainConfig, scene: Scene, views: list[View]) -> tuple[P
     smooth = PatchSmoothness([v.image for v in views], np.stack([v.c2w for v in views]),
                              np.array([v.intrinsics for v in views]), cfg.smoothness_weight, cfg.smoothness_patches,
                              seed=cfg.seed, **bounds)
-    return smooth, (f"depth smoothness: on, weight {cfg.smoothness_weight:g}: {cfg.smoothness_patches} patches of "
-                    f"{smooth.size}×{smooth.size} rays a step, where the photo is plain ({len(smooth):,} places)")
+    return smooth, (f"depth smoothness: on ({why}; where a photo is plain its surface is taken to be smooth): "
+                    f"{cfg.smoothness_patches} patches of {smooth.size}×{smooth.size} rays a step from "
+                    f"{len(smooth):,} places, weight {cfg.smoothness_weight:g}")
 
 
 def choose_appearance(cfg: TrainConfig, kind: str, views: list[View], frames: list[Frame]) -> tuple[bool, str]:
@@ -597,7 +612,7 @@ def plan_training(cfg: TrainConfig, scene: Scene, views: list[View], device: tor
         reasons.append(optimizer_why)
     depth_prior, depth_why = depth_prior_for(cfg, kind, scene, frames, views, kwargs)
     reasons.append(depth_why)
-    smoothness, smooth_why = smoothness_for(cfg, scene, views)
+    smoothness, smooth_why = smoothness_for(cfg, kind, scene, views, cull_slowly)
     if smooth_why:
         reasons.append(smooth_why)
     return TrainPlan(

@@ -320,6 +320,7 @@ def _metrics(scene: Scene, device: torch.device, plan: TrainPlan, setup: TrainSe
         "n_train_views": len(views),
         "hull_start": plan.hull_start,
         "slow_culling": plan.slow_culling,
+        "smoothness": plan.smoothness is not None,
         "n_rays_dropped_missing_box": int(setup.batcher.n_dropped),
         "appearance": _appearance_metrics(setup.appearance, plan.appearance_why, views),
         "pose_refine": _pose_metrics(setup.pose_refine, plan.pose_why, views, [float(v.intrinsics[0]) for v in views],
@@ -338,4 +339,5 @@ def _metrics(scene: Scene, device: torch.device, plan: TrainPlan, setup: TrainSe
 # version 10: train.hull_start=auto starts the fast field in the masks' hull unless the object hangs on a wall
 # version 11: a fast field started empty though its photos have silhouettes culls untouched space later
 # version 12: a field that culls slowly raises its occupancy threshold over 200 steps, not 1,000
-STAGE = Stage(name="train", folder="03_field", inputs=("normalize",), version=12, run=run)
+# version 13: train.smoothness=auto smooths the plain faces of a field that starts empty though it has silhouettes
+STAGE = Stage(name="train", folder="03_field", inputs=("normalize",), version=13, run=run)
