@@ -653,7 +653,7 @@ class TrainSetup:
     step_kwargs: dict[str, Any]
     """`recon.nerf.trainer.train`'s (and `TrainStep`'s) arguments besides the model, the batcher and the step count:
     rates, rays per step, autocast and the pieces (empty rays: the sky or the transparent pixels, depth prior,
-    appearance, pose refinement, in that order)."""
+    depth smoothness, appearance, pose refinement, in that order)."""
     aabb: torch.Tensor | None
     c2w: torch.Tensor
     """The training photos' camera-to-world matrices on the device."""
