@@ -103,32 +103,34 @@ class PatchSmoothness:
         return int(self.starts.shape[0])
 
     def to(self, device: torch.device | str) -> "PatchSmoothness":
+        """Put the photos' brightness and cameras on ``device`` (patch positions are drawn on the CPU)."""
         self.device = torch.device(device)
+        for name in ("gray", "c2w", "intrinsics", "aabb", "near_far"):
+            value = getattr(self, name)
+            if value is not None:
+                setattr(self, name, value.to(self.device))
         return self
 
     def __call__(self, model: RadianceModel, step: int, background: Tensor | None = None) -> dict[str, Tensor]:
         if len(self) == 0 or self.weight <= 0 or self.patches <= 0:
             return {}
         gen = torch.Generator().manual_seed(self.seed * 1_000_003 + step + 7)
-        pick = self.starts[torch.randint(len(self), (self.patches,), generator=gen)].long()
-        offs = torch.arange(self.size) * self.stride
-        view = pick[:, 0, None, None].expand(-1, self.size, self.size)
-        ys = (pick[:, 1, None, None] + offs[None, :, None]).expand(-1, self.size, self.size)
-        xs = (pick[:, 2, None, None] + offs[None, None, :]).expand(-1, self.size, self.size)
-        gray = self.gray[view, ys, xs]
+        pick = self.starts[torch.randint(len(self), (self.patches,), generator=gen)].long().to(self.device)
+        shape = (self.patches, self.size, self.size)
+        offs = torch.arange(self.size, device=self.device) * self.stride
+        view = pick[:, 0, None, None].expand(shape)
+        ys = (pick[:, 1, None, None] + offs[None, :, None]).expand(shape)
+        xs = (pick[:, 2, None, None] + offs[None, None, :]).expand(shape)
         v, y, x = view.reshape(-1), ys.reshape(-1), xs.reshape(-1)
-        k = self.intrinsics[v]
-        c2w = self.c2w[v]
+        k, c2w = self.intrinsics[v], self.c2w[v]
         rays_o, rays_d = pixel_rays(c2w, k[:, 0], k[:, 1], k[:, 2], k[:, 3], x.float() + 0.5, y.float() + 0.5)
-        cos = (rays_d * -c2w[:, :3, 2]).sum(-1)
         if self.aabb is not None:
             near, far, _ = ray_aabb(rays_o, rays_d, self.aabb)
         else:
             near, far = self.near_far[v, 0], self.near_far[v, 1]
-        dev = self.device
-        out = model.render_rays(rays_o.to(dev), rays_d.to(dev), near.to(dev), far.to(dev), training=True,
+        out = model.render_rays(rays_o, rays_d, near, far, training=True,
                                 background=None if background is None else background[: v.numel()], colors=False)
-        shape = (self.patches, self.size, self.size)
-        loss = patch_smoothness_loss(out["depth"].float().view(shape), cos.to(dev).view(shape), gray.to(dev),
+        cos = (rays_d * -c2w[:, :3, 2]).sum(-1)
+        loss = patch_smoothness_loss(out["depth"].float().view(shape), cos.view(shape), self.gray[view, ys, xs],
                                      out["opacity"].float().view(shape), self.edge_gain)
         return {"smooth": self.weight * loss}

@@ -447,21 +447,21 @@ def depth_prior_for(cfg: TrainConfig, kind: str, scene: Scene, frames: list[Fram
                    f"units), {cfg.depth_rays} of them rendered per step, weight {cfg.depth_weight:g}")
 
 
-def smoothness_for(cfg: TrainConfig, kind: str, scene: Scene, views: list[View],
+def smoothness_for(cfg: TrainConfig, kind: str, scene: Scene, views: list[View], hull_start: bool,
                    cull_slowly: bool) -> tuple[PatchSmoothness | None, str]:
     """The edge-aware depth smoothness (`recon.nerf.smoothness.PatchSmoothness`) or None, and why ("" where there is
-    nothing to say: auto for another model than the fast one). auto: on for a fast field that starts empty though its
-    photos have silhouettes (`cull_slowly`, `hull_start_for`)."""
+    nothing to say: auto for another model than the fast one, or an unbounded one). auto: on for a fast field that
+    starts empty though its photos have silhouettes (`cull_slowly`, `hull_start_for`)."""
     if cfg.smoothness == "off" or cfg.smoothness_weight <= 0 or cfg.smoothness_patches <= 0:
-        return None, "depth smoothness: off (train.smoothness=off or a zero weight)" if cfg.smoothness == "on" else ""
+        return None, "depth smoothness: off (a zero weight or no patches)" if cfg.smoothness == "on" else ""
     if cfg.smoothness == "auto" and not cull_slowly:
-        if kind != "fast":
-            return None, ""
-        return None, ("depth smoothness: off (the field starts in the photos' visual hull, which carves plain faces "
-                      "flat, or the photos have no silhouettes; train.smoothness=on forces it)"
-                      if has_silhouettes(views) else
-                      "depth smoothness: off (the photos have no silhouettes to keep it off the object's edges; "
-                      "train.smoothness=on forces it)")
+        if hull_start:
+            return None, ("depth smoothness: off (the field starts in the photos' visual hull, which carves plain "
+                          "faces flat; train.smoothness=on forces it)")
+        if kind == "fast" and not has_silhouettes(views):
+            return None, ("depth smoothness: off (the photos have no silhouettes to keep it inside the object; "
+                          "train.smoothness=on forces it)")
+        return None, ""
     why = ("train.smoothness=on" if cfg.smoothness == "on" else
            "the field starts empty though the photos have silhouettes: a plain face, which its colours place at many "
            "depths, would grow lumpy")
@@ -612,7 +612,7 @@ def plan_training(cfg: TrainConfig, scene: Scene, views: list[View], device: tor
         reasons.append(optimizer_why)
     depth_prior, depth_why = depth_prior_for(cfg, kind, scene, frames, views, kwargs)
     reasons.append(depth_why)
-    smoothness, smooth_why = smoothness_for(cfg, kind, scene, views, cull_slowly)
+    smoothness, smooth_why = smoothness_for(cfg, kind, scene, views, hull_start, cull_slowly)
     if smooth_why:
         reasons.append(smooth_why)
     return TrainPlan(
