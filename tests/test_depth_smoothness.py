@@ -2,14 +2,21 @@
 the photo's edges, patches inside the masks, and a term that flattens a bumpy surface through render_rays."""
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import torch
 from torch import Tensor, nn
 
 from recon.camera import look_at
+from recon.capture.scene import Frame, Scene
+from recon.config import TrainConfig
+from recon.evaluation.views import View
 from recon.nerf.rays import pixel_rays
 from recon.nerf.smoothness import PatchSmoothness, patch_smoothness_loss
+from recon.plans.training import build_training, plan_training
+from tests.ball_scene import masked_ball_photos
 
 F, W, H = 200.0, 160, 120
 
@@ -110,14 +117,6 @@ def test_the_plan_smooths_depth_where_the_field_starts_empty_though_it_has_silho
         support: str) -> None:
     """train.smoothness=auto: on for a masked ball hung on a wall (its fast field starts empty), off on a table (it
     starts in the hull) and without silhouettes; on / off force it; the step then carries the term."""
-    from dataclasses import replace
-
-    from recon.capture.scene import Frame, Scene
-    from recon.config import TrainConfig
-    from recon.evaluation.views import View
-    from recon.plans.training import build_training, plan_training
-    from tests.ball_scene import masked_ball_photos
-
     images, c2w, intr = masked_ball_photos(size=32, fl=40.0)
     frames, views = [], []
     for i, (image, pose, k) in enumerate(zip(images, c2w.double().numpy(), intr.tolist(), strict=True)):

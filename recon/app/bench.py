@@ -257,7 +257,7 @@ def run_bench(
             "rays_per_s": metrics["rays_per_s"],
             "evals": metrics["evals"],
             # how the fast field started: inside the masks' visual hull (train.hull_start), or empty with silhouettes
-            # and so culling slowly (FastConfig.slow_occupancy_alpha_start)
+            # and so culling slowly (FastConfig.slow_occupancy_alpha_start) and smoothing plain faces (train.smoothness)
             "hull_start": metrics.get("hull_start"),
             "slow_culling": metrics.get("slow_culling"),
             "smoothness": metrics.get("smoothness"),

@@ -75,7 +75,10 @@ class PatchSmoothness:
         self.weight, self.patches, self.size, self.stride = float(weight), int(patches), int(size), int(stride)
         self.edge_gain, self.seed = float(edge_gain), int(seed)
         span = (self.size - 1) * self.stride + 1
-        starts, grays = [], []
+        h_max = max((image.shape[0] for image in images), default=0)
+        w_max = max((image.shape[1] for image in images), default=0)
+        self.gray = torch.zeros(len(images), h_max, w_max)  # one tensor, so a step gathers its patches at once
+        places = []
         for v, image in enumerate(images):
             h, w = image.shape[:2]
             ok = np.zeros((h, w), bool)
@@ -84,14 +87,9 @@ class PatchSmoothness:
                 inside = ndimage.minimum_filter(image[..., 3] >= 128, size=span, origin=-(span // 2), mode="constant")
                 ok &= inside
             ys, xs = np.nonzero(ok)
-            starts.append(np.stack([np.full(len(ys), v), ys, xs], axis=1).astype(np.int32))
-            grays.append(image[..., :3].mean(axis=-1) / 255.0)
-        self.starts = torch.from_numpy(np.concatenate(starts) if starts else np.zeros((0, 3), np.int32))
-        h_max = max((g.shape[0] for g in grays), default=0)
-        w_max = max((g.shape[1] for g in grays), default=0)
-        self.gray = torch.zeros(len(grays), h_max, w_max)  # one tensor, so a step gathers its patches at once
-        for v, g in enumerate(grays):
-            self.gray[v, : g.shape[0], : g.shape[1]] = torch.from_numpy(g.astype(np.float32))
+            places.append(((v * h_max + ys) * w_max + xs).astype(np.int32))  # one int a place: a capture has millions
+            self.gray[v, :h, :w] = torch.from_numpy((image[..., :3].mean(axis=-1) / 255.0).astype(np.float32))
+        self.places = torch.from_numpy(np.concatenate(places) if places else np.zeros(0, np.int32))
         self.c2w = torch.as_tensor(np.asarray(c2w), dtype=torch.float32)
         self.intrinsics = torch.as_tensor(np.asarray(intrinsics), dtype=torch.float32)
         self.aabb = None if aabb is None else aabb.float()
@@ -100,7 +98,16 @@ class PatchSmoothness:
 
     def __len__(self) -> int:
         """How many patch positions the photos offer."""
-        return int(self.starts.shape[0])
+        return int(self.places.shape[0])
+
+    @property
+    def starts(self) -> Tensor:
+        """(N, 3) long: each patch position's photo, row and column (its top-left ray)."""
+        return self._decode(self.places.long())
+
+    def _decode(self, flat: Tensor) -> Tensor:
+        _, h_max, w_max = self.gray.shape
+        return torch.stack([flat // (h_max * w_max), flat // w_max % h_max, flat % w_max], dim=1)
 
     def to(self, device: torch.device | str) -> "PatchSmoothness":
         """Put the photos' brightness and cameras on ``device`` (patch positions are drawn on the CPU)."""
@@ -115,7 +122,8 @@ class PatchSmoothness:
         if len(self) == 0 or self.weight <= 0 or self.patches <= 0:
             return {}
         gen = torch.Generator().manual_seed(self.seed * 1_000_003 + step + 7)
-        pick = self.starts[torch.randint(len(self), (self.patches,), generator=gen)].long().to(self.device)
+        drawn = self.places[torch.randint(len(self), (self.patches,), generator=gen)].long()
+        pick = self._decode(drawn).to(self.device)
         shape = (self.patches, self.size, self.size)
         offs = torch.arange(self.size, device=self.device) * self.stride
         view = pick[:, 0, None, None].expand(shape)

@@ -395,6 +395,14 @@ UNBOUNDED_DEPTH_WHY = (
 )
 
 
+def own_ray_bounds(scene: Scene, views: list[View]) -> dict[str, torch.Tensor]:
+    """Where a term's own rays start and stop, as the training rays do: the scene box of an object capture, else each
+    photo's near/far (the `aabb` or `near_far` keyword of `DepthPrior` and `PatchSmoothness`)."""
+    if scene.capture == "object":
+        return {"aabb": torch.tensor(np.asarray(scene.aabb, np.float64), dtype=torch.float32)}
+    return {"near_far": torch.tensor([[v.near, v.far] for v in views], dtype=torch.float32)}
+
+
 def depth_prior_for(cfg: TrainConfig, kind: str, scene: Scene, frames: list[Frame], views: list[View],
                     kwargs: dict[str, Any]) -> tuple[DepthPrior | None, str]:
     """The sparse-depth prior (`recon.nerf.depth_prior.DepthPrior`, on the CPU) or None, and why (printed either way).
@@ -428,11 +436,7 @@ def depth_prior_for(cfg: TrainConfig, kind: str, scene: Scene, frames: list[Fram
         scene.points, visible, np.stack([v.c2w for v in views]), np.array([v.intrinsics for v in views]),
         np.array([[v.hw[1], v.hw[0]] for v in views]), errors, alpha=alpha if scene.has_alpha else None, min_sigma=voxel,
     )
-    if scene.capture == "object":
-        bounds: dict[str, torch.Tensor] = {"aabb": torch.tensor(box, dtype=torch.float32)}
-    else:
-        bounds = {"near_far": torch.tensor([[v.near, v.far] for v in views], dtype=torch.float32)}
-    prior = DepthPrior(targets, cfg.depth_weight, cfg.depth_rays, seed=cfg.seed, **bounds)
+    prior = DepthPrior(targets, cfg.depth_weight, cfg.depth_rays, seed=cfg.seed, **own_ray_bounds(scene, views))
     if cfg.depth_prior != "auto":
         why = "train.depth_prior=on"
     elif kind == "surface":
@@ -465,13 +469,9 @@ def smoothness_for(cfg: TrainConfig, kind: str, scene: Scene, views: list[View],
     why = ("train.smoothness=on" if cfg.smoothness == "on" else
            "the field starts empty though the photos have silhouettes: a plain face, which its colours place at many "
            "depths, would grow lumpy")
-    if scene.capture == "object":
-        bounds: dict[str, torch.Tensor] = {"aabb": torch.tensor(np.asarray(scene.aabb), dtype=torch.float32)}
-    else:
-        bounds = {"near_far": torch.tensor([[v.near, v.far] for v in views], dtype=torch.float32)}
     smooth = PatchSmoothness([v.image for v in views], np.stack([v.c2w for v in views]),
                              np.array([v.intrinsics for v in views]), cfg.smoothness_weight, cfg.smoothness_patches,
-                             seed=cfg.seed, **bounds)
+                             seed=cfg.seed, **own_ray_bounds(scene, views))
     return smooth, (f"depth smoothness: on ({why}; where a photo is plain its surface is taken to be smooth): "
                     f"{cfg.smoothness_patches} patches of {smooth.size}×{smooth.size} rays a step from "
                     f"{len(smooth):,} places, weight {cfg.smoothness_weight:g}")
