@@ -159,7 +159,10 @@ class TrainConfig:
     smoothness_weight: float = 0.1
     """Weight of the depth smoothness (a mean of relative second differences of inverse depth)."""
     smoothness_patches: int = 32
-    """Patches rendered per step for the smoothness term (each 4 × 4 rays, 8 training pixels apart)."""
+    """Patches rendered per step for the smoothness term (each 4 × 4 rays, `train.smoothness_stride` pixels apart)."""
+    smoothness_stride: int = 8
+    """Training pixels between neighbouring rays of a smoothness patch: the scale at which a plain face is taken to be
+    flat."""
     hull_start: Literal["auto", "on", "off"] = "auto"
     """Where the fast field's matter starts (photos with silhouettes: masks or alpha). on: inside their visual hull, at
     `train.fast.hull_start_alpha` opacity a step, so a surface the colours cannot place (a plain or glossy patch)
@@ -588,6 +591,7 @@ BOUNDS: dict[str, Bound] = {
     "train.depth_rays": _range(1, MAX_RAYS_PER_STEP),
     "train.smoothness_weight": WEIGHT,
     "train.smoothness_patches": _range(0, MAX_RAYS_PER_STEP // 16),
+    "train.smoothness_stride": _range(1, 1024),
     "train.sky_weight": WEIGHT,
     "train.transparent_weight": WEIGHT,
     "train.transparent_disputed_share": _range(0, 1),

@@ -471,10 +471,10 @@ def smoothness_for(cfg: TrainConfig, kind: str, scene: Scene, views: list[View],
            "depths, would grow lumpy")
     smooth = PatchSmoothness([v.image for v in views], np.stack([v.c2w for v in views]),
                              np.array([v.intrinsics for v in views]), cfg.smoothness_weight, cfg.smoothness_patches,
-                             seed=cfg.seed, **own_ray_bounds(scene, views))
+                             stride=cfg.smoothness_stride, seed=cfg.seed, **own_ray_bounds(scene, views))
     return smooth, (f"depth smoothness: on ({why}; where a photo is plain its surface is taken to be smooth): "
-                    f"{cfg.smoothness_patches} patches of {smooth.size}×{smooth.size} rays a step from "
-                    f"{len(smooth):,} places, weight {cfg.smoothness_weight:g}")
+                    f"{cfg.smoothness_patches} patches of {smooth.size}×{smooth.size} rays {smooth.stride} px apart a "
+                    f"step from {len(smooth):,} places, weight {cfg.smoothness_weight:g}")
 
 
 def choose_appearance(cfg: TrainConfig, kind: str, views: list[View], frames: list[Frame]) -> tuple[bool, str]:
