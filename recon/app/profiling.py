@@ -187,7 +187,7 @@ def _labels(model: Any) -> list[tuple[Any, ...]]:
         (type(model), "step_update", "recon:occupancy refresh"),
         (RayBatcher, "next_batch", "recon:ray batch"),
         (DepthPrior, "__call__", "recon:depth prior fwd (its own rays: march, render, loss)", True),
-        (PatchSmoothness, "loss", "recon:depth smoothness fwd (the loss of its patches' rays)", True),
+        (PatchSmoothness, "__call__", "recon:depth smoothness fwd (its own patches: march, render, loss)", True),
     ]
 
 

@@ -174,14 +174,7 @@ class RayBatcher:
 
     def next_batch(self, batch_rays: int) -> dict[str, Tensor]:
         """The next ``batch_rays`` rays of the shuffled epoch (crossing into the next epoch as needed)."""
-        return self.batch_at(self._take(batch_rays))
-
-    def flat_index(self, image: Tensor, row: Tensor, col: Tensor) -> Tensor:
-        """The flat pixel indices (B,) of pixels given by their image, row and column (each (B,) long)."""
-        return self.offsets[image] + row * self.sizes[image, 0] + col
-
-    def batch_at(self, flat: Tensor) -> dict[str, Tensor]:
-        """A batch (as :meth:`next_batch`) of the pixels ``flat`` (B,), e.g. patches a training piece chose."""
+        flat = self._take(batch_rays)
         o, d, near, far, _ = self._rays(flat)
         px = self.pixels[flat]
         px = px.float() / 255.0 if not px.is_floating_point() else px.float()

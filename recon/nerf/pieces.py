@@ -1,10 +1,10 @@
 """The parts of a training step beyond the photos' colour loss, each a piece passed to `recon.nerf.trainer.train`.
 
 Rays known to see nothing (the sky, masked photos' transparent pixels) trained as empty space, the sparse-depth prior,
-the depth smoothness, per-photo appearance and per-photo pose refinement each change the step in a different place; as
-pieces with a few hooks the loop stays one loop, a new feature is a new piece instead of new keyword arguments, and
-whoever builds a training run (the train stage, the profiler, a benchmark) passes the same sequence. Each step the
-trainer calls, piece by piece in the sequence's order:
+per-photo appearance and per-photo pose refinement each change the step in a different place; as pieces with a few
+hooks the loop stays one loop, a new feature is a new piece instead of new keyword arguments, and whoever builds a
+training run (the train stage, the profiler, a benchmark) passes the same sequence. Each step the trainer calls,
+piece by piece in the sequence's order:
 
 * ``before_render(batch, at)`` — the batch's rays before the field renders them (pose refinement moves them);
 * ``after_render(out, batch)`` — the rendered output before the colour loss (appearance transforms its rgb);
@@ -26,13 +26,10 @@ import torch
 from torch import Tensor
 
 from .appearance import PhotoAppearance
-from .fitting import RayBatcher
 from .pose_refine import PoseRefinement
 from .render import RadianceModel
-from .smoothness import PatchSmoothness
 
-__all__ = ["Appearance", "DepthPriorLoss", "EmptyRays", "PoseRefine", "SmoothPatches", "StepInfo", "TrainPiece",
-           "mixed_precision"]
+__all__ = ["Appearance", "DepthPriorLoss", "EmptyRays", "PoseRefine", "StepInfo", "TrainPiece", "mixed_precision"]
 
 
 def mixed_precision(device_type: str, dtype: torch.dtype | None) -> torch.autocast:
@@ -97,8 +94,8 @@ class EmptyRays(TrainPiece):
 
 
 class DepthPriorLoss(TrainPiece):
-    """A term that renders its own rays, the sparse-depth prior (`recon.nerf.depth_prior.DepthPrior`):
-    ``prior(model, step) -> {name: loss}``, under the step's autocast. It must be deterministic in the step for a
+    """A term that renders its own rays, the sparse-depth prior (`recon.nerf.depth_prior.DepthPrior`) or the depth
+    smoothness (`recon.nerf.smoothness.PatchSmoothness`): ``prior(model, step) -> {name: loss}``, under the step's autocast. It must be deterministic in the step for a
     resumed run to repeat the uninterrupted one."""
 
     def __init__(self, prior: Callable[[RadianceModel, int], dict[str, Tensor]]) -> None:
@@ -108,35 +105,6 @@ class DepthPriorLoss(TrainPiece):
                    at: StepInfo) -> dict[str, Tensor]:
         with mixed_precision(batch["rgb"].device.type, at.autocast):
             return {k: v.float() for k, v in self.prior(model, at.step).items()}
-
-
-class SmoothPatches(TrainPiece):
-    """The edge-aware depth smoothness (`recon.nerf.smoothness.PatchSmoothness`) on patches of the photos trained as
-    rays of the step: the batch's last rays give way to the patches' pixels (their targets from ``batcher``, as any
-    ray's), so the term renders nothing of its own, and its loss reads those rays' depth and opacity. At most half a
-    batch is patches."""
-
-    def __init__(self, smoothness: PatchSmoothness, batcher: RayBatcher) -> None:
-        self.smoothness, self.batcher = smoothness, batcher
-        self.drawn: tuple[Tensor, Tensor, Tensor] | None = None
-
-    def before_render(self, batch: dict[str, Tensor], at: StepInfo) -> dict[str, Tensor]:
-        s = self.smoothness
-        rays = batch["rgb"].shape[0]
-        view, ys, xs = s.draw(at.step, min(s.patches, rays // (2 * s.size * s.size)))
-        self.drawn = (view, ys, xs) if view.numel() and s.weight > 0 else None
-        if self.drawn is None:
-            return batch
-        patch = self.batcher.batch_at(self.batcher.flat_index(view.reshape(-1), ys.reshape(-1), xs.reshape(-1)))
-        keep = rays - view.numel()
-        return {k: torch.cat([v[:keep], patch[k]]) for k, v in batch.items()}
-
-    def loss_terms(self, model: RadianceModel, out: dict[str, Any], batch: dict[str, Tensor],
-                   at: StepInfo) -> dict[str, Tensor]:
-        if self.drawn is None:
-            return {}
-        m = self.drawn[0].numel()
-        return {"smooth": self.smoothness.loss(out["depth"][-m:], out["opacity"][-m:], *self.drawn)}
 
 
 class Appearance(TrainPiece):

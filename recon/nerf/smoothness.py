@@ -2,9 +2,8 @@
 
 Where a surface has little texture (a plain board, a painted patch, a dark shadow) its colour matches the photos
 at many depths, and a grid field leaves it lumpy: matter forms wherever it first explains a pixel. Textured parts
-are placed by the colours; plain parts need a prior. This one trains a few patches of the photos among each step's
-rays (a grid of ``size`` × ``size`` rays ``stride`` pixels apart) and penalizes the second differences of their
-inverse depth,
+are placed by the colours; plain parts need a prior. This one renders a few patches of each step's photos (a grid
+of ``size`` × ``size`` rays ``stride`` pixels apart) and penalizes the second differences of their inverse depth,
 which are zero for any plane (inverse depth is affine in the pixel coordinates on a plane), so slants cost nothing
 and only bumps and folds do. Each difference is weighted by how plain the photo is across it (``exp(-edge_gain ·
 |colour differences|)``, as monodepth's edge-aware smoothness): across an edge or a texture the colours decide
@@ -21,6 +20,9 @@ import numpy as np
 import torch
 from scipy import ndimage
 from torch import Tensor
+
+from .rays import pixel_rays, ray_aabb
+from .render import RadianceModel
 
 __all__ = ["PatchSmoothness", "patch_smoothness_loss"]
 
@@ -52,19 +54,22 @@ def patch_smoothness_loss(depth: Tensor, forward_cos: Tensor, gray: Tensor, opac
 
 
 class PatchSmoothness:
-    """Where a step's smoothness patches lie and what they cost. Each step draws ``patches`` patches of the training
-    photos (:meth:`draw`); the piece :class:`recon.nerf.pieces.SmoothPatches` trains their pixels as rays of the
-    step's batch (so the term renders no rays of its own) and :meth:`loss` reads their rendered depth.
+    """The term of a training piece (:class:`recon.nerf.pieces.DepthPriorLoss` takes any such callable): each step,
+    renders ``patches`` patches of the training photos (depth only) and returns ``{"smooth": weight · loss}``.
 
     Args:
         images: per photo (H, W, C) uint8 (C 3, or 4 with alpha: patches then lie wholly where alpha >= 128).
-        intrinsics: (V, 4) fl_x, fl_y, cx, cy in pixels of the images.
+        c2w: (V, 4, 4) OpenGL camera-to-world; intrinsics: (V, 4) fl_x, fl_y, cx, cy in pixels of the images.
+        aabb or near_far: where the rays start and stop, as the training rays (exactly one of them).
         size, stride: rays a patch side, and the pixels between neighbours.
 
     Patches are drawn from a generator seeded by (seed, step), so a resumed run draws the same ones."""
 
-    def __init__(self, images: Sequence[np.ndarray], intrinsics: np.ndarray, weight: float, patches: int, *,
-                 size: int = 4, stride: int = 8, edge_gain: float = 10.0, seed: int = 0) -> None:
+    def __init__(self, images: Sequence[np.ndarray], c2w: np.ndarray, intrinsics: np.ndarray, weight: float,
+                 patches: int, *, size: int = 4, stride: int = 8, edge_gain: float = 10.0,
+                 aabb: Tensor | None = None, near_far: Tensor | None = None, seed: int = 0) -> None:
+        if (aabb is None) == (near_far is None):
+            raise ValueError("give exactly one of aabb or near_far")
         if size < 3:
             raise ValueError(f"a patch needs at least 3 rays a side for a second difference, got {size}")
         self.weight, self.patches, self.size, self.stride = float(weight), int(patches), int(size), int(stride)
@@ -85,7 +90,10 @@ class PatchSmoothness:
             places.append(((v * h_max + ys) * w_max + xs).astype(np.int32))  # one int a place: a capture has millions
             self.gray[v, :h, :w] = torch.from_numpy((image[..., :3].mean(axis=-1) / 255.0).astype(np.float32))
         self.places = torch.from_numpy(np.concatenate(places) if places else np.zeros(0, np.int32))
+        self.c2w = torch.as_tensor(np.asarray(c2w), dtype=torch.float32)
         self.intrinsics = torch.as_tensor(np.asarray(intrinsics), dtype=torch.float32)
+        self.aabb = None if aabb is None else aabb.float()
+        self.near_far = None if near_far is None else near_far.float()
         self.device = torch.device("cpu")
 
     def __len__(self) -> int:
@@ -102,32 +110,35 @@ class PatchSmoothness:
         return torch.stack([flat // (h_max * w_max), flat // w_max % h_max, flat % w_max], dim=1)
 
     def to(self, device: torch.device | str) -> "PatchSmoothness":
-        """Put the photos' brightness and intrinsics on ``device`` (patch positions are drawn on the CPU)."""
+        """Put the photos' brightness and cameras on ``device`` (patch positions are drawn on the CPU)."""
         self.device = torch.device(device)
-        self.gray, self.intrinsics = self.gray.to(self.device), self.intrinsics.to(self.device)
+        for name in ("gray", "c2w", "intrinsics", "aabb", "near_far"):
+            value = getattr(self, name)
+            if value is not None:
+                setattr(self, name, value.to(self.device))
         return self
 
-    def draw(self, step: int, patches: int | None = None) -> tuple[Tensor, Tensor, Tensor]:
-        """The patches of step ``step``: their photo, row and column, each (P, size, size) long on the device
-        (``patches`` of them, default ``self.patches``); none where the photos offer no place."""
-        p = self.patches if patches is None else int(patches)
-        shape = (p if len(self) else 0, self.size, self.size)
+    def __call__(self, model: RadianceModel, step: int, background: Tensor | None = None) -> dict[str, Tensor]:
+        if len(self) == 0 or self.weight <= 0 or self.patches <= 0:
+            return {}
         gen = torch.Generator().manual_seed(self.seed * 1_000_003 + step + 7)
-        drawn = self.places[torch.randint(max(len(self), 1), (shape[0],), generator=gen)].long()
+        drawn = self.places[torch.randint(len(self), (self.patches,), generator=gen)].long()
         pick = self._decode(drawn).to(self.device)
+        shape = (self.patches, self.size, self.size)
         offs = torch.arange(self.size, device=self.device) * self.stride
         view = pick[:, 0, None, None].expand(shape)
         ys = (pick[:, 1, None, None] + offs[None, :, None]).expand(shape)
         xs = (pick[:, 2, None, None] + offs[None, None, :]).expand(shape)
-        return view, ys, xs
-
-    def loss(self, depth: Tensor, opacity: Tensor, view: Tensor, ys: Tensor, xs: Tensor) -> Tensor:
-        """``weight`` × :func:`patch_smoothness_loss` of the drawn patches' rendered depth and opacity (each as many
-        values as the patches have rays, in :meth:`draw`'s order)."""
-        shape = view.shape
-        k = self.intrinsics[view]  # a ray's cosine to its camera's axis, from its pixel alone (any pose refinement
-        u = (xs.float() + 0.5 - k[..., 2]) / k[..., 0]  # turns ray and axis together)
-        w = (ys.float() + 0.5 - k[..., 3]) / k[..., 1]
-        cos = torch.rsqrt(1.0 + u * u + w * w)
-        return self.weight * patch_smoothness_loss(depth.float().view(shape), cos, self.gray[view, ys, xs],
-                                                   opacity.float().view(shape), self.edge_gain)
+        v, y, x = view.reshape(-1), ys.reshape(-1), xs.reshape(-1)
+        k, c2w = self.intrinsics[v], self.c2w[v]
+        rays_o, rays_d = pixel_rays(c2w, k[:, 0], k[:, 1], k[:, 2], k[:, 3], x.float() + 0.5, y.float() + 0.5)
+        if self.aabb is not None:
+            near, far, _ = ray_aabb(rays_o, rays_d, self.aabb)
+        else:
+            near, far = self.near_far[v, 0], self.near_far[v, 1]
+        out = model.render_rays(rays_o, rays_d, near, far, training=True,
+                                background=None if background is None else background[: v.numel()], colors=False)
+        cos = (rays_d * -c2w[:, :3, 2]).sum(-1)
+        loss = patch_smoothness_loss(out["depth"].float().view(shape), cos.view(shape), self.gray[view, ys, xs],
+                                     out["opacity"].float().view(shape), self.edge_gain)
+        return {"smooth": self.weight * loss}

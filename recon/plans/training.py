@@ -397,7 +397,7 @@ UNBOUNDED_DEPTH_WHY = (
 
 def own_ray_bounds(scene: Scene, views: list[View]) -> dict[str, torch.Tensor]:
     """Where a term's own rays start and stop, as the training rays do: the scene box of an object capture, else each
-    photo's near/far (the `aabb` or `near_far` keyword of `DepthPrior`)."""
+    photo's near/far (the `aabb` or `near_far` keyword of `DepthPrior` and `PatchSmoothness`)."""
     if scene.capture == "object":
         return {"aabb": torch.tensor(np.asarray(scene.aabb, np.float64), dtype=torch.float32)}
     return {"near_far": torch.tensor([[v.near, v.far] for v in views], dtype=torch.float32)}
@@ -469,8 +469,9 @@ def smoothness_for(cfg: TrainConfig, kind: str, scene: Scene, views: list[View],
     why = ("train.smoothness=on" if cfg.smoothness == "on" else
            "the field starts empty though the photos have silhouettes: a plain face, which its colours place at many "
            "depths, would grow lumpy")
-    smooth = PatchSmoothness([v.image for v in views], np.array([v.intrinsics for v in views]), cfg.smoothness_weight,
-                             cfg.smoothness_patches, stride=cfg.smoothness_stride, seed=cfg.seed)
+    smooth = PatchSmoothness([v.image for v in views], np.stack([v.c2w for v in views]),
+                             np.array([v.intrinsics for v in views]), cfg.smoothness_weight, cfg.smoothness_patches,
+                             stride=cfg.smoothness_stride, seed=cfg.seed, **own_ray_bounds(scene, views))
     return smooth, (f"depth smoothness: on ({why}; where a photo is plain its surface is taken to be smooth): "
                     f"{cfg.smoothness_patches} patches of {smooth.size}×{smooth.size} rays {smooth.stride} px apart a "
                     f"step from {len(smooth):,} places, weight {cfg.smoothness_weight:g}")
@@ -667,7 +668,7 @@ def build_training(plan: TrainPlan, device: torch.device) -> TrainSetup:
     batcher and the step's pieces, on `device`."""
     from recon.field import build_model
     from recon.nerf.compiled import compile_color_network
-    from recon.nerf.pieces import Appearance, DepthPriorLoss, EmptyRays, PoseRefine, SmoothPatches, TrainPiece
+    from recon.nerf.pieces import Appearance, DepthPriorLoss, EmptyRays, PoseRefine, TrainPiece
 
     torch.manual_seed(plan.seed)
     model = build_model(plan.kind, plan.kwargs)
@@ -700,7 +701,7 @@ def build_training(plan: TrainPlan, device: torch.device) -> TrainSetup:
     if plan.depth_prior is not None:
         pieces.append(DepthPriorLoss(copy.copy(plan.depth_prior).to(device)))
     if plan.smoothness is not None:
-        pieces.append(SmoothPatches(copy.copy(plan.smoothness).to(device), batcher))
+        pieces.append(DepthPriorLoss(copy.copy(plan.smoothness).to(device)))
     appearance = None
     if plan.appearance:
         appearance = PhotoAppearance(len(plan.views), include_background=not batcher.has_alpha).to(device)
