@@ -140,7 +140,8 @@ def test_the_plan_smooths_depth_where_the_field_starts_empty_though_it_has_silho
     assert ("starts empty though the photos have silhouettes" in said) == on
     assert ("starts in the photos' visual hull" in said) == (not on)
     on, said, terms = plan(replace(base, smoothness="on"))
-    assert on and terms == 1 and "train.smoothness=on" in said
+    assert on and terms == 1 and "train.smoothness=on" in said and "8 px apart" in said
+    assert "5 px apart" in plan(replace(base, smoothness="on", smoothness_stride=5))[1]
     assert plan(replace(base, smoothness="off"))[0] is False
     opaque = [replace(v, image=np.ascontiguousarray(v.image[..., :3])) for v in views]
     on, said, _ = plan(base, opaque)
