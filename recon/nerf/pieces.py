@@ -95,8 +95,8 @@ class EmptyRays(TrainPiece):
 
 class DepthPriorLoss(TrainPiece):
     """A term that renders its own rays, the sparse-depth prior (`recon.nerf.depth_prior.DepthPrior`) or the depth
-    smoothness (`recon.nerf.smoothness.PatchSmoothness`): ``prior(model, step) -> {name: loss}``, under the step's autocast. It must be deterministic in the step for a
-    resumed run to repeat the uninterrupted one."""
+    smoothness (`recon.nerf.smoothness.PatchSmoothness`): ``prior(model, step) -> {name: loss}``, under the step's
+    autocast. It must be deterministic in the step for a resumed run to repeat the uninterrupted one."""
 
     def __init__(self, prior: Callable[[RadianceModel, int], dict[str, Tensor]]) -> None:
         self.prior = prior
