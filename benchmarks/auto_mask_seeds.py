@@ -24,6 +24,8 @@ without the points linked to the in-frame ones (what close-ups leave out of fram
   nearest `MIN_TABLE_PARALLAX` windows off the plane's homography (not `TABLE_PARALLAX`);
 - close-ups vote: shipped, but every photo carves the hull, close-ups that crop the object too, and none is cut again
   inside it (`FRAMED_SHARE` = 0: the masks before close-ups were told apart);
+- filled close-ups keep their cut: shipped, but a close-up that the hull's silhouette fills and that has no background
+  points keeps its first cut rather than taking the silhouette (`MIN_BACKGROUND_SEEDS` = 0: the masks before);
 - short cuts kept: shipped, but a photo that frames the object keeps its first cut even when it left out much of the
   hull's silhouette (`MAX_HULL_MISSED` = 1: the masks before such photos were cut again);
 - no support prior: shipped, but the cut starts with the object seeds' hull alone as probable object, not their
@@ -122,6 +124,7 @@ def main(argv: list[str] | None = None) -> None:
     original_grabcut, original_spread = am._grabcut, am._triangulation_spread
     filling, dropping, lone_spacing = am.FILL_GROUNDED_BITES, am.DROP_TABLE, am.LONE_POINT_SPACING
     parallax, framed_share, max_missed = am.TABLE_PARALLAX, am.FRAMED_SHARE, am.MAX_HULL_MISSED
+    background_seeds = am.MIN_BACKGROUND_SEEDS
     current: dict[str, str] = {}
 
     def variant(name: str, scene: Any = scene) -> dict[str, Any]:
@@ -161,6 +164,7 @@ def main(argv: list[str] | None = None) -> None:
         am.TABLE_PARALLAX = am.MIN_TABLE_PARALLAX if name == "least parallax" else parallax
         am.FRAMED_SHARE = 0.0 if name == "close-ups vote" else framed_share
         am.MAX_HULL_MISSED = 1.0 if name == "short cuts kept" else max_missed
+        am.MIN_BACKGROUND_SEEDS = 0 if name == "filled close-ups keep their cut" else background_seeds
         import recon.nerf.device as device
 
         threads: Callable[[], int] = device.cpu_threads
@@ -172,6 +176,7 @@ def main(argv: list[str] | None = None) -> None:
             am._triangulation_spread, am._grabcut, device.cpu_threads = original_spread, original_grabcut, threads
             am.FILL_GROUNDED_BITES, am.DROP_TABLE, am.LONE_POINT_SPACING = filling, dropping, lone_spacing
             am.TABLE_PARALLAX, am.FRAMED_SHARE, am.MAX_HULL_MISSED = parallax, framed_share, max_missed
+            am.MIN_BACKGROUND_SEEDS = background_seeds
         if a.write_masks is not None:
             folder = a.write_masks / name.replace(" ", "_").replace(",", "")
             folder.mkdir(parents=True, exist_ok=True)
@@ -203,8 +208,8 @@ def main(argv: list[str] | None = None) -> None:
 
     oracles = ("true object seeds", "true seeds and a background ring") if a.true_masks is not None else ()
     names = ("shipped", "no grounded bites", "no table drop", "neither", "lone points counted", "least parallax",
-             "close-ups vote", "short cuts kept", "no support prior", "in-frame region", "every point, seed discs",
-             *oracles)
+             "close-ups vote", "filled close-ups keep their cut", "short cuts kept", "no support prior", "in-frame region",
+             "every point, seed discs", *oracles)
     chosen = a.variants.split(",") if a.variants else names
     if unknown := set(chosen) - set(names):
         raise SystemExit(f"unknown variants {sorted(unknown)}; known: {', '.join(names)}")

@@ -65,12 +65,12 @@ def _render(c2w: np.ndarray, dark_base: bool = False, shadow: bool = False) -> t
     return rgb.reshape(H, W, 3).astype(np.float32), ball.reshape(H, W)
 
 
-def _scene(n_views: int = 10, dark_base: bool = False, step_deg: float | None = None,
-           close_ups: int = 0) -> tuple[Scene, dict[str, np.ndarray], dict[str, np.ndarray]]:
+def _scene(n_views: int = 10, dark_base: bool = False, step_deg: float | None = None, close_ups: int = 0,
+           close_distance: float = 0.75) -> tuple[Scene, dict[str, np.ndarray], dict[str, np.ndarray]]:
     """The ball on its table from a ring of cameras; dark_base: its lower half plain and dark as its shadow, with no
     sparse points (a plain base gives SfM nothing to match); step_deg: the cameras this many degrees apart on an arc
-    at one height instead (a clip's frames); close_ups: this many more photos from near the ball, between the ring's,
-    each of them cropping it."""
+    at one height instead (a clip's frames); close_ups: this many more photos from near the ball (close_distance from
+    its centre), between the ring's, each of them cropping it."""
     rng = np.random.default_rng(0)
     frames, photos, truth = [], {}, {}
     for i in range(n_views + close_ups):
@@ -78,7 +78,8 @@ def _scene(n_views: int = 10, dark_base: bool = False, step_deg: float | None = 
         if step_deg is not None:
             az, el = np.radians(step_deg * i), np.radians(30)
         if i >= n_views:
-            az, el, distance = 2 * np.pi * ((i - n_views) / close_ups + 0.5 / n_views), np.radians(20), 0.75
+            az, el = 2 * np.pi * ((i - n_views) / close_ups + 0.5 / n_views), np.radians(20)
+            distance = close_distance
         eye = BALL_C + distance * np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
         c2w = look_at(eye, BALL_C)
         frame = Frame(f"view_{i:03d}.png", c2w, FOCAL, FOCAL, W / 2, H / 2, W, H)
@@ -381,6 +382,22 @@ def test_masks_come_back_in_the_photos_distorted_pixels() -> None:
     assert _iou(photo, pinhole) < 0.9  # the distortion moved it
 
 
+def test_a_cut_that_reaches_the_pinhole_images_edge_reaches_the_photos_border() -> None:
+    """A close-up's object fills the frame: through a barrel lens the photo's corners see past the pinhole image, and
+    they stay object rather than a background rim around the photo."""
+    import cv2
+
+    from recon.capture.auto_masks import _to_photo_pixels
+
+    frame = Frame("a.png", np.eye(4), FOCAL, FOCAL, W / 2, H / 2, W, H, k1=-0.3, k2=0.05)
+    left = np.zeros((H, W), bool)
+    left[:, : W // 2] = True
+    photo = _to_photo_pixels(cv2, left, frame, np.array([FOCAL, FOCAL, W / 2, H / 2]))
+    assert photo[:, 0].all() and photo[0, : W // 4].all() and photo[-1, : W // 4].all()
+    assert not photo[:, -1].any()  # the background half stays background out to its border
+    assert _to_photo_pixels(cv2, np.ones((H, W), bool), frame, np.array([FOCAL, FOCAL, W / 2, H / 2])).all()
+
+
 def test_matte_moves_an_offset_cut_onto_the_photos_edge_and_is_soft_only_there() -> None:
     """A warm disc on a textured blue-green room, cut 3 px off to the side: the matte's outline lies on the disc's
     edge (closer to the truth than the cut), it is soft only near the outline, and away from it equals the cut."""
@@ -615,6 +632,37 @@ def test_close_ups_that_crop_the_object_do_not_carve_it_and_are_cut_again_inside
     assert "close-up" not in voting.reason
     assert max(_iou(voting.masks[n], truth[n]) for n in close) < 0.8
     assert np.median([_iou(voting.masks[n], truth[n]) for n in ring]) < 0.9
+
+
+def test_a_close_up_the_hull_fills_without_background_points_is_masked_by_the_hull(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """Four close-ups from 1.3 radii of the ball's centre see nothing but the ball: no background point to seed a cut,
+    and their first cuts leave out the lower 40% (colour models learnt from the object's own colours). The hull the
+    ring carves covers each of them whole, so each mask is its silhouette; a close-up that had background points of
+    its own (MIN_BACKGROUND_SEEDS of them, here none asked) keeps its first cut."""
+    from recon.capture import auto_masks
+
+    scene, photos, truth = _scene(close_ups=4, close_distance=1.3 * BALL_R)
+    close = [f.name for f in scene.frames[10:]]
+    assert all(truth[n].all() for n in close)
+    keys = {_photo_key(photos[n]): n for n in close}
+    grabcut = auto_masks._grabcut
+
+    def cut(cv2, photo, fg, bg, box_uv, known_background, feet, hull=None):
+        found = grabcut(cv2, photo, fg, bg, box_uv, known_background, feet, hull)
+        if _photo_key(photo) in keys:
+            found[found.shape[0] * 3 // 5:] = False
+        return found
+
+    monkeypatch.setattr(auto_masks, "_grabcut", cut)
+    found = segment_object(scene, load_photo=lambda f: photos[f.name])
+    assert "4 close-up(s) lie within the hull's silhouette" in found.reason
+    assert min(found.masks[n].mean() for n in close) > 0.97
+
+    monkeypatch.setattr(auto_masks, "MIN_BACKGROUND_SEEDS", 0)
+    kept = segment_object(scene, load_photo=lambda f: photos[f.name])
+    assert "lie within the hull's silhouette" not in kept.reason
+    assert max(kept.masks[n].mean() for n in close) < 0.7
 
 
 def test_a_photo_that_frames_the_object_but_cuts_away_much_of_it_is_cut_again_inside_the_hull(

@@ -257,3 +257,25 @@ def test_hull_silhouettes_cover_each_photos_object_and_outvote_one_wrong_mask() 
     unvoted, _ = hull_silhouettes(BOX, RES, cams, [INTR] * len(cams), wrong, tolerance=1 / len(cams), voters=voters)
     assert len(unvoted) == len(cams)
     assert (unvoted[5] & masks[5]).sum() >= 0.99 * masks[5].sum()
+
+
+def test_a_close_ups_hull_silhouette_has_no_holes_on_the_near_side() -> None:
+    """A camera 0.3 units from the sphere sees its near side's grid vertices three to four times as far apart as its
+    rim's: each vertex is splatted as wide as a cell at its own depth, so the near side leaves no holes, and the
+    silhouette still ends within a cell of the sphere's outline."""
+    from scipy.ndimage import binary_erosion
+
+    from recon.geometry.visual_hull import silhouette
+
+    points = _grid_points()
+    inside = np.linalg.norm(points, axis=-1) <= RADIUS
+    shell = inside & ~binary_erosion(inside)
+    eye = 0.8 * np.array([np.cos(0.3), np.sin(0.3), 0.4])
+    c2w = look_at(eye, np.array([0.0, 0.1, -0.1]))
+    cell = float(BOX[1, 0] - BOX[0, 0]) / (RES - 1)
+    size, focal = 160, 120.0
+    sil = silhouette(points[shell], cell, c2w, np.array([focal, focal, size / 2, size / 2]), size, size)
+    truth = _silhouette(c2w, size=size, focal=focal)
+    assert 0.2 < truth.mean() < 0.95  # the sphere crops the frame on one side and leaves room on the other
+    assert (sil & truth).sum() >= 0.995 * truth.sum()  # one spacing for all missed 1.4% of it
+    assert (sil & ~truth).sum() <= 0.15 * truth.sum()

@@ -73,7 +73,11 @@ close-up's cut would carve what it took for background out of every photo's mask
 with the hull's silhouette as its probable object and everything outside it as background."""
 MIN_HULL_BACKGROUND = 0.01
 """... unless the silhouette leaves less than this share of the close-up outside it: then there is no background to
-learn from there either, and its first cut stays."""
+learn from there either: its first cut stays when it had MIN_BACKGROUND_SEEDS of its own (the wall seen through a gap
+no framing photo sees through, which the hull fills), else the close-up's mask is the silhouette, the object as the
+photos that frame it carved it (a cut without background seeds learns its background colours from the object's)."""
+MIN_BACKGROUND_SEEDS = 3
+"""See MIN_HULL_BACKGROUND: the background points a close-up's first cut needs to be trusted over the hull."""
 MAX_HULL_MISSED = 0.35
 """A photo that frames the object is cut again the same way when its cut leaves out more than this share of the hull's
 silhouette in it, which the other photos all show as object: a plain board the object hangs on has almost no sparse
@@ -199,9 +203,10 @@ def segment_object(scene: Scene, load_photo: PhotoLoader | None = None, side: in
 
     def cut_one(frame: Frame, hull: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray,
                                                                        tuple[int, int], np.ndarray, np.ndarray,
-                                                                       np.ndarray, bool]:
-        """The photo's cut, its edges, intrinsics, size, object seeds, grey image, counted seeds and whether it
-        frames the object; hull: the hull's (h, w) silhouette in it, for a close-up's second cut."""
+                                                                       np.ndarray, bool, int]:
+        """The photo's cut, its edges, intrinsics, size, object seeds, grey image, counted seeds, whether it
+        frames the object and how many background seeds it has; hull: the hull's (h, w) silhouette in it, for a
+        close-up's second cut."""
         photo = np.asarray(load(frame), np.float32)[..., :3]
         h, w = photo.shape[:2]
         intr = np.array(frame.intrinsics_at(w, h))
@@ -223,13 +228,14 @@ def segment_object(scene: Scene, load_photo: PhotoLoader | None = None, side: in
         grey = np.round(np.clip(pinhole @ np.float32([0.299, 0.587, 0.114]), 0, 1) * 255).astype(np.uint8)
         frames_object = _framed_share(box_uv, w, h) >= FRAMED_SHARE
         cut = _grabcut(cv2, pinhole, fg, bg, box_uv, known, feet, hull)
-        return cut, _edges(cv2, pinhole), intr, (w, h), fg, grey, judged, frames_object
+        return cut, _edges(cv2, pinhole), intr, (w, h), fg, grey, judged, frames_object, len(bg)
 
     cuts, intrinsics, sizes, seeds, edges, greys, judged_seeds, framing = [], [], [], [], [], [], [], []
+    background_seeds = []
     # one photo per core: OpenCV's graph cut runs on one thread and releases the GIL; each cut seeds its own
     # thread's RNG, so the masks do not depend on the thread count
     with ThreadPoolExecutor(max_workers=cpu_threads()) as pool:
-        for cut, edge, intr, size, fg, grey, judged, frames_object in pool.map(cut_one, scene.frames):
+        for cut, edge, intr, size, fg, grey, judged, frames_object, bg in pool.map(cut_one, scene.frames):
             greys.append(grey)
             judged_seeds.append(judged)
             cuts.append(cut)
@@ -238,6 +244,7 @@ def segment_object(scene: Scene, load_photo: PhotoLoader | None = None, side: in
             sizes.append(size)
             seeds.append(fg)
             framing.append(frames_object)
+            background_seeds.append(bg)
             if progress is not None:
                 progress()
 
@@ -246,9 +253,12 @@ def segment_object(scene: Scene, load_photo: PhotoLoader | None = None, side: in
     voters = framing if close_ups and n - len(close_ups) >= MIN_FRAMING_VOTERS else None
     silhouettes, _ = hull_silhouettes(grown, HULL_RES, [f.c2w for f in scene.frames], intrinsics, cuts, HULL_TOLERANCE,
                                       voters)
-    recut = []
+    recut, filled_by_hull = [], []
     if voters is not None:
         recut = [k for k in close_ups if (~silhouettes[k]).mean() >= MIN_HULL_BACKGROUND]
+        filled_by_hull = [k for k in close_ups if k not in recut and background_seeds[k] < MIN_BACKGROUND_SEEDS]
+        for k in filled_by_hull:
+            cuts[k] = silhouettes[k].copy()
     under_cut = [k for k in undercut(cuts, silhouettes, framing) if (~silhouettes[k]).mean() >= MIN_HULL_BACKGROUND]
     if recut or under_cut:
         # each photo is read again rather than held from the first pass: a clip's frames would all stay in memory
@@ -311,7 +321,11 @@ def segment_object(scene: Scene, load_photo: PhotoLoader | None = None, side: in
     if voters is not None:
         reason += (f"; {len(close_ups)} close-up(s) crop the object, so only the {n - len(close_ups)} photos that "
                    "frame it carved the hull" + (f", and {len(recut)} close-up(s) were cut again inside its "
-                                                 "silhouette, their background learnt outside it" if recut else ""))
+                                                 "silhouette, their background learnt outside it" if recut else "") +
+                   (f"; {len(filled_by_hull)} close-up(s) lie within the hull's silhouette and show under "
+                    f"{MIN_BACKGROUND_SEEDS} background points "
+                    f"({', '.join(scene.frames[k].name for k in filled_by_hull)}): each mask is the silhouette"
+                    if filled_by_hull else ""))
     if under_cut:
         reason += (f"; {len(under_cut)} photo(s) that frame it ({', '.join(scene.frames[k].name for k in under_cut)}) "
                    f"were cut again inside the hull's silhouette: their first cut left out over "
@@ -709,4 +723,6 @@ def _to_photo_pixels(cv2, mask: np.ndarray, frame: Frame, intr: np.ndarray) -> n
     flat = flat.reshape(frame.h, frame.w, 2)
     map_x = (flat[..., 0] * w / frame.w - 0.5).astype(np.float32)
     map_y = (flat[..., 1] * h / frame.h - 0.5).astype(np.float32)
-    return cv2.remap(soft, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0) >= 0.5
+    # a barrel lens's corners see past the pinhole image's edge: what the cut shows at its edge goes on beyond it (a
+    # close-up's object does not stop a pixel short of the photo's border)
+    return cv2.remap(soft, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE) >= 0.5

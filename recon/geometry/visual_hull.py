@@ -20,6 +20,11 @@ __all__ = ["carve", "hull_bounds", "hull_silhouettes", "silhouette", "visual_hul
 SIGHTING_CHUNK = 1 << 16
 """Grid points `_sightings` projects into every photo at a time: a 96³ grid's arrays whole outrun the cache, a
 chunk's stay in it (the counts are the same)."""
+SPLAT_OCTAVE = 1.0
+"""`silhouette` splats together the hull vertices whose spacing in the photo is within 2**SPLAT_OCTAVE of each other."""
+SPLAT_PX = 8.0
+"""A splat is closed on a grid with at most this many pixels between neighbouring vertices; coarser ones are drawn
+on a coarser grid and read back at the photo's pixels."""
 
 
 def carve(box: np.ndarray, res: int, c2ws: Sequence[np.ndarray], intrinsics: Sequence[Sequence[float]],
@@ -142,7 +147,11 @@ def hull_silhouettes(box: np.ndarray, res: int, c2ws: Sequence[np.ndarray], intr
 
 
 def silhouette(hull_pts: np.ndarray, cell: float, c2w: np.ndarray, intr: np.ndarray, w: int, h: int) -> np.ndarray:
-    """(h, w) bool: the pixels the hull's vertices cover, each splatted as wide as a grid cell at its depth."""
+    """(h, w) bool: the pixels the hull's vertices cover, each splatted as wide as a grid cell at its own depth.
+
+    Vertices whose spacing in the photo lies within a factor two (`SPLAT_OCTAVE`) share one splat: a close-up sees the
+    near side of the hull several times as coarsely as its far side, and one spacing for all left the near side's gaps
+    open as holes in the silhouette."""
     import cv2
 
     out = np.zeros((h, w), bool)
@@ -151,16 +160,33 @@ def silhouette(hull_pts: np.ndarray, cell: float, c2w: np.ndarray, intr: np.ndar
     uv, z = project(hull_pts, c2w, intr)
     front = z > 1e-9
     uv, z = uv[front], z[front]
-    ok = (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
-    if not ok.any():
-        return out
-    px = uv[ok].astype(np.int64)
-    out[px[:, 1], px[:, 0]] = True
-    spacing = cell * max(intr[0], intr[1]) / float(np.median(z[ok]))  # pixels between neighbouring vertices
-    gap = int(np.ceil(spacing))  # close the gaps between splatted vertices, then grow by half a cell
+    spacing = cell * max(intr[0], intr[1]) / z  # pixels between neighbouring vertices at each one's depth
+    octave = np.floor(np.log2(np.maximum(spacing, 1.0)) / SPLAT_OCTAVE).astype(np.int64)
+    for level in np.unique(octave):
+        pick = octave == level
+        out |= _splat(cv2, uv[pick], float(spacing[pick].max()), float(spacing[pick].min()), w, h)
+    return out
+
+
+def _splat(cv2, uv: np.ndarray, spacing: float, least: float, w: int, h: int) -> np.ndarray:
+    """(h, w) bool: points at most `spacing` pixels apart with the gaps between them closed and grown by half the
+    `least` spacing, on a grid no finer than SPLAT_PX pixels a spacing (coarse splats cost what fine ones do),
+    reaching in from points just beyond the frame."""
+    scale = min(1.0, SPLAT_PX / spacing)
+    gap = int(np.ceil(spacing * scale))  # close the gaps between splatted vertices, then grow by half a cell
+    half = round(0.5 * least * scale)
+    pad = gap + half + 1
+    cw, ch = int(np.ceil(w * scale)), int(np.ceil(h * scale))
+    px = np.floor(uv * scale).astype(np.int64) + pad
+    keep = (px[:, 0] >= 0) & (px[:, 0] < cw + 2 * pad) & (px[:, 1] >= 0) & (px[:, 1] < ch + 2 * pad)
+    canvas = np.zeros((ch + 2 * pad, cw + 2 * pad), np.uint8)
+    if not keep.any():
+        return np.zeros((h, w), bool)
+    canvas[px[keep, 1], px[keep, 0]] = 1
     closing = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * gap + 1, 2 * gap + 1))
-    out = cv2.morphologyEx(out.astype(np.uint8), cv2.MORPH_CLOSE, closing)
-    half = round(0.5 * spacing)
+    canvas = cv2.morphologyEx(canvas, cv2.MORPH_CLOSE, closing)
     if half > 0:
-        out = cv2.dilate(out, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * half + 1, 2 * half + 1)))
-    return out.astype(bool)
+        canvas = cv2.dilate(canvas, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * half + 1, 2 * half + 1)))
+    rows = pad + np.floor((np.arange(h) + 0.5) * scale).astype(np.int64)
+    cols = pad + np.floor((np.arange(w) + 0.5) * scale).astype(np.int64)
+    return canvas[rows][:, cols].astype(bool)

@@ -168,4 +168,6 @@ def _write(folder: Path, masks: dict[str, np.ndarray], scene: Scene) -> None:
 # version 16: automatic masks are recorded relative to the scene folder (were relative to the working folder)
 # version 17: automatic masks: only the photos that frame the object carve the hull; close-ups are cut again inside it
 # version 18: automatic masks: a photo that frames the object but whose cut left out much of the hull is cut again
-STAGE = Stage(name="normalize", folder="02_scene", inputs=("poses",), version=18, run=run)
+# version 19: automatic masks: the hull's silhouette splatted at each vertex's depth; a close-up it fills without
+#             background points takes it; a cut reaching the pinhole image's edge reaches the photo's border
+STAGE = Stage(name="normalize", folder="02_scene", inputs=("poses",), version=19, run=run)
