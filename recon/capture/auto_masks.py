@@ -8,8 +8,9 @@ table: a plain, shadowed base has no seeds of its own).
 Then the photos vote: a pixel stays object only where its ray passes through space that (almost) no photo calls
 background — the masks' visual hull. How well each photo's cut agrees with the hull the others carve says how sure the
 segmentation is. A close-up that crops the object has no background around it to learn from: when enough photos frame
-the object, only they carve, and each close-up is cut again with the hull's silhouette as its probable object; so is
-a photo that frames the object but whose cut left out much of what the others show (a plain board it hangs on).
+the object, only they carve, and each close-up is cut again with the hull's silhouette as its probable object (one the
+silhouette fills, showing no background point, takes the silhouette itself); so is a photo that frames the object but
+whose cut left out much of what the others show (a plain board it hangs on).
 On a table, the plane settles what colour cannot: pixels whose texture lines up with the other photos' views of the
 table through its homography are table (a cast shadow the cut took), and the hull's pixels beside a cut whose rays go
 on to meet the table where no other photo sees it bare are object (a shadowed base the cut left out).
