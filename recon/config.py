@@ -146,7 +146,8 @@ class TrainConfig:
     """Sparse-depth supervision from the SfM points (DS-NeRF). auto: on when fewer than 20 photos train the field
     (few views leave the geometry ambiguous), the model is `surface` (its SDF starts closed and needs the
     points' depths to open concavities) or the capture is unbounded (the object in front of a background it may
-    match in colour), the scene has sparse points and no masks; on / off force it."""
+    match in colour), the scene has sparse points and no masks; and for a fast field that starts empty though its
+    photos have silhouettes (an object on a wall: its plain faces have no other depth to go by); on / off force it."""
     depth_weight: float = 0.002
     """Weight of the sparse-depth loss (robust, in units of each point's depth uncertainty)."""
     depth_rays: int = 512

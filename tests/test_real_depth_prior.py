@@ -163,6 +163,28 @@ def test_depth_prior_is_switched_on_by_few_views_and_says_why(n_views: int, mode
         assert bool((prior.sigma >= 2.0 / 64 - 1e-6).all())  # never finer than the field's voxel
 
 
+@pytest.mark.parametrize("mode, cull_slowly, on", [("auto", True, True), ("auto", False, False),
+                                                  ("off", True, False)])
+def test_depth_prior_is_on_for_a_masked_field_that_starts_empty(mode: str, cull_slowly: bool, on: bool) -> None:
+    """24 masked photos of an object would leave the prior off; a fast field that starts empty though they have
+    silhouettes (an object on a wall) takes it, and says why."""
+    from dataclasses import replace
+
+    from recon.plans.training import depth_prior_for
+
+    cfg, scene, frames, views = _scene_with_points(24)
+    cfg = replace(cfg, depth_prior=mode)
+    scene.has_alpha = True
+    views = [replace(v, image=np.concatenate([v.image, np.full(v.image.shape[:2] + (1,), 255, np.uint8)], -1))
+             for v in views]
+    prior, why = depth_prior_for(cfg, "fast", scene, frames, views, {"config": {"density_res": 64}}, cull_slowly)
+    assert (prior is not None) == on and why.startswith(f"depth prior: {'on' if on else 'off'}")
+    if on:
+        assert "starts empty" in why and "wall" in why
+    elif mode == "auto":
+        assert "the photos constrain the geometry" in why
+
+
 def test_point_errors_survive_save_load_and_normalize(tmp_path) -> None:
     from recon.capture.normalization import normalize
     from recon.capture.scene import load_scene

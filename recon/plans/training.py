@@ -389,6 +389,11 @@ SURFACE_DEPTH_WHY = (
     "closed over (a bowl keeps a lid at its rim); the SfM points' depths say the rays pass through to the floor"
 )
 
+EMPTY_START_DEPTH_WHY = (
+    "the field starts empty though the photos have silhouettes (the object hangs on a wall): its colours place a plain "
+    "face, and the corner where it meets the object, at many depths; the SfM points say at which"
+)
+
 UNBOUNDED_DEPTH_WHY = (
     "an unbounded capture without masks: where the object's colour matches what lies behind it the photos alone leave "
     "the surface soft and holed at any depth; the SfM points say at which depth the surface is"
@@ -404,12 +409,13 @@ def own_ray_bounds(scene: Scene, views: list[View]) -> dict[str, torch.Tensor]:
 
 
 def depth_prior_for(cfg: TrainConfig, kind: str, scene: Scene, frames: list[Frame], views: list[View],
-                    kwargs: dict[str, Any]) -> tuple[DepthPrior | None, str]:
+                    kwargs: dict[str, Any], cull_slowly: bool = False) -> tuple[DepthPrior | None, str]:
     """The sparse-depth prior (`recon.nerf.depth_prior.DepthPrior`, on the CPU) or None, and why (printed either way).
 
-    auto: on with few photos, for the surface model (`SURFACE_DEPTH_WHY`) and for unbounded captures
-    (`UNBOUNDED_DEPTH_WHY`); off with masks. Its rays are cut to the scene box of an object capture, else to each
-    photo's near/far, as the training rays are."""
+    auto: on with few photos, for the surface model (`SURFACE_DEPTH_WHY`), for unbounded captures
+    (`UNBOUNDED_DEPTH_WHY`) and for a fast field that starts empty though its photos have silhouettes (`cull_slowly`,
+    `EMPTY_START_DEPTH_WHY`); otherwise off with masks. Its rays are cut to the scene box of an object capture, else
+    to each photo's near/far, as the training rays are."""
     from recon.capture.normalization import FEW_PHOTOS
 
     if cfg.depth_prior == "off":
@@ -417,10 +423,10 @@ def depth_prior_for(cfg: TrainConfig, kind: str, scene: Scene, frames: list[Fram
     visible = [np.asarray(scene.point_visibility.get(f.name, []), np.int64) for f in frames]
     n_obs = sum(len(v) for v in visible)
     few = len(frames) < FEW_PHOTOS
-    if cfg.depth_prior == "auto" and not few and kind != "surface" and scene.capture != "unbounded":
+    if cfg.depth_prior == "auto" and not few and kind != "surface" and scene.capture != "unbounded" and not cull_slowly:
         return None, (f"depth prior: off ({len(frames)} training photos >= {FEW_PHOTOS} of an object capture: the "
                       f"photos constrain the geometry; train.depth_prior=on forces it)")
-    if cfg.depth_prior == "auto" and scene.has_alpha:
+    if cfg.depth_prior == "auto" and scene.has_alpha and not cull_slowly:
         return None, (f"depth prior: off ({len(frames)} training photos, but masks: their silhouettes already constrain "
                       f"the geometry, and with masks the prior makes the surface lumpy; train.depth_prior=on forces it)")
     if n_obs == 0:
@@ -441,6 +447,8 @@ def depth_prior_for(cfg: TrainConfig, kind: str, scene: Scene, frames: list[Fram
         why = "train.depth_prior=on"
     elif kind == "surface":
         why = SURFACE_DEPTH_WHY
+    elif cull_slowly:
+        why = EMPTY_START_DEPTH_WHY
     elif not few:
         why = UNBOUNDED_DEPTH_WHY
     else:
@@ -610,7 +618,7 @@ def plan_training(cfg: TrainConfig, scene: Scene, views: list[View], device: tor
     optimizer, optimizer_why = choose_optimizer(cfg, kind, device)
     if optimizer_why:
         reasons.append(optimizer_why)
-    depth_prior, depth_why = depth_prior_for(cfg, kind, scene, frames, views, kwargs)
+    depth_prior, depth_why = depth_prior_for(cfg, kind, scene, frames, views, kwargs, cull_slowly)
     reasons.append(depth_why)
     smoothness, smooth_why = smoothness_for(cfg, kind, scene, views, hull_start, cull_slowly)
     if smooth_why:

@@ -341,4 +341,5 @@ def _metrics(scene: Scene, device: torch.device, plan: TrainPlan, setup: TrainSe
 # version 12: a field that culls slowly raises its occupancy threshold over 200 steps, not 1,000
 # version 13: train.smoothness=auto smooths the plain faces of a field that starts empty though it has silhouettes
 # version 14: the hull that says which transparent pixels are disputed is splatted at each vertex's depth
-STAGE = Stage(name="train", folder="03_field", inputs=("normalize",), version=14, run=run)
+# version 15: train.depth_prior=auto is on for a fast field that starts empty though its photos have silhouettes
+STAGE = Stage(name="train", folder="03_field", inputs=("normalize",), version=15, run=run)
