@@ -390,7 +390,7 @@ SURFACE_DEPTH_WHY = (
 )
 
 EMPTY_START_DEPTH_WHY = (
-    "the field starts empty though the photos have silhouettes (the object hangs on a wall): its colours place a plain "
+    "the field starts empty though the photos have silhouettes, as an object on a wall does: its colours place a plain "
     "face, and the corner where it meets the object, at many depths; the SfM points say at which"
 )
 
