@@ -160,8 +160,8 @@ def claim_bench_folder(out_dir: Path) -> None:
 
 def _is_profile_json(data: Any) -> bool:
     """Whether `data` is a profile.json `recon bench --profile` writes: rows with a preset's name, the machine's limits
-    and the steps profiled; or the {"limits", "results"} form it wrote before its rows carried provenance, so a
-    folder profiled then is still recognised as recon's."""
+    and the steps profiled, or the {"limits", "results"} form without provenance, which older checkouts write; a
+    folder holding either is recon's to replace."""
     if isinstance(data, dict):
         return {"limits", "results"} <= data.keys()
     return (isinstance(data, list) and bool(data)

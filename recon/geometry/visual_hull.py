@@ -179,9 +179,9 @@ def _splat(cv2, uv: np.ndarray, spacing: float, least: float, w: int, h: int) ->
     cw, ch = int(np.ceil(w * scale)), int(np.ceil(h * scale))
     px = np.floor(uv * scale).astype(np.int64) + pad
     keep = (px[:, 0] >= 0) & (px[:, 0] < cw + 2 * pad) & (px[:, 1] >= 0) & (px[:, 1] < ch + 2 * pad)
-    canvas = np.zeros((ch + 2 * pad, cw + 2 * pad), np.uint8)
     if not keep.any():
         return np.zeros((h, w), bool)
+    canvas = np.zeros((ch + 2 * pad, cw + 2 * pad), np.uint8)
     canvas[px[keep, 1], px[keep, 0]] = 1
     closing = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * gap + 1, 2 * gap + 1))
     canvas = cv2.morphologyEx(canvas, cv2.MORPH_CLOSE, closing)

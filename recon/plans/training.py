@@ -423,12 +423,14 @@ def depth_prior_for(cfg: TrainConfig, kind: str, scene: Scene, frames: list[Fram
     visible = [np.asarray(scene.point_visibility.get(f.name, []), np.int64) for f in frames]
     n_obs = sum(len(v) for v in visible)
     few = len(frames) < FEW_PHOTOS
-    if cfg.depth_prior == "auto" and not few and kind != "surface" and scene.capture != "unbounded" and not cull_slowly:
-        return None, (f"depth prior: off ({len(frames)} training photos >= {FEW_PHOTOS} of an object capture: the "
-                      f"photos constrain the geometry; train.depth_prior=on forces it)")
-    if cfg.depth_prior == "auto" and scene.has_alpha and not cull_slowly:
-        return None, (f"depth prior: off ({len(frames)} training photos, but masks: their silhouettes already constrain "
-                      f"the geometry, and with masks the prior makes the surface lumpy; train.depth_prior=on forces it)")
+    if cfg.depth_prior == "auto" and not cull_slowly:  # an empty start with silhouettes takes it whatever follows
+        if not few and kind != "surface" and scene.capture != "unbounded":
+            return None, (f"depth prior: off ({len(frames)} training photos >= {FEW_PHOTOS} of an object capture: the "
+                          f"photos constrain the geometry; train.depth_prior=on forces it)")
+        if scene.has_alpha:
+            return None, (f"depth prior: off ({len(frames)} training photos, but masks: their silhouettes already "
+                          f"constrain the geometry, and with masks the prior makes the surface lumpy; "
+                          f"train.depth_prior=on forces it)")
     if n_obs == 0:
         return None, "depth prior: off (the scene has no sparse points seen by the training photos)"
     scale = float(np.median([v.hw[1] / f.w for f, v in zip(frames, views, strict=True)]))
