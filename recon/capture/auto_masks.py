@@ -170,6 +170,21 @@ def object_on_background(scene: Scene, turntable: bool = False) -> bool:
     return (scene.capture == "unbounded" or turntable) and scene.region is not None and not scene.has_alpha
 
 
+@dataclass(frozen=True)
+class _Cut:
+    """One photo's first cut and what the later steps need of it, all at the cut's size."""
+
+    mask: np.ndarray  # (h, w) bool
+    edges: np.ndarray  # (h, w) bool: the photo's strong gradients, which a good outline follows
+    intrinsics: np.ndarray  # (fx, fy, cx, cy) at (w, h)
+    size: tuple[int, int]  # (w, h)
+    seeds: np.ndarray  # (S, 2) pixels of the object points the cut started from
+    grey: np.ndarray  # (h, w) uint8 pinhole image, for the table's cross-photo check
+    judged: np.ndarray  # (J, 2) pixels of the seeds the recall counts (no lone points)
+    frames_object: bool  # the object's box lies mostly in frame (not a close-up)
+    background_seeds: int  # how many background points the cut started from
+
+
 def segment_object(scene: Scene, load_photo: PhotoLoader | None = None, side: int = SEGMENT_SIDE,
                    progress: Callable[[], object] | None = None,
                    background: Callable[[Frame], np.ndarray | None] | None = None) -> ObjectMasks:
@@ -202,12 +217,8 @@ def segment_object(scene: Scene, load_photo: PhotoLoader | None = None, side: in
         """The object points this photo's cut takes as seeds (P,) bool: those placed within SEED_SPREAD_PX."""
         return object_pts & (spread * (w / frame.w) <= SEED_SPREAD_PX)
 
-    def cut_one(frame: Frame, hull: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray,
-                                                                       tuple[int, int], np.ndarray, np.ndarray,
-                                                                       np.ndarray, bool, int]:
-        """The photo's cut, its edges, intrinsics, size, object seeds, grey image, counted seeds, whether it
-        frames the object and how many background seeds it has; hull: the hull's (h, w) silhouette in it, for a
-        close-up's second cut."""
+    def cut_one(frame: Frame, hull: np.ndarray | None = None) -> _Cut:
+        """The photo's cut; hull: the hull's (h, w) silhouette in it, for a close-up's second cut."""
         photo = np.asarray(load(frame), np.float32)[..., :3]
         h, w = photo.shape[:2]
         intr = np.array(frame.intrinsics_at(w, h))
@@ -229,23 +240,23 @@ def segment_object(scene: Scene, load_photo: PhotoLoader | None = None, side: in
         grey = np.round(np.clip(pinhole @ np.float32([0.299, 0.587, 0.114]), 0, 1) * 255).astype(np.uint8)
         frames_object = _framed_share(box_uv, w, h) >= FRAMED_SHARE
         cut = _grabcut(cv2, pinhole, fg, bg, box_uv, known, feet, hull)
-        return cut, _edges(cv2, pinhole), intr, (w, h), fg, grey, judged, frames_object, len(bg)
+        return _Cut(cut, _edges(cv2, pinhole), intr, (w, h), fg, grey, judged, frames_object, len(bg))
 
     cuts, intrinsics, sizes, seeds, edges, greys, judged_seeds, framing = [], [], [], [], [], [], [], []
     background_seeds = []
     # one photo per core: OpenCV's graph cut runs on one thread and releases the GIL; each cut seeds its own
     # thread's RNG, so the masks do not depend on the thread count
     with ThreadPoolExecutor(max_workers=cpu_threads()) as pool:
-        for cut, edge, intr, size, fg, grey, judged, frames_object, bg in pool.map(cut_one, scene.frames):
-            greys.append(grey)
-            judged_seeds.append(judged)
-            cuts.append(cut)
-            edges.append(edge)
-            intrinsics.append(intr)
-            sizes.append(size)
-            seeds.append(fg)
-            framing.append(frames_object)
-            background_seeds.append(bg)
+        for one in pool.map(cut_one, scene.frames):  # kept as lists: the grey images are dropped once used
+            cuts.append(one.mask)
+            edges.append(one.edges)
+            intrinsics.append(one.intrinsics)
+            sizes.append(one.size)
+            seeds.append(one.seeds)
+            greys.append(one.grey)
+            judged_seeds.append(one.judged)
+            framing.append(one.frames_object)
+            background_seeds.append(one.background_seeds)
             if progress is not None:
                 progress()
 
@@ -265,7 +276,7 @@ def segment_object(scene: Scene, load_photo: PhotoLoader | None = None, side: in
         # each photo is read again rather than held from the first pass: a clip's frames would all stay in memory
         with ThreadPoolExecutor(max_workers=cpu_threads()) as pool:
             cut_again = recut + under_cut
-            again = pool.map(lambda k: cut_one(scene.frames[k], silhouettes[k])[0], cut_again)
+            again = pool.map(lambda k: cut_one(scene.frames[k], silhouettes[k]).mask, cut_again)
             for k, cut in zip(cut_again, again, strict=True):
                 cuts[k] = cut
 
