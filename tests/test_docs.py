@@ -137,6 +137,9 @@ def test_bench_provenance_names_this_commit_and_machine() -> None:
     row = {"name": "fast", **where, "date": "now", "device": "cpu", "load_average_start": [3.5, 2.0, 1.0]}
     (line,) = provenance_lines([row, {"name": "old row without provenance"}])
     assert line.startswith("- fast: commit ") and "load average 3.5" in line and "device cpu" in line
+    # torch's CPU kernels say which vector instructions they use: rows from an AVX-512 and an AVX2 machine differ
+    assert where["machine"]["cpu_vectors"] in ("DEFAULT", "VSX", "ZVECTOR", "SVE256", "AVX2", "AVX512")
+    assert f", {where['machine']['cpu_vectors']})" in line
 
 
 def test_a_record_written_earlier_does_not_make_the_next_measurement_uncommitted(tmp_path, monkeypatch) -> None:

@@ -109,6 +109,16 @@ def _cpu_model() -> str:
     return platform.processor() or platform.machine()
 
 
+def _cpu_vectors() -> str | None:
+    """The widest vector instructions torch's CPU kernels use here ("AVX2", "AVX512", ...): one model name ("AMD EPYC")
+    covers machines whose matrix products differ several times over, so rows compare only where this matches too."""
+    import torch
+
+    with contextlib.suppress(AttributeError, RuntimeError):
+        return str(torch.backends.cpu.get_cpu_capability())
+    return None
+
+
 RECORDS = "benchmarks/results"
 """Where the committed benchmark records live, relative to the checkout."""
 
@@ -136,6 +146,7 @@ def provenance() -> dict[str, Any]:
         "machine": {
             "cpu_count": os.cpu_count(),
             "cpu": _cpu_model(),
+            "cpu_vectors": _cpu_vectors(),
             "system": platform.system(),
             "python": platform.python_version(),
             "torch": torch_version,
@@ -386,6 +397,6 @@ def provenance_lines(rows: list[dict[str, Any]]) -> list[str]:
         load = r.get("load_average_start") or []
         commit = (r.get("commit") or "unknown")[:12] + (" + uncommitted changes" if r.get("uncommitted_changes") else "")
         lines.append(f"- {r['name']}: commit {commit}, {r.get('date', '?')}, {machine.get('cpu_count')} CPUs "
-                     f"({machine.get('cpu')}), torch {machine.get('torch')}, device {r.get('device')}, load average "
+                     f"({machine.get('cpu')}{', ' + machine['cpu_vectors'] if machine.get('cpu_vectors') else ''}), torch {machine.get('torch')}, device {r.get('device')}, load average "
                      f"{load[0] if load else '?'} at the start")
     return lines

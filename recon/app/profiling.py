@@ -318,7 +318,8 @@ def markdown(results: list[dict[str, Any]], limits: dict[str, float], where: dic
     lines = [
         "# recon bench --profile",
         "",
-        f"Commit {commit}, {where['date']}, on {where['machine'].get('cpu') or 'an unnamed CPU'}. "
+        f"Commit {commit}, {where['date']}, on {where['machine'].get('cpu') or 'an unnamed CPU'}"
+        f"{' (' + where['machine']['cpu_vectors'] + ')' if where['machine'].get('cpu_vectors') else ''}. "
         f"Load average (1 / 5 / 15 min) {load(where['load_average_start'])} at the start, "
         f"{load(where['load_average_end'])} at the end; {int(limits['threads'])} torch threads, "
         f"{os.cpu_count()} CPUs.",
