@@ -350,10 +350,52 @@ def test_lone_points_in_the_air_do_not_make_good_masks_unsure(monkeypatch: pytes
     assert found.confident, found.reason
     assert np.median([_iou(found.masks[n], truth[n]) for n in truth]) > 0.9
     monkeypatch.setattr(auto_masks, "LONE_POINT_SPACING", np.inf)
+    monkeypatch.setattr(auto_masks, "MAX_REFUTED", 0.0)  # the lone rule alone: refuted points would be excused too
     counted = segment_object(scene, load_photo=lambda f: photos[f.name])
     assert found.seed_recall > counted.seed_recall + 0.03, (found.seed_recall, counted.seed_recall)
     assert f"{len(lone)} lone point(s)" in found.reason and "lone" not in counted.reason
     assert all(np.array_equal(found.masks[n], counted.masks[n]) for n in truth)
+
+
+def test_false_points_beside_a_plain_object_that_every_mask_leaves_out_do_not_make_good_masks_unsure(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """A plain object has few sparse points; three false matches just above it, close enough to its points not to be
+    lone, are left out by every photo's mask, and counted they hold the masks under MIN_SEED_RECALL: the capture would
+    train as a room. The masks agree they are not object, so they do not count, and the reason says so."""
+    from recon.capture import auto_masks
+
+    scene, photos, truth = _scene()
+    points = np.asarray(scene.points)
+    ball = np.abs(np.linalg.norm(points - BALL_C, axis=1) - BALL_R) < 1e-6
+    keep = np.concatenate([np.flatnonzero(ball)[:40], np.flatnonzero(~ball)])
+    false = BALL_C + np.array([[dx, 0.0, BALL_R + 0.15] for dx in (-0.05, 0.0, 0.05)])
+    new_index = {old: i for i, old in enumerate(keep)}
+    added = list(range(len(keep), len(keep) + len(false)))  # seen by every photo
+    visibility = {n: np.array([new_index[i] for i in v if i in new_index] + added)
+                  for n, v in scene.point_visibility.items()}
+    region = np.stack([BALL_C - 2 * BALL_R, BALL_C + 2 * BALL_R])
+    scene = replace(scene, points=np.concatenate([points[keep], false]), point_visibility=visibility, region=region)
+    found = segment_object(scene, load_photo=lambda f: photos[f.name])
+    assert found.confident, found.reason
+    assert "3 point(s) that nearly every mask leaves out" in found.reason and "lone" not in found.reason
+    assert np.median([_iou(found.masks[n], truth[n]) for n in truth]) > 0.9
+    monkeypatch.setattr(auto_masks, "MAX_REFUTED", 0.0)
+    counted = segment_object(scene, load_photo=lambda f: photos[f.name])
+    assert not counted.confident and counted.seed_recall < auto_masks.MIN_SEED_RECALL, counted.reason
+
+
+def test_no_more_than_a_tenth_of_the_points_are_refuted_the_most_refuted_first() -> None:
+    """A part of the object every cut missed holds many points: past MAX_REFUTED of them they count again."""
+    from recon.capture.auto_masks import MAX_REFUTED, _refuted
+
+    sightings = np.full(40, 10)
+    sightings[0] = 0  # never seen: neither counted nor refuted
+    kept = np.full(40, 10)
+    kept[1:9] = [2, 0, 1, 2, 0, 3, 2, 9]  # seven at most a quarter kept, one mostly kept
+    refuted = _refuted(sightings, kept)
+    assert refuted.sum() == int(MAX_REFUTED * 39) == 3
+    assert set(np.flatnonzero(refuted)) == {2, 5, 3}  # kept 0, 0, 1
+    assert not _refuted(sightings, np.full(40, 10)).any()
 
 
 def test_photos_that_do_not_fit_their_cameras_are_not_trusted() -> None:

@@ -122,6 +122,14 @@ MIN_AGREEMENT = 0.9
 carve (the hull is fatter than the object where no photo looks edge-on, so only the cut's excess counts)."""
 MIN_SEED_RECALL = 0.9
 """... and the masks keep at least this fraction of the object's sparse points where the photos see them."""
+REFUTED_KEPT = 0.25
+"""An object point that at most this share of the photos' masks keep (among the photos it lands in) is refuted: the
+masks, each cut from its own photo's colours, agree it is not object (a false match near the object, a table point
+just above the plane's band). Refuted points do not count in the share of points the masks keep, ..."""
+MAX_REFUTED = 0.1
+"""... up to this share of the counted points, the most refuted first: a plain object has a few dozen points, and two
+false ones held its masks under MIN_SEED_RECALL, while more than a tenth would be a part of the object every cut
+missed, which must still count."""
 LONE_POINT_SPACING = 5.0
 """An object point farther than this many times the object points' median spacing from every other one is a false
 match in the air and does not count in that fraction: every mask leaves it out, and a plain object has so few points
@@ -181,6 +189,7 @@ class _Cut:
     seeds: np.ndarray  # (S, 2) pixels of the object points the cut started from
     grey: np.ndarray  # (h, w) uint8 pinhole image, for the table's cross-photo check
     judged: np.ndarray  # (J, 2) pixels of the seeds the recall counts (no lone points)
+    judged_points: np.ndarray  # (J,) their indices in the scene's points
     frames_object: bool  # the object's box lies mostly in frame (not a close-up)
     background_seeds: int  # how many background points the cut started from
 
@@ -229,7 +238,8 @@ def segment_object(scene: Scene, load_photo: PhotoLoader | None = None, side: in
         # background points only where the photo sees them (a hidden table point may lie behind the object)
         seeded = certain(frame, w)
         fg = _visible_uv(points[seeded], frame.c2w, intr, w, h)
-        judged = _visible_uv(points[seeded & counted], frame.c2w, intr, w, h)  # the seeds the recall counts
+        judged_points = np.flatnonzero(seeded & counted)  # the seeds the recall counts
+        judged, in_view = _visible(points[judged_points], frame.c2w, intr, w, h)
         bg = _visible_uv(points[seen[background_pts[seen]]], frame.c2w, intr, w, h)
         feet = _visible_uv(_feet(points[seeded], scene.ground), frame.c2w, intr, w, h) if on_ground else None
         box_uv = _visible_uv(box_corners(grown), frame.c2w, intr, w, h, clip=False)
@@ -240,10 +250,11 @@ def segment_object(scene: Scene, load_photo: PhotoLoader | None = None, side: in
         grey = np.round(np.clip(pinhole @ np.float32([0.299, 0.587, 0.114]), 0, 1) * 255).astype(np.uint8)
         frames_object = _framed_share(box_uv, w, h) >= FRAMED_SHARE
         cut = _grabcut(cv2, pinhole, fg, bg, box_uv, known, feet, hull)
-        return _Cut(cut, _edges(cv2, pinhole), intr, (w, h), fg, grey, judged, frames_object, len(bg))
+        return _Cut(cut, _edges(cv2, pinhole), intr, (w, h), fg, grey, judged, judged_points[in_view], frames_object,
+                    len(bg))
 
-    cuts, intrinsics, sizes, seeds, edges, greys, judged_seeds, framing = [], [], [], [], [], [], [], []
-    background_seeds = []
+    cuts, intrinsics, sizes, seeds, edges, greys, framing, background_seeds = [], [], [], [], [], [], [], []
+    judged_seeds, judged_points = [], []
     # one photo per core: OpenCV's graph cut runs on one thread and releases the GIL; each cut seeds its own
     # thread's RNG, so the masks do not depend on the thread count
     with ThreadPoolExecutor(max_workers=cpu_threads()) as pool:
@@ -255,6 +266,7 @@ def segment_object(scene: Scene, load_photo: PhotoLoader | None = None, side: in
             seeds.append(one.seeds)
             greys.append(one.grey)
             judged_seeds.append(one.judged)
+            judged_points.append(one.judged_points)
             framing.append(one.frames_object)
             background_seeds.append(one.background_seeds)
             if progress is not None:
@@ -300,15 +312,19 @@ def segment_object(scene: Scene, load_photo: PhotoLoader | None = None, side: in
                                                           [t < TABLE_NCC for t in on_table])
             bites_filled = _changed(before, filled)
 
-    finals, support, kept, total = [], {}, 0, 0
-    for frame, final, (w, h), judged, edge in zip(scene.frames, filled, sizes, judged_seeds, edges, strict=True):
+    finals, support = [], {}
+    sightings, kept_by = np.zeros(len(points), np.int64), np.zeros(len(points), np.int64)
+    for frame, final, (w, h), judged, which, edge in zip(scene.frames, filled, sizes, judged_seeds, judged_points,
+                                                         edges, strict=True):
         outline = _outline(cv2, final)
         support[frame.name] = float(edge[outline].mean()) if outline.any() else 0.0
         if len(judged):
             px = np.clip(judged.astype(np.int64), 0, [w - 1, h - 1])
-            kept += int(final[px[:, 1], px[:, 0]].sum())
-            total += len(judged)
+            np.add.at(sightings, which, 1)
+            np.add.at(kept_by, which, final[px[:, 1], px[:, 0]].astype(np.int64))
         finals.append(final)
+    refuted = _refuted(sightings, kept_by)
+    kept, total = int(kept_by[~refuted].sum()), int(sightings[~refuted].sum())
     with ThreadPoolExecutor(max_workers=cpu_threads()) as pool:  # full-size resampling: OpenCV, GIL released
         full = pool.map(lambda args: _to_photo_pixels(cv2, *args), zip(finals, scene.frames, intrinsics))
         masks = {frame.name: mask for frame, mask in zip(scene.frames, full, strict=True)}
@@ -321,11 +337,13 @@ def segment_object(scene: Scene, load_photo: PhotoLoader | None = None, side: in
     on_edges = float(np.median(list(support.values()))) if support else 0.0
     confident = median >= MIN_AGREEMENT and recall >= MIN_SEED_RECALL and on_edges >= MIN_EDGE_SUPPORT and not empty
     lone = int(np.sum(object_pts & ~counted))
+    uncounted = ([f"{lone} lone point(s) far from the others, false matches in the air"] if lone else []) + (
+        [f"{int(refuted.sum())} point(s) that nearly every mask leaves out, false matches beside the object"]
+        if refuted.any() else [])
     reason = (
         f"automatic object masks for {n} photos: the photos' cuts lie in the hull they carve together "
         f"(median {median:.0%}, least {agreement.get(worst, 0.0):.0%} in {worst}), keep {recall:.0%} of the "
-        f"object's sparse points" + (f" ({lone} lone point(s) far from the others, false matches in the air, not "
-                                     "counted)" if lone else "") +
+        f"object's sparse points" + (f" ({'; '.join(uncounted)}: not counted)" if uncounted else "") +
         f" and their outlines follow the photos' edges ({on_edges:.0%})"
     )
     if on_ground:
@@ -446,15 +464,34 @@ def _triangulation_spread(scene: Scene, points: np.ndarray) -> np.ndarray:
     return np.maximum(error, MIN_KEYPOINT_ERROR_PX) / np.maximum(np.sin(angles), floor)
 
 
-def _visible_uv(points: np.ndarray, c2w: np.ndarray, intr: np.ndarray, w: int, h: int, clip: bool = True) -> np.ndarray:
-    """(M, 2) pixel coordinates of the points in front of the camera (and, with clip, inside the frame)."""
+def _refuted(sightings: np.ndarray, kept_by: np.ndarray) -> np.ndarray:
+    """(P,) bool: the points at most REFUTED_KEPT of whose sightings (P,) the masks kept (kept_by (P,)), the most
+    refuted first, no more than MAX_REFUTED of the points seen at all."""
+    seen = np.flatnonzero(sightings > 0)
+    share = kept_by[seen] / sightings[seen]
+    order = np.argsort(share, kind="stable")
+    picked = order[share[order] <= REFUTED_KEPT][: int(MAX_REFUTED * len(seen))]
+    refuted = np.zeros(len(sightings), bool)
+    refuted[seen[picked]] = True
+    return refuted
+
+
+def _visible(points: np.ndarray, c2w: np.ndarray, intr: np.ndarray, w: int, h: int,
+             clip: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """(M, 2) pixel coordinates of the points (P, 3) in front of the camera (and, with clip, inside the frame), and
+    which of them those are, (P,) bool."""
     if not len(points):
-        return np.zeros((0, 2))
+        return np.zeros((0, 2)), np.zeros(0, bool)
     uv, z = project(points, c2w, intr)
     keep = z > 1e-9
     if clip:
         keep &= (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
-    return uv[keep]
+    return uv[keep], keep
+
+
+def _visible_uv(points: np.ndarray, c2w: np.ndarray, intr: np.ndarray, w: int, h: int, clip: bool = True) -> np.ndarray:
+    """(M, 2) pixel coordinates of the points in front of the camera (and, with clip, inside the frame)."""
+    return _visible(points, c2w, intr, w, h, clip)[0]
 
 
 def _feet(points: np.ndarray, support: np.ndarray) -> np.ndarray:

@@ -170,4 +170,5 @@ def _write(folder: Path, masks: dict[str, np.ndarray], scene: Scene) -> None:
 # version 18: automatic masks: a photo that frames the object but whose cut left out much of the hull is cut again
 # version 19: automatic masks: the hull's silhouette splatted at each vertex's depth; a close-up it fills without
 #             background points takes it; a cut reaching the pinhole image's edge reaches the photo's border
-STAGE = Stage(name="normalize", folder="02_scene", inputs=("poses",), version=19, run=run)
+# version 20: automatic masks: object points nearly every mask leaves out (up to a tenth) do not count against them
+STAGE = Stage(name="normalize", folder="02_scene", inputs=("poses",), version=20, run=run)
