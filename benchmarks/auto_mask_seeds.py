@@ -10,7 +10,8 @@ Cuts the object out of every photo again (`segment_object`) as shipped, from ano
 changed, and scores each against the true masks: IoU per photo (median, least), the share of the true mask's lowest
 fifth each leaves out (median, most: `missed_at_base`), how much of the outline lies on the photo's edges (the median
 photo's: what `MIN_EDGE_SUPPORT` judges), how much of the median photo's cut lies in the hull (what `MIN_AGREEMENT`
-judges) and whether the masks would be trusted; and how many sparse points the object region holds, with and
+judges), how far the outline lies outside and inside the true one (pixels along it, median photo; with `--mattes`
+also the matte's) and whether the masks would be trusted; and how many sparse points the object region holds, with and
 without the points linked to the in-frame ones (what close-ups leave out of frame). Variants:
 
 - shipped: as normalize runs it (object seeds: the points SfM placed within `SEED_SPREAD_PX`, each its own pixel);
@@ -20,6 +21,8 @@ without the points linked to the in-frame ones (what close-ups leave out of fram
   (`DROP_TABLE`); neither: without both (the masks before they came);
 - lone points counted: shipped, but the object points far from every other one count in the share of points the masks
   keep (`LONE_POINT_SPACING`), which says whether they are trusted;
+- refuted points counted: shipped, but the object points nearly every mask leaves out count in that share too
+  (`MAX_REFUTED` = 0: the trust before such points were excused);
 - least parallax: shipped, but each photo's table is matched with the photos that see the object's points move
   nearest `MIN_TABLE_PARALLAX` windows off the plane's homography (not `TABLE_PARALLAX`);
 - close-ups vote: shipped, but every photo carves the hull, close-ups that crop the object too, and none is cut again
@@ -72,6 +75,17 @@ def missed_at_base(mask: np.ndarray, truth: np.ndarray) -> float:
     return float((base & ~mask).sum() / max(base.sum(), 1))
 
 
+def outline_offset_px(mask: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
+    """How far the mask's outline lies outside the true one, in pixels along the true outline: (extra, missed), the
+    pixels the mask adds and leaves out, each over the true outline's length. A cut that is one pixel too fat all
+    round gives (1, 0); a field trained on it grows a skin that thick at every silhouette."""
+    import cv2
+
+    contours, _ = cv2.findContours(truth.astype(np.uint8), cv2.RETR_LIST, cv2.CHAIN_APPROX_NONE)
+    length = max(sum(cv2.arcLength(c, True) for c in contours), 1.0)
+    return float((mask & ~truth).sum() / length), float((truth & ~mask).sum() / length)
+
+
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("scene", type=Path)
@@ -80,6 +94,8 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--variants", default="", help="comma-separated variants to run (default: all)")
     ap.add_argument("--write-masks", type=Path, help="also write each variant's masks, matted as normalize writes "
                     "them, to DIR/<variant>/<photo stem>.png (for mask_swap.py --masks)")
+    ap.add_argument("--mattes", action="store_true", help="also score the matted masks the train stage reads "
+                    "(their outline at half opacity)")
     a = ap.parse_args(argv)
 
     import cv2
@@ -123,6 +139,7 @@ def main(argv: list[str] | None = None) -> None:
 
     original_grabcut, original_spread = am._grabcut, am._triangulation_spread
     filling, dropping, lone_spacing = am.FILL_GROUNDED_BITES, am.DROP_TABLE, am.LONE_POINT_SPACING
+    max_refuted = am.MAX_REFUTED
     parallax, framed_share, max_missed = am.TABLE_PARALLAX, am.FRAMED_SHARE, am.MAX_HULL_MISSED
     background_seeds = am.MIN_BACKGROUND_SEEDS
     current: dict[str, str] = {}
@@ -161,6 +178,7 @@ def main(argv: list[str] | None = None) -> None:
         am.FILL_GROUNDED_BITES = name not in ("no grounded bites", "neither")
         am.DROP_TABLE = name not in ("no table drop", "neither")
         am.LONE_POINT_SPACING = np.inf if name == "lone points counted" else lone_spacing
+        am.MAX_REFUTED = 0.0 if name == "refuted points counted" else max_refuted
         am.TABLE_PARALLAX = am.MIN_TABLE_PARALLAX if name == "least parallax" else parallax
         am.FRAMED_SHARE = 0.0 if name == "close-ups vote" else framed_share
         am.MAX_HULL_MISSED = 1.0 if name == "short cuts kept" else max_missed
@@ -175,6 +193,7 @@ def main(argv: list[str] | None = None) -> None:
         finally:
             am._triangulation_spread, am._grabcut, device.cpu_threads = original_spread, original_grabcut, threads
             am.FILL_GROUNDED_BITES, am.DROP_TABLE, am.LONE_POINT_SPACING = filling, dropping, lone_spacing
+            am.MAX_REFUTED = max_refuted
             am.TABLE_PARALLAX, am.FRAMED_SHARE, am.MAX_HULL_MISSED = parallax, framed_share, max_missed
             am.MIN_BACKGROUND_SEEDS = background_seeds
         if a.write_masks is not None:
@@ -182,12 +201,19 @@ def main(argv: list[str] | None = None) -> None:
             folder.mkdir(parents=True, exist_ok=True)
             for frame_name, soft in am.matte_photos(scene, found.masks).items():
                 save_image(folder / f"{Path(frame_name).stem}.png", (soft.astype(np.float32) / 255.0)[..., None])
-        ious, base_missed = [], {}
+        ious, base_missed, offsets, matte_offsets = [], {}, [], []
+        mattes = am.matte_photos(scene, found.masks) if a.true_masks is not None and a.mattes else {}
         for frame in scene.frames if a.true_masks is not None else ():
             mask = found.masks[frame.name]
             t = true_mask(frame, mask.shape[1], mask.shape[0])
             ious.append(float((mask & t).sum() / max((mask | t).sum(), 1)))
             base_missed[frame.name] = missed_at_base(mask, t)
+            offsets.append(outline_offset_px(mask, t))
+            if frame.name in mattes:  # what the train stage reads: the matte, half opaque at its outline
+                matte_offsets.append(outline_offset_px(mattes[frame.name] >= 128, t))
+
+        def offset(rows: list[tuple[float, float]], k: int) -> float | None:
+            return round(float(np.median([r[k] for r in rows])), 3) if rows else None
         worst = max(base_missed, key=base_missed.get) if base_missed else None
         row = {"variant": name,
                "iou_median": round(float(np.median(ious)), 4) if ious else None,
@@ -195,21 +221,25 @@ def main(argv: list[str] | None = None) -> None:
                "base_missed_median": round(float(np.median(list(base_missed.values()))), 4) if base_missed else None,
                "base_missed_most": round(base_missed[worst], 4) if worst else None, "base_missed_most_photo": worst,
                "iou_mean": round(float(np.mean(ious)), 4) if ious else None,
+               "outline_extra_px_median": offset(offsets, 0), "outline_missed_px_median": offset(offsets, 1),
+               "matte_outline_extra_px_median": offset(matte_offsets, 0),
+               "matte_outline_missed_px_median": offset(matte_offsets, 1),
                "iou_by_photo": {f.name: round(x, 4) for f, x in zip(scene.frames, ious)} if ious else None,
                "seed_recall": round(float(found.seed_recall), 4),
                "agreement_median": round(float(np.median(list(found.agreement.values()))), 4),
                "edge_support_median": round(float(np.median(list(found.edge_support.values()))), 4),
                "confident": bool(found.confident), "reason": found.reason,
                "seconds": round(time.perf_counter() - clock, 1)}
-        iou = f"IoU median {row['iou_median']:.3f} (least {row['iou_least']:.3f}), " if ious else ""
+        iou = (f"IoU median {row['iou_median']:.3f} (least {row['iou_least']:.3f}), outline "
+               f"+{row['outline_extra_px_median']:.2f} / -{row['outline_missed_px_median']:.2f} px, " if ious else "")
         print(f"{name}: {iou}cut in the hull {row['agreement_median']:.0%}, outline on edges "
               f"{row['edge_support_median']:.0%}, {'trusted' if row['confident'] else 'not trusted'}", flush=True)
         return row
 
     oracles = ("true object seeds", "true seeds and a background ring") if a.true_masks is not None else ()
-    names = ("shipped", "no grounded bites", "no table drop", "neither", "lone points counted", "least parallax",
-             "close-ups vote", "filled close-ups keep their cut", "short cuts kept", "no support prior", "in-frame region",
-             "every point, seed discs", *oracles)
+    names = ("shipped", "no grounded bites", "no table drop", "neither", "lone points counted",
+             "refuted points counted", "least parallax", "close-ups vote", "filled close-ups keep their cut",
+             "short cuts kept", "no support prior", "in-frame region", "every point, seed discs", *oracles)
     chosen = a.variants.split(",") if a.variants else names
     if unknown := set(chosen) - set(names):
         raise SystemExit(f"unknown variants {sorted(unknown)}; known: {', '.join(names)}")
