@@ -2,20 +2,14 @@
 true one, which says whether the automatic masks are fat or thin rather than only how much they overlap."""
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
 import numpy as np
 import pytest
 
-REPO = Path(__file__).resolve().parents[1]
+from tests.scripts import load_script
 
 
 def _tool():
-    spec = importlib.util.spec_from_file_location("auto_mask_seeds", REPO / "benchmarks" / "auto_mask_seeds.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script("benchmarks/auto_mask_seeds.py", "auto_mask_seeds")
 
 
 def _disc(radius: float, size: int = 200) -> np.ndarray:

@@ -7,10 +7,8 @@ non-white pixels of that frame's photo.
 """
 from __future__ import annotations
 
-import importlib.util
 import json
 import math
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -19,22 +17,13 @@ import trimesh
 from PIL import Image
 from scipy.ndimage import binary_closing
 
+from tests.scripts import load_script
+
 REPO = Path(__file__).resolve().parents[1]
 SAMPLE = REPO / "fixtures" / "sample"
 
 
-def _load_generator():
-    """fixtures/ is not a package: load generate.py by path (once) as module `fixtures_generate`."""
-    name = "fixtures_generate"
-    if name not in sys.modules:
-        spec = importlib.util.spec_from_file_location(name, REPO / "fixtures" / "generate.py")
-        module = importlib.util.module_from_spec(spec)
-        sys.modules[name] = module
-        spec.loader.exec_module(module)
-    return sys.modules[name]
-
-
-gen = _load_generator()
+gen = load_script("fixtures/generate.py", "fixtures_generate")
 TINY = dict(views=6, size=64, seed=3, mesh_res=96)
 
 

@@ -2,7 +2,6 @@
 test photos, whose cameras recon reads at each photo's own size."""
 from __future__ import annotations
 
-import importlib.util
 import json
 from pathlib import Path
 
@@ -10,15 +9,11 @@ import numpy as np
 from PIL import Image
 
 from recon.capture.scene import parse_frames
-
-REPO = Path(__file__).resolve().parents[1]
+from tests.scripts import load_script
 
 
 def _tool():
-    spec = importlib.util.spec_from_file_location("lego_full_res", REPO / "benchmarks" / "lego_full_res.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script("benchmarks/lego_full_res.py", "lego_full_res")
 
 
 def _nerf_folder(root: Path, split: str, n: int, side: int) -> None:
