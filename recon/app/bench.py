@@ -110,8 +110,9 @@ def _cpu_model() -> str:
 
 
 def _cpu_vectors() -> str | None:
-    """The widest vector instructions torch's CPU kernels use here ("AVX2", "AVX512", ...): one model name ("AMD EPYC")
-    covers machines whose matrix products differ several times over, so rows compare only where this matches too."""
+    """The widest vector instructions torch's CPU kernels use here ("AVX2", "AVX512", ...): a CPU's model name alone
+    ("AMD EPYC") does not tell machines of different speed apart (the matmul rates of the profile records
+    tabletop_video_profile_cpu.json and lego_half_profile_cpu.json), so rows compare only where this matches too."""
     import torch
 
     with contextlib.suppress(AttributeError, RuntimeError):
@@ -387,6 +388,12 @@ def _mesh_caption(row: dict[str, Any]) -> str:
     return f"{row['name']}: {row['train_time_s'] / 60:.1f} min" + ("\n" + ", ".join(details) if details else "")
 
 
+def machine_name(machine: dict[str, Any]) -> str:
+    """A provenance record's CPU as a reader compares it: its model name and, where recorded, its vector unit."""
+    vectors = machine.get("cpu_vectors")
+    return f"{machine.get('cpu') or 'an unnamed CPU'}" + (f", {vectors}" if vectors else "")
+
+
 def provenance_lines(rows: list[dict[str, Any]]) -> list[str]:
     """One line per row saying where and when it ran (rows without a machine record are left out)."""
     lines = []
@@ -397,6 +404,6 @@ def provenance_lines(rows: list[dict[str, Any]]) -> list[str]:
         load = r.get("load_average_start") or []
         commit = (r.get("commit") or "unknown")[:12] + (" + uncommitted changes" if r.get("uncommitted_changes") else "")
         lines.append(f"- {r['name']}: commit {commit}, {r.get('date', '?')}, {machine.get('cpu_count')} CPUs "
-                     f"({machine.get('cpu')}{', ' + machine['cpu_vectors'] if machine.get('cpu_vectors') else ''}), torch {machine.get('torch')}, device {r.get('device')}, load average "
+                     f"({machine_name(machine)}), torch {machine.get('torch')}, device {r.get('device')}, load average "
                      f"{load[0] if load else '?'} at the start")
     return lines

@@ -310,6 +310,8 @@ def profile_preset(data: str, preset: str, out_dir: Path, overrides: list[str], 
 def markdown(results: list[dict[str, Any]], limits: dict[str, float], where: dict[str, Any]) -> str:
     """profile.md: where it ran, the machine's limits, then per preset the step and render tables and the op
     tables."""
+    from recon.app.bench import machine_name
+
     def load(values: list[float] | None) -> str:
         return " / ".join(f"{v:.2f}" for v in values) if values else "unknown"
 
@@ -318,8 +320,7 @@ def markdown(results: list[dict[str, Any]], limits: dict[str, float], where: dic
     lines = [
         "# recon bench --profile",
         "",
-        f"Commit {commit}, {where['date']}, on {where['machine'].get('cpu') or 'an unnamed CPU'}"
-        f"{' (' + where['machine']['cpu_vectors'] + ')' if where['machine'].get('cpu_vectors') else ''}. "
+        f"Commit {commit}, {where['date']}, on {machine_name(where['machine'])}. "
         f"Load average (1 / 5 / 15 min) {load(where['load_average_start'])} at the start, "
         f"{load(where['load_average_end'])} at the end; {int(limits['threads'])} torch threads, "
         f"{os.cpu_count()} CPUs.",

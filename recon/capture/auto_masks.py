@@ -127,9 +127,9 @@ REFUTED_KEPT = 0.25
 masks, each cut from its own photo's colours, agree it is not object (a false match near the object, a table point
 just above the plane's band). Refuted points do not count in the share of points the masks keep, ..."""
 MAX_REFUTED = 0.1
-"""... up to this share of the counted points, the most refuted first: a plain object has a few dozen points, and two
-false ones held its masks under MIN_SEED_RECALL, while more than a tenth would be a part of the object every cut
-missed, which must still count."""
+"""... up to this share of the counted points, the most refuted first: a plain object has a few dozen points, so a
+couple of false ones can hold good masks under MIN_SEED_RECALL (benchmarks/results/auto_mask_refuted_painted2.json),
+while more than a tenth would be a part of the object every cut missed, which must still count."""
 LONE_POINT_SPACING = 5.0
 """An object point farther than this many times the object points' median spacing from every other one is a false
 match in the air and does not count in that fraction: every mask leaves it out, and a plain object has so few points
