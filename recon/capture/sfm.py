@@ -63,7 +63,7 @@ class SfmOptions:
     shared_intrinsics: Literal["auto", "yes", "no"] = "auto"
     """One camera for all images. auto: yes when all images have one size (and one EXIF camera model)."""
     num_threads: int = -1
-    """Worker threads for extraction, matching and mapping; -1 uses every core."""
+    """Worker threads for extraction, matching, mapping and the final bundle adjustment; -1 uses every core."""
     seed: int = 0
     """Random seed for COLMAP's RANSAC and mapper."""
     min_registered: int = 3
@@ -503,10 +503,12 @@ REFINE_KEEP_WORSE = 2.0
 was (or not finite): on a degenerate model (every camera in one place) the solver can run away."""
 
 
-def refine_robust(reconstruction: pycolmap.Reconstruction,
-                  scale_px: float = ROBUST_LOSS_SCALE_PX) -> tuple[pycolmap.Reconstruction, dict]:
+def refine_robust(reconstruction: pycolmap.Reconstruction, scale_px: float = ROBUST_LOSS_SCALE_PX,
+                  num_threads: int = -1) -> tuple[pycolmap.Reconstruction, dict]:
     """One more global bundle adjustment of `reconstruction` with a Cauchy loss; returns the model to keep (the
     adjusted one, or the one before where the adjustment ran away: `REFINE_KEEP_WORSE`) and what changed.
+    num_threads: Ceres's threads (-1: every core), `SfmOptions.num_threads` as for the rest of SfM, so that a
+    capture held to N cores in a batch stays there.
 
     COLMAP's bundle adjustment minimises squared reprojection error, so the few matches that are off by a pixel
     or two pull the shared focal length and k1, which the data barely constrain when every camera looks at the
@@ -524,6 +526,7 @@ def refine_robust(reconstruction: pycolmap.Reconstruction,
     ba = pycolmap.BundleAdjustmentOptions()
     ba.ceres.loss_function_type = pycolmap.LossFunctionType.CAUCHY
     ba.ceres.loss_function_scale = scale_px
+    ba.ceres.solver_options.num_threads = num_threads
     pycolmap.bundle_adjustment(reconstruction, ba)
     after = {"focal_after": focal(), "error_after_px": float(reconstruction.compute_mean_reprojection_error())}
     ran_away = not (np.isfinite(after["focal_after"]) and after["focal_after"] > 0
@@ -686,7 +689,7 @@ def run_sfm(
         if best is None or num_registered < needed:
             raise ReconError(_too_few_message(num_registered, len(names), needed))
         start = time.perf_counter()
-        best, refinement = refine_robust(best)
+        best, refinement = refine_robust(best, num_threads=options.num_threads)
         timings["map"] += time.perf_counter() - start
 
     sparse_dir = work_dir / "sparse"
