@@ -75,8 +75,26 @@ def test_bad_options(tmp_path: Path) -> None:
     assert_clean_error(*recon("run", str(tmp_path / "p"), "--out", out, "--from", "nostage"), "Unknown stage")
 
 
-def test_status_of_non_scene(tmp_path: Path) -> None:
-    assert_clean_error(*recon("status", str(tmp_path)), "not a recon scene folder")
+def test_commands_that_read_a_scene_say_what_it_lacks(tmp_path: Path) -> None:
+    """A mistyped scene folder, a folder of the user's and a scene whose run stopped early each get their own
+    sentence (what to run), before any command writes its output."""
+    missing, foreign, posed = tmp_path / "missing", tmp_path / "foreign", tmp_path / "posed"
+    foreign.mkdir()
+    (foreign / "notes.txt").write_text("mine")
+    posed.mkdir()
+    (posed / "manifest.json").write_text("{}")
+    (posed / "01_poses").mkdir()
+    outputs = {"render": ["--out", str(tmp_path / "frames")], "export": ["--out", str(tmp_path / "export")]}
+    for command in ("status", "eval", "render", "export"):
+        options = outputs.get(command, [])
+        assert_clean_error(*recon(command, str(missing), *options), "does not exist", f"--out {missing}")
+        assert_clean_error(*recon(command, str(foreign), *options), "not a recon scene folder")
+    for command in ("eval", "render"):
+        assert_clean_error(*recon(command, str(posed), *outputs.get(command, [])), "no trained field yet",
+                           f"recon run PHOTOS --out {posed}")
+    assert_clean_error(*recon("eval", str(posed), "--gt-mesh", str(foreign / "notes.txt")), "no mesh yet")
+    assert not (tmp_path / "frames").exists() and not (tmp_path / "export").exists() and not missing.exists()
+    assert sorted(p.name for p in posed.iterdir()) == ["01_poses", "manifest.json"]
 
 
 def test_failed_stage_keeps_earlier_complete_stages(tmp_path: Path, shared_data: Path) -> None:

@@ -20,4 +20,4 @@ def test_view_without_viser_says_how_to_install_it(tmp_path: Path, monkeypatch: 
 def test_view_of_a_folder_without_a_scene_is_a_clear_error(tmp_path: Path) -> None:
     pytest.importorskip("viser")
     result = CliRunner().invoke(app, ["view", str(tmp_path), "--port", "0"])
-    assert result.exit_code == 2 and "no normalized scene" in result.output
+    assert result.exit_code == 2 and "not a recon scene folder" in result.output

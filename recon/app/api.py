@@ -27,6 +27,21 @@ if TYPE_CHECKING:
     from recon.capture.scene import Frame, Scene
 
 STAGE_FOLDERS = {"poses": "01_poses", "normalize": "02_scene", "train": "03_field", "mesh": "04_mesh"}
+STAGE_PRODUCTS = {"poses": "camera poses", "normalize": "normalized scene", "train": "trained field", "mesh": "mesh"}
+
+
+def require_scene(scene_dir: Path, stage: str | None = None) -> None:
+    """Raise a `ReconError` that says what to run unless `scene_dir` is a scene folder `recon run` made (and, given
+    `stage`, one that stage has written): the commands that read a scene fail on this before they load anything."""
+    if not scene_dir.is_dir():
+        raise ReconError(f"The scene folder {scene_dir} does not exist. Give the --out folder of a `recon run`, or "
+                         f"make one with `recon run PHOTOS --out {scene_dir}`.")
+    if not (scene_dir / "manifest.json").is_file():
+        raise ReconError(f"{scene_dir} is not a recon scene folder (no manifest.json). Create one with "
+                         f"`recon run PHOTOS --out {scene_dir}`.")
+    if stage is not None and not (scene_dir / STAGE_FOLDERS[stage]).is_dir():
+        raise ReconError(f"{scene_dir} has no {STAGE_PRODUCTS[stage]} yet (no {STAGE_FOLDERS[stage]}/): "
+                         f"`recon run PHOTOS --out {scene_dir}` goes on from the stages it has done.")
 
 
 @dataclass

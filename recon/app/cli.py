@@ -19,6 +19,7 @@ from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
 
+from recon.app.api import require_scene
 from recon.app.progress import Reporter, format_seconds, format_summary
 from recon.config import (DEFAULT_PRESET, DEFAULT_PRESET_WHY, RunConfig, available_presets, check_batch_against_pixels,
                           load_config, preset_description)
@@ -267,8 +268,7 @@ def status(
 ) -> None:
     """Each stage's state (done / stale / missing / failed / corrupt), wall time and what it produced."""
     with _guard(scene):
-        if not (scene / "manifest.json").is_file():
-            raise ReconError(f"{scene} is not a recon scene folder (no manifest.json). Create one with `recon run PHOTOS --out {scene}`.")
+        require_scene(scene)
         # without options, "stale" means an upstream stage changed; with them, also "differs from these options"
         config = _config(preset, set_) if (preset or set_) else None
         from recon.runner.pipeline import Manifest
@@ -306,6 +306,7 @@ def render(
             raise ReconError(f"--path must be orbit, spiral, train or test; got '{path}'.")
         if frames < 1:
             raise ReconError(f"--frames must be at least 1; got {frames}.")
+        require_scene(scene, "train")
         written = render_path(scene, path, out, frames=frames, max_side=max_side, depth=depth, device=device, report=Reporter(console))  # type: ignore[arg-type]
         out_console.print("wrote " + ", ".join(str(p) for p in written) + f" and the frames in {out}", markup=False)
 
@@ -325,6 +326,7 @@ def eval_(
     from recon.app.novel_views import claim_eval_folder, evaluate_scene
 
     with _guard(scene):
+        require_scene(scene, "mesh" if gt_mesh is not None else "normalize" if gt_masks is not None else "train")
         target = out or scene / "eval"
         if gt_mesh is not None and not gt_mesh.is_file():
             raise ReconError(f"The ground-truth mesh {gt_mesh} does not exist.")

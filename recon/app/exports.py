@@ -22,6 +22,7 @@ from typing import Any, Literal
 
 import numpy as np
 
+from recon.app.api import require_scene
 from recon.atomic import write_json_atomic
 from recon.camera import opengl_c2w_to_opencv_w2c
 from recon.capture.images import HEIF_SUFFIXES
@@ -46,8 +47,7 @@ def scene_in_frame(scene_dir: Path, frame: ExportFrame) -> Scene:
     if frame not in FRAMES:
         raise ReconError(f"--frame must be one of {', '.join(FRAMES)}; got '{frame}'.")
     normalized_dir, source_dir = scene_dir / "02_scene", scene_dir / "01_poses"
-    if not (scene_dir / "manifest.json").is_file():
-        raise ReconError(f"{scene_dir} is not a recon scene folder (no manifest.json). Create one with `recon run PHOTOS --out {scene_dir}`.")
+    require_scene(scene_dir)
     has_normalized = (normalized_dir / "scene.json").is_file()
     if frame == "normalized" or has_normalized:
         if not has_normalized:

@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from recon.app.api import require_scene
 from recon.camera import flip_camera_axes
 from recon.errors import ReconError
 
@@ -163,8 +164,7 @@ class SceneViewer:
 
         viser = require_viser()
         self.scene_dir = scene_dir
-        if not (scene_dir / "02_scene" / "scene.json").is_file():
-            raise ReconError(f"{scene_dir} has no normalized scene to show. Run `recon run PHOTOS --out {scene_dir}` first.")
+        require_scene(scene_dir, "normalize")
         self.scene: Scene = load_scene(scene_dir / "02_scene")
         self.log = log
         self.server = server or viser.ViserServer(host=host, port=port, verbose=False)
