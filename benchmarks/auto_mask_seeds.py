@@ -37,6 +37,8 @@ without the points linked to the in-frame ones (what close-ups leave out of fram
   them (`recon.capture.region.LINK_SPACINGS` = 0): the region before those links;
 - every point, seed discs: the seeds before `SEED_SPREAD_PX` (every object point seeds a disc of `SEED_RADIUS`, as
   the background points do);
+- hull tolerance T: shipped, but a hull vertex survives while at most the share T of the photos call it background
+  (`HULL_TOLERANCE`; any T, e.g. "hull tolerance 0.1");
 - true object seeds: shipped, with the object seeds that fall outside the true mask dropped (an oracle);
 - true seeds and a background ring: also 150 background seeds 3-4 px outside the true mask (an oracle).
 
@@ -84,6 +86,13 @@ def outline_offset_px(mask: np.ndarray, truth: np.ndarray) -> tuple[float, float
     contours, _ = cv2.findContours(truth.astype(np.uint8), cv2.RETR_LIST, cv2.CHAIN_APPROX_NONE)
     length = max(sum(cv2.arcLength(c, True) for c in contours), 1.0)
     return float((mask & ~truth).sum() / length), float((truth & ~mask).sum() / length)
+
+
+def _is_share(text: str) -> bool:
+    try:
+        return 0.0 <= float(text) < 1.0
+    except ValueError:
+        return False
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -141,7 +150,7 @@ def main(argv: list[str] | None = None) -> None:
     filling, dropping, lone_spacing = am.FILL_GROUNDED_BITES, am.DROP_TABLE, am.LONE_POINT_SPACING
     max_refuted = am.MAX_REFUTED
     parallax, framed_share, max_missed = am.TABLE_PARALLAX, am.FRAMED_SHARE, am.MAX_HULL_MISSED
-    background_seeds = am.MIN_BACKGROUND_SEEDS
+    background_seeds, tolerance = am.MIN_BACKGROUND_SEEDS, am.HULL_TOLERANCE
     current: dict[str, str] = {}
 
     def variant(name: str, scene: Any = scene) -> dict[str, Any]:
@@ -183,6 +192,7 @@ def main(argv: list[str] | None = None) -> None:
         am.FRAMED_SHARE = 0.0 if name == "close-ups vote" else framed_share
         am.MAX_HULL_MISSED = 1.0 if name == "short cuts kept" else max_missed
         am.MIN_BACKGROUND_SEEDS = 0 if name == "filled close-ups keep their cut" else background_seeds
+        am.HULL_TOLERANCE = float(name.removeprefix("hull tolerance ")) if name.startswith("hull tolerance ") else tolerance
         import recon.nerf.device as device
 
         threads: Callable[[], int] = device.cpu_threads
@@ -195,7 +205,7 @@ def main(argv: list[str] | None = None) -> None:
             am.FILL_GROUNDED_BITES, am.DROP_TABLE, am.LONE_POINT_SPACING = filling, dropping, lone_spacing
             am.MAX_REFUTED = max_refuted
             am.TABLE_PARALLAX, am.FRAMED_SHARE, am.MAX_HULL_MISSED = parallax, framed_share, max_missed
-            am.MIN_BACKGROUND_SEEDS = background_seeds
+            am.MIN_BACKGROUND_SEEDS, am.HULL_TOLERANCE = background_seeds, tolerance
         if a.write_masks is not None:
             folder = a.write_masks / name.replace(" ", "_").replace(",", "")
             folder.mkdir(parents=True, exist_ok=True)
@@ -241,9 +251,11 @@ def main(argv: list[str] | None = None) -> None:
              "refuted points counted", "least parallax", "close-ups vote", "filled close-ups keep their cut",
              "short cuts kept", "no support prior", "in-frame region", "every point, seed discs", *oracles)
     chosen = a.variants.split(",") if a.variants else names
-    if unknown := set(chosen) - set(names):
-        raise SystemExit(f"unknown variants {sorted(unknown)}; known: {', '.join(names)}")
+    tolerances = [v for v in chosen if v.startswith("hull tolerance ")]
+    if unknown := set(chosen) - set(names) - {v for v in tolerances if _is_share(v.removeprefix("hull tolerance "))}:
+        raise SystemExit(f"unknown variants {sorted(unknown)}; known: {', '.join(names)}, hull tolerance T (0 <= T < 1)")
     rows = [variant(v, in_frame) if v == "in-frame region" else variant(v) for v in names if v in chosen]
+    rows += [variant(v) for v in tolerances]
 
     def object_points(scene: Any) -> np.ndarray:
         """(N,) bool: the sparse points the cut takes for object seeds (inside the scene's object region)."""

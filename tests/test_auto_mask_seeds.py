@@ -30,3 +30,8 @@ def test_a_mask_shifted_sideways_is_off_both_ways_by_the_same_amount() -> None:
     extra, missed = _tool().outline_offset_px(np.roll(truth, 4, axis=1), truth)
     assert extra == pytest.approx(missed, rel=0.05)
     assert extra == pytest.approx(4 / np.pi, abs=0.2)  # a disc shifted by d ≪ r adds a crescent of 2·r·d
+
+
+@pytest.mark.parametrize("text, share", [("0.2", True), ("0", True), ("1", False), ("-0.1", False), ("most", False)])
+def test_a_hull_tolerance_variant_takes_a_share_of_the_photos(text: str, share: bool) -> None:
+    assert _tool()._is_share(text) is share
