@@ -61,7 +61,8 @@ HULL_RES = 96
 """Grid vertices per side of the visual hull the photos vote on."""
 HULL_TOLERANCE = 0.1
 """A hull vertex survives while at most this fraction of the photos (at least one) call it background: one bad
-cut must not carve the object out of every other photo."""
+cut must not carve the object out of every other photo. A larger share keeps more of a base the cuts bite but lies
+fatter round every outline (benchmarks/results/auto_mask_hull_tolerance_*.json)."""
 FRAMED_SHARE = 0.8
 """A photo frames the object when at least this share of the grown region box's outline lies in the photo: its cut
 has background all round the object to learn the background's colours from. A close-up that crops the object has
