@@ -89,6 +89,7 @@ def outline_offset_px(mask: np.ndarray, truth: np.ndarray) -> tuple[float, float
 
 
 def _is_share(text: str) -> bool:
+    """Whether `text` (the T of a "hull tolerance T" variant) is a share of the photos, 0 <= T < 1."""
     try:
         return 0.0 <= float(text) < 1.0
     except ValueError:

@@ -110,9 +110,9 @@ def _cpu_model() -> str:
 
 
 def _cpu_vectors() -> str | None:
-    """The widest vector instructions torch's CPU kernels use here ("AVX2", "AVX512", ...): a CPU's model name alone
-    ("AMD EPYC") does not tell machines of different speed apart (the matmul rates of the profile records
-    tabletop_video_profile_cpu.json and lego_half_profile_cpu.json), so rows compare only where this matches too."""
+    """The widest vector instructions torch's CPU kernels use here ("AVX2", "AVX512", ...), recorded beside the model
+    name because one model name covers CPUs of different speed (benchmarks/results/*_profile_cpu.json): rows compare
+    only where both match."""
     import torch
 
     with contextlib.suppress(AttributeError, RuntimeError):
