@@ -291,9 +291,10 @@ def test_photos_cut_out_by_masks_are_measured_whole_and_no_measurement_is_not_ca
 
 def test_a_field_without_appearance_is_also_scored_with_each_photos_colours_fitted_on_its_left_half() -> None:
     """`psnr_fitted`: a photo taken at another exposure scores low against the neutral render and high once its
-    colour transform is fitted on the left half; an appearance field's score is that already, so it has none."""
+    colour transform is fitted on the left half; an appearance field's score is that already, so it has none. The
+    printed note concludes an exposure cost only from the gain over the same pixels unfitted."""
     from recon.camera import look_at
-    from recon.evaluation.views import View, evaluate, render_view
+    from recon.evaluation.views import EXPOSURE_COST_DB, View, evaluate, fitted_note, render_view
     from tests.analytic_sphere import AABB, BACKGROUND, SoftSphere
 
     sphere, box = SoftSphere(amplitude=400.0, width=0.02, samples=96), torch.tensor(AABB, dtype=torch.float32)
@@ -306,3 +307,11 @@ def test_a_field_without_appearance_is_also_scored_with_each_photos_colours_fitt
     assert scored["psnr"] < 25.0 and scored["psnr_fitted"] > scored["psnr"] + 15.0
     assert scored["views"][0]["psnr_fitted"] == pytest.approx(scored["psnr_fitted"])
     assert "psnr_fitted" not in evaluate(sphere, [view], box, BACKGROUND, appearance=True)
+    # the note compares the fit with the same right halves unfitted, and says the exposure cost only when it is one
+    assert scored["psnr_right_half"] < 25.0
+    assert "cost the plain score" in fitted_note(scored) and "little" not in fitted_note(scored)
+    same = View("s", np.clip(np.round(render * 255), 0, 255).astype(np.uint8), pose, (60.0, 60.0, 24.0, 24.0), 0.0, 0.0)
+    unchanged = evaluate(sphere, [same], box, BACKGROUND)
+    assert abs(unchanged["psnr_fitted"] - unchanged["psnr_right_half"]) < EXPOSURE_COST_DB
+    assert fitted_note(unchanged).endswith("cost the plain score little")
+    assert fitted_note(evaluate(sphere, [view], box, BACKGROUND, appearance=True)) is None

@@ -19,6 +19,7 @@ from recon.errors import ReconError
 from recon.evaluation.views import (
     View,
     evaluate,
+    fitted_note,
     load_views,
     render_view,
     supersampling_note,
@@ -188,6 +189,8 @@ def evaluate_scene(scene_dir: Path, out_dir: Path, split: str = "test", max_side
             result = evaluate(model, views, aabb, background, keep=True, appearance=appearance, focal=focal)
     else:
         result = evaluate(model, views, aabb, background, keep=True, appearance=appearance, focal=focal)
+    if report and (fitted := fitted_note(result)):
+        report.info(fitted)
     renders = result.pop("renders")
     write_previews(renders, out_dir / "views")
     _grid([r[1]["rgb"] for r in renders], [r[2] for r in renders], out_dir / "grid.png")

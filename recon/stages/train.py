@@ -21,7 +21,8 @@ from recon.atomic import checksum_matches, checksum_path, fault_point, write_che
 from recon.capture.scene import Scene, load_scene, spread_evenly
 from recon.config import TrainConfig
 from recon.errors import ReconError
-from recon.evaluation.views import View, evaluate, load_views, supersampling_note, training_focal, write_previews
+from recon.evaluation.views import (View, evaluate, fitted_note, load_views, supersampling_note, training_focal,
+                                    write_previews)
 from recon.field import FIELD_FILE, save_field
 from recon.plans.training import TrainPlan, TrainSetup, build_training, photo_sides, plan_training
 from recon.runner.pipeline import Stage, StageContext
@@ -148,10 +149,8 @@ def run(ctx: StageContext) -> dict:
         largest = metrics["pose_refine"]["largest"][:3]
         ctx.report.info("pose refinement: median correction {:.2f} px; largest {}".format(
             metrics["pose_refine"]["median_pixels"], ", ".join(f"{r['photo']} {r['pixels']:.2f} px" for r in largest)))
-    if "psnr_fitted" in final:
-        ctx.report.info(f"test views with each photo's colours fitted on its left half, its right half scored (as a field "
-                        f"with per-photo appearance is scored): PSNR {final['psnr_fitted']:.2f} dB; well above "
-                        f"{final['psnr']:.2f} dB, the photos' exposure or colour balance changes cost the plain score")
+    if note := fitted_note(final):
+        ctx.report.info(note)
     write_json_atomic(ctx.out / "metrics.json", metrics)
     training_curves(history, evals, ctx.out / "curves.png", title=f"{plan.kind} model — test PSNR {final['psnr']:.2f} dB")
     # the checkpoint stays until the pipeline has recorded this stage as done (it then removes ctx.work):
