@@ -59,6 +59,14 @@ def test_evaluate_supersamples_coarse_views_and_scores_them_against_their_area_m
     assert same["psnr"] == pytest.approx(plain["psnr"]) and "rays_a_side" not in same["views"][0]
 
 
+def test_evaluate_reports_each_view_once_it_is_scored(sharp_sphere: SoftSphere) -> None:
+    """`on_view` (the stage's progress bar) advances once a view, so the bar's count is the views scored."""
+    views = [_view(f"v{i}", 16, 24.0) for i in range(3)]
+    calls: list[None] = []
+    result = evaluate(sharp_sphere, views, BOX, BACKGROUND, fitted=False, on_view=lambda: calls.append(None))
+    assert len(calls) == len(result["views"]) == 3
+
+
 @pytest.mark.parametrize(("focal", "expected"), [(100.0, 1), (130.0, 1), (160.0, 2), (200.0, 2), (290.0, 3),
                                                  (1000.0, MAX_RAYS_A_SIDE), (50.0, 1)])
 def test_rays_a_side_is_the_nearest_whole_ratio_of_pixel_sizes(focal: float, expected: int) -> None:

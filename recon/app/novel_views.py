@@ -185,8 +185,9 @@ def evaluate_scene(scene_dir: Path, out_dir: Path, split: str = "test", max_side
     claim_eval_folder(out_dir, ["metrics.json", "grid.png", *(f"views/{v.name}.png" for v in views)])
     appearance = bool(meta.get("appearance"))  # trained with per-photo appearance: the left-half / right-half protocol
     if report:
-        with report.task(f"rendering {len(views)} {split} views", total=None):
-            result = evaluate(model, views, aabb, background, keep=True, appearance=appearance, focal=focal)
+        with report.task(f"rendering the {split} views", total=len(views), unit="views") as bar:
+            result = evaluate(model, views, aabb, background, keep=True, appearance=appearance, focal=focal,
+                              on_view=bar.advance)
     else:
         result = evaluate(model, views, aabb, background, keep=True, appearance=appearance, focal=focal)
     if report and (fitted := fitted_note(result)):

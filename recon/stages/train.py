@@ -136,9 +136,9 @@ def run(ctx: StageContext) -> dict:
     result, evals, history, train_time = _fit(ctx, cfg, plan, setup, eval_views, focal)
     phases.done("train")
 
-    with ctx.report.task("evaluating test views", total=None):
+    with ctx.report.task("evaluating test views", total=len(test_views), unit="views") as bar:
         final = evaluate(setup.model, test_views, setup.aabb, plan.background, keep=True, autocast=plan.autocast,
-                         appearance=plan.appearance, align_poses=plan.pose_refine, focal=focal)
+                         appearance=plan.appearance, align_poses=plan.pose_refine, focal=focal, on_view=bar.advance)
     phases.done("final_evaluation")
     write_previews(final.pop("renders"), ctx.out / "renders")
     _save(ctx.out / FIELD_FILE, scene, plan, setup, cfg.max_side)
