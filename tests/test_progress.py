@@ -9,7 +9,7 @@ import pytest
 from rich.console import Console
 
 from recon.app.progress import Reporter
-from recon.stages.train import ESTIMATE_AFTER_S, expected_steps
+from recon.stages.train import ESTIMATE_AFTER_S, FEW_STEPS, expected_steps, few_steps_warning
 
 
 @pytest.mark.parametrize(("stage", "description", "unit", "info"), [
@@ -40,3 +40,30 @@ def test_expected_steps_follows_the_budget_when_it_comes_before_the_cap() -> Non
     assert expected_steps(1000, 121.0, 530, 61.0, 240.0, 12000) == 1930  # 1,000 + 470/60 × 119 s left
     # the budget spent: never under the steps already done
     assert expected_steps(2013, 250.0, 0, 0.0, 240.0, 12000) == 2013
+
+
+def test_a_budget_too_short_for_this_machine_is_said_with_the_budget_that_is_not() -> None:
+    # 1.2 steps/s, 60 s of a 240-s budget spent at step 72: about 288 steps in all
+    said = few_steps_warning(72, 60.0, 1.2, "4m", 240.0, 12000)
+    assert said is not None and "trains about 288 steps" in said
+    assert f"`--budget 14m` trains about {FEW_STEPS:,}" in said  # 1,000 steps at 1.2 a second: 13.9 minutes
+    # enough steps, a step cap that stops training first, or no rate yet: nothing to say
+    assert few_steps_warning(500, 60.0, 10.0, "4m", 240.0, 12000) is None
+    assert few_steps_warning(72, 60.0, 1.2, "4m", 240.0, 200) is None
+    assert few_steps_warning(0, 60.0, 0.0, "4m", 240.0, 12000) is None
+
+
+def test_the_train_stage_warns_while_a_budget_can_still_be_changed(tmp_path, monkeypatch) -> None:
+    """Once a quarter of the budget is spent the stage judges the steps it allows, once, as a warning the run keeps."""
+    import recon
+    import recon.stages.train as train_stage
+    from tests import faults
+
+    monkeypatch.setattr(train_stage, "FEW_STEPS", 10**9)  # every machine is too slow for this many
+    capture = faults.make_capture(tmp_path / "capture")
+    settings = dict(item.split("=", 1) for item in faults.TINY)
+    result = recon.run(capture, out=tmp_path / "scene", preset="fast", until_stage="train",
+                       overrides={**settings, "train.steps": 10**8, "train.budget": "2s", "train.eval_every": 0,
+                                  "train.checkpoint_every": 0})
+    said = [w for w in result.warnings if "budget trains about" in w]
+    assert len(said) == 1 and "the 2s budget" in said[0] and "`--budget " in said[0]
