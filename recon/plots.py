@@ -60,7 +60,8 @@ def training_curves(history: Sequence[dict], evals: Sequence[dict], path: Path, 
     axes[2].set(xlabel="step", ylabel="loss (MSE)", title="loss")
     for ax in axes[:2]:
         ax.grid(alpha=0.3)
-        ax.legend()
+        if history or evals:  # a run of under 10 steps without evaluations has no curve to name
+            ax.legend()
     if title:
         fig.suptitle(title)
     _save(fig, path)

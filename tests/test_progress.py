@@ -54,16 +54,20 @@ def test_a_budget_too_short_for_this_machine_is_said_with_the_budget_that_is_not
 
 
 def test_the_train_stage_warns_while_a_budget_can_still_be_changed(tmp_path, monkeypatch) -> None:
-    """Once a quarter of the budget is spent the stage judges the steps it allows, once, as a warning the run keeps."""
-    import recon
+    """Once a quarter of the budget is spent the stage judges the steps it allows, once, as a warning; `recon run`
+    says its warnings again under the table that ends it (they came above a screenful of reasons)."""
+    import recon.app.cli as cli
     import recon.stages.train as train_stage
     from tests import faults
 
     monkeypatch.setattr(train_stage, "FEW_STEPS", 10**9)  # every machine is too slow for this many
+    shown, said = io.StringIO(), io.StringIO()
+    monkeypatch.setattr(cli, "out_console", Console(file=shown, width=400, color_system=None))
+    monkeypatch.setattr(cli, "console", Console(file=said, width=400, color_system=None))
     capture = faults.make_capture(tmp_path / "capture")
-    settings = dict(item.split("=", 1) for item in faults.TINY)
-    result = recon.run(capture, out=tmp_path / "scene", preset="fast", until_stage="train",
-                       overrides={**settings, "train.steps": 10**8, "train.budget": "2s", "train.eval_every": 0,
-                                  "train.checkpoint_every": 0})
-    said = [w for w in result.warnings if "budget trains about" in w]
-    assert len(said) == 1 and "the 2s budget" in said[0] and "`--budget " in said[0]
+    settings = [*faults.TINY, "train.steps=100000000", "train.budget=2s", "train.eval_every=0", "train.checkpoint_every=0"]
+    cli._run(tmp_path / "scene", capture, "fast", settings, quiet=False, until_stage="train")
+    warned = [line for line in said.getvalue().splitlines() if "budget trains about" in line]
+    assert len(warned) == 1 and "the 2s budget" in warned[0] and "`--budget " in warned[0]
+    end = shown.getvalue().split("recon — ")[-1]
+    assert "1 warning in this run" in end and "- at this machine's pace" in end and "budget trains about" in end

@@ -24,7 +24,7 @@ from recon.app.progress import Reporter, format_seconds, format_summary
 from recon.config import (DEFAULT_PRESET, DEFAULT_PRESET_WHY, RunConfig, available_presets, check_batch_against_pixels,
                           load_config, preset_description)
 from recon.errors import ConfigError, ReconError
-from recon.runner.pipeline import install_sigterm_as_interrupt, is_disk_full
+from recon.runner.pipeline import RUN_LOG, install_sigterm_as_interrupt, is_disk_full
 
 app = typer.Typer(
     add_completion=False,
@@ -207,6 +207,11 @@ def _run(
         )
         if not quiet:
             _summary_table(outcomes, scene_dir)
+            if report.warnings:  # said as they came, above a screenful of reasons: said again where the run ends
+                out_console.print(f"{len(report.warnings)} warning{'s' if len(report.warnings) > 1 else ''} in this run "
+                                  f"(also in {scene_dir / RUN_LOG}):", markup=False)
+                for message in report.warnings:
+                    out_console.print(f"- {message}", markup=False)
             if any(o.name == "mesh" for o in outcomes):
                 for line in mesh_deliverables(scene_dir):
                     out_console.print(escape(line), soft_wrap=True)
