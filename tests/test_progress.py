@@ -43,18 +43,19 @@ def test_expected_steps_follows_the_budget_when_it_comes_before_the_cap() -> Non
 
 
 def test_a_budget_too_short_for_this_machine_is_said_with_the_budget_that_is_not() -> None:
-    # 1.2 steps/s, 60 s of a 240-s budget spent at step 72: about 288 steps in all
-    said = few_steps_warning(72, 60.0, 1.2, "4m", 240.0, 12000)
-    assert said is not None and "trains about 288 steps" in said
-    assert f"`--budget 14m` trains about {FEW_STEPS:,}" in said  # 1,000 steps at 1.2 a second: 13.9 minutes
+    # half of a 240-s budget spent at step 80, now 1.1 steps/s: about 212 steps in all; 1,000 steps at that rate
+    # need 120 s + 920 / 1.1 s = 956 s, 16 minutes
+    said = few_steps_warning(212, 80, 120.0, 1.1, "4m", 12000)
+    assert said is not None and "trains about 212 steps" in said
+    assert f"`--budget 16m` trains {FEW_STEPS:,} or more" in said
     # enough steps, a step cap that stops training first, or no rate yet: nothing to say
-    assert few_steps_warning(500, 60.0, 10.0, "4m", 240.0, 12000) is None
-    assert few_steps_warning(72, 60.0, 1.2, "4m", 240.0, 200) is None
-    assert few_steps_warning(0, 60.0, 0.0, "4m", 240.0, 12000) is None
+    assert few_steps_warning(FEW_STEPS, 500, 120.0, 4.2, "4m", 12000) is None
+    assert few_steps_warning(212, 80, 120.0, 1.1, "4m", 200) is None
+    assert few_steps_warning(212, 80, 120.0, 0.0, "4m", 12000) is None
 
 
 def test_the_train_stage_warns_while_a_budget_can_still_be_changed(tmp_path, monkeypatch) -> None:
-    """Once a quarter of the budget is spent the stage judges the steps it allows, once, as a warning; `recon run`
+    """Once half the budget is spent the stage judges the steps it allows, once, as a warning; `recon run`
     says its warnings again under the table that ends it (they came above a screenful of reasons)."""
     import recon.app.cli as cli
     import recon.stages.train as train_stage
@@ -65,9 +66,9 @@ def test_the_train_stage_warns_while_a_budget_can_still_be_changed(tmp_path, mon
     monkeypatch.setattr(cli, "out_console", Console(file=shown, width=400, color_system=None))
     monkeypatch.setattr(cli, "console", Console(file=said, width=400, color_system=None))
     capture = faults.make_capture(tmp_path / "capture")
-    settings = [*faults.TINY, "train.steps=100000000", "train.budget=2s", "train.eval_every=0", "train.checkpoint_every=0"]
+    settings = [*faults.TINY, "train.steps=100000000", "train.budget=8s", "train.eval_every=0", "train.checkpoint_every=0"]
     cli._run(tmp_path / "scene", capture, "fast", settings, quiet=False, until_stage="train")
     warned = [line for line in said.getvalue().splitlines() if "budget trains about" in line]
-    assert len(warned) == 1 and "the 2s budget" in warned[0] and "`--budget " in warned[0]
+    assert len(warned) == 1 and "the 8s budget" in warned[0] and "`--budget " in warned[0]
     end = shown.getvalue().split("recon — ")[-1]
     assert "1 warning in this run" in end and "- at this machine's pace" in end and "budget trains about" in end

@@ -201,23 +201,22 @@ there is time to stop. The `fast` records' held-out PSNR at step 1,000 is 0.4-3.
 1.1-5.8 dB (sample_fast, fox_fast_masks, tabletop_realistic_seeds in benchmarks/results); the shipped sample trained
 1,005 steps on a slower CPU still meshes as one piece at F@1% 0.945, against 0.949 at 4,506 steps
 (sample_fast_slow_cpu, sample_fast)."""
-FEW_STEPS_CHECK = 0.25
-"""The share of the budget after which the steps it allows are judged (the rate has settled by then)."""
+FEW_STEPS_CHECK = 0.5
+"""The share of the budget after which the steps it allows are judged, at the rate of the last RATE_WINDOW_S: the
+first steps are the slowest (occupancy has culled no empty space yet; a third to a quarter of the later rate in the
+fox's and the sample's slow-CPU runs), so a rate taken earlier foretells too few steps."""
 
 
-def few_steps_warning(step: int, used_s: float, rate: float, budget: str, budget_s: float, cap: int) -> str | None:
-    """A sentence for a budget that will end training under FEW_STEPS, at `rate` steps a second from `step` after
-    `used_s` training seconds (None otherwise, or when the step cap stops it first): how many steps it allows, and
-    the budget that would train FEW_STEPS."""
-    if rate <= 0:
+def few_steps_warning(total: int, step: int, used_s: float, rate: float, budget: str, cap: int) -> str | None:
+    """A sentence for a budget that will end training at `total` steps, under FEW_STEPS (None otherwise, or when the
+    step cap stops it first): `step` done in `used_s` training seconds, now at `rate` steps a second; the budget
+    that would reach FEW_STEPS at that rate (steps still get faster, so it is an upper bound)."""
+    if rate <= 0 or total >= min(FEW_STEPS, cap):
         return None
-    total = int(step + rate * max(budget_s - used_s, 0.0))
-    if total >= min(FEW_STEPS, cap):
-        return None
-    minutes = math.ceil(FEW_STEPS / rate / 60.0)
+    minutes = math.ceil((used_s + max(FEW_STEPS - step, 0) / rate) / 60.0)
     return (f"at this machine's pace ({rate:.1f} steps/s) the {budget} budget trains about {total:,} steps, under "
             f"the {FEW_STEPS:,} a field needs to settle: expect a soft field and a mesh in pieces. `--budget "
-            f"{minutes}m` trains about {FEW_STEPS:,} here (Ctrl-C and run again with it: the finished stages are kept)")
+            f"{minutes}m` trains {FEW_STEPS:,} or more here (Ctrl-C and run again with it: the finished stages are kept)")
 
 
 def expected_steps(step: int, used_s: float, since_step: int, since_s: float, budget_s: float, cap: int) -> int:
@@ -278,8 +277,8 @@ def _fit(ctx: StageContext, cfg: TrainConfig, plan: TrainPlan, setup: TrainSetup
             total = expected_steps(p.step, now, recent[0][1], recent[0][0], plan.budget_s, p.steps)
             if not judged[0] and plan.budget_s and now >= FEW_STEPS_CHECK * plan.budget_s and p.step > recent[0][1]:
                 judged[0] = True
-                rate = (p.step - recent[0][1]) / max(now - recent[0][0], 1e-9)
-                if warning := few_steps_warning(p.step, now, rate, cfg.budget, plan.budget_s, p.steps):
+                rate = (p.step - recent[0][1]) / max(now - recent[0][0], 1e-9)  # the bar's, over RATE_WINDOW_S
+                if warning := few_steps_warning(total, p.step, now, rate, cfg.budget, p.steps):
                     ctx.report.warn(warning)
             bar.update(completed=p.step, total=total,
                        info=f"loss {p.loss:.4f}  PSNR {p.psnr:.2f} dB  {p.rays_per_s:,.0f} rays/s")
