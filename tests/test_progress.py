@@ -72,3 +72,18 @@ def test_the_train_stage_warns_while_a_budget_can_still_be_changed(tmp_path, mon
     assert len(warned) == 1 and "the 8s budget" in warned[0] and "`--budget " in warned[0]
     end = shown.getvalue().split("recon — ")[-1]
     assert "1 warning in this run" in end and "- at this machine's pace" in end and "budget trains about" in end
+
+
+def test_a_batch_capture_keeps_its_warnings_for_batch_md(tmp_path, monkeypatch) -> None:
+    """`recon batch` runs a capture without a screen: its warnings go into its record and batch.md's row."""
+    import recon.stages.train as train_stage
+    from recon.app.batch import _report_row, run_capture
+    from tests import faults
+
+    monkeypatch.setattr(train_stage, "FEW_STEPS", 10**9)
+    capture = faults.make_capture(tmp_path / "capture")
+    settings = [*faults.TINY, "train.steps=100000000", "train.budget=8s", "train.eval_every=0", "train.checkpoint_every=0"]
+    record = run_capture(capture, tmp_path / "out" / "capture", "fast", settings)
+    assert "error" not in record and len(record["warnings"]) == 1 and "budget trains about" in record["warnings"][0]
+    row = _report_row(record)
+    assert row.endswith(" |") and "warning: at this machine's pace" in row and row.count("|") == 8

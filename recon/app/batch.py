@@ -265,6 +265,8 @@ def run_capture(source: Path, scene_dir: Path, preset: str, overrides: list[str]
     except ReconError as exc:  # the output folder itself is unusable
         record["error"] = str(exc)
     record["wall_s"] = round(time.perf_counter() - t0, 2)
+    if reporter is not None and reporter.warnings:  # batch.md shows them: nobody reads a hundred batch.logs
+        record["warnings"] = list(reporter.warnings)
     record.update(capture_facts(scene_dir, reporter.actions if reporter else {}))
     if board is not None:
         board.update.remote(name, None)
@@ -455,6 +457,8 @@ def run_batch(
                     board.update.remote(c.name, None)  # its worker died before saying it stopped
                 if records[c.name].get("error"):
                     report.warn(f"{c.name}: {records[c.name]['error']}")
+                for warning in records[c.name].get("warnings", []):
+                    report.warn(f"{c.name}: {warning}")
                 bar.advance()
             running = ray.get(board.snapshot.remote())
             failed = sum(1 for r in records.values() if r.get("error"))
@@ -527,7 +531,7 @@ def write_batch_reports(out: Path, result: dict[str, Any]) -> None:
     batches into OUT ran), both written atomically."""
     write_json_atomic(out / "batch.json", result)
     ok = len(result["captures"]) - result["failed"]
-    table = ["| capture | stages | wall | photos | test PSNR | mesh | error |", "|---|---|---|---|---|---|---|"]
+    table = ["| capture | stages | wall | photos | test PSNR | mesh | error or warnings |", "|---|---|---|---|---|---|---|"]
     lines = [
         f"# recon batch — {ok} of {len(result['captures'])} captures done, {result['failed']} failed",
         "",
@@ -547,5 +551,6 @@ def _report_row(r: dict[str, Any]) -> str:
     stages = " ".join(f"{s}:{row['action'] if row['status'] == 'done' else row['status']}" for s, row in r.get("stages", {}).items())
     psnr = f"{r['psnr']:.2f} dB" if "psnr" in r else "—"
     mesh = f"{r['faces']:,} faces" if "faces" in r else "—"
-    error = (r.get("error") or "").replace("|", "\\|").replace("\n", " ")
-    return f"| {r['name']} | {stages} | {format_seconds(r.get('wall_s'))} | {r.get('photos', '—')} | {psnr} | {mesh} | {error} |"
+    said = r.get("error") or " ".join(f"warning: {w}" for w in r.get("warnings", []))
+    said = said.replace("|", "\\|").replace("\n", " ")
+    return f"| {r['name']} | {stages} | {format_seconds(r.get('wall_s'))} | {r.get('photos', '—')} | {psnr} | {mesh} | {said} |"
