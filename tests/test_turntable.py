@@ -184,16 +184,21 @@ def test_structure_from_motion_places_the_cameras_around_the_turning_object(turn
     alone, auto_scene, auto_output = posed
     off = CliRunner().invoke(app, ["run", str(alone), "--out", str(tmp_path / "off"), "--until", "poses",
                                    "--set", "poses.turntable=off", *ONE_THREAD])
-    assert off.exit_code == 0, off.output
+    # without the masks the still room wins: the cameras land far from the truth, or, with every camera pinned to
+    # the tripod, too few register for SfM to go on (its usual clear error)
+    unposed = off.exit_code == 2 and "Structure from motion registered only" in " ".join(off.output.split())
+    assert off.exit_code == 0 or unposed, off.output
     errors = {}
     for mode, out, output in (("auto", auto_scene, auto_output), ("off", tmp_path / "off", off.output)):
         assert ("turntable:" in " ".join(output.split())) == (mode == "auto")
+        if mode == "off" and unposed:
+            continue
         scene = load_scene(out / "01_poses")
         est = {Path(f.file_path).stem: np.asarray(f.c2w) for f in scene.frames}
         errors[mode] = pose_errors(est, ref)
     centre, rotation, compared = errors["auto"]
     assert compared == VIEWS and centre < 0.02 and rotation < 1.0, errors
-    assert errors["off"][0] > 10 * centre, errors  # the still room wins without the masks
+    assert unposed or errors["off"][0] > 10 * centre, errors
 
 
 def test_a_turntable_capture_gets_object_masks_without_a_table_in_its_sparse_points(
