@@ -198,7 +198,7 @@ RATE_WINDOW_S = 30.0
 FEW_STEPS = 1_000
 """Fewer steps than this in a time budget leave a soft field and a torn mesh, so the train stage says so while there
 is time to stop. The `fast` records' held-out PSNR at step 1,000 is 0.4-3.5 dB under their end, and at step 500
-1.1-5.8 dB (sample_fast, fox_fast_masks, tabletop_realistic_seeds in benchmarks/results). On a CPU with a ninth of
+1.1-5.8 dB (sample_fast, fox_fast_masks, tabletop_realistic_seeds in benchmarks/results). On a CPU with a seventh of
 the matmul rate, the sample's 1,005 steps still mesh at F@1% 0.945 against 0.949 at 4,506 (sample_fast_slow_cpu,
 sample_fast), while the fox's 297 steps mesh 91% of its masks' pixels against 97.5% at 2,549 steps, 27.62 against
 29.27 dB (fox_fast_slow_cpu, fox_fast_masks)."""
