@@ -218,7 +218,8 @@ def few_steps_warning(total: int, step: int, used_s: float, rate: float, budget:
     minutes = math.ceil((used_s + max(FEW_STEPS - step, 0) / rate) / 60.0)
     return (f"at this machine's pace ({rate:.1f} steps/s) the {budget} budget trains about {total:,} steps, under "
             f"the {FEW_STEPS:,} a field needs to settle: expect a soft field and a torn mesh. `--budget "
-            f"{minutes}m` trains {FEW_STEPS:,} or more here (Ctrl-C and run again with it: the finished stages are kept)")
+            f"{minutes}m` trains {FEW_STEPS:,} or more here (`--set train.budget={minutes}m` in recon batch; Ctrl-C "
+            "and run again with it: the finished stages are kept)")
 
 
 def expected_steps(step: int, used_s: float, since_step: int, since_s: float, budget_s: float, cap: int) -> int:
