@@ -6,10 +6,11 @@ import io
 import re
 
 import pytest
+import torch
 from rich.console import Console
 
 from recon.app.progress import Reporter
-from recon.stages.train import ESTIMATE_AFTER_S, FEW_STEPS, expected_steps, few_steps_warning
+from recon.stages.train import ESTIMATE_AFTER_S, FEW_STEPS, expected_steps, few_steps_warning, resumed_budget_note
 
 
 @pytest.mark.parametrize(("stage", "description", "unit", "info"), [
@@ -72,6 +73,53 @@ def test_the_train_stage_warns_while_a_budget_can_still_be_changed(tmp_path, mon
     assert len(warned) == 1 and "the 8s budget" in warned[0] and "`--budget " in warned[0]
     end = shown.getvalue().split("recon — ")[-1]
     assert "1 warning in this run" in end and "- at this machine's pace" in end and "budget trains about" in end
+
+
+def test_another_budget_trains_on_from_the_checkpoint_of_a_stopped_run(tmp_path, monkeypatch) -> None:
+    """What the short-budget warning advises: Ctrl-C, then the same command with another --budget goes on from the
+    last checkpoint (the stage's scratch outlives a change of budget), its curve and time carried over."""
+    import json
+
+    import typer
+
+    import recon.app.cli as cli
+    import recon.stages.train as train_stage
+    from tests import faults
+
+    save = train_stage._save_checkpoint
+
+    def save_then_stop(path, contents):
+        save(path, contents)
+        raise KeyboardInterrupt  # Ctrl-C right after the first checkpoint
+
+    said = io.StringIO()
+    monkeypatch.setattr(cli, "console", Console(file=said, width=400, color_system=None))
+    monkeypatch.setattr(cli, "out_console", Console(file=io.StringIO(), width=400, color_system=None))
+    monkeypatch.setattr(train_stage, "_save_checkpoint", save_then_stop)
+    capture = faults.make_capture(tmp_path / "capture")
+    settings = [*faults.TINY, "train.steps=100000000", "train.eval_every=0", "train.checkpoint_every=15"]
+    with pytest.raises((KeyboardInterrupt, typer.Exit)):
+        cli._run(tmp_path / "scene", capture, "fast", [*settings, "train.budget=10m"], quiet=False, until_stage="train")
+    stopped = torch.load(faults.checkpoint_of(tmp_path / "scene"), weights_only=False)
+    assert stopped["state"]["step"] == 15 and stopped["budget"] == "10m" and 0 < stopped["state"]["fraction"] < 1
+    monkeypatch.setattr(train_stage, "_save_checkpoint", save)
+    budget = f"train.budget={int(stopped['train_time_s']) + 3}s"  # 2-3 s more than the checkpoint's training time
+    cli._run(tmp_path / "scene", capture, "fast", [*settings, budget], quiet=False, until_stage="train")
+    told = " ".join(said.getvalue().split())
+    assert "resuming from the checkpoint at step 15" in told and "under a 10m budget" in told
+    metrics = json.loads((tmp_path / "scene" / "03_field" / "metrics.json").read_text())
+    assert metrics["steps"] > 15 and metrics["history"][0]["step"] == 10  # the first run's curve goes on
+    assert metrics["train_time_s"] >= stopped["train_time_s"]
+    assert not list((tmp_path / "scene" / ".work").glob("train-*"))  # scratch removed once the stage is done
+
+
+def test_what_a_checkpoint_made_under_another_budget_does_is_said() -> None:
+    assert resumed_budget_note("4m", "4m", 120.0, 240.0) == ""
+    longer = resumed_budget_note("4m", "16m", 120.0, 960.0)
+    assert "trained 120 s under a 4m budget" in longer and "about 840 s more" in longer
+    assert "spent already" in resumed_budget_note("4m", "1m", 120.0, 60.0)
+    assert "without a budget" in resumed_budget_note("4m", "", 120.0, 0.0)
+    assert "under no budget" in resumed_budget_note("", "4m", 10.0, 240.0)
 
 
 def test_a_batch_capture_keeps_its_warnings_for_batch_md(tmp_path, monkeypatch) -> None:

@@ -189,3 +189,39 @@ def test_select_device() -> None:
     assert select_device("auto").type == ("cuda" if torch.cuda.is_available() else "cpu")
     with pytest.raises(ValueError, match="unknown device"):
         select_device("tpu")
+
+
+def test_a_resumed_state_keeps_the_share_of_the_schedule_it_reached() -> None:
+    """Under a longer budget a checkpoint's learning rate is held where it stopped (not raised to the new budget's
+    smaller share) and its share is carried on in the next checkpoint; without a budget the steps set the rate."""
+    images, c2w, intr = _scene(2, 6)
+    kw = dict(steps=10_000, lr=1e-2, lr_final=1e-4, batch_rays=32)
+    states = {}
+
+    def stop_at_3(p):
+        if p.step == 3:
+            states["first"] = p.state_dict()
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        train(_tiny_model(), RayBatcher(images, c2w, intr, aabb=AABB), budget_s=1e6, callbacks=[stop_at_3], **kw)
+    assert 0.0 <= states["first"]["fraction"] < 1e-3  # a millionth of a day's budget
+    half_spent = dict(states["first"], fraction=0.5)  # as a checkpoint halfway through a shorter budget is
+    rates, carried = [], {}
+
+    def record(p):
+        rates.append(p.lr)
+        carried["fraction"] = p.state_dict()["fraction"]
+        if p.step == 6 and p.steps > 6:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        train(_tiny_model(), RayBatcher(images, c2w, intr, aabb=AABB), budget_s=1e6, spent_s=2.0, state=half_spent,
+              callbacks=[record], **kw)
+    assert len(rates) == 3 and rates == pytest.approx([1e-3] * 3)  # 1e-2 * (1e-4 / 1e-2) ** 0.5
+    assert carried["fraction"] == 0.5
+    rates.clear()
+    train(_tiny_model(), RayBatcher(images, c2w, intr, aabb=AABB), state=half_spent, callbacks=[record],
+          **{**kw, "steps": 6})
+    assert rates == pytest.approx([lr_at(s, 6, 1e-2, 1e-4) for s in (3, 4, 5)])
+    assert carried["fraction"] is None

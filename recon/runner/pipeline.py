@@ -47,7 +47,8 @@ class StageContext:
     out: Path
     """Fresh temporary folder: write every artifact here; it becomes SCENE/<folder> when the stage returns."""
     work: Path
-    """Scratch that survives a crash (checkpoints), keyed by the fingerprint; removed after success."""
+    """Scratch that survives a crash (checkpoints), keyed by the fingerprint less the stage's `scratch_survives`
+    fields; removed after success."""
     inputs: dict[str, Path]
     """Upstream stage name → its finished folder."""
     config: Any
@@ -71,6 +72,9 @@ class Stage:
     needs_source: bool = False
     source_digest: Callable[[Path, Any], str] | None = None
     """Digest of the stage's outside input (e.g. every photo's bytes), part of the fingerprint."""
+    scratch_survives: tuple[str, ...] = ()
+    """Config fields whose change keeps the stage's scratch (train: a new time budget goes on from the checkpoint
+    instead of training again from step 0); the stage reads what its scratch was made under."""
 
 
 @dataclass
@@ -303,12 +307,17 @@ class Pipeline:
         return stage.source_digest(source, getattr(config, stage.name, None))
 
     def fingerprint(
-        self, stage: Stage, manifest: Manifest, config: RunConfig, source: Path | None, source_digest: str | None = None
+        self, stage: Stage, manifest: Manifest, config: RunConfig, source: Path | None, source_digest: str | None = None,
+        without: tuple[str, ...] = (),
     ) -> str:
+        """What the stage's output stands for; `without`: config fields left out (the scratch folder's key)."""
+        sliced = config_slice(config, stage.name) if hasattr(config, stage.name) else None
+        for key in without if sliced is not None else ():
+            sliced.pop(key, None)
         parts: dict[str, Any] = {
             "stage": stage.name,
             "version": stage.version,
-            "config": config_slice(config, stage.name) if hasattr(config, stage.name) else None,
+            "config": sliced,
             "inputs": {name: manifest.stages.get(name, {}).get("output_digest") for name in stage.inputs},
         }
         if stage.source_digest is not None and source is not None:
@@ -447,7 +456,9 @@ class Pipeline:
         fingerprint = self.fingerprint(stage, manifest, config, source, source_digest)
         entry = manifest.stages.get(stage.name)
         folder = scene_dir / stage.folder
-        work = scene_dir / ".work" / f"{stage.name}-{fingerprint[:16]}"
+        scratch = (self.fingerprint(stage, manifest, config, source, source_digest, without=stage.scratch_survives)
+                   if stage.scratch_survives else fingerprint)
+        work = scene_dir / ".work" / f"{stage.name}-{scratch[:16]}"
         if not forced and entry and entry.get("status") == "done" and entry.get("fingerprint") == fingerprint:
             if folder.is_dir() and self._outputs_intact(folder, entry):
                 shutil.rmtree(work, ignore_errors=True)  # scratch of a run killed after its manifest entry

@@ -4,7 +4,7 @@ Writes `field.pt` (the model), `metrics.json` (PSNR/SSIM per held-out view and t
 training curve, the choices made and why), `curves.png` (PSNR vs step and vs wall time) and
 `renders/NAME.png` (photo | render | depth) for a few test views. A checkpoint is written to the
 stage's work folder every `checkpoint_every` steps and on Ctrl-C; running the same command again
-resumes from it.
+resumes from it, and so does the command with another time budget (a budget found too short goes on).
 """
 from __future__ import annotations
 
@@ -219,7 +219,22 @@ def few_steps_warning(total: int, step: int, used_s: float, rate: float, budget:
     return (f"at this machine's pace ({rate:.1f} steps/s) the {budget} budget trains about {total:,} steps, under "
             f"the {FEW_STEPS:,} a field needs to settle: expect a soft field and a torn mesh. `--budget "
             f"{minutes}m` trains {FEW_STEPS:,} or more here (`--set train.budget={minutes}m` in recon batch; Ctrl-C "
-            "and run again with it: the finished stages are kept)")
+            "and run again with it: training goes on from where it stopped)")
+
+
+def resumed_budget_note(was: str, now: str, spent_s: float, budget_s: float) -> str:
+    """What a checkpoint made under another time budget (`was`; "" for none) does under `now` (the stage's scratch
+    outlives a change of budget: recon.runner.pipeline's Stage.scratch_survives), after `spent_s` training seconds."""
+    if was == now:
+        return ""
+    made = f"trained {spent_s:.0f} s under " + (f"a {was} budget" if was else "no budget")
+    if not budget_s:
+        return f" ({made}; without a budget it goes on to the step cap)"
+    if spent_s >= budget_s:
+        return (f" ({made}: the {now} budget is spent already, so the field is kept as it is; a longer --budget "
+                "trains on from here)")
+    return (f" ({made}: the {now} budget trains about {budget_s - spent_s:.0f} s more from here, the learning rate "
+            "held where it stopped until the longer schedule comes down to it)")
 
 
 def expected_steps(step: int, used_s: float, since_step: int, since_s: float, budget_s: float, cap: int) -> int:
@@ -250,7 +265,9 @@ def _fit(ctx: StageContext, cfg: TrainConfig, plan: TrainPlan, setup: TrainSetup
     history: list[dict] = checkpoint["history"] if checkpoint else []
     time_before = checkpoint["train_time_s"] if checkpoint else 0.0
     if checkpoint:
-        ctx.report.info(f"resuming from the checkpoint at step {checkpoint['state']['step']} of {cfg.steps}")
+        ctx.report.info(f"resuming from the checkpoint at step {checkpoint['state']['step']} of {cfg.steps}"
+                        + resumed_budget_note(checkpoint.get("budget", cfg.budget), cfg.budget, time_before,
+                                              plan.budget_s))
     eval_time = [0.0]
 
     def eval_fn(m: torch.nn.Module, step: int) -> dict[str, float]:
@@ -264,6 +281,10 @@ def _fit(ctx: StageContext, cfg: TrainConfig, plan: TrainPlan, setup: TrainSetup
 
     def train_time() -> float:
         return time_before + time.perf_counter() - t_start - eval_time[0]
+
+    def contents(state: dict[str, Any]) -> dict[str, Any]:
+        """A checkpoint: the trainer's state, the curves so far, and the time spent under which budget."""
+        return {"state": state, "evals": evals, "history": history, "train_time_s": train_time(), "budget": cfg.budget}
 
     first_step = checkpoint["state"]["step"] if checkpoint else 0
     with ctx.report.task("training", total=cfg.steps, unit="steps") as bar:
@@ -293,7 +314,7 @@ def _fit(ctx: StageContext, cfg: TrainConfig, plan: TrainPlan, setup: TrainSetup
             if ctx.report.observers:  # a live viewer (recon run --view): it renders the model on this thread
                 ctx.report.observe("train_step", {"progress": p, "model": model, "view": eval_views[0], "aabb": aabb, "background": background})
             if cfg.checkpoint_every and p.step % cfg.checkpoint_every == 0 and p.step < p.steps:
-                _save_checkpoint(ckpt_path, {"state": p.state_dict(), "evals": evals, "history": history, "train_time_s": train_time()})
+                _save_checkpoint(ckpt_path, contents(p.state_dict()))
 
         try:
             with warnings.catch_warnings(record=True) as caught:
@@ -308,7 +329,7 @@ def _fit(ctx: StageContext, cfg: TrainConfig, plan: TrainPlan, setup: TrainSetup
                     ctx.report.warn(str(w.message))
             bar.update(completed=result["step"], total=result["step"])  # the budget ended it: the bar ends full
         except TrainingInterrupted as stop:
-            _save_checkpoint(ckpt_path, {"state": stop.state, "evals": evals, "history": history, "train_time_s": train_time()})
+            _save_checkpoint(ckpt_path, contents(stop.state))
             raise KeyboardInterrupt from None
         except TrainingDiverged as exc:
             raise ReconError(
@@ -375,4 +396,4 @@ def _metrics(scene: Scene, device: torch.device, plan: TrainPlan, setup: TrainSe
 # version 13: train.smoothness=auto smooths the plain faces of a field that starts empty though it has silhouettes
 # version 14: the hull that says which transparent pixels are disputed is splatted at each vertex's depth
 # version 15: train.depth_prior=auto is on for a fast field that starts empty though its photos have silhouettes
-STAGE = Stage(name="train", folder="03_field", inputs=("normalize",), version=15, run=run)
+STAGE = Stage(name="train", folder="03_field", inputs=("normalize",), version=15, run=run, scratch_survives=("budget",))
