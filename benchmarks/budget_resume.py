@@ -1,0 +1,108 @@
+"""What a longer --budget after Ctrl-C buys: one normalized scene trained and meshed under the long budget from the
+start, and under the short budget stopped partway (SIGINT, as a user who read the short-budget warning does) and then
+run again with the long budget, which trains on from the stopped run's checkpoint.
+
+    python benchmarks/budget_resume.py --scene ~/.cache/recon/bench/fox/fox-fast --short 4m --stop-after 150 \
+        --long 8m --name fox_budget_resume
+
+The scene is copied twice under the work folder (its poses and normalize stages as they are). Each row holds the
+steps, training seconds and wall seconds (the continued row's include the stopped run's), held-out PSNR and the mesh
+stage's checks (against the true surface with --gt). Writes benchmarks/results/<name>.json after each row. It
+measures; it asserts nothing.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import torch
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))  # this checkout's recon, not an installed one
+sys.path.insert(0, str(REPO / "benchmarks"))
+
+STOPPED_RUN = """
+import sys
+from pathlib import Path
+sys.path.insert(0, {repo!r})
+from recon.app.api import run
+run(None, Path({scene!r}), {preset!r}, {overrides!r}, from_stage="train", until_stage="mesh", force=True)
+"""
+
+
+def stop_training(scene: Path, preset: str | None, overrides: dict[str, str], after_s: float,
+                  log: Path) -> dict[str, Any]:
+    """Run the train stage in a child process and send it SIGINT (Ctrl-C) `after_s` seconds after it started; what
+    the checkpoint it leaves holds (its training seconds: the start's loading and planning are not among them)."""
+    code = STOPPED_RUN.format(repo=str(REPO), scene=str(scene), preset=preset, overrides=overrides)
+    t0 = time.perf_counter()
+    with log.open("w") as err:
+        proc = subprocess.Popen([sys.executable, "-c", code], stdout=err, stderr=subprocess.STDOUT)
+        try:
+            proc.wait(timeout=after_s)
+        except subprocess.TimeoutExpired:
+            proc.send_signal(signal.SIGINT)
+        proc.wait(timeout=600)
+    wall = time.perf_counter() - t0
+    found = sorted((scene / ".work").glob("train-*/checkpoint.pt"))
+    if not found:
+        sys.exit(f"the stopped run left no checkpoint (exit {proc.returncode}; its output: {log})")
+    ckpt = torch.load(found[0], weights_only=False, map_location="cpu")
+    return {"stopped_wall_s": round(wall, 1), "stopped_at_step": int(ckpt["state"]["step"]),
+            "stopped_train_time_s": round(float(ckpt["train_time_s"]), 1),
+            "stopped_schedule_share": ckpt["state"].get("fraction")}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--scene", type=Path, required=True, help="a scene folder whose normalize stage is done")
+    parser.add_argument("--short", required=True, help="the budget of the run that is stopped, e.g. 4m")
+    parser.add_argument("--stop-after", type=float, required=True,
+                        help="seconds after the stopped run starts at which it gets SIGINT")
+    parser.add_argument("--long", required=True, help="the longer budget, e.g. 8m")
+    parser.add_argument("--gt", type=Path, default=None, help="the true surface (PLY), for the mesh's accuracy")
+    parser.add_argument("--set", action="append", default=[], help="overrides for every run")
+    parser.add_argument("--name", required=True, help="the record: benchmarks/results/<name>.json")
+    parser.add_argument("--work", type=Path, default=None, help="scratch (default: ~/.cache/recon/bench/<name>)")
+    args = parser.parse_args()
+
+    from mesh_options import fresh_copy, mesh_row, recorded_preset, run_stages
+    from recon.atomic import write_json_atomic
+
+    source = args.scene.expanduser()
+    result = REPO / "benchmarks" / "results" / f"{args.name}.json"
+    work = args.work or Path.home() / ".cache" / "recon" / "bench" / args.name
+    preset = recorded_preset(source)
+    overrides = dict(item.split("=", 1) for item in args.set)
+    rows: list[dict[str, Any]] = []
+    for how in ("long_from_the_start", "short_stopped_then_long"):
+        scene = work / how
+        fresh_copy(source, scene, "03_field", "04_mesh")
+        stopped: dict[str, Any] = {}
+        if how == "short_stopped_then_long":
+            stopped = stop_training(scene, preset, {**overrides, "train.budget": args.short}, args.stop_after,
+                                    work / f"{how}.log")
+        t0 = time.perf_counter()
+        ran = run_stages(scene, preset, {**overrides, "train.budget": args.long}, "train")
+        wall = time.perf_counter() - t0 + stopped.get("stopped_wall_s", 0.0)
+        metrics = json.loads((scene / "03_field" / "metrics.json").read_text())
+        row = {"how": how, "short": args.short if stopped else None, "long": args.long, "source_scene": str(source),
+               "preset": preset, "overrides": args.set, **ran, **stopped, "wall_s": round(wall, 1),
+               "steps": metrics["steps"], "train_time_s": metrics["train_time_s"], "rays_per_s": metrics["rays_per_s"],
+               "psnr": metrics["test"]["psnr"], **mesh_row(scene, args.gt.expanduser() if args.gt else None)}
+        rows.append(row)
+        print(f"{how}: {row['steps']} steps, {row['train_time_s']:.0f} s trained, {row['wall_s']:.0f} s in all, "
+              f"PSNR {row['psnr']:.2f} dB, mesh coverage {row['mesh_coverage']}", flush=True)
+        write_json_atomic(result, {"rows": rows, "cpu_count": os.cpu_count()})
+    print(f"record: {result}")
+
+
+if __name__ == "__main__":
+    main()
