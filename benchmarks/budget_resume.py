@@ -29,7 +29,9 @@ sys.path.insert(0, str(REPO))  # this checkout's recon, not an installed one
 sys.path.insert(0, str(REPO / "benchmarks"))
 
 STOPPED_RUN = """
+import signal
 import sys
+signal.signal(signal.SIGINT, signal.default_int_handler)  # Ctrl-C's, even where a background job ignores SIGINT
 from pathlib import Path
 sys.path.insert(0, {repo!r})
 from recon.app.api import run

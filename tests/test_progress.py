@@ -84,25 +84,31 @@ def test_another_budget_trains_on_from_the_checkpoint_of_a_stopped_run(tmp_path,
 
     import recon.app.cli as cli
     import recon.stages.train as train_stage
+    from recon.runner.pipeline import SCRATCH_NOTE
     from tests import faults
 
-    save = train_stage._save_checkpoint
+    write = train_stage.write_json_atomic
 
-    def save_then_stop(path, contents):
-        save(path, contents)
-        raise KeyboardInterrupt  # Ctrl-C right after the first checkpoint
+    def write_then_stop(path, data):
+        write(path, data)
+        if path.name == SCRATCH_NOTE:
+            raise KeyboardInterrupt  # Ctrl-C right after the first checkpoint and its note
 
     said = io.StringIO()
     monkeypatch.setattr(cli, "console", Console(file=said, width=400, color_system=None))
     monkeypatch.setattr(cli, "out_console", Console(file=io.StringIO(), width=400, color_system=None))
-    monkeypatch.setattr(train_stage, "_save_checkpoint", save_then_stop)
+    monkeypatch.setattr(train_stage, "write_json_atomic", write_then_stop)
     capture = faults.make_capture(tmp_path / "capture")
     settings = [*faults.TINY, "train.steps=100000000", "train.eval_every=0", "train.checkpoint_every=15"]
     with pytest.raises((KeyboardInterrupt, typer.Exit)):
         cli._run(tmp_path / "scene", capture, "fast", [*settings, "train.budget=10m"], quiet=False, until_stage="train")
     stopped = torch.load(faults.checkpoint_of(tmp_path / "scene"), weights_only=False)
     assert stopped["state"]["step"] == 15 and stopped["budget"] == "10m" and 0 < stopped["state"]["fraction"] < 1
-    monkeypatch.setattr(train_stage, "_save_checkpoint", save)
+    rows = {row["stage"]: row for row in cli._pipeline().state(tmp_path / "scene")}
+    assert rows["train"]["state"] == "missing" and "the last training checkpoint: step 15" in rows["train"]["scratch"]
+    assert "under a 10m budget" in rows["train"]["scratch"] and "MB in .work/train-" in rows["train"]["scratch"]
+    assert "scratch" not in rows["normalize"]
+    monkeypatch.setattr(train_stage, "write_json_atomic", write)
     budget = f"train.budget={int(stopped['train_time_s']) + 3}s"  # 2-3 s more than the checkpoint's training time
     cli._run(tmp_path / "scene", capture, "fast", [*settings, budget], quiet=False, until_stage="train")
     told = " ".join(said.getvalue().split())
@@ -111,6 +117,7 @@ def test_another_budget_trains_on_from_the_checkpoint_of_a_stopped_run(tmp_path,
     assert metrics["steps"] > 15 and metrics["history"][0]["step"] == 10  # the first run's curve goes on
     assert metrics["train_time_s"] >= stopped["train_time_s"]
     assert not list((tmp_path / "scene" / ".work").glob("train-*"))  # scratch removed once the stage is done
+    assert not any("scratch" in row for row in cli._pipeline().state(tmp_path / "scene"))
 
 
 def test_what_a_checkpoint_made_under_another_budget_does_is_said() -> None:

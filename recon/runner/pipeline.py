@@ -34,6 +34,9 @@ from recon.runner.ownership import forbidden_reason, overlap_reason, resolve_pat
 
 MANIFEST = "manifest.json"
 LOCK = ".lock"
+SCRATCH_NOTE = "scratch.json"
+"""A stage's note in its scratch folder on what the scratch holds ({"headline": ...}: a stopped training's step and
+time), which `recon status` shows while the stage is not done."""
 MANIFEST_VERSION = 1
 
 
@@ -352,6 +355,8 @@ class Pipeline:
                         row["state"] = "stale"
                 elif entry.get("status") == "failed":
                     row["state"] = "failed"
+            if scratch := _scratch_note(scene_dir, stage.name):  # e.g. a stopped training, under any options
+                row["scratch"] = scratch
             rows.append(row)
         return rows
 
@@ -527,6 +532,19 @@ class Pipeline:
         shutil.rmtree(work, ignore_errors=True)
         report.stage_done(stage.name, wall, summary)
         return StageOutcome(stage.name, "ran", wall, summary)
+
+
+def _scratch_note(scene_dir: Path, stage: str) -> str | None:
+    """What the newest of the stage's scratch folders holds, as its note says, with where and how large it is."""
+    notes = sorted(scene_dir.joinpath(".work").glob(f"{stage}-*/{SCRATCH_NOTE}"), key=lambda p: p.stat().st_mtime)
+    if not notes:
+        return None
+    try:
+        headline = str(read_json(notes[-1])["headline"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    size = sum(p.stat().st_size for p in notes[-1].parent.rglob("*") if p.is_file())
+    return f"{headline} ({size / 2**20:.0f} MB in {notes[-1].parent.relative_to(scene_dir)})"
 
 
 def _error_line(exc: BaseException) -> str:

@@ -26,7 +26,7 @@ from recon.evaluation.views import (View, evaluate, fitted_note, load_views, sup
                                     write_previews)
 from recon.field import FIELD_FILE, save_field
 from recon.plans.training import TrainPlan, TrainSetup, build_training, photo_sides, plan_training
-from recon.runner.pipeline import Stage, StageContext
+from recon.runner.pipeline import SCRATCH_NOTE, Stage, StageContext
 
 CHECKPOINT = "checkpoint.pt"
 
@@ -282,9 +282,16 @@ def _fit(ctx: StageContext, cfg: TrainConfig, plan: TrainPlan, setup: TrainSetup
     def train_time() -> float:
         return time_before + time.perf_counter() - t_start - eval_time[0]
 
-    def contents(state: dict[str, Any]) -> dict[str, Any]:
-        """A checkpoint: the trainer's state, the curves so far, and the time spent under which budget."""
-        return {"state": state, "evals": evals, "history": history, "train_time_s": train_time(), "budget": cfg.budget}
+    def keep(state: dict[str, Any]) -> None:
+        """Checkpoint the trainer's state, the curves so far and the time spent under which budget; say so for
+        `recon status`."""
+        spent = train_time()
+        _save_checkpoint(ckpt_path, {"state": state, "evals": evals, "history": history, "train_time_s": spent,
+                                     "budget": cfg.budget})
+        under = f"a {cfg.budget} budget" if cfg.budget else f"a cap of {cfg.steps:,} steps"
+        write_json_atomic(ctx.work / SCRATCH_NOTE, {"headline": (
+            f"the last training checkpoint: step {state['step']:,}, {spent:.0f} s trained under {under} (a stopped "
+            "`recon run` goes on from it when run again, also with another --budget)")})
 
     first_step = checkpoint["state"]["step"] if checkpoint else 0
     with ctx.report.task("training", total=cfg.steps, unit="steps") as bar:
@@ -314,7 +321,7 @@ def _fit(ctx: StageContext, cfg: TrainConfig, plan: TrainPlan, setup: TrainSetup
             if ctx.report.observers:  # a live viewer (recon run --view): it renders the model on this thread
                 ctx.report.observe("train_step", {"progress": p, "model": model, "view": eval_views[0], "aabb": aabb, "background": background})
             if cfg.checkpoint_every and p.step % cfg.checkpoint_every == 0 and p.step < p.steps:
-                _save_checkpoint(ckpt_path, contents(p.state_dict()))
+                keep(p.state_dict())
 
         try:
             with warnings.catch_warnings(record=True) as caught:
@@ -329,7 +336,7 @@ def _fit(ctx: StageContext, cfg: TrainConfig, plan: TrainPlan, setup: TrainSetup
                     ctx.report.warn(str(w.message))
             bar.update(completed=result["step"], total=result["step"])  # the budget ended it: the bar ends full
         except TrainingInterrupted as stop:
-            _save_checkpoint(ckpt_path, contents(stop.state))
+            keep(stop.state)
             raise KeyboardInterrupt from None
         except TrainingDiverged as exc:
             raise ReconError(
