@@ -63,26 +63,19 @@ def stop_training(scene: Path, preset: str | None, overrides: dict[str, str], af
 
 
 def main() -> None:
+    from mesh_options import add_retrain_options, fresh_copy, mesh_row, retrain_setup, run_stages
+
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--scene", type=Path, required=True, help="a scene folder whose normalize stage is done")
     parser.add_argument("--short", required=True, help="the budget of the run that is stopped, e.g. 4m")
     parser.add_argument("--stop-after", type=float, required=True,
                         help="seconds after the stopped run starts at which it gets SIGINT")
     parser.add_argument("--long", required=True, help="the longer budget, e.g. 8m")
-    parser.add_argument("--gt", type=Path, default=None, help="the true surface (PLY), for the mesh's accuracy")
-    parser.add_argument("--set", action="append", default=[], help="overrides for every run")
-    parser.add_argument("--name", required=True, help="the record: benchmarks/results/<name>.json")
-    parser.add_argument("--work", type=Path, default=None, help="scratch (default: ~/.cache/recon/bench/<name>)")
+    add_retrain_options(parser)
     args = parser.parse_args()
 
-    from mesh_options import fresh_copy, mesh_row, recorded_preset, run_stages
     from recon.atomic import write_json_atomic
 
-    source = args.scene.expanduser()
-    result = REPO / "benchmarks" / "results" / f"{args.name}.json"
-    work = args.work or Path.home() / ".cache" / "recon" / "bench" / args.name
-    preset = recorded_preset(source)
-    overrides = dict(item.split("=", 1) for item in args.set)
+    source, result, work, preset, overrides = retrain_setup(args)
     rows: list[dict[str, Any]] = []
     for how in ("long_from_the_start", "short_stopped_then_long"):
         scene = work / how

@@ -72,6 +72,25 @@ def fresh_copy(source: Path, scene: Path, *stale: str) -> None:
     shutil.copytree(source, scene, ignore=shutil.ignore_patterns(".lock", ".work", *stale))
 
 
+def add_retrain_options(parser: argparse.ArgumentParser) -> None:
+    """The options of a script that trains and meshes copies of one normalized scene: the scene, its true surface,
+    overrides for every run, the record's name and the scratch folder."""
+    parser.add_argument("--scene", type=Path, required=True, help="a scene folder whose normalize stage is done")
+    parser.add_argument("--gt", type=Path, default=None, help="the true surface (PLY), for the mesh's accuracy")
+    parser.add_argument("--set", action="append", default=[], help="overrides for every run")
+    parser.add_argument("--name", required=True, help="the record: benchmarks/results/<name>.json")
+    parser.add_argument("--work", type=Path, default=None, help="scratch (default: ~/.cache/recon/bench/<name>)")
+
+
+def retrain_setup(args: argparse.Namespace) -> tuple[Path, Path, Path, str | None, dict[str, str]]:
+    """From add_retrain_options' options: (the scene, the record's path, the scratch folder, the scene's preset, the
+    overrides as a dict)."""
+    source = args.scene.expanduser()
+    result = REPO / "benchmarks" / "results" / f"{args.name}.json"
+    work = args.work or Path.home() / ".cache" / "recon" / "bench" / args.name
+    return source, result, work, recorded_preset(source), dict(item.split("=", 1) for item in args.set)
+
+
 def recorded_preset(scene: Path) -> str | None:
     """The preset the scene was made with (its manifest's)."""
     return json.loads((scene / "manifest.json").read_text()).get("preset")
