@@ -70,6 +70,8 @@ def main() -> None:
     parser.add_argument("--stop-after", type=float, required=True,
                         help="seconds after the stopped run starts at which it gets SIGINT")
     parser.add_argument("--long", required=True, help="the longer budget, e.g. 8m")
+    parser.add_argument("--rows", default="long_from_the_start,short_stopped_then_long",
+                        help="which runs, comma-separated (both by default)")
     add_retrain_options(parser)
     args = parser.parse_args()
 
@@ -77,7 +79,9 @@ def main() -> None:
 
     source, result, work, preset, overrides = retrain_setup(args)
     rows: list[dict[str, Any]] = []
-    for how in ("long_from_the_start", "short_stopped_then_long"):
+    for how in args.rows.split(","):
+        if how not in ("long_from_the_start", "short_stopped_then_long"):
+            sys.exit(f"--rows: no run called {how!r}")
         scene = work / how
         fresh_copy(source, scene, "03_field", "04_mesh")
         stopped: dict[str, Any] = {}
