@@ -58,8 +58,7 @@ def stop_training(scene: Path, preset: str | None, overrides: dict[str, str], af
         sys.exit(f"the stopped run left no checkpoint (exit {proc.returncode}; its output: {log})")
     ckpt = torch.load(found[0], weights_only=False, map_location="cpu")
     return {"stopped_wall_s": round(wall, 1), "stopped_at_step": int(ckpt["state"]["step"]),
-            "stopped_train_time_s": round(float(ckpt["train_time_s"]), 1),
-            "stopped_schedule_share": ckpt["state"].get("fraction")}
+            "stopped_train_time_s": round(float(ckpt["train_time_s"]), 1)}
 
 
 def main() -> None:

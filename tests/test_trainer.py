@@ -191,37 +191,25 @@ def test_select_device() -> None:
         select_device("tpu")
 
 
-def test_a_resumed_state_keeps_the_share_of_the_schedule_it_reached() -> None:
-    """Under a longer budget a checkpoint's learning rate is held where it stopped (not raised to the new budget's
-    smaller share) and its share is carried on in the next checkpoint; without a budget the steps set the rate."""
+def test_a_state_resumed_under_another_budget_follows_that_budgets_schedule() -> None:
+    """Ctrl-C halfway through a budget, then a budget four times as long: the rate is that budget's at the time
+    spent (an eighth of it), as if it had been given from the start, not the stopped budget's half."""
     images, c2w, intr = _scene(2, 6)
     kw = dict(steps=10_000, lr=1e-2, lr_final=1e-4, batch_rays=32)
     states = {}
 
-    def stop_at_3(p):
-        if p.step == 3:
-            states["first"] = p.state_dict()
-            raise KeyboardInterrupt
+    def stop_at(step):
+        def stop(p):
+            states.setdefault("rates", []).append(p.lr)
+            if p.step == step:
+                states["state"] = p.state_dict()
+                raise KeyboardInterrupt
+        return stop
 
     with pytest.raises(KeyboardInterrupt):
-        train(_tiny_model(), RayBatcher(images, c2w, intr, aabb=AABB), budget_s=1e6, callbacks=[stop_at_3], **kw)
-    assert 0.0 <= states["first"]["fraction"] < 1e-3  # a millionth of a day's budget
-    half_spent = dict(states["first"], fraction=0.5)  # as a checkpoint halfway through a shorter budget is
-    rates, carried = [], {}
-
-    def record(p):
-        rates.append(p.lr)
-        carried["fraction"] = p.state_dict()["fraction"]
-        if p.step == 6 and p.steps > 6:
-            raise KeyboardInterrupt
-
-    with pytest.raises(KeyboardInterrupt):
-        train(_tiny_model(), RayBatcher(images, c2w, intr, aabb=AABB), budget_s=1e6, spent_s=2.0, state=half_spent,
-              callbacks=[record], **kw)
-    assert len(rates) == 3 and rates == pytest.approx([1e-3] * 3)  # 1e-2 * (1e-4 / 1e-2) ** 0.5
-    assert carried["fraction"] == 0.5
-    rates.clear()
-    train(_tiny_model(), RayBatcher(images, c2w, intr, aabb=AABB), state=half_spent, callbacks=[record],
-          **{**kw, "steps": 6})
-    assert rates == pytest.approx([lr_at(s, 6, 1e-2, 1e-4) for s in (3, 4, 5)])
-    assert carried["fraction"] is None
+        train(_tiny_model(), RayBatcher(images, c2w, intr, aabb=AABB), budget_s=1e6, callbacks=[stop_at(3)], **kw)
+    states["rates"] = []
+    with pytest.raises(KeyboardInterrupt):  # resumed with 500 s spent of a 4,000-s budget
+        train(_tiny_model(), RayBatcher(images, c2w, intr, aabb=AABB), budget_s=4000.0, spent_s=500.0,
+              state=states["state"], callbacks=[stop_at(6)], **kw)
+    assert states["rates"] == pytest.approx([lr_at(0, 1, 1e-2, 1e-4, 0.125)] * 3, rel=1e-3)

@@ -319,10 +319,9 @@ def train(
         history_every: record (step, loss, psnr) every this many steps in the result.
         budget_s: > 0: stop once this much training time (evaluation excluded; ``spent_s`` of it
             already used before a resume) is spent; the learning rate then decays with the
-            fraction of the budget used, so a budget-bound run still ends at ``lr_final``. A resumed
-            state keeps the share of its schedule it reached (``state["fraction"]``): under another
-            budget the schedule waits there until the new budget's own share passes it, so a longer
-            budget goes on from a checkpoint without raising the rate again or undoing a ramp.
+            fraction of the budget used, so a budget-bound run still ends at ``lr_final``. A state
+            resumed under another budget follows that budget's schedule from ``spent_s`` on, as a
+            run given it from the start would (benchmarks/results/fox_budget_resume_plain_share.json).
 
     Returns a summary dict: step, loss, psnr, rays_per_s, elapsed_s, history, metrics (last eval).
 
@@ -333,16 +332,13 @@ def train(
     take_step = TrainStep(model, batcher, steps=steps, lr=lr, lr_final=lr_final, batch_rays=batch_rays,
                           pieces=pieces, autocast=autocast, optimizer=optimizer)
     start = 0
-    reached = 0.0  # the share of a budget's schedule a resumed state had reached
     if state is not None:
         take_step.load_state_dict(state)
         start = int(state["step"])
-        reached = float(state.get("fraction") or 0.0)
     done = start
-    fraction: float | None = reached if budget_s > 0 else None
 
     def snapshot() -> dict[str, Any]:
-        return {"step": done, "fraction": fraction, **take_step.state_dict()}
+        return {"step": done, **take_step.state_dict()}
 
     history: list[tuple[int, float, float]] = []
     metrics: dict[str, float] | None = None
@@ -353,11 +349,12 @@ def train(
     stall = StallDetector(steps) if start == 0 else StallDetector(0)
     try:
         for step in range(start, steps):
+            fraction = None
             if budget_s > 0:
                 used = spent_s + time.perf_counter() - t0 - eval_s
                 if used >= budget_s:
                     break
-                fraction = max(reached, used / budget_s)
+                fraction = used / budget_s
             result = take_step(step, fraction)
             loss_v, cur_lr = result.loss, result.lr
             done = step + 1

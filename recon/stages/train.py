@@ -233,8 +233,8 @@ def resumed_budget_note(was: str, now: str, spent_s: float, budget_s: float) -> 
     if spent_s >= budget_s:
         return (f" ({made}: the {now} budget is spent already, so the field is kept as it is; a longer --budget "
                 "trains on from here)")
-    return (f" ({made}: the {now} budget trains about {budget_s - spent_s:.0f} s more from here, the learning rate "
-            "held where it stopped until the longer schedule comes down to it)")
+    return (f" ({made}: the {now} budget trains about {budget_s - spent_s:.0f} s more from here, on its own learning "
+            "rate schedule, as if it had been given from the start)")
 
 
 def expected_steps(step: int, used_s: float, since_step: int, since_s: float, budget_s: float, cap: int) -> int:
