@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import signal
 import subprocess
 import sys
@@ -98,7 +97,7 @@ def main() -> None:
         rows.append(row)
         print(f"{how}: {row['steps']} steps, {row['train_time_s']:.0f} s trained, {row['wall_s']:.0f} s in all, "
               f"PSNR {row['psnr']:.2f} dB, mesh coverage {row['mesh_coverage']}", flush=True)
-        write_json_atomic(result, {"rows": rows, "cpu_count": os.cpu_count()})
+        write_json_atomic(result, rows)
     print(f"record: {result}")
 
 
