@@ -105,7 +105,7 @@ def test_another_budget_trains_on_from_the_checkpoint_of_a_stopped_run(tmp_path,
     stopped = torch.load(faults.checkpoint_of(tmp_path / "scene"), weights_only=False)
     assert stopped["state"]["step"] == 15 and stopped["budget"] == "10m"
     rows = {row["stage"]: row for row in cli._pipeline().state(tmp_path / "scene")}
-    assert rows["train"]["state"] == "missing" and "the last training checkpoint: step 15" in rows["train"]["scratch"]
+    assert rows["train"]["state"] == "missing" and "training checkpoint at step 15" in rows["train"]["scratch"]
     assert "under a 10m budget" in rows["train"]["scratch"] and "MB in .work/train-" in rows["train"]["scratch"]
     assert "scratch" not in rows["normalize"]
     monkeypatch.setattr(train_stage, "write_json_atomic", write)

@@ -54,7 +54,7 @@ def _guard(scene_dir: Path | None = None) -> Iterator[None]:
     except KeyboardInterrupt:
         console.print(
             "\n[yellow]Interrupted.[/] Finished stages (and the last training checkpoint) are kept; "
-            "run the same command again to resume where it stopped."
+            "run the same command again (with a longer --budget too) to resume where it stopped."
         )
         raise typer.Exit(EXIT_INTERRUPTED) from None
     except OSError as exc:

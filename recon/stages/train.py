@@ -290,8 +290,8 @@ def _fit(ctx: StageContext, cfg: TrainConfig, plan: TrainPlan, setup: TrainSetup
                                      "budget": cfg.budget})
         under = f"a {cfg.budget} budget" if cfg.budget else f"a cap of {cfg.steps:,} steps"
         write_json_atomic(ctx.work / SCRATCH_NOTE, {"headline": (
-            f"the last training checkpoint: step {state['step']:,}, {spent:.0f} s trained under {under} (a stopped "
-            "`recon run` goes on from it when run again, also with another --budget)")})
+            f"training checkpoint at step {state['step']:,}, {spent:.0f} s trained under {under}: running again goes "
+            "on from it, also with another --budget")})
 
     first_step = checkpoint["state"]["step"] if checkpoint else 0
     with ctx.report.task("training", total=cfg.steps, unit="steps") as bar:
