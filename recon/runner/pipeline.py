@@ -36,7 +36,7 @@ MANIFEST = "manifest.json"
 LOCK = ".lock"
 SCRATCH_NOTE = "scratch.json"
 """A stage's note in its scratch folder on what the scratch holds ({"headline": ...}: a stopped training's step and
-time), which `recon status` shows while the stage is not done."""
+time), which `recon status` shows in the stage's row."""
 MANIFEST_VERSION = 1
 
 
@@ -315,8 +315,9 @@ class Pipeline:
     ) -> str:
         """What the stage's output stands for; `without`: config fields left out (the scratch folder's key)."""
         sliced = config_slice(config, stage.name) if hasattr(config, stage.name) else None
-        for key in without if sliced is not None else ():
-            sliced.pop(key, None)
+        if sliced is not None:
+            for key in without:
+                sliced.pop(key, None)
         parts: dict[str, Any] = {
             "stage": stage.name,
             "version": stage.version,
@@ -461,8 +462,7 @@ class Pipeline:
         fingerprint = self.fingerprint(stage, manifest, config, source, source_digest)
         entry = manifest.stages.get(stage.name)
         folder = scene_dir / stage.folder
-        scratch = (self.fingerprint(stage, manifest, config, source, source_digest, without=stage.scratch_survives)
-                   if stage.scratch_survives else fingerprint)
+        scratch = self.fingerprint(stage, manifest, config, source, source_digest, without=stage.scratch_survives)
         work = scene_dir / ".work" / f"{stage.name}-{scratch[:16]}"
         if not forced and entry and entry.get("status") == "done" and entry.get("fingerprint") == fingerprint:
             if folder.is_dir() and self._outputs_intact(folder, entry):
