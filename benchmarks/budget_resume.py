@@ -1,14 +1,15 @@
-"""What a longer --budget after Ctrl-C buys: one normalized scene trained and meshed under the long budget from the
-start, and under the short budget stopped partway (SIGINT, as a user who read the short-budget warning does) and then
-run again with the long budget, which trains on from the stopped run's checkpoint.
+"""What a longer --budget after a shorter one buys: one normalized scene trained and meshed under the long budget from
+the start; under the short budget stopped partway (SIGINT, as a user who read the short-budget warning does) and then
+run again with the long budget, which trains on from the stopped run's checkpoint; and under the short budget to the
+end (its mesh made) and then run again with the long budget, which trains the finished field on.
 
     python benchmarks/budget_resume.py --scene ~/.cache/recon/bench/fox/fox-fast --short 4m --stop-after 150 \
         --long 8m --name fox_budget_resume
 
-The scene is copied twice under the work folder (its poses and normalize stages as they are). Each row holds the
-steps, training seconds and wall seconds (the continued row's include the stopped run's), held-out PSNR and the mesh
-stage's checks (against the true surface with --gt). Writes benchmarks/results/<name>.json after each row. It
-measures; it asserts nothing.
+The scene is copied once a row under the work folder (its poses and normalize stages as they are). Each row holds the
+steps, training seconds and wall seconds (the continued rows' include the first run's), held-out PSNR and the mesh
+stage's checks (against the true surface with --gt); the finished-first row also the short run's. Writes
+benchmarks/results/<name>.json after each row. It measures; it asserts nothing.
 """
 from __future__ import annotations
 
@@ -60,16 +61,22 @@ def stop_training(scene: Path, preset: str | None, overrides: dict[str, str], af
             "stopped_train_time_s": round(float(ckpt["train_time_s"]), 1)}
 
 
+def _field_row(scene: Path) -> dict[str, Any]:
+    metrics = json.loads((scene / "03_field" / "metrics.json").read_text())
+    return {"steps": metrics["steps"], "train_time_s": metrics["train_time_s"], "rays_per_s": metrics["rays_per_s"],
+            "psnr": metrics["test"]["psnr"]}
+
+
 def main() -> None:
     from mesh_options import add_retrain_options, fresh_copy, mesh_row, retrain_setup, run_stages
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--short", required=True, help="the budget of the run that is stopped, e.g. 4m")
-    parser.add_argument("--stop-after", type=float, required=True,
-                        help="seconds after the stopped run starts at which it gets SIGINT")
+    parser.add_argument("--stop-after", type=float, default=0.0,
+                        help="seconds after the stopped run starts at which it gets SIGINT (short_stopped_then_long)")
     parser.add_argument("--long", required=True, help="the longer budget, e.g. 8m")
-    parser.add_argument("--rows", default="long_from_the_start,short_stopped_then_long",
-                        help="which runs, comma-separated (both by default)")
+    parser.add_argument("--rows", default="long_from_the_start,short_stopped_then_long,short_finished_then_long",
+                        help="which runs, comma-separated (all three by default)")
     add_retrain_options(parser)
     args = parser.parse_args()
 
@@ -77,23 +84,30 @@ def main() -> None:
 
     source, result, work, preset, overrides = retrain_setup(args)
     rows: list[dict[str, Any]] = []
+    gt = args.gt.expanduser() if args.gt else None
     for how in args.rows.split(","):
-        if how not in ("long_from_the_start", "short_stopped_then_long"):
+        if how not in ("long_from_the_start", "short_stopped_then_long", "short_finished_then_long"):
             sys.exit(f"--rows: no run called {how!r}")
+        if how == "short_stopped_then_long" and args.stop_after <= 0:
+            sys.exit("--rows short_stopped_then_long needs --stop-after SECONDS")
         scene = work / how
         fresh_copy(source, scene, "03_field", "04_mesh")
-        stopped: dict[str, Any] = {}
+        first: dict[str, Any] = {}
         if how == "short_stopped_then_long":
-            stopped = stop_training(scene, preset, {**overrides, "train.budget": args.short}, args.stop_after,
-                                    work / f"{how}.log")
+            first = stop_training(scene, preset, {**overrides, "train.budget": args.short}, args.stop_after,
+                                  work / f"{how}.log")
+        elif how == "short_finished_then_long":
+            t0 = time.perf_counter()
+            run_stages(scene, preset, {**overrides, "train.budget": args.short}, "train")
+            first = {"first_wall_s": round(time.perf_counter() - t0, 1),
+                     **{f"short_{k}": v for k, v in _field_row(scene).items()},
+                     **{f"short_{k}": v for k, v in mesh_row(scene, gt).items()}}
         t0 = time.perf_counter()
         ran = run_stages(scene, preset, {**overrides, "train.budget": args.long}, "train")
-        wall = time.perf_counter() - t0 + stopped.get("stopped_wall_s", 0.0)
-        metrics = json.loads((scene / "03_field" / "metrics.json").read_text())
-        row = {"how": how, "short": args.short if stopped else None, "long": args.long, "source_scene": str(source),
-               "preset": preset, "overrides": args.set, **ran, **stopped, "wall_s": round(wall, 1),
-               "steps": metrics["steps"], "train_time_s": metrics["train_time_s"], "rays_per_s": metrics["rays_per_s"],
-               "psnr": metrics["test"]["psnr"], **mesh_row(scene, args.gt.expanduser() if args.gt else None)}
+        wall = time.perf_counter() - t0 + first.get("stopped_wall_s", first.get("first_wall_s", 0.0))
+        row = {"how": how, "short": args.short if first else None, "long": args.long, "source_scene": str(source),
+               "preset": preset, "overrides": args.set, **ran, **first, "wall_s": round(wall, 1),
+               **_field_row(scene), **mesh_row(scene, gt)}
         rows.append(row)
         print(f"{how}: {row['steps']} steps, {row['train_time_s']:.0f} s trained, {row['wall_s']:.0f} s in all, "
               f"PSNR {row['psnr']:.2f} dB, mesh coverage {row['mesh_coverage']}", flush=True)

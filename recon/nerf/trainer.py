@@ -241,23 +241,24 @@ class TrainStep:
             piece.after_step(at)
         return StepResult(loss_v, rgb_mse, cur_lr, out)
 
-    def state_dict(self) -> dict[str, Any]:
-        """Model, optimizer, batcher position, RNG and the pieces' own entries (copies: training goes on)."""
-        state = {
-            "model": {k: v.detach().clone() for k, v in self.model.state_dict().items()},
-            "optimizer": copy.deepcopy(self.opt.state_dict()),
-            "batcher": self.batcher.state_dict(),
-            "rng": _rng_state(),
-        }
+    def state_dict(self, weights: bool = True) -> dict[str, Any]:
+        """Model, optimizer, batcher position, RNG and the pieces' own entries (copies: training goes on).
+        weights=False: all but the model and the optimizer's moments, for a finished field saved on its own."""
+        state: dict[str, Any] = {"batcher": self.batcher.state_dict(), "rng": _rng_state()}
+        if weights:
+            state["model"] = {k: v.detach().clone() for k, v in self.model.state_dict().items()}
+            state["optimizer"] = copy.deepcopy(self.opt.state_dict())
         for piece in self.pieces:
             state.update(piece.state_dict())
         return state
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
+        """A state without "optimizer" (a finished field trained on) starts the optimizer's moments again."""
         self.model.load_state_dict(state["model"])
         for piece in self.pieces:
             piece.load_state_dict(state)
-        self.opt.load_state_dict(state["optimizer"])
+        if "optimizer" in state:
+            self.opt.load_state_dict(state["optimizer"])
         self.batcher.load_state_dict(state["batcher"])
         _set_rng_state(state["rng"])
 
@@ -323,7 +324,9 @@ def train(
             resumed under another budget follows that budget's schedule from ``spent_s`` on, as a
             run given it from the start would (benchmarks/results/fox_budget_resume_plain_share.json).
 
-    Returns a summary dict: step, loss, psnr, rays_per_s, elapsed_s, history, metrics (last eval).
+    Returns a summary dict: step, loss, psnr, rays_per_s, elapsed_s, history, metrics (last eval), and state: the
+    finished state less the model's weights and the optimizer's moments (``TrainStep.state_dict(weights=False)``):
+    with the weights put back as its "model", ``state=`` trains the finished field on.
 
     Raises:
         TrainingDiverged: on a NaN/inf loss, naming the step and suggesting a lower rate.
@@ -382,4 +385,5 @@ def train(
         raise TrainingInterrupted(done, snapshot()) from e
     elapsed = time.perf_counter() - t0
     return {"step": done, "loss": loss_v, "psnr": psnr_v, "elapsed_s": elapsed,
-            "rays_per_s": (done - start) * batch_rays / max(elapsed, 1e-9), "history": history, "metrics": metrics}
+            "rays_per_s": (done - start) * batch_rays / max(elapsed, 1e-9), "history": history, "metrics": metrics,
+            "state": {"step": done, **take_step.state_dict(weights=False)}}

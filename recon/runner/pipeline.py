@@ -61,6 +61,10 @@ class StageContext:
     """The photos folder or poses file given to `recon run` (recorded in the manifest)."""
     scene_dir: Path
     report: Reporter
+    previous: Path | None = None
+    """The stage's finished folder when it was made under options that differ from these, but only in
+    `scratch_survives` fields (train: the field a longer budget trains on from), else None (also for a forced run of
+    the same options: that one starts again). Read it before returning: the new output replaces it."""
 
 
 @dataclass(frozen=True)
@@ -77,7 +81,8 @@ class Stage:
     """Digest of the stage's outside input (e.g. every photo's bytes), part of the fingerprint."""
     scratch_survives: tuple[str, ...] = ()
     """Config fields whose change keeps the stage's scratch (train: a new time budget goes on from the checkpoint
-    instead of training again from step 0); the stage reads what its scratch was made under."""
+    instead of training again from step 0) and hands the stage its finished output as `StageContext.previous`; the
+    stage reads what its scratch or output was made under."""
 
 
 @dataclass
@@ -474,6 +479,10 @@ class Pipeline:
                 f"written (changed, truncated or deleted); re-running it."
             )
 
+        previous = None
+        if (entry and entry.get("status") == "done" and entry.get("scratch") == scratch
+                and entry.get("fingerprint") != fingerprint and folder.is_dir() and self._outputs_intact(folder, entry)):
+            previous = folder
         tmp = scene_dir / f".tmp-{stage.folder}-{os.getpid()}"
         if tmp.exists():
             shutil.rmtree(tmp)
@@ -490,6 +499,7 @@ class Pipeline:
             source=source,
             scene_dir=scene_dir,
             report=report,
+            previous=previous,
         )
         started, t0 = _now(), time.perf_counter()
         report.stage_start(stage.name)
@@ -515,6 +525,7 @@ class Pipeline:
         manifest.stages[stage.name] = {
             "status": "done",
             "fingerprint": fingerprint,
+            "scratch": scratch,  # the fingerprint less scratch_survives: which later runs get this output as previous
             "input_digests": input_digests,
             # what this output means, not only its bytes: it also stands for the upstream outputs and the photos it
             # refers to by path, so a changed photo re-runs every later stage even when a scene.json comes out equal

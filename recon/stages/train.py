@@ -2,9 +2,10 @@
 
 Writes `field.pt` (the model), `metrics.json` (PSNR/SSIM per held-out view and their means, the
 training curve, the choices made and why), `curves.png` (PSNR vs step and vs wall time) and
-`renders/NAME.png` (photo | render | depth) for a few test views. A checkpoint is written to the
-stage's work folder every `checkpoint_every` steps and on Ctrl-C; running the same command again
-resumes from it, and so does the command with another time budget (a budget found too short goes on).
+`renders/NAME.png` (photo | render | depth) for a few test views, and `trained_state.pt` (the finished training's
+state beside the field). A checkpoint is written to the stage's work folder every `checkpoint_every` steps and on
+Ctrl-C; running the same command again resumes from it, and so does the command with another time budget (a budget
+found too short goes on). A finished field trains on the same way under a longer budget, from its trained state.
 """
 from __future__ import annotations
 
@@ -18,7 +19,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from recon.atomic import checksum_matches, checksum_path, fault_point, write_checksummed, write_json_atomic
+from recon.atomic import (atomic_open, checksum_matches, checksum_path, fault_point, interrupts_deferred,
+                          write_checksummed, write_json_atomic)
 from recon.capture.scene import Scene, load_scene, spread_evenly
 from recon.config import TrainConfig
 from recon.errors import ReconError
@@ -29,6 +31,10 @@ from recon.plans.training import TrainPlan, TrainSetup, build_training, photo_si
 from recon.runner.pipeline import SCRATCH_NOTE, Stage, StageContext
 
 CHECKPOINT = "checkpoint.pt"
+TRAINED_STATE = "trained_state.pt"
+"""Beside the field: what a checkpoint holds less the weights and the optimizer's moments (the step, the batch stream,
+the pieces' fitted corrections, the curves, the seconds trained under which budget): a longer budget trains the
+finished field on from it, with the optimizer's moments started again, instead of training again from step 0."""
 
 
 def _pose_metrics(refine: Any, why: str, views: list[View], focal: list[float], distance: list[float]) -> dict[str, Any]:
@@ -70,6 +76,25 @@ def _load_checkpoint(path: Path, report: Any) -> dict[str, Any] | None:
         path.unlink(missing_ok=True)
         checksum_path(path).unlink(missing_ok=True)
         return None
+
+
+def _save_trained_state(path: Path, kept: dict[str, Any]) -> None:
+    with interrupts_deferred(), atomic_open(path, "wb") as f:
+        torch.save(kept, f)
+
+
+def _load_trained_state(previous: Path | None, report: Any) -> dict[str, Any] | None:
+    """A checkpoint made of the finished field in `previous` (`StageContext.previous`: made under another budget) and
+    its TRAINED_STATE, without optimizer moments; None where there is none or it is unreadable (start over)."""
+    if previous is None or not (previous / TRAINED_STATE).is_file():
+        return None
+    try:
+        kept = torch.load(previous / TRAINED_STATE, map_location="cpu", weights_only=True)
+        kept["state"]["model"] = torch.load(previous / FIELD_FILE, map_location="cpu", weights_only=True)["state_dict"]
+    except Exception as exc:  # truncated or from another version: start over rather than load garbage
+        report.warn(f"The finished field in {previous} cannot be trained on ({exc}); training starts over.")
+        return None
+    return kept
 
 
 def _held_out_note(appearance: bool, poses: bool) -> str:
@@ -135,6 +160,8 @@ def run(ctx: StageContext) -> dict:
         ctx.report.info(f"held-out evaluation: {note}")
     phases.done("load_held_out")
     result, evals, history, train_time = _fit(ctx, cfg, plan, setup, eval_views, focal)
+    trained_state = {"state": result.pop("state"), "evals": evals, "history": history, "train_time_s": train_time,
+                     "budget": cfg.budget}
     phases.done("train")
 
     with ctx.report.task("evaluating test views", total=len(test_views), unit="views") as bar:
@@ -143,6 +170,7 @@ def run(ctx: StageContext) -> dict:
     phases.done("final_evaluation")
     write_previews(final.pop("renders"), ctx.out / "renders")
     _save(ctx.out / FIELD_FILE, scene, plan, setup, cfg.max_side)
+    _save_trained_state(ctx.out / TRAINED_STATE, trained_state)
     phases.done("save")
     metrics = _metrics(scene, device, plan, setup, result, final, evals, history, train_time)
     metrics["phases_s"] = phases.seconds
@@ -260,14 +288,17 @@ def _fit(ctx: StageContext, cfg: TrainConfig, plan: TrainPlan, setup: TrainSetup
 
     model, aabb, background = setup.model, setup.aabb, plan.background
     ckpt_path = ctx.work / CHECKPOINT
-    checkpoint = _load_checkpoint(ckpt_path, ctx.report)
+    checkpoint, origin = _load_checkpoint(ckpt_path, ctx.report), "resuming from the checkpoint"
+    if checkpoint is None and (checkpoint := _load_trained_state(ctx.previous, ctx.report)):
+        origin = "training on from the finished field"
     evals: list[dict] = checkpoint["evals"] if checkpoint else []
     history: list[dict] = checkpoint["history"] if checkpoint else []
     time_before = checkpoint["train_time_s"] if checkpoint else 0.0
     if checkpoint:
-        ctx.report.info(f"resuming from the checkpoint at step {checkpoint['state']['step']} of {cfg.steps}"
-                        + resumed_budget_note(checkpoint.get("budget", cfg.budget), cfg.budget, time_before,
-                                              plan.budget_s))
+        at = checkpoint["state"]["step"]
+        ctx.report.info(f"{origin} at step {at:,} of {cfg.steps:,}" + (
+            " (the step cap, reached: the field is kept as it is)" if at >= cfg.steps else
+            resumed_budget_note(checkpoint.get("budget", cfg.budget), cfg.budget, time_before, plan.budget_s)))
     eval_time = [0.0]
 
     def eval_fn(m: torch.nn.Module, step: int) -> dict[str, float]:
