@@ -240,3 +240,44 @@ def test_a_log_that_cannot_be_written_does_not_stop_the_run(tmp_path: Path) -> N
     report.info("the run goes on")
     report.log_to(None)
     assert any("cannot be written" in w for w in report.warnings)
+
+
+@dataclass
+class _Trained:
+    budget: int = 1
+    other: int = 0
+
+
+@dataclass
+class _TrainedConfig(RunConfig):
+    a: _A = field(default_factory=_A)
+    c: _Trained = field(default_factory=_Trained)
+
+
+SEEN: list[str | None] = []
+
+
+def _stage_c(ctx: StageContext) -> dict:
+    """Writes its budget; says which budget its `previous` output was made under (None: none handed over)."""
+    SEEN.append((ctx.previous / "c.txt").read_text() if ctx.previous else None)
+    (ctx.out / "c.txt").write_text(str(ctx.config.budget))
+    return {}
+
+
+def test_a_stage_gets_its_output_made_under_options_that_differ_only_in_what_its_scratch_survives(
+        tmp_path: Path, source: Path) -> None:
+    """What lets a longer budget train a finished field on: `previous` is the stage's output when only a
+    `scratch_survives` field changed; not for other changes, nor for a forced run of the same options."""
+    pipe = Pipeline([Stage("a", "01_a", (), 1, _stage_a, needs_source=True, source_digest=_digest_source),
+                     Stage("c", "02_c", ("a",), 1, _stage_c, scratch_survives=("budget",))])
+    scene = tmp_path / "scene"
+    SEEN.clear()
+    for config, force in [(_Trained(budget=1), False), (_Trained(budget=2), False), (_Trained(budget=2), False),
+                          (_Trained(budget=3), False), (_Trained(budget=3), True), (_Trained(budget=4, other=1), False),
+                          (_Trained(budget=5, other=1), False)]:
+        pipe.run(scene, _TrainedConfig(c=config), Reporter(quiet=True), source=source, force=force)
+    # the third run is cached; the forced one starts again; other=1 starts again, then hands on under it
+    assert SEEN == [None, "1", "2", None, None, "4"]
+    (scene / "02_c" / "c.txt").write_text("changed by hand")  # an output whose files changed is not trained on
+    pipe.run(scene, _TrainedConfig(c=_Trained(budget=6, other=1)), Reporter(quiet=True), source=source)
+    assert SEEN[-1] is None

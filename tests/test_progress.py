@@ -120,6 +120,40 @@ def test_another_budget_trains_on_from_the_checkpoint_of_a_stopped_run(tmp_path,
     assert not any("scratch" in row for row in cli._pipeline().state(tmp_path / "scene"))
 
 
+def test_a_longer_budget_trains_a_finished_field_on_and_other_options_start_again(tmp_path, monkeypatch) -> None:
+    """A run to the end, then the same command with a longer --budget: the finished field trains on from its step
+    (its trained state beside it), the curve carried over; a shorter budget keeps it; another option starts again."""
+    import json
+
+    import recon.app.cli as cli
+    from recon.stages.train import TRAINED_STATE
+    from tests import faults
+
+    said = io.StringIO()
+    monkeypatch.setattr(cli, "console", Console(file=said, width=400, color_system=None))
+    monkeypatch.setattr(cli, "out_console", Console(file=io.StringIO(), width=400, color_system=None))
+    capture, scene = faults.make_capture(tmp_path / "capture"), tmp_path / "scene"
+    settings = [*faults.TINY, "train.steps=100000000", "train.eval_every=0"]
+
+    def run(*extra: str) -> tuple[str, dict]:
+        said.seek(0)
+        said.truncate()
+        cli._run(scene, capture, "fast", [*settings, *extra], quiet=False, until_stage="train")
+        return " ".join(said.getvalue().split()), json.loads((scene / "03_field" / "metrics.json").read_text())
+
+    told, first = run("train.budget=2s")
+    assert "training on" not in told and (scene / "03_field" / TRAINED_STATE).is_file()
+    told, longer = run("train.budget=4s")
+    assert f"training on from the finished field at step {first['steps']:,}" in told and "under a 2s budget" in told
+    assert longer["steps"] > first["steps"] and longer["history"][:len(first["history"])] == first["history"]
+    assert longer["train_time_s"] >= 4.0
+    told, shorter = run("train.budget=1s")
+    assert "the 1s budget is spent already" in told and shorter["steps"] == longer["steps"]
+    told, other = run("train.budget=4s", "train.lr=0.003")
+    assert "training on" not in told and "resuming" not in told
+    assert other["history"][0] != first["history"][0]  # its own curve from step 0, not the first run's
+
+
 def test_what_a_checkpoint_made_under_another_budget_does_is_said() -> None:
     assert resumed_budget_note("4m", "4m", 120.0, 240.0) == ""
     longer = resumed_budget_note("4m", "16m", 120.0, 960.0)

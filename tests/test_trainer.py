@@ -213,3 +213,27 @@ def test_a_state_resumed_under_another_budget_follows_that_budgets_schedule() ->
         train(_tiny_model(), RayBatcher(images, c2w, intr, aabb=AABB), budget_s=4000.0, spent_s=500.0,
               state=states["state"], callbacks=[stop_at(6)], **kw)
     assert states["rates"] == pytest.approx([lr_at(0, 1, 1e-2, 1e-4, 0.125)] * 3, rel=1e-3)
+
+
+def test_a_finished_training_state_with_its_weights_put_back_trains_the_field_on() -> None:
+    """train's returned state holds no weights and no optimizer moments (the field file holds the weights): with
+    them put back it restores the field as it was and trains on from its step, the batch stream going on."""
+    images, c2w, intr = _scene(3, 8)
+    kw = dict(lr=5e-3, lr_final=1e-3, batch_rays=64)
+    first = _tiny_model(1)
+    state = train(first, RayBatcher(images, c2w, intr, aabb=AABB, seed=2), steps=5, **kw)["state"]
+    assert state["step"] == 5 and "model" not in state and "optimizer" not in state
+    stream = RayBatcher(images, c2w, intr, aabb=AABB, seed=2)
+    for _ in range(5):
+        stream.next_batch(64)
+    assert state["batcher"]["cursor"] == stream.state_dict()["cursor"]
+    kept = {"model": {k: v.clone() for k, v in first.state_dict().items()}, **state}
+    same = _tiny_model(99)
+    assert train(same, RayBatcher(images, c2w, intr, aabb=AABB, seed=2), steps=5, state=kept, **kw)["step"] == 5
+    for (k, a), b in zip(first.state_dict().items(), same.state_dict().values()):
+        torch.testing.assert_close(a, b, rtol=0, atol=0, msg=k)
+    steps: list[int] = []
+    on = _tiny_model(99)
+    train(on, RayBatcher(images, c2w, intr, aabb=AABB, seed=2), steps=12, state=kept, **kw,
+          callbacks=[lambda p: steps.append(p.step)])
+    assert steps == list(range(6, 13))

@@ -246,8 +246,8 @@ def few_steps_warning(total: int, step: int, used_s: float, rate: float, budget:
     minutes = math.ceil((used_s + max(FEW_STEPS - step, 0) / rate) / 60.0)
     return (f"at this machine's pace ({rate:.1f} steps/s) the {budget} budget trains about {total:,} steps, under "
             f"the {FEW_STEPS:,} a field needs to settle: expect a soft field and a torn mesh. `--budget "
-            f"{minutes}m` trains {FEW_STEPS:,} or more here (`--set train.budget={minutes}m` in recon batch; Ctrl-C "
-            "and run again with it: training goes on from where it stopped)")
+            f"{minutes}m` trains {FEW_STEPS:,} or more here (`--set train.budget={minutes}m` in recon batch; Ctrl-C, "
+            "or let it finish, and run again with it: training goes on from where it stopped)")
 
 
 def resumed_budget_note(was: str, now: str, spent_s: float, budget_s: float) -> str:
@@ -281,24 +281,28 @@ def expected_steps(step: int, used_s: float, since_step: int, since_s: float, bu
 
 def _fit(ctx: StageContext, cfg: TrainConfig, plan: TrainPlan, setup: TrainSetup,
          eval_views: list[View], focal: float) -> tuple[dict[str, Any], list[dict], list[dict], float]:
-    """Train from the stage's checkpoint when there is one, checkpointing as it goes; (train's result, the held-out
-    evaluations, the training curve, the training time in seconds, evaluation excluded). focal: the training photos'
-    focal length, for views coarser than them (`recon.evaluation.views.rays_a_side`)."""
+    """Train from the stage's checkpoint when there is one, else from its finished field made under another budget
+    (TRAINED_STATE), checkpointing as it goes; (train's result, the held-out evaluations, the training curve, the
+    training time in seconds, evaluation excluded). focal: the training photos' focal length, for views coarser than
+    them (`recon.evaluation.views.rays_a_side`)."""
     from recon.nerf.trainer import TrainingDiverged, TrainingInterrupted, train
 
     model, aabb, background = setup.model, setup.aabb, plan.background
     ckpt_path = ctx.work / CHECKPOINT
-    checkpoint, origin = _load_checkpoint(ckpt_path, ctx.report), "resuming from the checkpoint"
+    checkpoint, from_field = _load_checkpoint(ckpt_path, ctx.report), False
     if checkpoint is None and (checkpoint := _load_trained_state(ctx.previous, ctx.report)):
-        origin = "training on from the finished field"
+        from_field = True
     evals: list[dict] = checkpoint["evals"] if checkpoint else []
     history: list[dict] = checkpoint["history"] if checkpoint else []
     time_before = checkpoint["train_time_s"] if checkpoint else 0.0
     if checkpoint:
         at = checkpoint["state"]["step"]
-        ctx.report.info(f"{origin} at step {at:,} of {cfg.steps:,}" + (
-            " (the step cap, reached: the field is kept as it is)" if at >= cfg.steps else
-            resumed_budget_note(checkpoint.get("budget", cfg.budget), cfg.budget, time_before, plan.budget_s)))
+        ctx.report.info(
+            ("training on from the finished field" if from_field else "resuming from the checkpoint")
+            + f" at step {at:,} of {cfg.steps:,}"
+            + (" (the step cap, reached: the field is kept as it is)" if at >= cfg.steps else
+               resumed_budget_note(checkpoint.get("budget", cfg.budget), cfg.budget, time_before, plan.budget_s))
+            + (f". To train from step 0 instead, delete {ctx.previous} and run again" if from_field else ""))
     eval_time = [0.0]
 
     def eval_fn(m: torch.nn.Module, step: int) -> dict[str, float]:
