@@ -43,8 +43,10 @@ def depth_to_color(depth: np.ndarray, opacity: np.ndarray | None = None, near: f
     return rgb.astype(np.float32)
 
 
-def training_curves(history: Sequence[dict], evals: Sequence[dict], path: Path, title: str = "") -> None:
-    """PSNR vs step and vs wall time (train batches and held-out evaluations), loss on a log axis."""
+def training_curves(history: Sequence[dict], evals: Sequence[dict], path: Path, title: str = "",
+                    resumes: Sequence[dict] = ()) -> None:
+    """PSNR vs step and vs wall time (train batches and held-out evaluations), loss on a log axis; a dashed line where
+    training went on from a checkpoint or a finished field (`resumes`: step, time_s, from, budget_before, budget)."""
     plt = _pyplot()
     fig, axes = plt.subplots(1, 3, figsize=(15, 4))
     if history:
@@ -55,13 +57,18 @@ def training_curves(history: Sequence[dict], evals: Sequence[dict], path: Path, 
     if evals:
         axes[0].plot([e["step"] for e in evals], [e["psnr"] for e in evals], "o-", label="held-out views")
         axes[1].plot([e["time_s"] for e in evals], [e["psnr"] for e in evals], "o-", label="held-out views")
+    for r in resumes:
+        label = f"went on from the {r['from']}" + (f" ({r['budget_before'] or 'no budget'} → {r['budget'] or 'none'})"
+                                                   if r["budget_before"] != r["budget"] else "")
+        for ax, x in zip(axes, (r["step"], r["time_s"], r["step"]), strict=True):
+            ax.axvline(x, color="grey", ls="--", lw=0.8, label=label)
     axes[0].set(xlabel="step", ylabel="PSNR (dB)", title="PSNR vs step")
     axes[1].set(xlabel="training wall time (s)", ylabel="PSNR (dB)", title="PSNR vs time")
     axes[2].set(xlabel="step", ylabel="loss (MSE)", title="loss")
     for ax in axes[:2]:
         ax.grid(alpha=0.3)
-        if history or evals:  # a run of under 10 steps without evaluations has no curve to name
-            ax.legend()
+        if history or evals or resumes:  # a run of under 10 steps without evaluations has no curve to name
+            ax.legend(fontsize="small")
     if title:
         fig.suptitle(title)
     _save(fig, path)

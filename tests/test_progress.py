@@ -116,6 +116,7 @@ def test_another_budget_trains_on_from_the_checkpoint_of_a_stopped_run(tmp_path,
     metrics = json.loads((tmp_path / "scene" / "03_field" / "metrics.json").read_text())
     assert metrics["steps"] > 15 and metrics["history"][0]["step"] == 10  # the first run's curve goes on
     assert metrics["train_time_s"] >= stopped["train_time_s"]
+    assert [(r["step"], r["from"], r["budget_before"]) for r in metrics["resumes"]] == [(15, "checkpoint", "10m")]
     assert not list((tmp_path / "scene" / ".work").glob("train-*"))  # scratch removed once the stage is done
     assert not any("scratch" in row for row in cli._pipeline().state(tmp_path / "scene"))
 
@@ -147,11 +148,31 @@ def test_a_longer_budget_trains_a_finished_field_on_and_other_options_start_agai
     assert f"training on from the finished field at step {first['steps']:,}" in told and "under a 2s budget" in told
     assert longer["steps"] > first["steps"] and longer["history"][:len(first["history"])] == first["history"]
     assert longer["train_time_s"] >= 4.0
+    assert [(r["step"], r["from"], r["budget_before"], r["budget"]) for r in longer["resumes"]] == [
+        (first["steps"], "finished field", "2s", "4s")]
     told, shorter = run("train.budget=1s")
     assert "the 1s budget is spent already" in told and shorter["steps"] == longer["steps"]
     told, other = run("train.budget=4s", "train.lr=0.003")
     assert "training on" not in told and "resuming" not in told
     assert other["history"][0] != first["history"][0]  # its own curve from step 0, not the first run's
+
+
+def test_a_field_trained_to_the_step_cap_is_kept_under_a_longer_budget(tmp_path, monkeypatch) -> None:
+    import json
+
+    import recon.app.cli as cli
+    from tests import faults
+
+    said = io.StringIO()
+    monkeypatch.setattr(cli, "console", Console(file=said, width=400, color_system=None))
+    monkeypatch.setattr(cli, "out_console", Console(file=io.StringIO(), width=400, color_system=None))
+    capture, scene = faults.make_capture(tmp_path / "capture"), tmp_path / "scene"
+    settings = [*faults.TINY, "train.steps=12", "train.eval_every=0"]
+    cli._run(scene, capture, "fast", [*settings, "train.budget=10m"], quiet=False, until_stage="train")
+    cli._run(scene, capture, "fast", [*settings, "train.budget=20m"], quiet=False, until_stage="train")
+    told = " ".join(said.getvalue().split())
+    assert "training on from the finished field at step 12 of 12 (the step cap, reached: the field is kept" in told
+    assert json.loads((scene / "03_field" / "metrics.json").read_text())["steps"] == 12
 
 
 def test_what_a_checkpoint_made_under_another_budget_does_is_said() -> None:

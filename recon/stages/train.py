@@ -161,7 +161,7 @@ def run(ctx: StageContext) -> dict:
     phases.done("load_held_out")
     result, evals, history, train_time = _fit(ctx, cfg, plan, setup, eval_views, focal)
     trained_state = {"state": result.pop("state"), "evals": evals, "history": history, "train_time_s": train_time,
-                     "budget": cfg.budget}
+                     "budget": cfg.budget, "resumes": result["resumes"]}
     phases.done("train")
 
     with ctx.report.task("evaluating test views", total=len(test_views), unit="views") as bar:
@@ -181,7 +181,8 @@ def run(ctx: StageContext) -> dict:
     if note := fitted_note(final):
         ctx.report.info(note)
     write_json_atomic(ctx.out / "metrics.json", metrics)
-    training_curves(history, evals, ctx.out / "curves.png", title=f"{plan.kind} model — test PSNR {final['psnr']:.2f} dB")
+    training_curves(history, evals, ctx.out / "curves.png", title=f"{plan.kind} model — test PSNR {final['psnr']:.2f} dB",
+                    resumes=result["resumes"])
     # the checkpoint stays until the pipeline has recorded this stage as done (it then removes ctx.work):
     # a crash between here and the manifest resumes from it instead of training again from step 0
     return {
@@ -282,8 +283,9 @@ def expected_steps(step: int, used_s: float, since_step: int, since_s: float, bu
 def _fit(ctx: StageContext, cfg: TrainConfig, plan: TrainPlan, setup: TrainSetup,
          eval_views: list[View], focal: float) -> tuple[dict[str, Any], list[dict], list[dict], float]:
     """Train from the stage's checkpoint when there is one, else from its finished field made under another budget
-    (TRAINED_STATE), checkpointing as it goes; (train's result, the held-out evaluations, the training curve, the
-    training time in seconds, evaluation excluded). focal: the training photos' focal length, for views coarser than
+    (TRAINED_STATE), checkpointing as it goes; (train's result, with "resumes": where training went on from either,
+    under which budgets; the held-out evaluations, the training curve, the training time in seconds, evaluation
+    excluded). focal: the training photos' focal length, for views coarser than
     them (`recon.evaluation.views.rays_a_side`)."""
     from recon.nerf.trainer import TrainingDiverged, TrainingInterrupted, train
 
@@ -295,8 +297,11 @@ def _fit(ctx: StageContext, cfg: TrainConfig, plan: TrainPlan, setup: TrainSetup
     evals: list[dict] = checkpoint["evals"] if checkpoint else []
     history: list[dict] = checkpoint["history"] if checkpoint else []
     time_before = checkpoint["train_time_s"] if checkpoint else 0.0
+    resumes: list[dict] = checkpoint.get("resumes", []) if checkpoint else []
     if checkpoint:
         at = checkpoint["state"]["step"]
+        resumes.append({"step": at, "time_s": round(time_before, 3), "from": "finished field" if from_field else
+                        "checkpoint", "budget_before": checkpoint.get("budget", cfg.budget), "budget": cfg.budget})
         ctx.report.info(
             ("training on from the finished field" if from_field else "resuming from the checkpoint")
             + f" at step {at:,} of {cfg.steps:,}"
@@ -322,7 +327,7 @@ def _fit(ctx: StageContext, cfg: TrainConfig, plan: TrainPlan, setup: TrainSetup
         `recon status`."""
         spent = train_time()
         _save_checkpoint(ckpt_path, {"state": state, "evals": evals, "history": history, "train_time_s": spent,
-                                     "budget": cfg.budget})
+                                     "budget": cfg.budget, "resumes": resumes})
         under = f"a {cfg.budget} budget" if cfg.budget else f"a cap of {cfg.steps:,} steps"
         write_json_atomic(ctx.work / SCRATCH_NOTE, {"headline": (
             f"training checkpoint at step {state['step']:,}, {spent:.0f} s trained under {under}: running again goes "
@@ -378,6 +383,7 @@ def _fit(ctx: StageContext, cfg: TrainConfig, plan: TrainPlan, setup: TrainSetup
                 f"Training diverged at step {exc.step}: {exc.cause}. {exc.advice} "
                 f"(e.g. --set train.lr={plan.lr / 3:.3g}; the last checkpoint is kept in {ctx.work})."
             ) from None
+    result["resumes"] = resumes
     return result, evals, history, train_time()
 
 
@@ -413,6 +419,7 @@ def _metrics(scene: Scene, device: torch.device, plan: TrainPlan, setup: TrainSe
         "test": {k: v for k, v in final.items()},
         "evals": evals,
         "history": history,
+        "resumes": result["resumes"],
         "n_train_views": len(views),
         "hull_start": plan.hull_start,
         "slow_culling": plan.slow_culling,
