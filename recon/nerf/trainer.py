@@ -158,11 +158,6 @@ def _diagnose(out: dict[str, Any], loss_terms: dict[str, Tensor]) -> str:
     return cause
 
 
-RESTART_WARM_UP = 100
-"""Steps over which the rate rises linearly to the schedule's after the optimizer's moments start again on a trained
-field: Adam's first updates move every parameter a gradient touches by the full rate, which a settled field feels."""
-
-
 @dataclass
 class StepResult:
     """One step's loss, its colour MSE (PSNR is reported from it), the learning rate and the rendered output."""
@@ -196,8 +191,6 @@ class TrainStep:
                  autocast: torch.dtype | None = None, optimizer: str = "adam") -> None:
         self.model, self.batcher, self.steps, self.lr, self.lr_final = model, batcher, steps, lr, lr_final
         self.batch_rays, self.pieces, self.autocast = batch_rays, list(pieces), autocast
-        self.moments_from: int | None = None
-        """The step the optimizer's moments started again at (a trained field loaded without them), else None."""
         self.opt = make_optimizer(model, lr, optimizer)
         for piece in self.pieces:
             piece.attach(self.opt, lr)
@@ -208,8 +201,6 @@ class TrainStep:
         Raises TrainingDiverged on a NaN/inf loss, before anything is updated."""
         model, opt = self.model, self.opt
         cur_lr = lr_at(step, self.steps, self.lr, self.lr_final, fraction)
-        if self.moments_from is not None:
-            cur_lr *= min(1.0, (step - self.moments_from + 1) / RESTART_WARM_UP)
         for g in opt.param_groups:
             g["lr"] = g["initial_lr"] * cur_lr / self.lr
         model.train()
@@ -268,8 +259,6 @@ class TrainStep:
             piece.load_state_dict(state)
         if "optimizer" in state:
             self.opt.load_state_dict(state["optimizer"])
-        else:
-            self.moments_from = int(state["step"])
         self.batcher.load_state_dict(state["batcher"])
         _set_rng_state(state["rng"])
 
