@@ -175,6 +175,22 @@ def test_a_field_trained_to_the_step_cap_is_kept_under_a_longer_budget(tmp_path,
     assert json.loads((scene / "03_field" / "metrics.json").read_text())["steps"] == 12
 
 
+def test_a_finished_field_of_other_shapes_is_not_trained_on(tmp_path) -> None:
+    from types import SimpleNamespace
+
+    from recon.field import FIELD_FILE, save_field
+    from recon.stages.train import TRAINED_STATE, _load_trained_state, _save_trained_state
+
+    save_field(tmp_path / FIELD_FILE, "fast", {}, torch.nn.Linear(2, 3), {})
+    _save_trained_state(tmp_path / TRAINED_STATE, {"state": {"step": 5}, "evals": [], "history": [],
+                                                   "train_time_s": 1.0, "budget": "4m", "resumes": []})
+    warned: list[str] = []
+    report = SimpleNamespace(warn=warned.append)
+    assert _load_trained_state(tmp_path, torch.nn.Linear(2, 3), report)["state"]["step"] == 5 and not warned
+    assert _load_trained_state(tmp_path, torch.nn.Linear(2, 4), report) is None
+    assert "cannot be trained on (its weights are not of the shapes this run builds); training starts over" in warned[0]
+
+
 def test_what_a_checkpoint_made_under_another_budget_does_is_said() -> None:
     assert resumed_budget_note("4m", "4m", 120.0, 240.0) == ""
     longer = resumed_budget_note("4m", "16m", 120.0, 960.0)

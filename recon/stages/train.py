@@ -83,15 +83,20 @@ def _save_trained_state(path: Path, kept: dict[str, Any]) -> None:
         torch.save(kept, f)
 
 
-def _load_trained_state(previous: Path | None, report: Any) -> dict[str, Any] | None:
+def _load_trained_state(previous: Path | None, model: torch.nn.Module, report: Any) -> dict[str, Any] | None:
     """A checkpoint made of the finished field in `previous` (`StageContext.previous`: made under another budget) and
-    its TRAINED_STATE, without optimizer moments; None where there is none or it is unreadable (start over)."""
+    its TRAINED_STATE, without optimizer moments; None where there is none, or it is unreadable or not a field of
+    `model`'s shapes (start over)."""
     if previous is None or not (previous / TRAINED_STATE).is_file():
         return None
     try:
         kept = torch.load(previous / TRAINED_STATE, map_location="cpu", weights_only=True)
-        kept["state"]["model"] = torch.load(previous / FIELD_FILE, map_location="cpu", weights_only=True)["state_dict"]
-    except Exception as exc:  # truncated or from another version: start over rather than load garbage
+        weights = torch.load(previous / FIELD_FILE, map_location="cpu", weights_only=True)["state_dict"]
+        shapes = {k: tuple(v.shape) for k, v in model.state_dict().items()}
+        if {k: tuple(v.shape) for k, v in weights.items()} != shapes:
+            raise ValueError("its weights are not of the shapes this run builds")
+        kept["state"]["model"] = weights
+    except Exception as exc:  # truncated, or made by another version: start over rather than load garbage
         report.warn(f"The finished field in {previous} cannot be trained on ({exc}); training starts over.")
         return None
     return kept
@@ -285,14 +290,14 @@ def _fit(ctx: StageContext, cfg: TrainConfig, plan: TrainPlan, setup: TrainSetup
     """Train from the stage's checkpoint when there is one, else from its finished field made under another budget
     (TRAINED_STATE), checkpointing as it goes; (train's result, with "resumes": where training went on from either,
     under which budgets; the held-out evaluations, the training curve, the training time in seconds, evaluation
-    excluded). focal: the training photos' focal length, for views coarser than
-    them (`recon.evaluation.views.rays_a_side`)."""
+    excluded). focal: the training photos' focal length, for views coarser than them
+    (`recon.evaluation.views.rays_a_side`)."""
     from recon.nerf.trainer import TrainingDiverged, TrainingInterrupted, train
 
     model, aabb, background = setup.model, setup.aabb, plan.background
     ckpt_path = ctx.work / CHECKPOINT
     checkpoint, from_field = _load_checkpoint(ckpt_path, ctx.report), False
-    if checkpoint is None and (checkpoint := _load_trained_state(ctx.previous, ctx.report)):
+    if checkpoint is None and (checkpoint := _load_trained_state(ctx.previous, model, ctx.report)):
         from_field = True
     evals: list[dict] = checkpoint["evals"] if checkpoint else []
     history: list[dict] = checkpoint["history"] if checkpoint else []
