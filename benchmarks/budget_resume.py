@@ -71,7 +71,7 @@ def main() -> None:
     from mesh_options import add_retrain_options, fresh_copy, mesh_row, retrain_setup, run_stages
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--short", required=True, help="the budget of the run that is stopped, e.g. 4m")
+    parser.add_argument("--short", required=True, help="the budget of the first run (stopped or finished), e.g. 4m")
     parser.add_argument("--stop-after", type=float, default=0.0,
                         help="seconds after the stopped run starts at which it gets SIGINT (short_stopped_then_long)")
     parser.add_argument("--long", required=True, help="the longer budget, e.g. 8m")

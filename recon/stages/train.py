@@ -165,8 +165,7 @@ def run(ctx: StageContext) -> dict:
         ctx.report.info(f"held-out evaluation: {note}")
     phases.done("load_held_out")
     result, evals, history, train_time = _fit(ctx, cfg, plan, setup, eval_views, focal)
-    trained_state = {"state": result.pop("state"), "evals": evals, "history": history, "train_time_s": train_time,
-                     "budget": cfg.budget, "resumes": result["resumes"]}
+    trained_state = result.pop("trained_state")
     phases.done("train")
 
     with ctx.report.task("evaluating test views", total=len(test_views), unit="views") as bar:
@@ -289,9 +288,9 @@ def _fit(ctx: StageContext, cfg: TrainConfig, plan: TrainPlan, setup: TrainSetup
          eval_views: list[View], focal: float) -> tuple[dict[str, Any], list[dict], list[dict], float]:
     """Train from the stage's checkpoint when there is one, else from its finished field made under another budget
     (TRAINED_STATE), checkpointing as it goes; (train's result, with "resumes": where training went on from either,
-    under which budgets; the held-out evaluations, the training curve, the training time in seconds, evaluation
-    excluded). focal: the training photos' focal length, for views coarser than them
-    (`recon.evaluation.views.rays_a_side`)."""
+    under which budgets, and "trained_state": what TRAINED_STATE keeps; the held-out evaluations, the training curve,
+    the training time in seconds, evaluation excluded). focal: the training photos' focal length, for views coarser
+    than them (`recon.evaluation.views.rays_a_side`)."""
     from recon.nerf.trainer import TrainingDiverged, TrainingInterrupted, train
 
     model, aabb, background = setup.model, setup.aabb, plan.background
@@ -327,12 +326,17 @@ def _fit(ctx: StageContext, cfg: TrainConfig, plan: TrainPlan, setup: TrainSetup
     def train_time() -> float:
         return time_before + time.perf_counter() - t_start - eval_time[0]
 
+    def record(state: dict[str, Any]) -> dict[str, Any]:
+        """The trainer's state with the curves so far, the time spent under which budget and where training went on:
+        a checkpoint, or (its state without weights) the finished field's TRAINED_STATE."""
+        return {"state": state, "evals": evals, "history": history, "train_time_s": train_time(),
+                "budget": cfg.budget, "resumes": resumes}
+
     def keep(state: dict[str, Any]) -> None:
-        """Checkpoint the trainer's state, the curves so far and the time spent under which budget; say so for
-        `recon status`."""
-        spent = train_time()
-        _save_checkpoint(ckpt_path, {"state": state, "evals": evals, "history": history, "train_time_s": spent,
-                                     "budget": cfg.budget, "resumes": resumes})
+        """Checkpoint the trainer's state (`record`); say so for `recon status`."""
+        kept = record(state)
+        _save_checkpoint(ckpt_path, kept)
+        spent = kept["train_time_s"]
         under = f"a {cfg.budget} budget" if cfg.budget else f"a cap of {cfg.steps:,} steps"
         write_json_atomic(ctx.work / SCRATCH_NOTE, {"headline": (
             f"training checkpoint at step {state['step']:,}, {spent:.0f} s trained under {under}: running again goes "
@@ -388,8 +392,8 @@ def _fit(ctx: StageContext, cfg: TrainConfig, plan: TrainPlan, setup: TrainSetup
                 f"Training diverged at step {exc.step}: {exc.cause}. {exc.advice} "
                 f"(e.g. --set train.lr={plan.lr / 3:.3g}; the last checkpoint is kept in {ctx.work})."
             ) from None
-    result["resumes"] = resumes
-    return result, evals, history, train_time()
+    result["resumes"], result["trained_state"] = resumes, record(result.pop("state"))
+    return result, evals, history, result["trained_state"]["train_time_s"]
 
 
 def _save(path: Path, scene: Scene, plan: TrainPlan, setup: TrainSetup, max_side: int) -> None:
