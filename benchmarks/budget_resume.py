@@ -1,10 +1,14 @@
 """What a longer --budget after a shorter one buys: one normalized scene trained and meshed under the long budget from
 the start; under the short budget stopped partway (SIGINT, as a user who read the short-budget warning does) and then
 run again with the long budget, which trains on from the stopped run's checkpoint; and under the short budget to the
-end (its mesh made) and then run again with the long budget, which trains the finished field on.
+end (its mesh made) and then run again with the long budget, which trains the finished field on. With --long-preset
+the long runs take that preset (`balanced` after `fast`: the same field, a longer budget and a finer mesh).
 
     python benchmarks/budget_resume.py --scene ~/.cache/recon/bench/fox/fox-fast --short 4m --stop-after 150 \
         --long 8m --name fox_budget_resume
+    python benchmarks/budget_resume.py --scene scene --short 4m --long 10m --long-preset balanced \
+        --rows short_finished_then_long,long_from_the_start --gt fixtures/sample/gt_mesh.ply \
+        --name sample_fast_then_balanced
 
 The scene is copied once a row under the work folder (its poses and normalize stages as they are). Each row holds the
 steps, training seconds and wall seconds (the continued rows' include the first run's), held-out PSNR and the mesh
@@ -75,6 +79,8 @@ def main() -> None:
     parser.add_argument("--stop-after", type=float, default=0.0,
                         help="seconds after the stopped run starts at which it gets SIGINT (short_stopped_then_long)")
     parser.add_argument("--long", required=True, help="the longer budget, e.g. 8m")
+    parser.add_argument("--long-preset", default=None,
+                        help="the preset of the long runs (default: the scene's), e.g. balanced after a fast scene")
     parser.add_argument("--rows", default="long_from_the_start,short_stopped_then_long,short_finished_then_long",
                         help="which runs, comma-separated (all three by default)")
     add_retrain_options(parser)
@@ -83,6 +89,7 @@ def main() -> None:
     from recon.atomic import write_json_atomic
 
     source, result, work, preset, overrides = retrain_setup(args)
+    long_preset = args.long_preset or preset
     rows: list[dict[str, Any]] = []
     gt = args.gt.expanduser() if args.gt else None
     for how in args.rows.split(","):
@@ -103,10 +110,11 @@ def main() -> None:
                      **{f"short_{k}": v for k, v in _field_row(scene).items()},
                      **{f"short_{k}": v for k, v in mesh_row(scene, gt).items()}}
         t0 = time.perf_counter()
-        ran = run_stages(scene, preset, {**overrides, "train.budget": args.long}, "train")
+        ran = run_stages(scene, long_preset, {**overrides, "train.budget": args.long}, "train")
         wall = time.perf_counter() - t0 + first.get("stopped_wall_s", first.get("first_wall_s", 0.0))
         row = {"how": how, "short": args.short if first else None, "long": args.long, "source_scene": str(source),
-               "preset": preset, "overrides": args.set, **ran, **first, "wall_s": round(wall, 1),
+               "preset": preset if first else long_preset, "long_preset": long_preset, "overrides": args.set, **ran,
+               **first, "wall_s": round(wall, 1),
                **_field_row(scene), **mesh_row(scene, gt)}
         rows.append(row)
         print(f"{how}: {row['steps']} steps, {row['train_time_s']:.0f} s trained, {row['wall_s']:.0f} s in all, "

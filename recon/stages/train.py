@@ -256,16 +256,17 @@ def few_steps_warning(total: int, step: int, used_s: float, rate: float, budget:
 
 
 def resumed_budget_note(was: str, now: str, spent_s: float, budget_s: float) -> str:
-    """What a checkpoint made under another time budget (`was`; "" for none) does under `now` (the stage's scratch
-    outlives a change of budget: recon.runner.pipeline's Stage.scratch_survives), after `spent_s` training seconds."""
-    if was == now:
-        return ""
+    """What a checkpoint or finished field made under the time budget `was` ("" for none) does under `now` (the
+    stage's scratch outlives a change of budget: TRAINS_ON_UNDER), after `spent_s` training seconds: "" where it just
+    goes on under the same budget."""
     made = f"trained {spent_s:.0f} s under " + (f"a {was} budget" if was else "no budget")
-    if not budget_s:
-        return f" ({made}; without a budget it goes on to the step cap)"
-    if spent_s >= budget_s:
+    if budget_s and spent_s >= budget_s:
         return (f" ({made}: the {now} budget is spent already, so the field is kept as it is; a longer --budget "
                 "trains on from here)")
+    if was == now:
+        return ""
+    if not budget_s:
+        return f" ({made}; without a budget it goes on to the step cap)"
     return (f" ({made}: the {now} budget trains about {budget_s - spent_s:.0f} s more from here, on its own learning "
             "rate schedule, as if it had been given from the start)")
 
@@ -454,4 +455,9 @@ def _metrics(scene: Scene, device: torch.device, plan: TrainPlan, setup: TrainSe
 # version 13: train.smoothness=auto smooths the plain faces of a field that starts empty though it has silhouettes
 # version 14: the hull that says which transparent pixels are disputed is splatted at each vertex's depth
 # version 15: train.depth_prior=auto is on for a fast field that starts empty though its photos have silhouettes
-STAGE = Stage(name="train", folder="03_field", inputs=("normalize",), version=15, run=run, scratch_survives=("budget",))
+# The options a checkpoint or a finished field trains on under (the rest make another field, from step 0): the time
+# budget, how often training is watched and kept, how many test views score it, and the sparse-depth rays a step
+# renders (a term's sample size, drawn afresh each step) -- so `balanced` after `fast` trains fast's field on.
+TRAINS_ON_UNDER = ("budget", "eval_every", "checkpoint_every", "final_eval_views", "depth_rays")
+STAGE = Stage(name="train", folder="03_field", inputs=("normalize",), version=15, run=run,
+              scratch_survives=TRAINS_ON_UNDER)
