@@ -123,7 +123,8 @@ def test_another_budget_trains_on_from_the_checkpoint_of_a_stopped_run(tmp_path,
 
 def test_a_longer_budget_trains_a_finished_field_on_and_other_options_start_again(tmp_path, monkeypatch) -> None:
     """A run to the end, then the same command with a longer --budget: the finished field trains on from its step
-    (its trained state beside it), the curve carried over; a shorter budget keeps it; another option starts again."""
+    (its trained state beside it), the curve carried over, and so does `balanced` (fast's field, a longer budget); a
+    shorter budget keeps it, and so does a change of the test views it is scored on; another option starts again."""
     import json
 
     import recon.app.cli as cli
@@ -136,10 +137,10 @@ def test_a_longer_budget_trains_a_finished_field_on_and_other_options_start_agai
     capture, scene = faults.make_capture(tmp_path / "capture"), tmp_path / "scene"
     settings = [*faults.TINY, "train.steps=100000000", "train.eval_every=0"]
 
-    def run(*extra: str) -> tuple[str, dict]:
+    def run(*extra: str, preset: str = "fast") -> tuple[str, dict]:
         said.seek(0)
         said.truncate()
-        cli._run(scene, capture, "fast", [*settings, *extra], quiet=False, until_stage="train")
+        cli._run(scene, capture, preset, [*settings, *extra], quiet=False, until_stage="train")
         return " ".join(said.getvalue().split()), json.loads((scene / "03_field" / "metrics.json").read_text())
 
     told, first = run("train.budget=2s")
@@ -150,8 +151,14 @@ def test_a_longer_budget_trains_a_finished_field_on_and_other_options_start_agai
     assert longer["train_time_s"] >= 4.0
     assert [(r["step"], r["from"], r["budget_before"], r["budget"]) for r in longer["resumes"]] == [
         (first["steps"], "finished field", "2s", "4s")]
+    told, balanced = run("train.budget=6s", preset="balanced")
+    assert f"training on from the finished field at step {longer['steps']:,}" in told and "under a 4s budget" in told
+    assert balanced["steps"] > longer["steps"] and [r["budget"] for r in balanced["resumes"]] == ["4s", "6s"]
     told, shorter = run("train.budget=1s")
-    assert "the 1s budget is spent already" in told and shorter["steps"] == longer["steps"]
+    assert "the 1s budget is spent already" in told and shorter["steps"] == balanced["steps"]
+    told, rescored = run("train.budget=1s", "train.final_eval_views=2")
+    assert "the 1s budget is spent already" in told and rescored["steps"] == balanced["steps"]
+    assert rescored["history"] == balanced["history"] and rescored["test"]["psnr"] == shorter["test"]["psnr"]
     told, other = run("train.budget=4s", "train.lr=0.003")
     assert "training on" not in told and "resuming" not in told
     assert other["history"][0] != first["history"][0]  # its own curve from step 0, not the first run's
@@ -193,6 +200,7 @@ def test_a_finished_field_of_other_shapes_is_not_trained_on(tmp_path) -> None:
 
 def test_what_a_checkpoint_made_under_another_budget_does_is_said() -> None:
     assert resumed_budget_note("4m", "4m", 120.0, 240.0) == ""
+    assert "the 4m budget is spent already" in resumed_budget_note("4m", "4m", 241.0, 240.0)
     longer = resumed_budget_note("4m", "16m", 120.0, 960.0)
     assert "trained 120 s under a 4m budget" in longer and "about 840 s more" in longer
     assert "spent already" in resumed_budget_note("4m", "1m", 120.0, 60.0)
