@@ -5,7 +5,8 @@ training curve, the choices made and why), `curves.png` (PSNR vs step and vs wal
 `renders/NAME.png` (photo | render | depth) for a few test views, and `trained_state.pt` (the finished training's
 state beside the field). A checkpoint is written to the stage's work folder every `checkpoint_every` steps and on
 Ctrl-C; running the same command again resumes from it, and so does the command with another time budget (a budget
-found too short goes on). A finished field trains on the same way under a longer budget, from its trained state.
+found too short goes on) or another of TRAINS_ON_UNDER. A finished field trains on the same way under a longer budget,
+from its trained state.
 """
 from __future__ import annotations
 
