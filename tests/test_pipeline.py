@@ -281,3 +281,53 @@ def test_a_stage_gets_its_output_made_under_options_that_differ_only_in_what_its
     (scene / "02_c" / "c.txt").write_text("changed by hand")  # an output whose files changed is not trained on
     pipe.run(scene, _TrainedConfig(c=_Trained(budget=6, other=1)), Reporter(quiet=True), source=source)
     assert SEEN[-1] is None
+
+
+@dataclass
+class _Nested:
+    box: tuple[float, ...] = (-1.0, 1.0)  # kept as a list in the manifest: unchanged all the same
+    res: int = 64
+
+
+@dataclass
+class _C:
+    budget: int = 1
+    grid: _Nested = field(default_factory=_Nested)
+
+
+@dataclass
+class _ReasonConfig(RunConfig):
+    a: _A = field(default_factory=_A)
+    c: _C = field(default_factory=_C)
+
+
+def test_a_finished_stage_run_again_says_why(tmp_path: Path, source: Path) -> None:
+    """Running a finished stage again is a choice the run explains: the options that changed (nested sections key by
+    key), the upstream output or the photos that changed, a new recipe; and whether its output is carried on.
+    `recon status` with options says the same of its stale stages."""
+    import io
+
+    from rich.console import Console
+
+    def run(config: _ReasonConfig, version: int = 1) -> tuple[list[str], Pipeline]:
+        said = io.StringIO()
+        pipe = Pipeline([Stage("a", "01_a", (), 1, _stage_a, needs_source=True, source_digest=_digest_source),
+                         Stage("c", "02_c", ("a",), version, _stage_c, scratch_survives=("budget",))])
+        pipe.run(scene, config, Reporter(Console(file=said, width=400, color_system=None)), source=source)
+        return [line for line in said.getvalue().splitlines() if "runs again" in line], pipe
+
+    scene = tmp_path / "scene"
+    assert run(_ReasonConfig())[0] == []  # the first run
+    assert run(_ReasonConfig())[0] == []  # cached
+    assert run(_ReasonConfig(c=_C(budget=2)))[0] == ["c runs again: c.budget 1 → 2"]  # carried on: the stage says how
+    assert run(_ReasonConfig(c=_C(budget=2, grid=_Nested(res=96))))[0] == [
+        "c runs again: c.grid.res 64 → 96; made anew (only a change of c.budget carries its output on)"]
+    (source / "x").write_text("5")
+    told, pipe = run(_ReasonConfig(c=_C(budget=2, grid=_Nested(res=96))))
+    assert told[0] == "a runs again: the photos changed" and told[1].startswith("c runs again: the a stage's output")
+    told, pipe = run(_ReasonConfig(c=_C(budget=2, grid=_Nested(res=96))), version=2)
+    assert told == ["c runs again: this recon makes it differently (stage version 1 → 2); made anew (only a change "
+                    "of c.budget carries its output on)"]
+    rows = {r["stage"]: r for r in pipe.state(scene, _ReasonConfig(a=_A(value=3), c=_C(budget=2)), source)}
+    assert rows["a"]["why"] == "a.value 1 → 3" and rows["c"]["why"] == "c.grid.res 96 → 64"
+    assert "why" not in pipe.state(scene)[1]  # without options nothing is stale here

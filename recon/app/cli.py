@@ -289,6 +289,8 @@ def status(
         for row in rows:
             state = row["state"]
             result = format_summary(row["summary"]) if state != "failed" else row.get("error", "")
+            if row.get("why"):  # what a run with these options would run again for
+                result = f"{result}; runs again: {row['why']}" if result else f"runs again: {row['why']}"
             if row.get("scratch"):
                 result = f"{result}; {row['scratch']}" if result else row["scratch"]
             table.add_row(row["stage"], f"[{colors[state]}]{state}[/]", format_seconds(row["wall_s"]), str(row.get("finished") or ""), escape(str(result)))

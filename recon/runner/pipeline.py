@@ -349,9 +349,11 @@ class Pipeline:
                     row["error"] = entry["last_error"]
                 if entry.get("status") == "done" and folder.is_dir():
                     row["state"] = "done" if self._outputs_intact(folder, entry) else "corrupt"
+                    digest = None
                     if row["state"] == "done" and config is not None:
-                        fp = self.fingerprint(stage, manifest, config, source or _manifest_source(manifest))
-                        if fp != entry.get("fingerprint"):
+                        photos = source or _manifest_source(manifest)
+                        digest = self.source_digest(stage, config, photos)
+                        if self.fingerprint(stage, manifest, config, photos, digest) != entry.get("fingerprint"):
                             row["state"] = "stale"
                     upstream_changed = any(
                         manifest.stages.get(u, {}).get("output_digest") != entry.get("input_digests", {}).get(u)
@@ -359,6 +361,8 @@ class Pipeline:
                     )
                     if row["state"] == "done" and upstream_changed:
                         row["state"] = "stale"
+                    if row["state"] == "stale":
+                        row["why"] = rerun_reasons(stage, entry, manifest, config, _short_digest(digest))
                 elif entry.get("status") == "failed":
                     row["state"] = "failed"
             if scratch := _scratch_note(scene_dir, stage.name):  # e.g. a stopped training, under any options
@@ -483,6 +487,9 @@ class Pipeline:
         if (entry and entry.get("status") == "done" and entry.get("scratch") == scratch
                 and entry.get("fingerprint") != fingerprint and folder.is_dir() and self._outputs_intact(folder, entry)):
             previous = folder
+        why = None
+        if entry and entry.get("status") == "done" and entry.get("fingerprint") != fingerprint:
+            why = rerun_reasons(stage, entry, manifest, config, _short_digest(source_digest))
         tmp = scene_dir / f".tmp-{stage.folder}-{os.getpid()}"
         if tmp.exists():
             shutil.rmtree(tmp)
@@ -503,6 +510,10 @@ class Pipeline:
         )
         started, t0 = _now(), time.perf_counter()
         report.stage_start(stage.name)
+        if why is not None:  # the stage says how it goes on from `previous`; made anew, say what would have kept it
+            anew = (f"; made anew (only a change of {', '.join(f'{stage.name}.{k}' for k in stage.scratch_survives)} "
+                    "carries its output on)" if stage.scratch_survives and previous is None else "")
+            report.info(f"{stage.name} runs again: {why}{anew}")
         try:
             fault_point(f"{stage.name}/start")
             summary = stage.run(ctx) or {}
@@ -526,6 +537,8 @@ class Pipeline:
             "status": "done",
             "fingerprint": fingerprint,
             "scratch": scratch,  # the fingerprint less scratch_survives: which later runs get this output as previous
+            "version": stage.version,  # with source_digest and config: what a later run says changed (rerun_reasons)
+            "source_digest": _short_digest(source_digest),
             "input_digests": input_digests,
             # what this output means, not only its bytes: it also stands for the upstream outputs and the photos it
             # refers to by path, so a changed photo re-runs every later stage even when a scene.json comes out equal
@@ -543,6 +556,53 @@ class Pipeline:
         shutil.rmtree(work, ignore_errors=True)
         report.stage_done(stage.name, wall, summary)
         return StageOutcome(stage.name, "ran", wall, summary)
+
+
+def _short_digest(source_digest: str | None) -> str | None:
+    return hashlib.sha256(source_digest.encode()).hexdigest() if source_digest is not None else None
+
+
+def _shown(value: Any, width: int = 40) -> str:
+    text = json.dumps(value, default=str) if not isinstance(value, str) else value or '""'
+    return text if len(text) <= width else text[:width - 1] + "…"
+
+
+def _changed_options(prefix: str, old: dict, new: dict) -> list[str]:
+    """`prefix.key old → new` for each option that differs, nested sections key by key."""
+    changed = []
+    for key in sorted(set(old) | set(new)):
+        a, b = old.get(key), new.get(key)
+        if isinstance(a, dict) and isinstance(b, dict):
+            changed += _changed_options(f"{prefix}.{key}", a, b)
+        elif a != b:
+            changed.append(f"{prefix}.{key} {_shown(a)} → {_shown(b)}")
+    return changed
+
+
+def rerun_reasons(stage: Stage, entry: dict, manifest: Manifest, config: RunConfig | None, source_digest: str | None,
+                  most: int = 4) -> str:
+    """Why a finished stage runs again, as its entry in the manifest tells against this run: the options that changed
+    (`train.lr 0.01 → 0.003`), an upstream output that changed, other photos, or another recipe of the stage. Without
+    a config (`recon status` given no options) only what the manifest itself tells."""
+    reasons = []
+    if entry.get("version") not in (None, stage.version):
+        reasons.append(f"this recon makes it differently (stage version {entry['version']} → {stage.version})")
+    if entry.get("source_digest") is not None and source_digest not in (None, entry["source_digest"]):
+        reasons.append("the photos changed")
+    for name in stage.inputs:
+        if entry.get("input_digests", {}).get(name) != manifest.stages.get(name, {}).get("output_digest"):
+            reasons.append(f"the {name} stage's output changed")
+    old = entry.get("config")
+    new = config_slice(config, stage.name) if config is not None and hasattr(config, stage.name) else None
+    if isinstance(old, dict) and isinstance(new, dict):
+        kept = json.loads(json.dumps(new, default=str))  # as the manifest keeps it (tuples as lists)
+        changed = _changed_options(stage.name, old, kept)
+        more = len(changed) - most
+        reasons += changed[:most] + ([f"{more} more option{'s' if more > 1 else ''}"] if more > 0 else [])
+    if reasons:
+        return ", ".join(reasons)
+    return ("the photos or this recon's recipe for it changed" if stage.source_digest is not None else  # an older
+            "this recon's recipe for it changed")  # manifest, without the version and source digest its entries keep
 
 
 def _scratch_note(scene_dir: Path, stage: str) -> str | None:
