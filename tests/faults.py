@@ -53,9 +53,15 @@ def run(source: Path, scene: Path, *extra: str, fault: str | None = None, settin
                           capture_output=True, text=True, timeout=timeout)
 
 
+def _ctrl_c_stops() -> None:
+    """In the child: SIGINT as a terminal delivers it. A test suite started in the background (`cmd &`, as CI or nohup
+    may) has SIGINT ignored, and a child inherits that, so a Ctrl-C test's signal would be lost."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def start(source: Path, scene: Path, *extra: str, settings: list[str] | None = None) -> subprocess.Popen:
     return subprocess.Popen(cli_args(source, scene, *extra, settings=settings), env=env(), cwd=REPO,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, preexec_fn=_ctrl_c_stops)
 
 
 def wait_for(predicate, timeout: float = 120, what: str = "condition") -> None:
