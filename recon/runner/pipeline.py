@@ -483,13 +483,11 @@ class Pipeline:
                 f"written (changed, truncated or deleted); re-running it."
             )
 
-        previous = None
-        if (entry and entry.get("status") == "done" and entry.get("scratch") == scratch
-                and entry.get("fingerprint") != fingerprint and folder.is_dir() and self._outputs_intact(folder, entry)):
-            previous = folder
-        why = None
-        if entry and entry.get("status") == "done" and entry.get("fingerprint") != fingerprint:
+        previous = why = None
+        if entry and entry.get("status") == "done" and entry.get("fingerprint") != fingerprint:  # made otherwise
             why = rerun_reasons(stage, entry, manifest, config, _short_digest(source_digest))
+            if entry.get("scratch") == scratch and folder.is_dir() and self._outputs_intact(folder, entry):
+                previous = folder
         tmp = scene_dir / f".tmp-{stage.folder}-{os.getpid()}"
         if tmp.exists():
             shutil.rmtree(tmp)
