@@ -309,11 +309,12 @@ def test_a_finished_stage_run_again_says_why(tmp_path: Path, source: Path) -> No
 
     from rich.console import Console
 
-    def run(config: _ReasonConfig, version: int = 1) -> tuple[list[str], Pipeline]:
+    def run(config: _ReasonConfig, version: int = 1, preset: str | None = None) -> tuple[list[str], Pipeline]:
         said = io.StringIO()
         pipe = Pipeline([Stage("a", "01_a", (), 1, _stage_a, needs_source=True, source_digest=_digest_source),
                          Stage("c", "02_c", ("a",), version, _stage_c, scratch_survives=("budget",))])
-        pipe.run(scene, config, Reporter(Console(file=said, width=400, color_system=None)), source=source)
+        pipe.run(scene, config, Reporter(Console(file=said, width=400, color_system=None)), source=source,
+                 preset=preset)
         return [line for line in said.getvalue().splitlines() if "runs again" in line], pipe
 
     scene = tmp_path / "scene"
@@ -331,3 +332,11 @@ def test_a_finished_stage_run_again_says_why(tmp_path: Path, source: Path) -> No
     rows = {r["stage"]: r for r in pipe.state(scene, _ReasonConfig(a=_A(value=3), c=_C(budget=2)), source)}
     assert rows["a"]["why"] == "a.value 1 → 3" and rows["c"]["why"] == "c.grid.res 96 → 64"
     assert "why" not in pipe.state(scene)[1]  # without options nothing is stale here
+    # an entry made under no named preset names none; one made under a preset names it and the one that replaces it
+    assert run(_ReasonConfig(c=_C(budget=3, grid=_Nested(res=96))), 2, "fast")[0] == ["c runs again: c.budget 2 → 3"]
+    told, pipe = run(_ReasonConfig(c=_C(budget=3, grid=_Nested(res=64))), 2, "quality")
+    assert told == ["c runs again: preset fast → quality, c.grid.res 96 → 64; made anew (only a change of c.budget "
+                    "carries its output on)"]
+    rows = {r["stage"]: r for r in pipe.state(scene, _ReasonConfig(c=_C(budget=3, grid=_Nested(res=96))), source,
+                                              preset="fast")}
+    assert rows["c"]["why"] == "preset quality → fast, c.grid.res 64 → 96" and "why" not in rows["a"]

@@ -154,8 +154,14 @@ def test_a_longer_budget_trains_a_finished_field_on_and_other_options_start_agai
     told, balanced = run("train.budget=6s", preset="balanced")
     assert f"training on from the finished field at step {longer['steps']:,}" in told and "under a 4s budget" in told
     assert balanced["steps"] > longer["steps"] and [r["budget"] for r in balanced["resumes"]] == ["4s", "6s"]
+    assert "train runs again: preset fast → balanced, train.budget 4s → 6s, train.depth_rays 256 → 512" in told
+    shown = io.StringIO()  # `recon status --set`: the options on the preset the scene was run with, as a run takes them
+    monkeypatch.setattr(cli, "out_console", Console(file=shown, width=400, color_system=None))
+    cli.status(scene, None, [*settings, "train.budget=6s", "train.lr=0.02"])
+    assert "runs again: train.lr" in shown.getvalue() and "depth_rays" not in shown.getvalue()
     told, shorter = run("train.budget=1s")
     assert "the 1s budget is spent already" in told and shorter["steps"] == balanced["steps"]
+    assert "train runs again: preset balanced → fast" in told
     told, rescored = run("train.budget=1s", "train.final_eval_views=2")
     assert "the 1s budget is spent already" in told and rescored["steps"] == balanced["steps"]
     assert rescored["history"] == balanced["history"] and rescored["test"]["psnr"] == shorter["test"]["psnr"]

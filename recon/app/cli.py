@@ -274,14 +274,16 @@ def status(
     """Each stage's state (done / stale / missing / failed / corrupt), wall time and what it produced."""
     with _guard(scene):
         require_scene(scene)
-        # without options, "stale" means an upstream stage changed; with them, also "differs from these options"
-        config = _config(preset, set_) if (preset or set_) else None
+        # without options, "stale" means an upstream stage changed; with them, also "differs from these options",
+        # the --set ones on the preset the scene was run with, as `recon run` would take them
+        asked = (preset or _recorded_preset(scene) or DEFAULT_PRESET) if (preset or set_) else None
+        config = _config(asked, set_) if asked else None
         from recon.runner.pipeline import Manifest
 
         warning = Manifest(scene).warning
         if warning:
             console.print(f"[yellow]warning:[/] {escape(warning)}")
-        rows = _pipeline().state(scene, config)
+        rows = _pipeline().state(scene, config, preset=asked)
         table = Table(title=f"recon status — {escape(str(scene))}")
         for col in ("stage", "state", "time", "finished", "result"):
             table.add_column(col)

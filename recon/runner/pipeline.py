@@ -333,8 +333,10 @@ class Pipeline:
             parts["source"] = source_digest or self.source_digest(stage, config, source)
         return hashlib.sha256(json.dumps(parts, sort_keys=True, default=str).encode()).hexdigest()
 
-    def state(self, scene_dir: Path, config: RunConfig | None = None, source: Path | None = None) -> list[dict]:
-        """Each stage's state for `recon status`: done / stale / missing / failed / corrupt."""
+    def state(self, scene_dir: Path, config: RunConfig | None = None, source: Path | None = None,
+              preset: str | None = None) -> list[dict]:
+        """Each stage's state for `recon status`: done / stale / missing / failed / corrupt; a stale row says why
+        a run with `config` (the options of `preset`) would make it again."""
         manifest = Manifest(scene_dir)
         rows = []
         for stage in self.stages:
@@ -362,7 +364,7 @@ class Pipeline:
                     if row["state"] == "done" and upstream_changed:
                         row["state"] = "stale"
                     if row["state"] == "stale":
-                        row["why"] = rerun_reasons(stage, entry, manifest, config, _short_digest(digest))
+                        row["why"] = rerun_reasons(stage, entry, manifest, config, _short_digest(digest), preset)
                 elif entry.get("status") == "failed":
                     row["state"] = "failed"
             if scratch := _scratch_note(scene_dir, stage.name):  # e.g. a stopped training, under any options
@@ -429,7 +431,7 @@ class Pipeline:
         selected = self.select(from_stage, until_stage)
         for stage in selected:
             forced = force or stage.name == from_stage
-            outcome = self._run_stage(stage, scene_dir, manifest, config, report, source, forced)
+            outcome = self._run_stage(stage, scene_dir, manifest, config, report, source, forced, preset)
             outcomes.append(outcome)
             # recorded only once a stage succeeded: a failed run with other photos or another preset leaves
             # the finished scene's record alone (single-stage commands default to these)
@@ -452,6 +454,7 @@ class Pipeline:
         report: Reporter,
         source: Path | None,
         forced: bool,
+        preset: str | None = None,
     ) -> StageOutcome:
         for upstream in stage.inputs:
             entry = manifest.stages.get(upstream, {})
@@ -485,7 +488,7 @@ class Pipeline:
 
         previous = why = None
         if entry and entry.get("status") == "done" and entry.get("fingerprint") != fingerprint:  # made otherwise
-            why = rerun_reasons(stage, entry, manifest, config, _short_digest(source_digest))
+            why = rerun_reasons(stage, entry, manifest, config, _short_digest(source_digest), preset)
             if entry.get("scratch") == scratch and folder.is_dir() and self._outputs_intact(folder, entry):
                 previous = folder
         tmp = scene_dir / f".tmp-{stage.folder}-{os.getpid()}"
@@ -537,6 +540,7 @@ class Pipeline:
             "scratch": scratch,  # the fingerprint less scratch_survives: which later runs get this output as previous
             "version": stage.version,  # with source_digest and config: what a later run says changed (rerun_reasons)
             "source_digest": _short_digest(source_digest),
+            "preset": preset,  # the preset whose options `config` holds, so a later run can name the one it changed
             "input_digests": input_digests,
             # what this output means, not only its bytes: it also stands for the upstream outputs and the photos it
             # refers to by path, so a changed photo re-runs every later stage even when a scene.json comes out equal
@@ -578,11 +582,14 @@ def _changed_options(prefix: str, old: dict, new: dict) -> list[str]:
 
 
 def rerun_reasons(stage: Stage, entry: dict, manifest: Manifest, config: RunConfig | None, source_digest: str | None,
-                  most: int = 4) -> str:
-    """Why a finished stage runs again, as its entry in the manifest tells against this run: the options that changed
-    (`train.lr 0.01 → 0.003`), an upstream output that changed, other photos, or another recipe of the stage. Without
-    a config (`recon status` given no options) only what the manifest itself tells."""
+                  preset: str | None = None, most: int = 4) -> str:
+    """Why a finished stage runs again, as its entry in the manifest tells against this run: another preset (`preset
+    fast → quality`) and the options that changed (`train.lr 0.01 → 0.003`), an upstream output that changed, other
+    photos, or another recipe of the stage. Without a config (`recon status` given no options) only what the
+    manifest itself tells."""
     reasons = []
+    if config is not None and preset is not None and entry.get("preset") not in (None, preset):
+        reasons.append(f"preset {entry['preset']} → {preset}")
     if entry.get("version") not in (None, stage.version):
         reasons.append(f"this recon makes it differently (stage version {entry['version']} → {stage.version})")
     if entry.get("source_digest") is not None and source_digest not in (None, entry["source_digest"]):
