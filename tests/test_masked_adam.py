@@ -82,15 +82,17 @@ def test_the_c_update_matches_the_torch_reference(masked: bool, n: int) -> None:
 
 
 @needs_native
+@pytest.mark.parametrize("share", [0.5, 0.03])
 @pytest.mark.parametrize("n", [1, 64, 65, 5000, 300_001])
-def test_the_c_update_visits_the_flagged_blocks_alone(n: int) -> None:
+def test_the_c_update_visits_the_flagged_blocks_alone(n: int, share: float) -> None:
     """With flags it updates the flagged blocks as the reference does (gradients 0 there too are left alone), clears
     those flags and gradients, and does not look at an unflagged block: one with a gradient stays as it was (the
-    flags' promise broken on purpose, to see that they are what it reads). Sizes around the 64-value blocks, and
-    one split over threads."""
+    flags' promise broken on purpose, to see that they are what it reads). Sizes around the 64-value blocks, one
+    split over threads; half the blocks flagged, and a few percent, as a step flags a fine grid (the C code reads the
+    flags eight at a time, so runs of eight unflagged ones are skipped whole)."""
     start, grad = _problem(n, 4, 1 / 3)
     blocks = adam_blocks(n)
-    flags = (torch.rand(blocks, generator=torch.Generator().manual_seed(5)) < 0.5).to(torch.uint8)
+    flags = (torch.rand(blocks, generator=torch.Generator().manual_seed(5)) < share).to(torch.uint8)
     flags[0] = 1
     flagged = flags.repeat_interleave(ADAM_BLOCK)[:n].bool()
     kwargs = {"beta1": 0.9, "beta2": 0.999, "step_size": 0.05, "bias2_sqrt": 0.3, "eps": 1e-8, "masked": True}
