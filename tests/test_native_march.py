@@ -230,3 +230,49 @@ def test_the_reused_gradient_buffer_never_doubles_a_gradient(set_to_none: bool, 
         assert grid.table.grad is grid._grad_buffer
     (grid(x) * upstream).sum().backward()  # no zero_grad: gradients accumulate, as autograd's do
     torch.testing.assert_close(grid.table.grad, 2 * grads[0])
+
+
+def test_slices_are_each_computed_once_in_order_and_the_caller_takes_them_when_no_helper_starts(monkeypatch) -> None:
+    """`_in_slices` hands each slice to one thread and returns the results in order; the calling thread takes slices
+    too, so a helper the pool has not started yet is dropped, not waited for; an error in a slice goes up after the
+    slices already begun have ended, and no slice starts after it."""
+    import threading
+    from concurrent.futures import Future
+
+    monkeypatch.setattr(torch, "get_num_threads", lambda: 3)
+    seen: list[tuple[int, int]] = []
+    lock = threading.Lock()
+
+    def work(lo: int, hi: int) -> int:
+        with lock:
+            seen.append((lo, hi))
+        return hi - lo
+
+    assert sum(native._in_slices(100_000, work)) == 100_000 and len(seen) == 12
+    assert sorted(seen) == [(100_000 * i // 12, 100_000 * (i + 1) // 12) for i in range(12)]  # each once, all of it
+    assert native._in_slices(100_000, lambda lo, hi: lo) == [100_000 * i // 12 for i in range(12)]  # in order
+
+    class NeverStarts:  # a pool whose threads are all busy elsewhere: what it is handed stays queued
+        def __init__(self) -> None:
+            self.handed: list[Future] = []
+
+        def submit(self, fn, *args):
+            self.handed.append(Future())
+            return self.handed[-1]
+
+    idle = NeverStarts()
+    monkeypatch.setattr(native, "_thread_pool", lambda workers: idle)
+    seen.clear()
+    assert sum(native._in_slices(100_000, work)) == 100_000 and len(seen) == 12  # all on the caller, no wait
+    assert len(idle.handed) == 2 and all(f.cancelled() for f in idle.handed)
+
+    def fails_at_the_third(lo: int, hi: int) -> int:
+        work(lo, hi)
+        if len(seen) == 3:
+            raise RuntimeError("slice failed")
+        return 0
+
+    seen.clear()
+    with pytest.raises(RuntimeError, match="slice failed"):
+        native._in_slices(100_000, fails_at_the_third)
+    assert len(seen) == 3  # no slice after the error

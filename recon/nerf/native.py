@@ -16,6 +16,7 @@ from __future__ import annotations
 import contextlib
 import ctypes
 import hashlib
+import itertools
 import math
 import os
 import platform
@@ -436,13 +437,38 @@ _pool: ThreadPoolExecutor | None = None
 
 def _in_slices(n: int, fn: Callable[[int, int], T]) -> list[T]:
     """``fn(lo, hi)`` over contiguous slices of ``range(n)`` on one thread per torch CPU thread; results in order.
-    Four slices a thread: an image's rays come in rows, and the rows through the object cost the most."""
+    Four slices a thread: an image's rays come in rows, and the rows through the object cost the most.
+
+    The calling thread takes slices too, and the helpers take what is left when they start: right after torch's own
+    parallel work its threads keep the cores spinning for a while, and a helper thread may wait that long for one, so
+    the caller never waits for a helper that has not begun a slice (`benchmarks/native_slices_cost.py`)."""
     workers = max(1, min(torch.get_num_threads(), n // 1024))
     if workers == 1:
         return [fn(0, n)]
     slices = 4 * workers
     bounds = [n * i // slices for i in range(slices + 1)]
-    return list(_thread_pool(workers).map(fn, bounds[:-1], bounds[1:]))
+    results: list[T | None] = [None] * slices
+    taken = itertools.count()  # its next() is atomic under the GIL: each slice goes to one thread
+    stop = False
+
+    def drain() -> None:
+        while not stop:
+            i = next(taken)
+            if i >= slices:
+                return
+            results[i] = fn(bounds[i], bounds[i + 1])
+
+    helpers = [_thread_pool(workers).submit(drain) for _ in range(workers - 1)]
+    try:
+        drain()
+    except BaseException:
+        stop = True  # the helpers take no new slice; the ones they hold end before the error goes up
+        raise
+    finally:
+        for helper in helpers:
+            if not helper.cancel():  # a helper that never started is dropped; one that started ends its slice
+                helper.result()
+    return results  # type: ignore[return-value]
 
 
 def _thread_pool(workers: int) -> ThreadPoolExecutor:

@@ -1,0 +1,124 @@
+"""What a change to recon's native code costs a CPU training step: this checkout's against another revision's build
+of recon/nerf/march.c (`--against REV`), or against handing every slice of a native call to the thread pool and
+waiting for all of them (`--against pool-map`, how `recon.nerf.native._in_slices` shared them before the calling
+thread took slices too).
+
+    python benchmarks/native_step_cost.py --scene ~/.cache/recon/bench/lego-half-fast --against 07fed61 \\
+        --out benchmarks/results/lego_half_native_adam_step_cost.json
+
+Two trainings are built as the train stage builds them (`recon.plans.training`) on the scene's 02_scene and take
+`--warmup` steps each; then they take turns (step_cost.py's `take_turns`), `--rounds` rounds of `--block` steps, the
+second's turns with the other library (REV's march.c built with recon's flags for this CPU; its functions must take
+the same arguments) or the other slicing. The record gives each one's ms a step and the ratio, the sliced native
+calls a step. Both compute the same values (tests/test_native_march.py, tests/test_masked_adam.py); their
+trainings draw rays from one random stream in turns, so they do not end equal. A measurement: it asserts nothing.
+"""
+from __future__ import annotations
+
+import ctypes
+import subprocess
+import sys
+import tempfile
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any, TypeVar
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from gpu_syncs import build_step, scene_row, step_parser  # noqa: E402  (gpu_syncs puts this checkout's recon first)
+from step_cost import take_turns, turn_arguments, turn_rows  # noqa: E402
+
+T = TypeVar("T")
+
+
+def pool_map(n: int, fn: Callable[[int, int], T]) -> list[T]:
+    """The slices of `_in_slices`, each handed to the thread pool, the caller waiting for all of them."""
+    from recon.nerf.native import _thread_pool
+
+    workers = max(1, min(torch.get_num_threads(), n // 1024))
+    if workers == 1:
+        return [fn(0, n)]
+    slices = 4 * workers
+    bounds = [n * i // slices for i in range(slices + 1)]
+    return list(_thread_pool(workers).map(fn, bounds[:-1], bounds[1:]))
+
+
+def library_of(rev: str, folder: Path) -> ctypes.CDLL:
+    """REV's march.c, built as recon builds this checkout's (`recon.nerf.native`), its functions' signatures set."""
+    import recon.nerf.native as native
+
+    source = folder / "march.c"
+    source.write_text(subprocess.run(["git", "show", f"{rev}:recon/nerf/march.c"], capture_output=True, text=True,
+                                     check=True, cwd=native.SOURCE.parent).stdout)
+    native._build("cc", [*native.CFLAGS, *native.HOST_CFLAGS], source, folder / "march.so")
+    lib = ctypes.CDLL(str(folder / "march.so"))
+    ours = native.native_marcher()
+    for name in dir(ours):
+        if name.startswith("recon_") and hasattr(getattr(ours, name), "argtypes"):
+            theirs, mine = getattr(lib, name), getattr(ours, name)
+            theirs.argtypes, theirs.restype = mine.argtypes, mine.restype
+    return lib
+
+
+def main(argv: list[str] | None = None) -> int:
+    import recon.nerf.native as native
+    from recon.atomic import write_json_atomic
+
+    parser = step_parser(__doc__)
+    parser.add_argument("--against", required=True, help="a git revision, or pool-map")
+    turn_arguments(parser, warmup=300)
+    args = parser.parse_args(argv)
+    row = scene_row("native_step_cost", args)
+    if row is None:
+        return 2
+    if native.native_marcher() is None:
+        print(f"error: the native library is not loaded here ({native.native_status()})", file=sys.stderr)
+        return 2
+    calls = {"n": 0}
+    slicer, library = native._in_slices, native.native_marcher
+
+    def counted(slices: Callable[[int, Callable[[int, int], T]], list[T]]) -> Callable[..., list[T]]:
+        def call(n: int, fn: Callable[[int, int], T]) -> list[T]:
+            calls["n"] += 1
+            return slices(n, fn)
+        return call
+
+    with tempfile.TemporaryDirectory() as tmp:
+        if args.against == "pool-map":
+            other: dict[str, Any] = {"_in_slices": counted(pool_map)}
+        else:
+            base = library_of(args.against, Path(tmp))
+            other = {"native_marcher": lambda: base}
+        settings = {"this checkout": {"_in_slices": counted(slicer), "native_marcher": library},
+                    args.against: {"_in_slices": counted(slicer), "native_marcher": library, **other}}
+        runs = []
+        for value, names in settings.items():
+            def enter(names=names) -> None:
+                for name, fn in names.items():
+                    setattr(native, name, fn)
+
+            enter()
+            step, plan, device = build_step(args.scene, args.preset, args.set)
+            for i in range(args.warmup):
+                step(i)
+            runs.append({"value": value, "step": step, "next": args.warmup, "enter": enter})
+        try:
+            calls["n"] = 0
+            take_turns(runs, args.rounds, args.block, lambda: None)
+        finally:
+            native._in_slices, native.native_marcher = slicer, library
+    row.update({"against": args.against, "device": str(device), "batch_rays": plan.batch_rays,
+                "warmup": args.warmup, "rounds": args.rounds, "block": args.block, "threads": torch.get_num_threads(),
+                "values": turn_rows(runs),
+                "sliced_native_calls_a_step": round(calls["n"] / (2 * args.rounds * args.block), 1)})
+    write_json_atomic(args.out, [row])
+    for v in row["values"]:
+        print(f"{v['value']}: {v['ms_per_step_median']} ms a step (median of {args.rounds} rounds), "
+              f"{v['cost_vs_first']}x the first")
+    print(f"{row['sliced_native_calls_a_step']} sliced native calls a step")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
