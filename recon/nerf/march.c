@@ -377,10 +377,10 @@ static inline int64_t cell_weights(const float *u, int64_t res, int64_t channels
     return c[0] * sx + c[1] * sy + c[2] * sz;
 }
 
-/* Trilinear features of n points (unit coordinates u (n, 3)) from a channels-last (res³, channels) table indexed
- * [ix][iy][iz]: out (n, channels). recon.nerf.grid.DenseGrid.forward; the torch path builds (n, 8) corner rows and
- * weights first and gathers with embedding_bag (or grid_sample for one channel). */
-void recon_trilinear_features(int64_t n, const float *u, const float *table, int64_t res, int64_t channels, float *out)
+/* recon_trilinear_features for one number of channels: called with a constant, the compiler unrolls and vectorizes
+ * the channel loop (each value's sum is still taken over the corners in order, so the results are the same). */
+static inline void features_of(int64_t n, const float *u, const float *table, int64_t res, const int64_t channels,
+                               float *out)
 {
     int64_t corner[8];
     float w[8];
@@ -392,6 +392,19 @@ void recon_trilinear_features(int64_t n, const float *u, const float *table, int
             for (int k = 0; k < 8; ++k) acc += w[k] * base[corner[k] + ch];
             o[ch] = acc;
         }
+    }
+}
+
+/* Trilinear features of n points (unit coordinates u (n, 3)) from a channels-last (res³, channels) table indexed
+ * [ix][iy][iz]: out (n, channels). recon.nerf.grid.DenseGrid.forward; the torch path builds (n, 8) corner rows and
+ * weights first and gathers with embedding_bag (or grid_sample for one channel). A density grid's one channel and
+ * the fast model's 12 feature channels (FastConfig.feature_dim) get their own build of the loop. */
+void recon_trilinear_features(int64_t n, const float *u, const float *table, int64_t res, int64_t channels, float *out)
+{
+    switch (channels) {
+    case 1: features_of(n, u, table, res, 1, out); break;
+    case 12: features_of(n, u, table, res, 12, out); break;
+    default: features_of(n, u, table, res, channels, out);
     }
 }
 
@@ -409,9 +422,10 @@ static inline void flag_blocks(uint8_t *touched, int64_t first, int64_t width) {
 /* The backward of recon_trilinear_features for the table: grad_table (res³, channels) += each point's upstream
  * gradient grad_out (n, channels) spread over its cell's corners by the trilinear weights; `touched` (or NULL):
  * the blocks added into are flagged. One thread: the scatter is cheaper than the zeroed copy a second thread would
- * need. */
-void recon_trilinear_backward(int64_t n, const float *u, const float *grad_out, int64_t res, int64_t channels,
-                              float *grad_table, uint8_t *touched)
+ * need. A density grid's one channel gets its own build of the loop (features_of's reason; with 12 channels that
+ * build measured slower). */
+static inline void backward_of(int64_t n, const float *u, const float *grad_out, int64_t res, const int64_t channels,
+                               float *grad_table, uint8_t *touched)
 {
     int64_t corner[8];
     float w[8];
@@ -424,6 +438,15 @@ void recon_trilinear_backward(int64_t n, const float *u, const float *grad_out, 
         if (touched)  /* corners 2j and 2j + 1 are neighbouring rows (z): one range each pair */
             for (int k = 0; k < 8; k += 2) flag_blocks(touched, first + corner[k], 2 * channels);
     }
+}
+
+void recon_trilinear_backward(int64_t n, const float *u, const float *grad_out, int64_t res, int64_t channels,
+                              float *grad_table, uint8_t *touched)
+{
+    if (channels == 1)
+        backward_of(n, u, grad_out, res, 1, grad_table, touched);
+    else
+        backward_of(n, u, grad_out, res, channels, grad_table, touched);
 }
 
 /* The table rows of the eight corners of a hash grid's level (its first row `offset`, `res` vertices a side): the
