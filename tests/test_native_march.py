@@ -153,7 +153,7 @@ def test_a_compiler_without_host_flags_gets_the_portable_build(monkeypatch: pyte
 
 
 @needs_native
-@pytest.mark.parametrize("channels", [1, 12])
+@pytest.mark.parametrize("channels", [1, 5, 12])  # the C loop is built for 1 and 12, and for any
 def test_native_grid_reads_train_as_the_torch_paths(channels: int) -> None:
     """Values and table gradients of the C reads equal torch's (grid_sample for one channel, the gather for more);
     points that need a gradient themselves (normals, pose refinement) keep the torch path."""
