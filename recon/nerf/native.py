@@ -383,10 +383,7 @@ def hash_backward_native(x01: Tensor, grad_out: Tensor, levels: Tensor, log2_tab
                                 levels[1].data_ptr(), levels[2].data_ptr(), log2_table, out.shape[1], first, workers,
                                 out.data_ptr(), flags)
 
-    if workers > 1:
-        list(_thread_pool(workers).map(part, range(workers)))
-    else:
-        part(0)
+    _on_threads(workers, workers, part)
     return out
 
 
@@ -437,36 +434,42 @@ _pool: ThreadPoolExecutor | None = None
 
 def _in_slices(n: int, fn: Callable[[int, int], T]) -> list[T]:
     """``fn(lo, hi)`` over contiguous slices of ``range(n)`` on one thread per torch CPU thread; results in order.
-    Four slices a thread: an image's rays come in rows, and the rows through the object cost the most.
-
-    The calling thread takes slices too, and the helpers take what is left when they start: right after torch's own
-    parallel work its threads keep the cores spinning for a while, and a helper thread may wait that long for one, so
-    the caller never waits for a helper that has not begun a slice (`benchmarks/native_slices_cost.py`)."""
+    Four slices a thread: an image's rays come in rows, and the rows through the object cost the most."""
     workers = max(1, min(torch.get_num_threads(), n // 1024))
     if workers == 1:
         return [fn(0, n)]
     slices = 4 * workers
     bounds = [n * i // slices for i in range(slices + 1)]
-    results: list[T | None] = [None] * slices
-    taken = itertools.count()  # its next() is atomic under the GIL: each slice goes to one thread
+    return _on_threads(slices, workers, lambda i: fn(bounds[i], bounds[i + 1]))
+
+
+def _on_threads(count: int, workers: int, fn: Callable[[int], T]) -> list[T]:
+    """``fn(i)`` for i in ``range(count)``, each on one of ``workers`` threads; results in order.
+
+    The calling thread takes parts too, and the helpers take what is left when they start: right after torch's own
+    parallel work its threads keep the cores spinning for a while, and a helper thread may wait that long for one, so
+    the caller never waits for a helper that has not begun a part (`benchmarks/native_step_cost.py --against
+    pool-map`)."""
+    results: list[T | None] = [None] * count
+    taken = itertools.count()  # its next() is atomic under the GIL: each part goes to one thread
     stop = False
 
     def drain() -> None:
         while not stop:
             i = next(taken)
-            if i >= slices:
+            if i >= count:
                 return
-            results[i] = fn(bounds[i], bounds[i + 1])
+            results[i] = fn(i)
 
     helpers = [_thread_pool(workers).submit(drain) for _ in range(workers - 1)]
     try:
         drain()
     except BaseException:
-        stop = True  # the helpers take no new slice; the ones they hold end before the error goes up
+        stop = True  # the helpers take no new part; the ones they hold end before the error goes up
         raise
     finally:
         for helper in helpers:
-            if not helper.cancel():  # a helper that never started is dropped; one that started ends its slice
+            if not helper.cancel():  # a helper that never started is dropped; one that started ends its part
                 helper.result()
     return results  # type: ignore[return-value]
 
