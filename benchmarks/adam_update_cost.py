@@ -3,21 +3,18 @@ this checkout's, the two calls taken in turns.
 
     python benchmarks/adam_update_cost.py --base 07fed61 --out benchmarks/results/adam_update_cost.json
 
-Both libraries are built as recon builds its own (`recon.nerf.native`: CFLAGS with HOST_CFLAGS) from `--base`'s
-march.c and this checkout's. Each round draws the blocks a step flags (`--blocks` of the grid's 64-value blocks, in
-runs of one to three, scattered as a step's rays scatter them; by default 26,208 of the 393,216 blocks of `fast`'s
-128³×12 feature grid, what the half-res Lego's steps flag after 600 steps) and gives both builds the same gradient
-there, each updating its own copy of one start, one thread, the order alternating. The record gives each build's
-milliseconds a call (median of `--rounds`), the ratio, and whether the two ended with the same values bit for bit. A
-measurement: it asserts nothing.
+`--base`'s march.c is built as recon builds this checkout's (`native_step_cost.library_of`). Each round draws the
+blocks a step flags (`--blocks` of the grid's 64-value blocks, in runs of one to three, scattered as a step's rays
+scatter them; by default 26,208 of the 393,216 blocks of `fast`'s 128³×12 feature grid, what the half-res Lego's
+steps flag after 600 steps) and gives both builds the same gradient there, each updating its own copy of one start,
+one thread, the order alternating. The record gives each build's milliseconds a call (median of `--rounds`), the
+ratio, and whether the two ended with the same values bit for bit. A measurement: it asserts nothing.
 """
 from __future__ import annotations
 
 import argparse
-import ctypes
 import os
 import statistics
-import subprocess
 import sys
 import tempfile
 import time
@@ -25,29 +22,14 @@ from pathlib import Path
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # this checkout's recon first
-
-
-def build(source_text: str, folder: Path, name: str) -> ctypes.CDLL:
-    """march.c's text built with recon's flags for this CPU, loaded, with recon_adam's signature set."""
-    from recon.nerf.native import CFLAGS, HOST_CFLAGS, _build
-
-    source = folder / f"{name}.c"
-    source.write_text(source_text)
-    target = folder / f"{name}.so"
-    compiler = os.environ.get("CC") or "cc"
-    _build(compiler, [*CFLAGS, *HOST_CFLAGS], source, target)
-    lib = ctypes.CDLL(str(target))
-    f32, i64, i32, ptr = ctypes.c_float, ctypes.c_int64, ctypes.c_int32, ctypes.c_void_p
-    lib.recon_adam.restype = None
-    lib.recon_adam.argtypes = [i64, ptr, ptr, ptr, ptr, f32, f32, f32, f32, f32, f32, i32, i32, ptr]
-    return lib
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from native_step_cost import library_of  # noqa: E402  (through gpu_syncs, this checkout's recon comes first)
 
 
 def main(argv: list[str] | None = None) -> int:
     from recon.app.bench import provenance
     from recon.atomic import write_json_atomic
-    from recon.nerf.native import ADAM_BLOCK, SOURCE, adam_blocks
+    from recon.nerf.native import ADAM_BLOCK, adam_blocks, native_marcher
 
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--base", required=True, help="the git revision whose march.c is measured against this one")
@@ -56,15 +38,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--rounds", type=int, default=30)
     parser.add_argument("--out", type=Path, required=True)
     args = parser.parse_args(argv)
+    if native_marcher() is None:
+        print("error: the native library is not loaded here (no C compiler, or RECON_NATIVE=0)", file=sys.stderr)
+        return 2
     row = {"name": "adam_update_cost", "base": args.base, "date": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
            **provenance(), "load_average_start": [round(x, 2) for x in os.getloadavg()]}
-    base_text = subprocess.run(["git", "show", f"{args.base}:recon/nerf/march.c"], capture_output=True, text=True,
-                               check=True, cwd=SOURCE.parent).stdout
     shape = tuple(int(x) for x in args.shape.split(","))
     n = shape[0] * shape[1]
     blocks = adam_blocks(n)
     with tempfile.TemporaryDirectory() as tmp:
-        libs = {"base": build(base_text, Path(tmp), "base"), "this": build(SOURCE.read_text(), Path(tmp), "this")}
+        libs = {"base": library_of(args.base, Path(tmp)), "this": native_marcher()}
         g = torch.Generator().manual_seed(0)
         start = torch.randn(n, generator=g)
         state = {name: [start.clone(), torch.zeros(n), torch.zeros(n), torch.zeros(n)] for name in libs}

@@ -16,6 +16,7 @@ trainings draw rays from one random stream in turns, so they do not end equal. A
 from __future__ import annotations
 
 import ctypes
+import os
 import subprocess
 import sys
 import tempfile
@@ -51,7 +52,7 @@ def library_of(rev: str, folder: Path) -> ctypes.CDLL:
     source = folder / "march.c"
     source.write_text(subprocess.run(["git", "show", f"{rev}:recon/nerf/march.c"], capture_output=True, text=True,
                                      check=True, cwd=native.SOURCE.parent).stdout)
-    native._build("cc", [*native.CFLAGS, *native.HOST_CFLAGS], source, folder / "march.so")
+    native._build(os.environ.get("CC") or "cc", [*native.CFLAGS, *native.HOST_CFLAGS], source, folder / "march.so")
     lib = ctypes.CDLL(str(folder / "march.so"))
     ours = native.native_marcher()
     for name in dir(ours):
