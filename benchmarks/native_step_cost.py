@@ -1,7 +1,8 @@
 """What a change to recon's native code costs a CPU training step: this checkout's against another revision's build
-of recon/nerf/march.c (`--against REV`), or against handing every slice of a native call to the thread pool and
+of recon/nerf/march.c (`--against REV`), against handing every slice of a native call to the thread pool and
 waiting for all of them (`--against pool-map`, how `recon.nerf.native._in_slices` shared them before the calling
-thread took slices too).
+thread took slices too), or against reading the density levels again for the loss (`--against reads-again`, as
+before the march's densities were the loss's: `FastModel._marched_sigma`).
 
     python benchmarks/native_step_cost.py --scene ~/.cache/recon/bench/lego-half-fast --against 07fed61 \\
         --out benchmarks/results/lego_half_native_adam_step_cost.json
@@ -9,7 +10,7 @@ thread took slices too).
 Two trainings are built as the train stage builds them (`recon.plans.training`) on the scene's 02_scene and take
 `--warmup` steps each; then they take turns (step_cost.py's `take_turns`), `--rounds` rounds of `--block` steps, the
 second's turns with the other library (REV's march.c built with recon's flags for this CPU; its functions must take
-the same arguments) or the other slicing. The record gives each one's ms a step and the ratio, the sliced native
+the same arguments), the other slicing or the second read. The record gives each one's ms a step and the ratio, the sliced native
 calls a step. Both compute the same values (tests/test_native_march.py, tests/test_masked_adam.py); their
 trainings draw rays from one random stream in turns, so they do not end equal. A measurement: it asserts nothing.
 """
@@ -65,9 +66,10 @@ def library_of(rev: str, folder: Path) -> ctypes.CDLL:
 def main(argv: list[str] | None = None) -> int:
     import recon.nerf.native as native
     from recon.atomic import write_json_atomic
+    from recon.nerf.fast import FastModel
 
     parser = step_parser(__doc__)
-    parser.add_argument("--against", required=True, help="a git revision, or pool-map")
+    parser.add_argument("--against", required=True, help="a git revision, pool-map or reads-again")
     turn_arguments(parser, warmup=300)
     args = parser.parse_args(argv)
     row = scene_row("native_step_cost", args)
@@ -77,7 +79,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: the native library is not loaded here ({native.native_status()})", file=sys.stderr)
         return 2
     calls = {"n": 0}
-    slicer, library = native._in_slices, native.native_marcher
+    slicer, library, marched = native._in_slices, native.native_marcher, FastModel._marched_sigma
 
     def counted(slices: Callable[[int, Callable[[int, int], T]], list[T]]) -> Callable[..., list[T]]:
         def call(n: int, fn: Callable[[int, int], T]) -> list[T]:
@@ -86,18 +88,21 @@ def main(argv: list[str] | None = None) -> int:
         return call
 
     with tempfile.TemporaryDirectory() as tmp:
+        ours: dict[tuple[Any, str], Any] = {(native, "_in_slices"): counted(slicer),
+                                            (native, "native_marcher"): library, (FastModel, "_marched_sigma"): marched}
         if args.against == "pool-map":
-            other: dict[str, Any] = {"_in_slices": counted(pool_map)}
+            other: dict[tuple[Any, str], Any] = {(native, "_in_slices"): counted(pool_map)}
+        elif args.against == "reads-again":
+            other = {(FastModel, "_marched_sigma"): lambda self, sigma, u: None}
         else:
             base = library_of(args.against, Path(tmp))
-            other = {"native_marcher": lambda: base}
-        settings = {"this checkout": {"_in_slices": counted(slicer), "native_marcher": library},
-                    args.against: {"_in_slices": counted(slicer), "native_marcher": library, **other}}
+            other = {(native, "native_marcher"): lambda: base}
+        settings = {"this checkout": ours, args.against: {**ours, **other}}
         runs = []
         for value, names in settings.items():
             def enter(names=names) -> None:
-                for name, fn in names.items():
-                    setattr(native, name, fn)
+                for (owner, name), fn in names.items():
+                    setattr(owner, name, fn)
 
             enter()
             step, plan, device = build_step(args.scene, args.preset, args.set)
@@ -108,7 +113,7 @@ def main(argv: list[str] | None = None) -> int:
             calls["n"] = 0
             take_turns(runs, args.rounds, args.block, lambda: None)
         finally:
-            native._in_slices, native.native_marcher = slicer, library
+            native._in_slices, native.native_marcher, FastModel._marched_sigma = slicer, library, marched
     row.update({"against": args.against, "device": str(device), "batch_rays": plan.batch_rays,
                 "warmup": args.warmup, "rounds": args.rounds, "block": args.block, "threads": torch.get_num_threads(),
                 "values": turn_rows(runs),

@@ -73,6 +73,55 @@ def test_native_march_keeps_the_torch_marchers_samples(levels: int, activation: 
 
 
 @needs_native
+@pytest.mark.parametrize("levels,activation", [(3, "softplus"), (1, "trunc_exp"), (3, "trunc_exp")])
+def test_a_training_step_on_the_marchs_densities_equals_one_that_reads_them_again(
+        levels: int, activation: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The march's densities and points stand for the loss's (FastModel._marched_sigma): the same rendering and the
+    same gradients in every level and the colour grid as reading the levels again (FastModel._sigma_unit), including
+    where trunc_exp is clamped and its gradient is 0."""
+    model = _ball_model(levels, activation).train()
+    o, d, tn, tf = _rays(model, 32)
+    if activation == "trunc_exp":  # past exp's clamp (raw 15) just inside the ball's surface
+        with torch.no_grad():
+            table = model._density_levels()[0].table
+            table.add_(25.0 * (table > 0))
+            sigma = native.march_dense_native(o, d, tn, tf, False, model._dense_density(), model.step_size, 1024, 1e-3)[3]
+        assert 0 < int((model._activation_slope(sigma) == 0).sum()) < sigma.numel()
+    weights = torch.rand(o.shape[0], 3, generator=torch.Generator().manual_seed(2))
+    runs = []
+    for reads_again in (False, True):
+        if reads_again:
+            monkeypatch.setattr(FastModel, "_marched_sigma", lambda self, sigma, u: None)
+        model.zero_grad(set_to_none=True)
+        torch.manual_seed(4)
+        out = model.render_rays(o, d, tn, tf, training=True, background=torch.ones(3))
+        ((out["rgb"] * weights).sum() + out["depth"].sum()).backward()
+        tables = [g.table for g in model._density_levels()] + [model.color_grid.table]
+        runs.append((out, [t.grad.clone() for t in tables]))
+    (marched, marched_grads), (again, again_grads) = runs
+    assert marched["num_samples"] == again["num_samples"] > o.shape[0] // 4
+    assert marched["density_evals"] == marched["num_samples"] < again["density_evals"]
+    for key in ("rgb", "depth", "opacity"):
+        torch.testing.assert_close(marched[key], again[key], atol=1e-4, rtol=1e-4)
+    assert all(float(g.abs().sum()) > 0 for g in marched_grads)
+    for a, b in zip(marched_grads, again_grads):
+        torch.testing.assert_close(a, b, atol=1e-4 * float(b.abs().max()), rtol=1e-3)
+
+
+@needs_native
+def test_the_march_hands_back_its_points_in_the_grids_unit_cube() -> None:
+    model = _ball_model(3, "softplus")
+    o, d, tn, tf = _rays(model)
+    torch.manual_seed(3)
+    with torch.no_grad():
+        ts, te, ri, _, u = native.march_dense_native(o, d, tn, tf, True, model._dense_density(), model.step_size, 1024,
+                                                     1e-3, points=True)
+    assert ri.numel() > o.shape[0]
+    torch.testing.assert_close(u, model._unit(o[ri] + d[ri] * (0.5 * (ts + te))[:, None]).clamp(0.0, 1.0),
+                               atol=1e-6, rtol=0.0)
+
+
+@needs_native
 def test_native_render_equals_the_torch_render() -> None:
     model = _ball_model(3, "softplus")
     o, d, tn, tf = _rays(model, 48)

@@ -44,7 +44,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from recon.nerf.contraction import contract, contracted_distance
-from recon.nerf.grid import DenseGrid, HashGrid, MultiDenseGrid, VMGrid, resample_dense
+from recon.nerf.grid import DenseGrid, HashGrid, MultiDenseGrid, VMGrid, add_native_grad, resample_dense
 from recon.nerf.kernels import (
     accumulate_packed_triton,
     composite_packed_triton,
@@ -53,7 +53,7 @@ from recon.nerf.kernels import (
     use_triton,
 )
 from recon.nerf.model_config import HASH_BASE_RES, HASH_FEATURES, FastConfig, GridKind, density_grid_dim
-from recon.nerf.native import DenseDensity, march_dense_native, march_render_native
+from recon.nerf.native import DenseDensity, march_dense_native, march_render_native, native_grid_ok
 from recon.nerf.occupancy import OccupancyGrid, density_threshold, march, march_front_to_back
 from recon.nerf.rays import ray_aabb
 from recon.nerf.render import RadianceModel, accumulate_packed, checked_aabb, distortion_packed, render_weights_packed
@@ -194,6 +194,29 @@ def in_slices(fn: Callable[[Tensor, Tensor], Tensor], f: Tensor, d: Tensor) -> T
     for s in range(MLP_SLICE, n, MLP_SLICE):
         out[s : s + MLP_SLICE] = fn(f[s : s + MLP_SLICE], d[s : s + MLP_SLICE])
     return out
+
+
+class _MarchedDensity(torch.autograd.Function):
+    """The densities the native march read at its samples (M,), as differentiable in the density levels as reading
+    them again: forward hands them on, backward takes the activation's slope from the density itself and adds the
+    raw sum's gradient into every level in C (:func:`recon.nerf.grid.add_native_grad`). A training step then reads
+    the levels once a sample, not twice (tests/test_native_march.py holds it to ``FastModel._sigma_unit``)."""
+
+    @staticmethod
+    def forward(ctx, sigma: Tensor, u: Tensor, model: "FastModel", *tables: Tensor) -> Tensor:  # type: ignore[override]
+        ctx.save_for_backward(sigma, u)
+        ctx.model = model
+        return sigma.clone()
+
+    @staticmethod
+    def backward(ctx, g: Tensor) -> tuple[None, ...]:  # type: ignore[override]
+        sigma, u = ctx.saved_tensors
+        model = ctx.model
+        g_raw = (g * model._activation_slope(sigma))[:, None].contiguous()
+        levels = model._density_levels()
+        for level in levels:
+            add_native_grad(level, u, g_raw)
+        return (None, None, None, *(None for _ in levels))
 
 
 def ray_background(
@@ -357,6 +380,28 @@ class FastModel(RadianceModel):
             return F.softplus(raw) * self.density_scale
         return trunc_exp(raw) * self.density_scale
 
+    def _activation_slope(self, sigma: Tensor) -> Tensor:
+        """d sigma / d raw of :meth:`_sigma_unit` from sigma itself: sigma where the exp is not clamped (0 where it
+        is), or the softplus's sigmoid times the scale."""
+        scale = self.density_scale
+        if self.config.density_activation == "softplus":
+            return -torch.expm1(-sigma / scale) * scale
+        return torch.where(sigma < math.exp(15.0) * scale * (1.0 - 1e-6), sigma, 0.0)
+
+    def _density_levels(self) -> list[DenseGrid]:
+        """The density grid's dense levels (empty for other grids)."""
+        grid = self.density_grid
+        return [grid] if isinstance(grid, DenseGrid) else list(grid.grids) if isinstance(grid, MultiDenseGrid) else []
+
+    def _marched_sigma(self, sigma: Tensor, u: Tensor) -> Tensor | None:
+        """The native march's densities at its points u as the loss's (:class:`_MarchedDensity`), or None where the
+        levels do not train in C (the caller reads them again)."""
+        tables = [g.table for g in self._density_levels()]
+        if not tables or not torch.is_grad_enabled() or not all(t.requires_grad for t in tables) \
+                or not native_grid_ok(u, *tables):
+            return None
+        return _MarchedDensity.apply(sigma, u, self, *tables)
+
     def _rgb_unit(self, u: Tensor, d: Tensor) -> Tensor:
         return in_slices(self._rgb_from_features, self.color_grid(self._color_unit(u)), d)
 
@@ -443,11 +488,16 @@ class FastModel(RadianceModel):
                 return self._composite_native(fused, rays_o, rays_d, far, background, colors)
         # the torch contracted marcher has no front-to-back variant: it returns no densities to reuse
         infer = no_grad and not contracted
+        u = marched = None
+        # without gradients for the points (no pose refinement), the C march's densities and points are the loss's
+        points = not (rays_o.requires_grad or rays_d.requires_grad)
         with torch.no_grad():
             native = None
             if field is not None:
                 native = march_dense_native(rays_o, rays_d, t_near, t_far, training, field, step_size, cfg.max_samples,
-                                            cfg.early_stop_transmittance)
+                                            cfg.early_stop_transmittance, points=points)
+                if native is not None and points:
+                    *native, u = native
                 if native is None and use_triton(cfg.kernels, rays_o):  # CUDA: one kernel, one host read
                     native = march_dense_triton(rays_o, rays_d, t_near, t_far, training, field, step_size,
                                                 cfg.max_samples, cfg.early_stop_transmittance)
@@ -468,11 +518,15 @@ class FastModel(RadianceModel):
                 )
         mid = 0.5 * (ts + te)
         delta = te - ts
-        u = None
         if not infer:
-            u = self._unit(rays_o[ri] + rays_d[ri] * mid[:, None]).clamp(0.0, 1.0)
-            evaluated[0] += int(ri.shape[0])
-            sigma = self._sigma_unit(u)
+            if u is not None:
+                marched = self._marched_sigma(sigma, u)
+            if marched is not None:
+                sigma = marched
+            else:
+                u = self._unit(rays_o[ri] + rays_d[ri] * mid[:, None]).clamp(0.0, 1.0)
+                evaluated[0] += int(ri.shape[0])
+                sigma = self._sigma_unit(u)
         fused = use_triton(cfg.kernels, sigma, delta)  # CUDA and train.fast.kernels: one kernel (recon.nerf.kernels)
         if fused:
             weights, _, opacity, depth_sum = composite_packed_triton(sigma, delta, mid, ri, n)

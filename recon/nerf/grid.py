@@ -143,24 +143,29 @@ class _NativeRead(torch.autograd.Function):
     @staticmethod
     def backward(ctx, g: Tensor) -> tuple[None, None, None]:  # type: ignore[override]
         (x01,) = ctx.saved_tensors
-        grid = ctx.grid
-        table = grid.table
-        held, touched = table.grad, touched_blocks(table)
-        if held is not None and held.is_contiguous() and held.dtype == torch.float32 and held.shape == table.shape:
-            flagging = touched.valid_for(held)
-            grid._native_add_grad(x01, g, held, touched.flags if flagging else None)
-            increment_version(held)  # written through a pointer: say so (MaskedAdam keeps only unchanged zero grads)
-            if flagging:
-                touched.vouch(held)
-        else:
-            buffer = grid._grad_buffer
-            if buffer is None or buffer.shape != table.shape or buffer is held:
-                buffer = torch.empty_like(table)
-            grid._grad_buffer = buffer
-            touched.reset(buffer.zero_())  # vouched for: only the C add below writes into it, and flags it
-            grid._native_add_grad(x01, g, buffer, touched.flags)
-            table.grad = buffer if held is None else held + buffer
+        add_native_grad(ctx.grid, x01, g)
         return None, None, None
+
+
+def add_native_grad(grid: "DenseGrid | HashGrid", x01: Tensor, g: Tensor) -> None:
+    """Add the gradient ``g`` (M, C) of the grid's read at x01 (M, 3) to its table's ``.grad``, in C, as
+    :class:`_NativeRead` describes (the backward of every native read of a table, wherever its forward ran)."""
+    table = grid.table
+    held, touched = table.grad, touched_blocks(table)
+    if held is not None and held.is_contiguous() and held.dtype == torch.float32 and held.shape == table.shape:
+        flagging = touched.valid_for(held)
+        grid._native_add_grad(x01, g, held, touched.flags if flagging else None)
+        increment_version(held)  # written through a pointer: say so (MaskedAdam keeps only unchanged zero grads)
+        if flagging:
+            touched.vouch(held)
+    else:
+        buffer = grid._grad_buffer
+        if buffer is None or buffer.shape != table.shape or buffer is held:
+            buffer = torch.empty_like(table)
+        grid._grad_buffer = buffer
+        touched.reset(buffer.zero_())  # vouched for: only the C add below writes into it, and flags it
+        grid._native_add_grad(x01, g, buffer, touched.flags)
+        table.grad = buffer if held is None else held + buffer
 
 
 def _read_in_c(grid: "DenseGrid | HashGrid", x01: Tensor) -> Tensor | None:

@@ -283,6 +283,11 @@ static int64_t march(
                     out_te[m] = te;
                     out_ri[m] = ray_base + r;
                     out_sigma[m] = sigma;
+                    if (out_u) {
+                        out_u[3 * m] = ux;
+                        out_u[3 * m + 1] = uy;
+                        out_u[3 * m + 2] = uz;
+                    }
                 }
                 ++m;
             } else {
@@ -314,19 +319,21 @@ static int64_t march(
     return m;
 }
 
-/* The samples themselves (for training, which evaluates their densities again with gradients). */
+/* The samples themselves, for training: their densities and (when out_u is not NULL) their points in the density
+ * grids' unit cube, which a training step takes as its loss's densities instead of reading the levels again. */
 int64_t recon_march_dense(
     int64_t n_rays, const float *rays_o, const float *rays_d, const float *t_near, const float *t_far,
     const double *jitter, const uint8_t *occupied, int64_t occ_res, const float *occ_lo, const float *occ_hi,
     const uint8_t *blocks, int64_t block, float step, int64_t max_samples, double log_min_t,
     int64_t n_levels, const float *const *tables, const int64_t *level_res, const float *grid_lo, const float *grid_hi,
     float bias, float density_scale, int32_t exp_activation, float sigma_max, float tau_max, int32_t contracted,
-    int64_t capacity, float *out_ts, float *out_te, int64_t *out_ri, float *out_sigma, int64_t ray_base)
+    int64_t capacity, float *out_ts, float *out_te, int64_t *out_ri, float *out_sigma, float *out_u, int64_t ray_base)
 {
     return march(0, n_rays, rays_o, rays_d, t_near, t_far, jitter, occupied, occ_res, occ_lo, occ_hi, blocks, block,
                  step, max_samples,
                  log_min_t, n_levels, tables, level_res, grid_lo, grid_hi, bias, density_scale, exp_activation,
-                 sigma_max, tau_max, contracted, capacity, out_ts, out_te, out_ri, out_sigma, ray_base, 0.0f, 0, 0, 0, 0, 0);
+                 sigma_max, tau_max, contracted, capacity, out_ts, out_te, out_ri, out_sigma, ray_base, 0.0f, 0, 0, 0,
+                 out_u, 0);
 }
 
 /* Compositing too, for rendering without gradients: per-ray opacity, weighted depth and sample count, and the

@@ -144,7 +144,7 @@ def native_marcher() -> ctypes.CDLL | None:
     lib.recon_march_dense.restype = i64
     i32 = ctypes.c_int32
     field = [p, i64, p, p, p, i64, f32, i64, ctypes.c_double, i64, p, p, p, p, f32, f32, i32, f32, f32, i32]
-    lib.recon_march_dense.argtypes = [i64, p, p, p, p, p, *field, i64, p, p, p, p, i64]
+    lib.recon_march_dense.argtypes = [i64, p, p, p, p, p, *field, i64, p, p, p, p, p, i64]
     lib.recon_march_render.restype = i64
     lib.recon_march_render.argtypes = [i64, p, p, p, p, *field, i64, p, p, p, i64, f32, p, p, p]
     lib.recon_trilinear_features.restype = None
@@ -246,15 +246,16 @@ def _rays_args(lo: int, hi: int, *per_ray: Tensor | None) -> list:
 
 def march_dense_native(
     rays_o: Tensor, rays_d: Tensor, t_near: Tensor, t_far: Tensor, jitter: bool, field: DenseDensity,
-    step_size: float, max_samples: int, min_transmittance: float,
-) -> tuple[Tensor, Tensor, Tensor, Tensor] | None:
+    step_size: float, max_samples: int, min_transmittance: float, points: bool = False,
+) -> tuple[Tensor, ...] | None:
     """:func:`recon.nerf.occupancy.march_front_to_back` with the fast model's dense density, natively; None when
     the library is not available or the tensors are not float32 on the CPU (the caller then marches in torch).
 
     jitter: offset each ray's steps by one uniform draw per ray, drawn as the torch marcher draws it (float32 for
     bounded steps, float64 for contracted ones; only when this marcher runs, so a fallback draws the same numbers).
     A contracted field's reference is :func:`recon.nerf.occupancy.march` with ``contracted=True`` and a ``sigma_fn``.
-    Returns t_starts, t_ends, ray_indices, sigma (M,), sorted by ray and along each ray.
+    Returns t_starts, t_ends, ray_indices, sigma (M,), sorted by ray and along each ray; with ``points``, also each
+    sample's midpoint in the density grids' unit cube (M, 3), clamped to it, where its density was read.
     """
     if not field.runnable(rays_o, rays_d, t_near, t_far):
         return None
@@ -267,13 +268,14 @@ def march_dense_native(
 
     def run(lo: int, hi: int, capacity: int) -> tuple[int, list[Tensor]]:
         out = [torch.empty(capacity), torch.empty(capacity), torch.empty(capacity, dtype=torch.long), torch.empty(capacity)]
+        if points:
+            out.append(torch.empty(capacity, 3))
         m = lib.recon_march_dense(hi - lo, *_rays_args(lo, hi, rays_o, rays_d, t_near, t_far, jit), *common,
-                                  capacity, *(t.data_ptr() for t in out), lo)
+                                  capacity, *(t.data_ptr() for t in out[:4]), out[4].data_ptr() if points else None, lo)
         return m, out
 
     parts = _in_slices(rays_o.shape[0], lambda lo, hi: _fitted(run, lo, hi, 48))
-    ts, te, ri, sigma = (torch.cat(x) for x in zip(*parts))
-    return ts, te, ri, sigma
+    return tuple(torch.cat(x) for x in zip(*parts))
 
 
 def march_render_native(
