@@ -1,8 +1,11 @@
 """What a change to recon's native code costs a CPU training step: this checkout's against another revision's build
 of recon/nerf/march.c (`--against REV`), against handing every slice of a native call to the thread pool and
 waiting for all of them (`--against pool-map`, how `recon.nerf.native._in_slices` shared them before the calling
-thread took slices too), or against reading the density levels again for the loss (`--against reads-again`, as
-before the march's densities were the loss's: `FastModel._marched_sigma`).
+thread took slices too), against reading the density levels again for the loss (`--against reads-again`, as
+before the march's densities were the loss's: `FastModel._marched_sigma`), or against a dense grid's backward on
+one thread (`--against serial-backward`, as before it took a part a thread: `trilinear_backward_native`), or
+against the library's parts on threads of recon's instead of OpenMP's (`--against python-threads`, as before
+march.c was built with OpenMP: `_parallel_in_c`).
 
     python benchmarks/native_step_cost.py --scene ~/.cache/recon/bench/lego-half-fast --against 07fed61 \\
         --out benchmarks/results/lego_half_native_adam_step_cost.json
@@ -10,7 +13,7 @@ before the march's densities were the loss's: `FastModel._marched_sigma`).
 Two trainings are built as the train stage builds them (`recon.plans.training`) on the scene's 02_scene and take
 `--warmup` steps each; then they take turns (step_cost.py's `take_turns`), `--rounds` rounds of `--block` steps, the
 second's turns with the other library (REV's march.c built with recon's flags for this CPU; its functions must take
-the same arguments), the other slicing or the second read. The record gives each one's ms a step and the ratio, the sliced native
+the same arguments), the other slicing, the second read, the one-thread backward or recon's threads. The record gives each one's ms a step and the ratio, the sliced native
 calls a step. Both compute the same values (tests/test_native_march.py, tests/test_masked_adam.py); their
 trainings draw rays from one random stream in turns, so they do not end equal. A measurement: it asserts nothing.
 """
@@ -46,6 +49,17 @@ def pool_map(n: int, fn: Callable[[int, int], T]) -> list[T]:
     return list(_thread_pool(workers).map(fn, bounds[:-1], bounds[1:]))
 
 
+def serial_backward(x01: torch.Tensor, grad_out: torch.Tensor, res: int, out: torch.Tensor, accumulate: bool,
+                    touched: torch.Tensor | None) -> torch.Tensor:
+    """`recon.nerf.native.trilinear_backward_native` into a grid's gradient, all of it as one part on this thread."""
+    from recon.nerf.native import _flags_pointer, native_marcher
+
+    x01, grad_out = x01.detach().contiguous(), grad_out.detach().contiguous()
+    native_marcher().recon_trilinear_backward(x01.shape[0], x01.data_ptr(), grad_out.data_ptr(), res,
+                                              grad_out.shape[1], out.data_ptr(), _flags_pointer(touched, out), 0, 1)
+    return out
+
+
 def library_of(rev: str, folder: Path) -> ctypes.CDLL:
     """REV's march.c, built as recon builds this checkout's (`recon.nerf.native`), its functions' signatures set."""
     import recon.nerf.native as native
@@ -69,7 +83,7 @@ def main(argv: list[str] | None = None) -> int:
     from recon.nerf.fast import FastModel
 
     parser = step_parser(__doc__)
-    parser.add_argument("--against", required=True, help="a git revision, pool-map or reads-again")
+    parser.add_argument("--against", required=True, help="a git revision, pool-map, reads-again, serial-backward or python-threads")
     turn_arguments(parser, warmup=300)
     args = parser.parse_args(argv)
     row = scene_row("native_step_cost", args)
@@ -79,7 +93,10 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: the native library is not loaded here ({native.native_status()})", file=sys.stderr)
         return 2
     calls = {"n": 0}
+    import recon.nerf.grid as grid
+
     slicer, library, marched = native._in_slices, native.native_marcher, FastModel._marched_sigma
+    backward, in_c = grid.trilinear_backward_native, native._parallel_in_c
 
     def counted(slices: Callable[[int, Callable[[int, int], T]], list[T]]) -> Callable[..., list[T]]:
         def call(n: int, fn: Callable[[int, int], T]) -> list[T]:
@@ -89,11 +106,16 @@ def main(argv: list[str] | None = None) -> int:
 
     with tempfile.TemporaryDirectory() as tmp:
         ours: dict[tuple[Any, str], Any] = {(native, "_in_slices"): counted(slicer),
-                                            (native, "native_marcher"): library, (FastModel, "_marched_sigma"): marched}
+                                            (native, "native_marcher"): library, (FastModel, "_marched_sigma"): marched,
+                                            (grid, "trilinear_backward_native"): backward, (native, "_parallel_in_c"): in_c}
         if args.against == "pool-map":
             other: dict[tuple[Any, str], Any] = {(native, "_in_slices"): counted(pool_map)}
         elif args.against == "reads-again":
             other = {(FastModel, "_marched_sigma"): lambda self, sigma, u: None}
+        elif args.against == "serial-backward":
+            other = {(grid, "trilinear_backward_native"): serial_backward}
+        elif args.against == "python-threads":
+            other = {(native, "_parallel_in_c"): lambda lib: False}
         else:
             base = library_of(args.against, Path(tmp))
             other = {(native, "native_marcher"): lambda: base}
@@ -114,6 +136,7 @@ def main(argv: list[str] | None = None) -> int:
             take_turns(runs, args.rounds, args.block, lambda: None)
         finally:
             native._in_slices, native.native_marcher, FastModel._marched_sigma = slicer, library, marched
+            grid.trilinear_backward_native, native._parallel_in_c = backward, in_c
     row.update({"against": args.against, "device": str(device), "batch_rays": plan.batch_rays,
                 "warmup": args.warmup, "rounds": args.rounds, "block": args.block, "threads": torch.get_num_threads(),
                 "values": turn_rows(runs),

@@ -153,6 +153,89 @@ def test_native_features_equal_the_gather_at_cells_faces_and_corners() -> None:
     assert torch.equal(got, direct)
 
 
+@needs_native
+@pytest.mark.parametrize("channels", [1, 12])
+def test_the_c_backward_in_parts_adds_the_same_sums_as_in_one(channels: int) -> None:
+    """Each part of the dense backward adds into x-planes of its own: split over any number of parts (threads) the
+    gradient and the flagged blocks are the one part's bit for bit, and both the torch gather's gradient."""
+    from recon.nerf.grid import trilinear_torch
+
+    torch.manual_seed(2)
+    res, n = 9, 5000
+    x = torch.cat([torch.rand(n - 2, 3), torch.tensor([[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]])])
+    g = torch.randn(n, channels)
+    lib = native.native_marcher()
+    results = []
+    for parts in (1, 2, 3):
+        grad, flags = torch.zeros(res**3, channels), torch.zeros(native.adam_blocks(res**3 * channels), dtype=torch.uint8)
+        for part in range(parts):
+            lib.recon_trilinear_backward(n, x.data_ptr(), g.data_ptr(), res, channels, grad.data_ptr(),
+                                         flags.data_ptr(), part, parts)
+        results.append((grad, flags))
+    for grad, flags in results[1:]:
+        assert torch.equal(grad, results[0][0]) and torch.equal(flags, results[0][1])
+    table = torch.zeros(res**3, channels, requires_grad=True)
+    (trilinear_torch(x, table, res) * g).sum().backward()
+    torch.testing.assert_close(results[0][0], table.grad, atol=1e-4, rtol=1e-5)
+    threads = torch.get_num_threads()
+    try:
+        torch.set_num_threads(2)  # the wrapper splits n = 5000 points over two threads
+        assert torch.equal(native.trilinear_backward_native(x, g, res), results[0][0])
+    finally:
+        torch.set_num_threads(threads)
+
+
+@needs_native
+def test_the_openmp_parts_compute_what_recons_own_threads_do(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A library built with OpenMP runs each call's parts on OpenMP's threads in one call (the `_all` entry points);
+    without, recon splits them over threads of its own. Both give the same results bit for bit, including a march
+    whose slices overflow their first guess of samples a ray and are marched again."""
+    from recon.nerf.grid import HashGrid
+    from recon.nerf.masked_adam import adam_blocks
+
+    if not native._parallel_in_c(native.native_marcher()):
+        pytest.skip("march.c was built without OpenMP here")
+    model = _ball_model(3, "softplus")
+    with torch.no_grad():  # a faint field: rays march through it, far beyond 48 samples
+        for level in model._density_levels():
+            level.table.mul_(0.02)
+    model.occupancy.update(model.density, 100)
+    o, d, tn, tf = _rays(model, 48)
+    field, step = model._dense_density(), model.step_size / 6
+    torch.manual_seed(0)
+    x, hash_grid = torch.rand(6000, 3), HashGrid(levels=4, features=2, log2_table=12, base_res=4, max_res=64)
+    g_dense, g_hash = torch.randn(6000, 12), torch.randn(6000, 8)
+    n = 200_000
+    param, grad = torch.randn(n), torch.randn(n)
+
+    def every_call() -> list[torch.Tensor]:
+        torch.manual_seed(3)
+        marched = native.march_dense_native(o, d, tn, tf, True, field, step, 1024, 1e-3, points=True)
+        rendered = native.march_render_native(o, d, tn, tf, field, step, 1024, 1e-3, 0.0)
+        dense_grad, hash_grad = torch.zeros_like(model.color_grid.table), torch.zeros_like(hash_grid.table)
+        model.color_grid._native_add_grad(x, g_dense, dense_grad, None)
+        hash_grid._native_add_grad(x, g_hash, hash_grad, None)
+        adam = [param.clone(), grad.clone(), torch.zeros(n), torch.zeros(n)]
+        flags = (torch.arange(adam_blocks(n)) % 3 == 0).to(torch.uint8)
+        assert native.adam_native(*adam, beta1=0.9, beta2=0.999, step_size=0.01, bias2_sqrt=0.5, eps=1e-8, masked=True,
+                                  clear=True, touched=flags)
+        return [*marched, *rendered.values(), model.color_grid._native_read(x), hash_grid._native_read(x), dense_grad,
+                hash_grad, *adam, flags]
+
+    threads = torch.get_num_threads()
+    try:
+        torch.set_num_threads(2)
+        in_c = every_call()
+        monkeypatch.setattr(native, "_parallel_in_c", lambda lib: False)
+        ours = every_call()
+    finally:
+        torch.set_num_threads(threads)
+    assert int(torch.bincount(in_c[2]).max()) > 48 and int(torch.bincount(in_c[7]).max()) > 24  # marched again
+    assert len(in_c) == len(ours)
+    for a, b in zip(in_c, ours):
+        assert torch.equal(a, b)
+
+
 def test_a_failed_build_falls_back_to_torch(monkeypatch: pytest.MonkeyPatch, tmp_path) -> None:
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))  # nothing built here yet
     monkeypatch.setenv("CC", "false")  # a "compiler" that fails
@@ -189,16 +272,18 @@ def test_a_compiler_without_host_flags_gets_the_portable_build(monkeypatch: pyte
     native.native_marcher.cache_clear()
     try:
         assert native.native_marcher() is not None
-        assert "built portable, as the compiler refused -march=native" in native.native_status()
+        status = native.native_status()
+        assert "built portable, as the compiler refused -march=native" in status
+        portable = [*native.CFLAGS, *native.OPENMP_CFLAGS] if "with OpenMP" in status else native.CFLAGS
         built = sorted(p.name for p in (tmp_path / "cache" / "recon" / "native").glob("march-*.so"))
-        assert built == [native._target(native.SOURCE, native.CFLAGS).name]
+        assert built == [native._target(native.SOURCE, portable).name]
     finally:
         native.native_marcher.cache_clear()
     host = [*native.CFLAGS, *native.HOST_CFLAGS]
     here = native._target(native.SOURCE, host)
     monkeypatch.setattr(native, "_cpu_signature", lambda: "model name: another CPU")
     assert native._target(native.SOURCE, host) != here
-    assert native._target(native.SOURCE, native.CFLAGS).name in built  # the portable build is the same anywhere
+    assert native._target(native.SOURCE, portable).name in built  # the portable build is the same anywhere
 
 
 @needs_native

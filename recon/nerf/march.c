@@ -428,32 +428,39 @@ static inline void flag_blocks(uint8_t *touched, int64_t first, int64_t width) {
 
 /* The backward of recon_trilinear_features for the table: grad_table (res³, channels) += each point's upstream
  * gradient grad_out (n, channels) spread over its cell's corners by the trilinear weights; `touched` (or NULL):
- * the blocks added into are flagged. One thread: the scatter is cheaper than the zeroed copy a second thread would
- * need. A density grid's one channel gets its own build of the loop (features_of's reason; with 12 channels that
- * build measured slower). */
+ * the blocks added into are flagged. Part `part` of `parts` adds only into the x-planes ix with ix % parts == part:
+ * the parts run on threads of their own without sharing a value, and every value still takes its points' terms in
+ * their order, so the sums are the same for any number of parts (with two, a cell's two x-planes go one to each).
+ * A density grid's one channel gets its own build of the loop (features_of's reason; with 12 channels that build
+ * measured slower). */
 static inline void backward_of(int64_t n, const float *u, const float *grad_out, int64_t res, const int64_t channels,
-                               float *grad_table, uint8_t *touched)
+                               float *grad_table, uint8_t *touched, int64_t part, int64_t parts)
 {
     int64_t corner[8];
     float w[8];
+    const int64_t plane = res * res * channels;
     for (int64_t i = 0; i < n; ++i) {
         const int64_t first = cell_weights(u + 3 * i, res, channels, corner, w);
+        const int64_t ix = first / plane;
         float *base = grad_table + first;
         const float *g = grad_out + i * channels;
-        for (int k = 0; k < 8; ++k)
-            for (int64_t ch = 0; ch < channels; ++ch) base[corner[k] + ch] += w[k] * g[ch];
-        if (touched)  /* corners 2j and 2j + 1 are neighbouring rows (z): one range each pair */
-            for (int k = 0; k < 8; k += 2) flag_blocks(touched, first + corner[k], 2 * channels);
+        for (int x = 0; x < 2; ++x) { /* corners 4x .. 4x + 3 lie in the x-plane ix + x */
+            if (parts > 1 && (ix + x) % parts != part) continue;
+            for (int k = 4 * x; k < 4 * x + 4; ++k)
+                for (int64_t ch = 0; ch < channels; ++ch) base[corner[k] + ch] += w[k] * g[ch];
+            if (touched)  /* corners 2j and 2j + 1 are neighbouring rows (z): one range each pair */
+                for (int k = 4 * x; k < 4 * x + 4; k += 2) flag_blocks(touched, first + corner[k], 2 * channels);
+        }
     }
 }
 
 void recon_trilinear_backward(int64_t n, const float *u, const float *grad_out, int64_t res, int64_t channels,
-                              float *grad_table, uint8_t *touched)
+                              float *grad_table, uint8_t *touched, int64_t part, int64_t parts)
 {
     if (channels == 1)
-        backward_of(n, u, grad_out, res, 1, grad_table, touched);
+        backward_of(n, u, grad_out, res, 1, grad_table, touched, part, parts);
     else
-        backward_of(n, u, grad_out, res, channels, grad_table, touched);
+        backward_of(n, u, grad_out, res, channels, grad_table, touched, part, parts);
 }
 
 /* The table rows of the eight corners of a hash grid's level (its first row `offset`, `res` vertices a side): the
@@ -576,5 +583,128 @@ void recon_adam(int64_t n, float *restrict param, float *restrict grad, float *r
         }
         if (masked && clear)
             for (int64_t j = 0; j < len; ++j) g[j] = 0.0f;
+    }
+}
+
+/* ------------------------------------------------------------------------------------------------------------------
+ * The `_all` entry points: a native call's parts on OpenMP's threads, in one call from Python. Built with -fopenmp,
+ * this library shares torch's OpenMP runtime (the same libgomp), so its parts run on the threads torch's own
+ * operations left spinning instead of on threads of recon's competing with them for the cores; built without, the
+ * parts run in order on the calling thread (recon.nerf.native then splits the work over threads of its own). Each
+ * part computes what the same part called alone computes: the results do not depend on the build. */
+
+/* Whether the `_all` entry points below run their parts in parallel (built with OpenMP). */
+int32_t recon_openmp(void)
+{
+#ifdef _OPENMP
+    return 1;
+#else
+    return 0;
+#endif
+}
+
+/* Part s of n items cut into `slices` contiguous slices: [slice_lo(n, s), slice_lo(n, s + 1)). */
+static inline int64_t slice_lo(int64_t n, int64_t s, int64_t slices) { return n * s / slices; }
+
+/* recon_march_dense over `slices` slices of the rays: slice s writes its samples from sample lo * per_ray on (lo its
+ * first ray), at most (hi - lo) * per_ray of them, and its count to counts[s] (a count above that capacity asks the
+ * caller to march that slice again with more room). out_u may be NULL. */
+void recon_march_dense_all(
+    int64_t n_rays, const float *rays_o, const float *rays_d, const float *t_near, const float *t_far,
+    const double *jitter, const uint8_t *occupied, int64_t occ_res, const float *occ_lo, const float *occ_hi,
+    const uint8_t *blocks, int64_t block, float step, int64_t max_samples, double log_min_t,
+    int64_t n_levels, const float *const *tables, const int64_t *level_res, const float *grid_lo, const float *grid_hi,
+    float bias, float density_scale, int32_t exp_activation, float sigma_max, float tau_max, int32_t contracted,
+    int64_t slices, int64_t threads, int64_t per_ray, float *out_ts, float *out_te, int64_t *out_ri, float *out_sigma,
+    float *out_u, int64_t *counts)
+{
+#pragma omp parallel for num_threads(threads) schedule(dynamic, 1)
+    for (int64_t s = 0; s < slices; ++s) {
+        const int64_t lo = slice_lo(n_rays, s, slices), hi = slice_lo(n_rays, s + 1, slices), at = lo * per_ray;
+        counts[s] = recon_march_dense(
+            hi - lo, rays_o + 3 * lo, rays_d + 3 * lo, t_near + lo, t_far + lo, jitter ? jitter + lo : 0, occupied,
+            occ_res, occ_lo, occ_hi, blocks, block, step, max_samples, log_min_t, n_levels, tables, level_res, grid_lo,
+            grid_hi, bias, density_scale, exp_activation, sigma_max, tau_max, contracted, (hi - lo) * per_ray,
+            out_ts + at, out_te + at, out_ri + at, out_sigma + at, out_u ? out_u + 3 * at : 0, lo);
+    }
+}
+
+/* recon_march_render over `slices` slices of the rays, as recon_march_dense_all (the per-ray sums are each ray's). */
+void recon_march_render_all(
+    int64_t n_rays, const float *rays_o, const float *rays_d, const float *t_near, const float *t_far,
+    const uint8_t *occupied, int64_t occ_res, const float *occ_lo, const float *occ_hi,
+    const uint8_t *blocks, int64_t block, float step, int64_t max_samples, double log_min_t,
+    int64_t n_levels, const float *const *tables, const int64_t *level_res, const float *grid_lo, const float *grid_hi,
+    float bias, float density_scale, int32_t exp_activation, float sigma_max, float tau_max, int32_t contracted,
+    int64_t slices, int64_t threads, int64_t per_ray, float *out_u, float *out_w, int64_t *out_ri,
+    float color_min_weight, float *ray_opacity, float *ray_depth, int64_t *ray_samples, int64_t *counts)
+{
+#pragma omp parallel for num_threads(threads) schedule(dynamic, 1)
+    for (int64_t s = 0; s < slices; ++s) {
+        const int64_t lo = slice_lo(n_rays, s, slices), hi = slice_lo(n_rays, s + 1, slices), at = lo * per_ray;
+        counts[s] = recon_march_render(
+            hi - lo, rays_o + 3 * lo, rays_d + 3 * lo, t_near + lo, t_far + lo, occupied, occ_res, occ_lo, occ_hi,
+            blocks, block, step, max_samples, log_min_t, n_levels, tables, level_res, grid_lo, grid_hi, bias,
+            density_scale, exp_activation, sigma_max, tau_max, contracted, (hi - lo) * per_ray, out_u + 3 * at,
+            out_w + at, out_ri + at, lo, color_min_weight, ray_opacity + lo, ray_depth + lo, ray_samples + lo);
+    }
+}
+
+void recon_trilinear_features_all(int64_t n, const float *u, const float *table, int64_t res, int64_t channels,
+                                  float *out, int64_t slices, int64_t threads)
+{
+#pragma omp parallel for num_threads(threads) schedule(dynamic, 1)
+    for (int64_t s = 0; s < slices; ++s) {
+        const int64_t lo = slice_lo(n, s, slices), hi = slice_lo(n, s + 1, slices);
+        recon_trilinear_features(hi - lo, u + 3 * lo, table, res, channels, out + lo * channels);
+    }
+}
+
+/* recon_trilinear_backward's `parts` parts (a thread each). */
+void recon_trilinear_backward_all(int64_t n, const float *u, const float *grad_out, int64_t res, int64_t channels,
+                                  float *grad_table, uint8_t *touched, int64_t parts)
+{
+#pragma omp parallel for num_threads(parts) schedule(static, 1)
+    for (int64_t part = 0; part < parts; ++part)
+        recon_trilinear_backward(n, u, grad_out, res, channels, grad_table, touched, part, parts);
+}
+
+void recon_hash_features_all(int64_t n, const float *u, const float *table, int64_t levels, const int64_t *res,
+                             const int64_t *offset, const int64_t *hashed, int64_t log2_table, int64_t features,
+                             float *out, int64_t slices, int64_t threads)
+{
+#pragma omp parallel for num_threads(threads) schedule(dynamic, 1)
+    for (int64_t s = 0; s < slices; ++s) {
+        const int64_t lo = slice_lo(n, s, slices), hi = slice_lo(n, s + 1, slices);
+        recon_hash_features(hi - lo, u + 3 * lo, table, levels, res, offset, hashed, log2_table, features,
+                            out + lo * levels * features);
+    }
+}
+
+/* recon_hash_backward with the levels dealt out to `parts` parts (a thread each). */
+void recon_hash_backward_all(int64_t n, const float *u, const float *grad_out, int64_t levels, const int64_t *res,
+                             const int64_t *offset, const int64_t *hashed, int64_t log2_table, int64_t features,
+                             int64_t parts, float *grad_table, uint8_t *touched)
+{
+#pragma omp parallel for num_threads(parts) schedule(static, 1)
+    for (int64_t part = 0; part < parts; ++part)
+        recon_hash_backward(n, u, grad_out, levels, res, offset, hashed, log2_table, features, part, parts, grad_table,
+                            touched);
+}
+
+/* recon_adam over `slices` slices of whole blocks, so that each slice's flags start at its own. */
+void recon_adam_all(int64_t n, float *param, float *grad, float *exp_avg, float *exp_avg_sq, float one_minus_beta1,
+                    float beta2, float one_minus_beta2, float step_size, float bias2_sqrt, float eps, int32_t masked,
+                    int32_t clear, uint8_t *touched, int64_t slices, int64_t threads)
+{
+    const int64_t blocks = (n + ADAM_BLOCK - 1) / ADAM_BLOCK;
+#pragma omp parallel for num_threads(threads) schedule(dynamic, 1)
+    for (int64_t s = 0; s < slices; ++s) {
+        const int64_t b = slice_lo(blocks, s, slices), lo = b * ADAM_BLOCK;
+        int64_t hi = slice_lo(blocks, s + 1, slices) * ADAM_BLOCK;
+        if (hi > n) hi = n;
+        if (hi > lo)
+            recon_adam(hi - lo, param + lo, grad + lo, exp_avg + lo, exp_avg_sq + lo, one_minus_beta1, beta2,
+                       one_minus_beta2, step_size, bias2_sqrt, eps, masked, clear, touched ? touched + b : 0);
     }
 }

@@ -8,8 +8,9 @@ so it builds in about a second with ``cc``, for this machine's CPU (its vector i
 it is cached under ``~/.cache/recon`` (``$XDG_CACHE_HOME``) keyed by the source's hash, the flags and the CPU, and
 loaded with ctypes. Nothing depends on it: with no compiler, a failed build, a CUDA
 tensor, or ``RECON_NATIVE=0``, callers use the torch paths, which compute the same samples and values
-(``tests/test_native_march.py`` holds the two together). Rays are split over threads (ctypes releases the GIL),
-one per torch CPU thread. Measurements: docs/profile.md.
+(``tests/test_native_march.py`` holds the two together). Work is split over one thread per torch CPU thread: built
+with OpenMP, on torch's own OpenMP threads within one C call (march.c's `_all` entry points); otherwise on threads of
+recon's, a C call a slice (ctypes releases the GIL). Measurements: docs/profile.md.
 """
 from __future__ import annotations
 
@@ -54,6 +55,11 @@ HOST_CFLAGS = ["-march=native"]
 floats); the same IEEE operations in the same order, so the same results. A compiler that refuses it gets CFLAGS
 alone. Such a build runs only on CPUs like the one it was built on, so the cache key holds the CPU's model and
 feature flags (a home folder shared by several machines keeps one build per kind of CPU)."""
+
+OPENMP_CFLAGS = ["-fopenmp"]
+"""Tried first: the `_all` entry points run their parts on OpenMP's threads, which are torch's (the library links the
+libgomp torch loaded), not on threads of recon's competing with torch's spinning ones for the cores. A compiler
+without OpenMP (Apple's clang) gets the build without, and recon splits the work over threads of its own."""
 
 _status = "not loaded yet"
 BUILT_FOR: dict[str, str] = {}
@@ -107,7 +113,8 @@ def load_c_library(source: Path) -> tuple[ctypes.CDLL | None, str]:
         return None, "RECON_NATIVE=0"
     compiler = next((c for c in (os.environ.get("CC"), "cc", "gcc", "clang") if c and shutil.which(c)), None)
     failed = ""
-    for flags in ([*CFLAGS, *HOST_CFLAGS], CFLAGS):  # for this CPU where the compiler can, else portable
+    # for this CPU and with OpenMP where the compiler can, else without one or both
+    for flags in ([*CFLAGS, *HOST_CFLAGS, *OPENMP_CFLAGS], [*CFLAGS, *HOST_CFLAGS], [*CFLAGS, *OPENMP_CFLAGS], CFLAGS):
         target = _target(source, flags)
         refused = target.with_suffix(".refused")  # a compiler that refused these flags once is not asked again
         if flags != CFLAGS and refused.exists():
@@ -123,8 +130,10 @@ def load_c_library(source: Path) -> tuple[ctypes.CDLL | None, str]:
                         refused.touch()
                     raise
             lib = ctypes.CDLL(str(target))
-            BUILT_FOR[name] = (f"for this CPU with {' '.join(HOST_CFLAGS)}" if flags != CFLAGS else
+            host = all(f in flags for f in HOST_CFLAGS)
+            BUILT_FOR[name] = (f"for this CPU with {' '.join(HOST_CFLAGS)}" if host else
                                f"portable, as the compiler refused {' '.join(HOST_CFLAGS)}")
+            BUILT_FOR[name] += ", with OpenMP" if all(f in flags for f in OPENMP_CFLAGS) else ", without OpenMP"
             return lib, ""
         except (OSError, subprocess.SubprocessError) as exc:
             detail = getattr(exc, "stderr", b"") or b""
@@ -150,13 +159,28 @@ def native_marcher() -> ctypes.CDLL | None:
     lib.recon_trilinear_features.restype = None
     lib.recon_trilinear_features.argtypes = [i64, p, p, i64, i64, p]
     lib.recon_trilinear_backward.restype = None
-    lib.recon_trilinear_backward.argtypes = [i64, p, p, i64, i64, p, p]
+    lib.recon_trilinear_backward.argtypes = [i64, p, p, i64, i64, p, p, i64, i64]
     lib.recon_hash_features.restype = None
     lib.recon_hash_features.argtypes = [i64, p, p, i64, p, p, p, i64, i64, p]
     lib.recon_hash_backward.restype = None
     lib.recon_hash_backward.argtypes = [i64, p, p, i64, p, p, p, i64, i64, i64, i64, p, p]
     lib.recon_adam.restype = None
     lib.recon_adam.argtypes = [i64, p, p, p, p, f32, f32, f32, f32, f32, f32, i32, i32, p]
+    lib.openmp = bool(lib.recon_openmp())
+    lib.recon_march_dense_all.restype = None
+    lib.recon_march_dense_all.argtypes = [i64, p, p, p, p, p, *field, i64, i64, i64, p, p, p, p, p, p]
+    lib.recon_march_render_all.restype = None
+    lib.recon_march_render_all.argtypes = [i64, p, p, p, p, *field, i64, i64, i64, p, p, p, f32, p, p, p, p]
+    lib.recon_trilinear_features_all.restype = None
+    lib.recon_trilinear_features_all.argtypes = [i64, p, p, i64, i64, p, i64, i64]
+    lib.recon_trilinear_backward_all.restype = None
+    lib.recon_trilinear_backward_all.argtypes = [i64, p, p, i64, i64, p, p, i64]
+    lib.recon_hash_features_all.restype = None
+    lib.recon_hash_features_all.argtypes = [i64, p, p, i64, p, p, p, i64, i64, p, i64, i64]
+    lib.recon_hash_backward_all.restype = None
+    lib.recon_hash_backward_all.argtypes = [i64, p, p, i64, p, p, p, i64, i64, i64, p, p]
+    lib.recon_adam_all.restype = None
+    lib.recon_adam_all.argtypes = [i64, p, p, p, p, f32, f32, f32, f32, f32, f32, i32, i32, p, i64, i64]
     _status = (f"native C (recon/nerf/march.c, built {BUILT_FOR.get('recon/nerf/march.c', '')}, cached in "
                f"{_cache_dir()}): rays are marched in C (bounded and "
                "contracted steps), "
@@ -239,6 +263,28 @@ def _fitted(run: Callable[[int, int, int], tuple[int, list[Tensor]]], lo: int, h
     return [t[:m] for t in out]
 
 
+def _march_slices(n: int, per_ray: int, run: Callable[[int, int, int], tuple[int, list[Tensor]]],
+                  run_all: Callable[[int, int, int, Tensor], list[Tensor]]) -> list[list[Tensor]]:
+    """A march's outputs slice by slice (as :func:`_fitted` cuts them): from one ``run_all(slices, threads, per_ray,
+    counts)`` call on OpenMP's threads (each slice written from its first ray times ``per_ray`` on), a slice that
+    needed more room marched again alone; or, in a library without OpenMP, ``run`` over :func:`_in_slices`."""
+    if n == 0 or not _parallel_in_c(native_marcher()):
+        return _in_slices(n, lambda lo, hi: _fitted(run, lo, hi, per_ray))
+    threads = _threads_for(n)
+    slices = 4 * threads if threads > 1 else 1
+    counts = torch.empty(slices, dtype=torch.long)
+    out = run_all(slices, threads, per_ray, counts)
+    parts = []
+    for s, m in enumerate(counts.tolist()):
+        lo, hi = n * s // slices, n * (s + 1) // slices  # march.c's slice_lo
+        if m > (hi - lo) * per_ray:
+            m, again = run(lo, hi, m)
+            parts.append([t[:m] for t in again])
+        else:
+            parts.append([t[lo * per_ray: lo * per_ray + m] for t in out])
+    return parts
+
+
 def _rays_args(lo: int, hi: int, *per_ray: Tensor | None) -> list:
     """Pointers to row ``lo`` of each contiguous per-ray tensor (None stays NULL)."""
     return [None if t is None or hi <= lo else t[lo].data_ptr() for t in per_ray]
@@ -274,7 +320,17 @@ def march_dense_native(
                                   capacity, *(t.data_ptr() for t in out[:4]), out[4].data_ptr() if points else None, lo)
         return m, out
 
-    parts = _in_slices(rays_o.shape[0], lambda lo, hi: _fitted(run, lo, hi, 48))
+    def run_all(slices: int, threads: int, per_ray: int, counts: Tensor) -> list[Tensor]:
+        capacity = per_ray * rays_o.shape[0]
+        out = [torch.empty(capacity), torch.empty(capacity), torch.empty(capacity, dtype=torch.long), torch.empty(capacity)]
+        if points:
+            out.append(torch.empty(capacity, 3))
+        lib.recon_march_dense_all(rays_o.shape[0], *_rays_args(0, 1, rays_o, rays_d, t_near, t_far, jit), *common,
+                                  slices, threads, per_ray, *(t.data_ptr() for t in out[:4]),
+                                  out[4].data_ptr() if points else None, counts.data_ptr())
+        return out
+
+    parts = _march_slices(rays_o.shape[0], 48, run, run_all)
     return tuple(torch.cat(x) for x in zip(*parts))
 
 
@@ -303,7 +359,14 @@ def march_render_native(
                                    *_rays_args(lo, hi, opacity, depth_sum, samples))
         return m, out
 
-    u, weights, ri = (torch.cat(x) for x in zip(*_in_slices(n, lambda lo, hi: _fitted(run, lo, hi, 24))))
+    def run_all(slices: int, threads: int, per_ray: int, counts: Tensor) -> list[Tensor]:
+        out = [torch.empty(n * per_ray, 3), torch.empty(n * per_ray), torch.empty(n * per_ray, dtype=torch.long)]
+        lib.recon_march_render_all(n, *_rays_args(0, 1, rays_o, rays_d, t_near, t_far), *common, slices, threads,
+                                   per_ray, *(t.data_ptr() for t in out), float(color_min_weight),
+                                   *_rays_args(0, 1, opacity, depth_sum, samples), counts.data_ptr())
+        return out
+
+    u, weights, ri = (torch.cat(x) for x in zip(*_march_slices(n, 24, run, run_all)))
     return {"opacity": opacity, "depth_sum": depth_sum, "samples": samples, "u": u, "weights": weights, "ray_indices": ri}
 
 
@@ -326,7 +389,12 @@ def trilinear_features_native(x01: Tensor, table: Tensor, res: int) -> Tensor | 
         if hi > lo:
             lib.recon_trilinear_features(hi - lo, x01[lo].data_ptr(), table.data_ptr(), res, channels, out[lo].data_ptr())
 
-    _in_slices(x01.shape[0], part)
+    if _parallel_in_c(lib):
+        threads = _threads_for(x01.shape[0])
+        lib.recon_trilinear_features_all(x01.shape[0], x01.data_ptr(), table.data_ptr(), res, channels, out.data_ptr(),
+                                         4 * threads if threads > 1 else 1, threads)
+    else:
+        _in_slices(x01.shape[0], part)
     return out
 
 
@@ -335,15 +403,26 @@ def trilinear_backward_native(x01: Tensor, grad_out: Tensor, res: int, out: Tens
     """The table's gradient (res³, C) of :func:`trilinear_features_native` given the features' gradient (M, C):
     in a new tensor, or written into ``out`` (a contiguous float32 (res³, C) tensor; zeroed first unless
     ``accumulate``, which adds to what it holds). ``touched`` (uint8, a flag per 64 values of the table, or None):
-    the blocks added into are flagged (:class:`recon.nerf.masked_adam.TouchedBlocks`)."""
+    the blocks added into are flagged (:class:`recon.nerf.masked_adam.TouchedBlocks`). A part per thread, each
+    adding into x-planes of its own (march.c's backward_of): the same sums for any number of threads."""
     lib = native_marcher()
     x01, grad_out = x01.detach().contiguous(), grad_out.detach().to(torch.float32).contiguous()
     if out is None:
         grad_table = torch.zeros(res**3, grad_out.shape[1])
     else:
         grad_table = out if accumulate else out.zero_()
-    lib.recon_trilinear_backward(x01.shape[0], x01.data_ptr(), grad_out.data_ptr(), res, grad_out.shape[1],
-                                 grad_table.data_ptr(), _flags_pointer(touched, grad_table))
+    flags, n = _flags_pointer(touched, grad_table), x01.shape[0]
+    parts = _threads_for(n)
+    if _parallel_in_c(lib):
+        lib.recon_trilinear_backward_all(n, x01.data_ptr(), grad_out.data_ptr(), res, grad_out.shape[1],
+                                         grad_table.data_ptr(), flags, parts)
+        return grad_table
+
+    def part(i: int) -> None:
+        lib.recon_trilinear_backward(n, x01.data_ptr(), grad_out.data_ptr(), res, grad_out.shape[1],
+                                     grad_table.data_ptr(), flags, i, parts)
+
+    _on_threads(parts, parts, part)
     return grad_table
 
 
@@ -364,7 +443,13 @@ def hash_features_native(x01: Tensor, table: Tensor, levels: Tensor, log2_table:
                                     levels[1].data_ptr(), levels[2].data_ptr(), log2_table, features,
                                     out[lo].data_ptr())
 
-    _in_slices(x01.shape[0], part)
+    if _parallel_in_c(lib):
+        threads = _threads_for(x01.shape[0])
+        lib.recon_hash_features_all(x01.shape[0], x01.data_ptr(), table.data_ptr(), n_levels, levels[0].data_ptr(),
+                                    levels[1].data_ptr(), levels[2].data_ptr(), log2_table, features, out.data_ptr(),
+                                    4 * threads if threads > 1 else 1, threads)
+    else:
+        _in_slices(x01.shape[0], part)
     return out
 
 
@@ -379,6 +464,11 @@ def hash_backward_native(x01: Tensor, grad_out: Tensor, levels: Tensor, log2_tab
     levels = levels.contiguous()
     n_levels, flags = levels.shape[1], _flags_pointer(touched, out)
     workers = max(1, min(torch.get_num_threads(), n_levels, x01.shape[0] // 1024))
+    if _parallel_in_c(lib):
+        lib.recon_hash_backward_all(x01.shape[0], x01.data_ptr(), grad_out.data_ptr(), n_levels, levels[0].data_ptr(),
+                                    levels[1].data_ptr(), levels[2].data_ptr(), log2_table, out.shape[1], workers,
+                                    out.data_ptr(), flags)
+        return out
 
     def part(first: int) -> None:
         lib.recon_hash_backward(x01.shape[0], x01.data_ptr(), grad_out.data_ptr(), n_levels, levels[0].data_ptr(),
@@ -411,7 +501,11 @@ def adam_native(param: Tensor, grad: Tensor, exp_avg: Tensor, exp_avg_sq: Tensor
             lib.recon_adam(hi - lo, *(t[lo:].data_ptr() for t in flat), 1.0 - beta1, beta2, 1.0 - beta2, step_size,
                            bias2_sqrt, eps, int(masked), int(clear), None if flags is None else flags + lo // ADAM_BLOCK)
 
-    if flags is None:
+    if _parallel_in_c(lib):
+        threads = _threads_for(n)
+        lib.recon_adam_all(n, *(t.data_ptr() for t in flat), 1.0 - beta1, beta2, 1.0 - beta2, step_size, bias2_sqrt,
+                           eps, int(masked), int(clear), flags, 4 * threads if threads > 1 else 1, threads)
+    elif flags is None:
         _in_slices(n, part)
     else:  # slices of whole blocks, so that each slice's flags start at its own
         _in_slices(adam_blocks(n), lambda lo, hi: part(lo * ADAM_BLOCK, min(hi * ADAM_BLOCK, n)))
@@ -434,10 +528,20 @@ def _flags_pointer(touched: Tensor | None, values: Tensor) -> int | None:
 _pool: ThreadPoolExecutor | None = None
 
 
+def _threads_for(n: int) -> int:
+    """Threads for a native call over n items: one per torch CPU thread, none with under 1,024 items to itself."""
+    return max(1, min(torch.get_num_threads(), n // 1024))
+
+
+def _parallel_in_c(lib: ctypes.CDLL) -> bool:
+    """Whether ``lib`` runs its `_all` entry points' parts on OpenMP's threads (march.c built with OpenMP)."""
+    return bool(getattr(lib, "openmp", False))
+
+
 def _in_slices(n: int, fn: Callable[[int, int], T]) -> list[T]:
     """``fn(lo, hi)`` over contiguous slices of ``range(n)`` on one thread per torch CPU thread; results in order.
     Four slices a thread: an image's rays come in rows, and the rows through the object cost the most."""
-    workers = max(1, min(torch.get_num_threads(), n // 1024))
+    workers = _threads_for(n)
     if workers == 1:
         return [fn(0, n)]
     slices = 4 * workers
