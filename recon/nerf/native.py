@@ -403,8 +403,9 @@ def trilinear_backward_native(x01: Tensor, grad_out: Tensor, res: int, out: Tens
     """The table's gradient (res³, C) of :func:`trilinear_features_native` given the features' gradient (M, C):
     in a new tensor, or written into ``out`` (a contiguous float32 (res³, C) tensor; zeroed first unless
     ``accumulate``, which adds to what it holds). ``touched`` (uint8, a flag per 64 values of the table, or None):
-    the blocks added into are flagged (:class:`recon.nerf.masked_adam.TouchedBlocks`). A part per thread, each
-    adding into x-planes of its own (march.c's backward_of): the same sums for any number of threads."""
+    the blocks added into are flagged (:class:`recon.nerf.masked_adam.TouchedBlocks`). With several channels a part
+    per thread, each adding into x-planes of its own (march.c's backward_of): the same sums for any number of
+    threads."""
     lib = native_marcher()
     x01, grad_out = x01.detach().contiguous(), grad_out.detach().to(torch.float32).contiguous()
     if out is None:
@@ -412,7 +413,9 @@ def trilinear_backward_native(x01: Tensor, grad_out: Tensor, res: int, out: Tens
     else:
         grad_table = out if accumulate else out.zero_()
     flags, n = _flags_pointer(touched, grad_table), x01.shape[0]
-    parts = _threads_for(n)
+    # every part passes over every point, so one channel (a density level), where that pass costs about what the
+    # scatter does, stays in one part; with more each part saves its share of the scatter
+    parts = _threads_for(n) if grad_out.shape[1] > 1 else 1
     if _parallel_in_c(lib):
         lib.recon_trilinear_backward_all(n, x01.data_ptr(), grad_out.data_ptr(), res, grad_out.shape[1],
                                          grad_table.data_ptr(), flags, parts)
