@@ -71,7 +71,7 @@ def library_of(rev: str, folder: Path) -> ctypes.CDLL:
     lib = ctypes.CDLL(str(folder / "march.so"))
     ours = native.native_marcher()
     for name in dir(ours):
-        if name.startswith("recon_") and hasattr(getattr(ours, name), "argtypes"):
+        if name.startswith("recon_") and hasattr(getattr(ours, name), "argtypes") and hasattr(lib, name):
             theirs, mine = getattr(lib, name), getattr(ours, name)
             theirs.argtypes, theirs.restype = mine.argtypes, mine.restype
     return lib

@@ -270,8 +270,7 @@ def _march_slices(n: int, per_ray: int, run: Callable[[int, int, int], tuple[int
     needed more room marched again alone; or, in a library without OpenMP, ``run`` over :func:`_in_slices`."""
     if n == 0 or not _parallel_in_c(native_marcher()):
         return _in_slices(n, lambda lo, hi: _fitted(run, lo, hi, per_ray))
-    threads = _threads_for(n)
-    slices = 4 * threads if threads > 1 else 1
+    slices, threads = _slices_for(n)
     counts = torch.empty(slices, dtype=torch.long)
     out = run_all(slices, threads, per_ray, counts)
     parts = []
@@ -390,9 +389,8 @@ def trilinear_features_native(x01: Tensor, table: Tensor, res: int) -> Tensor | 
             lib.recon_trilinear_features(hi - lo, x01[lo].data_ptr(), table.data_ptr(), res, channels, out[lo].data_ptr())
 
     if _parallel_in_c(lib):
-        threads = _threads_for(x01.shape[0])
         lib.recon_trilinear_features_all(x01.shape[0], x01.data_ptr(), table.data_ptr(), res, channels, out.data_ptr(),
-                                         4 * threads if threads > 1 else 1, threads)
+                                         *_slices_for(x01.shape[0]))
     else:
         _in_slices(x01.shape[0], part)
     return out
@@ -447,10 +445,9 @@ def hash_features_native(x01: Tensor, table: Tensor, levels: Tensor, log2_table:
                                     out[lo].data_ptr())
 
     if _parallel_in_c(lib):
-        threads = _threads_for(x01.shape[0])
         lib.recon_hash_features_all(x01.shape[0], x01.data_ptr(), table.data_ptr(), n_levels, levels[0].data_ptr(),
                                     levels[1].data_ptr(), levels[2].data_ptr(), log2_table, features, out.data_ptr(),
-                                    4 * threads if threads > 1 else 1, threads)
+                                    *_slices_for(x01.shape[0]))
     else:
         _in_slices(x01.shape[0], part)
     return out
@@ -505,9 +502,8 @@ def adam_native(param: Tensor, grad: Tensor, exp_avg: Tensor, exp_avg_sq: Tensor
                            bias2_sqrt, eps, int(masked), int(clear), None if flags is None else flags + lo // ADAM_BLOCK)
 
     if _parallel_in_c(lib):
-        threads = _threads_for(n)
         lib.recon_adam_all(n, *(t.data_ptr() for t in flat), 1.0 - beta1, beta2, 1.0 - beta2, step_size, bias2_sqrt,
-                           eps, int(masked), int(clear), flags, 4 * threads if threads > 1 else 1, threads)
+                           eps, int(masked), int(clear), flags, *_slices_for(n))
     elif flags is None:
         _in_slices(n, part)
     else:  # slices of whole blocks, so that each slice's flags start at its own
@@ -534,6 +530,12 @@ _pool: ThreadPoolExecutor | None = None
 def _threads_for(n: int) -> int:
     """Threads for a native call over n items: one per torch CPU thread, none with under 1,024 items to itself."""
     return max(1, min(torch.get_num_threads(), n // 1024))
+
+
+def _slices_for(n: int) -> tuple[int, int]:
+    """(slices, threads) of a native call over n items: four slices a thread (see :func:`_in_slices`)."""
+    threads = _threads_for(n)
+    return (4 * threads if threads > 1 else 1), threads
 
 
 def _parallel_in_c(lib: ctypes.CDLL) -> bool:
