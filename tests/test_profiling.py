@@ -49,6 +49,26 @@ def test_a_grids_backward_in_c_is_a_part_of_its_own() -> None:
     assert attribute(prof).get(native_part, 0) > 0  # its time is counted where it is named
 
 
+@pytest.mark.skipif(native_marcher() is None, reason="the native library did not build here (no cc)")
+def test_the_marched_densities_backward_is_the_grids_part() -> None:
+    """The density levels' C backward behind the march's densities (recon.nerf.fast._MarchedDensity's node) is
+    counted with the grids' native backward, not in 'compositing bwd'."""
+    from recon.nerf.fast import FastConfig, FastModel
+
+    model = FastModel(FastConfig(density_res=32, feature_res=16))
+    u = torch.rand(50_000, 3)
+    with torch.no_grad():
+        sigma = model._sigma_unit(u)
+    prof = torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CPU])
+    with prof:
+        model._marched_sigma(sigma, u).sum().backward()
+    backward = {ev.name: _part(ev) for ev in prof.events()
+                if ev.cpu_parent is None and ev.name.startswith("autograd::engine::evaluate_function")}
+    marched = [name for name in backward if "MarchedDensity" in name]
+    assert marched and all(backward[name] == dict(BACKWARD_KINDS)["MarchedDensity"] for name in marched), backward
+    assert dict(BACKWARD_KINDS)["MarchedDensity"] == dict(BACKWARD_KINDS)["NativeRead"]
+
+
 def test_profile_md_says_where_and_under_what_load_it_ran() -> None:
     """A profile's milliseconds mean nothing without the commit, the CPU and the load they were taken under."""
     from recon.app.profiling import markdown

@@ -34,6 +34,7 @@ BACKWARD_KINDS = (
     ("GridSampler", "density grid bwd"),
     ("GatherInterp", "feature grid bwd"),
     ("NativeRead", "grid bwd (native: density levels + features)"),
+    ("MarchedDensity", "grid bwd (native: density levels + features)"),  # the march's densities, differentiable
     ("Addmm", "MLP bwd"), ("Mm", "MLP bwd"), ("Relu", "MLP bwd"), ("Threshold", "MLP bwd"), ("TBackward", "MLP bwd"),
     ("Sigmoid", "MLP bwd"), ("CatBackward", "MLP bwd"), ("SliceBackward", "MLP bwd"),  # the MLP's slices
 )
