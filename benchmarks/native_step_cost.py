@@ -2,25 +2,27 @@
 of recon/nerf/march.c (`--against REV`), against handing every slice of a native call to the thread pool and
 waiting for all of them (`--against pool-map`, how `recon.nerf.native._in_slices` shared them before the calling
 thread took slices too), against reading the density levels again for the loss (`--against reads-again`, as
-before the march's densities were the loss's: `FastModel._marched_sigma`), or against a dense grid's backward on
+before the march's densities were the loss's: `FastModel._marched_sigma`), against a dense grid's backward on
 one thread (`--against serial-backward`, as before it took a part a thread: `trilinear_backward_native`), or
 against the library's parts on threads of recon's instead of OpenMP's (`--against python-threads`, as before
 march.c was built with OpenMP: `_parallel_in_c`).
 
-    python benchmarks/native_step_cost.py --scene ~/.cache/recon/bench/lego-half-fast --against 07fed61 \\
-        --out benchmarks/results/lego_half_native_adam_step_cost.json
+    python benchmarks/native_step_cost.py --scene ~/.cache/recon/bench/lego-half-fast --against python-threads \\
+        --out benchmarks/results/lego_half_openmp_step_cost.json
 
 Two trainings are built as the train stage builds them (`recon.plans.training`) on the scene's 02_scene and take
 `--warmup` steps each; then they take turns (step_cost.py's `take_turns`), `--rounds` rounds of `--block` steps, the
 second's turns with the other library (REV's march.c built with recon's flags for this CPU; its functions must take
-the same arguments), the other slicing, the second read, the one-thread backward or recon's threads. The record gives each one's ms a step and the ratio, the sliced native
-calls a step. Both compute the same values (tests/test_native_march.py, tests/test_masked_adam.py); their
-trainings draw rays from one random stream in turns, so they do not end equal. A measurement: it asserts nothing.
+the same arguments, or it is refused), the other slicing, the second read, the one-thread backward or recon's
+threads. The record gives each one's ms a step and the ratio, the sliced native calls a step. Both compute the same
+values (tests/test_native_march.py, tests/test_masked_adam.py); their trainings draw rays from one random stream in
+turns, so they do not end equal. A measurement: it asserts nothing.
 """
 from __future__ import annotations
 
 import ctypes
 import os
+import re
 import subprocess
 import sys
 import tempfile
@@ -60,6 +62,11 @@ def serial_backward(x01: torch.Tensor, grad_out: torch.Tensor, res: int, out: to
     return out
 
 
+def prototypes(c_source: str) -> dict[str, str]:
+    """Each exported `recon_*` function of a C source -> its parameter list, whitespace made single spaces."""
+    return {m[1]: " ".join(m[2].split()) for m in re.finditer(r"^\w+\s+(recon_\w+)\(([^)]*)\)", c_source, re.M)}
+
+
 def library_of(rev: str, folder: Path) -> ctypes.CDLL:
     """REV's march.c, built as recon builds this checkout's (`recon.nerf.native`), its functions' signatures set."""
     import recon.nerf.native as native
@@ -67,6 +74,11 @@ def library_of(rev: str, folder: Path) -> ctypes.CDLL:
     source = folder / "march.c"
     source.write_text(subprocess.run(["git", "show", f"{rev}:recon/nerf/march.c"], capture_output=True, text=True,
                                      check=True, cwd=native.SOURCE.parent).stdout)
+    theirs_, ours_ = prototypes(source.read_text()), prototypes(native.SOURCE.read_text())
+    changed = sorted(name for name in theirs_.keys() & ours_.keys() if theirs_[name] != ours_[name])
+    if changed:
+        raise SystemExit(f"error: {rev}'s march.c takes other arguments in {', '.join(changed)}: measure it against "
+                         "a revision whose functions take this checkout's arguments (or run this script at that one)")
     native._build(os.environ.get("CC") or "cc", [*native.CFLAGS, *native.HOST_CFLAGS], source, folder / "march.so")
     lib = ctypes.CDLL(str(folder / "march.so"))
     ours = native.native_marcher()
@@ -78,12 +90,14 @@ def library_of(rev: str, folder: Path) -> ctypes.CDLL:
 
 
 def main(argv: list[str] | None = None) -> int:
+    import recon.nerf.grid as grid
     import recon.nerf.native as native
     from recon.atomic import write_json_atomic
     from recon.nerf.fast import FastModel
 
     parser = step_parser(__doc__)
-    parser.add_argument("--against", required=True, help="a git revision, pool-map, reads-again, serial-backward or python-threads")
+    parser.add_argument("--against", required=True,
+                        help="a git revision, pool-map, reads-again, serial-backward or python-threads")
     turn_arguments(parser, warmup=300)
     args = parser.parse_args(argv)
     row = scene_row("native_step_cost", args)
@@ -93,10 +107,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: the native library is not loaded here ({native.native_status()})", file=sys.stderr)
         return 2
     calls = {"n": 0}
-    import recon.nerf.grid as grid
-
-    slicer, library, marched = native._in_slices, native.native_marcher, FastModel._marched_sigma
-    backward, in_c = grid.trilinear_backward_native, native._parallel_in_c
+    patched = [(native, "_in_slices"), (native, "native_marcher"), (FastModel, "_marched_sigma"),
+               (grid, "trilinear_backward_native"), (native, "_parallel_in_c")]
+    originals = {(owner, name): getattr(owner, name) for owner, name in patched}
 
     def counted(slices: Callable[[int, Callable[[int, int], T]], list[T]]) -> Callable[..., list[T]]:
         def call(n: int, fn: Callable[[int, int], T]) -> list[T]:
@@ -105,9 +118,7 @@ def main(argv: list[str] | None = None) -> int:
         return call
 
     with tempfile.TemporaryDirectory() as tmp:
-        ours: dict[tuple[Any, str], Any] = {(native, "_in_slices"): counted(slicer),
-                                            (native, "native_marcher"): library, (FastModel, "_marched_sigma"): marched,
-                                            (grid, "trilinear_backward_native"): backward, (native, "_parallel_in_c"): in_c}
+        ours = {**originals, (native, "_in_slices"): counted(originals[(native, "_in_slices")])}
         if args.against == "pool-map":
             other: dict[tuple[Any, str], Any] = {(native, "_in_slices"): counted(pool_map)}
         elif args.against == "reads-again":
@@ -135,8 +146,8 @@ def main(argv: list[str] | None = None) -> int:
             calls["n"] = 0
             take_turns(runs, args.rounds, args.block, lambda: None)
         finally:
-            native._in_slices, native.native_marcher, FastModel._marched_sigma = slicer, library, marched
-            grid.trilinear_backward_native, native._parallel_in_c = backward, in_c
+            for (owner, name), fn in originals.items():
+                setattr(owner, name, fn)
     row.update({"against": args.against, "device": str(device), "batch_rays": plan.batch_rays,
                 "warmup": args.warmup, "rounds": args.rounds, "block": args.block, "threads": torch.get_num_threads(),
                 "values": turn_rows(runs),

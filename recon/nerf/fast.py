@@ -568,8 +568,7 @@ class FastModel(RadianceModel):
         grids, with uniform steps (bounded) or contracted ones (unbounded). None where it does not (world steps
         through an unbounded scene, cone steps, other grids: the torch marcher runs)."""
         cfg = self.config
-        grid = self.density_grid
-        levels = [grid] if isinstance(grid, DenseGrid) else list(grid.grids) if isinstance(grid, MultiDenseGrid) else []
+        levels = self._density_levels()
         contracted = cfg.unbounded and cfg.unbounded_steps == "contracted"
         if cfg.unbounded and not contracted or not contracted and cfg.cone_angle > 0 or not levels \
                 or any(g.channels != 1 for g in levels):  # (contracted steps ignore cone_angle, as torch's do)

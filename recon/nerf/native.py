@@ -311,20 +311,21 @@ def march_dense_native(
         jit = torch.rand(rays_o.shape[0], dtype=torch.float64 if field.contracted else torch.float32).double()
     common = field.args(step_size, max_samples, min_transmittance)
 
-    def run(lo: int, hi: int, capacity: int) -> tuple[int, list[Tensor]]:
+    def buffers(capacity: int) -> list[Tensor]:
+        """t_starts, t_ends, ray_indices, sigma (and points) for ``capacity`` samples."""
         out = [torch.empty(capacity), torch.empty(capacity), torch.empty(capacity, dtype=torch.long), torch.empty(capacity)]
-        if points:
-            out.append(torch.empty(capacity, 3))
+        return [*out, torch.empty(capacity, 3)] if points else out
+
+    def run(lo: int, hi: int, capacity: int) -> tuple[int, list[Tensor]]:
+        out = buffers(capacity)
         m = lib.recon_march_dense(hi - lo, *_rays_args(lo, hi, rays_o, rays_d, t_near, t_far, jit), *common,
                                   capacity, *(t.data_ptr() for t in out[:4]), out[4].data_ptr() if points else None, lo)
         return m, out
 
     def run_all(slices: int, threads: int, per_ray: int, counts: Tensor) -> list[Tensor]:
-        capacity = per_ray * rays_o.shape[0]
-        out = [torch.empty(capacity), torch.empty(capacity), torch.empty(capacity, dtype=torch.long), torch.empty(capacity)]
-        if points:
-            out.append(torch.empty(capacity, 3))
-        lib.recon_march_dense_all(rays_o.shape[0], *_rays_args(0, 1, rays_o, rays_d, t_near, t_far, jit), *common,
+        n = rays_o.shape[0]
+        out = buffers(per_ray * n)
+        lib.recon_march_dense_all(n, *_rays_args(0, n, rays_o, rays_d, t_near, t_far, jit), *common,
                                   slices, threads, per_ray, *(t.data_ptr() for t in out[:4]),
                                   out[4].data_ptr() if points else None, counts.data_ptr())
         return out
@@ -351,18 +352,22 @@ def march_render_native(
     common = field.args(step_size, max_samples, min_transmittance)
     opacity, depth_sum, samples = torch.empty(n), torch.empty(n), torch.empty(n, dtype=torch.long)
 
+    def buffers(capacity: int) -> list[Tensor]:
+        """u, weights, ray_indices for ``capacity`` coloured samples."""
+        return [torch.empty(capacity, 3), torch.empty(capacity), torch.empty(capacity, dtype=torch.long)]
+
     def run(lo: int, hi: int, capacity: int) -> tuple[int, list[Tensor]]:
-        out = [torch.empty(capacity, 3), torch.empty(capacity), torch.empty(capacity, dtype=torch.long)]
+        out = buffers(capacity)
         m = lib.recon_march_render(hi - lo, *_rays_args(lo, hi, rays_o, rays_d, t_near, t_far), *common, capacity,
                                    *(t.data_ptr() for t in out), lo, float(color_min_weight),
                                    *_rays_args(lo, hi, opacity, depth_sum, samples))
         return m, out
 
     def run_all(slices: int, threads: int, per_ray: int, counts: Tensor) -> list[Tensor]:
-        out = [torch.empty(n * per_ray, 3), torch.empty(n * per_ray), torch.empty(n * per_ray, dtype=torch.long)]
-        lib.recon_march_render_all(n, *_rays_args(0, 1, rays_o, rays_d, t_near, t_far), *common, slices, threads,
+        out = buffers(n * per_ray)
+        lib.recon_march_render_all(n, *_rays_args(0, n, rays_o, rays_d, t_near, t_far), *common, slices, threads,
                                    per_ray, *(t.data_ptr() for t in out), float(color_min_weight),
-                                   *_rays_args(0, 1, opacity, depth_sum, samples), counts.data_ptr())
+                                   *_rays_args(0, n, opacity, depth_sum, samples), counts.data_ptr())
         return out
 
     u, weights, ri = (torch.cat(x) for x in zip(*_march_slices(n, 24, run, run_all)))
