@@ -9,7 +9,8 @@ import recon.nerf.native as native
 from recon.nerf.fast import FastConfig, FastModel
 from recon.nerf.grid import DenseGrid
 from recon.nerf.occupancy import march_front_to_back
-from recon.nerf.rays import camera_rays, ray_aabb
+from recon.nerf.rays import camera_rays, clip_to_box, ray_aabb, ray_aabb_torch
+from tests.odd_rays import BOX, odd_rays, stacked_batcher
 
 needs_native = pytest.mark.skipif(native.native_marcher() is None, reason=f"native marcher {native.native_status()}")
 
@@ -410,3 +411,49 @@ def test_slices_are_each_computed_once_in_order_and_the_caller_takes_them_when_n
     with pytest.raises(RuntimeError, match="slice failed"):
         native._in_slices(100_000, fails_at_the_third)
     assert len(seen) == 3  # no slice after the error
+
+
+def _same(a: torch.Tensor, b: torch.Tensor) -> bool:
+    """Equal values, NaN where NaN (torch.equal counts NaN unequal)."""
+    return torch.equal(a.isnan(), b.isnan()) and torch.equal(a.nan_to_num(0.0), b.nan_to_num(0.0))
+
+
+@needs_native
+def test_the_c_ray_box_is_the_torch_one_bit_for_bit() -> None:
+    o, d, near, far = odd_rays()
+    fast = native.ray_box_native(o, d, BOX)
+    reference = ray_aabb_torch(o, d, BOX)
+    assert fast is not None and int(reference[2].sum()) > 300  # enough rays meet the box to mean something
+    for a, b in zip(fast, reference, strict=True):
+        assert a.dtype == b.dtype and _same(a, b)
+    assert all(_same(a, b) for a, b in zip(ray_aabb(o, d, BOX), reference, strict=True))  # ray_aabb takes the C pass
+    t_near, t_far = clip_to_box(o, d, near, far, BOX)
+    tn, tf, hit = reference
+    clipped_near = torch.maximum(near, tn)
+    assert _same(t_near, clipped_near)
+    assert _same(t_far, torch.where(hit, torch.minimum(far, tf), clipped_near))
+    # rays that need gradients (pose refinement) keep the torch operations, and their gradients
+    o.requires_grad_(True)
+    assert ray_aabb(o, d, BOX)[0].requires_grad
+
+
+@needs_native
+@pytest.mark.parametrize("box", [True, False])
+def test_a_batch_of_rays_in_c_is_the_torch_batch(box: bool) -> None:
+    batcher = stacked_batcher(box)
+    flat = torch.arange(batcher.n_rays).flip(0)  # every pixel, each photo's first and last among them
+    fast = native.pixel_rays_native(flat, batcher.offsets, batcher._widths, batcher.c2w, batcher.intrinsics,
+                                    batcher.aabb, batcher.near_far)
+    assert fast is not None
+    o, d, near, far, hit, img = fast
+    o_t, d_t, near_t, far_t, hit_t, img_t = batcher._rays_torch(flat)
+    assert torch.equal(img, img_t) and torch.equal(o, o_t)
+    assert img.unique().numel() == 5
+    # the directions to a rounding: torch's matrix product and norm may sum in another order
+    torch.testing.assert_close(d, d_t, rtol=0, atol=3e-7)
+    torch.testing.assert_close(d.norm(dim=-1), torch.ones(flat.shape[0]), rtol=0, atol=3e-7)
+    # where the rays meet the box, to those directions' rounding (a ray grazing an edge may flip: none here)
+    assert torch.equal(hit, hit_t) and 0 < int(hit.sum()) < flat.shape[0] if box else bool(hit.any())
+    torch.testing.assert_close(near, near_t, rtol=2e-6, atol=2e-6)
+    torch.testing.assert_close(far, far_t, rtol=2e-6, atol=2e-6)
+    assert torch.equal(batcher._rays(flat)[5], img_t)  # the batcher takes the C pass

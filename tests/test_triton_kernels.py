@@ -26,9 +26,13 @@ from recon.nerf.kernels import (
     composite_packed_triton,
     distortion_packed_triton,
     hash_levels_triton,
+    pixel_rays_triton,
+    ray_box_triton,
     trilinear_levels_triton,
 )
+from recon.nerf.rays import ray_aabb_torch
 from recon.nerf.render import accumulate_packed, distortion_packed
+from tests.odd_rays import BOX, odd_rays, stacked_batcher
 
 REPO = Path(__file__).resolve().parents[1]
 HAS_TRITON = importlib.util.find_spec("triton") is not None
@@ -380,6 +384,44 @@ def test_march_of_no_rays_and_of_rays_that_miss(device: str, monkeypatch: pytest
 # ----------------------------------------------------------------------------- the interpreter run
 @pytest.mark.skipif(INTERPRETED, reason="this is the interpreter run")
 @pytest.mark.skipif(DEVICE == "cuda", reason="CUDA is here: the kernel cases ran compiled, the code the train stage runs")
+def _same(a: torch.Tensor, b: torch.Tensor) -> bool:
+    """Equal values, NaN where NaN (torch.equal counts NaN unequal)."""
+    return torch.equal(a.isnan(), b.isnan()) and torch.equal(a.nan_to_num(0.0), b.nan_to_num(0.0))
+
+
+def test_ray_box_kernel_is_the_torch_ray_box(device: str) -> None:
+    """Bit for bit: the kernel divides rounded to nearest, as torch does."""
+    o, d, near, far = (x.to(device) for x in odd_rays())
+    box = BOX.to(device)
+    fused = ray_box_triton(o, d, box)
+    reference = ray_aabb_torch(o, d, box)
+    assert int(reference[2].sum()) > 300
+    for a, b in zip(fused, reference, strict=True):
+        assert a.dtype == b.dtype and _same(a, b)
+    t_near, t_far, _ = ray_box_triton(o, d, box, near, far)
+    tn, tf, hit = reference
+    clipped_near = torch.maximum(near, tn)
+    assert _same(t_near, clipped_near)
+    assert _same(t_far, torch.where(hit, torch.minimum(far, tf), clipped_near))
+    assert all(x.shape == (0,) for x in ray_box_triton(o[:0], d[:0], box))
+
+
+@pytest.mark.parametrize("box", [True, False])
+def test_pixel_rays_kernel_makes_the_torch_batch(device: str, box: bool) -> None:
+    batcher = stacked_batcher(box)
+    flat = torch.arange(batcher.n_rays).flip(0)
+    args = [None if t is None else t.to(device) for t in (flat, batcher.offsets, batcher._widths, batcher.c2w,
+                                                          batcher.intrinsics, batcher.aabb, batcher.near_far)]
+    o, d, near, far, hit, img = (x.cpu() for x in pixel_rays_triton(*args))
+    o_t, d_t, near_t, far_t, hit_t, img_t = batcher._rays_torch(flat)
+    assert torch.equal(img, img_t) and torch.equal(o, o_t) and img.unique().numel() == 5
+    # fused multiply-adds in the kernel's rotation: the directions to a rounding
+    torch.testing.assert_close(d, d_t, rtol=0, atol=3e-7)
+    assert torch.equal(hit, hit_t)
+    torch.testing.assert_close(near, near_t, rtol=2e-6, atol=2e-6)
+    torch.testing.assert_close(far, far_t, rtol=2e-6, atol=2e-6)
+
+
 def test_kernels_under_the_interpreter() -> None:
     """This file again with TRITON_INTERPRET=1 in a fresh process: every kernel case on CPU tensors, where no GPU
     compiles them (on an H100 machine, triton 3.6's interpreter failed on numpy 2.5, while the compiled cases passed)."""

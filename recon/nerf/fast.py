@@ -50,12 +50,13 @@ from recon.nerf.kernels import (
     composite_packed_triton,
     distortion_packed_triton,
     march_dense_triton,
+    ray_box_triton,
     use_triton,
 )
 from recon.nerf.model_config import HASH_BASE_RES, HASH_FEATURES, FastConfig, GridKind, density_grid_dim
 from recon.nerf.native import DenseDensity, march_dense_native, march_render_native, native_grid_ok
 from recon.nerf.occupancy import OccupancyGrid, density_threshold, march, march_front_to_back
-from recon.nerf.rays import ray_aabb
+from recon.nerf.rays import clip_to_box
 from recon.nerf.render import RadianceModel, accumulate_packed, checked_aabb, distortion_packed, render_weights_packed
 
 __all__ = ["FastConfig", "FastModel", "sh_encode", "sh_product", "sh_terms", "distortion_loss_packed", "ray_background",
@@ -461,9 +462,10 @@ class FastModel(RadianceModel):
             t_near, t_far = near, far
         else:
             box = self.march_box if self.occupancy.is_warm() else self.aabb
-            tn, tf, hit = ray_aabb(rays_o, rays_d, box)
-            t_near = torch.maximum(near, tn)
-            t_far = torch.where(hit, torch.minimum(far, tf), t_near)
+            if use_triton(cfg.kernels, rays_o, rays_d, near, far) and not rays_o.requires_grad:
+                t_near, t_far, _ = ray_box_triton(rays_o, rays_d, box, near, far)
+            else:
+                t_near, t_far = clip_to_box(rays_o, rays_d, near, far, box)
 
         evaluated = [0]  # density evaluations, for tests and profiles
 

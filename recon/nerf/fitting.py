@@ -18,6 +18,8 @@ from typing import Any, Sequence
 import torch
 from torch import Tensor
 
+from .kernels import pixel_rays_triton, use_triton
+from .native import pixel_rays_native
 from .rays import pixel_rays, ray_aabb
 
 __all__ = ["RayBatcher", "lr_at"]
@@ -54,6 +56,8 @@ class RayBatcher:
             background); the count is in ``n_dropped``.
         seed: seeds the shuffling and random-background generators.
         device: where batches are produced (default: the images' device).
+        kernels: the fast model's ``train.fast.kernels``: on CUDA, "triton" or "auto" make a batch's rays in one
+            Triton kernel where :func:`recon.nerf.kernels.use_triton` takes them (a CPU makes them in C).
 
     Batches (:meth:`next_batch`) are dicts of ``rays_o, rays_d (B, 3)``, ``near, far (B,)``,
     ``rgb (B, 3)`` target, ``background (B, 3)``, ``image (B,)`` (long: which image each ray comes
@@ -74,6 +78,7 @@ class RayBatcher:
         drop_missed: bool = True,
         seed: int = 0,
         device: torch.device | str | None = None,
+        kernels: str = "torch",
     ) -> None:
         imgs = list(images) if not isinstance(images, Tensor) else list(images.unbind(0))
         n = len(imgs)
@@ -98,6 +103,7 @@ class RayBatcher:
                 raise ValueError(f"images contain NaN/inf values (first at flat pixel {first}); fix the inputs")
         sizes = torch.tensor([[im.shape[1], im.shape[0]] for im in imgs], device=self.device)  # (n, 2) = W, H
         self.sizes = sizes
+        self._widths = sizes[:, 0].contiguous()
         self.offsets = torch.cat([torch.zeros(1, dtype=torch.long, device=self.device), torch.cumsum(sizes[:, 0] * sizes[:, 1], 0)])
         self.c2w = c2w[:, :3, :4].to(self.device, torch.float32)
         self.intrinsics = intrinsics.to(self.device, torch.float32)
@@ -117,6 +123,7 @@ class RayBatcher:
         self.background = torch.as_tensor(background, dtype=torch.float32, device=self.device)
         self.random_background = random_background and self.has_alpha
         self.seed = seed
+        self.kernels = kernels
         self.valid: Tensor | None = None
         total = int(self.offsets[-1])
         if self.aabb is not None and drop_missed:
@@ -138,8 +145,20 @@ class RayBatcher:
         """Flat pixel indices (B,) -> the index (B,) long of the image each pixel belongs to."""
         return torch.searchsorted(self.offsets, flat, right=True) - 1
 
-    def _rays(self, flat: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
-        """Flat pixel indices (B,) -> rays_o, rays_d (B, 3), near, far (B,), hit (B,) bool."""
+    def _rays(self, flat: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
+        """Flat pixel indices (B,) -> rays_o, rays_d (B, 3), near, far (B,), hit (B,) bool, image (B,) long; in one C
+        pass on a CPU (`recon.nerf.native.pixel_rays_native`), one Triton kernel on CUDA where ``kernels`` (the fast
+        model's `train.fast.kernels`) takes them (`recon.nerf.kernels.pixel_rays_triton`), else in torch
+        (:meth:`_rays_torch`, their reference)."""
+        args = (flat, self.offsets, self._widths, self.c2w, self.intrinsics, self.aabb, self.near_far)
+        native = pixel_rays_native(*args)
+        if native is not None:
+            return native
+        if use_triton(self.kernels, self.c2w):
+            return pixel_rays_triton(*args)
+        return self._rays_torch(flat)
+
+    def _rays_torch(self, flat: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
         img = self.image_index(flat)
         local = flat - self.offsets[img]
         w = self.sizes[img, 0]
@@ -152,7 +171,7 @@ class RayBatcher:
         else:
             near, far = self.near_far[img, 0], self.near_far[img, 1]
             hit = far > near
-        return o, d, near, far, hit
+        return o, d, near, far, hit, img
 
     def _new_epoch(self) -> None:
         self._epoch_gen_state = self._perm_gen.get_state()
@@ -175,7 +194,7 @@ class RayBatcher:
     def next_batch(self, batch_rays: int) -> dict[str, Tensor]:
         """The next ``batch_rays`` rays of the shuffled epoch (crossing into the next epoch as needed)."""
         flat = self._take(batch_rays)
-        o, d, near, far, _ = self._rays(flat)
+        o, d, near, far, _, img = self._rays(flat)
         px = self.pixels[flat]
         px = px.float() / 255.0 if not px.is_floating_point() else px.float()
         if self.random_background:
@@ -187,7 +206,7 @@ class RayBatcher:
             a = px[:, 3:4]
             rgb = rgb * a + bg * (1.0 - a)
         batch = {"rays_o": o, "rays_d": d, "near": near, "far": far, "rgb": rgb, "background": bg,
-                 "image": self.image_index(flat)}
+                 "image": img}
         if self.empty is not None:
             batch["empty"] = self.empty[flat].float() / 255.0
         return batch

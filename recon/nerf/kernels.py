@@ -16,6 +16,10 @@ forward and one backward (recon/nerf/triton_kernels.py), wrapped as ``torch.auto
 * :func:`trilinear_levels_triton` — the sum of dense grids' trilinear reads at the same points (the density levels,
   or one feature grid), the tables' gradients by atomic adds. Reference: :func:`recon.nerf.grid.trilinear_levels_torch`
   (the torch reads of :class:`recon.nerf.grid.DenseGrid`).
+* :func:`pixel_rays_triton` — a training batch's rays through its pixels and where they meet the scene box, one
+  lane a ray. Reference: :meth:`recon.nerf.fitting.RayBatcher._rays_torch`. :func:`ray_box_triton` — rays met with a
+  box, or their [near, far] clipped to it. Reference: :func:`recon.nerf.rays.ray_aabb_torch`; on a CPU both are
+  passes in C (:func:`recon.nerf.native.pixel_rays_native`, :func:`recon.nerf.native.ray_box_native`).
 * :func:`march_dense_triton` — front-to-back marching through the occupancy grid and the dense density levels, a ray a
   lane, in one kernel launched twice (count, then write) with one host read between. Reference:
   :func:`recon.nerf.occupancy.march_front_to_back` (windows of steps, host reads in each); on a CPU the C marcher
@@ -46,7 +50,8 @@ if TYPE_CHECKING:
 
 __all__ = ["MEASURED_FASTER", "KERNEL_DEVICES", "KernelSetting", "kernels_choice", "triton_status", "use_triton",
            "composite_packed_torch", "composite_packed_triton", "accumulate_packed_triton", "distortion_packed_triton",
-           "trilinear_levels_triton", "hash_levels_triton", "march_dense_triton", "ray_offsets"]
+           "trilinear_levels_triton", "hash_levels_triton", "march_dense_triton", "ray_offsets", "ray_box_triton",
+           "pixel_rays_triton"]
 
 KernelSetting = Literal["auto", "torch", "triton"]
 
@@ -69,6 +74,8 @@ MAX_LEVELS = 4
 """Grid levels one launch reads (more are summed over launches)."""
 MARCH_BLOCK = 32
 """Rays a marching program takes, a ray a lane of one warp: a program loops until its longest ray ends."""
+RAYS_BLOCK = 128
+"""Rays a program makes or meets with the box (a ray a lane, no loop)."""
 LAUNCH: dict[str, Any] = {"enable_fp_fusion": True}
 """Compiler options every launch passes: fused multiply-adds, as the kernels were tested and measured with. Triton
 3.9 warns on the terminal when a launch leaves this unsaid (its default turns to no fusion in 3.10)."""
@@ -424,3 +431,47 @@ def march_dense_triton(rays_o: Tensor, rays_d: Tensor, t_near: Tensor, t_far: Te
         launch(ends - counts, out, True)
     ts, te, ri, sigma = out
     return ts, te, ri, sigma
+
+
+# ----------------------------------------------------------------------------- rays
+def ray_box_triton(rays_o: Tensor, rays_d: Tensor, box: Tensor, near: Tensor | None = None,
+                   far: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
+    """:func:`recon.nerf.rays.ray_aabb_torch` (t_near, t_far, hit (N,)) of rays (N, 3) float32 and a box (2, 3) in one
+    kernel; given near and far (N,), each ray's [near, far] clipped to the box instead (:func:`recon.nerf.rays.
+    clip_to_box`). No gradients."""
+    if rays_o.shape != rays_d.shape or rays_o.dim() != 2 or rays_o.shape[1] != 3 or box.shape != (2, 3):
+        raise ValueError(f"rays (N, 3) and a box (2, 3), got {tuple(rays_o.shape)}, {tuple(rays_d.shape)}, "
+                         f"{tuple(box.shape)}")
+    n = rays_o.shape[0]
+    t_near, t_far = rays_o.new_empty(n), rays_o.new_empty(n)
+    hit = torch.empty(n, dtype=torch.int8, device=rays_o.device)
+    clip = near is not None and far is not None
+    if n:
+        _jit().ray_box_fwd[(-(-n // RAYS_BLOCK),)](
+            rays_o.detach().contiguous(), rays_d.detach().contiguous(), box.detach().to(rays_o).contiguous(),
+            near.detach().contiguous() if clip else t_near, far.detach().contiguous() if clip else t_far,
+            t_near, t_far, hit, n, CLIP=clip, BLOCK=RAYS_BLOCK, **LAUNCH)
+    return t_near, t_far, hit.view(torch.bool)
+
+
+def pixel_rays_triton(flat: Tensor, offsets: Tensor, widths: Tensor, c2w: Tensor, intrinsics: Tensor,
+                      box: Tensor | None, near_far: Tensor | None) -> tuple[Tensor, ...]:
+    """:meth:`recon.nerf.fitting.RayBatcher._rays_torch` in one kernel: flat pixel indices (B,) into photos stacked
+    from ``offsets`` (photos + 1,) on, ``widths`` (photos,) pixels a row, camera-to-world ``c2w`` (photos, 3, 4) and
+    ``intrinsics`` (photos, 4) float32 -> origins, unit directions (B, 3), near, far (B,) (where the rays meet
+    ``box`` (2, 3), else their photo's ``near_far`` (photos, 2)), hit (B,) bool, each ray's photo (B,) long."""
+    if (box is None) == (near_far is None):
+        raise ValueError("give exactly one of box and near_far")
+    b, photos, device = flat.shape[0], c2w.shape[0], c2w.device
+    o, d = torch.empty(b, 3, device=device), torch.empty(b, 3, device=device)
+    near, far = torch.empty(b, device=device), torch.empty(b, device=device)
+    hit = torch.empty(b, dtype=torch.int8, device=device)
+    img = torch.empty(b, dtype=torch.int64, device=device)
+    if b:
+        bounds = box if box is not None else near_far
+        _jit().pixel_rays_fwd[(-(-b // RAYS_BLOCK),)](
+            flat.to(torch.int64).contiguous(), offsets.to(torch.int64).contiguous(),
+            widths.to(torch.int64).contiguous(), c2w[:, :3, :4].contiguous(), intrinsics.contiguous(),
+            bounds.contiguous(), bounds.contiguous(), o, d, near, far, hit, img, b, photos, HAS_BOX=box is not None,
+            BLOCK=RAYS_BLOCK, **LAUNCH)
+    return o, d, near, far, hit.view(torch.bool), img

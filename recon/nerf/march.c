@@ -587,6 +587,87 @@ void recon_adam(int64_t n, float *restrict param, float *restrict grad, float *r
 }
 
 /* ------------------------------------------------------------------------------------------------------------------
+ * A training batch's rays and the box they meet: one pass a ray instead of ~40 tensor operations on a few thousand
+ * rays (the references: recon.nerf.fitting.RayBatcher._rays, recon.nerf.rays.ray_aabb). */
+
+/* NaN-propagating min and max, as torch.minimum, torch.maximum, amin and amax. */
+static inline float min_nan(float a, float b) { const float m = b < a ? b : a; return b != b ? b : m; }
+static inline float max_nan(float a, float b) { const float m = b > a ? b : a; return b != b ? b : m; }
+
+/* recon.nerf.rays.ray_aabb for one ray: the slab method, an axis the ray runs parallel to decided by its origin. */
+static inline uint8_t ray_box(const float *o, const float *d, const float *box, float *t_near, float *t_far)
+{
+    float lo = 0.0f, hi = 0.0f;
+    for (int a = 0; a < 3; ++a) {
+        float l, h;
+        if (d[a] == 0.0f) {
+            const float always = (o[a] >= box[a] && o[a] <= box[3 + a]) ? INFINITY : -INFINITY;
+            l = -always, h = always;
+        } else {
+            const float t0 = (box[a] - o[a]) / d[a], t1 = (box[3 + a] - o[a]) / d[a];
+            l = min_nan(t0, t1), h = max_nan(t0, t1);
+        }
+        lo = a ? max_nan(lo, l) : l, hi = a ? min_nan(hi, h) : h;
+    }
+    lo = max_nan(lo, 0.0f); /* clamp_min(0) */
+    const uint8_t hit = hi > lo;
+    *t_near = hit ? lo : 0.0f, *t_far = hit ? hi : 0.0f;
+    return hit;
+}
+
+/* ray_aabb for n rays o, d (n, 3) and a box (2, 3); hit may be NULL. Given near and far (n,) (not NULL), t_near and
+ * t_far are each ray's [near, far] clipped to the box instead (recon.nerf.fast.FastModel.render_rays: a ray that
+ * misses it gets an empty interval at its near end). */
+void recon_ray_box(int64_t n, const float *o, const float *d, const float *box, const float *near, const float *far,
+                   float *t_near, float *t_far, uint8_t *hit)
+{
+    for (int64_t r = 0; r < n; ++r) {
+        float tn, tf;
+        const uint8_t h = ray_box(o + 3 * r, d + 3 * r, box, &tn, &tf);
+        if (near) {
+            tn = max_nan(near[r], tn);
+            tf = h ? min_nan(far[r], tf) : tn;
+        }
+        t_near[r] = tn, t_far[r] = tf;
+        if (hit) hit[r] = h;
+    }
+}
+
+/* The rays through flat pixel indices into photos stacked one after another (photo k's pixels from offsets[k], row
+ * by row, widths[k] a row): each pixel's photo (out_img) and the ray through its centre (camera-to-world c2w (photos,
+ * 3, 4), OpenGL axes; intrinsics (photos, 4) = fl_x, fl_y, cx, cy) with a unit direction; with a box (2, 3), where
+ * the ray meets it (ray_aabb), else its photo's near and far from near_far (photos, 2). */
+void recon_pixel_rays(int64_t n, const int64_t *flat, int64_t photos, const int64_t *offsets, const int64_t *widths,
+                      const float *c2w, const float *intrinsics, const float *box, const float *near_far,
+                      float *out_o, float *out_d, float *out_near, float *out_far, uint8_t *out_hit, int64_t *out_img)
+{
+    for (int64_t r = 0; r < n; ++r) {
+        const int64_t f = flat[r];
+        int64_t lo = 0; /* the last photo starting at or before f (searchsorted(offsets, f, right) - 1), branch-free */
+        for (int64_t half = photos / 2, len = photos; len > 1; len -= half, half = len / 2)
+            lo = offsets[lo + half] <= f ? lo + half : lo;
+        const int64_t local = f - offsets[lo], w = widths[lo], row = local / w;
+        const float px = (float)(local - row * w) + 0.5f, py = (float)row + 0.5f;
+        const float *k = intrinsics + 4 * lo, *m = c2w + 12 * lo;
+        const float x = (px - k[2]) / k[0], y = -((py - k[3]) / k[1]);
+        float *o = out_o + 3 * r, *d = out_d + 3 * r;
+        for (int a = 0; a < 3; ++a) {
+            o[a] = m[4 * a + 3];
+            d[a] = m[4 * a] * x + m[4 * a + 1] * y - m[4 * a + 2];
+        }
+        const float norm = sqrtf(d[0] * d[0] + d[1] * d[1] + d[2] * d[2]);
+        for (int a = 0; a < 3; ++a) d[a] /= norm;
+        if (box) {
+            out_hit[r] = ray_box(o, d, box, out_near + r, out_far + r);
+        } else {
+            out_near[r] = near_far[2 * lo], out_far[r] = near_far[2 * lo + 1];
+            out_hit[r] = out_far[r] > out_near[r];
+        }
+        out_img[r] = lo;
+    }
+}
+
+/* ------------------------------------------------------------------------------------------------------------------
  * The `_all` entry points: a native call's parts on OpenMP's threads, in one call from Python. Built with -fopenmp,
  * this library shares torch's OpenMP runtime (the same libgomp), so its parts run on the threads torch's own
  * operations left spinning instead of on threads of recon's competing with them for the cores; built without, the

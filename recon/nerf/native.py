@@ -36,7 +36,7 @@ from torch import Tensor
 
 __all__ = ["DenseDensity", "load_c_library", "native_marcher", "native_status", "march_dense_native",
            "march_render_native", "native_grid_ok", "trilinear_features_native", "trilinear_backward_native", "hash_features_native",
-           "hash_backward_native", "adam_native", "ADAM_BLOCK", "adam_blocks"]
+           "hash_backward_native", "adam_native", "ADAM_BLOCK", "adam_blocks", "ray_box_native", "pixel_rays_native"]
 
 ADAM_BLOCK = 64
 """Values an Adam block holds (march.c's ADAM_BLOCK): the C update looks at a block's gradient, or its flag, once."""
@@ -181,6 +181,10 @@ def native_marcher() -> ctypes.CDLL | None:
     lib.recon_hash_backward_all.argtypes = [i64, p, p, i64, p, p, p, i64, i64, i64, p, p]
     lib.recon_adam_all.restype = None
     lib.recon_adam_all.argtypes = [i64, p, p, p, p, f32, f32, f32, f32, f32, f32, i32, i32, p, i64, i64]
+    lib.recon_ray_box.restype = None
+    lib.recon_ray_box.argtypes = [i64, p, p, p, p, p, p, p, p]
+    lib.recon_pixel_rays.restype = None
+    lib.recon_pixel_rays.argtypes = [i64, p, i64, p, p, p, p, p, p, p, p, p, p, p, p]
     _status = (f"native C (recon/nerf/march.c, built {BUILT_FOR.get('recon/nerf/march.c', '')}, cached in "
                f"{_cache_dir()}): rays are marched in C (bounded and "
                "contracted steps), "
@@ -514,6 +518,51 @@ def adam_native(param: Tensor, grad: Tensor, exp_avg: Tensor, exp_avg_sq: Tensor
     else:  # slices of whole blocks, so that each slice's flags start at its own
         _in_slices(adam_blocks(n), lambda lo, hi: part(lo * ADAM_BLOCK, min(hi * ADAM_BLOCK, n)))
     return True
+
+
+def _pointer(t: Tensor | None) -> int | None:
+    return None if t is None else t.data_ptr()
+
+
+def ray_box_native(rays_o: Tensor, rays_d: Tensor, box: Tensor, near: Tensor | None = None,
+                   far: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor] | None:
+    """:func:`recon.nerf.rays.ray_aabb` (t_near, t_far, hit) of rays (N, 3) and a box (2, 3) in one C pass, the same
+    values bit for bit; given near and far (N,), each ray's [near, far] clipped to the box instead (a ray that misses
+    it: empty at near). None unless :func:`native_grid_ok` takes the tensors."""
+    given = [t for t in (near, far) if t is not None]
+    if not native_grid_ok(rays_o, rays_d, box, *given):
+        return None
+    n = rays_o.shape[0]
+    rays_o, rays_d, box = rays_o.detach().contiguous(), rays_d.detach().contiguous(), box.detach().contiguous()
+    near, far = (None if t is None else t.detach().contiguous() for t in (near, far))
+    t_near, t_far, hit = torch.empty(n), torch.empty(n), torch.empty(n, dtype=torch.bool)
+    native_marcher().recon_ray_box(n, rays_o.data_ptr(), rays_d.data_ptr(), box.data_ptr(), _pointer(near),
+                                   _pointer(far), t_near.data_ptr(), t_far.data_ptr(), hit.data_ptr())
+    return t_near, t_far, hit
+
+
+def pixel_rays_native(flat: Tensor, offsets: Tensor, widths: Tensor, c2w: Tensor, intrinsics: Tensor,
+                      box: Tensor | None, near_far: Tensor | None) -> tuple[Tensor, ...] | None:
+    """:meth:`recon.nerf.fitting.RayBatcher._rays` in one C pass: the rays through flat pixel indices (B,) into photos
+    stacked from ``offsets`` (photos + 1,) on, ``widths`` (photos,) pixels a row, with camera-to-world ``c2w``
+    (photos, 3, 4) and ``intrinsics`` (photos, 4): origins and unit directions (B, 3), near, far (B,) (where the
+    rays meet ``box`` (2, 3), else their photo's ``near_far`` (photos, 2)), hit (B,) bool and each ray's photo (B,).
+    The directions agree with the torch code's to a float32 rounding (its matrix product may sum in another order).
+    None unless the library is loaded and the tensors are on the CPU."""
+    floats = [t for t in (c2w, intrinsics, box, near_far) if t is not None]
+    if not native_grid_ok(*floats) or any(t.device.type != "cpu" for t in (flat, offsets, widths)):
+        return None
+    b, photos = flat.shape[0], c2w.shape[0]
+    flat, offsets, widths = (t.to(torch.int64).contiguous() for t in (flat, offsets, widths))
+    c2w, intrinsics = c2w[:, :3, :4].contiguous(), intrinsics.contiguous()
+    box, near_far = (None if t is None else t.contiguous() for t in (box, near_far))
+    o, d, near, far = torch.empty(b, 3), torch.empty(b, 3), torch.empty(b), torch.empty(b)
+    hit, img = torch.empty(b, dtype=torch.bool), torch.empty(b, dtype=torch.int64)
+    native_marcher().recon_pixel_rays(b, flat.data_ptr(), photos, offsets.data_ptr(), widths.data_ptr(),
+                                      c2w.data_ptr(), intrinsics.data_ptr(), _pointer(box), _pointer(near_far),
+                                      o.data_ptr(), d.data_ptr(), near.data_ptr(), far.data_ptr(), hit.data_ptr(),
+                                      img.data_ptr())
+    return o, d, near, far, hit, img
 
 
 def _flags_pointer(touched: Tensor | None, values: Tensor) -> int | None:

@@ -11,8 +11,9 @@ from torch import Tensor
 
 from recon.camera import image_rays
 from recon.camera import pixel_rays as _pixel_rays
+from recon.nerf.native import ray_box_native
 
-__all__ = ["camera_rays", "pixel_rays", "ray_aabb"]
+__all__ = ["camera_rays", "pixel_rays", "ray_aabb", "ray_aabb_torch", "clip_to_box"]
 
 
 def camera_rays(
@@ -78,6 +79,16 @@ def ray_aabb(rays_o: Tensor, rays_d: Tensor, aabb: Tensor) -> tuple[Tensor, Tens
         raise ValueError(f"rays_o and rays_d must both be (N, 3), got {tuple(rays_o.shape)}, {tuple(rays_d.shape)}")
     if aabb.shape != (2, 3):
         raise ValueError(f"aabb must have shape (2, 3), got {tuple(aabb.shape)}")
+    if not (rays_o.requires_grad or rays_d.requires_grad):
+        native = ray_box_native(rays_o, rays_d, aabb.to(rays_o))
+        if native is not None:
+            return native
+    return ray_aabb_torch(rays_o, rays_d, aabb)
+
+
+def ray_aabb_torch(rays_o: Tensor, rays_d: Tensor, aabb: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """:func:`ray_aabb` in torch operations: the reference of the C pass (`recon.nerf.native.ray_box_native`), and
+    the path for CUDA tensors and rays that need gradients."""
     aabb = aabb.to(rays_o)
     parallel = rays_d == 0
     t0, t1 = (aabb[:, None, :] - rays_o) / torch.where(parallel, 1.0, rays_d)  # both slabs' planes in one launch
@@ -89,3 +100,15 @@ def ray_aabb(rays_o: Tensor, rays_d: Tensor, aabb: Tensor) -> tuple[Tensor, Tens
     t_far = hi.amin(dim=-1)
     hit = t_far > t_near
     return torch.where(hit, t_near, 0.0), torch.where(hit, t_far, 0.0), hit
+
+
+def clip_to_box(rays_o: Tensor, rays_d: Tensor, near: Tensor, far: Tensor, box: Tensor) -> tuple[Tensor, Tensor]:
+    """Each ray's [near, far] (N,) clipped to a box (2, 3): (t_near, t_far); a ray that misses the box gets an empty
+    interval at its near end. In one C pass on a CPU (`recon.nerf.native.ray_box_native`, the same values)."""
+    if not (rays_o.requires_grad or rays_d.requires_grad or near.requires_grad or far.requires_grad):
+        native = ray_box_native(rays_o, rays_d, box.to(rays_o), near, far)
+        if native is not None:
+            return native[0], native[1]
+    tn, tf, hit = ray_aabb_torch(rays_o, rays_d, box)
+    t_near = torch.maximum(near, tn)
+    return t_near, torch.where(hit, torch.minimum(far, tf), t_near)

@@ -59,7 +59,7 @@ from recon.nerf.fast import _make_grid, color_from_features, make_color_mlp, ray
 from recon.nerf.grid import MultiDenseGrid, grid_sample_coords
 from recon.nerf.model_config import SurfaceConfig
 from recon.nerf.occupancy import OccupancyGrid, march
-from recon.nerf.rays import ray_aabb
+from recon.nerf.rays import clip_to_box
 from recon.nerf.render import RadianceModel, accumulate_packed, checked_aabb, render_weights_packed
 
 __all__ = ["SurfaceConfig", "SurfaceModel", "neus_tau", "sdf_fd_terms", "eikonal_loss", "boundary_loss", "box_face_points",
@@ -290,9 +290,7 @@ class SurfaceModel(RadianceModel):
         cfg = self.config
         n = rays_o.shape[0]
         box = self.march_box if self.occupancy.is_warm() else self.aabb
-        tn, tf, hit = ray_aabb(rays_o, rays_d, box)
-        t_near = torch.maximum(near, tn)
-        t_far = torch.where(hit, torch.minimum(far, tf), t_near)
+        t_near, t_far = clip_to_box(rays_o, rays_d, near, far, box)
         s = self.sharpness
 
         def sigma_fn(ts: Tensor, te: Tensor, ri: Tensor) -> Tensor:

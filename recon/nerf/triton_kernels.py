@@ -528,3 +528,98 @@ def march_dense(rays_o, rays_d, t_near, t_far, jitter, occupied, occ_box, grid_b
         k = tl.where(tl.max(alive.to(tl.int32), 0) > 0, k + 1, kmax)
     if not WRITE:
         tl.store(counts + r, kept, mask=rm)
+
+
+# ----------------------------------------------------------------------------- rays
+@triton.jit
+def _ray_box(ox, oy, oz, dx, dy, dz, box):
+    """(t_near, t_far, hit) of rays and a box (2, 3): recon.nerf.rays.ray_aabb_torch, its divisions rounded as torch's."""
+    nan = tl.PropagateNan.ALL
+    lo = tl.zeros_like(ox)
+    hi = tl.zeros_like(ox)
+    for a in tl.static_range(3):
+        o = ox if a == 0 else (oy if a == 1 else oz)
+        d = dx if a == 0 else (dy if a == 1 else dz)
+        b0 = tl.load(box + a)
+        b1 = tl.load(box + 3 + a)
+        parallel = d == 0.0
+        dd = tl.where(parallel, 1.0, d)
+        t0 = tl.div_rn(b0 - o, dd)
+        t1 = tl.div_rn(b1 - o, dd)
+        always = tl.where((o >= b0) & (o <= b1), float("inf"), -float("inf"))
+        lo_a = tl.where(parallel, -always, tl.minimum(t0, t1, propagate_nan=nan))
+        hi_a = tl.where(parallel, always, tl.maximum(t0, t1, propagate_nan=nan))
+        if a == 0:
+            lo = lo_a
+            hi = hi_a
+        else:
+            lo = tl.maximum(lo, lo_a, propagate_nan=nan)
+            hi = tl.minimum(hi, hi_a, propagate_nan=nan)
+    lo = tl.maximum(lo, 0.0, propagate_nan=nan)
+    hit = hi > lo
+    return tl.where(hit, lo, 0.0), tl.where(hit, hi, 0.0), hit
+
+
+@triton.jit(do_not_specialize=["N"])
+def ray_box_fwd(o, d, box, near, far, t_near, t_far, hit, N, CLIP: tl.constexpr, BLOCK: tl.constexpr):
+    """ray_aabb of N rays (o, d (N, 3)); with CLIP each ray's [near, far] clipped to the box instead, empty at near
+    where the ray misses it (recon.nerf.rays.clip_to_box)."""
+    i = tl.program_id(0).to(tl.int64) * BLOCK + tl.arange(0, BLOCK)
+    m = i < N
+    ox, oy, oz = tl.load(o + 3 * i, mask=m), tl.load(o + 3 * i + 1, mask=m), tl.load(o + 3 * i + 2, mask=m)
+    dx, dy, dz = tl.load(d + 3 * i, mask=m), tl.load(d + 3 * i + 1, mask=m), tl.load(d + 3 * i + 2, mask=m)
+    tn, tf, h = _ray_box(ox, oy, oz, dx, dy, dz, box)
+    if CLIP:
+        tn = tl.maximum(tl.load(near + i, mask=m), tn, propagate_nan=tl.PropagateNan.ALL)
+        tf = tl.where(h, tl.minimum(tl.load(far + i, mask=m), tf, propagate_nan=tl.PropagateNan.ALL), tn)
+    tl.store(t_near + i, tn, mask=m)
+    tl.store(t_far + i, tf, mask=m)
+    tl.store(hit + i, h.to(tl.int8), mask=m)
+
+
+@triton.jit(do_not_specialize=["N"])
+def pixel_rays_fwd(flat, offsets, widths, c2w, intrinsics, box, near_far, out_o, out_d, out_near, out_far, out_hit,
+                   out_img, N, PHOTOS, HAS_BOX: tl.constexpr, BLOCK: tl.constexpr):
+    """The rays through N flat pixel indices into stacked photos (recon.nerf.fitting.RayBatcher._rays_torch): each
+    pixel's photo by a binary search of offsets (PHOTOS + 1,) the same in every lane, the ray through its centre with a unit
+    direction, and its near and far (the box's, or its photo's near_far)."""
+    i = tl.program_id(0).to(tl.int64) * BLOCK + tl.arange(0, BLOCK)
+    m = i < N
+    f = tl.load(flat + i, mask=m, other=0)
+    img = tl.zeros_like(f)
+    span = PHOTOS
+    while span > 1:
+        half = span // 2
+        img = tl.where(tl.load(offsets + img + half, mask=m, other=0) <= f, img + half, img)
+        span -= half
+    local = f - tl.load(offsets + img, mask=m, other=0)
+    w = tl.load(widths + img, mask=m, other=1)
+    row = local // w
+    px = (local - row * w).to(tl.float32) + 0.5
+    py = row.to(tl.float32) + 0.5
+    k = intrinsics + 4 * img
+    x = tl.div_rn(px - tl.load(k + 2, mask=m, other=0.0), tl.load(k, mask=m, other=1.0))
+    y = -tl.div_rn(py - tl.load(k + 3, mask=m, other=0.0), tl.load(k + 1, mask=m, other=1.0))
+    c = c2w + 12 * img
+    dx = tl.load(c, mask=m, other=0.0) * x + tl.load(c + 1, mask=m, other=0.0) * y - tl.load(c + 2, mask=m, other=1.0)
+    dy = tl.load(c + 4, mask=m, other=0.0) * x + tl.load(c + 5, mask=m, other=0.0) * y - tl.load(c + 6, mask=m, other=0.0)
+    dz = tl.load(c + 8, mask=m, other=0.0) * x + tl.load(c + 9, mask=m, other=0.0) * y - tl.load(c + 10, mask=m, other=0.0)
+    norm = tl.sqrt_rn(dx * dx + dy * dy + dz * dz)
+    dx, dy, dz = tl.div_rn(dx, norm), tl.div_rn(dy, norm), tl.div_rn(dz, norm)
+    ox, oy, oz = tl.load(c + 3, mask=m), tl.load(c + 7, mask=m), tl.load(c + 11, mask=m)
+    tl.store(out_o + 3 * i, ox, mask=m)
+    tl.store(out_o + 3 * i + 1, oy, mask=m)
+    tl.store(out_o + 3 * i + 2, oz, mask=m)
+    tl.store(out_d + 3 * i, dx, mask=m)
+    tl.store(out_d + 3 * i + 1, dy, mask=m)
+    tl.store(out_d + 3 * i + 2, dz, mask=m)
+    if HAS_BOX:
+        tn, tf, h = _ray_box(ox, oy, oz, dx, dy, dz, box)
+    else:
+        tn = tl.load(near_far + 2 * img, mask=m, other=0.0)
+        tf = tl.load(near_far + 2 * img + 1, mask=m, other=0.0)
+        h = tf > tn
+    tl.store(out_near + i, tn, mask=m)
+    tl.store(out_far + i, tf, mask=m)
+    tl.store(out_hit + i, h.to(tl.int8), mask=m)
+    tl.store(out_img + i, img, mask=m)

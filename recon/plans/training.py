@@ -703,7 +703,7 @@ def build_training(plan: TrainPlan, device: torch.device) -> TrainSetup:
     batcher = RayBatcher(
         images, c2w, intr, aabb=aabb, near_far=None if aabb is not None else near_far,
         background=torch.tensor(plan.background), random_background=plan.random_background, seed=plan.seed,
-        device=device, empty=plan.empty,
+        device=device, empty=plan.empty, kernels=model.config.kernels if plan.kind == "fast" else "torch",
     )
     pieces: list[TrainPiece] = []
     if plan.empty is not None:
