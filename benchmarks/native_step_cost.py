@@ -5,8 +5,10 @@ thread took slices too), against reading the density levels again for the loss (
 before the march's densities were the loss's: `FastModel._marched_sigma`), against a dense grid's backward on
 one thread (`--against serial-backward`, as before it took a part a thread: `trilinear_backward_native`),
 against the library's parts on threads of recon's instead of OpenMP's (`--against python-threads`, as before
-march.c was built with OpenMP: `_parallel_in_c`), or against a batch's rays and their box in torch operations
-(`--against torch-rays`, as before they were C passes: `pixel_rays_native`, `ray_box_native`).
+march.c was built with OpenMP: `_parallel_in_c`), against a batch's rays and their box in torch operations
+(`--against torch-rays`, as before they were C passes: `pixel_rays_native`, `ray_box_native`), or against
+compositing and the distortion loss in torch operations (`--against torch-compositing`, as before they were C
+passes: `composite_packed_native`, `distortion_packed_native`).
 
     python benchmarks/native_step_cost.py --scene ~/.cache/recon/bench/lego-half-fast --against python-threads \\
         --out benchmarks/results/lego_half_openmp_step_cost.json
@@ -15,7 +17,7 @@ Two trainings are built as the train stage builds them (`recon.plans.training`) 
 `--warmup` steps each; then they take turns (step_cost.py's `take_turns`), `--rounds` rounds of `--block` steps, the
 second's turns with the other library (REV's march.c built with recon's flags for this CPU; its functions must take
 the same arguments, or it is refused), the other slicing, the second read, the one-thread backward or recon's
-threads or the torch rays. The record gives each one's ms a step and the ratio, the sliced native calls a step. Both compute the same
+threads, the torch rays or the torch compositing. The record gives each one's ms a step and the ratio, the sliced native calls a step. Both compute the same
 values (tests/test_native_march.py, tests/test_masked_adam.py); their trainings draw rays from one random stream in
 turns, so they do not end equal. A measurement: it asserts nothing.
 """
@@ -91,6 +93,7 @@ def library_of(rev: str, folder: Path) -> ctypes.CDLL:
 
 
 def main(argv: list[str] | None = None) -> int:
+    import recon.nerf.fast as fast
     import recon.nerf.fitting as fitting
     import recon.nerf.grid as grid
     import recon.nerf.native as native
@@ -100,7 +103,8 @@ def main(argv: list[str] | None = None) -> int:
 
     parser = step_parser(__doc__)
     parser.add_argument("--against", required=True,
-                        help="a git revision, pool-map, reads-again, serial-backward, python-threads or torch-rays")
+                        help="a git revision, pool-map, reads-again, serial-backward, python-threads, torch-rays or "
+                             "torch-compositing")
     turn_arguments(parser, warmup=300)
     args = parser.parse_args(argv)
     row = scene_row("native_step_cost", args)
@@ -112,7 +116,7 @@ def main(argv: list[str] | None = None) -> int:
     calls = {"n": 0}
     patched = [(native, "_in_slices"), (native, "native_marcher"), (FastModel, "_marched_sigma"),
                (grid, "trilinear_backward_native"), (native, "_parallel_in_c"), (fitting, "pixel_rays_native"),
-               (rays, "ray_box_native")]
+               (rays, "ray_box_native"), (fast, "composite_packed_native"), (fast, "distortion_packed_native")]
     originals = {(owner, name): getattr(owner, name) for owner, name in patched}
 
     def counted(slices: Callable[[int, Callable[[int, int], T]], list[T]]) -> Callable[..., list[T]]:
@@ -133,6 +137,9 @@ def main(argv: list[str] | None = None) -> int:
             other = {(native, "_parallel_in_c"): lambda lib: False}
         elif args.against == "torch-rays":
             other = {(fitting, "pixel_rays_native"): lambda *args: None, (rays, "ray_box_native"): lambda *args: None}
+        elif args.against == "torch-compositing":
+            other = {(fast, "composite_packed_native"): lambda *args: None,
+                     (fast, "distortion_packed_native"): lambda *args: None}
         else:
             base = library_of(args.against, Path(tmp))
             other = {(native, "native_marcher"): lambda: base}

@@ -457,3 +457,66 @@ def test_a_batch_of_rays_in_c_is_the_torch_batch(box: bool) -> None:
     torch.testing.assert_close(near, near_t, rtol=2e-6, atol=2e-6)
     torch.testing.assert_close(far, far_t, rtol=2e-6, atol=2e-6)
     assert torch.equal(batcher._rays(flat)[5], img_t)  # the batcher takes the C pass
+
+
+def _packed_samples(seed: int = 0) -> tuple[torch.Tensor, ...]:
+    """Packed samples over rays of 0 to 130 samples, with opaque (1e12), zero-length and negative-density samples."""
+    counts = [0, 1, 2, 5, 130, 0, 17, 64, 65, 3] * 20
+    g = torch.Generator().manual_seed(seed)
+    ri = torch.repeat_interleave(torch.arange(len(counts)), torch.tensor(counts))
+    m = ri.shape[0]
+    sigma = torch.rand(m, generator=g) * 20 + 1e-3
+    delta = torch.rand(m, generator=g) * 0.1 + 1e-3
+    sigma[::37], delta[::41], sigma[::43] = 1e12, 0.0, -1.0
+    return sigma, delta, 3.0 + torch.cumsum(delta, 0), ri, torch.tensor(len(counts))
+
+
+def _with_gradients(fn, inputs: list[torch.Tensor], seed: int, keep: tuple[int, ...] = (0,)) -> list[torch.Tensor]:
+    """fn's outputs numbered in ``keep`` and the gradients of a random weighting of them to each input."""
+    leaves = [x.clone().requires_grad_(True) for x in inputs]
+    outs = [fn(*leaves)[k] for k in keep]
+    g = torch.Generator().manual_seed(seed)
+    sum((o * torch.randn(o.shape, generator=g).to(o.dtype)).sum() for o in outs).backward()
+    return [o.detach() for o in outs] + [x.grad for x in leaves]
+
+
+@needs_native
+def test_c_compositing_is_the_torch_compositing_forward_and_back() -> None:
+    """To float32's rounding of the same sums (both keep the running optical depth in float64): weights, opacity,
+    depth and the gradients to sigma, delta and t; the transmittance bit for bit. (A float64 reference is no truth
+    here: its clamps and exponentials cut elsewhere.)"""
+    from recon.nerf.kernels import composite_packed_torch
+    from recon.nerf.render import SIGMA_MAX, TAU_MAX
+
+    sigma, delta, t, ri, n = _packed_samples()
+    fast = _with_gradients(lambda s, d, tt: native.composite_packed_native(s, d, tt, ri, int(n), SIGMA_MAX, TAU_MAX),
+                           [sigma, delta, t], seed=1, keep=(0, 2, 3))
+    reference = _with_gradients(lambda s, d, tt: composite_packed_torch(s, d, tt, ri, int(n)), [sigma, delta, t],
+                                seed=1, keep=(0, 2, 3))
+    for name, a, b in zip(("weights", "opacity", "depth", "d/dsigma", "d/ddelta", "d/dt"), fast, reference,
+                          strict=True):
+        # a gradient is its sample's own term less the later samples' sum, which cancel in float32 (an opaque
+        # sample's d/ddelta, ~5e7 here, to 1e-5): the gradients to 2e-5
+        torch.testing.assert_close(a, b, rtol=2e-6 if name[0] != "d" else 2e-5, atol=1e-6 * float(b.abs().max()),
+                                   msg=lambda m, name=name: f"{name}: {m}")
+    transmittance = native.composite_packed_native(sigma, delta, t, ri, int(n), SIGMA_MAX, TAU_MAX)[1]
+    assert torch.equal(transmittance, composite_packed_torch(sigma, delta, t, ri, int(n))[1])
+    assert (fast[3][sigma < 0] == 0).all() and (fast[3][sigma > SIGMA_MAX] == 0).all()  # outside the clamps: none
+
+
+@needs_native
+def test_c_distortion_loss_is_the_reference_in_float64() -> None:
+    """Its sums in float64, from each ray's first midpoint: closer to the float64 reference than the float32 one is."""
+    from recon.nerf.render import distortion_packed
+
+    _, delta, t, ri, n = _packed_samples(seed=2)
+    w = torch.rand(delta.shape, generator=torch.Generator().manual_seed(5))
+    fast = _with_gradients(lambda ww, mm, dd: [native.distortion_packed_native(ww, mm, dd, ri, int(n))],
+                           [w, t, delta], seed=3)
+    exact = _with_gradients(lambda ww, mm, dd: [distortion_packed(ww, mm, dd, ri, int(n))],
+                            [x.double() for x in (w, t, delta)], seed=3)
+    in_float32 = _with_gradients(lambda ww, mm, dd: [distortion_packed(ww, mm, dd, ri, int(n))], [w, t, delta], seed=3)
+    for name, a, b, c in zip(("loss", "d/dw", "d/dmid", "d/ddelta"), fast, exact, in_float32, strict=True):
+        scale = float(b.abs().max())
+        assert float((a.double() - b).abs().max()) <= 2e-7 * scale, name
+        assert float((a.double() - b).abs().max()) <= float((c.double() - b).abs().max()) + 1e-7 * scale, name

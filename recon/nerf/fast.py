@@ -54,10 +54,25 @@ from recon.nerf.kernels import (
     use_triton,
 )
 from recon.nerf.model_config import HASH_BASE_RES, HASH_FEATURES, FastConfig, GridKind, density_grid_dim
-from recon.nerf.native import DenseDensity, march_dense_native, march_render_native, native_grid_ok
+from recon.nerf.native import (
+    DenseDensity,
+    composite_packed_native,
+    distortion_packed_native,
+    march_dense_native,
+    march_render_native,
+    native_grid_ok,
+)
 from recon.nerf.occupancy import OccupancyGrid, density_threshold, march, march_front_to_back
 from recon.nerf.rays import clip_to_box
-from recon.nerf.render import RadianceModel, accumulate_packed, checked_aabb, distortion_packed, render_weights_packed
+from recon.nerf.render import (
+    SIGMA_MAX,
+    TAU_MAX,
+    RadianceModel,
+    accumulate_packed,
+    checked_aabb,
+    distortion_packed,
+    render_weights_packed,
+)
 
 __all__ = ["FastConfig", "FastModel", "sh_encode", "sh_product", "sh_terms", "distortion_loss_packed", "ray_background",
            "SkyColor", "trunc_exp"]
@@ -144,8 +159,12 @@ def sh_encode(d: Tensor, degree: int) -> Tensor:
 def distortion_loss_packed(weights: Tensor, t_mid: Tensor, delta: Tensor, ray_indices: Tensor, n_rays: int,
                            fused: bool = False) -> Tensor:
     """The mip-NeRF 360 distortion loss of packed samples, mean over rays: :func:`recon.nerf.render.distortion_packed`,
-    or its Triton kernel where ``fused`` (:func:`recon.nerf.kernels.distortion_packed_triton`)."""
-    per_ray = (distortion_packed_triton if fused else distortion_packed)(weights, t_mid, delta, ray_indices, n_rays)
+    or its Triton kernel where ``fused`` (:func:`recon.nerf.kernels.distortion_packed_triton`), or on a CPU its C pass
+    (:func:`recon.nerf.native.distortion_packed_native`)."""
+    per_ray = (distortion_packed_triton(weights, t_mid, delta, ray_indices, n_rays) if fused
+               else distortion_packed_native(weights, t_mid, delta, ray_indices, n_rays))
+    if per_ray is None:
+        per_ray = distortion_packed(weights, t_mid, delta, ray_indices, n_rays)
     return per_ray.mean() if n_rays else per_ray.sum()
 
 
@@ -530,14 +549,18 @@ class FastModel(RadianceModel):
                 evaluated[0] += int(ri.shape[0])
                 sigma = self._sigma_unit(u)
         fused = use_triton(cfg.kernels, sigma, delta)  # CUDA and train.fast.kernels: one kernel (recon.nerf.kernels)
-        if fused:
-            weights, _, opacity, depth_sum = composite_packed_triton(sigma, delta, mid, ri, n)
+        # one pass a ray forward and one back: a Triton kernel on CUDA, C on a CPU, else the torch reference
+        composited = (composite_packed_triton(sigma, delta, mid, ri, n) if fused
+                      else composite_packed_native(sigma, delta, mid, ri, n, SIGMA_MAX, TAU_MAX))
+        if composited is not None:
+            weights, _, opacity, depth_sum = composited
         else:
             weights, _ = render_weights_packed(sigma, delta, ri, n)
             opacity = accumulate_packed(weights, None, ri, n)
+            depth_sum = accumulate_packed(weights, mid, ri, n)
         bg = self._background(background, rays_d, training)
         remainder = (1.0 - opacity).clamp_min(0.0)
-        depth = depth_sum + remainder * far if fused else accumulate_packed(weights, mid, ri, n) + remainder * far
+        depth = depth_sum + remainder * far
         if not colors:
             rgb = bg.expand(n, 3)
         else:

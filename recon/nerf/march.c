@@ -789,3 +789,146 @@ void recon_adam_all(int64_t n, float *param, float *grad, float *exp_avg, float 
                        one_minus_beta2, step_size, bias2_sqrt, eps, masked, clear, touched ? touched + b : 0);
     }
 }
+
+/* ------------------------------------------------------------------------------------------------------------------
+ * Compositing packed samples and the distortion loss, forward and backward, a ray at a time (the references:
+ * recon.nerf.render.render_weights_packed with accumulate_packed, and distortion_packed; on CUDA the same sums are
+ * recon/nerf/triton_kernels.py's composite_* and distortion_*). Ray r's samples are offsets[r]:offsets[r + 1].
+ * Running sums along a ray are doubles, as the references' cumulative sums are. */
+
+/* optical_thickness: clamp(clamp(sigma, 0, sigma_max) * max(delta, 0), 0, tau_max), NaN kept. */
+static inline float thickness(float sigma, float delta, float sigma_max, float tau_max)
+{
+    const float s = sigma != sigma ? sigma : (sigma < 0.0f ? 0.0f : (sigma > sigma_max ? sigma_max : sigma));
+    const float d = delta != delta ? delta : (delta < 0.0f ? 0.0f : delta);
+    const float p = s * d;
+    return p != p ? p : (p < 0.0f ? 0.0f : (p > tau_max ? tau_max : p));
+}
+
+/* Rays [lo, hi): weights w_i = T_i (1 - exp(-tau_i)), transmittance T_i = exp(-sum_{j<i} tau_j), and each ray's
+ * opacity sum w_i and depth sum w_i t_i. */
+static void composite_rays(int64_t lo, int64_t hi, const int64_t *offsets, const float *sigma, const float *delta,
+                     const float *t, float sigma_max, float tau_max, float *weights, float *trans, float *opacity,
+                     float *depth)
+{
+    for (int64_t r = lo; r < hi; ++r) {
+        double before = 0.0;
+        float op = 0.0f, dep = 0.0f;
+        for (int64_t i = offsets[r]; i < offsets[r + 1]; ++i) {
+            const float tau = thickness(sigma[i], delta[i], sigma_max, tau_max);
+            const float tr = (float)exp(-(before > 0.0 ? before : 0.0));
+            const float w = tr * -expm1f(-tau);
+            trans[i] = tr, weights[i] = w;
+            before += (double)tau;
+            op += w, dep += w * t[i];
+        }
+        opacity[r] = op, depth[r] = dep;
+    }
+}
+
+/* Gradients of recon_composite to sigma, delta and t, given those of the weights (g_w, or NULL), the opacity and the
+ * depth sum. With G_i = dL/dw_i + dL/dopacity + dL/ddepth t_i: dL/dtau_k = G_k T_k exp(-tau_k) - sum_{i>k} G_i w_i,
+ * then through the clamps as torch's clamp passes gradients (inside its closed range). */
+static void composite_backward_rays(int64_t lo, int64_t hi, const int64_t *offsets, const float *sigma,
+                                    const float *delta, const float *t, const float *weights, const float *trans,
+                                    const float *g_w,
+                                    const float *g_op, const float *g_dep, float sigma_max, float tau_max,
+                                    float *g_sigma, float *g_delta, float *g_t)
+{
+    for (int64_t r = lo; r < hi; ++r) {
+        double later = 0.0;
+        for (int64_t i = offsets[r + 1] - 1; i >= offsets[r]; --i) {
+            const float g = (g_w ? g_w[i] : 0.0f) + g_op[r] + g_dep[r] * t[i];
+            const float s = sigma[i] < 0.0f ? 0.0f : (sigma[i] > sigma_max ? sigma_max : sigma[i]);
+            const float d = delta[i] < 0.0f ? 0.0f : delta[i];
+            const float p = s * d, tau = p < 0.0f ? 0.0f : (p > tau_max ? tau_max : p);
+            float g_tau = (float)((double)(g * trans[i] * expf(-tau)) - later);
+            if (!(p >= 0.0f && p <= tau_max)) g_tau = 0.0f;
+            g_sigma[i] = (sigma[i] >= 0.0f && sigma[i] <= sigma_max) ? g_tau * d : 0.0f;
+            g_delta[i] = delta[i] >= 0.0f ? g_tau * s : 0.0f;
+            g_t[i] = g_dep[r] * weights[i];
+            later += (double)(g * weights[i]);
+        }
+    }
+}
+
+/* Rays [lo, hi): each ray's distortion loss sum_i 2 w_i (m_i W_<i - (wm)_<i) + w_i^2 d_i / 3 (midpoints m sorted
+ * along the ray, taken from its first: the loss depends only on their differences). */
+static void distortion_rays(int64_t lo, int64_t hi, const int64_t *offsets, const float *w, const float *m, const float *d,
+                      float *loss)
+{
+    for (int64_t r = lo; r < hi; ++r) {
+        const int64_t start = offsets[r], end = offsets[r + 1];
+        double before_w = 0.0, before_wm = 0.0, acc = 0.0;
+        for (int64_t i = start; i < end; ++i) {
+            const double wi = w[i], mi = (double)m[i] - (double)m[start];
+            acc += 2.0 * wi * (mi * before_w - before_wm) + wi * wi * (double)d[i] / 3.0;
+            before_w += wi, before_wm += wi * mi;
+        }
+        loss[r] = (float)acc;
+    }
+}
+
+/* Gradients of recon_distortion, given the losses' (g_loss); with W_>i and (wm)_>i the later samples' sums:
+ * dL/dw_i = 2 (m_i W_<i - (wm)_<i) + 2 ((wm)_>i - m_i W_>i) + 2/3 w_i d_i, dL/dm_i = 2 w_i (W_<i - W_>i),
+ * dL/dd_i = w_i^2 / 3. */
+static void distortion_backward_rays(int64_t lo, int64_t hi, const int64_t *offsets, const float *w, const float *m,
+                               const float *d, const float *g_loss, float *g_w, float *g_m, float *g_d)
+{
+    for (int64_t r = lo; r < hi; ++r) {
+        const int64_t start = offsets[r], end = offsets[r + 1];
+        double total_w = 0.0, total_wm = 0.0;
+        for (int64_t i = start; i < end; ++i)
+            total_w += w[i], total_wm += (double)w[i] * ((double)m[i] - (double)m[start]);
+        double before_w = 0.0, before_wm = 0.0;
+        const double g = g_loss[r];
+        for (int64_t i = start; i < end; ++i) {
+            const double wi = w[i], mi = (double)m[i] - (double)m[start];
+            const double after_w = total_w - before_w - wi, after_wm = total_wm - before_wm - wi * mi;
+            g_w[i] = (float)(g * (2.0 * (mi * before_w - before_wm) + 2.0 * (after_wm - mi * after_w) +
+                                  wi * (double)d[i] * (2.0 / 3.0)));
+            g_m[i] = (float)(g * 2.0 * wi * (before_w - after_w));
+            g_d[i] = (float)(g * wi * wi / 3.0);
+            before_w += wi, before_wm += wi * mi;
+        }
+    }
+}
+
+/* The four above over the rays cut into `slices` slices, on OpenMP's threads where built with it. */
+#define OVER_SLICES(n_rays, slices, threads, call)                                                                   \
+    _Pragma("omp parallel for num_threads(threads) schedule(dynamic, 1)")                                           \
+    for (int64_t s = 0; s < slices; ++s) {                                                                          \
+        const int64_t lo = slice_lo(n_rays, s, slices), hi = slice_lo(n_rays, s + 1, slices);                       \
+        call;                                                                                                       \
+    }
+
+void recon_composite_all(int64_t n_rays, const int64_t *offsets, const float *sigma, const float *delta,
+                         const float *t, float sigma_max, float tau_max, float *weights, float *trans, float *opacity,
+                         float *depth, int64_t slices, int64_t threads)
+{
+    OVER_SLICES(n_rays, slices, threads, composite_rays(lo, hi, offsets, sigma, delta, t, sigma_max, tau_max, weights,
+                                                        trans, opacity, depth))
+}
+
+void recon_composite_backward_all(int64_t n_rays, const int64_t *offsets, const float *sigma, const float *delta,
+                                  const float *t, const float *weights, const float *trans, const float *g_w,
+                                  const float *g_op, const float *g_dep, float sigma_max, float tau_max,
+                                  float *g_sigma, float *g_delta, float *g_t, int64_t slices, int64_t threads)
+{
+    OVER_SLICES(n_rays, slices, threads, composite_backward_rays(lo, hi, offsets, sigma, delta, t, weights, trans, g_w,
+                                                                 g_op, g_dep, sigma_max, tau_max, g_sigma, g_delta,
+                                                                 g_t))
+}
+
+void recon_distortion_all(int64_t n_rays, const int64_t *offsets, const float *w, const float *m, const float *d,
+                          float *loss, int64_t slices, int64_t threads)
+{
+    OVER_SLICES(n_rays, slices, threads, distortion_rays(lo, hi, offsets, w, m, d, loss))
+}
+
+void recon_distortion_backward_all(int64_t n_rays, const int64_t *offsets, const float *w, const float *m,
+                                   const float *d, const float *g_loss, float *g_w, float *g_m, float *g_d,
+                                   int64_t slices, int64_t threads)
+{
+    OVER_SLICES(n_rays, slices, threads, distortion_backward_rays(lo, hi, offsets, w, m, d, g_loss, g_w, g_m, g_d))
+}
