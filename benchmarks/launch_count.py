@@ -122,7 +122,8 @@ def count(scene_dir: Path, preset: str, overrides: list[str], memory_gib: float,
     if cfg.fast.grid == "hash":  # the train stage probes the hash grid's kernel once, as it plans: not in a step
         from recon.nerf.grid import hash_kernel_check
 
-        hash_kernel_check("cpu")
+        grid = setup.model.color_grid  # the probe is the grid's own levels and features, as the train stage's
+        hash_kernel_check("cpu", grid.levels, grid.features)
     sh_encode = fast.sh_encode
     # a card's harmonics (a CPU runs the terms); code from before sh_product had only the terms, on every device
     fast.sh_encode = getattr(fast, "sh_product", sh_encode)
