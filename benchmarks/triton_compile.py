@@ -9,7 +9,7 @@ interpreter runs can still fail to compile (types, constexprs), and the one-per-
 measuring than finding that out. The launches compiled are recorded, not written out by hand: a child process runs
 the card-sized fast model (`recon.config.device_sizing` for `--memory-gib`; the hash grid's probe, a training render
 and its backward with the distortion loss on, a no-gradient render; the same with the colour features in dense
-grids, and an unbounded scene) under Triton's interpreter on CPU tensors, and notes each launch's argument types,
+grids, and an unbounded scene; a ray batcher's batches) under Triton's interpreter on CPU tensors, and notes each launch's argument types,
 constexprs and warps. Each distinct launch is then compiled for each `--targets` capability.
 
 Writes one record (with the commit, machine and Triton version, as every record in benchmarks/results/): per launch
@@ -74,6 +74,7 @@ def record_launches(memory_gib: float, rays: int, small: bool = False) -> list[d
 
     from recon.nerf import kernels
     from recon.nerf.fast import FastModel
+    from recon.nerf.fitting import RayBatcher
     from recon.nerf.grid import hash_kernel_check
     from recon.nerf.model_config import HASH_FEATURES
 
@@ -115,6 +116,13 @@ def record_launches(memory_gib: float, rays: int, small: bool = False) -> list[d
             where[0] = f"{what}: render without gradients"
             with torch.no_grad():
                 model.eval().render_rays(rays_o, rays_d, near, far, training=False, background=torch.ones(3))
+        where[0] = "a batch's rays (a scene box; photos' near and far)"
+        photos = [torch.rand(6, 8, 3) for _ in range(3)]
+        c2w = torch.eye(4).repeat(3, 1, 1)
+        c2w[:, 2, 3] = 3.0
+        intrinsics = torch.tensor([[8.0, 8.0, 4.0, 3.0]]).repeat(3, 1)
+        for bounds in ({"aabb": torch.tensor([[-1.0] * 3, [1.0] * 3])}, {"near_far": torch.tensor([0.5, 6.0])}):
+            RayBatcher(photos, c2w, intrinsics, kernels="triton", **bounds).next_batch(16)
     finally:
         interpreter.InterpretedFunction.run = run
         kernels.KERNEL_DEVICES = ("cuda",)
