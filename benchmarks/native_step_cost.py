@@ -16,10 +16,11 @@ passes: `composite_packed_native`, `distortion_packed_native`).
 Two trainings are built as the train stage builds them (`recon.plans.training`) on the scene's 02_scene and take
 `--warmup` steps each; then they take turns (step_cost.py's `take_turns`), `--rounds` rounds of `--block` steps, the
 second's turns with the other library (REV's march.c built with recon's flags for this CPU; its functions must take
-the same arguments, or it is refused), the other slicing, the second read, the one-thread backward or recon's
-threads, the torch rays or the torch compositing. The record gives each one's ms a step and the ratio, the sliced native calls a step. Both compute the same
-values (tests/test_native_march.py, tests/test_masked_adam.py); their trainings draw rays from one random stream in
-turns, so they do not end equal. A measurement: it asserts nothing.
+the same arguments, or it is refused), the other slicing, the second read, the one-thread backward, recon's
+threads, the torch rays or the torch compositing. The record gives each one's ms a step and the ratio, the sliced
+native calls a step. Both compute the same values (tests/test_native_march.py, tests/test_masked_adam.py; the C
+rays and compositing to a float32 rounding); their trainings draw rays from one random stream in turns, so they do
+not end equal. A measurement: it asserts nothing.
 """
 from __future__ import annotations
 

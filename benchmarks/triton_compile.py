@@ -9,8 +9,8 @@ interpreter runs can still fail to compile (types, constexprs), and the one-per-
 measuring than finding that out. The launches compiled are recorded, not written out by hand: a child process runs
 the card-sized fast model (`recon.config.device_sizing` for `--memory-gib`; the hash grid's probe, a training render
 and its backward with the distortion loss on, a no-gradient render; the same with the colour features in dense
-grids, and an unbounded scene; a ray batcher's batches) under Triton's interpreter on CPU tensors, and notes each launch's argument types,
-constexprs and warps. Each distinct launch is then compiled for each `--targets` capability.
+grids, and an unbounded scene; a ray batcher's batches) under Triton's interpreter on CPU tensors, and notes each
+launch's argument types, constexprs and warps. Each distinct launch is then compiled for each `--targets` capability.
 
 Writes one record (with the commit, machine and Triton version, as every record in benchmarks/results/): per launch
 and target, compiled or the compiler's error, registers a thread, local (spilled) and shared bytes, and the seconds it

@@ -854,8 +854,8 @@ static void composite_backward_rays(int64_t lo, int64_t hi, const int64_t *offse
 
 /* Rays [lo, hi): each ray's distortion loss sum_i 2 w_i (m_i W_<i - (wm)_<i) + w_i^2 d_i / 3 (midpoints m sorted
  * along the ray, taken from its first: the loss depends only on their differences). */
-static void distortion_rays(int64_t lo, int64_t hi, const int64_t *offsets, const float *w, const float *m, const float *d,
-                      float *loss)
+static void distortion_rays(int64_t lo, int64_t hi, const int64_t *offsets, const float *w, const float *m,
+                            const float *d, float *loss)
 {
     for (int64_t r = lo; r < hi; ++r) {
         const int64_t start = offsets[r], end = offsets[r + 1];

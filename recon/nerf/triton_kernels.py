@@ -533,7 +533,8 @@ def march_dense(rays_o, rays_d, t_near, t_far, jitter, occupied, occ_box, grid_b
 # ----------------------------------------------------------------------------- rays
 @triton.jit
 def _ray_box(ox, oy, oz, dx, dy, dz, box):
-    """(t_near, t_far, hit) of rays and a box (2, 3): recon.nerf.rays.ray_aabb_torch, its divisions rounded as torch's."""
+    """(t_near, t_far, hit) of rays and a box (2, 3): recon.nerf.rays.ray_aabb_torch, its divisions rounded as
+    torch's."""
     nan = tl.PropagateNan.ALL
     lo = tl.zeros_like(ox)
     hi = tl.zeros_like(ox)
@@ -581,8 +582,8 @@ def ray_box_fwd(o, d, box, near, far, t_near, t_far, hit, N, CLIP: tl.constexpr,
 def pixel_rays_fwd(flat, offsets, widths, c2w, intrinsics, box, near_far, out_o, out_d, out_near, out_far, out_hit,
                    out_img, N, PHOTOS, HAS_BOX: tl.constexpr, BLOCK: tl.constexpr):
     """The rays through N flat pixel indices into stacked photos (recon.nerf.fitting.RayBatcher._rays_torch): each
-    pixel's photo by a binary search of offsets (PHOTOS + 1,) the same in every lane, the ray through its centre with a unit
-    direction, and its near and far (the box's, or its photo's near_far)."""
+    pixel's photo by a binary search of offsets (PHOTOS + 1,), the same steps in every lane; the ray through its
+    centre with a unit direction; its near and far (the box's, or its photo's near_far)."""
     i = tl.program_id(0).to(tl.int64) * BLOCK + tl.arange(0, BLOCK)
     m = i < N
     f = tl.load(flat + i, mask=m, other=0)
@@ -602,8 +603,10 @@ def pixel_rays_fwd(flat, offsets, widths, c2w, intrinsics, box, near_far, out_o,
     y = -tl.div_rn(py - tl.load(k + 3, mask=m, other=0.0), tl.load(k + 1, mask=m, other=1.0))
     c = c2w + 12 * img
     dx = tl.load(c, mask=m, other=0.0) * x + tl.load(c + 1, mask=m, other=0.0) * y - tl.load(c + 2, mask=m, other=1.0)
-    dy = tl.load(c + 4, mask=m, other=0.0) * x + tl.load(c + 5, mask=m, other=0.0) * y - tl.load(c + 6, mask=m, other=0.0)
-    dz = tl.load(c + 8, mask=m, other=0.0) * x + tl.load(c + 9, mask=m, other=0.0) * y - tl.load(c + 10, mask=m, other=0.0)
+    dy = (tl.load(c + 4, mask=m, other=0.0) * x + tl.load(c + 5, mask=m, other=0.0) * y
+          - tl.load(c + 6, mask=m, other=0.0))
+    dz = (tl.load(c + 8, mask=m, other=0.0) * x + tl.load(c + 9, mask=m, other=0.0) * y
+          - tl.load(c + 10, mask=m, other=0.0))
     norm = tl.sqrt_rn(dx * dx + dy * dy + dz * dz)
     dx, dy, dz = tl.div_rn(dx, norm), tl.div_rn(dy, norm), tl.div_rn(dz, norm)
     ox, oy, oz = tl.load(c + 3, mask=m), tl.load(c + 7, mask=m), tl.load(c + 11, mask=m)
