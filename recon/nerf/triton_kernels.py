@@ -532,31 +532,29 @@ def march_dense(rays_o, rays_d, t_near, t_far, jitter, occupied, occ_box, grid_b
 
 # ----------------------------------------------------------------------------- rays
 @triton.jit
+def _slab(o, d, b0, b1):
+    """One axis of the slab test: the interval of t inside [b0, b1], all of it or none for a ray parallel to it."""
+    parallel = d == 0.0
+    dd = tl.where(parallel, 1.0, d)
+    t0 = tl.div_rn(b0 - o, dd)
+    t1 = tl.div_rn(b1 - o, dd)
+    always = tl.where((o >= b0) & (o <= b1), float("inf"), -float("inf"))
+    return (tl.where(parallel, -always, tl.minimum(t0, t1, propagate_nan=tl.PropagateNan.ALL)),
+            tl.where(parallel, always, tl.maximum(t0, t1, propagate_nan=tl.PropagateNan.ALL)))
+
+
+@triton.jit
 def _ray_box(ox, oy, oz, dx, dy, dz, box):
     """(t_near, t_far, hit) of rays and a box (2, 3): recon.nerf.rays.ray_aabb_torch, its divisions rounded as
     torch's."""
-    nan = tl.PropagateNan.ALL
-    lo = tl.zeros_like(ox)
-    hi = tl.zeros_like(ox)
-    for a in tl.static_range(3):
-        o = ox if a == 0 else (oy if a == 1 else oz)
-        d = dx if a == 0 else (dy if a == 1 else dz)
-        b0 = tl.load(box + a)
-        b1 = tl.load(box + 3 + a)
-        parallel = d == 0.0
-        dd = tl.where(parallel, 1.0, d)
-        t0 = tl.div_rn(b0 - o, dd)
-        t1 = tl.div_rn(b1 - o, dd)
-        always = tl.where((o >= b0) & (o <= b1), float("inf"), -float("inf"))
-        lo_a = tl.where(parallel, -always, tl.minimum(t0, t1, propagate_nan=nan))
-        hi_a = tl.where(parallel, always, tl.maximum(t0, t1, propagate_nan=nan))
-        if a == 0:
-            lo = lo_a
-            hi = hi_a
-        else:
-            lo = tl.maximum(lo, lo_a, propagate_nan=nan)
-            hi = tl.minimum(hi, hi_a, propagate_nan=nan)
-    lo = tl.maximum(lo, 0.0, propagate_nan=nan)
+    lo_x, hi_x = _slab(ox, dx, tl.load(box), tl.load(box + 3))
+    lo_y, hi_y = _slab(oy, dy, tl.load(box + 1), tl.load(box + 4))
+    lo_z, hi_z = _slab(oz, dz, tl.load(box + 2), tl.load(box + 5))
+    lo = tl.maximum(lo_x, lo_y, propagate_nan=tl.PropagateNan.ALL)
+    lo = tl.maximum(lo, lo_z, propagate_nan=tl.PropagateNan.ALL)
+    lo = tl.maximum(lo, 0.0, propagate_nan=tl.PropagateNan.ALL)
+    hi = tl.minimum(hi_x, hi_y, propagate_nan=tl.PropagateNan.ALL)
+    hi = tl.minimum(hi, hi_z, propagate_nan=tl.PropagateNan.ALL)
     hit = hi > lo
     return tl.where(hit, lo, 0.0), tl.where(hit, hi, 0.0), hit
 
