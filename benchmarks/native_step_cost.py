@@ -6,9 +6,10 @@ before the march's densities were the loss's: `FastModel._marched_sigma`), again
 one thread (`--against serial-backward`, as before it took a part a thread: `trilinear_backward_native`),
 against the library's parts on threads of recon's instead of OpenMP's (`--against python-threads`, as before
 march.c was built with OpenMP: `_parallel_in_c`), against a batch's rays and their box in torch operations
-(`--against torch-rays`, as before they were C passes: `pixel_rays_native`, `ray_box_native`), or against
+(`--against torch-rays`, as before they were C passes: `pixel_rays_native`, `ray_box_native`), against
 compositing and the distortion loss in torch operations (`--against torch-compositing`, as before they were C
-passes: `composite_packed_native`, `distortion_packed_native`).
+passes: `composite_packed_native`, `distortion_packed_native`), or against the density levels' backward a level at a
+time (`--against serial-levels`, as before they took a thread each: `trilinear_backward_levels_native`).
 
     python benchmarks/native_step_cost.py --scene ~/.cache/recon/bench/lego-half-fast --against python-threads \\
         --out benchmarks/results/lego_half_openmp_step_cost.json
@@ -17,10 +18,10 @@ Two trainings are built as the train stage builds them (`recon.plans.training`) 
 `--warmup` steps each; then they take turns (step_cost.py's `take_turns`), `--rounds` rounds of `--block` steps, the
 second's turns with the other library (REV's march.c built with recon's flags for this CPU; its functions must take
 the same arguments, or it is refused), the other slicing, the second read, the one-thread backward, recon's
-threads, the torch rays or the torch compositing. The record gives each one's ms a step and the ratio, the sliced
-native calls a step. Both compute the same values (tests/test_native_march.py, tests/test_masked_adam.py; the C
-rays and compositing to a float32 rounding); their trainings draw rays from one random stream in turns, so they do
-not end equal. A measurement: it asserts nothing.
+threads, the torch rays, the torch compositing or the levels in turn. The record gives each one's ms a step and
+the ratio, the sliced native calls a step. Both compute the same values (tests/test_native_march.py,
+tests/test_masked_adam.py; the C rays and compositing to a float32 rounding); their trainings draw rays from one
+random stream in turns, so they do not end equal. A measurement: it asserts nothing.
 """
 from __future__ import annotations
 
@@ -104,8 +105,8 @@ def main(argv: list[str] | None = None) -> int:
 
     parser = step_parser(__doc__)
     parser.add_argument("--against", required=True,
-                        help="a git revision, pool-map, reads-again, serial-backward, python-threads, torch-rays or "
-                             "torch-compositing")
+                        help="a git revision, pool-map, reads-again, serial-backward, python-threads, torch-rays, "
+                             "torch-compositing or serial-levels")
     turn_arguments(parser, warmup=300)
     args = parser.parse_args(argv)
     row = scene_row("native_step_cost", args)
@@ -117,7 +118,8 @@ def main(argv: list[str] | None = None) -> int:
     calls = {"n": 0}
     patched = [(native, "_in_slices"), (native, "native_marcher"), (FastModel, "_marched_sigma"),
                (grid, "trilinear_backward_native"), (native, "_parallel_in_c"), (fitting, "pixel_rays_native"),
-               (rays, "ray_box_native"), (fast, "composite_packed_native"), (fast, "distortion_packed_native")]
+               (rays, "ray_box_native"), (fast, "composite_packed_native"), (fast, "distortion_packed_native"),
+               (grid, "trilinear_backward_levels_native")]
     originals = {(owner, name): getattr(owner, name) for owner, name in patched}
 
     def counted(slices: Callable[[int, Callable[[int, int], T]], list[T]]) -> Callable[..., list[T]]:
@@ -141,6 +143,8 @@ def main(argv: list[str] | None = None) -> int:
         elif args.against == "torch-compositing":
             other = {(fast, "composite_packed_native"): lambda *args: None,
                      (fast, "distortion_packed_native"): lambda *args: None}
+        elif args.against == "serial-levels":
+            other = {(grid, "trilinear_backward_levels_native"): lambda *args: False}
         else:
             base = library_of(args.against, Path(tmp))
             other = {(native, "native_marcher"): lambda: base}

@@ -520,3 +520,38 @@ def test_c_distortion_loss_is_the_reference_in_float64() -> None:
         scale = float(b.abs().max())
         assert float((a.double() - b).abs().max()) <= 2e-7 * scale, name
         assert float((a.double() - b).abs().max()) <= float((c.double() - b).abs().max()) + 1e-7 * scale, name
+
+
+@needs_native
+@pytest.mark.parametrize("held", [False, True])
+def test_the_density_levels_backward_a_level_a_thread_adds_what_one_at_a_time_does(
+        held: bool, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The same sums and the same touched-block flags bit for bit, into fresh buffers or into gradients held."""
+    import recon.nerf.grid as grid_module
+    from recon.nerf.grid import add_native_grads
+    from recon.nerf.masked_adam import touched_blocks
+
+    g = torch.Generator().manual_seed(4)
+    x01, grad = torch.rand(20000, 3, generator=g), torch.randn(20000, 1, generator=g)
+    runs, parallel_calls = [], []
+    parallel = grid_module.trilinear_backward_levels_native
+    for one_at_a_time in (False, True):
+        torch.manual_seed(0)
+        levels = [DenseGrid(r, 1, init_std=0.1) for r in (97, 48, 24)]
+        if held:
+            for level in levels:
+                level.table.grad = torch.randn(level.table.shape, generator=torch.Generator().manual_seed(level.res))
+        with monkeypatch.context() as patch:
+            if one_at_a_time:
+                patch.setattr(grid_module, "trilinear_backward_levels_native", lambda *args: False)
+            else:
+                patch.setattr(grid_module, "trilinear_backward_levels_native",
+                              lambda *args: parallel_calls.append(parallel(*args)) or parallel_calls[-1])
+            add_native_grads(levels, x01, grad)
+            add_native_grads(levels, x01[:5000], grad[:5000])  # a second step's add into the same gradients
+        runs.append([(level.table.grad.clone(), touched_blocks(level.table).flags.clone()) for level in levels])
+    for (a, flags_a), (b, flags_b) in zip(*runs, strict=True):
+        assert torch.equal(a, b) and torch.equal(flags_a, flags_b)
+    assert all(int(flags.sum()) > 0 for _, flags in runs[0]) or held  # fresh buffers are flagged where added into
+    # with OpenMP the levels went in one parallel call; without, a level at a time both ways
+    assert parallel_calls == [bool(native.native_marcher().openmp)] * 2

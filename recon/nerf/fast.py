@@ -44,7 +44,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from recon.nerf.contraction import contract, contracted_distance
-from recon.nerf.grid import DenseGrid, HashGrid, MultiDenseGrid, VMGrid, add_native_grad, resample_dense
+from recon.nerf.grid import DenseGrid, HashGrid, MultiDenseGrid, VMGrid, add_native_grads, resample_dense
 from recon.nerf.kernels import (
     accumulate_packed_triton,
     composite_packed_triton,
@@ -219,8 +219,9 @@ def in_slices(fn: Callable[[Tensor, Tensor], Tensor], f: Tensor, d: Tensor) -> T
 class _MarchedDensity(torch.autograd.Function):
     """The densities the native march read at its samples (M,), as differentiable in the density levels as reading
     them again: forward hands them on, backward takes the activation's slope from the density itself and adds the
-    raw sum's gradient into every level in C (:func:`recon.nerf.grid.add_native_grad`). A training step then reads
-    the levels once a sample, not twice (tests/test_native_march.py holds it to ``FastModel._sigma_unit``)."""
+    raw sum's gradient into every level in C, a level a thread (:func:`recon.nerf.grid.add_native_grads`). A training
+    step then reads the levels once a sample, not twice (tests/test_native_march.py holds it to
+    ``FastModel._sigma_unit``)."""
 
     @staticmethod
     def forward(ctx, sigma: Tensor, u: Tensor, model: "FastModel", *tables: Tensor) -> Tensor:  # type: ignore[override]
@@ -234,8 +235,7 @@ class _MarchedDensity(torch.autograd.Function):
         model = ctx.model
         g_raw = (g * model._activation_slope(sigma))[:, None].contiguous()
         levels = model._density_levels()
-        for level in levels:
-            add_native_grad(level, u, g_raw)
+        add_native_grads(levels, u, g_raw)
         return (None, None, None, *(None for _ in levels))
 
 

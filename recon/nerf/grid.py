@@ -37,8 +37,8 @@ from torch.autograd.graph import increment_version
 from recon.nerf.kernels import hash_levels_triton, trilinear_levels_triton, use_triton
 from recon.nerf.masked_adam import touched_blocks
 from recon.nerf.model_config import hash_level_layout
-from recon.nerf.native import (hash_backward_native, hash_features_native, native_grid_ok, trilinear_backward_native,
-                               trilinear_features_native)
+from recon.nerf.native import (hash_backward_native, hash_features_native, native_grid_ok,
+                               trilinear_backward_levels_native, trilinear_backward_native, trilinear_features_native)
 
 _PRIMES = (1, 2654435761, 805459861)  # instant-ngp spatial hash (Teschner et al. 2003 / Müller et al. 2022)
 
@@ -150,22 +150,52 @@ class _NativeRead(torch.autograd.Function):
 def add_native_grad(grid: "DenseGrid | HashGrid", x01: Tensor, g: Tensor) -> None:
     """Add the gradient ``g`` (M, C) of the grid's read at x01 (M, 3) to its table's ``.grad``, in C, as
     :class:`_NativeRead` describes (the backward of every native read of a table, wherever its forward ran)."""
+    out, flags, finish = _native_grad_target(grid)
+    grid._native_add_grad(x01, g, out, flags)
+    finish()
+
+
+def add_native_grads(levels: "list[DenseGrid]", x01: Tensor, g: Tensor) -> None:
+    """:func:`add_native_grad` for one-channel dense grids read at the same points with the same gradient (the
+    density levels): a level a thread in one C call where the library can (`trilinear_backward_levels_native`), else
+    a level at a time. The same sums either way."""
+    targets = [_native_grad_target(level) for level in levels]
+    if all(isinstance(level, DenseGrid) and level.channels == 1 for level in levels) and \
+            trilinear_backward_levels_native(x01, g, [level.res for level in levels], [t[0] for t in targets],
+                                             [t[1] for t in targets]):
+        for _, _, finish in targets:
+            finish()
+        return
+    for level, (out, flags, finish) in zip(levels, targets, strict=True):
+        level._native_add_grad(x01, g, out, flags)
+        finish()
+
+
+def _native_grad_target(grid: "DenseGrid | HashGrid") -> tuple[Tensor, Tensor | None, Callable[[], None]]:
+    """Where a C backward adds the grid's gradient: (the tensor, its touched-block flags or None, what to call after
+    the add). The table's own ``.grad`` where it can take it, flagged while the flags vouch for it; else the grid's
+    zeroed buffer, then given to (or added into) ``.grad``."""
     table = grid.table
     held, touched = table.grad, touched_blocks(table)
     if held is not None and held.is_contiguous() and held.dtype == torch.float32 and held.shape == table.shape:
         flagging = touched.valid_for(held)
-        grid._native_add_grad(x01, g, held, touched.flags if flagging else None)
-        increment_version(held)  # written through a pointer: say so (MaskedAdam keeps only unchanged zero grads)
-        if flagging:
-            touched.vouch(held)
-    else:
-        buffer = grid._grad_buffer
-        if buffer is None or buffer.shape != table.shape or buffer is held:
-            buffer = torch.empty_like(table)
-        grid._grad_buffer = buffer
-        touched.reset(buffer.zero_())  # vouched for: only the C add below writes into it, and flags it
-        grid._native_add_grad(x01, g, buffer, touched.flags)
+
+        def held_done() -> None:
+            increment_version(held)  # written through a pointer: say so (MaskedAdam keeps only unchanged zero grads)
+            if flagging:
+                touched.vouch(held)
+
+        return held, touched.flags if flagging else None, held_done
+    buffer = grid._grad_buffer
+    if buffer is None or buffer.shape != table.shape or buffer is held:
+        buffer = torch.empty_like(table)
+    grid._grad_buffer = buffer
+    touched.reset(buffer.zero_())  # vouched for: only the C add writes into it, and flags it
+
+    def buffer_done() -> None:
         table.grad = buffer if held is None else held + buffer
+
+    return buffer, touched.flags, buffer_done
 
 
 def _read_in_c(grid: "DenseGrid | HashGrid", x01: Tensor) -> Tensor | None:

@@ -750,6 +750,17 @@ void recon_trilinear_backward_all(int64_t n, const float *u, const float *grad_o
         recon_trilinear_backward(n, u, grad_out, res, channels, grad_table, touched, part, parts);
 }
 
+/* recon_trilinear_backward of one-channel grids (levels) at the same points with the same gradient, a level a part
+ * (the finest first, as given): separate tables, so the parts share nothing and each level's sums are its own. */
+void recon_trilinear_backward_levels_all(int64_t n, const float *u, const float *grad_out, int64_t n_levels,
+                                         const int64_t *res, float *const *grad_tables, uint8_t *const *touched,
+                                         int64_t threads)
+{
+#pragma omp parallel for num_threads(threads) schedule(dynamic, 1)
+    for (int64_t level = 0; level < n_levels; ++level)
+        recon_trilinear_backward(n, u, grad_out, res[level], 1, grad_tables[level], touched[level], 0, 1);
+}
+
 void recon_hash_features_all(int64_t n, const float *u, const float *table, int64_t levels, const int64_t *res,
                              const int64_t *offset, const int64_t *hashed, int64_t log2_table, int64_t features,
                              float *out, int64_t slices, int64_t threads)

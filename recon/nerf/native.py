@@ -37,7 +37,8 @@ from torch import Tensor
 __all__ = ["DenseDensity", "load_c_library", "native_marcher", "native_status", "march_dense_native",
            "march_render_native", "native_grid_ok", "trilinear_features_native", "trilinear_backward_native", "hash_features_native",
            "hash_backward_native", "adam_native", "ADAM_BLOCK", "adam_blocks", "ray_box_native", "pixel_rays_native",
-           "composite_packed_native", "distortion_packed_native"]
+           "composite_packed_native", "distortion_packed_native",
+           "trilinear_backward_levels_native"]
 
 ADAM_BLOCK = 64
 """Values an Adam block holds (march.c's ADAM_BLOCK): the C update looks at a block's gradient, or its flag, once."""
@@ -182,6 +183,8 @@ def native_marcher() -> ctypes.CDLL | None:
     lib.recon_hash_backward_all.argtypes = [i64, p, p, i64, p, p, p, i64, i64, i64, p, p]
     lib.recon_adam_all.restype = None
     lib.recon_adam_all.argtypes = [i64, p, p, p, p, f32, f32, f32, f32, f32, f32, i32, i32, p, i64, i64]
+    lib.recon_trilinear_backward_levels_all.restype = None
+    lib.recon_trilinear_backward_levels_all.argtypes = [i64, p, p, i64, p, p, p, i64]
     lib.recon_ray_box.restype = None
     lib.recon_ray_box.argtypes = [i64, p, p, p, p, p, p, p, p]
     lib.recon_pixel_rays.restype = None
@@ -443,6 +446,25 @@ def trilinear_backward_native(x01: Tensor, grad_out: Tensor, res: int, out: Tens
 
     _on_threads(parts, parts, part)
     return grad_table
+
+
+def trilinear_backward_levels_native(x01: Tensor, grad_out: Tensor, resolutions: list[int], outs: list[Tensor],
+                                     touched: list[Tensor | None]) -> bool:
+    """:func:`trilinear_backward_native` (accumulating) of one-channel grids read at the same points x01 (M, 3) with
+    the same gradient (M, 1), into ``outs`` (each a contiguous float32 (res³, 1) tensor) with ``touched`` flags: a
+    level a thread where the library runs its parts on OpenMP's threads (the levels' sums are each their own, the
+    same for any number of threads). False, having done nothing, where it does not: the caller adds a level at a
+    time."""
+    lib = native_marcher()
+    if lib is None or not _parallel_in_c(lib) or len(outs) < 2 or grad_out.shape[1:] != (1,):
+        return False
+    x01, grad_out = x01.detach().contiguous(), grad_out.detach().to(torch.float32).contiguous()
+    res = torch.tensor(resolutions, dtype=torch.int64)
+    tables = (ctypes.c_void_p * len(outs))(*(out.data_ptr() for out in outs))
+    flags = (ctypes.c_void_p * len(outs))(*(_flags_pointer(t, out) for t, out in zip(touched, outs, strict=True)))
+    lib.recon_trilinear_backward_levels_all(x01.shape[0], x01.data_ptr(), grad_out.data_ptr(), len(outs),
+                                            res.data_ptr(), tables, flags, min(len(outs), _threads_for(x01.shape[0])))
+    return True
 
 
 def hash_features_native(x01: Tensor, table: Tensor, levels: Tensor, log2_table: int) -> Tensor | None:
