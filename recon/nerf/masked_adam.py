@@ -141,7 +141,9 @@ class MaskedAdam(torch.optim.Optimizer):
                                **kwargs):
                     if kwargs["masked"]:
                         self._zeroed[id(p)] = (p.grad, p.grad._version)
-                        if touched is not None:  # the gradient is all 0 now
+                        if touched is not None and flags is not None:  # the update cleared each flag it visited
+                            touched.vouch(p.grad)  # and the gradient is all 0 now
+                        elif touched is not None:  # it looked at every block: flags from before may be left
                             touched.reset(p.grad)
                 else:
                     adam_step_torch(p, p.grad, state["exp_avg"], state["exp_avg_sq"], **kwargs)
