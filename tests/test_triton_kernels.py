@@ -381,9 +381,7 @@ def test_march_of_no_rays_and_of_rays_that_miss(device: str, monkeypatch: pytest
         assert ts.shape == te.shape == ri.shape == sigma.shape == (0,)
 
 
-# ----------------------------------------------------------------------------- the interpreter run
-@pytest.mark.skipif(INTERPRETED, reason="this is the interpreter run")
-@pytest.mark.skipif(DEVICE == "cuda", reason="CUDA is here: the kernel cases ran compiled, the code the train stage runs")
+# ----------------------------------------------------------------------------- rays
 def _same(a: torch.Tensor, b: torch.Tensor) -> bool:
     """Equal values, NaN where NaN (torch.equal counts NaN unequal)."""
     return torch.equal(a.isnan(), b.isnan()) and torch.equal(a.nan_to_num(0.0), b.nan_to_num(0.0))
@@ -422,6 +420,9 @@ def test_pixel_rays_kernel_makes_the_torch_batch(device: str, box: bool) -> None
     torch.testing.assert_close(far, far_t, rtol=2e-6, atol=2e-6)
 
 
+# ----------------------------------------------------------------------------- the interpreter run
+@pytest.mark.skipif(INTERPRETED, reason="this is the interpreter run")
+@pytest.mark.skipif(DEVICE == "cuda", reason="CUDA is here: the kernel cases ran compiled, the code the train stage runs")
 def test_kernels_under_the_interpreter() -> None:
     """This file again with TRITON_INTERPRET=1 in a fresh process: every kernel case on CPU tensors, where no GPU
     compiles them (on an H100 machine, triton 3.6's interpreter failed on numpy 2.5, while the compiled cases passed)."""
