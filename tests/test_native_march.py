@@ -483,25 +483,26 @@ def _with_gradients(fn, inputs: list[torch.Tensor], seed: int, keep: tuple[int, 
 @needs_native
 def test_c_compositing_is_the_torch_compositing_forward_and_back() -> None:
     """To float32's rounding of the same sums (both keep the running optical depth in float64): weights, opacity,
-    depth and the gradients to sigma, delta and t; the transmittance bit for bit. (A float64 reference is no truth
+    depth and the gradients (of all four, the transmittance's too) to sigma, delta and t; the transmittance bit for
+    bit. (A float64 reference is no truth
     here: its clamps and exponentials cut elsewhere.)"""
     from recon.nerf.kernels import composite_packed_torch
     from recon.nerf.render import SIGMA_MAX, TAU_MAX
 
     sigma, delta, t, ri, n = _packed_samples()
-    fast = _with_gradients(lambda s, d, tt: native.composite_packed_native(s, d, tt, ri, int(n), SIGMA_MAX, TAU_MAX),
-                           [sigma, delta, t], seed=1, keep=(0, 2, 3))
+    fast = _with_gradients(lambda s, d, tt: native.composite_packed_native(s, d, tt, ri, int(n)), [sigma, delta, t],
+                           seed=1, keep=(0, 1, 2, 3))
     reference = _with_gradients(lambda s, d, tt: composite_packed_torch(s, d, tt, ri, int(n)), [sigma, delta, t],
-                                seed=1, keep=(0, 2, 3))
-    for name, a, b in zip(("weights", "opacity", "depth", "d/dsigma", "d/ddelta", "d/dt"), fast, reference,
-                          strict=True):
+                                seed=1, keep=(0, 1, 2, 3))
+    names = ("weights", "transmittance", "opacity", "depth", "d/dsigma", "d/ddelta", "d/dt")
+    for name, a, b in zip(names, fast, reference, strict=True):
         # a gradient is its sample's own term less the later samples' sum, which cancel in float32 (an opaque
         # sample's d/ddelta, ~5e7 here, to 1e-5): the gradients to 2e-5
         torch.testing.assert_close(a, b, rtol=2e-6 if name[0] != "d" else 2e-5, atol=1e-6 * float(b.abs().max()),
                                    msg=lambda m, name=name: f"{name}: {m}")
-    transmittance = native.composite_packed_native(sigma, delta, t, ri, int(n), SIGMA_MAX, TAU_MAX)[1]
+    transmittance = native.composite_packed_native(sigma, delta, t, ri, int(n))[1]
     assert torch.equal(transmittance, composite_packed_torch(sigma, delta, t, ri, int(n))[1])
-    assert (fast[3][sigma < 0] == 0).all() and (fast[3][sigma > SIGMA_MAX] == 0).all()  # outside the clamps: none
+    assert (fast[4][sigma < 0] == 0).all() and (fast[4][sigma > SIGMA_MAX] == 0).all()  # outside the clamps: none
 
 
 @needs_native

@@ -65,8 +65,6 @@ from recon.nerf.native import (
 from recon.nerf.occupancy import OccupancyGrid, density_threshold, march, march_front_to_back
 from recon.nerf.rays import clip_to_box
 from recon.nerf.render import (
-    SIGMA_MAX,
-    TAU_MAX,
     RadianceModel,
     accumulate_packed,
     checked_aabb,
@@ -551,7 +549,7 @@ class FastModel(RadianceModel):
         fused = use_triton(cfg.kernels, sigma, delta)  # CUDA and train.fast.kernels: one kernel (recon.nerf.kernels)
         # one pass a ray forward and one back: a Triton kernel on CUDA, C on a CPU, else the torch reference
         composited = (composite_packed_triton(sigma, delta, mid, ri, n) if fused
-                      else composite_packed_native(sigma, delta, mid, ri, n, SIGMA_MAX, TAU_MAX))
+                      else composite_packed_native(sigma, delta, mid, ri, n))
         if composited is not None:
             weights, _, opacity, depth_sum = composited
         else:

@@ -43,14 +43,23 @@ from typing import TYPE_CHECKING, Any, Literal
 import torch
 from torch import Tensor
 
-from recon.nerf.render import SIGMA_MAX, TAU_MAX, accumulate_packed, render_weights_packed
+from recon.nerf.render import (
+    SIGMA_MAX,
+    TAU_MAX,
+    PackedPasses,
+    accumulate_packed,
+    composite_by,
+    distortion_by,
+    ray_offsets,
+    render_weights_packed,
+)
 
 if TYPE_CHECKING:
     from recon.nerf.native import DenseDensity
 
 __all__ = ["MEASURED_FASTER", "KERNEL_DEVICES", "KernelSetting", "kernels_choice", "triton_status", "use_triton",
            "composite_packed_torch", "composite_packed_triton", "accumulate_packed_triton", "distortion_packed_triton",
-           "trilinear_levels_triton", "hash_levels_triton", "march_dense_triton", "ray_offsets", "ray_box_triton",
+           "trilinear_levels_triton", "hash_levels_triton", "march_dense_triton", "ray_box_triton",
            "pixel_rays_triton"]
 
 KernelSetting = Literal["auto", "torch", "triton"]
@@ -136,12 +145,6 @@ def use_triton(setting: str, *tensors: Tensor) -> bool:
     return _cuda_choice(setting)
 
 
-def ray_offsets(ray_indices: Tensor, n_rays: int) -> Tensor:
-    """(N + 1,) int64: ray r's samples are ``offsets[r]:offsets[r + 1]`` of sorted ``ray_indices (M,)``."""
-    rays = torch.arange(n_rays + 1, device=ray_indices.device, dtype=ray_indices.dtype)
-    return torch.searchsorted(ray_indices, rays)
-
-
 def _check_1d(name: str, x: Tensor, m: int) -> None:
     if x.shape != (m,):
         raise ValueError(f"{name} must have shape ({m},), got {tuple(x.shape)}")
@@ -158,38 +161,41 @@ def composite_packed_torch(sigma: Tensor, delta: Tensor, t: Tensor, ray_indices:
     return weights, transmittance, opacity, depth
 
 
-class _CompositePacked(torch.autograd.Function):
-    @staticmethod
-    def forward(ctx, sigma: Tensor, delta: Tensor, t: Tensor, ray_indices: Tensor,  # type: ignore[override]
-                n_rays: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-        offsets = ray_offsets(ray_indices, n_rays)
-        weights, trans = torch.empty_like(sigma), torch.empty_like(sigma)
-        opacity, depth = sigma.new_empty(n_rays), sigma.new_empty(n_rays)
-        if n_rays:
-            _jit().composite_fwd[(n_rays,)](sigma, delta, t, offsets, weights, trans, opacity, depth,
-                                             SIGMA_MAX=SIGMA_MAX, TAU_MAX=TAU_MAX, BLOCK=COMPOSITE_BLOCK, **LAUNCH)
-        ctx.save_for_backward(sigma, delta, t, offsets, weights, trans)
-        ctx.set_materialize_grads(False)
-        return weights, trans, opacity, depth
+class _TritonPasses(PackedPasses):
+    """Compositing and the distortion loss in Triton kernels, one program a ray (recon/nerf/triton_kernels.py)."""
 
-    @staticmethod
-    def backward(ctx, g_w: Tensor | None, g_trans: Tensor | None, g_op: Tensor | None,  # type: ignore[override]
-                 g_dep: Tensor | None) -> tuple[Tensor | None, ...]:
-        sigma, delta, t, offsets, weights, trans = ctx.saved_tensors
+    def composite(self, sigma: Tensor, delta: Tensor, t: Tensor, offsets: Tensor, weights: Tensor, trans: Tensor,
+                  opacity: Tensor, depth: Tensor) -> None:
         n = offsets.shape[0] - 1
-        g_sigma, g_delta, g_t = torch.empty_like(sigma), torch.empty_like(sigma), torch.empty_like(sigma)
-        zeros = sigma.new_zeros(n)
         if n:
-            _jit().composite_bwd[(n,)](
-                sigma, delta, t, offsets, weights, trans,
-                g_w.contiguous() if g_w is not None else sigma, g_trans.contiguous() if g_trans is not None else sigma,
-                g_op.contiguous() if g_op is not None else zeros, g_dep.contiguous() if g_dep is not None else zeros,
-                g_sigma, g_delta, g_t, SIGMA_MAX=SIGMA_MAX, TAU_MAX=TAU_MAX, BLOCK=COMPOSITE_BLOCK,
-                HAS_GW=g_w is not None, HAS_GT=g_trans is not None, **LAUNCH)
-        else:
-            g_sigma.zero_(), g_delta.zero_(), g_t.zero_()
-        need = ctx.needs_input_grad
-        return g_sigma if need[0] else None, g_delta if need[1] else None, g_t if need[2] else None, None, None
+            _jit().composite_fwd[(n,)](sigma, delta, t, offsets, weights, trans, opacity, depth,
+                                       SIGMA_MAX=SIGMA_MAX, TAU_MAX=TAU_MAX, BLOCK=COMPOSITE_BLOCK, **LAUNCH)
+
+    def composite_backward(self, sigma: Tensor, delta: Tensor, t: Tensor, offsets: Tensor, weights: Tensor,
+                           trans: Tensor, g_w: Tensor | None, g_trans: Tensor | None, g_op: Tensor, g_dep: Tensor,
+                           g_sigma: Tensor, g_delta: Tensor, g_t: Tensor) -> None:
+        n = offsets.shape[0] - 1
+        if not n:  # no ray, so no sample either
+            return
+        _jit().composite_bwd[(n,)](sigma, delta, t, offsets, weights, trans, sigma if g_w is None else g_w,
+                                   sigma if g_trans is None else g_trans, g_op, g_dep, g_sigma, g_delta, g_t,
+                                   SIGMA_MAX=SIGMA_MAX, TAU_MAX=TAU_MAX, BLOCK=COMPOSITE_BLOCK,
+                                   HAS_GW=g_w is not None, HAS_GT=g_trans is not None, **LAUNCH)
+
+    def distortion(self, w: Tensor, mid: Tensor, delta: Tensor, offsets: Tensor, loss: Tensor) -> None:
+        n = offsets.shape[0] - 1
+        if n:
+            _jit().distortion_fwd[(n,)](w, mid, delta, offsets, loss, BLOCK=COMPOSITE_BLOCK, **LAUNCH)
+
+    def distortion_backward(self, w: Tensor, mid: Tensor, delta: Tensor, offsets: Tensor, g_loss: Tensor,
+                            g_w: Tensor, g_mid: Tensor, g_delta: Tensor) -> None:
+        n = offsets.shape[0] - 1
+        if n:  # every sample is some ray's: all are written
+            _jit().distortion_bwd[(n,)](w, mid, delta, offsets, g_loss, g_w, g_mid, g_delta, BLOCK=COMPOSITE_BLOCK,
+                                        **LAUNCH)
+
+
+TRITON_PASSES = _TritonPasses()
 
 
 def composite_packed_triton(sigma: Tensor, delta: Tensor, t: Tensor, ray_indices: Tensor,
@@ -199,11 +205,7 @@ def composite_packed_triton(sigma: Tensor, delta: Tensor, t: Tensor, ray_indices
     sigma (M,) densities, delta (M,) interval lengths, t (M,) sample depths, all float32; ray_indices (M,) long,
     sorted ascending (rays may have no samples); differentiable in sigma, delta and t.
     Returns weights (M,), transmittance (M,), opacity (N,), depth sum (N,)."""
-    m = sigma.shape[0]
-    for name, x in (("sigma", sigma), ("delta", delta), ("t", t), ("ray_indices", ray_indices)):
-        _check_1d(name, x, m)
-    return _CompositePacked.apply(sigma.contiguous(), delta.contiguous(), t.contiguous(), ray_indices.contiguous(),
-                                  n_rays)
+    return composite_by(TRITON_PASSES, sigma, delta, t, ray_indices, n_rays)
 
 
 # ----------------------------------------------------------------------------- per-ray weighted sums
@@ -248,29 +250,6 @@ def accumulate_packed_triton(weights: Tensor, values: Tensor, ray_indices: Tenso
 
 
 # ----------------------------------------------------------------------------- the distortion loss
-class _DistortionPacked(torch.autograd.Function):
-    @staticmethod
-    def forward(ctx, weights: Tensor, t_mid: Tensor, delta: Tensor, ray_indices: Tensor,  # type: ignore[override]
-                n_rays: int) -> Tensor:
-        offsets = ray_offsets(ray_indices, n_rays)
-        loss = weights.new_empty(n_rays)
-        if n_rays:
-            _jit().distortion_fwd[(n_rays,)](weights, t_mid, delta, offsets, loss, BLOCK=COMPOSITE_BLOCK, **LAUNCH)
-        ctx.save_for_backward(weights, t_mid, delta, offsets)
-        return loss
-
-    @staticmethod
-    def backward(ctx, g: Tensor) -> tuple[Tensor | None, ...]:  # type: ignore[override]
-        weights, t_mid, delta, offsets = ctx.saved_tensors
-        n = offsets.shape[0] - 1
-        g_w, g_m, g_d = torch.empty_like(weights), torch.empty_like(weights), torch.empty_like(weights)
-        if n:  # every sample is some ray's: all are written
-            _jit().distortion_bwd[(n,)](weights, t_mid, delta, offsets, g.contiguous(), g_w, g_m, g_d,
-                                        BLOCK=COMPOSITE_BLOCK, **LAUNCH)
-        need = ctx.needs_input_grad
-        return g_w if need[0] else None, g_m if need[1] else None, g_d if need[2] else None, None, None
-
-
 def distortion_packed_triton(weights: Tensor, t_mid: Tensor, delta: Tensor, ray_indices: Tensor,
                              n_rays: int) -> Tensor:
     """:func:`recon.nerf.render.distortion_packed`, each ray's distortion loss (N,), in one kernel forward and one
@@ -278,11 +257,7 @@ def distortion_packed_triton(weights: Tensor, t_mid: Tensor, delta: Tensor, ray_
 
     weights, t_mid (sorted along each ray), delta: (M,) float32; ray_indices (M,) sorted ascending. Differentiable in
     all three."""
-    m = weights.shape[0]
-    for name, x in (("weights", weights), ("t_mid", t_mid), ("delta", delta), ("ray_indices", ray_indices)):
-        _check_1d(name, x, m)
-    return _DistortionPacked.apply(weights.contiguous(), t_mid.contiguous(), delta.contiguous(),
-                                   ray_indices.contiguous(), n_rays)
+    return distortion_by(TRITON_PASSES, weights, t_mid, delta, ray_indices, n_rays)
 
 
 # ----------------------------------------------------------------------------- dense grids' trilinear reads

@@ -837,12 +837,13 @@ static void composite_rays(int64_t lo, int64_t hi, const int64_t *offsets, const
     }
 }
 
-/* Gradients of recon_composite to sigma, delta and t, given those of the weights (g_w, or NULL), the opacity and the
- * depth sum. With G_i = dL/dw_i + dL/dopacity + dL/ddepth t_i: dL/dtau_k = G_k T_k exp(-tau_k) - sum_{i>k} G_i w_i,
- * then through the clamps as torch's clamp passes gradients (inside its closed range). */
+/* Gradients of the compositing to sigma, delta and t, given those of the weights and the transmittance (g_w, g_trans,
+ * each may be NULL), the opacity and the depth sum. With G_i = dL/dw_i + dL/dopacity + dL/ddepth t_i:
+ * dL/dtau_k = G_k T_k exp(-tau_k) - sum_{i>k} (G_i w_i + dL/dT_i T_i), then through the clamps as torch's clamp
+ * passes gradients (inside its closed range). */
 static void composite_backward_rays(int64_t lo, int64_t hi, const int64_t *offsets, const float *sigma,
                                     const float *delta, const float *t, const float *weights, const float *trans,
-                                    const float *g_w,
+                                    const float *g_w, const float *g_trans,
                                     const float *g_op, const float *g_dep, float sigma_max, float tau_max,
                                     float *g_sigma, float *g_delta, float *g_t)
 {
@@ -858,7 +859,7 @@ static void composite_backward_rays(int64_t lo, int64_t hi, const int64_t *offse
             g_sigma[i] = (sigma[i] >= 0.0f && sigma[i] <= sigma_max) ? g_tau * d : 0.0f;
             g_delta[i] = delta[i] >= 0.0f ? g_tau * s : 0.0f;
             g_t[i] = g_dep[r] * weights[i];
-            later += (double)(g * weights[i]);
+            later += (double)(g * weights[i]) + (g_trans ? (double)(g_trans[i] * trans[i]) : 0.0);
         }
     }
 }
@@ -923,12 +924,13 @@ void recon_composite_all(int64_t n_rays, const int64_t *offsets, const float *si
 
 void recon_composite_backward_all(int64_t n_rays, const int64_t *offsets, const float *sigma, const float *delta,
                                   const float *t, const float *weights, const float *trans, const float *g_w,
-                                  const float *g_op, const float *g_dep, float sigma_max, float tau_max,
-                                  float *g_sigma, float *g_delta, float *g_t, int64_t slices, int64_t threads)
+                                  const float *g_trans, const float *g_op, const float *g_dep, float sigma_max,
+                                  float tau_max, float *g_sigma, float *g_delta, float *g_t, int64_t slices,
+                                  int64_t threads)
 {
     OVER_SLICES(n_rays, slices, threads, composite_backward_rays(lo, hi, offsets, sigma, delta, t, weights, trans, g_w,
-                                                                 g_op, g_dep, sigma_max, tau_max, g_sigma, g_delta,
-                                                                 g_t))
+                                                                 g_trans, g_op, g_dep, sigma_max, tau_max, g_sigma,
+                                                                 g_delta, g_t))
 }
 
 void recon_distortion_all(int64_t n_rays, const int64_t *offsets, const float *w, const float *m, const float *d,

@@ -34,6 +34,8 @@ from typing import TypeVar
 import torch
 from torch import Tensor
 
+from recon.nerf.render import SIGMA_MAX, TAU_MAX, PackedPasses, composite_by, distortion_by
+
 __all__ = ["DenseDensity", "load_c_library", "native_marcher", "native_status", "march_dense_native",
            "march_render_native", "native_grid_ok", "trilinear_features_native", "trilinear_backward_native", "hash_features_native",
            "hash_backward_native", "adam_native", "ADAM_BLOCK", "adam_blocks", "ray_box_native", "pixel_rays_native",
@@ -192,7 +194,7 @@ def native_marcher() -> ctypes.CDLL | None:
     lib.recon_composite_all.restype = None
     lib.recon_composite_all.argtypes = [i64, p, p, p, p, f32, f32, p, p, p, p, i64, i64]
     lib.recon_composite_backward_all.restype = None
-    lib.recon_composite_backward_all.argtypes = [i64, p, p, p, p, p, p, p, p, p, f32, f32, p, p, p, i64, i64]
+    lib.recon_composite_backward_all.argtypes = [i64, p, p, p, p, p, p, p, p, p, p, f32, f32, p, p, p, i64, i64]
     lib.recon_distortion_all.restype = None
     lib.recon_distortion_all.argtypes = [i64, p, p, p, p, p, i64, i64]
     lib.recon_distortion_backward_all.restype = None
@@ -596,77 +598,51 @@ def pixel_rays_native(flat: Tensor, offsets: Tensor, widths: Tensor, c2w: Tensor
     return o, d, near, far, hit, img
 
 
-def _ray_offsets(ray_indices: Tensor, n_rays: int) -> Tensor:
-    """(N + 1,) int64: ray r's samples are ``offsets[r]:offsets[r + 1]`` of sorted ``ray_indices (M,)``."""
-    return torch.searchsorted(ray_indices, torch.arange(n_rays + 1, dtype=ray_indices.dtype))
+class _CPasses(PackedPasses):
+    """Compositing and the distortion loss in C, a ray at a time on OpenMP's threads (march.c's recon_composite_all,
+    recon_distortion_all and their backwards), the running sums in float64 as the torch references' cumulative sums."""
 
-
-class _CompositeNative(torch.autograd.Function):
-    @staticmethod
-    def forward(ctx, sigma: Tensor, delta: Tensor, t: Tensor, offsets: Tensor,  # type: ignore[override]
-                limits: tuple[float, float]) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    def composite(self, sigma: Tensor, delta: Tensor, t: Tensor, offsets: Tensor, weights: Tensor, trans: Tensor,
+                  opacity: Tensor, depth: Tensor) -> None:
         n = offsets.shape[0] - 1
-        weights, trans, opacity, depth = torch.empty_like(sigma), torch.empty_like(sigma), sigma.new_empty(n), \
-            sigma.new_empty(n)
         native_marcher().recon_composite_all(n, offsets.data_ptr(), sigma.data_ptr(), delta.data_ptr(), t.data_ptr(),
-                                             *limits, weights.data_ptr(), trans.data_ptr(), opacity.data_ptr(),
-                                             depth.data_ptr(), *_slices_for(n))
-        ctx.save_for_backward(sigma, delta, t, offsets, weights, trans)
-        ctx.limits = limits
-        ctx.set_materialize_grads(False)
-        ctx.mark_non_differentiable(trans)
-        return weights, trans, opacity, depth
+                                             SIGMA_MAX, TAU_MAX, weights.data_ptr(), trans.data_ptr(),
+                                             opacity.data_ptr(), depth.data_ptr(), *_slices_for(n))
 
-    @staticmethod
-    def backward(ctx, g_w: Tensor | None, g_trans: Tensor | None, g_op: Tensor | None,  # type: ignore[override]
-                 g_dep: Tensor | None) -> tuple[Tensor | None, ...]:
-        sigma, delta, t, offsets, weights, trans = ctx.saved_tensors
+    def composite_backward(self, sigma: Tensor, delta: Tensor, t: Tensor, offsets: Tensor, weights: Tensor,
+                           trans: Tensor, g_w: Tensor | None, g_trans: Tensor | None, g_op: Tensor, g_dep: Tensor,
+                           g_sigma: Tensor, g_delta: Tensor, g_t: Tensor) -> None:
         n = offsets.shape[0] - 1
-        per_ray = torch.stack([sigma.new_zeros(n) if g is None else g.to(torch.float32) for g in (g_op, g_dep)])
-        g_w = None if g_w is None else g_w.to(torch.float32).contiguous()
-        g_sigma, g_delta, g_t = torch.empty_like(sigma), torch.empty_like(sigma), torch.empty_like(sigma)
         native_marcher().recon_composite_backward_all(
             n, offsets.data_ptr(), sigma.data_ptr(), delta.data_ptr(), t.data_ptr(), weights.data_ptr(),
-            trans.data_ptr(), _pointer(g_w), per_ray[0].data_ptr(), per_ray[1].data_ptr(), *ctx.limits,
+            trans.data_ptr(), _pointer(g_w), _pointer(g_trans), g_op.data_ptr(), g_dep.data_ptr(), SIGMA_MAX, TAU_MAX,
             g_sigma.data_ptr(), g_delta.data_ptr(), g_t.data_ptr(), *_slices_for(n))
-        need = ctx.needs_input_grad
-        return g_sigma if need[0] else None, g_delta if need[1] else None, g_t if need[2] else None, None, None
 
-
-def composite_packed_native(sigma: Tensor, delta: Tensor, t: Tensor, ray_indices: Tensor, n_rays: int,
-                            sigma_max: float, tau_max: float) -> tuple[Tensor, Tensor, Tensor, Tensor] | None:
-    """`recon.nerf.kernels.composite_packed_torch` (weights, transmittance (M,), opacity, depth sum (N,) of packed
-    samples sigma, delta, t (M,), ray_indices (M,) sorted; differentiable in sigma, delta and t; the
-    transmittance carries no gradient) in one C pass a ray forward and one back, the running optical depth in
-    float64 as the reference's. None unless :func:`native_grid_ok` takes the tensors."""
-    if not native_grid_ok(sigma, delta, t):
-        return None
-    offsets = _ray_offsets(ray_indices, n_rays)
-    return _CompositeNative.apply(sigma.contiguous(), delta.contiguous(), t.contiguous(), offsets,
-                                  (float(sigma_max), float(tau_max)))
-
-
-class _DistortionNative(torch.autograd.Function):
-    @staticmethod
-    def forward(ctx, w: Tensor, mid: Tensor, delta: Tensor, offsets: Tensor) -> Tensor:  # type: ignore[override]
+    def distortion(self, w: Tensor, mid: Tensor, delta: Tensor, offsets: Tensor, loss: Tensor) -> None:
         n = offsets.shape[0] - 1
-        loss = w.new_empty(n)
         native_marcher().recon_distortion_all(n, offsets.data_ptr(), w.data_ptr(), mid.data_ptr(), delta.data_ptr(),
                                               loss.data_ptr(), *_slices_for(n))
-        ctx.save_for_backward(w, mid, delta, offsets)
-        return loss
 
-    @staticmethod
-    def backward(ctx, g: Tensor) -> tuple[Tensor | None, ...]:  # type: ignore[override]
-        w, mid, delta, offsets = ctx.saved_tensors
+    def distortion_backward(self, w: Tensor, mid: Tensor, delta: Tensor, offsets: Tensor, g_loss: Tensor,
+                            g_w: Tensor, g_mid: Tensor, g_delta: Tensor) -> None:
         n = offsets.shape[0] - 1
-        g = g.to(torch.float32).contiguous()
-        g_w, g_m, g_d = torch.empty_like(w), torch.empty_like(w), torch.empty_like(w)
         native_marcher().recon_distortion_backward_all(n, offsets.data_ptr(), w.data_ptr(), mid.data_ptr(),
-                                                       delta.data_ptr(), g.data_ptr(), g_w.data_ptr(), g_m.data_ptr(),
-                                                       g_d.data_ptr(), *_slices_for(n))
-        need = ctx.needs_input_grad
-        return g_w if need[0] else None, g_m if need[1] else None, g_d if need[2] else None, None
+                                                       delta.data_ptr(), g_loss.data_ptr(), g_w.data_ptr(),
+                                                       g_mid.data_ptr(), g_delta.data_ptr(), *_slices_for(n))
+
+
+C_PASSES = _CPasses()
+
+
+def composite_packed_native(sigma: Tensor, delta: Tensor, t: Tensor, ray_indices: Tensor,
+                            n_rays: int) -> tuple[Tensor, Tensor, Tensor, Tensor] | None:
+    """`recon.nerf.kernels.composite_packed_torch` (weights, transmittance (M,), opacity, depth sum (N,) of packed
+    samples sigma, delta, t (M,), ray_indices (M,) sorted; differentiable in sigma, delta and t) in one C pass a ray
+    forward and one back (:func:`recon.nerf.render.composite_by`). None unless :func:`native_grid_ok` takes the
+    tensors."""
+    if not native_grid_ok(sigma, delta, t):
+        return None
+    return composite_by(C_PASSES, sigma, delta, t, ray_indices, n_rays)
 
 
 def distortion_packed_native(weights: Tensor, t_mid: Tensor, delta: Tensor, ray_indices: Tensor,
@@ -676,8 +652,7 @@ def distortion_packed_native(weights: Tensor, t_mid: Tensor, delta: Tensor, ray_
     in all three. None unless :func:`native_grid_ok` takes the tensors."""
     if not native_grid_ok(weights, t_mid, delta):
         return None
-    return _DistortionNative.apply(weights.contiguous(), t_mid.contiguous(), delta.contiguous(),
-                                   _ray_offsets(ray_indices, n_rays))
+    return distortion_by(C_PASSES, weights, t_mid, delta, ray_indices, n_rays)
 
 
 def _flags_pointer(touched: Tensor | None, values: Tensor) -> int | None:

@@ -292,6 +292,104 @@ def distortion_packed(weights: Tensor, t_mid: Tensor, delta: Tensor, ray_indices
     return accumulate_packed(per_sample, None, ray_indices, n_rays)
 
 
+def ray_offsets(ray_indices: Tensor, n_rays: int) -> Tensor:
+    """(N + 1,) int64: ray r's samples are ``offsets[r]:offsets[r + 1]`` of sorted ``ray_indices (M,)``."""
+    rays = torch.arange(n_rays + 1, device=ray_indices.device, dtype=ray_indices.dtype)
+    return torch.searchsorted(ray_indices, rays)
+
+
+class PackedPasses(abc.ABC):
+    """Compositing and the distortion loss of packed samples as passes a ray, forward and back (a Triton kernel on
+    CUDA, `recon.nerf.kernels`; a C loop on a CPU, `recon.nerf.native`): what :func:`composite_by` and
+    :func:`distortion_by` run. Each fills the float32 outputs it is given; rays are ``offsets`` (N + 1,) of the
+    samples; gradients given as None were not asked for, except the per-ray ones (zeros where absent)."""
+
+    @abc.abstractmethod
+    def composite(self, sigma: Tensor, delta: Tensor, t: Tensor, offsets: Tensor, weights: Tensor, trans: Tensor,
+                  opacity: Tensor, depth: Tensor) -> None: ...
+
+    @abc.abstractmethod
+    def composite_backward(self, sigma: Tensor, delta: Tensor, t: Tensor, offsets: Tensor, weights: Tensor,
+                           trans: Tensor, g_w: Tensor | None, g_trans: Tensor | None, g_op: Tensor, g_dep: Tensor,
+                           g_sigma: Tensor, g_delta: Tensor, g_t: Tensor) -> None: ...
+
+    @abc.abstractmethod
+    def distortion(self, w: Tensor, mid: Tensor, delta: Tensor, offsets: Tensor, loss: Tensor) -> None: ...
+
+    @abc.abstractmethod
+    def distortion_backward(self, w: Tensor, mid: Tensor, delta: Tensor, offsets: Tensor, g_loss: Tensor,
+                            g_w: Tensor, g_mid: Tensor, g_delta: Tensor) -> None: ...
+
+
+class _Composite(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, sigma: Tensor, delta: Tensor, t: Tensor, offsets: Tensor,  # type: ignore[override]
+                passes: PackedPasses) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        n = offsets.shape[0] - 1
+        weights, trans = torch.empty_like(sigma), torch.empty_like(sigma)
+        opacity, depth = sigma.new_empty(n), sigma.new_empty(n)
+        passes.composite(sigma, delta, t, offsets, weights, trans, opacity, depth)
+        ctx.save_for_backward(sigma, delta, t, offsets, weights, trans)
+        ctx.passes = passes
+        ctx.set_materialize_grads(False)
+        return weights, trans, opacity, depth
+
+    @staticmethod
+    def backward(ctx, g_w: Tensor | None, g_trans: Tensor | None, g_op: Tensor | None,  # type: ignore[override]
+                 g_dep: Tensor | None) -> tuple[Tensor | None, ...]:
+        sigma, delta, t, offsets, weights, trans = ctx.saved_tensors
+        n = offsets.shape[0] - 1
+        per_ray = [sigma.new_zeros(n) if g is None else g.float().contiguous() for g in (g_op, g_dep)]
+        g_w, g_trans = (None if g is None else g.float().contiguous() for g in (g_w, g_trans))
+        g_sigma, g_delta, g_t = torch.empty_like(sigma), torch.empty_like(sigma), torch.empty_like(sigma)
+        ctx.passes.composite_backward(sigma, delta, t, offsets, weights, trans, g_w, g_trans, *per_ray, g_sigma,
+                                      g_delta, g_t)
+        need = ctx.needs_input_grad
+        return g_sigma if need[0] else None, g_delta if need[1] else None, g_t if need[2] else None, None, None
+
+
+def composite_by(passes: PackedPasses, sigma: Tensor, delta: Tensor, t: Tensor, ray_indices: Tensor,
+                 n_rays: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """:func:`render_weights_packed` and :func:`accumulate_packed`'s opacity and depth sum by fused passes: weights,
+    transmittance (M,), opacity and depth sum ``sum_i w_i t_i`` (N,) of packed float32 samples sigma, delta, t (M,),
+    ray_indices (M,) sorted (not checked: that costs host reads); differentiable in sigma, delta and t."""
+    m = sigma.shape[0]
+    for name, x in (("sigma", sigma), ("delta", delta), ("t", t), ("ray_indices", ray_indices)):
+        _check_shape(name, x, (m,))
+    return _Composite.apply(sigma.contiguous(), delta.contiguous(), t.contiguous(),
+                            ray_offsets(ray_indices.contiguous(), n_rays), passes)
+
+
+class _Distortion(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, w: Tensor, mid: Tensor, delta: Tensor, offsets: Tensor,  # type: ignore[override]
+                passes: PackedPasses) -> Tensor:
+        loss = w.new_empty(offsets.shape[0] - 1)
+        passes.distortion(w, mid, delta, offsets, loss)
+        ctx.save_for_backward(w, mid, delta, offsets)
+        ctx.passes = passes
+        return loss
+
+    @staticmethod
+    def backward(ctx, g: Tensor) -> tuple[Tensor | None, ...]:  # type: ignore[override]
+        w, mid, delta, offsets = ctx.saved_tensors
+        g_w, g_m, g_d = torch.empty_like(w), torch.empty_like(w), torch.empty_like(w)
+        ctx.passes.distortion_backward(w, mid, delta, offsets, g.float().contiguous(), g_w, g_m, g_d)
+        need = ctx.needs_input_grad
+        return g_w if need[0] else None, g_m if need[1] else None, g_d if need[2] else None, None, None
+
+
+def distortion_by(passes: PackedPasses, weights: Tensor, t_mid: Tensor, delta: Tensor, ray_indices: Tensor,
+                  n_rays: int) -> Tensor:
+    """:func:`distortion_packed` by fused passes: each ray's distortion loss (N,) of packed float32 weights, t_mid
+    (sorted along each ray), delta (M,), ray_indices sorted; differentiable in all three."""
+    m = weights.shape[0]
+    for name, x in (("weights", weights), ("t_mid", t_mid), ("delta", delta), ("ray_indices", ray_indices)):
+        _check_shape(name, x, (m,))
+    return _Distortion.apply(weights.contiguous(), t_mid.contiguous(), delta.contiguous(),
+                             ray_offsets(ray_indices.contiguous(), n_rays), passes)
+
+
 def render_packed(
     sigma: Tensor,
     rgb: Tensor,
