@@ -50,7 +50,6 @@ from recon.nerf.kernels import (
     composite_packed_triton,
     distortion_packed_triton,
     march_dense_triton,
-    ray_box_triton,
     use_triton,
 )
 from recon.nerf.model_config import HASH_BASE_RES, HASH_FEATURES, FastConfig, GridKind, density_grid_dim
@@ -479,10 +478,7 @@ class FastModel(RadianceModel):
             t_near, t_far = near, far
         else:
             box = self.march_box if self.occupancy.is_warm() else self.aabb
-            if use_triton(cfg.kernels, rays_o, rays_d, near, far) and not rays_o.requires_grad:
-                t_near, t_far, _ = ray_box_triton(rays_o, rays_d, box, near, far)
-            else:
-                t_near, t_far = clip_to_box(rays_o, rays_d, near, far, box)
+            t_near, t_far = clip_to_box(rays_o, rays_d, near, far, box, cfg.kernels)
 
         evaluated = [0]  # density evaluations, for tests and profiles
 

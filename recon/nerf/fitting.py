@@ -110,7 +110,7 @@ class RayBatcher:
         self.aabb = None if aabb is None else aabb.to(self.device, torch.float32)
         if near_far is not None:
             nf = near_far.to(self.device, torch.float32)
-            self.near_far = nf.expand(n, 2) if nf.shape == (2,) else nf
+            self.near_far = (nf.expand(n, 2) if nf.shape == (2,) else nf).contiguous()  # as a batch's C pass reads it
             if self.near_far.shape != (n, 2):
                 raise ValueError(f"near_far must be (2,) or ({n}, 2), got {tuple(near_far.shape)}")
         else:

@@ -11,6 +11,7 @@ from torch import Tensor
 
 from recon.camera import image_rays
 from recon.camera import pixel_rays as _pixel_rays
+from recon.nerf.kernels import ray_box_triton, use_triton
 from recon.nerf.native import ray_box_native
 
 __all__ = ["camera_rays", "pixel_rays", "ray_aabb", "ray_aabb_torch", "clip_to_box"]
@@ -102,13 +103,18 @@ def ray_aabb_torch(rays_o: Tensor, rays_d: Tensor, aabb: Tensor) -> tuple[Tensor
     return torch.where(hit, t_near, 0.0), torch.where(hit, t_far, 0.0), hit
 
 
-def clip_to_box(rays_o: Tensor, rays_d: Tensor, near: Tensor, far: Tensor, box: Tensor) -> tuple[Tensor, Tensor]:
+def clip_to_box(rays_o: Tensor, rays_d: Tensor, near: Tensor, far: Tensor, box: Tensor,
+                kernels: str = "torch") -> tuple[Tensor, Tensor]:
     """Each ray's [near, far] (N,) clipped to a box (2, 3): (t_near, t_far); a ray that misses the box gets an empty
-    interval at its near end. In one C pass on a CPU (`recon.nerf.native.ray_box_native`, the same values)."""
+    interval at its near end. In one C pass on a CPU (`recon.nerf.native.ray_box_native`, the same values), in one
+    Triton kernel on CUDA where ``kernels`` (the fast model's `train.fast.kernels`) takes it
+    (`recon.nerf.kernels.ray_box_triton`)."""
     if not (rays_o.requires_grad or rays_d.requires_grad or near.requires_grad or far.requires_grad):
-        native = ray_box_native(rays_o, rays_d, box.to(rays_o), near, far)
-        if native is not None:
-            return native[0], native[1]
+        fused = ray_box_native(rays_o, rays_d, box.to(rays_o), near, far)
+        if fused is None and use_triton(kernels, rays_o, rays_d, near, far):
+            fused = ray_box_triton(rays_o, rays_d, box, near, far)
+        if fused is not None:
+            return fused[0], fused[1]
     tn, tf, hit = ray_aabb_torch(rays_o, rays_d, box)
     t_near = torch.maximum(near, tn)
     return t_near, torch.where(hit, torch.minimum(far, tf), t_near)
