@@ -8,20 +8,22 @@ against the library's parts on threads of recon's instead of OpenMP's (`--agains
 march.c was built with OpenMP: `_parallel_in_c`), against a batch's rays and their box in torch operations
 (`--against torch-rays`, as before they were C passes: `pixel_rays_native`, `ray_box_native`), against
 compositing and the distortion loss in torch operations (`--against torch-compositing`, as before they were C
-passes: `composite_packed_native`, `distortion_packed_native`), or against the density levels' backward a level at a
-time (`--against serial-levels`, as before they took a thread each: `trilinear_backward_levels_native`).
+passes: `composite_packed_native`, `distortion_packed_native`), against the density levels' backward a level at a
+time (`--against serial-levels`, as before they took a thread each: `trilinear_backward_levels_native`), or against a
+march that guesses 48 samples a ray, marches a slice that needed more again on one thread, and takes a second thread
+only from 1,024 rays on (`--against guessed-room`, as before each ray was given its steps: `_march_room`).
 
     python benchmarks/native_step_cost.py --scene ~/.cache/recon/bench/lego-half-fast --against python-threads \\
         --out benchmarks/results/lego_half_openmp_step_cost.json
 
 Two trainings are built as the train stage builds them (`recon.plans.training`) on the scene's 02_scene and take
 `--warmup` steps each; then they take turns (step_cost.py's `take_turns`), `--rounds` rounds of `--block` steps, the
-second's turns with the other library (REV's march.c built with recon's flags for this CPU; its functions must take
-the same arguments, or it is refused), the other slicing, the second read, the one-thread backward, recon's
-threads, the torch rays, the torch compositing or the levels in turn. The record gives each one's ms a step and
-the ratio, the sliced native calls a step. Both compute the same values (tests/test_native_march.py,
-tests/test_masked_adam.py; the C rays and compositing to a float32 rounding); their trainings draw rays from one
-random stream in turns, so they do not end equal. A measurement: it asserts nothing.
+second's turns with the other library (REV's march.c built with recon's flags for this CPU; its functions must take the
+same arguments, or it is refused), the other slicing, the second read, the one-thread backward, recon's threads, the
+torch rays, the torch compositing, the levels in turn or the guessed room. The record gives each one's ms a step and the
+ratio, the sliced native calls a step. Both compute the same values (tests/test_native_march.py,
+tests/test_masked_adam.py; the C rays and compositing to a float32 rounding); their trainings draw rays from one random
+stream in turns, so they do not end equal. A measurement: it asserts nothing.
 """
 from __future__ import annotations
 
@@ -67,6 +69,14 @@ def serial_backward(x01: torch.Tensor, grad_out: torch.Tensor, res: int, out: to
     return out
 
 
+def guessed_room(*args: Any) -> Callable[[int, int, int], torch.Tensor]:
+    """`recon.nerf.native._march_room` as a fixed guess of 48 samples a ray: slice s of rays lo..hi from its first
+    ray times 48 on."""
+    def room(lo: int, hi: int, slices: int) -> torch.Tensor:
+        return torch.tensor([48 * ((hi - lo) * s // slices) for s in range(slices + 1)], dtype=torch.long)
+    return room
+
+
 def prototypes(c_source: str) -> dict[str, str]:
     """Each exported `recon_*` function of a C source -> its parameter list, whitespace made single spaces."""
     return {m[1]: " ".join(m[2].split()) for m in re.finditer(r"^\w+\s+(recon_\w+)\(([^)]*)\)", c_source, re.M)}
@@ -106,7 +116,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = step_parser(__doc__)
     parser.add_argument("--against", required=True,
                         help="a git revision, pool-map, reads-again, serial-backward, python-threads, torch-rays, "
-                             "torch-compositing or serial-levels")
+                             "torch-compositing, serial-levels or guessed-room")
     turn_arguments(parser, warmup=300)
     args = parser.parse_args(argv)
     row = scene_row("native_step_cost", args)
@@ -119,7 +129,7 @@ def main(argv: list[str] | None = None) -> int:
     patched = [(native, "_in_slices"), (native, "native_marcher"), (FastModel, "_marched_sigma"),
                (grid, "trilinear_backward_native"), (native, "_parallel_in_c"), (fitting, "pixel_rays_native"),
                (rays, "ray_box_native"), (fast, "composite_packed_native"), (fast, "distortion_packed_native"),
-               (grid, "trilinear_backward_levels_native")]
+               (grid, "trilinear_backward_levels_native"), (native, "_march_room"), (native, "MARCH_RAYS_A_THREAD")]
     originals = {(owner, name): getattr(owner, name) for owner, name in patched}
 
     def counted(slices: Callable[[int, Callable[[int, int], T]], list[T]]) -> Callable[..., list[T]]:
@@ -145,6 +155,8 @@ def main(argv: list[str] | None = None) -> int:
                      (fast, "distortion_packed_native"): lambda *args: None}
         elif args.against == "serial-levels":
             other = {(grid, "trilinear_backward_levels_native"): lambda *args: False}
+        elif args.against == "guessed-room":
+            other = {(native, "_march_room"): guessed_room, (native, "MARCH_RAYS_A_THREAD"): 1024}
         else:
             base = library_of(args.against, Path(tmp))
             other = {(native, "native_marcher"): lambda: base}

@@ -187,10 +187,11 @@ def test_the_c_backward_in_parts_adds_the_same_sums_as_in_one(channels: int) -> 
 
 
 @needs_native
-def test_the_openmp_parts_compute_what_recons_own_threads_do(monkeypatch: pytest.MonkeyPatch) -> None:
+@pytest.mark.parametrize("room", ["steps", "short"])
+def test_the_openmp_parts_compute_what_recons_own_threads_do(room: str, monkeypatch: pytest.MonkeyPatch) -> None:
     """A library built with OpenMP runs each call's parts on OpenMP's threads in one call (the `_all` entry points);
-    without, recon splits them over threads of its own. Both give the same results bit for bit, including a march
-    whose slices overflow their first guess of samples a ray and are marched again."""
+    without, recon splits them over threads of its own. Both give the same results bit for bit, with each ray's
+    steps as its room, and with room short of that (16 samples a ray), so slices are marched again."""
     from recon.nerf.grid import HashGrid
     from recon.nerf.masked_adam import adam_blocks
 
@@ -224,6 +225,8 @@ def test_the_openmp_parts_compute_what_recons_own_threads_do(monkeypatch: pytest
                 hash_grad, *adam, flags]
 
     threads = torch.get_num_threads()
+    if room == "short":
+        monkeypatch.setattr(native, "MARCH_ROOM", 1)
     try:
         torch.set_num_threads(2)
         in_c = every_call()
@@ -231,10 +234,51 @@ def test_the_openmp_parts_compute_what_recons_own_threads_do(monkeypatch: pytest
         ours = every_call()
     finally:
         torch.set_num_threads(threads)
-    assert int(torch.bincount(in_c[2]).max()) > 48 and int(torch.bincount(in_c[7]).max()) > 24  # marched again
+    assert int(torch.bincount(in_c[2]).max()) > 48 and int(torch.bincount(in_c[7]).max()) > 24  # beyond 16 a ray
     assert len(in_c) == len(ours)
     for a, b in zip(in_c, ours):
         assert torch.equal(a, b)
+
+
+@needs_native
+@pytest.mark.parametrize("rays", [48, 300])
+def test_a_march_gives_each_ray_its_steps_and_marches_no_slice_twice(rays: int, monkeypatch: pytest.MonkeyPatch
+                                                                      ) -> None:
+    """Each ray is given room for its steps (the most samples it can keep): rays through a faint field, far beyond
+    the 48 samples a ray the march once guessed, and a depth prior's few hundred rays, are each marched once, on both
+    threads, and keep the torch marcher's samples."""
+    model = _ball_model(3, "softplus")
+    with torch.no_grad():
+        for level in model._density_levels():
+            level.table.mul_(0.02)
+    model.occupancy.update(model.density, 100)
+    o, d, tn, tf = _rays(model, 48)
+    pick = torch.randperm(o.shape[0], generator=torch.Generator().manual_seed(1))[:rays]
+    o, d, tn, tf = o[pick], d[pick], tn[pick], tf[pick]
+    field, step = model._dense_density(), model.step_size / 6
+    lib, calls = native.native_marcher(), []
+    for name in ("recon_march_dense", "recon_march_render", "recon_march_dense_all", "recon_march_render_all"):
+        spy = (lambda f, name: lambda *a: calls.append(name) or f(*a))(getattr(lib, name), name)
+        monkeypatch.setattr(lib, name, spy)
+    threads = torch.get_num_threads()
+    try:
+        torch.set_num_threads(2)
+        ts, te, ri, sigma = native.march_dense_native(o, d, tn, tf, False, field, step, 1024, 1e-3)
+        rendered = native.march_render_native(o, d, tn, tf, field, step, 1024, 1e-3, 0.0)
+        both = native._threads_for(rays, native.MARCH_RAYS_A_THREAD) == 2
+    finally:
+        torch.set_num_threads(threads)
+    assert both == (rays >= 256)  # a depth prior's 256 rays take both threads
+    assert int(torch.bincount(ri).max()) > 48 and int(torch.bincount(rendered["ray_indices"]).max()) > 48
+    if native._parallel_in_c(lib):
+        assert calls == ["recon_march_dense_all", "recon_march_render_all"]
+    else:  # recon's own threads: one call a slice
+        slices = native._in_slices(rays, lambda lo, hi: lo, native.MARCH_RAYS_A_THREAD)
+        assert calls == ["recon_march_dense"] * len(slices) + ["recon_march_render"] * len(slices)
+    sigma_fn = lambda a, b, r: model._sigma_unit(model._unit(o[r] + d[r] * (0.5 * (a + b))[:, None]).clamp(0, 1))
+    ref = march_front_to_back(o, d, tn, tf, model.occupancy, step, 1024, sigma_fn, jitter=False, min_transmittance=1e-3)
+    assert torch.equal(ri, ref[2])
+    torch.testing.assert_close(ts, ref[0])
 
 
 def test_a_failed_build_falls_back_to_torch(monkeypatch: pytest.MonkeyPatch, tmp_path) -> None:

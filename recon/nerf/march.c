@@ -162,6 +162,12 @@ static inline void contract_point(const float x[3], float c[3]) {
     for (int a = 0; a < 3; ++a) c[a] = f * (y[a] / n);
 }
 
+/* A ray's uniform steps between tn and tf (at most max_samples): the most samples it can keep. */
+static inline int64_t uniform_steps(float tn, float tf, float step, int64_t max_samples) {
+    const int64_t count = tf > tn ? (int64_t)ceilf((tf - tn) / step) : 0;
+    return count > max_samples ? max_samples : count;
+}
+
 /* The march shared by both entry points. Samples mode (render == 0): every kept sample's t_start, t_end, ray and
  * density go to out_ts/out_te/out_ri/out_sigma. Render mode (render != 0): each ray's opacity (sum of weights),
  * weighted depth (sum of weight * midpoint) and sample count go to ray_opacity/ray_depth/ray_samples, and only the
@@ -193,13 +199,8 @@ static int64_t march(
         float opacity = 0.0f, depth_sum = 0.0f;
         int64_t kept = 0;
         const float *o = rays_o + 3 * r, *d = rays_d + 3 * r;
-        int64_t count;
-        if (contracted) {
-            count = contracted_setup(o, d, tn, tf, (double)step, max_samples, &cr);
-        } else {
-            count = tf > tn ? (int64_t)ceilf((tf - tn) / step) : 0;
-            if (count > max_samples) count = max_samples;
-        }
+        const int64_t count = contracted ? contracted_setup(o, d, tn, tf, (double)step, max_samples, &cr)
+                                         : uniform_steps(tn, tf, step, max_samples);
         const float u = jitter ? (float)jitter[r] : 0.0f;
         const double u64 = jitter ? jitter[r] : 0.0;
         float t_next = contracted && count > 0 ? contracted_boundary(&cr, 0, u64) : 0.0f;
@@ -687,25 +688,46 @@ int32_t recon_openmp(void)
 /* Part s of n items cut into `slices` contiguous slices: [slice_lo(n, s), slice_lo(n, s + 1)). */
 static inline int64_t slice_lo(int64_t n, int64_t s, int64_t slices) { return n * s / slices; }
 
-/* recon_march_dense over `slices` slices of the rays: slice s writes its samples from sample lo * per_ray on (lo its
- * first ray), at most (hi - lo) * per_ray of them, and its count to counts[s] (a count above that capacity asks the
- * caller to march that slice again with more room). out_u may be NULL. */
+/* Where each of `slices` slices of the rays writes its samples and how many it may: from offsets[s]
+ * to offsets[s + 1], each ray given its step count (march's `count`, the most samples it can keep), at most `cap`. */
+void recon_march_offsets(int64_t n_rays, const float *rays_o, const float *rays_d, const float *t_near,
+                         const float *t_far, float step, int64_t max_samples, int32_t contracted, int64_t cap,
+                         int64_t slices, int64_t *offsets)
+{
+    contracted_ray cr;
+    int64_t total = 0;
+    offsets[0] = 0;
+    for (int64_t s = 0; s < slices; ++s) {
+        for (int64_t r = slice_lo(n_rays, s, slices); r < slice_lo(n_rays, s + 1, slices); ++r) {
+            const int64_t count = contracted
+                ? contracted_setup(rays_o + 3 * r, rays_d + 3 * r, t_near[r], t_far[r], (double)step, max_samples, &cr)
+                : uniform_steps(t_near[r], t_far[r], step, max_samples);
+            total += count < cap ? count : cap;
+        }
+        offsets[s + 1] = total;
+    }
+}
+
+/* recon_march_dense over `slices` slices of the rays: slice s writes its samples from sample offsets[s] on, at most
+ * offsets[s + 1] - offsets[s] of them (recon_march_offsets), and its count to counts[s] (a count above that room
+ * asks the caller to march that slice again with more). out_u may be NULL. */
 void recon_march_dense_all(
     int64_t n_rays, const float *rays_o, const float *rays_d, const float *t_near, const float *t_far,
     const double *jitter, const uint8_t *occupied, int64_t occ_res, const float *occ_lo, const float *occ_hi,
     const uint8_t *blocks, int64_t block, float step, int64_t max_samples, double log_min_t,
     int64_t n_levels, const float *const *tables, const int64_t *level_res, const float *grid_lo, const float *grid_hi,
     float bias, float density_scale, int32_t exp_activation, float sigma_max, float tau_max, int32_t contracted,
-    int64_t slices, int64_t threads, int64_t per_ray, float *out_ts, float *out_te, int64_t *out_ri, float *out_sigma,
+    int64_t slices, int64_t threads, const int64_t *offsets, float *out_ts, float *out_te, int64_t *out_ri,
+    float *out_sigma,
     float *out_u, int64_t *counts)
 {
 #pragma omp parallel for num_threads(threads) schedule(dynamic, 1)
     for (int64_t s = 0; s < slices; ++s) {
-        const int64_t lo = slice_lo(n_rays, s, slices), hi = slice_lo(n_rays, s + 1, slices), at = lo * per_ray;
+        const int64_t lo = slice_lo(n_rays, s, slices), hi = slice_lo(n_rays, s + 1, slices), at = offsets[s];
         counts[s] = recon_march_dense(
             hi - lo, rays_o + 3 * lo, rays_d + 3 * lo, t_near + lo, t_far + lo, jitter ? jitter + lo : 0, occupied,
             occ_res, occ_lo, occ_hi, blocks, block, step, max_samples, log_min_t, n_levels, tables, level_res, grid_lo,
-            grid_hi, bias, density_scale, exp_activation, sigma_max, tau_max, contracted, (hi - lo) * per_ray,
+            grid_hi, bias, density_scale, exp_activation, sigma_max, tau_max, contracted, offsets[s + 1] - at,
             out_ts + at, out_te + at, out_ri + at, out_sigma + at, out_u ? out_u + 3 * at : 0, lo);
     }
 }
@@ -717,16 +739,16 @@ void recon_march_render_all(
     const uint8_t *blocks, int64_t block, float step, int64_t max_samples, double log_min_t,
     int64_t n_levels, const float *const *tables, const int64_t *level_res, const float *grid_lo, const float *grid_hi,
     float bias, float density_scale, int32_t exp_activation, float sigma_max, float tau_max, int32_t contracted,
-    int64_t slices, int64_t threads, int64_t per_ray, float *out_u, float *out_w, int64_t *out_ri,
+    int64_t slices, int64_t threads, const int64_t *offsets, float *out_u, float *out_w, int64_t *out_ri,
     float color_min_weight, float *ray_opacity, float *ray_depth, int64_t *ray_samples, int64_t *counts)
 {
 #pragma omp parallel for num_threads(threads) schedule(dynamic, 1)
     for (int64_t s = 0; s < slices; ++s) {
-        const int64_t lo = slice_lo(n_rays, s, slices), hi = slice_lo(n_rays, s + 1, slices), at = lo * per_ray;
+        const int64_t lo = slice_lo(n_rays, s, slices), hi = slice_lo(n_rays, s + 1, slices), at = offsets[s];
         counts[s] = recon_march_render(
             hi - lo, rays_o + 3 * lo, rays_d + 3 * lo, t_near + lo, t_far + lo, occupied, occ_res, occ_lo, occ_hi,
             blocks, block, step, max_samples, log_min_t, n_levels, tables, level_res, grid_lo, grid_hi, bias,
-            density_scale, exp_activation, sigma_max, tau_max, contracted, (hi - lo) * per_ray, out_u + 3 * at,
+            density_scale, exp_activation, sigma_max, tau_max, contracted, offsets[s + 1] - at, out_u + 3 * at,
             out_w + at, out_ri + at, lo, color_min_weight, ray_opacity + lo, ray_depth + lo, ray_samples + lo);
     }
 }

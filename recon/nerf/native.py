@@ -172,9 +172,11 @@ def native_marcher() -> ctypes.CDLL | None:
     lib.recon_adam.argtypes = [i64, p, p, p, p, f32, f32, f32, f32, f32, f32, i32, i32, p]
     lib.openmp = bool(lib.recon_openmp())
     lib.recon_march_dense_all.restype = None
-    lib.recon_march_dense_all.argtypes = [i64, p, p, p, p, p, *field, i64, i64, i64, p, p, p, p, p, p]
+    lib.recon_march_dense_all.argtypes = [i64, p, p, p, p, p, *field, i64, i64, p, p, p, p, p, p, p]
+    lib.recon_march_offsets.restype = None
+    lib.recon_march_offsets.argtypes = [i64, p, p, p, p, f32, i64, i32, i64, i64, p]
     lib.recon_march_render_all.restype = None
-    lib.recon_march_render_all.argtypes = [i64, p, p, p, p, *field, i64, i64, i64, p, p, p, f32, p, p, p, p]
+    lib.recon_march_render_all.argtypes = [i64, p, p, p, p, *field, i64, i64, p, p, p, p, f32, p, p, p, p]
     lib.recon_trilinear_features_all.restype = None
     lib.recon_trilinear_features_all.argtypes = [i64, p, p, i64, i64, p, i64, i64]
     lib.recon_trilinear_backward_all.restype = None
@@ -272,33 +274,61 @@ def _empty_blocks(occupied: Tensor) -> Tensor | None:
     return _blocks[2]
 
 
-def _fitted(run: Callable[[int, int, int], tuple[int, list[Tensor]]], lo: int, hi: int, per_ray: int) -> list[Tensor]:
-    """``run(lo, hi, capacity)``'s outputs cut to the samples it made, run again when the first guess of
-    ``per_ray`` samples a ray was too small."""
-    m, out = run(lo, hi, per_ray * (hi - lo))
+MARCH_ROOM = 1 << 22
+"""The most samples' room one native march allots (more rays than this allows their step counts: each ray an equal
+share, and a slice that needs more is marched again): room no sample fills costs address space, not memory, as its
+pages are never touched."""
+
+MARCH_RAYS_A_THREAD = 128
+"""The fewest rays a thread of a native march takes: a ray through the object costs tens of microseconds, so the few
+hundred rays of a depth prior or of smoothness patches are worth a second thread."""
+
+
+def _fitted(run: Callable[[int, int, int], tuple[int, list[Tensor]]], lo: int, hi: int, capacity: int) -> list[Tensor]:
+    """``run(lo, hi, capacity)``'s outputs cut to the samples it made, run again when ``capacity`` was too small."""
+    m, out = run(lo, hi, capacity)
     if m > out[0].shape[0]:
         m, out = run(lo, hi, m)
     return [t[:m] for t in out]
 
 
-def _march_slices(n: int, per_ray: int, run: Callable[[int, int, int], tuple[int, list[Tensor]]],
-                  run_all: Callable[[int, int, int, Tensor], list[Tensor]]) -> list[list[Tensor]]:
-    """A march's outputs slice by slice (as :func:`_fitted` cuts them): from one ``run_all(slices, threads, per_ray,
-    counts)`` call on OpenMP's threads (each slice written from its first ray times ``per_ray`` on), a slice that
-    needed more room marched again alone; or, in a library without OpenMP, ``run`` over :func:`_in_slices`."""
+def _march_room(rays_o: Tensor, rays_d: Tensor, t_near: Tensor, t_far: Tensor, step_size: float, max_samples: int,
+                contracted: bool) -> Callable[[int, int, int], Tensor]:
+    """``room(lo, hi, slices)``: where each of ``slices`` slices of rays lo..hi writes its samples, as offsets
+    (slices + 1,) long: each ray given its step count (the most samples it can keep, so no slice runs out), at most an
+    equal share of :data:`MARCH_ROOM`."""
+    lib, n = native_marcher(), rays_o.shape[0]
+    cap = max(16, MARCH_ROOM // max(n, 1))
+
+    def room(lo: int, hi: int, slices: int) -> Tensor:
+        offsets = torch.empty(slices + 1, dtype=torch.long)
+        lib.recon_march_offsets(hi - lo, *_rays_args(lo, hi, rays_o, rays_d, t_near, t_far), float(step_size),
+                                int(max_samples), int(contracted), cap, slices, offsets.data_ptr())
+        return offsets
+    return room
+
+
+def _march_slices(n: int, room: Callable[[int, int, int], Tensor],
+                  run: Callable[[int, int, int], tuple[int, list[Tensor]]],
+                  run_all: Callable[[int, int, Tensor, Tensor], list[Tensor]]) -> list[list[Tensor]]:
+    """A march's outputs slice by slice (as :func:`_fitted` cuts them): from one ``run_all(slices, threads, offsets,
+    counts)`` call on OpenMP's threads (slice s written from offsets[s] on, with the room :func:`_march_room` gives
+    it), a slice that needed more room marched again alone; or, in a library without OpenMP, ``run`` over
+    :func:`_in_slices`."""
     if n == 0 or not _parallel_in_c(native_marcher()):
-        return _in_slices(n, lambda lo, hi: _fitted(run, lo, hi, per_ray))
-    slices, threads = _slices_for(n)
+        return _in_slices(n, lambda lo, hi: _fitted(run, lo, hi, int(room(lo, hi, 1)[1])), MARCH_RAYS_A_THREAD)
+    slices, threads = _slices_for(n, MARCH_RAYS_A_THREAD)
+    offsets = room(0, n, slices)
     counts = torch.empty(slices, dtype=torch.long)
-    out = run_all(slices, threads, per_ray, counts)
+    out = run_all(slices, threads, offsets, counts)
+    at = offsets.tolist()
     parts = []
     for s, m in enumerate(counts.tolist()):
-        lo, hi = n * s // slices, n * (s + 1) // slices  # march.c's slice_lo
-        if m > (hi - lo) * per_ray:
-            m, again = run(lo, hi, m)
+        if m > at[s + 1] - at[s]:
+            m, again = run(n * s // slices, n * (s + 1) // slices, m)  # march.c's slice_lo
             parts.append([t[:m] for t in again])
         else:
-            parts.append([t[lo * per_ray: lo * per_ray + m] for t in out])
+            parts.append([t[at[s]: at[s] + m] for t in out])
     return parts
 
 
@@ -340,15 +370,16 @@ def march_dense_native(
                                   capacity, *(t.data_ptr() for t in out[:4]), out[4].data_ptr() if points else None, lo)
         return m, out
 
-    def run_all(slices: int, threads: int, per_ray: int, counts: Tensor) -> list[Tensor]:
+    def run_all(slices: int, threads: int, offsets: Tensor, counts: Tensor) -> list[Tensor]:
         n = rays_o.shape[0]
-        out = buffers(per_ray * n)
+        out = buffers(int(offsets[-1]))
         lib.recon_march_dense_all(n, *_rays_args(0, n, rays_o, rays_d, t_near, t_far, jit), *common,
-                                  slices, threads, per_ray, *(t.data_ptr() for t in out[:4]),
+                                  slices, threads, offsets.data_ptr(), *(t.data_ptr() for t in out[:4]),
                                   out[4].data_ptr() if points else None, counts.data_ptr())
         return out
 
-    parts = _march_slices(rays_o.shape[0], 48, run, run_all)
+    room = _march_room(rays_o, rays_d, t_near, t_far, step_size, max_samples, field.contracted)
+    parts = _march_slices(rays_o.shape[0], room, run, run_all)
     return tuple(torch.cat(x) for x in zip(*parts))
 
 
@@ -381,14 +412,15 @@ def march_render_native(
                                    *_rays_args(lo, hi, opacity, depth_sum, samples))
         return m, out
 
-    def run_all(slices: int, threads: int, per_ray: int, counts: Tensor) -> list[Tensor]:
-        out = buffers(n * per_ray)
+    def run_all(slices: int, threads: int, offsets: Tensor, counts: Tensor) -> list[Tensor]:
+        out = buffers(int(offsets[-1]))
         lib.recon_march_render_all(n, *_rays_args(0, n, rays_o, rays_d, t_near, t_far), *common, slices, threads,
-                                   per_ray, *(t.data_ptr() for t in out), float(color_min_weight),
+                                   offsets.data_ptr(), *(t.data_ptr() for t in out), float(color_min_weight),
                                    *_rays_args(0, n, opacity, depth_sum, samples), counts.data_ptr())
         return out
 
-    u, weights, ri = (torch.cat(x) for x in zip(*_march_slices(n, 24, run, run_all)))
+    room = _march_room(rays_o, rays_d, t_near, t_far, step_size, max_samples, field.contracted)
+    u, weights, ri = (torch.cat(x) for x in zip(*_march_slices(n, room, run, run_all)))
     return {"opacity": opacity, "depth_sum": depth_sum, "samples": samples, "u": u, "weights": weights, "ray_indices": ri}
 
 
@@ -671,14 +703,14 @@ def _flags_pointer(touched: Tensor | None, values: Tensor) -> int | None:
 _pool: ThreadPoolExecutor | None = None
 
 
-def _threads_for(n: int) -> int:
-    """Threads for a native call over n items: one per torch CPU thread, none with under 1,024 items to itself."""
-    return max(1, min(torch.get_num_threads(), n // 1024))
+def _threads_for(n: int, fewest: int = 1024) -> int:
+    """Threads for a native call over n items: one per torch CPU thread, none with under ``fewest`` items to itself."""
+    return max(1, min(torch.get_num_threads(), n // fewest))
 
 
-def _slices_for(n: int) -> tuple[int, int]:
+def _slices_for(n: int, fewest: int = 1024) -> tuple[int, int]:
     """(slices, threads) of a native call over n items: four slices a thread (see :func:`_in_slices`)."""
-    threads = _threads_for(n)
+    threads = _threads_for(n, fewest)
     return (4 * threads if threads > 1 else 1), threads
 
 
@@ -687,10 +719,11 @@ def _parallel_in_c(lib: ctypes.CDLL) -> bool:
     return bool(getattr(lib, "openmp", False))
 
 
-def _in_slices(n: int, fn: Callable[[int, int], T]) -> list[T]:
-    """``fn(lo, hi)`` over contiguous slices of ``range(n)`` on one thread per torch CPU thread; results in order.
-    Four slices a thread: an image's rays come in rows, and the rows through the object cost the most."""
-    workers = _threads_for(n)
+def _in_slices(n: int, fn: Callable[[int, int], T], fewest: int = 1024) -> list[T]:
+    """``fn(lo, hi)`` over contiguous slices of ``range(n)`` on one thread per torch CPU thread (none with under
+    ``fewest`` items to itself); results in order. Four slices a thread: an image's rays come in rows, and the rows
+    through the object cost the most."""
+    workers = _threads_for(n, fewest)
     if workers == 1:
         return [fn(0, n)]
     slices = 4 * workers
