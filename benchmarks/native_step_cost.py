@@ -23,7 +23,8 @@ same arguments, or it is refused), the other slicing, the second read, the one-t
 torch rays, the torch compositing, the levels in turn or the guessed room. The record gives each one's ms a step and the
 ratio, the sliced native calls a step. Both compute the same values (tests/test_native_march.py,
 tests/test_masked_adam.py; the C rays and compositing to a float32 rounding); their trainings draw rays from one random
-stream in turns, so they do not end equal. A measurement: it asserts nothing.
+stream in turns, so they do not end equal. With `--renders N`, the first training's field then renders N test views
+with each in turns (ms a render). A measurement: it asserts nothing.
 """
 from __future__ import annotations
 
@@ -77,6 +78,31 @@ def guessed_room(*args: Any) -> Callable[[int, int, int], torch.Tensor]:
     return room
 
 
+def render_turns(args: Any, runs: list[dict[str, Any]]) -> dict[str, Any]:
+    """The first training's field renders ``args.renders`` test views (training resolution, no gradients) with each
+    run's setting in turns: rounds of every view once."""
+    from recon.capture.scene import load_scene
+    from recon.config import load_config
+    from recon.evaluation.views import load_views
+    from recon.nerf.evaluate import render_image
+
+    scene = load_scene(args.scene / "02_scene")
+    frames = (scene.split("test") or scene.split("val") or scene.split("train"))[: args.renders]
+    views = load_views(scene, frames, load_config(args.preset, args.set).train.max_side)
+    model = runs[0]["step"].model
+
+    def render(i: int) -> None:
+        view = views[i % len(views)]
+        box: dict[str, Any] = ({"near": view.near, "far": view.far} if model.config.unbounded
+                               else {"aabb": model.aabb})
+        with torch.no_grad():
+            render_image(model, torch.tensor(view.c2w, dtype=torch.float32), view.intrinsics, *view.hw, **box)
+
+    turns = [{"value": run["value"], "step": render, "next": 0, "enter": run["enter"]} for run in runs]
+    take_turns(turns, args.rounds, len(views), lambda: None)
+    return {"views": [v.name for v in views], "size": [list(v.hw) for v in views], "runs": turns}
+
+
 def prototypes(c_source: str) -> dict[str, str]:
     """Each exported `recon_*` function of a C source -> its parameter list, whitespace made single spaces."""
     return {m[1]: " ".join(m[2].split()) for m in re.finditer(r"^\w+\s+(recon_\w+)\(([^)]*)\)", c_source, re.M)}
@@ -118,6 +144,8 @@ def main(argv: list[str] | None = None) -> int:
                         help="a git revision, pool-map, reads-again, serial-backward, python-threads, torch-rays, "
                              "torch-compositing, serial-levels or guessed-room")
     turn_arguments(parser, warmup=300)
+    parser.add_argument("--renders", type=int, default=0,
+                        help="then the first training's field renders this many test views with each in turns")
     args = parser.parse_args(argv)
     row = scene_row("native_step_cost", args)
     if row is None:
@@ -175,6 +203,7 @@ def main(argv: list[str] | None = None) -> int:
         try:
             calls["n"] = 0
             take_turns(runs, args.rounds, args.block, lambda: None)
+            renders = render_turns(args, runs) if args.renders else None
         finally:
             for (owner, name), fn in originals.items():
                 setattr(owner, name, fn)
@@ -182,11 +211,16 @@ def main(argv: list[str] | None = None) -> int:
                 "warmup": args.warmup, "rounds": args.rounds, "block": args.block, "threads": torch.get_num_threads(),
                 "values": turn_rows(runs),
                 "sliced_native_calls_a_step": round(calls["n"] / (2 * args.rounds * args.block), 1)})
+    if renders is not None:
+        row["renders"] = {"views": renders["views"], "size": renders["size"], "values": turn_rows(renders["runs"])}
     write_json_atomic(args.out, [row])
     for v in row["values"]:
         print(f"{v['value']}: {v['ms_per_step_median']} ms a step (median of {args.rounds} rounds), "
               f"{v['cost_vs_first']}x the first")
     print(f"{row['sliced_native_calls_a_step']} sliced native calls a step")
+    for v in row.get("renders", {}).get("values", []):
+        print(f"{v['value']}: {v['ms_per_step_median']} ms a render (median of {args.rounds} rounds), "
+              f"{v['cost_vs_first']}x the first")
     return 0
 
 
