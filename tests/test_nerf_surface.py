@@ -133,6 +133,46 @@ def test_gradients_stay_finite_at_tiny_and_huge_sharpness(log_s: float) -> None:
         assert torch.isfinite(f0.grad).all()
 
 
+@pytest.mark.parametrize("log_s", [0.0, 6.0])
+def test_the_surface_models_c_compositing_renders_and_trains_as_the_torch_one(log_s: float,
+                                                                             monkeypatch: pytest.MonkeyPatch) -> None:
+    """The surface model composites in one C pass a ray (recon.nerf.fast.composite_packed) where the library loads:
+    the same colour, depth and opacity, and the same gradients in the SDF, the colour grid and the sharpness, as the
+    torch weights and sums."""
+    import recon.nerf.fast as fast
+    from recon.nerf.native import native_marcher
+
+    if native_marcher() is None:
+        pytest.skip("the native library is not built here")
+    torch.manual_seed(0)
+    model = SurfaceModel(SurfaceConfig(aabb=BOX, sdf_res=33, sdf_levels=2, feature_res=8, feature_dim=4, occupancy_res=8))
+    with torch.no_grad():
+        model.log_s.fill_(log_s)
+        for g in model.sdf_grid.grids:
+            g.table.add_(torch.randn_like(g.table) * 0.02)
+        model.color_grid.table.normal_()
+    o = torch.tensor([[0.0, -3.0, 0.0]]).repeat(200, 1) + torch.randn(200, 3) * 0.05
+    d = torch.nn.functional.normalize(-o + torch.randn(200, 3) * 0.3, dim=-1)
+    runs = []
+    for torch_path in (False, True):
+        if torch_path:
+            monkeypatch.setattr(fast, "composite_packed_native", lambda *args: None)
+        model.zero_grad()
+        torch.manual_seed(1)  # the march's jitter
+        out = model.render_rays(o, d, torch.full((200,), 1.0), torch.full((200,), 5.0), training=True,
+                                background=torch.ones(3))
+        ((out["rgb"] - 0.3) ** 2).mean().add(out["depth"].mean()).backward()
+        runs.append(({k: out[k].detach() for k in ("rgb", "depth", "opacity")},
+                     [p.grad.clone() for p in model.parameters() if p.grad is not None]))
+    (c_out, c_grads), (t_out, t_grads) = runs
+    assert 0.2 < float(c_out["opacity"].mean()) < 1.0  # rays through the sphere and past it
+    for key in c_out:
+        torch.testing.assert_close(c_out[key], t_out[key], atol=2e-5, rtol=1e-4)
+    assert len(c_grads) == len(t_grads) >= 3
+    for a, b in zip(c_grads, t_grads):
+        torch.testing.assert_close(a, b, atol=1e-5, rtol=1e-3)
+
+
 class _Sphere(torch.nn.Module):
     """An analytic signed distance (a sphere) with the surface model's interface for meshing."""
 

@@ -189,6 +189,20 @@ def color_from_features(f: Tensor, d: Tensor, mlp: nn.Module | None, color_model
     return torch.sigmoid(mlp(f).float())
 
 
+def composite_packed(sigma: Tensor, delta: Tensor, t: Tensor, ray_indices: Tensor, n_rays: int,
+                     fused: bool) -> tuple[Tensor, Tensor, Tensor]:
+    """Weights (M,), opacity and the weighted sum of t (N,) of packed samples (sorted by ray), in one pass a ray
+    forward and one back: a Triton kernel where ``fused`` (CUDA), C on a CPU, else the torch reference."""
+    composited = (composite_packed_triton(sigma, delta, t, ray_indices, n_rays) if fused
+                  else composite_packed_native(sigma, delta, t, ray_indices, n_rays))
+    if composited is not None:
+        weights, _, opacity, t_sum = composited
+        return weights, opacity, t_sum
+    weights, _ = render_weights_packed(sigma, delta, ray_indices, n_rays)
+    opacity = accumulate_packed(weights, None, ray_indices, n_rays)
+    return weights, opacity, accumulate_packed(weights, t, ray_indices, n_rays)
+
+
 MLP_SLICE = 8192
 """Samples per call of the color MLP on a CPU. A batch's colored samples (~66k per training step, ~125k per 16k-ray
 render chunk) in one call push the MLP's 64-wide activations out of the cache: in slices the same work runs
@@ -543,15 +557,7 @@ class FastModel(RadianceModel):
                 evaluated[0] += int(ri.shape[0])
                 sigma = self._sigma_unit(u)
         fused = use_triton(cfg.kernels, sigma, delta)  # CUDA and train.fast.kernels: one kernel (recon.nerf.kernels)
-        # one pass a ray forward and one back: a Triton kernel on CUDA, C on a CPU, else the torch reference
-        composited = (composite_packed_triton(sigma, delta, mid, ri, n) if fused
-                      else composite_packed_native(sigma, delta, mid, ri, n))
-        if composited is not None:
-            weights, _, opacity, depth_sum = composited
-        else:
-            weights, _ = render_weights_packed(sigma, delta, ri, n)
-            opacity = accumulate_packed(weights, None, ri, n)
-            depth_sum = accumulate_packed(weights, mid, ri, n)
+        weights, opacity, depth_sum = composite_packed(sigma, delta, mid, ri, n, fused)
         bg = self._background(background, rays_d, training)
         remainder = (1.0 - opacity).clamp_min(0.0)
         depth = depth_sum + remainder * far

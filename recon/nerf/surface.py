@@ -55,12 +55,13 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from recon.nerf.fast import _make_grid, color_from_features, make_color_mlp, ray_background
+from recon.nerf.fast import (_make_grid, color_from_features, composite_packed, make_color_mlp,
+                             ray_background)
 from recon.nerf.grid import MultiDenseGrid, grid_sample_coords
 from recon.nerf.model_config import SurfaceConfig
 from recon.nerf.occupancy import OccupancyGrid, march
 from recon.nerf.rays import clip_to_box
-from recon.nerf.render import RadianceModel, accumulate_packed, checked_aabb, render_weights_packed
+from recon.nerf.render import RadianceModel, accumulate_packed, checked_aabb
 
 __all__ = ["SurfaceConfig", "SurfaceModel", "neus_tau", "sdf_fd_terms", "eikonal_loss", "boundary_loss", "box_face_points",
            "hull_planes", "planes_sdf"]
@@ -309,15 +310,14 @@ class SurfaceModel(RadianceModel):
         delta = (te - ts).clamp_min(1e-12)
         mid = 0.5 * (ts + te)
         f0, f1 = self.interval_sdf(rays_o, rays_d, ts, te, ri)
-        weights, _ = render_weights_packed(neus_tau(f0, f1, s) / delta, delta, ri, n)
-        opacity = accumulate_packed(weights, None, ri, n)
+        weights, opacity, depth_sum = composite_packed(neus_tau(f0, f1, s) / delta, delta, mid, ri, n, fused=False)
         sel = (weights.detach() > cfg.color_min_weight).nonzero().squeeze(-1)
         x_c = rays_o[ri[sel]] + rays_d[ri[sel]] * mid[sel, None]
         rgb_s = self.radiance(x_c, rays_d[ri[sel]])
         bg = ray_background(cfg.background, self.bg_logit, background, n, rays_o, training)
         remainder = (1.0 - opacity).clamp_min(0.0)
         rgb = accumulate_packed(weights[sel], rgb_s, ri[sel], n) + remainder[:, None] * bg
-        depth = accumulate_packed(weights, mid, ri, n) + remainder * far
+        depth = depth_sum + remainder * far
         out: dict[str, Any] = {"rgb": rgb, "depth": depth, "opacity": opacity, "background": bg,
                                "num_samples": int(ri.shape[0])}
         if training:
