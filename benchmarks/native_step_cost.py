@@ -1,17 +1,17 @@
-"""What a change to recon's native code costs a CPU training step: this checkout's against another revision's build
-of recon/nerf/march.c (`--against REV`), against handing every slice of a native call to the thread pool and
-waiting for all of them (`--against pool-map`, how `recon.nerf.native._in_slices` shared them before the calling
-thread took slices too), against reading the density levels again for the loss (`--against reads-again`, as
-before the march's densities were the loss's: `FastModel._marched_sigma`), against a dense grid's backward on
-one thread (`--against serial-backward`, as before it took a part a thread: `trilinear_backward_native`),
-against the library's parts on threads of recon's instead of OpenMP's (`--against python-threads`, as before
-march.c was built with OpenMP: `_parallel_in_c`), against a batch's rays and their box in torch operations
-(`--against torch-rays`, as before they were C passes: `pixel_rays_native`, `ray_box_native`), against
-compositing and the distortion loss in torch operations (`--against torch-compositing`, as before they were C
-passes: `composite_packed_native`, `distortion_packed_native`), against the density levels' backward a level at a
-time (`--against serial-levels`, as before they took a thread each: `trilinear_backward_levels_native`), or against a
-march that guesses 48 samples a ray, marches a slice that needed more again on one thread, and takes a second thread
-only from 1,024 rays on (`--against guessed-room`, as before each ray was given its steps: `_march_room`).
+"""What a change to recon's native code costs a CPU training step: this checkout's against another revision's build of
+recon/nerf/march.c (`--against REV`), against handing every slice of a native call to the thread pool and waiting for
+all of them (`--against pool-map`, how `recon.nerf.native._in_slices` shared them before the calling thread took slices
+too), against reading the density levels again for the loss (`--against reads-again`, as before the march's densities
+were the loss's: `FastModel._marched_sigma`), against a dense grid's backward on one thread (`--against
+serial-backward`, as before it took a part a thread: `trilinear_backward_native`), against the library's parts on
+threads of recon's instead of OpenMP's (`--against python-threads`, as before march.c was built with OpenMP:
+`_parallel_in_c`), against a batch's rays and their box in torch operations (`--against torch-rays`, as before they were
+C passes: `pixel_rays_native`, `ray_box_native`), against compositing and the distortion loss in torch operations
+(`--against torch-compositing`, as before they were C passes: `composite_packed_native`, the fast and surface models',
+`distortion_packed_native`), against the density levels' backward a level at a time (`--against serial-levels`, as
+before they took a thread each: `trilinear_backward_levels_native`), or against a march that guesses 48 samples a ray,
+marches a slice that needed more again on one thread, and takes a second thread only from 1,024 rays on (`--against
+guessed-room`, as before each ray was given its steps: `_march_room`).
 
     python benchmarks/native_step_cost.py --scene ~/.cache/recon/bench/lego-half-fast --against python-threads \\
         --out benchmarks/results/lego_half_openmp_step_cost.json
