@@ -9,9 +9,10 @@ threads of recon's instead of OpenMP's (`--against python-threads`, as before ma
 C passes: `pixel_rays_native`, `ray_box_native`), against compositing and the distortion loss in torch operations
 (`--against torch-compositing`, as before they were C passes: `composite_packed_native`, the fast and surface models',
 `distortion_packed_native`), against the density levels' backward a level at a time (`--against serial-levels`, as
-before they took a thread each: `trilinear_backward_levels_native`), or against a march that guesses 48 samples a ray,
+before they took a thread each: `trilinear_backward_levels_native`), against a march that guesses 48 samples a ray,
 marches a slice that needed more again on one thread, and takes a second thread only from 1,024 rays on (`--against
-guessed-room`, as before each ray was given its steps: `_march_room`).
+guessed-room`, as before each ray was given its steps: `_march_room`), or the colour network's slices recorded as views
+of the features (`--against slice-views`, as before they were split: `recon.nerf.fast.in_slices`).
 
     python benchmarks/native_step_cost.py --scene ~/.cache/recon/bench/lego-half-fast --against python-threads \\
         --out benchmarks/results/lego_half_openmp_step_cost.json
@@ -68,6 +69,17 @@ def serial_backward(x01: torch.Tensor, grad_out: torch.Tensor, res: int, out: to
     native_marcher().recon_trilinear_backward(x01.shape[0], x01.data_ptr(), grad_out.data_ptr(), res,
                                               grad_out.shape[1], out.data_ptr(), _flags_pointer(touched, out), 0, 1)
     return out
+
+
+def in_slice_views(fn: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], f: torch.Tensor,
+                   d: torch.Tensor) -> torch.Tensor:
+    """`recon.nerf.fast.in_slices` recording on views f[s : s + MLP_SLICE]: each view's backward fills a zeroed
+    gradient of all of f and adds it in."""
+    from recon.nerf.fast import MLP_SLICE
+
+    if f.shape[0] <= MLP_SLICE or not torch.is_grad_enabled():
+        return fn(f, d)
+    return torch.cat([fn(f[s: s + MLP_SLICE], d[s: s + MLP_SLICE]) for s in range(0, f.shape[0], MLP_SLICE)])
 
 
 def guessed_room(*args: Any) -> Callable[[int, int, int], torch.Tensor]:
@@ -142,7 +154,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = step_parser(__doc__)
     parser.add_argument("--against", required=True,
                         help="a git revision, pool-map, reads-again, serial-backward, python-threads, torch-rays, "
-                             "torch-compositing, serial-levels or guessed-room")
+                             "torch-compositing, serial-levels, guessed-room or slice-views")
     turn_arguments(parser, warmup=300)
     parser.add_argument("--renders", type=int, default=0,
                         help="then the first training's field renders this many test views with each in turns")
@@ -157,7 +169,8 @@ def main(argv: list[str] | None = None) -> int:
     patched = [(native, "_in_slices"), (native, "native_marcher"), (FastModel, "_marched_sigma"),
                (grid, "trilinear_backward_native"), (native, "_parallel_in_c"), (fitting, "pixel_rays_native"),
                (rays, "ray_box_native"), (fast, "composite_packed_native"), (fast, "distortion_packed_native"),
-               (grid, "trilinear_backward_levels_native"), (native, "_march_room"), (native, "MARCH_RAYS_A_THREAD")]
+               (grid, "trilinear_backward_levels_native"), (native, "_march_room"), (native, "MARCH_RAYS_A_THREAD"),
+               (fast, "in_slices")]
     originals = {(owner, name): getattr(owner, name) for owner, name in patched}
 
     def counted(slices: Callable[[int, Callable[[int, int], T]], list[T]]) -> Callable[..., list[T]]:
@@ -183,6 +196,8 @@ def main(argv: list[str] | None = None) -> int:
                      (fast, "distortion_packed_native"): lambda *args: None}
         elif args.against == "serial-levels":
             other = {(grid, "trilinear_backward_levels_native"): lambda *args: False}
+        elif args.against == "slice-views":
+            other = {(fast, "in_slices"): in_slice_views}
         elif args.against == "guessed-room":
             other = {(native, "_march_room"): guessed_room, (native, "MARCH_RAYS_A_THREAD"): 1024}
         else:

@@ -252,6 +252,31 @@ def test_the_color_network_runs_in_slices_on_a_cpu_and_in_one_call_on_a_gpu() ->
     assert in_slices(row_wise, meta, meta).shape == meta.shape and calls == [2 * MLP_SLICE + 5]
 
 
+def test_the_color_networks_slices_join_their_gradients_in_one_node() -> None:
+    """Recording, the slices are one split of the features: its backward joins the slices' gradients once, where a
+    view a slice would fill a zeroed gradient of all the features for each and add them up; the same gradient as one
+    call's."""
+    from recon.nerf.fast import MLP_SLICE, color_from_features, in_slices, make_color_mlp
+
+    torch.manual_seed(0)
+    mlp = make_color_mlp(12, "mlp_view", 2, 16, 1)
+    f = torch.randn(3 * MLP_SLICE + 7, 12, requires_grad=True)
+    d = torch.nn.functional.normalize(torch.randn(f.shape[0], 3), dim=-1)
+    net = lambda a, b: color_from_features(a, b, mlp, "mlp_view", 2)  # noqa: E731
+    out = in_slices(net, f, d)
+    nodes, todo = set(), [out.grad_fn]
+    while todo:
+        node = todo.pop()
+        if node is not None and node not in nodes:
+            nodes.add(node)
+            todo += [n for n, _ in node.next_functions]
+    names = [type(n).__name__ for n in nodes]
+    assert names.count("SplitBackward0") == 1 and "SliceBackward0" not in names
+    (g_sliced,) = torch.autograd.grad(out.square().sum(), f)
+    (g_whole,) = torch.autograd.grad(net(f, d).square().sum(), f)
+    torch.testing.assert_close(g_sliced, g_whole)
+
+
 # ----------------------------------------------------------------------------- Triton kernels: the switch
 # (the kernels against their torch references: tests/test_triton_kernels.py)
 def test_kernels_auto_stays_on_torch_until_measured_and_a_cpu_never_uses_triton() -> None:

@@ -217,8 +217,8 @@ def in_slices(fn: Callable[[Tensor, Tensor], Tensor], f: Tensor, d: Tensor) -> T
     n = f.shape[0]
     if n <= MLP_SLICE or f.device.type != "cpu":
         return fn(f, d)
-    if torch.is_grad_enabled():
-        return torch.cat([fn(f[s : s + MLP_SLICE], d[s : s + MLP_SLICE]) for s in range(0, n, MLP_SLICE)])
+    if torch.is_grad_enabled():  # split: one backward node joins the slices' gradients, none fills a zeroed copy
+        return torch.cat([fn(a, b) for a, b in zip(f.split(MLP_SLICE), d.split(MLP_SLICE))])
     first = fn(f[:MLP_SLICE], d[:MLP_SLICE])
     out = first.new_empty((n, *first.shape[1:]))
     out[:MLP_SLICE] = first
