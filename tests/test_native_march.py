@@ -281,6 +281,23 @@ def test_a_march_gives_each_ray_its_steps_and_marches_no_slice_twice(rays: int, 
     torch.testing.assert_close(ts, ref[0])
 
 
+@needs_native
+def test_a_marchs_room_holds_infinite_and_nan_distances() -> None:
+    """A ray's room is its steps, at most max_samples: an infinite far gets max_samples (not an integer cast of
+    infinity), a NaN or an empty interval none, so the offsets never run backwards."""
+    model = _ball_model(1, "softplus")
+    o, d, tn, tf = _rays(model, 4)
+    tf = tf.clone()
+    tf[:4] = torch.tensor([float("inf"), float("nan"), 0.0, 1e30])
+    steps = ((tf - tn) / 0.05).ceil().clamp(0, 64).nan_to_num(0.0).long()
+    steps[:4] = torch.tensor([64, 0, 0, 64])
+    offsets = native._march_room(o, d, tn, tf, 0.05, 64, False)(0, o.shape[0], 4)
+    bounds = [o.shape[0] * s // 4 for s in range(5)]
+    assert offsets.tolist() == [int(steps[:b].sum()) for b in bounds]
+    ts, te, ri, sigma = native.march_dense_native(o, d, tn, tf, False, model._dense_density(), 0.05, 64, 1e-3)
+    assert int(torch.bincount(ri, minlength=o.shape[0]).max()) <= 64 and not bool((ri == 1).any())
+
+
 def test_a_failed_build_falls_back_to_torch(monkeypatch: pytest.MonkeyPatch, tmp_path) -> None:
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))  # nothing built here yet
     monkeypatch.setenv("CC", "false")  # a "compiler" that fails

@@ -162,10 +162,12 @@ static inline void contract_point(const float x[3], float c[3]) {
     for (int a = 0; a < 3; ++a) c[a] = f * (y[a] / n);
 }
 
-/* A ray's uniform steps between tn and tf (at most max_samples): the most samples it can keep. */
+/* A ray's uniform steps between tn and tf (at most max_samples, also for an infinite far): the most samples it can
+ * keep. */
 static inline int64_t uniform_steps(float tn, float tf, float step, int64_t max_samples) {
-    const int64_t count = tf > tn ? (int64_t)ceilf((tf - tn) / step) : 0;
-    return count > max_samples ? max_samples : count;
+    if (!(tf > tn)) return 0;
+    const float steps = ceilf((tf - tn) / step);
+    return steps < (float)max_samples ? (int64_t)steps : max_samples;
 }
 
 /* The march shared by both entry points. Samples mode (render == 0): every kept sample's t_start, t_end, ray and
@@ -702,7 +704,7 @@ void recon_march_offsets(int64_t n_rays, const float *rays_o, const float *rays_
             const int64_t count = contracted
                 ? contracted_setup(rays_o + 3 * r, rays_d + 3 * r, t_near[r], t_far[r], (double)step, max_samples, &cr)
                 : uniform_steps(t_near[r], t_far[r], step, max_samples);
-            total += count < cap ? count : cap;
+            total += count < 0 ? 0 : (count < cap ? count : cap);
         }
         offsets[s + 1] = total;
     }
