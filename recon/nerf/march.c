@@ -690,8 +690,8 @@ int32_t recon_openmp(void)
 /* Part s of n items cut into `slices` contiguous slices: [slice_lo(n, s), slice_lo(n, s + 1)). */
 static inline int64_t slice_lo(int64_t n, int64_t s, int64_t slices) { return n * s / slices; }
 
-/* Where each of `slices` slices of the rays writes its samples and how many it may: from offsets[s]
- * to offsets[s + 1], each ray given its step count (march's `count`, the most samples it can keep), at most `cap`. */
+/* Where each of `slices` slices of the rays writes its samples and how many it may: from offsets[s] to
+ * offsets[s + 1], each ray given its step count (march's `count`, the most samples it can keep), at most `cap`. */
 void recon_march_offsets(int64_t n_rays, const float *rays_o, const float *rays_d, const float *t_near,
                          const float *t_far, float step, int64_t max_samples, int32_t contracted, int64_t cap,
                          int64_t slices, int64_t *offsets)
@@ -720,8 +720,7 @@ void recon_march_dense_all(
     int64_t n_levels, const float *const *tables, const int64_t *level_res, const float *grid_lo, const float *grid_hi,
     float bias, float density_scale, int32_t exp_activation, float sigma_max, float tau_max, int32_t contracted,
     int64_t slices, int64_t threads, const int64_t *offsets, float *out_ts, float *out_te, int64_t *out_ri,
-    float *out_sigma,
-    float *out_u, int64_t *counts)
+    float *out_sigma, float *out_u, int64_t *counts)
 {
 #pragma omp parallel for num_threads(threads) schedule(dynamic, 1)
     for (int64_t s = 0; s < slices; ++s) {
