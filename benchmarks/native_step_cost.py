@@ -9,10 +9,11 @@ threads of recon's instead of OpenMP's (`--against python-threads`, as before ma
 C passes: `pixel_rays_native`, `ray_box_native`), against compositing and the distortion loss in torch operations
 (`--against torch-compositing`, as before they were C passes: `composite_packed_native`, the fast and surface models',
 `distortion_packed_native`), against the density levels' backward a level at a time (`--against serial-levels`, as
-before they took a thread each: `trilinear_backward_levels_native`), against a march that guesses 48 samples a ray,
-marches a slice that needed more again on one thread, and takes a second thread only from 1,024 rays on (`--against
-guessed-room`, as before each ray was given its steps: `_march_room`), or the colour network's slices recorded as views
-of the features (`--against slice-views`, as before they were split: `recon.nerf.fast.in_slices`).
+before they took a thread each: `trilinear_backward_levels_native`), against a march that guesses 48 samples a ray (24
+coloured in a render), marches a slice that needed more again on one thread, and takes a second thread only from 1,024
+rays on (`--against guessed-room`, as before each ray was given its steps: `_march_room`), or the colour network's
+slices recorded as views of the features (`--against slice-views`, as before they were split:
+`recon.nerf.fast.in_slices`).
 
     python benchmarks/native_step_cost.py --scene ~/.cache/recon/bench/lego-half-fast --against python-threads \\
         --out benchmarks/results/lego_half_openmp_step_cost.json
@@ -83,10 +84,12 @@ def in_slice_views(fn: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], f: 
 
 
 def guessed_room(*args: Any) -> Callable[[int, int, int], torch.Tensor]:
-    """`recon.nerf.native._march_room` as a fixed guess of 48 samples a ray: slice s of rays lo..hi from its first
-    ray times 48 on."""
+    """`recon.nerf.native._march_room` as the fixed guess it replaced: 48 samples a ray for a training march, 24
+    coloured samples a ray for a render's (slice s of rays lo..hi from its first ray times the guess on)."""
+    per_ray = 24 if sys._getframe(1).f_code.co_name == "march_render_native" else 48
+
     def room(lo: int, hi: int, slices: int) -> torch.Tensor:
-        return torch.tensor([48 * ((hi - lo) * s // slices) for s in range(slices + 1)], dtype=torch.long)
+        return torch.tensor([per_ray * ((hi - lo) * s // slices) for s in range(slices + 1)], dtype=torch.long)
     return room
 
 

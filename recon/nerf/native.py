@@ -274,10 +274,11 @@ def _empty_blocks(occupied: Tensor) -> Tensor | None:
     return _blocks[2]
 
 
-MARCH_ROOM = 1 << 22
+MARCH_ROOM = 1 << 20
 """The most samples' room one native march allots (more rays than this allows their step counts: each ray an equal
-share, and a slice that needs more is marched again): room no sample fills costs address space, not memory, as its
-pages are never touched."""
+share, and a slice that needs more is marched again). Room no sample fills is never touched, but a buffer this size
+(12 MB of points) still comes from the heap's reused pages, where a larger one is mapped afresh, and faulted in, each
+call."""
 
 MARCH_RAYS_A_THREAD = 128
 """The fewest rays a thread of a native march takes: a ray through the object costs tens of microseconds, so the few
