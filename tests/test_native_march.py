@@ -291,7 +291,7 @@ def test_a_marchs_room_holds_infinite_and_nan_distances() -> None:
     tf[:4] = torch.tensor([float("inf"), float("nan"), 0.0, 1e30])
     steps = ((tf - tn) / 0.05).ceil().clamp(0, 64).nan_to_num(0.0).long()
     steps[:4] = torch.tensor([64, 0, 0, 64])
-    offsets = native._march_room(o, d, tn, tf, 0.05, 64, False)(0, o.shape[0], 4)
+    offsets = native._march_room(tn, tf, 0.05, 64, False)(0, o.shape[0], 4)
     bounds = [o.shape[0] * s // 4 for s in range(5)]
     assert offsets.tolist() == [int(steps[:b].sum()) for b in bounds]
     ts, te, ri, sigma = native.march_dense_native(o, d, tn, tf, False, model._dense_density(), 0.05, 64, 1e-3)

@@ -691,20 +691,17 @@ int32_t recon_openmp(void)
 static inline int64_t slice_lo(int64_t n, int64_t s, int64_t slices) { return n * s / slices; }
 
 /* Where each of `slices` slices of the rays writes its samples and how many it may: from offsets[s] to
- * offsets[s + 1], each ray given its step count (march's `count`, the most samples it can keep), at most `cap`. */
-void recon_march_offsets(int64_t n_rays, const float *rays_o, const float *rays_d, const float *t_near,
-                         const float *t_far, float step, int64_t max_samples, int32_t contracted, int64_t cap,
-                         int64_t slices, int64_t *offsets)
+ * offsets[s + 1], each ray given its uniform step count (the most samples it can keep; a contracted ray, whose count
+ * takes its breakpoints, max_samples), at most `cap`. */
+void recon_march_offsets(int64_t n_rays, const float *t_near, const float *t_far, float step, int64_t max_samples,
+                         int32_t contracted, int64_t cap, int64_t slices, int64_t *offsets)
 {
-    contracted_ray cr;
     int64_t total = 0;
     offsets[0] = 0;
     for (int64_t s = 0; s < slices; ++s) {
         for (int64_t r = slice_lo(n_rays, s, slices); r < slice_lo(n_rays, s + 1, slices); ++r) {
-            const int64_t count = contracted
-                ? contracted_setup(rays_o + 3 * r, rays_d + 3 * r, t_near[r], t_far[r], (double)step, max_samples, &cr)
-                : uniform_steps(t_near[r], t_far[r], step, max_samples);
-            total += count < 0 ? 0 : (count < cap ? count : cap);
+            const int64_t count = contracted ? max_samples : uniform_steps(t_near[r], t_far[r], step, max_samples);
+            total += count < cap ? count : cap;
         }
         offsets[s + 1] = total;
     }

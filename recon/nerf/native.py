@@ -174,7 +174,7 @@ def native_marcher() -> ctypes.CDLL | None:
     lib.recon_march_dense_all.restype = None
     lib.recon_march_dense_all.argtypes = [i64, p, p, p, p, p, *field, i64, i64, p, p, p, p, p, p, p]
     lib.recon_march_offsets.restype = None
-    lib.recon_march_offsets.argtypes = [i64, p, p, p, p, f32, i64, i32, i64, i64, p]
+    lib.recon_march_offsets.argtypes = [i64, p, p, f32, i64, i32, i64, i64, p]
     lib.recon_march_render_all.restype = None
     lib.recon_march_render_all.argtypes = [i64, p, p, p, p, *field, i64, i64, p, p, p, p, f32, p, p, p, p]
     lib.recon_trilinear_features_all.restype = None
@@ -293,18 +293,18 @@ def _fitted(run: Callable[[int, int, int], tuple[int, list[Tensor]]], lo: int, h
     return [t[:m] for t in out]
 
 
-def _march_room(rays_o: Tensor, rays_d: Tensor, t_near: Tensor, t_far: Tensor, step_size: float, max_samples: int,
+def _march_room(t_near: Tensor, t_far: Tensor, step_size: float, max_samples: int,
                 contracted: bool) -> Callable[[int, int, int], Tensor]:
     """``room(lo, hi, slices)``: where each of ``slices`` slices of rays lo..hi writes its samples, as offsets
-    (slices + 1,) long: each ray given its step count (the most samples it can keep, so no slice runs out), at most an
-    equal share of :data:`MARCH_ROOM`."""
-    lib, n = native_marcher(), rays_o.shape[0]
+    (slices + 1,) long: each ray given its step count (the most samples it can keep, so no slice runs out; a contracted
+    ray max_samples), at most an equal share of :data:`MARCH_ROOM`."""
+    lib, n = native_marcher(), t_near.shape[0]
     cap = max(16, MARCH_ROOM // max(n, 1))
 
     def room(lo: int, hi: int, slices: int) -> Tensor:
         offsets = torch.empty(slices + 1, dtype=torch.long)
-        lib.recon_march_offsets(hi - lo, *_rays_args(lo, hi, rays_o, rays_d, t_near, t_far), float(step_size),
-                                int(max_samples), int(contracted), cap, slices, offsets.data_ptr())
+        lib.recon_march_offsets(hi - lo, *_rays_args(lo, hi, t_near, t_far), float(step_size), int(max_samples),
+                                int(contracted), cap, slices, offsets.data_ptr())
         return offsets
     return room
 
@@ -379,7 +379,7 @@ def march_dense_native(
                                   out[4].data_ptr() if points else None, counts.data_ptr())
         return out
 
-    room = _march_room(rays_o, rays_d, t_near, t_far, step_size, max_samples, field.contracted)
+    room = _march_room(t_near, t_far, step_size, max_samples, field.contracted)
     parts = _march_slices(rays_o.shape[0], room, run, run_all)
     return tuple(torch.cat(x) for x in zip(*parts))
 
@@ -420,7 +420,7 @@ def march_render_native(
                                    *_rays_args(0, n, opacity, depth_sum, samples), counts.data_ptr())
         return out
 
-    room = _march_room(rays_o, rays_d, t_near, t_far, step_size, max_samples, field.contracted)
+    room = _march_room(t_near, t_far, step_size, max_samples, field.contracted)
     u, weights, ri = (torch.cat(x) for x in zip(*_march_slices(n, room, run, run_all)))
     return {"opacity": opacity, "depth_sum": depth_sum, "samples": samples, "u": u, "weights": weights, "ray_indices": ri}
 

@@ -55,8 +55,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from recon.nerf.fast import (_make_grid, color_from_features, composite_packed, make_color_mlp,
-                             ray_background)
+from recon.nerf.fast import _make_grid, color_from_features, composite_packed, make_color_mlp, ray_background
 from recon.nerf.grid import MultiDenseGrid, grid_sample_coords
 from recon.nerf.model_config import SurfaceConfig
 from recon.nerf.occupancy import OccupancyGrid, march
