@@ -13,7 +13,8 @@ before they took a thread each: `trilinear_backward_levels_native`), against a m
 coloured in a render), marches a slice that needed more again on one thread, and takes a second thread only from 1,024
 rays on (`--against guessed-room`, as before each ray was given its steps: `_march_room`), or the colour network's
 slices recorded as views of the features (`--against slice-views`, as before they were split:
-`recon.nerf.fast.in_slices`).
+`recon.nerf.fast.in_slices`), or the density levels handed to the backward's threads coarsest first (`--against
+coarsest-first`, as before they were ordered finest first: `recon.nerf.native._levels_order`).
 
     python benchmarks/native_step_cost.py --scene ~/.cache/recon/bench/lego-half-fast --against python-threads \\
         --out benchmarks/results/lego_half_openmp_step_cost.json
@@ -22,11 +23,11 @@ Two trainings are built as the train stage builds them (`recon.plans.training`) 
 `--warmup` steps each; then they take turns (step_cost.py's `take_turns`), `--rounds` rounds of `--block` steps, the
 second's turns with the other library (REV's march.c built with recon's flags for this CPU; its functions must take the
 same arguments, or it is refused), the other slicing, the second read, the one-thread backward, recon's threads, the
-torch rays, the torch compositing, the levels in turn or the guessed room. The record gives each one's ms a step and the
-ratio, the sliced native calls a step. Both compute the same values (tests/test_native_march.py,
-tests/test_masked_adam.py; the C rays and compositing to a float32 rounding); their trainings draw rays from one random
-stream in turns, so they do not end equal. With `--renders N`, the first training's field then renders N test views
-with each in turns (ms a render). A measurement: it asserts nothing.
+torch rays, the torch compositing, the levels in turn, the guessed room or the levels coarsest first. The record
+gives each one's ms a step and the ratio, the sliced native calls a step. Both compute the same values
+(tests/test_native_march.py, tests/test_masked_adam.py; the C rays and compositing to a float32 rounding); their
+trainings draw rays from one random stream in turns, so they do not end equal. With `--renders N`, the first
+training's field then renders N test views with each in turns (ms a render). A measurement: it asserts nothing.
 """
 from __future__ import annotations
 
@@ -157,7 +158,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = step_parser(__doc__)
     parser.add_argument("--against", required=True,
                         help="a git revision, pool-map, reads-again, serial-backward, python-threads, torch-rays, "
-                             "torch-compositing, serial-levels, guessed-room or slice-views")
+                             "torch-compositing, serial-levels, guessed-room, slice-views or coarsest-first")
     turn_arguments(parser, warmup=300)
     parser.add_argument("--renders", type=int, default=0,
                         help="then the first training's field renders this many test views with each in turns")
@@ -173,7 +174,7 @@ def main(argv: list[str] | None = None) -> int:
                (grid, "trilinear_backward_native"), (native, "_parallel_in_c"), (fitting, "pixel_rays_native"),
                (rays, "ray_box_native"), (fast, "composite_packed_native"), (fast, "distortion_packed_native"),
                (grid, "trilinear_backward_levels_native"), (native, "_march_room"), (native, "MARCH_RAYS_A_THREAD"),
-               (fast, "in_slices")]
+               (fast, "in_slices"), (native, "_levels_order")]
     originals = {(owner, name): getattr(owner, name) for owner, name in patched}
 
     def counted(slices: Callable[[int, Callable[[int, int], T]], list[T]]) -> Callable[..., list[T]]:
@@ -201,6 +202,8 @@ def main(argv: list[str] | None = None) -> int:
             other = {(grid, "trilinear_backward_levels_native"): lambda *args: False}
         elif args.against == "slice-views":
             other = {(fast, "in_slices"): in_slice_views}
+        elif args.against == "coarsest-first":
+            other = {(native, "_levels_order"): lambda resolutions: list(range(len(resolutions)))}
         elif args.against == "guessed-room":
             other = {(native, "_march_room"): guessed_room, (native, "MARCH_RAYS_A_THREAD"): 1024}
         else:

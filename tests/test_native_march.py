@@ -586,9 +586,11 @@ def test_c_distortion_loss_is_the_reference_in_float64() -> None:
 
 @needs_native
 @pytest.mark.parametrize("held", [False, True])
+@pytest.mark.parametrize("resolutions", [(24, 48, 97), (97, 24, 48)])
 def test_the_density_levels_backward_a_level_a_thread_adds_what_one_at_a_time_does(
-        held: bool, monkeypatch: pytest.MonkeyPatch) -> None:
-    """The same sums and the same touched-block flags bit for bit, into fresh buffers or into gradients held."""
+        held: bool, resolutions: tuple[int, ...], monkeypatch: pytest.MonkeyPatch) -> None:
+    """The same sums and the same touched-block flags bit for bit, into fresh buffers or into gradients held, with
+    the levels given coarsest first (a model's order, handed to the threads finest first) or mixed."""
     import recon.nerf.grid as grid_module
     from recon.nerf.grid import add_native_grads
     from recon.nerf.masked_adam import touched_blocks
@@ -599,7 +601,7 @@ def test_the_density_levels_backward_a_level_a_thread_adds_what_one_at_a_time_do
     parallel = grid_module.trilinear_backward_levels_native
     for one_at_a_time in (False, True):
         torch.manual_seed(0)
-        levels = [DenseGrid(r, 1, init_std=0.1) for r in (97, 48, 24)]
+        levels = [DenseGrid(r, 1, init_std=0.1) for r in resolutions]
         if held:
             for level in levels:
                 level.table.grad = torch.randn(level.table.shape, generator=torch.Generator().manual_seed(level.res))
@@ -617,3 +619,9 @@ def test_the_density_levels_backward_a_level_a_thread_adds_what_one_at_a_time_do
     assert all(int(flags.sum()) > 0 for _, flags in runs[0]) or held  # fresh buffers are flagged where added into
     # with OpenMP the levels went in one parallel call; without, a level at a time both ways
     assert parallel_calls == [bool(native.native_marcher().openmp)] * 2
+
+
+def test_the_levels_go_to_the_threads_finest_first() -> None:
+    """The finest level, the most work, is handed out first; ties keep their order."""
+    assert native._levels_order([24, 48, 97]) == [2, 1, 0]
+    assert native._levels_order([97, 24, 48, 48]) == [0, 2, 3, 1]

@@ -483,6 +483,13 @@ def trilinear_backward_native(x01: Tensor, grad_out: Tensor, res: int, out: Tens
     return grad_table
 
 
+def _levels_order(resolutions: list[int]) -> list[int]:
+    """The levels' indices, finest first (the C call hands them to threads in this order as each frees): the finest
+    level, the most work, starts at once and the coarse ones share the other threads, instead of the finest starting
+    last and running alone."""
+    return sorted(range(len(resolutions)), key=lambda i: -resolutions[i])
+
+
 def trilinear_backward_levels_native(x01: Tensor, grad_out: Tensor, resolutions: list[int], outs: list[Tensor],
                                      touched: list[Tensor | None]) -> bool:
     """:func:`trilinear_backward_native` (accumulating) of one-channel grids read at the same points x01 (M, 3) with
@@ -494,9 +501,10 @@ def trilinear_backward_levels_native(x01: Tensor, grad_out: Tensor, resolutions:
     if lib is None or not _parallel_in_c(lib) or len(outs) < 2 or grad_out.shape[1:] != (1,):
         return False
     x01, grad_out = x01.detach().contiguous(), grad_out.detach().to(torch.float32).contiguous()
-    res = torch.tensor(resolutions, dtype=torch.int64)
-    tables = (ctypes.c_void_p * len(outs))(*(out.data_ptr() for out in outs))
-    flags = (ctypes.c_void_p * len(outs))(*(_flags_pointer(t, out) for t, out in zip(touched, outs, strict=True)))
+    order = _levels_order(resolutions)
+    res = torch.tensor([resolutions[i] for i in order], dtype=torch.int64)
+    tables = (ctypes.c_void_p * len(outs))(*(outs[i].data_ptr() for i in order))
+    flags = (ctypes.c_void_p * len(outs))(*(_flags_pointer(touched[i], outs[i]) for i in order))
     lib.recon_trilinear_backward_levels_all(x01.shape[0], x01.data_ptr(), grad_out.data_ptr(), len(outs),
                                             res.data_ptr(), tables, flags, min(len(outs), _threads_for(x01.shape[0])))
     return True
