@@ -108,6 +108,8 @@ class TrainConfig:
     """Initial learning rate; 0 uses the model's own default."""
     lr_decay: float = 0.1
     """The learning rate decays exponentially to lr × lr_decay at the last step."""
+    adam_beta2: float = 0.999
+    """Adam's decay of its running mean of squared gradients (its second beta)."""
     max_side: int = 400
     """Training photos are downscaled to this longest side (intrinsics scaled with them)."""
     background: Literal["auto", "white", "black", "random"] = "auto"
@@ -582,6 +584,7 @@ BOUNDS: dict[str, Bound] = {
     "train.batch_rays": _range(1, MAX_RAYS_PER_STEP),
     "train.lr": _range(0, 1),
     "train.lr_decay": _above(0, 1),
+    "train.adam_beta2": _fraction(),
     "train.max_side": _range(4, 16384),
     "train.eval_every": STEPS,
     "train.eval_views": _range(0, 10**5),

@@ -8,7 +8,7 @@ import torch
 
 from recon.nerf.evaluate import render_image
 from recon.nerf.fitting import RayBatcher, lr_at, training_done
-from recon.nerf.trainer import TrainingDiverged, train, warm_up
+from recon.nerf.trainer import TrainingDiverged, make_optimizer, train, warm_up
 from tests.ball_scene import AABB, COLOR
 from tests.ball_scene import ball_views as _scene
 from tests.ball_scene import tiny_model as _tiny_model
@@ -63,6 +63,14 @@ def test_lr_decay_is_exponential() -> None:
     assert lr_at(50, 100, 1e-2, 1e-4) == pytest.approx(1e-3)
     assert lr_at(100, 100, 1e-2, 1e-4) == pytest.approx(1e-4)
     assert lr_at(7, 100, 1e-2, None) == 1e-2
+
+
+@pytest.mark.parametrize("optimizer", ["adam", "masked_adam"])
+def test_the_second_beta_reaches_the_optimizer(optimizer: str) -> None:
+    """train.adam_beta2 sets the rate at which either optimizer forgets its squared gradients."""
+    default, chosen = make_optimizer(_tiny_model(), 1e-2, optimizer), make_optimizer(_tiny_model(), 1e-2, optimizer, 0.99)
+    assert {g["betas"] for g in default.param_groups} == {(0.9, 0.999)}
+    assert {g["betas"] for g in chosen.param_groups} == {(0.9, 0.99)}
 
 
 def test_the_model_hears_the_share_of_training_done_before_each_step() -> None:

@@ -62,22 +62,24 @@ class TrainingInterrupted(KeyboardInterrupt):
 
 
 # ----------------------------------------------------------------------------- optimization
-def make_optimizer(model: RadianceModel, lr: float, optimizer: str = "adam") -> torch.optim.Optimizer:
+def make_optimizer(model: RadianceModel, lr: float, optimizer: str = "adam",
+                   beta2: float = 0.999) -> torch.optim.Optimizer:
     """The optimizer over ``model.param_groups(lr)``: "adam" torch's Adam, fused where the device and dtypes allow
     (~20x faster on large grids on the CPU: CPU_NERF_NOTES.md, lesson 1); "masked_adam"
     :class:`recon.nerf.masked_adam.MaskedAdam`, which updates only the grid values a step's rays touched (groups
-    marked ``masked``). Each group remembers its starting rate as ``initial_lr`` for the decay schedule."""
+    marked ``masked``). Each group remembers its starting rate as ``initial_lr`` for the decay schedule; ``beta2``:
+    Adam's second beta (the first stays 0.9)."""
     groups = model.param_groups(lr)
     for g in groups:
         g.setdefault("initial_lr", g.get("lr", lr))
     if optimizer == "masked_adam":
-        return MaskedAdam(groups, lr=lr)
+        return MaskedAdam(groups, lr=lr, betas=(0.9, beta2))
     if optimizer != "adam":
         raise ValueError(f"optimizer must be 'adam' or 'masked_adam', got {optimizer!r}")
     try:
-        return torch.optim.Adam(groups, lr=lr, fused=True)
+        return torch.optim.Adam(groups, lr=lr, betas=(0.9, beta2), fused=True)
     except (RuntimeError, ValueError):
-        return torch.optim.Adam(groups, lr=lr)
+        return torch.optim.Adam(groups, lr=lr, betas=(0.9, beta2))
 
 
 def _rng_state() -> dict[str, Any]:
@@ -183,15 +185,15 @@ class TrainStep:
         autocast: e.g. ``torch.bfloat16`` to run the model's matmuls in mixed precision (``torch.autocast``);
             ~2x faster MLPs on CPUs with AMX/AVX512-BF16. Losses, and volume rendering in models that cast their
             network outputs to float32, stay in float32.
-        optimizer: "adam" or "masked_adam" (:func:`make_optimizer`).
+        optimizer: "adam" or "masked_adam" (:func:`make_optimizer`); beta2: its second beta.
     """
 
     def __init__(self, model: RadianceModel, batcher: RayBatcher, *, steps: int, lr: float,
                  lr_final: float | None = None, batch_rays: int = 4096, pieces: Sequence[TrainPiece] = (),
-                 autocast: torch.dtype | None = None, optimizer: str = "adam") -> None:
+                 autocast: torch.dtype | None = None, optimizer: str = "adam", beta2: float = 0.999) -> None:
         self.model, self.batcher, self.steps, self.lr, self.lr_final = model, batcher, steps, lr, lr_final
         self.batch_rays, self.pieces, self.autocast = batch_rays, list(pieces), autocast
-        self.opt = make_optimizer(model, lr, optimizer)
+        self.opt = make_optimizer(model, lr, optimizer, beta2)
         for piece in self.pieces:
             piece.attach(self.opt, lr)
 
@@ -305,6 +307,7 @@ def train(
     budget_s: float = 0.0,
     spent_s: float = 0.0,
     optimizer: str = "adam",
+    beta2: float = 0.999,
 ) -> dict[str, Any]:
     """Optimize ``model`` on ``batcher``'s rays for ``steps`` steps (or the rest of them after a resume), each step a
     :class:`TrainStep` (loss, schedule, ``pieces``, ``autocast``: see there).
@@ -333,7 +336,7 @@ def train(
         TrainingInterrupted: on Ctrl-C, carrying a resumable state of the finished steps.
     """
     take_step = TrainStep(model, batcher, steps=steps, lr=lr, lr_final=lr_final, batch_rays=batch_rays,
-                          pieces=pieces, autocast=autocast, optimizer=optimizer)
+                          pieces=pieces, autocast=autocast, optimizer=optimizer, beta2=beta2)
     start = 0
     if state is not None:
         take_step.load_state_dict(state)

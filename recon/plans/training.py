@@ -560,6 +560,7 @@ class TrainPlan:
     autocast: torch.dtype | None
     optimizer: str
     """"adam" or "masked_adam" (`choose_optimizer`)."""
+    adam_beta2: float
     budget_s: float
     reasons: list[str]
     """Every choice's reason, in the order they are printed."""
@@ -634,8 +635,8 @@ def plan_training(cfg: TrainConfig, scene: Scene, views: list[View], device: tor
         appearance_why=appearance_why, pose_refine=pose_refine, pose_why=pose_why, depth_prior=depth_prior,
         smoothness=smoothness,
         compile=cfg.compile if kind == "fast" and compile_wanted(cfg.compile, device)[0] else None,
-        autocast=torch.bfloat16 if cfg.precision == "bf16" else None, optimizer=optimizer, budget_s=budget_s,
-        reasons=reasons,
+        autocast=torch.bfloat16 if cfg.precision == "bf16" else None, optimizer=optimizer,
+        adam_beta2=cfg.adam_beta2, budget_s=budget_s, reasons=reasons,
     )
 
 
@@ -721,6 +722,6 @@ def build_training(plan: TrainPlan, device: torch.device) -> TrainSetup:
         pose_refine = PoseRefinement(len(plan.views), centres=c2w[:, :3, 3]).to(device)
         pieces.append(PoseRefine(pose_refine, batcher.aabb))
     step_kwargs = {"lr": plan.lr, "lr_final": plan.lr_final, "batch_rays": plan.batch_rays, "autocast": plan.autocast,
-                   "pieces": pieces, "optimizer": plan.optimizer}
+                   "pieces": pieces, "optimizer": plan.optimizer, "beta2": plan.adam_beta2}
     return TrainSetup(model=model, batcher=batcher, step_kwargs=step_kwargs, aabb=aabb, c2w=c2w,
                       appearance=appearance, pose_refine=pose_refine, notes=notes)
