@@ -67,6 +67,7 @@ COLUMNS: dict[str, list[str]] = {
     "features1level": ["train.fast.feature_levels=1"],
     "dense": ["train.fast.grid=dense"],
     "empty-start": ["train.hull_start=off"],
+    "lr-flat": ["train.lr=0.01"],
 }
 """--columns: each column's overrides on top of the check's own. All but `default` compare something CUDA has:
 `torch-march` is the default run with the Triton marcher swapped for the torch one it replaced (the marcher's
@@ -83,7 +84,9 @@ the coarser level GPU sizing puts under it (each of the three keeps dense featur
 does). `dense` the colour features in the sized dense grids (192³ and 96³ under it, 96 M values), as before GPU
 sizing put them in a hash grid (16 levels of 2 features up to what the pixels resolve, 2^19 rows a level: at most
 11.4 M values, read in one Triton kernel). `empty-start` starts the field empty instead of inside the Lego's
-visual hull (`train.hull_start=auto` turns that on for photos with silhouettes)."""
+visual hull (`train.hull_start=auto` turns that on for photos with silhouettes). `lr-flat` trains at the fast
+model's rate for 4,096 rays a step, 0.01, as before the default grew with the batch (`recon.plans.training.fast_lr`:
+0.02 at the sized 32,768)."""
 
 
 PATCHED_LABELS = {

@@ -218,7 +218,10 @@ def model_spec(cfg: TrainConfig, scene: Scene, views: list[View]) -> tuple[str, 
             "docs/surface.md)" if scene.capture == "object"
             else "surface model not offered: it needs an object capture (this scene is unbounded)"
         )
-    return kind, {"config": asdict(fast_cfg)}, cfg.lr or FAST_LR, reasons
+    lr, lr_why = (cfg.lr, "") if cfg.lr else fast_lr(cfg.batch_rays)
+    if lr_why:
+        reasons.append(lr_why)
+    return kind, {"config": asdict(fast_cfg)}, lr, reasons
 
 
 def surface_spec(cfg: TrainConfig, scene: Scene) -> tuple[str, dict[str, Any], float, list[str]]:
@@ -335,7 +338,21 @@ HULL_WHY = (
 )
 
 FAST_LR = 1e-2
-"""Default learning rate of the fast model's MLP (its grids use lr × grid_lr_scale)."""
+"""Default learning rate of the fast model's MLP (its grids use lr × grid_lr_scale) at FAST_LR_RAYS rays a step."""
+FAST_LR_RAYS = 4096
+
+
+def fast_lr(batch_rays: int) -> tuple[float, str]:
+    """The fast model's default learning rate for ``batch_rays`` rays a step, and why it is not FAST_LR ("" where it
+    is): above FAST_LR_RAYS it grows with the cube root of the batch, where the half-res Lego scored best at 8x the rays
+    (2x the rate against 1x and 4x: benchmarks/results/lego_half_lr_big_batch.json); smaller batches keep FAST_LR."""
+    if batch_rays <= FAST_LR_RAYS:
+        return FAST_LR, ""
+    factor = (batch_rays / FAST_LR_RAYS) ** (1 / 3)
+    lr = FAST_LR * factor
+    return lr, (f"learning rate {lr:.3g}: the fast model's {FAST_LR:g} for {FAST_LR_RAYS:,} rays a step × {factor:.2f} "
+                f"(the cube root of {batch_rays:,} / {FAST_LR_RAYS:,}): a larger batch's gradient is less noisy, so it "
+                "takes longer steps (train.lr sets the rate)")
 
 
 def auto_fast_config(base: Any, scene: Scene, footprint: float) -> tuple[Any, list[str]]:
