@@ -68,7 +68,8 @@ def test_lr_decay_is_exponential() -> None:
 @pytest.mark.parametrize("optimizer", ["adam", "masked_adam"])
 def test_the_second_beta_reaches_the_optimizer(optimizer: str) -> None:
     """train.adam_beta2 sets the rate at which either optimizer forgets its squared gradients."""
-    default, chosen = make_optimizer(_tiny_model(), 1e-2, optimizer), make_optimizer(_tiny_model(), 1e-2, optimizer, 0.99)
+    default = make_optimizer(_tiny_model(), 1e-2, optimizer)
+    chosen = make_optimizer(_tiny_model(), 1e-2, optimizer, 0.99)
     assert {g["betas"] for g in default.param_groups} == {(0.9, 0.999)}
     assert {g["betas"] for g in chosen.param_groups} == {(0.9, 0.99)}
 

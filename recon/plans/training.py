@@ -350,9 +350,9 @@ def fast_lr(batch_rays: int) -> tuple[float, str]:
         return FAST_LR, ""
     factor = (batch_rays / FAST_LR_RAYS) ** (1 / 3)
     lr = FAST_LR * factor
-    return lr, (f"learning rate {lr:.3g}: the fast model's {FAST_LR:g} for {FAST_LR_RAYS:,} rays a step × {factor:.2f} "
-                f"(the cube root of {batch_rays:,} / {FAST_LR_RAYS:,}): a larger batch's gradient is less noisy, so it "
-                "takes longer steps (train.lr sets the rate)")
+    return lr, (f"learning rate {lr:.3g}: the fast model's {FAST_LR:g} for {FAST_LR_RAYS:,} rays a step "
+                f"× {factor:.2f} (the cube root of {batch_rays:,} / {FAST_LR_RAYS:,}): a larger batch's gradient is "
+                "less noisy, so it takes longer steps (train.lr sets the rate)")
 
 
 def auto_fast_config(base: Any, scene: Scene, footprint: float) -> tuple[Any, list[str]]:
