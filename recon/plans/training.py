@@ -345,7 +345,8 @@ FAST_LR_RAYS = 4096
 def fast_lr(batch_rays: int) -> tuple[float, str]:
     """The fast model's default learning rate for ``batch_rays`` rays a step, and why it is not FAST_LR ("" where it
     is): above FAST_LR_RAYS it grows with the cube root of the batch, where the half-res Lego scored best at 8x the rays
-    (2x the rate against 1x and 4x: benchmarks/results/lego_half_lr_big_batch.json); smaller batches keep FAST_LR."""
+    (2x the rate against 1x and 4x: benchmarks/results/lego_half_lr_big_batch.json) and at 4x (1.6x against 1x and
+    2.5x: lego_half_lr_16k.json); smaller batches keep FAST_LR."""
     if batch_rays <= FAST_LR_RAYS:
         return FAST_LR, ""
     factor = (batch_rays / FAST_LR_RAYS) ** (1 / 3)
