@@ -85,7 +85,7 @@ does). `dense` the colour features in the sized dense grids (192³ and 96³ unde
 sizing put them in a hash grid (16 levels of 2 features up to what the pixels resolve, 2^19 rows a level: at most
 11.4 M values, read in one Triton kernel). `empty-start` starts the field empty instead of inside the Lego's
 visual hull (`train.hull_start=auto` turns that on for photos with silhouettes). `lr-flat` trains at the fast
-model's rate for 4,096 rays a step, 0.01, as before the default grew with the batch (`recon.plans.training.fast_lr`:
+model's rate for 4,096 rays a step, 0.01, as before the default grew with the batch (`recon.plans.training.grid_lr`:
 0.02 at the sized 32,768)."""
 
 

@@ -105,8 +105,8 @@ class TrainConfig:
     batch_rays: int = 4096
     """Rays per step, drawn across all training photos."""
     lr: float = 0.0
-    """Initial learning rate; 0 uses the model's own default (the fast model's grows with batch_rays above 4,096:
-    `recon.plans.training.fast_lr`)."""
+    """Initial learning rate; 0 uses the model's own default (the grid models' grows with batch_rays above 4,096:
+    `recon.plans.training.grid_lr`)."""
     lr_decay: float = 0.1
     """The learning rate decays exponentially to lr × lr_decay at the last step."""
     adam_beta2: float = 0.999

@@ -16,7 +16,7 @@ from recon.capture.scene import Frame, Scene
 from recon.config import TrainConfig
 from recon.evaluation.views import View
 from recon.nerf.pieces import DepthPriorLoss
-from recon.plans.training import FAST_LR, build_training, plan_training
+from recon.plans.training import GRID_LR, build_training, plan_training
 from tests.ball_scene import masked_ball_photos
 
 W, H, FL = 16, 12, 14.0
@@ -65,20 +65,20 @@ def test_an_unbounded_plan_cuts_rays_to_each_photos_near_far_and_builds_the_same
     assert prior is not plan.depth_prior and torch.equal(prior.depth, plan.depth_prior.depth)
 
 
-def test_the_fast_models_rate_grows_with_the_cube_root_of_a_batch_above_4096_rays_and_says_so() -> None:
+def test_the_grid_models_rate_grows_with_the_cube_root_of_a_batch_above_4096_rays_and_says_so() -> None:
     cfg, scene, views = _unbounded_without_masks(8)
-    rates = {}
-    for rays in (128, 4096, 32768):
-        plan = plan_training(replace(cfg, batch_rays=rays), scene, views, CPU)
-        rates[rays] = plan.lr, [r for r in plan.reasons if r.startswith("learning rate")]
-        assert plan.lr_final == pytest.approx(plan.lr * cfg.lr_decay)
-    assert rates[128] == rates[4096] == (FAST_LR, [])
-    assert rates[32768][0] == pytest.approx(2 * FAST_LR) and "32,768 / 4,096" in rates[32768][1][0]
-    chosen = plan_training(replace(cfg, batch_rays=32768, lr=3e-3), scene, views, CPU)
-    assert chosen.lr == 3e-3 and not any(r.startswith("learning rate") for r in chosen.reasons)
-    surface = plan_training(replace(cfg, batch_rays=32768, model="surface"), replace(scene, capture="object"), views,
-                            CPU)
-    assert surface.lr == FAST_LR  # measured on the fast model only
+    obj = replace(scene, capture="object")
+    for model, capture in (("fast", scene), ("surface", obj)):
+        rates = {}
+        for rays in (128, 4096, 32768):
+            plan = plan_training(replace(cfg, batch_rays=rays, model=model), capture, views, CPU)
+            rates[rays] = plan.lr, [r for r in plan.reasons if r.startswith("learning rate")]
+            assert plan.lr_final == pytest.approx(plan.lr * cfg.lr_decay)
+        assert rates[128] == rates[4096] == (GRID_LR, [])
+        assert rates[32768][0] == pytest.approx(2 * GRID_LR)
+        assert f"the {model} model's" in rates[32768][1][0] and "32,768 / 4,096" in rates[32768][1][0]
+        chosen = plan_training(replace(cfg, batch_rays=32768, lr=3e-3, model=model), capture, views, CPU)
+        assert chosen.lr == 3e-3 and not any(r.startswith("learning rate") for r in chosen.reasons)
 
 
 def test_an_object_capture_plan_keeps_its_box() -> None:

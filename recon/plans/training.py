@@ -218,10 +218,8 @@ def model_spec(cfg: TrainConfig, scene: Scene, views: list[View]) -> tuple[str, 
             "docs/surface.md)" if scene.capture == "object"
             else "surface model not offered: it needs an object capture (this scene is unbounded)"
         )
-    lr, lr_why = (cfg.lr, "") if cfg.lr else fast_lr(cfg.batch_rays)
-    if lr_why:
-        reasons.append(lr_why)
-    return kind, {"config": asdict(fast_cfg)}, lr, reasons
+    lr, lr_why = (cfg.lr, "") if cfg.lr else grid_lr(kind, cfg.batch_rays)
+    return kind, {"config": asdict(fast_cfg)}, lr, reasons + [lr_why] * bool(lr_why)
 
 
 def surface_spec(cfg: TrainConfig, scene: Scene) -> tuple[str, dict[str, Any], float, list[str]]:
@@ -237,7 +235,8 @@ def surface_spec(cfg: TrainConfig, scene: Scene) -> tuple[str, dict[str, Any], f
     why = ("surface model (train.model=surface): signed distance on "
            f"{surf.sdf_levels} dense levels up to {surf.sdf_res}³, NeuS opacity with learned sharpness, Eikonal "
            "and curvature terms; its mesh is the closed zero level set")
-    return "surface", {"config": asdict(surf)}, cfg.lr or FAST_LR, [why]
+    lr, lr_why = (cfg.lr, "") if cfg.lr else grid_lr("surface", cfg.batch_rays)
+    return "surface", {"config": asdict(surf)}, lr, [why] + [lr_why] * bool(lr_why)
 
 
 def has_silhouettes(views: list[View]) -> bool:
@@ -337,22 +336,25 @@ HULL_WHY = (
     "reach the bottom edges"
 )
 
-FAST_LR = 1e-2
-"""Default learning rate of the fast model's MLP (its grids use lr × grid_lr_scale) at FAST_LR_RAYS rays a step."""
-FAST_LR_RAYS = 4096
+GRID_LR = 1e-2
+"""Default learning rate of the grid models (fast, surface) at GRID_LR_RAYS rays a step: their networks' (their grids
+train at multiples of it, grid_lr_scale and sdf_lr_scale)."""
+GRID_LR_RAYS = 4096
 
 
-def fast_lr(batch_rays: int) -> tuple[float, str]:
-    """The fast model's default learning rate for ``batch_rays`` rays a step, and why it is not FAST_LR ("" where it
-    is): above FAST_LR_RAYS it grows with the cube root of the batch, where the half-res Lego scored best at 8x the rays
-    (2x the rate against 1x and 4x: benchmarks/results/lego_half_lr_big_batch.json) and at 4x (1.6x against 1x and
-    2.5x: lego_half_lr_16k.json); smaller batches keep FAST_LR."""
-    if batch_rays <= FAST_LR_RAYS:
-        return FAST_LR, ""
-    factor = (batch_rays / FAST_LR_RAYS) ** (1 / 3)
-    lr = FAST_LR * factor
-    return lr, (f"learning rate {lr:.3g}: the fast model's {FAST_LR:g} for {FAST_LR_RAYS:,} rays a step "
-                f"× {factor:.2f} (the cube root of {batch_rays:,} / {FAST_LR_RAYS:,}): a larger batch's gradient is "
+def grid_lr(kind: str, batch_rays: int) -> tuple[float, str]:
+    """The default learning rate of grid model ``kind`` (fast, surface) for ``batch_rays`` rays a step, and why it is
+    not GRID_LR ("" where it is): above GRID_LR_RAYS it grows with the cube root of the batch. The half-res Lego's fast
+    model scored best at 8x the rays with 2x the rate (against 1x and 4x:
+    benchmarks/results/lego_half_lr_big_batch.json) and at 4x with 1.6x (against 1x and 2.5x: lego_half_lr_16k.json);
+    the sample's surface model at 8x the rays gained 1.7 dB from 2x the rate and 0.4 dB more from 4x in 600 steps
+    (sample_surface_lr_big_batch.json). Smaller batches keep GRID_LR."""
+    if batch_rays <= GRID_LR_RAYS:
+        return GRID_LR, ""
+    factor = (batch_rays / GRID_LR_RAYS) ** (1 / 3)
+    lr = GRID_LR * factor
+    return lr, (f"learning rate {lr:.3g}: the {kind} model's {GRID_LR:g} for {GRID_LR_RAYS:,} rays a step "
+                f"× {factor:.2f} (the cube root of {batch_rays:,} / {GRID_LR_RAYS:,}): a larger batch's gradient is "
                 "less noisy, so it takes longer steps (train.lr sets the rate)")
 
 
