@@ -346,9 +346,10 @@ def grid_lr(kind: str, batch_rays: int) -> tuple[float, str]:
     """The default learning rate of grid model ``kind`` (fast, surface) for ``batch_rays`` rays a step, and why it is
     not GRID_LR ("" where it is): above GRID_LR_RAYS it grows with the cube root of the batch. The half-res Lego's fast
     model scored best at 8x the rays with 2x the rate (against 1x and 4x:
-    benchmarks/results/lego_half_lr_big_batch.json) and at 4x with 1.6x (against 1x and 2.5x: lego_half_lr_16k.json);
-    the sample's surface model at 8x the rays gained 1.7 dB from 2x the rate and 0.4 dB more from 4x in 600 steps
-    (sample_surface_lr_big_batch.json). Smaller batches keep GRID_LR."""
+    benchmarks/results/lego_half_lr_big_batch.json), at 4x with 1.6x (against 1x and 2.5x: lego_half_lr_16k.json), and
+    at 2x gained 0.18 dB from 1.26x and 0.06 more from 1.6x (lego_half_lr_8k.json); the sample's surface model at 8x
+    the rays gained 1.7 dB from 2x the rate and 0.4 dB more from 4x in 600 steps (sample_surface_lr_big_batch.json).
+    Smaller batches keep GRID_LR."""
     if batch_rays <= GRID_LR_RAYS:
         return GRID_LR, ""
     factor = (batch_rays / GRID_LR_RAYS) ** (1 / 3)
