@@ -149,7 +149,10 @@ def test_ctrl_c_stops_cleanly_and_the_same_command_resumes(capture: Path, refere
 
 def test_a_killed_lock_holder_does_not_keep_the_lock(capture: Path, tmp_path: Path) -> None:
     scene = tmp_path / "scene"
-    holder = faults.start(capture, scene, "--until", "train")
+    # steps enough that the holder is still training when the second process (its imports take seconds on a busy
+    # machine) reaches the lock: the tiny run's 40 steps can finish first
+    long_run = [s for s in faults.TINY if not s.startswith("train.steps=")] + ["train.steps=1000000"]
+    holder = faults.start(capture, scene, "--until", "train", settings=long_run)
     try:
         faults.wait_for(lambda: (scene / ".lock").is_file() and (scene / ".lock").read_text().strip() == str(holder.pid),
                         what="the lock")
