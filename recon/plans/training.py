@@ -218,7 +218,7 @@ def model_spec(cfg: TrainConfig, scene: Scene, views: list[View]) -> tuple[str, 
             "docs/surface.md)" if scene.capture == "object"
             else "surface model not offered: it needs an object capture (this scene is unbounded)"
         )
-    lr, lr_why = (cfg.lr, "") if cfg.lr else grid_lr(kind, cfg.batch_rays)
+    lr, lr_why = grid_lr(cfg, kind)
     return kind, {"config": asdict(fast_cfg)}, lr, reasons + [lr_why] * bool(lr_why)
 
 
@@ -235,7 +235,7 @@ def surface_spec(cfg: TrainConfig, scene: Scene) -> tuple[str, dict[str, Any], f
     why = ("surface model (train.model=surface): signed distance on "
            f"{surf.sdf_levels} dense levels up to {surf.sdf_res}³, NeuS opacity with learned sharpness, Eikonal "
            "and curvature terms; its mesh is the closed zero level set")
-    lr, lr_why = (cfg.lr, "") if cfg.lr else grid_lr("surface", cfg.batch_rays)
+    lr, lr_why = grid_lr(cfg, "surface")
     return "surface", {"config": asdict(surf)}, lr, [why] + [lr_why] * bool(lr_why)
 
 
@@ -342,14 +342,15 @@ train at multiples of it, grid_lr_scale and sdf_lr_scale)."""
 GRID_LR_RAYS = 4096
 
 
-def grid_lr(kind: str, batch_rays: int) -> tuple[float, str]:
-    """The default learning rate of grid model ``kind`` (fast, surface) for ``batch_rays`` rays a step, and why it is
-    not GRID_LR ("" where it is): above GRID_LR_RAYS it grows with the cube root of the batch. The half-res Lego's fast
-    model scored best at 8x the rays with 2x the rate (against 1x and 4x:
-    benchmarks/results/lego_half_lr_big_batch.json), at 4x with 1.6x (against 1x and 2.5x: lego_half_lr_16k.json), and
-    at 2x gained 0.18 dB from 1.26x and 0.06 more from 1.6x (lego_half_lr_8k.json); the sample's surface model at 8x
-    the rays gained 1.7 dB from 2x the rate and 0.4 dB more from 4x in 600 steps (sample_surface_lr_big_batch.json).
-    Smaller batches keep GRID_LR."""
+def grid_lr(cfg: TrainConfig, kind: str) -> tuple[float, str]:
+    """Grid model ``kind``'s (fast, surface) learning rate: train.lr where set, else GRID_LR, grown above GRID_LR_RAYS
+    rays a step with the cube root of the batch, which scored best or within 0.06 dB of it at 2x, 4x and 8x the rays
+    on the half-res Lego and above GRID_LR for the surface model at 8x (benchmarks/results/lego_half_lr_8k.json,
+    lego_half_lr_16k.json, lego_half_lr_big_batch.json, sample_surface_lr_big_batch.json); and why, "" where the rate
+    is train.lr or GRID_LR."""
+    batch_rays = cfg.batch_rays
+    if cfg.lr:
+        return cfg.lr, ""
     if batch_rays <= GRID_LR_RAYS:
         return GRID_LR, ""
     factor = (batch_rays / GRID_LR_RAYS) ** (1 / 3)
