@@ -46,16 +46,18 @@ SMALL_GRIDS = {"density_res": 48, "feature_res": 96, "occupancy_res": 16, "hash_
 """--small: the card's models at these grid sizes (the same kernels and constexprs, a faster interpreter run)."""
 
 
-def card_models(memory_gib: float, small: bool = False) -> list[tuple[str, Any]]:
+CARD_MODELS = {"card-sized fast preset": [], "dense colour features": ["train.fast.grid=dense"], "unbounded scene": []}
+"""The models a card trains and the overrides that make each (dense features: gpu_check's dense column)."""
+
+
+def card_models(memory_gib: float, small: bool = False, only: int = len(CARD_MODELS)) -> list[tuple[str, Any]]:
     """(what, FastConfig) of the models a card trains: the fast preset sized for the card (colour features in a hash
-    grid), the same with dense feature grids (a --set of a feature key), and an unbounded scene's; ``small``: at
-    SMALL_GRIDS' sizes."""
+    grid), the same with dense feature grids (a --set of a feature key), and an unbounded scene's (the first ``only``
+    of them); ``small``: at SMALL_GRIDS' sizes."""
     from recon.config import device_sizing, load_config
 
     models = []
-    for what, overrides in (("card-sized fast preset", []),
-                            ("dense colour features", ["train.fast.grid=dense"]),  # gpu_check's dense column
-                            ("unbounded scene", [])):
+    for what, overrides in list(CARD_MODELS.items())[:only]:
         config = load_config("fast", overrides)
         keep = frozenset(o.partition("=")[0] for o in overrides)
         config, _ = device_sizing(config, int(memory_gib * 2**30), f"{memory_gib:g} GiB", keep)
@@ -65,7 +67,8 @@ def card_models(memory_gib: float, small: bool = False) -> list[tuple[str, Any]]
     return models
 
 
-def record_launches(memory_gib: float, rays: int, small: bool = False) -> list[dict[str, Any]]:
+def record_launches(memory_gib: float, rays: int, small: bool = False, models: int = len(CARD_MODELS)
+                    ) -> list[dict[str, Any]]:
     """Every Triton launch (kernel, argument types, constexprs, options) of a card's training and rendering, run
     under the interpreter (TRITON_INTERPRET=1 must be set before triton is imported)."""
     import torch
@@ -97,7 +100,7 @@ def record_launches(memory_gib: float, rays: int, small: bool = False) -> list[d
     kernels.KERNEL_DEVICES = ("cuda", "cpu")
     interpreter.InterpretedFunction.run = noted_run
     try:
-        for what, cfg in card_models(memory_gib, small):
+        for what, cfg in card_models(memory_gib, small, models):
             if cfg.grid == "hash":  # as the train stage probes it, before training
                 where[0] = f"{what}: the hash grid's probe"
                 hash_kernel_check("cpu", cfg.feature_dim, HASH_FEATURES)
@@ -185,10 +188,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--rays", type=int, default=16, help="rays a recorded render (the interpreter's pace)")
     parser.add_argument("--kernels", default="", help="compile only these kernels (comma-separated names)")
     parser.add_argument("--small", action="store_true", help="record the launches at small grids (the same kernels)")
+    parser.add_argument("--models", type=int, default=len(CARD_MODELS),
+                        help=f"record the first N of the card's models ({', '.join(CARD_MODELS)})")
     parser.add_argument("--record-launches", type=Path, help=argparse.SUPPRESS)  # the child's output
     args = parser.parse_args(argv)
     if args.record_launches:
-        args.record_launches.write_text(json.dumps(record_launches(args.memory_gib, args.rays, args.small)))
+        args.record_launches.write_text(json.dumps(record_launches(args.memory_gib, args.rays, args.small,
+                                                                  args.models)))
         return 0
     if args.out is None:
         parser.error("--out is required")
@@ -204,6 +210,7 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.perf_counter()
     child = subprocess.run([sys.executable, __file__, "--record-launches", str(launches_file),
                             "--memory-gib", str(args.memory_gib), "--rays", str(args.rays),
+                            "--models", str(args.models),
                             *(["--small"] if args.small else [])],
                            env={**os.environ, "TRITON_INTERPRET": "1", "RECON_NATIVE": "0"},
                            capture_output=True, text=True)
