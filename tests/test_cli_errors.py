@@ -120,3 +120,14 @@ def test_real_process_exit_code_and_no_traceback(tmp_path: Path) -> None:
     assert proc.returncode == 2
     assert "Traceback" not in proc.stderr + proc.stdout
     assert "does not exist" in proc.stderr
+
+
+def test_a_missing_input_is_refused_before_torch_loads(tmp_path: Path) -> None:
+    """A typo in the photos' path costs a second, not the seconds torch takes to load, and makes no scene folder."""
+    probe = ("import sys\nfrom recon.app.cli import app\ntry:\n    app(sys.argv[1:], prog_name='recon')\n"
+             "except SystemExit as exc:\n    print('exit', exc.code, 'torch loaded', 'torch' in sys.modules)")
+    proc = subprocess.run([sys.executable, "-c", probe, "run", str(tmp_path / "missing"), "--out", str(tmp_path / "s")],
+                          capture_output=True, text=True, timeout=120)
+    assert "does not exist" in proc.stderr
+    assert proc.stdout.split() == ["exit", "2", "torch", "loaded", "False"], proc.stdout + proc.stderr
+    assert not (tmp_path / "s").exists()

@@ -180,16 +180,18 @@ def _run(
 ) -> None:
     install_sigterm_as_interrupt()
     with _guard(scene_dir):
+        if source is not None:
+            from recon.runner.ownership import resolve_path
+
+            source = resolve_path(source, "The photos folder")  # a link loop is the user's to fix, not a crash
+            if not source.exists():  # before the scene folder is made and torch loads: a typo costs nothing
+                raise ReconError(f"The input {source} does not exist. Check the path.")
         preset = preset or _recorded_preset(scene_dir)
         config = _config(preset, overrides)
         _check_device(config)
         if source is not None:
             from recon.capture.video import count_photos
-            from recon.runner.ownership import resolve_path
 
-            source = resolve_path(source, "The photos folder")  # a link loop is the user's to fix, not a crash
-            if not source.exists():  # before the scene folder is made: a typo leaves nothing behind
-                raise ReconError(f"The input {source} does not exist. Check the path.")
             check_batch_against_pixels(config, count_photos(source, config.poses.video_frames))
         report = Reporter(console, quiet=quiet)
         report.observers = list(observers or [])
