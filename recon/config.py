@@ -341,6 +341,7 @@ def load_config(preset: str | None = None, overrides: list[str] | None = None) -
         no_gpu = data.pop("no_gpu", None)
         _apply_table(config, data, prefix="", source=str(path))
     _apply_overrides(config, overrides)
+    _check_values(config)
     if no_gpu is not None and not _gpu_training(config.train.device):
         # the preset's [no_gpu] table: what it does on a CPU; --set still wins
         no_gpu = dict(no_gpu)
@@ -839,6 +840,15 @@ def validate(config: RunConfig) -> None:
     """Refuse wrong types and out-of-range values (negative steps, zero batch, a zero period, a probability of 1,
     an unreadable budget, an unknown device, more memory than the machine has...) before any stage runs, naming
     the option: a typo must not surface after structure from motion has run."""
+    _check_values(config)
+    _check_boxes(config)
+    _check_cross(config)
+    parse_region(config.mesh.region)
+
+
+def _check_values(config: RunConfig) -> None:
+    """Each option on its own: the budget, the device, types and ranges (what a preset's CPU table or the sizing for a
+    card cannot make valid, so `load_config` checks it before torch loads to look for a GPU)."""
     try:
         parse_duration(config.train.budget)
     except ConfigError as exc:
@@ -856,9 +866,6 @@ def validate(config: RunConfig) -> None:
             raise ConfigError(
                 f"Option '{dotted}' must be {bound.describe()}; got {_shown(value)}. Fix it in the preset or the --set override."
             )
-    _check_boxes(config)
-    _check_cross(config)
-    parse_region(config.mesh.region)
 
 
 def parse_region(text: str) -> str | tuple[tuple[float, float, float], tuple[float, float, float]]:

@@ -122,12 +122,17 @@ def test_real_process_exit_code_and_no_traceback(tmp_path: Path) -> None:
     assert "does not exist" in proc.stderr
 
 
-def test_a_missing_input_is_refused_before_torch_loads(tmp_path: Path) -> None:
-    """A typo in the photos' path costs a second, not the seconds torch takes to load, and makes no scene folder."""
+@pytest.mark.parametrize("photos, setting, said", [("missing", "train.steps=100", "does not exist"),
+                                                    ("images", "mesh.resolution=5", "'mesh.resolution' must be")])
+def test_a_missing_input_or_a_value_out_of_range_is_refused_before_torch_loads(
+    tmp_path: Path, photos: str, setting: str, said: str
+) -> None:
+    """A typo costs a second, not the seconds torch takes to load (to look for a GPU), and makes no scene folder."""
+    (tmp_path / "images").mkdir()
     probe = ("import sys\nfrom recon.app.cli import app\ntry:\n    app(sys.argv[1:], prog_name='recon')\n"
              "except SystemExit as exc:\n    print('exit', exc.code, 'torch loaded', 'torch' in sys.modules)")
-    proc = subprocess.run([sys.executable, "-c", probe, "run", str(tmp_path / "missing"), "--out", str(tmp_path / "s")],
-                          capture_output=True, text=True, timeout=120)
-    assert "does not exist" in proc.stderr
+    proc = subprocess.run([sys.executable, "-c", probe, "run", str(tmp_path / photos), "--out", str(tmp_path / "s"),
+                           "--set", setting], capture_output=True, text=True, timeout=120)
+    assert said in " ".join(proc.stderr.split())
     assert proc.stdout.split() == ["exit", "2", "torch", "loaded", "False"], proc.stdout + proc.stderr
     assert not (tmp_path / "s").exists()
