@@ -73,7 +73,7 @@ def test_profile_md_says_where_and_under_what_load_it_ran() -> None:
     """A profile's milliseconds mean nothing without the commit, the CPU and the load they were taken under."""
     from recon.app.profiling import markdown
 
-    limits = {"threads": 2.0, "matmul_fp32_gflops": 400.0, "matmul_bf16_gflops": 900.0,
+    limits = {"threads": 2.0, "matmul_fp32_gflops": 1234.5, "matmul_bf16_gflops": 0.326,
               "matmul_mlp_shape_gflops": 300.0, "copy_gbs": 20.0, "gather_gbs": 3.0}
     result = {"preset": "fast", "data": "lego-half", "warmup": 150, "profiled_steps": 4, "device": "cpu", "batch_rays": 4096,
               "samples_per_ray": 16.0, "colored_per_ray": 10.0, "params": 3e7, "wall_s": 0.4, "pieces": [],
@@ -86,3 +86,4 @@ def test_profile_md_says_where_and_under_what_load_it_ran() -> None:
     assert "Commit 0123456 with uncommitted changes" in head and "Example CPU" in head
     assert "0.50 / 0.70 / 0.90 at the start" in head and "1.60 / 1.20 / 1.10 at the end" in head
     assert "40,960 rays/s while profiled" in text
+    assert "| matmul 2048² fp32 | 1,234 GFLOP/s |" in text and "| matmul 2048² bf16 | 0.33 GFLOP/s |" in text

@@ -316,6 +316,9 @@ def markdown(results: list[dict[str, Any]], limits: dict[str, float], where: dic
     def load(values: list[float] | None) -> str:
         return " / ".join(f"{v:.2f}" for v in values) if values else "unknown"
 
+    def rate(value: float) -> str:  # a CPU without bf16 units runs its matmul at a fraction of one GFLOP/s
+        return f"{value:,.0f}" if value >= 10 else f"{value:.2g}"
+
     commit = (where.get("commit") or "unknown")[:7] + (" with uncommitted changes" if where.get("uncommitted_changes")
                                                        else "")
     lines = [
@@ -328,9 +331,10 @@ def markdown(results: list[dict[str, Any]], limits: dict[str, float], where: dic
         "",
         "| this CPU, measured in the same process | |",
         "|---|---|",
-        f"| matmul 2048² fp32 | {limits['matmul_fp32_gflops']:.0f} GFLOP/s |",
-        f"| matmul 2048² bf16 | {limits['matmul_bf16_gflops']:.0f} GFLOP/s |",
-        f"| matmul 65536×64 · 64×64 fp32 (the color MLP's shape) | {limits['matmul_mlp_shape_gflops']:.0f} GFLOP/s |",
+        f"| matmul 2048² fp32 | {rate(limits['matmul_fp32_gflops'])} GFLOP/s |",
+        f"| matmul 2048² bf16 | {rate(limits['matmul_bf16_gflops'])} GFLOP/s |",
+        f"| matmul 65536×64 · 64×64 fp32 (the color MLP's shape) | {rate(limits['matmul_mlp_shape_gflops'])} "
+        "GFLOP/s |",
         f"| memory copy 256 MB (read + write) | {limits['copy_gbs']:.1f} GB/s |",
         f"| random row gather, 96³×12 fp32 table | {limits['gather_gbs']:.1f} GB/s |",
         "",
