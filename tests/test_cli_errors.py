@@ -1,6 +1,8 @@
-"""Bad input through the real CLI: one clear paragraph, a non-zero exit, no traceback, nothing lost."""
+"""Bad input through the real CLI: one clear paragraph, a non-zero exit, no traceback, nothing lost; and what it says
+before torch loads (a typo, `--version`)."""
 from __future__ import annotations
 
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -11,6 +13,8 @@ from PIL import Image
 from typer.testing import CliRunner
 
 from recon.app.cli import app
+
+REPO = Path(__file__).resolve().parents[1]
 
 runner = CliRunner()
 
@@ -129,10 +133,23 @@ def test_a_missing_input_or_a_value_out_of_range_is_refused_before_torch_loads(
 ) -> None:
     """A typo costs a second, not the seconds torch takes to load (to look for a GPU), and makes no scene folder."""
     (tmp_path / "images").mkdir()
-    probe = ("import sys\nfrom recon.app.cli import app\ntry:\n    app(sys.argv[1:], prog_name='recon')\n"
-             "except SystemExit as exc:\n    print('exit', exc.code, 'torch loaded', 'torch' in sys.modules)")
-    proc = subprocess.run([sys.executable, "-c", probe, "run", str(tmp_path / photos), "--out", str(tmp_path / "s"),
-                           "--set", setting], capture_output=True, text=True, timeout=120)
+    proc = _recon_noting_torch("run", str(tmp_path / photos), "--out", str(tmp_path / "s"), "--set", setting)
     assert said in " ".join(proc.stderr.split())
-    assert proc.stdout.split() == ["exit", "2", "torch", "loaded", "False"], proc.stdout + proc.stderr
+    assert proc.stdout.split()[-5:] == ["exit", "2", "torch", "loaded", "False"], proc.stdout + proc.stderr
     assert not (tmp_path / "s").exists()
+
+
+def test_version_names_recon_and_its_packages_without_loading_torch() -> None:
+    proc = _recon_noting_torch("--version")
+    version = re.search(r'^version = "(.+)"$', (REPO / "pyproject.toml").read_text(), re.M).group(1)
+    import torch
+
+    assert proc.stdout.startswith(f"recon {version} (Python ") and f"torch {torch.__version__}," in proc.stdout
+    assert proc.stdout.split()[-5:] == ["exit", "0", "torch", "loaded", "False"], proc.stdout + proc.stderr
+
+
+def _recon_noting_torch(*args: str) -> subprocess.CompletedProcess:
+    """`recon ARGS` in a fresh process, its last line saying the exit code and whether torch was loaded."""
+    probe = ("import sys\nfrom recon.app.cli import app\ntry:\n    app(sys.argv[1:], prog_name='recon')\n"
+             "except SystemExit as exc:\n    print('exit', exc.code or 0, 'torch loaded', 'torch' in sys.modules)")
+    return subprocess.run([sys.executable, "-c", probe, *args], capture_output=True, text=True, timeout=120, cwd=REPO)

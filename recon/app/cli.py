@@ -35,6 +35,37 @@ app = typer.Typer(
 console = Console(stderr=True, highlight=False)
 out_console = Console(highlight=False)
 
+
+def version_line() -> str:
+    """recon's version and those of the packages its results depend on, for a bug report (read from the installed
+    packages' metadata, so torch is not loaded to say it)."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    from recon import __version__
+
+    def of(package: str) -> str:
+        try:
+            return version(package)
+        except PackageNotFoundError:
+            return "not installed"
+
+    python = ".".join(str(v) for v in sys.version_info[:3])
+    return (f"recon {__version__} (Python {python}; torch {of('torch')}, pycolmap {of('pycolmap')}, "
+            f"opencv {of('opencv-contrib-python-headless')}, trimesh {of('trimesh')})")
+
+
+def _show_version(shown: bool) -> None:
+    if shown:
+        out_console.print(version_line(), markup=False, soft_wrap=True)
+        raise typer.Exit()
+
+
+@app.callback()
+def _options(version: Annotated[bool, typer.Option("--version", callback=_show_version, is_eager=True,
+                                                   help="Print recon's version and its main packages' and exit.")]
+             = False) -> None:
+    """The options that come before a command."""
+
 EXIT_USER_ERROR = 2
 EXIT_INTERRUPTED = 130
 
