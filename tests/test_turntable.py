@@ -61,10 +61,11 @@ def photos(capture: Path) -> list[np.ndarray]:
     return [read_image(p) for p in sorted((capture / "images").glob("*.jpg"))]
 
 
-def photos_alone(capture: Path, folder: Path) -> Path:
-    """The capture's photos linked into ``folder``, without its masks/ beside them, as a user's photos come."""
+def photos_alone(capture: Path, folder: Path, every: int = 1) -> Path:
+    """The capture's photos (every ``every``-th) linked into ``folder``, without its masks/ beside them, as a user's
+    photos come."""
     folder.mkdir()
-    for photo in (capture / "images").glob("*.jpg"):
+    for photo in sorted((capture / "images").glob("*.jpg"))[::every]:
         (folder / photo.name).symlink_to(photo)
     return folder
 
@@ -182,10 +183,7 @@ def test_structure_from_motion_places_the_cameras_around_the_turning_object(turn
     truth = json.loads((turntable / "transforms.json").read_text())
     ref = {Path(f["file_path"]).stem: np.asarray(f["transform_matrix"]) for f in truth["frames"]}
     alone, auto_scene, auto_output = posed
-    half = tmp_path / "every_other_photo"  # the control: the still room wins on 12 of the photos as on all 24
-    half.mkdir()
-    for photo in sorted(alone.glob("*.jpg"))[::2]:
-        (half / photo.name).symlink_to(photo.resolve())
+    half = photos_alone(turntable, tmp_path / "every_other_photo", every=2)  # the still room wins on 12 as on 24
     off = CliRunner().invoke(app, ["run", str(half), "--out", str(tmp_path / "off"), "--until", "poses",
                                    "--set", "poses.turntable=off", *ONE_THREAD])
     # without the masks the still room wins: the cameras land far from the truth, or, with every camera pinned to

@@ -219,7 +219,7 @@ def model_spec(cfg: TrainConfig, scene: Scene, views: list[View]) -> tuple[str, 
             else "surface model not offered: it needs an object capture (this scene is unbounded)"
         )
     lr, lr_why = grid_lr(cfg, kind)
-    return kind, {"config": asdict(fast_cfg)}, lr, reasons + [lr_why] * bool(lr_why)
+    return kind, {"config": asdict(fast_cfg)}, lr, reasons + ([lr_why] if lr_why else [])
 
 
 def surface_spec(cfg: TrainConfig, scene: Scene) -> tuple[str, dict[str, Any], float, list[str]]:
@@ -236,7 +236,7 @@ def surface_spec(cfg: TrainConfig, scene: Scene) -> tuple[str, dict[str, Any], f
            f"{surf.sdf_levels} dense levels up to {surf.sdf_res}³, NeuS opacity with learned sharpness, Eikonal "
            "and curvature terms; its mesh is the closed zero level set")
     lr, lr_why = grid_lr(cfg, "surface")
-    return "surface", {"config": asdict(surf)}, lr, [why] + [lr_why] * bool(lr_why)
+    return "surface", {"config": asdict(surf)}, lr, [why] + ([lr_why] if lr_why else [])
 
 
 def has_silhouettes(views: list[View]) -> bool:
@@ -348,9 +348,9 @@ def grid_lr(cfg: TrainConfig, kind: str) -> tuple[float, str]:
     on the half-res Lego and above GRID_LR for the surface model at 8x (benchmarks/results/lego_half_lr_8k.json,
     lego_half_lr_16k.json, lego_half_lr_big_batch.json, sample_surface_lr_big_batch.json); and why, "" where the rate
     is train.lr or GRID_LR."""
-    batch_rays = cfg.batch_rays
     if cfg.lr:
         return cfg.lr, ""
+    batch_rays = cfg.batch_rays
     if batch_rays <= GRID_LR_RAYS:
         return GRID_LR, ""
     factor = (batch_rays / GRID_LR_RAYS) ** (1 / 3)
