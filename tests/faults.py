@@ -53,6 +53,14 @@ def run(source: Path, scene: Path, *extra: str, fault: str | None = None, settin
                           capture_output=True, text=True, timeout=timeout)
 
 
+def recon_noting_torch(*args: str) -> subprocess.CompletedProcess:
+    """`recon ARGS` in a fresh process, its last line saying the exit code and whether torch was loaded."""
+    probe = ("import sys\nfrom recon.app.cli import app\ntry:\n    app(sys.argv[1:], prog_name='recon')\n"
+             "except SystemExit as exc:\n    print('exit', exc.code or 0, 'torch loaded', 'torch' in sys.modules)")
+    return subprocess.run([sys.executable, "-c", probe, *args], capture_output=True, text=True, timeout=120, cwd=REPO,
+                          env=env())
+
+
 def _ctrl_c_stops() -> None:
     """In the child: SIGINT as a terminal delivers it. A test suite started in the background (`cmd &`, as CI or nohup
     may) has SIGINT ignored, and a child inherits that, so a Ctrl-C test's signal would be lost."""

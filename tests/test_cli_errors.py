@@ -13,6 +13,7 @@ from PIL import Image
 from typer.testing import CliRunner
 
 from recon.app.cli import app
+from tests import faults
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -133,23 +134,17 @@ def test_a_missing_input_or_a_value_out_of_range_is_refused_before_torch_loads(
 ) -> None:
     """A typo costs a second, not the seconds torch takes to load (to look for a GPU), and makes no scene folder."""
     (tmp_path / "images").mkdir()
-    proc = _recon_noting_torch("run", str(tmp_path / photos), "--out", str(tmp_path / "s"), "--set", setting)
+    proc = faults.recon_noting_torch("run", str(tmp_path / photos), "--out", str(tmp_path / "s"), "--set", setting)
     assert said in " ".join(proc.stderr.split())
     assert proc.stdout.split()[-5:] == ["exit", "2", "torch", "loaded", "False"], proc.stdout + proc.stderr
     assert not (tmp_path / "s").exists()
 
 
 def test_version_names_recon_and_its_packages_without_loading_torch() -> None:
-    proc = _recon_noting_torch("--version")
+    proc = faults.recon_noting_torch("--version")
     version = re.search(r'^version = "(.+)"$', (REPO / "pyproject.toml").read_text(), re.M).group(1)
     import torch
 
     assert proc.stdout.startswith(f"recon {version} (Python ") and f"torch {torch.__version__}," in proc.stdout
     assert proc.stdout.split()[-5:] == ["exit", "0", "torch", "loaded", "False"], proc.stdout + proc.stderr
 
-
-def _recon_noting_torch(*args: str) -> subprocess.CompletedProcess:
-    """`recon ARGS` in a fresh process, its last line saying the exit code and whether torch was loaded."""
-    probe = ("import sys\nfrom recon.app.cli import app\ntry:\n    app(sys.argv[1:], prog_name='recon')\n"
-             "except SystemExit as exc:\n    print('exit', exc.code or 0, 'torch loaded', 'torch' in sys.modules)")
-    return subprocess.run([sys.executable, "-c", probe, *args], capture_output=True, text=True, timeout=120, cwd=REPO)

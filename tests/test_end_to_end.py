@@ -13,6 +13,7 @@ from typer.testing import CliRunner
 from recon.app.cli import app
 from recon.capture.scene import load_scene
 from recon.geometry.compare import fit_sim3
+from tests import faults
 
 SAMPLE = Path(__file__).resolve().parents[1] / "fixtures" / "sample"
 runner = CliRunner()
@@ -75,6 +76,15 @@ def test_rerun_is_cached_and_fast(posed: tuple[Path, Path, float]) -> None:
     status = recon("status", str(scene))
     assert status.count("done") >= 2
 
+
+def test_status_reads_a_scene_without_loading_torch(posed: tuple[Path, Path, float]) -> None:
+    """`recon status` imported every stage (torch, trimesh: 4 s) to read the manifest; the stages load when they run."""
+    _, scene, _ = posed
+    proc = faults.recon_noting_torch("status", str(scene))
+    assert proc.stdout.split()[-5:] == ["exit", "0", "torch", "loaded", "False"], proc.stdout + proc.stderr
+    rows = {line.split()[1]: line.split()[3] for line in proc.stdout.splitlines() if line.startswith("│ ")}
+    assert {k: rows.get(k) for k in ("poses", "normalize", "train", "mesh")} == {
+        "poses": "done", "normalize": "done", "train": "missing", "mesh": "missing"}, proc.stdout
 
 def test_normalize_option_change_reruns_normalize_not_poses(posed: tuple[Path, Path, float]) -> None:
     photos, scene, _ = posed

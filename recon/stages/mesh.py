@@ -52,7 +52,7 @@ from recon.meshing.photos import (
     texture_mesh,
 )
 from recon.plans.mesh import MeshPlan, pieces_advice, plan_mesh, texture_side
-from recon.runner.pipeline import Stage, StageContext
+from recon.runner.pipeline import StageContext
 
 REPORT_FILE = "mesh_report.json"
 MESH_STEM = "mesh"
@@ -328,6 +328,3 @@ def peak_rss_mb() -> float:
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     return rss / 2**20 if sys.platform == "darwin" else rss / 1024
 
-
-# version 4: zero-area faces marching cubes leaves stay (dropping one opened a three-edge hole in a closed zero set)
-STAGE = Stage(name="mesh", folder="04_mesh", inputs=("normalize", "train"), version=4, run=run)

@@ -16,7 +16,7 @@ from recon.capture.turntable import STILL_FOLDER
 from recon.evaluation.views import load_view
 from recon.geometry.visual_hull import hull_bounds
 from recon.plots import mask_overview
-from recon.runner.pipeline import Stage, StageContext
+from recon.runner.pipeline import StageContext
 
 MASK_FOLDER = "masks"
 OVERVIEW = 12
@@ -153,22 +153,3 @@ def _write(folder: Path, masks: dict[str, np.ndarray], scene: Scene) -> None:
     photos = [read_image(scene.image_path(f), max_side=OVERVIEW_SIDE) for f in shown]
     mask_overview(photos, [as_float(masks[f.name]) for f in shown], folder.with_suffix(".png"))
 
-
-# version 6: automatic masks are soft at their outlines, snapped to the photos' edges
-# version 7: a masked object's box holds the masks' visual hull
-# version 8: automatic masks seeded by surely placed points only, each its own pixel
-# version 9: automatic masks cut twice, the second time from the hull of the first cuts (undone in version 10)
-# version 10: the object region holds the points linked to those most photos keep in frame
-# version 11: no more photos held out than leave FEW_PHOTOS to train
-# version 12: the object region holds what an object on a wall hangs on
-# version 13: automatic masks start the cut with the object seeds' feet on the ground as probable object
-# version 14: automatic masks drop what lines up with the table, give back bites whose rays meet it under the object,
-#             and trust leaves lone points out
-# version 15: automatic masks match the table only with photos that see the object move off its homography
-# version 16: automatic masks are recorded relative to the scene folder (were relative to the working folder)
-# version 17: automatic masks: only the photos that frame the object carve the hull; close-ups are cut again inside it
-# version 18: automatic masks: a photo that frames the object but whose cut left out much of the hull is cut again
-# version 19: automatic masks: the hull's silhouette splatted at each vertex's depth; a close-up it fills without
-#             background points takes it; a cut reaching the pinhole image's edge reaches the photo's border
-# version 20: automatic masks: object points nearly every mask leaves out (up to a tenth) do not count against them
-STAGE = Stage(name="normalize", folder="02_scene", inputs=("poses",), version=20, run=run)

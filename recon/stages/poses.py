@@ -30,7 +30,7 @@ from recon.capture.scene import (
 )
 from recon.config import PosesConfig
 from recon.errors import InputError
-from recon.runner.pipeline import Stage, StageContext
+from recon.runner.pipeline import StageContext
 
 MIN_PHOTOS = 3
 LOG_DIR = "logs"
@@ -388,7 +388,3 @@ def _structure_from_motion(ctx: StageContext, photos: list[Path] | None = None,
     }
     return scene, summary
 
-
-# version 6: turntable captures (features where the photos change, the still room kept for normalize); a final bundle
-# adjustment that runs away is undone
-STAGE = Stage(name="poses", folder="01_poses", inputs=(), version=6, run=run, needs_source=True, source_digest=source_digest)

@@ -5,8 +5,8 @@ training curve, the choices made and why), `curves.png` (PSNR vs step and vs wal
 `renders/NAME.png` (photo | render | depth) for a few test views, and `trained_state.pt` (the finished training's
 state beside the field). A checkpoint is written to the stage's work folder every `checkpoint_every` steps and on
 Ctrl-C; running the same command again resumes from it, and so does the command with another time budget (a budget
-found too short goes on) or another of TRAINS_ON_UNDER. A finished field trains on the same way under a longer budget,
-from its trained state.
+found too short goes on) or another of `recon.stages.TRAINS_ON_UNDER`. A finished field trains on the same way under
+a longer budget, from its trained state.
 """
 from __future__ import annotations
 
@@ -29,7 +29,7 @@ from recon.evaluation.views import (View, evaluate, fitted_note, load_views, sup
                                     write_previews)
 from recon.field import FIELD_FILE, save_field
 from recon.plans.training import TrainPlan, TrainSetup, build_training, photo_sides, plan_training
-from recon.runner.pipeline import SCRATCH_NOTE, Stage, StageContext
+from recon.runner.pipeline import SCRATCH_NOTE, StageContext
 
 CHECKPOINT = "checkpoint.pt"
 TRAINED_STATE = "trained_state.pt"
@@ -258,8 +258,8 @@ def few_steps_warning(total: int, step: int, used_s: float, rate: float, budget:
 
 def resumed_budget_note(was: str, now: str, spent_s: float, budget_s: float) -> str:
     """What a checkpoint or finished field made under the time budget `was` ("" for none) does under `now` (the
-    stage's scratch outlives a change of budget: TRAINS_ON_UNDER), after `spent_s` training seconds: "" where it just
-    goes on under the same budget."""
+    stage's scratch outlives a change of budget: `recon.stages.TRAINS_ON_UNDER`), after `spent_s` training seconds: ""
+    where it just goes on under the same budget."""
     made = f"trained {spent_s:.0f} s under " + (f"a {was} budget" if was else "no budget")
     if budget_s and spent_s >= budget_s:
         return (f" ({made}: the {now} budget is spent already, so the field is kept as it is; a longer --budget "
@@ -441,24 +441,3 @@ def _metrics(scene: Scene, device: torch.device, plan: TrainPlan, setup: TrainSe
                                      _object_distance(views, scene)),
     }
 
-
-# version 2: train.depth_prior=auto turns the prior on for the surface model, so a cached surface field is stale
-# version 3: the surface model keys a plain backdrop (train.backdrop_key) and starts from the SfM points' hull
-# version 4: train.sky=auto gives an unbounded capture with a clear sky a sky colour and trains its sky pixels empty
-# version 5: train.depth_prior=auto turns the prior on for unbounded captures without masks
-# version 6: the surface model starts from the photos' visual hull when they have silhouettes
-# version 7: close-ups train at the other photos' pixel footprint (train.photo_footprint)
-# version 8: train.appearance=auto measures the exposure of photos cut out by masks on the whole photo
-# version 9: train.appearance=auto also matches photos further apart, where a slow exposure drift shows
-# version 10: train.hull_start=auto starts the fast field in the masks' hull unless the object hangs on a wall
-# version 11: a fast field started empty though its photos have silhouettes culls untouched space later
-# version 12: a field that culls slowly raises its occupancy threshold over 200 steps, not 1,000
-# version 13: train.smoothness=auto smooths the plain faces of a field that starts empty though it has silhouettes
-# version 14: the hull that says which transparent pixels are disputed is splatted at each vertex's depth
-# version 15: train.depth_prior=auto is on for a fast field that starts empty though its photos have silhouettes
-# The options a checkpoint or a finished field trains on under (the rest make another field, from step 0): the time
-# budget, how often training is watched and kept, how many test views score it, and the sparse-depth rays a step
-# renders (a term's sample size, drawn afresh each step) -- so `balanced` after `fast` trains fast's field on.
-TRAINS_ON_UNDER = ("budget", "eval_every", "checkpoint_every", "final_eval_views", "depth_rays")
-STAGE = Stage(name="train", folder="03_field", inputs=("normalize",), version=15, run=run,
-              scratch_survives=TRAINS_ON_UNDER)
