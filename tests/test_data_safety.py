@@ -392,10 +392,11 @@ def test_mesh_stage_uses_train_device(tmp_path: Path) -> None:
 
 def test_library_modules_import_no_runner_and_config_no_torch() -> None:
     """scene.py, field.py and geometry/export.py imported the runner for its atomic writes; config.py loaded torch
-    (through FastConfig) and pycolmap (through SfmOptions), so reading a scene paid for both."""
+    (through FastConfig), pycolmap and scipy (through SfmOptions), so reading a scene paid for them."""
     import ast
 
-    code = "import sys, recon.capture.scene, recon.config; print(sorted(m for m in ('torch', 'pycolmap', 'recon.runner.pipeline') if m in sys.modules))"
+    code = ("import sys, recon.capture.scene, recon.config; "
+            "print(sorted(m for m in ('torch', 'pycolmap', 'scipy', 'recon.runner.pipeline') if m in sys.modules))")
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=faults.REPO,
                           env=faults.env(), timeout=120)
     assert proc.returncode == 0, proc.stderr

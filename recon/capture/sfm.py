@@ -27,7 +27,6 @@ from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 from PIL import Image
-from scipy.spatial import cKDTree
 
 from recon.capture.colmap import reconstruction_frames
 from recon.capture.images import device_of
@@ -441,6 +440,8 @@ def pose_outliers(
                          f"{len(errors_px)} errors: one of each per camera is needed")
     if len(names) < MIN_CAMERAS_TO_JUDGE:
         return {}
+    from scipy.spatial import cKDTree  # loaded here: every command reads SfmOptions (the config), few need a tree
+
     distance = np.linalg.norm(centres - np.median(centres, axis=0), axis=1)
     spread = float(np.median(distance))
     gap = cKDTree(centres).query(centres, k=2)[0][:, 1]  # distance to the nearest other camera
