@@ -1,18 +1,22 @@
 """The stage runner: caching by fingerprint, re-runs on change, atomic folders, checksums, lock."""
 from __future__ import annotations
 
+import fcntl
 import json
 import multiprocessing
 import os
+import threading
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import pytest
+from typer.testing import CliRunner
 
+from recon.app.cli import app
 from recon.app.progress import Reporter
 from recon.config import RunConfig
 from recon.errors import ReconError
-from recon.runner.pipeline import Manifest, Pipeline, Stage, StageContext, scene_lock
+from recon.runner.pipeline import Manifest, Pipeline, Stage, StageContext, running_pid, scene_lock
 
 CALLS: list[str] = []
 
@@ -198,10 +202,29 @@ def test_second_writer_is_refused_and_dead_holder_releases(tmp_path: Path) -> No
     with pytest.raises(ReconError, match="in use by another recon process"):
         with scene_lock(scene):
             pass
+    assert running_pid(scene) == str(proc.pid)
+    Manifest(scene).save()
+    shown = CliRunner().invoke(app, ["status", str(scene)], env={"COLUMNS": "300"})
+    assert shown.exit_code == 0 and f"a recon run (pid {proc.pid}) is writing this scene now" in shown.output
     proc.kill()  # a dead process must not hold the lock forever
     proc.join()
+    assert running_pid(scene) is None
     with scene_lock(scene):
         pass
+    assert "is writing this scene" not in CliRunner().invoke(app, ["status", str(scene)]).output
+
+
+def test_a_run_waits_out_the_instant_status_looks_at_the_lock(tmp_path: Path) -> None:
+    """`recon status` takes the scene's lock shared for an instant; a run starting then must not be refused."""
+    scene = tmp_path / "scene"
+    scene.mkdir()
+    with scene_lock(scene):
+        pass
+    fd = os.open(scene / ".lock", os.O_RDONLY)
+    fcntl.flock(fd, fcntl.LOCK_SH)
+    threading.Timer(0.3, os.close, (fd,)).start()  # closing the file releases the lock
+    with scene_lock(scene):
+        assert running_pid(scene) == str(os.getpid())  # held: seen through another open file, this process's too
 
 
 def test_every_run_appends_what_it_showed_to_the_scene_log(tmp_path: Path, source: Path, monkeypatch) -> None:

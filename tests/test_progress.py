@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import io
 import re
+import time
 
 import pytest
 import torch
@@ -227,3 +228,17 @@ def test_a_batch_capture_keeps_its_warnings_for_batch_md(tmp_path, monkeypatch) 
     assert "error" not in record and len(record["warnings"]) == 1 and "budget trains about" in record["warnings"][0]
     row = _report_row(record)
     assert row.endswith(" |") and "warning: at this machine's pace" in row and row.count("|") == 8
+
+
+def test_status_shows_when_a_stage_finished_in_the_readers_time(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The manifest keeps UTC; `recon status` showed the raw stamp, seconds and offset included."""
+    from recon.app.progress import local_minute
+
+    monkeypatch.setenv("TZ", "Europe/Paris")
+    time.tzset()
+    try:
+        assert local_minute("2026-12-06T23:33:24+00:00") == "2026-12-07 00:33"
+    finally:
+        monkeypatch.undo()
+        time.tzset()
+    assert local_minute(None) == "" and local_minute("last week") == "last week"

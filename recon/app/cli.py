@@ -20,7 +20,7 @@ from rich.markup import escape
 from rich.table import Table
 
 from recon.app.api import require_scene
-from recon.app.progress import Reporter, format_seconds, format_summary
+from recon.app.progress import Reporter, format_seconds, format_summary, local_minute
 from recon.config import (DEFAULT_PRESET, DEFAULT_PRESET_WHY, RunConfig, available_presets, check_batch_against_pixels,
                           load_config, preset_description)
 from recon.errors import ConfigError, ReconError
@@ -311,11 +311,14 @@ def status(
         # the --set ones on the preset the scene was run with, as `recon run` would take them
         asked = (preset or _recorded_preset(scene) or DEFAULT_PRESET) if (preset or set_) else None
         config = _config(asked, set_) if asked else None
-        from recon.runner.pipeline import Manifest
+        from recon.runner.pipeline import Manifest, running_pid
 
         warning = Manifest(scene).warning
         if warning:
             console.print(f"[yellow]warning:[/] {escape(warning)}")
+        if pid := running_pid(scene):
+            console.print(f"a recon run (pid {escape(pid)}) is writing this scene now: below are the stages it has "
+                          "finished so far (a training's row: its last checkpoint)")
         rows = _pipeline().state(scene, config, preset=asked)
         table = Table(title=f"recon status — {escape(str(scene))}")
         for col in ("stage", "state", "time", "finished", "result"):
@@ -328,7 +331,7 @@ def status(
                 result = f"{result}; runs again: {row['why']}" if result else f"runs again: {row['why']}"
             if row.get("scratch"):
                 result = f"{result}; {row['scratch']}" if result else row["scratch"]
-            table.add_row(row["stage"], f"[{colors[state]}]{state}[/]", format_seconds(row["wall_s"]), str(row.get("finished") or ""), escape(str(result)))
+            table.add_row(row["stage"], f"[{colors[state]}]{state}[/]", format_seconds(row["wall_s"]), local_minute(row.get("finished")), escape(str(result)))
         out_console.print(table)
 
 

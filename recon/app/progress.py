@@ -8,6 +8,7 @@ from __future__ import annotations
 import contextlib
 import time
 from collections.abc import Callable, Iterator
+from datetime import datetime
 from pathlib import Path
 from typing import IO, Any
 
@@ -135,6 +136,17 @@ class Reporter:
         with Progress(*columns, console=self.console, transient=False) as progress:
             task_id = progress.add_task(description, total=total, info="")
             yield Task(progress, task_id)
+
+
+def local_minute(stamp: str | None) -> str:
+    """A manifest's UTC time stamp as the reader's local date and minute ("2026-12-06 23:33"); "" for none, the
+    stamp itself if it does not parse."""
+    if not stamp:
+        return ""
+    try:
+        return datetime.fromisoformat(stamp).astimezone().strftime("%Y-%m-%d %H:%M")
+    except (TypeError, ValueError):
+        return str(stamp)
 
 
 def format_seconds(seconds: float | None) -> str:

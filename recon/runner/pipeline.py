@@ -189,23 +189,57 @@ class Manifest:
         write_json_atomic(self.path, self.data)
 
 
+LOCK_WAIT_S = 1.0
+"""How long a run waits for the scene's lock: `recon status` holds it shared for an instant to see whether a run is
+going on."""
+
+
+def _flock_within(fd: int, seconds: float) -> bool:
+    """Take the exclusive lock on `fd`, trying again for `seconds`; False if another process holds it all along."""
+    deadline = time.monotonic() + seconds
+    while True:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            return True
+        except BlockingIOError:
+            if time.monotonic() >= deadline:
+                return False
+            time.sleep(0.05)
+
+
 @contextlib.contextmanager
 def scene_lock(scene_dir: Path) -> Iterator[None]:
     """One `recon` writer per scene folder. flock is released by the kernel when a process dies."""
     lock_path = scene_dir / LOCK
     fd = os.open(lock_path, os.O_RDWR | os.O_CREAT, 0o644)
     try:
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
+        if not _flock_within(fd, LOCK_WAIT_S):
             holder = os.pread(fd, 64, 0).decode(errors="replace").strip() or "another process"
             raise ReconError(
                 f"{scene_dir} is in use by another recon process (pid {holder}). Wait for it to finish, "
                 f"or stop it, or choose another --out folder."
-            ) from None
+            )
         os.ftruncate(fd, 0)
         os.pwrite(fd, str(os.getpid()).encode(), 0)
         yield
+    finally:
+        os.close(fd)
+
+
+def running_pid(scene_dir: Path) -> str | None:
+    """The pid of the `recon` process writing this scene now (it holds the scene's lock), or None: `recon status`
+    shows a run's finished stages while it goes on."""
+    try:
+        fd = os.open(scene_dir / LOCK, os.O_RDONLY)
+    except OSError:
+        return None
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+        except BlockingIOError:
+            return os.pread(fd, 64, 0).decode(errors="replace").strip() or "unknown"
+        fcntl.flock(fd, fcntl.LOCK_UN)
+        return None
     finally:
         os.close(fd)
 
