@@ -331,7 +331,8 @@ def status(
                 result = f"{result}; runs again: {row['why']}" if result else f"runs again: {row['why']}"
             if row.get("scratch"):
                 result = f"{result}; {row['scratch']}" if result else row["scratch"]
-            table.add_row(row["stage"], f"[{colors[state]}]{state}[/]", format_seconds(row["wall_s"]), local_minute(row.get("finished")), escape(str(result)))
+            table.add_row(row["stage"], f"[{colors[state]}]{state}[/]", format_seconds(row["wall_s"]),
+                          local_minute(row.get("finished")), escape(str(result)))
         out_console.print(table)
 
 

@@ -139,8 +139,8 @@ class Reporter:
 
 
 def local_minute(stamp: str | None) -> str:
-    """A manifest's UTC time stamp as the reader's local date and minute ("2026-12-06 23:33"); "" for none, the
-    stamp itself if it does not parse."""
+    """A manifest's UTC time stamp as the reader's local date and minute (YYYY-MM-DD HH:MM); "" for none, the stamp
+    itself if it does not parse."""
     if not stamp:
         return ""
     try:
