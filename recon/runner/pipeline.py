@@ -238,6 +238,8 @@ def running_pid(scene_dir: Path) -> str | None:
             fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
         except BlockingIOError:
             return os.pread(fd, 64, 0).decode(errors="replace").strip() or "unknown"
+        except OSError:  # a file system without locks (ENOLCK): no run holds one there either
+            return None
         fcntl.flock(fd, fcntl.LOCK_UN)
         return None
     finally:
