@@ -56,6 +56,9 @@ def test_typed_errors(tmp_path: Path, built) -> None:
         recon.run(tmp_path / "empty", out=tmp_path / "s")
     with pytest.raises(recon.ConfigError, match="train.stepz"):
         recon.run(built[0], out=tmp_path / "s2", overrides={"train.stepz": 3})
+    with pytest.raises(recon.InputError, match="does not exist"):
+        recon.run(tmp_path / "typo", out=tmp_path / "s3")
+    assert not (tmp_path / "s3").exists()  # refused before the scene folder is made
     with pytest.raises(recon.ReconError, match="not a trained recon scene"):
         recon.load_field(tmp_path)
     assert issubclass(recon.InputError, recon.ReconError) and issubclass(recon.ConfigError, recon.ReconError)

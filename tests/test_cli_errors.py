@@ -5,6 +5,7 @@ from __future__ import annotations
 import re
 import subprocess
 import sys
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -127,13 +128,21 @@ def test_real_process_exit_code_and_no_traceback(tmp_path: Path) -> None:
     assert "does not exist" in proc.stderr
 
 
-@pytest.mark.parametrize("photos, setting, said", [("missing", "train.steps=100", "does not exist"),
-                                                    ("images", "mesh.resolution=5", "'mesh.resolution' must be")])
+@pytest.mark.parametrize("photos, setting, said", [
+    ("missing", "train.steps=100", "does not exist"),
+    ("images", "mesh.resolution=5", "'mesh.resolution' must be"),
+    ("images/IMG_1.JPG", "train.steps=100", "is one photo; recon needs many photos of the object"),
+    ("photos.zip", "train.steps=100", "is an archive; recon reads the photos themselves. Unpack it"),
+])
 def test_a_missing_input_or_a_value_out_of_range_is_refused_before_torch_loads(
     tmp_path: Path, photos: str, setting: str, said: str
 ) -> None:
-    """A typo costs a second, not the seconds torch takes to load (to look for a GPU), and makes no scene folder."""
+    """A typo costs a second, not the seconds torch takes to load (to look for a GPU), and makes no scene folder; nor
+    does one photo or an archive of them given for a folder (they made one and were refused in the poses stage)."""
     (tmp_path / "images").mkdir()
+    Image.fromarray(np.zeros((40, 40, 3), np.uint8)).save(tmp_path / "images" / "IMG_1.JPG")
+    with zipfile.ZipFile(tmp_path / "photos.zip", "w") as archive:
+        archive.write(tmp_path / "images" / "IMG_1.JPG", "IMG_1.JPG")
     proc = faults.recon_noting_torch("run", str(tmp_path / photos), "--out", str(tmp_path / "s"), "--set", setting)
     assert said in " ".join(proc.stderr.split())
     assert proc.stdout.split()[-5:] == ["exit", "2", "torch", "loaded", "False"], proc.stdout + proc.stderr

@@ -97,6 +97,7 @@ def run(
     from rich.console import Console
 
     from recon.app.progress import Reporter
+    from recon.capture.scene import detect_source
     from recon.config import DEFAULT_PRESET, load_config
     from recon.stages import default_pipeline
 
@@ -107,6 +108,8 @@ def run(
     report = Reporter(Console(stderr=True, highlight=False), quiet=not verbose)
     report.observers = list(observers or [])
     source = Path(photos).resolve() if photos is not None else None
+    if source is not None:
+        detect_source(source)  # a missing path, one photo, an archive: refused before the scene folder is made
     outcomes = default_pipeline().run(scene_dir, config, report, source=source, from_stage=from_stage,
                                       until_stage=until_stage, force=force, preset=preset)
     return scene_result(scene_dir, {o.name: StageResult(o.name, o.action, o.wall_s, o.summary) for o in outcomes}, report.warnings)

@@ -487,6 +487,10 @@ def find_masks(photos: Sequence[Path], homes: Sequence[Path] | None = None) -> t
 # --------------------------------------------------------------------------------------------- imports
 
 
+ARCHIVE_SUFFIXES = (".zip", ".tar", ".tar.gz", ".tgz", ".tar.bz2", ".tar.xz", ".7z", ".rar")
+"""Archives a capture may come in (from a phone's share sheet or a cloud drive): refused with how to unpack them."""
+
+
 def detect_source(path: Path) -> str:
     """What the user handed us: 'photos', 'video', 'transforms', 'nerf_synthetic', 'colmap' or 'npz'."""
     from recon.capture.video import is_video, list_videos
@@ -514,6 +518,16 @@ def detect_source(path: Path) -> str:
         return "photos"
     if not path.exists():
         raise InputError(f"The input {path} does not exist. Pass a folder of photos (or a poses file).")
+    if path.suffix.lower() in IMAGE_SUFFIXES:
+        raise InputError(
+            f"The input {path} is one photo; recon needs many photos of the object, from all around it (20 or more). "
+            f"Put them in a folder of their own and pass the folder: recon run {path.parent / 'photos'} --out SCENE."
+        )
+    if zipfile.is_zipfile(path) or path.name.lower().endswith(ARCHIVE_SUFFIXES):
+        raise InputError(
+            f"The input {path} is an archive; recon reads the photos themselves. Unpack it into a folder of its own "
+            f"(for a zip: unzip {path} -d {path.parent / 'photos'}) and pass that folder."
+        )
     raise InputError(
         f"The input {path} is a file recon cannot use. Pass a folder of photos, a video (MP4/MOV/M4V), a folder "
         f"with transforms.json, a COLMAP project/model folder, or a NeRF .npz file."
