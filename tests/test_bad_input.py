@@ -588,11 +588,15 @@ def test_a_folder_of_raw_files_or_of_subfolders_says_what_to_do(tmp_path: Path) 
     code, out = recon("run", str(raw), "--out", str(tmp_path / "s1"))
     assert_clean_error(code, out, "No photos found", "camera RAW files (.CR2)", "export them as JPEG")
     nested = tmp_path / "nested"
-    for i, sub in enumerate(["day1", "day2"]):
+    for i, sub in enumerate(["day1", "day2", "DCIM/100APPLE"]):
         (nested / sub).mkdir(parents=True)
-        _rgb(nested / sub / "a.png", seed=i)
+        for k in range(i + 1):
+            _rgb(nested / sub / f"{k}.png", seed=i)
     code, out = recon("run", str(nested), "--out", str(tmp_path / "s2"))
-    assert_clean_error(code, out, "No photos found", "day1/, day2/ hold photos", str(nested / "day1"))
+    # a phone's folders are two down; the one with the most photos is the example
+    assert_clean_error(code, out, "No photos found", "DCIM/100APPLE/ (3), day2/ (2), day1/ (1)",
+                       str(nested / "DCIM" / "100APPLE"))
+    assert not (tmp_path / "s1").exists() and not (tmp_path / "s2").exists()  # said before the scene folder is made
 
 
 def test_byte_identical_copies_of_a_photo_are_left_out_and_named(tmp_path: Path) -> None:

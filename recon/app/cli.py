@@ -212,11 +212,11 @@ def _run(
     install_sigterm_as_interrupt()
     with _guard(scene_dir):
         if source is not None:
-            from recon.capture.scene import detect_source
+            from recon.capture.scene import check_source
             from recon.runner.ownership import resolve_path
 
             source = resolve_path(source, "The photos folder")  # a link loop is the user's to fix, not a crash
-            detect_source(source)  # a typo, one photo, an archive: said before the scene folder is made and torch loads
+            check_source(source)  # a typo, one photo, an archive, no photos: said before the scene folder is made
         preset = preset or _recorded_preset(scene_dir)
         config = _config(preset, overrides)
         _check_device(config)

@@ -52,6 +52,40 @@ def list_photos(folder: Path) -> tuple[list[Path], list[Path]]:
     return photos, skipped
 
 
+RAW_SUFFIXES = {".cr2", ".cr3", ".nef", ".arw", ".dng", ".raf", ".orf", ".rw2", ".pef", ".srw"}
+NESTED_DEPTH = 3
+"""How deep `no_photos` looks for folders of photos below the one given (a phone's DCIM/100APPLE is two down)."""
+
+
+def photo_folders_below(folder: Path, depth: int = NESTED_DEPTH) -> list[tuple[Path, int]]:
+    """Folders up to `depth` levels below `folder` that hold photos directly, with how many, most photos first."""
+    found, level = [], [folder]
+    for _ in range(depth):
+        level = [d for parent in level for d in sorted(parent.iterdir())
+                 if d.is_dir() and not d.is_symlink() and not d.name.startswith(".")]
+        found += [(d, n) for d in level if (n := len(list_photos(d)[0]))]
+    return sorted(found, key=lambda item: -item[1])
+
+
+def no_photos(source: Path, skipped: list[Path]) -> InputError:
+    """The error for a folder without a photo recon reads, saying what it holds instead: camera RAW files, or
+    folders of photos below it."""
+    raw = sorted({p.suffix.upper() for p in skipped if p.suffix.lower() in RAW_SUFFIXES})
+    nested = photo_folders_below(source)
+    if raw:
+        why = (f" It holds camera RAW files ({', '.join(raw)}), which recon does not develop: export them as JPEG (or "
+               f"16-bit TIFF) from your RAW developer, with the same settings for every photo, into a folder of their "
+               f"own.")
+    elif nested:
+        listed = ", ".join(f"{d.relative_to(source)}/ ({n})" for d, n in nested[:5])
+        why = (f" Folders below it hold photos: {listed}. recon reads the photos directly in the folder it is given, "
+               f"not its subfolders, so pass one of them (e.g. {nested[0][0]}) or move the photos of one object into "
+               f"a folder of their own.")
+    else:
+        why = f" Put the photos ({READABLE_FORMATS}) directly in that folder and run again."
+    return InputError(f"No photos found in {source}.{why}")
+
+
 def too_large(path: Path | str, width: int, height: int, what: str = "image") -> InputError:
     """The error for a photo (or a video's frames) over MAX_PIXELS, told from the header before any decoding."""
     return InputError(

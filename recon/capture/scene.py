@@ -24,7 +24,7 @@ import numpy as np
 
 from recon.atomic import read_json, write_json_atomic
 from recon.capture.colmap import LENS_MODELS, find_colmap_model, read_model, reconstruction_frames
-from recon.capture.images import IMAGE_SUFFIXES, MIN_SIDE, oriented_size
+from recon.capture.images import IMAGE_SUFFIXES, MIN_SIDE, list_photos, no_photos, oriented_size
 from recon.errors import InputError
 
 SCENE_FORMAT = "recon-scene"
@@ -489,6 +489,17 @@ def find_masks(photos: Sequence[Path], homes: Sequence[Path] | None = None) -> t
 
 ARCHIVE_SUFFIXES = (".zip", ".tar", ".tar.gz", ".tgz", ".tar.bz2", ".tar.xz", ".7z", ".rar")
 """Archives a capture may come in (from a phone's share sheet or a cloud drive): refused with how to unpack them."""
+
+
+def check_source(path: Path) -> str:
+    """`detect_source`, and for a folder of photos that it holds one: all that `recon run` can tell of its input before
+    it makes the scene folder and loads torch."""
+    kind = detect_source(path)
+    if kind == "photos":
+        photos, skipped = list_photos(path)
+        if not photos:
+            raise no_photos(path, skipped)
+    return kind
 
 
 def detect_source(path: Path) -> str:

@@ -14,7 +14,8 @@ import numpy as np
 
 from recon.atomic import sha256_file
 from recon.capture.colmap import find_colmap_model
-from recon.capture.images import READABLE_FORMATS, camera_exif, list_photos, oriented_size, read_image, save_image
+from recon.capture.images import (READABLE_FORMATS, camera_exif, list_photos, no_photos, oriented_size, read_image,
+                                  save_image)
 from recon.capture.scene import (
     MASK_FOLDER,
     Scene,
@@ -47,25 +48,6 @@ def sfm_bar_position(phase: str, fraction: float) -> float | None:
     if phase not in SFM_PHASES:
         return None
     return list(SFM_PHASES).index(phase) + min(max(fraction, 0.0), 1.0)
-
-
-RAW_SUFFIXES = {".cr2", ".cr3", ".nef", ".arw", ".dng", ".raf", ".orf", ".rw2", ".pef", ".srw"}
-
-
-def no_photos(source: Path, skipped: list[Path]) -> InputError:
-    """The error for a folder without a photo recon reads, saying what it holds instead: camera RAW files, or
-    subfolders of photos."""
-    raw = sorted({p.suffix.upper() for p in skipped if p.suffix.lower() in RAW_SUFFIXES})
-    nested = [d for d in sorted(source.iterdir()) if d.is_dir() and not d.name.startswith(".") and list_photos(d)[0]]
-    if raw:
-        why = (f" It holds camera RAW files ({', '.join(raw)}), which recon does not develop: export them as JPEG (or "
-               f"16-bit TIFF) from your RAW developer, with the same settings for every photo, into a folder of their own.")
-    elif nested:
-        why = (f" Its subfolders {', '.join(d.name + '/' for d in nested[:5])} hold photos: recon reads one folder, not "
-               f"its subfolders, so pass one of them (e.g. {nested[0]}) or move the photos up.")
-    else:
-        why = f" Put the photos ({READABLE_FORMATS}) directly in that folder and run again."
-    return InputError(f"No photos found in {source}.{why}")
 
 
 def drop_copies(photos: list[Path]) -> tuple[list[Path], dict[Path, Path]]:
