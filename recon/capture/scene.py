@@ -492,8 +492,8 @@ ARCHIVE_SUFFIXES = (".zip", ".tar", ".tar.gz", ".tgz", ".tar.bz2", ".tar.xz", ".
 
 
 def check_source(path: Path) -> str:
-    """`detect_source`, and for a folder of photos that it holds one: all that `recon run` can tell of its input before
-    it makes the scene folder and loads torch."""
+    """`detect_source`, and for a folder of photos that it holds one: what `recon run` tells of its input before it
+    makes the scene folder and loads torch (a video is decoded by the poses stage alone: a cached run decodes none)."""
     kind = detect_source(path)
     if kind == "photos":
         photos, skipped = list_photos(path)
