@@ -610,3 +610,16 @@ def test_byte_identical_copies_of_a_photo_are_left_out_and_named(tmp_path: Path)
     kept, copies = drop_copies(photos)
     assert [p.name for p in kept] == ["IMG_0.png", "IMG_1.png", "IMG_2.png"]
     assert {c.name: o.name for c, o in copies.items()} == {"IMG_0 copy.png": "IMG_0.png", "IMG_1 (1).png": "IMG_1.png"}
+
+
+def test_the_look_for_photos_below_a_folder_is_bounded(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Given a home folder, the no-photos error must not walk the disk: so deep, so many folders, no links."""
+    from recon.capture import images
+
+    for name in ("a", "b", "c/d", "e/f/g/h"):
+        (tmp_path / name).mkdir(parents=True)
+        _rgb(tmp_path / name / "p.png", seed=0)
+    (tmp_path / "link").symlink_to(tmp_path / "a", target_is_directory=True)
+    assert [d.relative_to(tmp_path).as_posix() for d, _ in images.photo_folders_below(tmp_path)] == ["a", "b", "c/d"]
+    monkeypatch.setattr(images, "NESTED_MAX_FOLDERS", 3)  # the folder itself, a, b
+    assert [d.name for d, _ in images.photo_folders_below(tmp_path)] == ["a", "b"]

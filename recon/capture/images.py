@@ -6,6 +6,7 @@ Arrays are float32 in [0, 1], shape (H, W, 3) or (H, W, 4) when the file has alp
 from __future__ import annotations
 
 import warnings
+from collections import deque
 from pathlib import Path
 
 import numpy as np
@@ -55,15 +56,25 @@ def list_photos(folder: Path) -> tuple[list[Path], list[Path]]:
 RAW_SUFFIXES = {".cr2", ".cr3", ".nef", ".arw", ".dng", ".raf", ".orf", ".rw2", ".pef", ".srw"}
 NESTED_DEPTH = 3
 """How deep `no_photos` looks for folders of photos below the one given (a phone's DCIM/100APPLE is two down)."""
+NESTED_MAX_FOLDERS = 2000
+"""How many folders it looks into at most (given a home folder, it must not walk the disk)."""
 
 
 def photo_folders_below(folder: Path, depth: int = NESTED_DEPTH) -> list[tuple[Path, int]]:
-    """Folders up to `depth` levels below `folder` that hold photos directly, with how many, most photos first."""
-    found, level = [], [folder]
-    for _ in range(depth):
-        level = [d for parent in level for d in sorted(parent.iterdir())
-                 if d.is_dir() and not d.is_symlink() and not d.name.startswith(".")]
-        found += [(d, n) for d in level if (n := len(list_photos(d)[0]))]
+    """Folders up to `depth` levels below `folder` that hold photos directly, with how many, most photos first
+    (unreadable folders and links are passed over)."""
+    found, queue, looked = [], deque([(folder, 0)]), 0
+    while queue and looked < NESTED_MAX_FOLDERS:
+        parent, level = queue.popleft()
+        looked += 1
+        try:
+            if level and (count := len(list_photos(parent)[0])):
+                found.append((parent, count))
+            if level < depth:
+                queue.extend((d, level + 1) for d in sorted(parent.iterdir())
+                             if d.is_dir() and not d.is_symlink() and not d.name.startswith("."))
+        except OSError:
+            continue
     return sorted(found, key=lambda item: -item[1])
 
 
