@@ -207,6 +207,11 @@ def _flock_within(fd: int, seconds: float) -> bool:
             time.sleep(0.05)
 
 
+def _lock_holder(fd: int) -> str:
+    """The pid the scene's lock file names (its last holder writes it there), "" if it is empty."""
+    return os.pread(fd, 64, 0).decode(errors="replace").strip()
+
+
 @contextlib.contextmanager
 def scene_lock(scene_dir: Path) -> Iterator[None]:
     """One `recon` writer per scene folder. flock is released by the kernel when a process dies."""
@@ -214,7 +219,7 @@ def scene_lock(scene_dir: Path) -> Iterator[None]:
     fd = os.open(lock_path, os.O_RDWR | os.O_CREAT, 0o644)
     try:
         if not _flock_within(fd, LOCK_WAIT_S):
-            holder = os.pread(fd, 64, 0).decode(errors="replace").strip() or "another process"
+            holder = _lock_holder(fd) or "another process"
             raise ReconError(
                 f"{scene_dir} is in use by another recon process (pid {holder}). Wait for it to finish, "
                 f"or stop it, or choose another --out folder."
@@ -237,7 +242,7 @@ def running_pid(scene_dir: Path) -> str | None:
         try:
             fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
         except BlockingIOError:
-            return os.pread(fd, 64, 0).decode(errors="replace").strip() or "unknown"
+            return _lock_holder(fd) or "unknown"
         except OSError:  # a file system without locks (ENOLCK): no run holds one there either
             return None
         fcntl.flock(fd, fcntl.LOCK_UN)
