@@ -363,3 +363,47 @@ def test_a_finished_stage_run_again_says_why(tmp_path: Path, source: Path) -> No
     rows = {r["stage"]: r for r in pipe.state(scene, _ReasonConfig(c=_C(budget=3, grid=_Nested(res=96))), source,
                                               preset="fast")}
     assert rows["c"]["why"] == "preset quality → fast, c.grid.res 64 → 96" and "why" not in rows["a"]
+
+
+def test_status_without_options_tells_changed_photos_and_hashes_only_what_looks_changed(tmp_path: Path) -> None:
+    """`recon status` given no options said "done" for photos edited since poses ran (the fingerprint needs the
+    options); the names, sizes and times kept in the manifest tell it now, and the photos are hashed only where those
+    differ: a photo touched with the same bytes is hashed once, then its new time is kept by the next (cached) run."""
+    from recon.stages import POSES
+
+    hashed: list[str] = []
+
+    def digest(source: Path, cfg: object) -> str:
+        hashed.append(source.name)
+        return POSES.source_digest(source, cfg)  # type: ignore[misc]
+
+    def poses(ctx: StageContext) -> dict:
+        (ctx.out / "n.txt").write_text(str(len(list(ctx.source.iterdir()))))
+        return {}
+
+    pipe = Pipeline([Stage("poses", "01_poses", (), 1, poses, needs_source=True, source_digest=digest,
+                           source_stat=POSES.source_stat)])
+    photos, scene = tmp_path / "photos", tmp_path / "scene"
+    photos.mkdir()
+    for name in ("a.jpg", "b.jpg"):
+        (photos / name).write_bytes(name.encode() * 100)
+    config = _Config()
+    pipe.run(scene, config, Reporter(quiet=True), source=photos)
+
+    def row() -> dict:
+        hashed.clear()
+        return pipe.state(scene)[0]
+
+    assert row()["state"] == "done" and hashed == []  # the same names, sizes and times: nothing read
+    os.utime(photos / "a.jpg", ns=(1, 1))  # touched, the same bytes
+    assert row()["state"] == "done" and hashed == ["photos"]
+    pipe.run(scene, config, Reporter(quiet=True), source=photos)  # cached: keeps the new time
+    assert row()["state"] == "done" and hashed == []
+    (photos / "b.jpg").write_bytes(b"edited")
+    assert (row()["state"], row().get("why")) == ("stale", "the photos changed")
+    (photos / "b.jpg").write_bytes(b"b.jpg" * 100)
+    (photos / "c.jpg").write_bytes(b"one more")  # a photo added
+    assert row()["state"] == "stale"
+    (photos / "c.jpg").unlink()
+    os.rename(photos, tmp_path / "moved")  # gone: `recon run` says so, status shows what was made
+    assert row()["state"] == "done"

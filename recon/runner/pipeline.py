@@ -79,6 +79,9 @@ class Stage:
     needs_source: bool = False
     source_digest: Callable[[Path, Any], str] | None = None
     """Digest of the stage's outside input (e.g. every photo's bytes), part of the fingerprint."""
+    source_stat: Callable[[Path], str] | None = None
+    """A cheap signature of the same files (names, sizes, modification times), kept in the manifest: `recon status`
+    without options compares it and hashes the files only where it differs."""
     scratch_survives: tuple[str, ...] = ()
     """Config fields whose change keeps the stage's scratch (train: a new time budget goes on from the checkpoint
     instead of training again from step 0) and hands the stage its finished output as `StageContext.previous`; the
@@ -393,11 +396,13 @@ class Pipeline:
                 if entry.get("status") == "done" and folder.is_dir():
                     row["state"] = "done" if self._outputs_intact(folder, entry) else "corrupt"
                     digest = None
+                    photos = source or _manifest_source(manifest)
                     if row["state"] == "done" and config is not None:
-                        photos = source or _manifest_source(manifest)
                         digest = self.source_digest(stage, config, photos)
                         if self.fingerprint(stage, manifest, config, photos, digest) != entry.get("fingerprint"):
                             row["state"] = "stale"
+                    elif row["state"] == "done" and (changed := self._changed_source(stage, entry, photos)):
+                        row["state"], digest = "stale", changed
                     upstream_changed = any(
                         manifest.stages.get(u, {}).get("output_digest") != entry.get("input_digests", {}).get(u)
                         for u in stage.inputs
@@ -412,6 +417,21 @@ class Pipeline:
                 row["scratch"] = scratch
             rows.append(row)
         return rows
+
+    @staticmethod
+    def _changed_source(stage: Stage, entry: dict, source: Path | None) -> str | None:
+        """The digest of the files a finished stage was made from where they changed since, else None (without the
+        options, which the fingerprint needs): their names, sizes and times first, their bytes only where those
+        differ."""
+        if stage.source_digest is None or source is None or entry.get("source_digest") is None:
+            return None
+        try:
+            if stage.source_stat is not None and entry.get("source_stat") == stage.source_stat(source):
+                return None
+            digest = stage.source_digest(source, None)
+        except (OSError, ReconError):  # gone or unreadable: `recon run` says what is wrong with them
+            return None
+        return digest if _short_digest(digest) != entry["source_digest"] else None
 
     @staticmethod
     def _outputs_intact(folder: Path, entry: dict) -> bool:
@@ -520,6 +540,11 @@ class Pipeline:
         if not forced and entry and entry.get("status") == "done" and entry.get("fingerprint") == fingerprint:
             if folder.is_dir() and self._outputs_intact(folder, entry):
                 shutil.rmtree(work, ignore_errors=True)  # scratch of a run killed after its manifest entry
+                if stage.source_stat is not None and source is not None:  # the same bytes, touched or copied since:
+                    stat = stage.source_stat(source)  # kept, so `recon status` need not hash them again
+                    if entry.get("source_stat") != stat:
+                        entry["source_stat"] = stat
+                        manifest.save()
                 report.stage_cached(stage.name, entry.get("summary", {}))
                 return StageOutcome(stage.name, "cached", 0.0, entry.get("summary", {}))
             report.warn(
@@ -581,6 +606,7 @@ class Pipeline:
             "scratch": scratch,  # the fingerprint less scratch_survives: which later runs get this output as previous
             "version": stage.version,  # with source_digest and config: what a later run says changed (rerun_reasons)
             "source_digest": _short_digest(source_digest),
+            "source_stat": stage.source_stat(source) if stage.source_stat is not None and source is not None else None,
             "preset": preset,  # the preset whose options `config` holds, so a later run can name the one it changed
             "input_digests": input_digests,
             # what this output means, not only its bytes: it also stands for the upstream outputs and the photos it

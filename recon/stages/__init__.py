@@ -25,6 +25,12 @@ def _photos_digest(source: Path, cfg: Any) -> str:
     return source_digest(source, cfg)
 
 
+def _photos_stat(source: Path) -> str:
+    from recon.stages.poses import source_stat
+
+    return source_stat(source)
+
+
 def _normalize(ctx: StageContext) -> dict:
     from recon.stages.normalize import run
 
@@ -46,7 +52,7 @@ def _mesh(ctx: StageContext) -> dict:
 # poses, version 6: turntable captures (features where the photos change, the still room kept for normalize); a final
 # bundle adjustment that runs away is undone
 POSES = Stage(name="poses", folder="01_poses", inputs=(), version=6, run=_poses, needs_source=True,
-              source_digest=_photos_digest)
+              source_digest=_photos_digest, source_stat=_photos_stat)
 
 # normalize, version 6: automatic masks are soft at their outlines, snapped to the photos' edges
 # version 7: a masked object's box holds the masks' visual hull

@@ -69,18 +69,36 @@ def source_digest(source: Path, cfg: PosesConfig | None) -> str:
     Paths are hashed as given (absolute): the poses refer to the photos by path, so moved photos re-run poses.
     """
     h = hashlib.sha256()
+    for label, path in source_files(source):
+        h.update(label.encode())
+        if path is not None:
+            h.update(sha256_file(path).encode())
+    return h.hexdigest()
+
+
+def source_stat(source: Path) -> str:
+    """Digest of the same files' names, sizes and modification times: reads no photo, so `recon status` can tell
+    at once that the photos are as they were (and hashes them only where this differs)."""
+    h = hashlib.sha256()
+    for label, path in source_files(source):
+        h.update(label.encode())
+        if path is not None:
+            stat = path.stat()
+            h.update(f"{stat.st_size}:{stat.st_mtime_ns}".encode())
+    return h.hexdigest()
+
+
+def source_files(source: Path) -> list[tuple[str, Path | None]]:
+    """What the poses come from, as (label, file): the source's kind (no file), then its files by path, then the
+    masks beside a photos folder or a video (labelled by name: the folder may move with the photos)."""
     kind = detect_source(source)
-    h.update(kind.encode())
-    for path in sorted(set(input_files(source, kind))):
-        h.update(str(path).encode())
-        h.update(sha256_file(path).encode())
+    files: list[tuple[str, Path | None]] = [(kind, None)]
+    files += [(str(path), path) for path in sorted(set(input_files(source, kind)))]
     homes = {"photos": [source.parent / MASK_FOLDER], "video": video_mask_homes(source)}.get(kind, [])
     home = next((c for c in homes if c.is_dir()), None)  # masks beside the photos folder or the video are inputs too
     if home is not None:
-        for path in sorted(p for p in home.iterdir() if p.is_file()):
-            h.update(f"masks/{path.name}".encode())
-            h.update(sha256_file(path).encode())
-    return h.hexdigest()
+        files += [(f"masks/{path.name}", path) for path in sorted(p for p in home.iterdir() if p.is_file())]
+    return files
 
 
 def input_files(source: Path, kind: str) -> list[Path]:
