@@ -184,8 +184,12 @@ def _turntable_masks(ctx: StageContext, image_dir: Path, names: list[str], mask_
     cfg: PosesConfig = ctx.config
     if cfg.turntable == "off":
         return None, ""
-    with ctx.report.task("comparing the photos' backgrounds", total=None):
-        found = find_turntable([read_image(image_dir / n, max_side=2 * SIDE) for n in names])
+    images = []
+    with ctx.report.task("comparing the photos' backgrounds", total=len(names), unit="photos") as bar:
+        for name in names:
+            images.append(read_image(image_dir / name, max_side=2 * SIDE))
+            bar.advance()
+        found = find_turntable(images)
     if found is None:
         return None, ""
     ctx.report.info(found.reason())
