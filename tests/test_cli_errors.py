@@ -50,6 +50,15 @@ def test_missing_and_empty_folder(tmp_path: Path) -> None:
 def test_too_few_photos(tmp_path: Path) -> None:
     _noise_photos(tmp_path / "two", 2)
     assert_clean_error(*recon("run", str(tmp_path / "two"), "--out", str(tmp_path / "s")), "Only 2 photo(s)", "at least 3")
+    assert not (tmp_path / "s").exists()  # told before the scene folder is made
+
+
+def test_photos_named_alike_but_for_the_extension(tmp_path: Path) -> None:
+    _noise_photos(tmp_path / "p", 3)
+    (tmp_path / "p" / "p1.png").write_bytes((tmp_path / "p" / "p1.jpg").read_bytes())
+    assert_clean_error(*recon("run", str(tmp_path / "p"), "--out", str(tmp_path / "s")), "p1.jpg and p1.png",
+                       "Rename or remove one")
+    assert not (tmp_path / "s").exists()
 
 
 def test_corrupt_jpeg_names_the_file(tmp_path: Path) -> None:

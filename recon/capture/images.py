@@ -97,6 +97,29 @@ def no_photos(source: Path, skipped: list[Path]) -> InputError:
     return InputError(f"No photos found in {source}.{why}")
 
 
+MIN_PHOTOS = 3
+"""Structure from motion needs at least this many photos (or a video's distinct frames)."""
+
+
+def check_photo_set(source: Path, photos: list[Path]) -> None:
+    """Refuse a folder's photos that recon cannot pose as they are: too few, or two named alike but for the
+    extension (views, renders and COLMAP's images go by the name without it). Reads no photo."""
+    if len(photos) < MIN_PHOTOS:
+        raise InputError(
+            f"Only {len(photos)} photo(s) in {source}; structure from motion needs at least {MIN_PHOTOS}, and a "
+            f"good reconstruction 20 or more taken all around the subject with about 60% overlap between neighbours."
+        )
+    by_stem: dict[str, list[str]] = {}
+    for path in photos:
+        by_stem.setdefault(path.stem, []).append(path.name)
+    clashes = [names for names in by_stem.values() if len(names) > 1]
+    if clashes:
+        raise InputError(
+            f"Photos in {source} share a name apart from the extension ({'; '.join(' and '.join(c) for c in clashes[:5])}); "
+            f"recon names views, renders and COLMAP's images by the name without extension. Rename or remove one of each."
+        )
+
+
 def too_large(path: Path | str, width: int, height: int, what: str = "image") -> InputError:
     """The error for a photo (or a video's frames) over MAX_PIXELS, told from the header before any decoding."""
     return InputError(

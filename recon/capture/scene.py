@@ -24,7 +24,7 @@ import numpy as np
 
 from recon.atomic import read_json, write_json_atomic
 from recon.capture.colmap import LENS_MODELS, find_colmap_model, read_model, reconstruction_frames
-from recon.capture.images import IMAGE_SUFFIXES, MIN_SIDE, list_photos, no_photos, oriented_size
+from recon.capture.images import IMAGE_SUFFIXES, MIN_SIDE, check_photo_set, list_photos, no_photos, oriented_size
 from recon.errors import InputError
 
 SCENE_FORMAT = "recon-scene"
@@ -492,13 +492,15 @@ ARCHIVE_SUFFIXES = (".zip", ".tar", ".tar.gz", ".tgz", ".tar.bz2", ".tar.xz", ".
 
 
 def check_source(path: Path) -> str:
-    """`detect_source`, and for a folder of photos that it holds one: what `recon run` tells of its input before it
-    makes the scene folder and loads torch (a video is decoded by the poses stage alone: a cached run decodes none)."""
+    """`detect_source`, and for a folder of photos that it holds enough, named apart: what `recon run` tells of its
+    input before it makes the scene folder and loads torch (a video is decoded by the poses stage alone: a cached run
+    decodes none)."""
     kind = detect_source(path)
     if kind == "photos":
         photos, skipped = list_photos(path)
         if not photos:
             raise no_photos(path, skipped)
+        check_photo_set(path, photos)
     return kind
 
 

@@ -14,8 +14,8 @@ import numpy as np
 
 from recon.atomic import sha256_file
 from recon.capture.colmap import find_colmap_model
-from recon.capture.images import (READABLE_FORMATS, camera_exif, list_photos, no_photos, oriented_size, read_image,
-                                  save_image)
+from recon.capture.images import (MIN_PHOTOS, READABLE_FORMATS, camera_exif, check_photo_set, list_photos, no_photos,
+                                  oriented_size, read_image, save_image)
 from recon.capture.scene import (
     MASK_FOLDER,
     Scene,
@@ -33,7 +33,6 @@ from recon.config import PosesConfig
 from recon.errors import InputError
 from recon.runner.pipeline import StageContext
 
-MIN_PHOTOS = 3
 LOG_DIR = "logs"
 """COLMAP's own log files go to SCENE/logs/ (outside the stage folder: glog may still append after it is sealed);
 what it prints while SfM runs goes to SCENE/logs/01_poses.log."""
@@ -266,20 +265,7 @@ def _structure_from_motion(ctx: StageContext, photos: list[Path] | None = None,
                             f"count twice in training).")
     if not photos:
         raise no_photos(ctx.source, skipped)
-    if len(photos) < MIN_PHOTOS:
-        raise InputError(
-            f"Only {len(photos)} photo(s) in {ctx.source}; structure from motion needs at least {MIN_PHOTOS}, and a "
-            f"good reconstruction 20 or more taken all around the subject with about 60% overlap between neighbours."
-        )
-    by_stem: dict[str, list[str]] = {}
-    for path in photos:
-        by_stem.setdefault(path.stem, []).append(path.name)
-    clashes = [names for names in by_stem.values() if len(names) > 1]
-    if clashes:
-        raise InputError(
-            f"Photos in {ctx.source} share a name apart from the extension ({'; '.join(' and '.join(c) for c in clashes[:5])}); "
-            f"recon names views, renders and COLMAP's images by the name without extension. Rename or remove one of each."
-        )
+    check_photo_set(ctx.source, photos)  # `recon run` told it before the scene folder; here for what copies left
     mask_dir, masks = find_masks(photos, mask_homes)
     if mask_dir is not None:
         ctx.report.info(
