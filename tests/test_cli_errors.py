@@ -149,7 +149,8 @@ def test_a_missing_input_or_a_value_out_of_range_is_refused_before_torch_loads(
     """A typo costs a second, not the seconds torch takes to load (to look for a GPU), and makes no scene folder; nor
     does one photo or an archive of them given for a folder (they made one and were refused in the poses stage)."""
     (tmp_path / "images").mkdir()
-    Image.fromarray(np.zeros((40, 40, 3), np.uint8)).save(tmp_path / "images" / "IMG_1.JPG")
+    for i in (1, 2, 3):  # enough photos: the option is what is wrong
+        Image.fromarray(np.full((40, 40, 3), i, np.uint8)).save(tmp_path / "images" / f"IMG_{i}.JPG")
     with zipfile.ZipFile(tmp_path / "photos.zip", "w") as archive:
         archive.write(tmp_path / "images" / "IMG_1.JPG", "IMG_1.JPG")
     proc = faults.recon_noting_torch("run", str(tmp_path / photos), "--out", str(tmp_path / "s"), "--set", setting)
