@@ -377,8 +377,12 @@ def test_status_without_options_tells_changed_photos_and_hashes_only_what_looks_
         hashed.append(source.name)
         return POSES.source_digest(source, cfg)  # type: ignore[misc]
 
+    edit_while_running: list[Path] = []
+
     def poses(ctx: StageContext) -> dict:
         (ctx.out / "n.txt").write_text(str(len(list(ctx.source.iterdir()))))
+        for path in edit_while_running:
+            path.write_bytes(b"edited while the stage ran")
         return {}
 
     pipe = Pipeline([Stage("poses", "01_poses", (), 1, poses, needs_source=True, source_digest=digest,
@@ -405,5 +409,8 @@ def test_status_without_options_tells_changed_photos_and_hashes_only_what_looks_
     (photos / "c.jpg").write_bytes(b"one more")  # a photo added
     assert row()["state"] == "stale"
     (photos / "c.jpg").unlink()
+    edit_while_running.append(photos / "a.jpg")  # the stage ran on the bytes before: stale, though made after it
+    pipe.run(scene, config, Reporter(quiet=True), source=photos, force=True)
+    assert row()["state"] == "stale"
     os.rename(photos, tmp_path / "moved")  # gone: `recon run` says so, status shows what was made
     assert row()["state"] == "done"

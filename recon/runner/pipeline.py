@@ -531,6 +531,9 @@ class Pipeline:
         if stage.needs_source and source is not None and not source.exists():
             raise ReconError(f"The input {source} does not exist. Check the path (it is recorded in {MANIFEST}).")
 
+        # the files' names, sizes and times before their bytes: one edited while they are read, or while the stage
+        # runs, differs from what is kept, and `recon status` then hashes them again
+        source_stat = stage.source_stat(source) if stage.source_stat is not None and source is not None else None
         source_digest = self.source_digest(stage, config, source)
         fingerprint = self.fingerprint(stage, manifest, config, source, source_digest)
         entry = manifest.stages.get(stage.name)
@@ -540,11 +543,9 @@ class Pipeline:
         if not forced and entry and entry.get("status") == "done" and entry.get("fingerprint") == fingerprint:
             if folder.is_dir() and self._outputs_intact(folder, entry):
                 shutil.rmtree(work, ignore_errors=True)  # scratch of a run killed after its manifest entry
-                if stage.source_stat is not None and source is not None:  # the same bytes, touched or copied since:
-                    stat = stage.source_stat(source)  # kept, so `recon status` need not hash them again
-                    if entry.get("source_stat") != stat:
-                        entry["source_stat"] = stat
-                        manifest.save()
+                if source_stat is not None and entry.get("source_stat") != source_stat:  # the same bytes, touched or
+                    entry["source_stat"] = source_stat  # copied since: kept, so `recon status` need not hash them again
+                    manifest.save()
                 report.stage_cached(stage.name, entry.get("summary", {}))
                 return StageOutcome(stage.name, "cached", 0.0, entry.get("summary", {}))
             report.warn(
@@ -606,7 +607,7 @@ class Pipeline:
             "scratch": scratch,  # the fingerprint less scratch_survives: which later runs get this output as previous
             "version": stage.version,  # with source_digest and config: what a later run says changed (rerun_reasons)
             "source_digest": _short_digest(source_digest),
-            "source_stat": stage.source_stat(source) if stage.source_stat is not None and source is not None else None,
+            "source_stat": source_stat,
             "preset": preset,  # the preset whose options `config` holds, so a later run can name the one it changed
             "input_digests": input_digests,
             # what this output means, not only its bytes: it also stands for the upstream outputs and the photos it
