@@ -37,8 +37,8 @@ class _Config(RunConfig):
     b: _B = field(default_factory=_B)
 
 
-def _digest_source(source: Path, cfg: object) -> str:
-    return "|".join(f"{p.name}:{p.read_text()}" for p in sorted(source.iterdir()))
+def _digest_source(source: Path, cfg: object) -> str:  # by path, as the poses stage's: its poses name the photos so
+    return "|".join(f"{p}:{p.read_text()}" for p in sorted(source.iterdir()))
 
 
 def _stage_a(ctx: StageContext) -> dict:
@@ -332,11 +332,12 @@ def test_a_finished_stage_run_again_says_why(tmp_path: Path, source: Path) -> No
 
     from rich.console import Console
 
-    def run(config: _ReasonConfig, version: int = 1, preset: str | None = None) -> tuple[list[str], Pipeline]:
+    def run(config: _ReasonConfig, version: int = 1, preset: str | None = None,
+            photos: Path = source) -> tuple[list[str], Pipeline]:
         said = io.StringIO()
         pipe = Pipeline([Stage("a", "01_a", (), 1, _stage_a, needs_source=True, source_digest=_digest_source),
                          Stage("c", "02_c", ("a",), version, _stage_c, scratch_survives=("budget",))])
-        pipe.run(scene, config, Reporter(Console(file=said, width=400, color_system=None)), source=source,
+        pipe.run(scene, config, Reporter(Console(file=said, width=400, color_system=None)), source=photos,
                  preset=preset)
         return [line for line in said.getvalue().splitlines() if "runs again" in line], pipe
 
@@ -363,6 +364,10 @@ def test_a_finished_stage_run_again_says_why(tmp_path: Path, source: Path) -> No
     rows = {r["stage"]: r for r in pipe.state(scene, _ReasonConfig(c=_C(budget=3, grid=_Nested(res=96))), source,
                                               preset="fast")}
     assert rows["c"]["why"] == "preset quality → fast, c.grid.res 64 → 96" and "why" not in rows["a"]
+    moved = tmp_path / "moved"  # the same photos from another folder: said so, not "changed"
+    os.rename(source, moved)
+    told, _ = run(_ReasonConfig(c=_C(budget=3, grid=_Nested(res=64))), 2, "quality", photos=moved)
+    assert told[0] == f"a runs again: the photos folder changed ({source} → {moved})", told
 
 
 def test_status_without_options_tells_changed_photos_and_hashes_only_what_looks_changed(tmp_path: Path) -> None:

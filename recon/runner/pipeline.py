@@ -555,7 +555,7 @@ class Pipeline:
 
         previous = why = None
         if entry and entry.get("status") == "done" and entry.get("fingerprint") != fingerprint:  # made otherwise
-            why = rerun_reasons(stage, entry, manifest, config, _short_digest(source_digest), preset)
+            why = rerun_reasons(stage, entry, manifest, config, _short_digest(source_digest), preset, source)
             if entry.get("scratch") == scratch and folder.is_dir() and self._outputs_intact(folder, entry):
                 previous = folder
         tmp = scene_dir / f".tmp-{stage.folder}-{os.getpid()}"
@@ -650,18 +650,20 @@ def _changed_options(prefix: str, old: dict, new: dict) -> list[str]:
 
 
 def rerun_reasons(stage: Stage, entry: dict, manifest: Manifest, config: RunConfig | None, source_digest: str | None,
-                  preset: str | None = None, most: int = 4) -> str:
+                  preset: str | None = None, source: Path | None = None, most: int = 4) -> str:
     """Why a finished stage runs again, as its entry in the manifest tells against this run: another preset (`preset
     fast → quality`) and the options that changed (`train.lr 0.01 → 0.003`), an upstream output that changed, other
-    photos, or another recipe of the stage. Without a config (`recon status` given no options) only what the
-    manifest itself tells."""
+    photos (or the same from another folder: the poses name them by path), or another recipe of the stage. Without a
+    config (`recon status` given no options) only what the manifest itself tells."""
     reasons = []
     if config is not None and preset is not None and entry.get("preset") not in (None, preset):
         reasons.append(f"preset {entry['preset']} → {preset}")
     if entry.get("version") not in (None, stage.version):
         reasons.append(f"this recon makes it differently (stage version {entry['version']} → {stage.version})")
     if entry.get("source_digest") is not None and source_digest not in (None, entry["source_digest"]):
-        reasons.append("the photos changed")
+        before = manifest.data.get("source")
+        moved = source is not None and before is not None and Path(before) != source
+        reasons.append(f"the photos folder changed ({before} → {source})" if moved else "the photos changed")
     for name in stage.inputs:
         if entry.get("input_digests", {}).get(name) != manifest.stages.get(name, {}).get("output_digest"):
             reasons.append(f"the {name} stage's output changed")
