@@ -419,3 +419,22 @@ def test_status_without_options_tells_changed_photos_and_hashes_only_what_looks_
     assert row()["state"] == "stale"
     os.rename(photos, tmp_path / "moved")  # gone: `recon run` says so, status shows what was made
     assert row()["state"] == "done"
+
+
+def test_status_says_the_photos_are_gone(tmp_path: Path, source: Path) -> None:
+    """Training or meshing again reads the photos where the poses found them: `recon status` says when they are not
+    there any more (it raised, given options, and said nothing without)."""
+    scene = tmp_path / "scene"
+    manifest = Manifest(scene.mkdir() or scene)
+    manifest.data["source"] = str(source)
+    manifest.stages["poses"] = {"status": "done", "files": {}, "source_digest": "made from other photos"}
+    (scene / "01_poses").mkdir()
+    manifest.save()
+    for options in ([], ["--preset", "fast"]):
+        shown = CliRunner().invoke(app, ["status", str(scene), *options], env={"COLUMNS": "300"})
+        assert shown.exit_code == 0 and "are not there" not in shown.output, shown.output
+    os.rename(source, tmp_path / "moved")
+    for options in ([], ["--preset", "fast"]):
+        shown = CliRunner().invoke(app, ["status", str(scene), *options], env={"COLUMNS": "300"})
+        assert shown.exit_code == 0 and f"the photos {source} are not there (moved or deleted)" in shown.output
+        assert "│ poses     │ done" in shown.output

@@ -313,9 +313,13 @@ def status(
         config = _config(asked, set_) if asked else None
         from recon.runner.pipeline import Manifest, running_pid
 
-        warning = Manifest(scene).warning
-        if warning:
-            console.print(f"[yellow]warning:[/] {escape(warning)}")
+        manifest = Manifest(scene)
+        if manifest.warning:
+            console.print(f"[yellow]warning:[/] {escape(manifest.warning)}")
+        if (photos := manifest.data.get("source")) and not Path(photos).exists():
+            console.print(f"[yellow]warning:[/] the photos {escape(photos)} are not there (moved or deleted): training "
+                          "or meshing again reads them. Give `recon run` the folder where they are now (it poses them "
+                          "anew).")
         if pid := running_pid(scene):
             console.print(f"a recon run (pid {escape(pid)}) is writing this scene now: below are the stages it has "
                           "finished so far (a training's row: its last checkpoint)")

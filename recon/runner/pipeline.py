@@ -397,7 +397,7 @@ class Pipeline:
                     row["state"] = "done" if self._outputs_intact(folder, entry) else "corrupt"
                     digest = None
                     photos = source or _manifest_source(manifest)
-                    if row["state"] == "done" and config is not None:
+                    if row["state"] == "done" and config is not None and (photos is None or photos.exists()):
                         digest = self.source_digest(stage, config, photos)
                         if self.fingerprint(stage, manifest, config, photos, digest) != entry.get("fingerprint"):
                             row["state"] = "stale"
