@@ -167,6 +167,32 @@ def test_truncated_and_fake_videos_are_clear_errors(tmp_path: Path, clip: Path) 
         assert code == 2, out
         assert "Traceback" not in out and path.name in out and "Cannot read the video" in out, out
         assert "copy it again" in out and "re-encode" in out, out
+        assert not (tmp_path / f"scene_{path.stem}").exists()  # told from the file's boxes, before the scene folder
+
+
+def test_a_clip_cut_short_is_told_from_its_boxes_and_padding_is_not_a_cut(tmp_path: Path, clip: Path) -> None:
+    """The top-level boxes of an MP4 say, without decoding a frame, that a file was cut short (in either layout: the
+    index last, as a phone writes it, or first) or has no index; bytes after the last box are padding."""
+    imageio_ffmpeg = pytest.importorskip("imageio_ffmpeg")
+    import subprocess
+
+    fast = tmp_path / "faststart.mp4"
+    subprocess.run([imageio_ffmpeg.get_ffmpeg_exe(), "-y", "-loglevel", "error", "-i", str(clip), "-c", "copy",
+                    "-movflags", "+faststart", str(fast)], check=True)
+    for whole in (clip, fast):
+        video.check_container(whole)
+        padded = tmp_path / f"padded_{whole.name}"
+        padded.write_bytes(whole.read_bytes() + bytes(64))
+        video.check_container(padded)
+        cut = tmp_path / f"cut_{whole.name}"
+        cut.write_bytes(whole.read_bytes()[:-100])
+        with pytest.raises(InputError, match=r"cut short \(its '(mdat|moov)' box needs"):
+            video.check_container(cut)
+    boxes_only = tmp_path / "no_index.mp4"  # the recording stopped before the phone wrote its index
+    data = clip.read_bytes()
+    boxes_only.write_bytes(data[:data.index(b"moov") - 4])
+    with pytest.raises(InputError, match="no index"):
+        video.check_container(boxes_only)
 
 
 def test_truncated_stream_with_header_first_is_refused(tmp_path: Path, clip: Path) -> None:

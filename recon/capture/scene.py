@@ -492,15 +492,20 @@ ARCHIVE_SUFFIXES = (".zip", ".tar", ".tar.gz", ".tgz", ".tar.bz2", ".tar.xz", ".
 
 
 def check_source(path: Path) -> str:
-    """`detect_source`, and for a folder of photos that it holds enough, named apart: what `recon run` tells of its
-    input before it makes the scene folder and loads torch (a video is decoded by the poses stage alone: a cached run
-    decodes none)."""
+    """`detect_source`, and for a folder of photos that it holds enough, named apart, for a video that its file is
+    whole: what `recon run` tells of its input before it makes the scene folder and loads torch (a video is decoded
+    by the poses stage alone: a cached run decodes none)."""
     kind = detect_source(path)
     if kind == "photos":
         photos, skipped = list_photos(path)
         if not photos:
             raise no_photos(path, skipped)
         check_photo_set(path, photos)
+    if kind == "video":
+        from recon.capture.video import check_container, list_videos
+
+        for clip in [path] if path.is_file() else list_videos(path):
+            check_container(clip)
     return kind
 
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import struct
 import time
 from collections import deque
 from collections.abc import Callable, Iterator
@@ -146,6 +147,43 @@ def _unreadable(path: Path, what: str) -> InputError:
         f"it does not, copy it again from the phone; if it does, re-encode it "
         f"(ffmpeg -i {path.name} -c:v libx264 -crf 18 fixed.mp4) and pass the new file."
     )
+
+
+FIRST_BOXES = frozenset({b"ftyp", b"wide", b"free", b"skip", b"mdat", b"moov", b"pnot", b"uuid"})
+"""What an MP4 or QuickTime file begins with (ISO/IEC 14496-12 and Apple's QuickTime file format)."""
+TOP_BOXES = FIRST_BOXES | {b"moof", b"mfra", b"sidx", b"ssix", b"styp", b"emsg", b"prft", b"pdin", b"meta", b"udta",
+                           b"meco"}
+"""The boxes such a file holds at its top level: anything else after them is padding, not a box cut short."""
+
+
+def check_container(path: Path) -> None:
+    """Refuse an MP4/MOV file that cannot be a whole clip, from its top-level boxes' headers alone (a few bytes read,
+    no frame decoded, so a cached run still decodes nothing): not such a file, a box that runs past the end (a copy
+    or a recording cut short), or no index (the 'moov' box a phone writes when the recording stops)."""
+    size, offset, kinds = path.stat().st_size, 0, []
+    if size == 0:
+        raise _unreadable(path, "it is empty (0 bytes)")
+    with path.open("rb") as f:
+        while offset + 8 <= size and len(kinds) < 10_000:
+            f.seek(offset)
+            length, kind = struct.unpack(">I4s", f.read(8))
+            if length == 1:  # a 64-bit size follows
+                extended = f.read(8)
+                length = struct.unpack(">Q", extended)[0] if len(extended) == 8 else 0
+            elif length == 0:  # the box runs to the end of the file
+                length = size - offset
+            box = kind.decode("latin-1")
+            if not kinds and kind not in FIRST_BOXES:
+                raise _unreadable(path, "it is not an MP4 or MOV file (it does not start as one)")
+            if length < 8 or kind not in TOP_BOXES:
+                break  # bytes after the last box (padding): not a box
+            if offset + length > size:
+                raise _unreadable(path, f"it is cut short (its '{box}' box needs {offset + length:,} bytes, the file "
+                                        f"holds {size:,})")
+            kinds.append(kind)
+            offset += length
+    if b"moov" not in kinds:
+        raise _unreadable(path, "it has no index (no 'moov' box: the recording or the copy stopped before the end)")
 
 
 @contextlib.contextmanager
