@@ -80,7 +80,8 @@ class _Recording(_Pipeline):
 def test_a_run_without_a_preset_takes_the_default_and_says_why(tmp_path: Path, monkeypatch) -> None:
     photos = tmp_path / "photos"
     photos.mkdir()
-    Image.new("RGB", (40, 40)).save(photos / "a.png")  # a folder without photos is refused before the pipeline
+    for name in ("a", "b", "c"):  # a folder with fewer than three photos is refused before the pipeline
+        Image.new("RGB", (40, 40)).save(photos / f"{name}.png")
     pipeline = _Recording(["poses", "normalize", "train", "mesh"])
     monkeypatch.setattr(cli, "_pipeline", lambda: pipeline)
     result = CliRunner().invoke(app, ["run", str(photos), "--out", str(tmp_path / "scene")])
