@@ -19,7 +19,7 @@ from typer.testing import CliRunner
 from recon.app.cli import app
 from recon.capture.images import read_image
 from recon.capture.scene import load_scene
-from recon.capture.turntable import _log_gray, _textured, feature_mask, find_turntable
+from recon.capture.turntable import _log_gray, _textured, feature_mask, find_turntable, turntable_verdict
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "fixtures"))
@@ -120,7 +120,9 @@ def test_a_turntable_capture_is_found_with_its_camera_positions_and_the_object(t
 def test_photos_from_a_moving_camera_are_not_a_turntable(tmp_path: Path) -> None:
     handheld = gen_tabletop.generate(tmp_path / "handheld", views=8, size="480x360", realistic=True, mesh_res=64)
     assert find_turntable(photos(handheld)) is None
-    assert find_turntable(photos(REPO / "fixtures" / "sample")) is None
+    found, reason = turntable_verdict(photos(REPO / "fixtures" / "sample"))
+    assert found is None and reason.startswith("turntable: no (no 6 or more photos share one still camera position")
+    assert "poses.turntable=off" in reason
 
 
 def test_a_turntable_in_front_of_a_white_sweep_is_left_to_ordinary_sfm(tmp_path: Path) -> None:
@@ -141,7 +143,9 @@ def test_copies_of_one_still_scene_are_not_a_turntable(turntable: Path) -> None:
     rng = np.random.default_rng(0)
     burst = [np.clip(photo * gain + rng.normal(0, 0.01, photo.shape), 0, 1).astype(np.float32)
              for gain in (1.0, 0.95, 1.05, 1.0, 0.9, 1.1)]
-    assert find_turntable(burst) is None
+    found, reason = turntable_verdict(burst)
+    assert found is None and "0 of 6 photos come from still camera positions" in reason
+    assert "6 more show one still scene without change (copies)" in reason
 
 
 def test_a_plain_part_of_the_object_that_stays_in_place_is_not_the_still_room() -> None:

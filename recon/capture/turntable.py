@@ -185,18 +185,32 @@ def _moving(logs: Sequence[np.ndarray]) -> tuple[list[np.ndarray], list[np.ndarr
 def find_turntable(images: Sequence[np.ndarray]) -> Turntable | None:
     """A `Turntable` when most of these photos (in the order taken) come in groups from still camera positions with
     something changing in front of the camera; None for a camera that moved (or copies of one still scene)."""
+    return turntable_verdict(images)[0]
+
+
+def turntable_verdict(images: Sequence[np.ndarray]) -> tuple[Turntable | None, str]:
+    """`find_turntable`'s answer with the reason the poses stage prints either way."""
     logs = [_log_gray(img) for img in images]
-    groups, moving, background = [], {}, {}
+    groups, moving, background, copies = [], {}, {}, 0
     for group in _groups(logs):
         masks, still = _moving([logs[i] for i in group])
         if np.median([m.mean() for m in masks]) < MIN_MOVING:
-            continue  # nothing turned: copies
+            copies += len(group)  # nothing turned: copies
+            continue
         groups.append(group)
         moving.update(zip(group, masks))
         background.update(zip(group, still))
-    if sum(len(g) for g in groups) < MIN_SHARE * len(images) or not groups:
-        return None
-    return Turntable(groups=groups, moving=moving, background=background, photos=len(images))
+    held = sum(len(g) for g in groups)
+    if held < MIN_SHARE * len(images) or not groups:
+        if held + copies == 0:
+            why = f"no {MIN_GROUP} or more photos share one still camera position: the camera moved between shots"
+        else:
+            why = (f"{held} of {len(images)} photos come from still camera positions with something turning in "
+                   f"front of them" + (f", {copies} more show one still scene without change (copies)" if copies
+                                       else "") + f"; a turntable capture has {MIN_SHARE:.0%} or more")
+        return None, f"turntable: no ({why}; poses.turntable=off skips this check)"
+    found = Turntable(groups=groups, moving=moving, background=background, photos=len(images))
+    return found, found.reason()
 
 
 def feature_mask(turntable: Turntable, i: int, size: tuple[int, int]) -> np.ndarray:

@@ -178,7 +178,7 @@ def prepare_photo(path: Path, image_dir: Path, max_side: int) -> tuple[str, tupl
 def _turntable_masks(ctx: StageContext, image_dir: Path, names: list[str], mask_dir: Path) -> tuple[Path | None, str]:
     """With `poses.turntable` auto, COLMAP's feature masks (in ``mask_dir``) for a turntable capture
     (`recon.capture.turntable`) and the reason, said; (None, "") for any other capture."""
-    from recon.capture.turntable import SIDE, STILL_FOLDER, feature_mask, find_turntable
+    from recon.capture.turntable import SIDE, STILL_FOLDER, feature_mask, turntable_verdict
 
     cfg: PosesConfig = ctx.config
     if cfg.turntable == "off":
@@ -188,10 +188,10 @@ def _turntable_masks(ctx: StageContext, image_dir: Path, names: list[str], mask_
         for name in names:
             images.append(read_image(image_dir / name, max_side=2 * SIDE))
             bar.advance()
-        found = find_turntable(images)
+        found, reason = turntable_verdict(images)
+    ctx.report.info(reason)
     if found is None:
         return None, ""
-    ctx.report.info(found.reason())
     mask_dir.mkdir(parents=True)
     (ctx.out / STILL_FOLDER).mkdir()
     for i, name in enumerate(names):
