@@ -114,9 +114,10 @@ def check_photo_set(source: Path, photos: list[Path]) -> None:
         by_stem.setdefault(path.stem, []).append(path.name)
     clashes = [names for names in by_stem.values() if len(names) > 1]
     if clashes:
+        named = "; ".join(" and ".join(c) for c in clashes[:5])
         raise InputError(
-            f"Photos in {source} share a name apart from the extension ({'; '.join(' and '.join(c) for c in clashes[:5])}); "
-            f"recon names views, renders and COLMAP's images by the name without extension. Rename or remove one of each."
+            f"Photos in {source} share a name apart from the extension ({named}); recon names views, renders and "
+            f"COLMAP's images by the name without extension. Rename or remove one of each."
         )
 
 
