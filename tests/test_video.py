@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import shutil
+import struct
 import sys
 from pathlib import Path
 
@@ -172,7 +173,8 @@ def test_truncated_and_fake_videos_are_clear_errors(tmp_path: Path, clip: Path) 
 
 def test_a_clip_cut_short_is_told_from_its_boxes_and_padding_is_not_a_cut(tmp_path: Path, clip: Path) -> None:
     """The top-level boxes of an MP4 say, without decoding a frame, that a file was cut short (in either layout: the
-    index last, as a phone writes it, or first) or has no index; bytes after the last box are padding."""
+    index last, as a phone writes it, or first) or has no index; bytes after the last box are padding, and a box of
+    a maker's own is passed over."""
     imageio_ffmpeg = pytest.importorskip("imageio_ffmpeg")
     import subprocess
 
@@ -188,8 +190,13 @@ def test_a_clip_cut_short_is_told_from_its_boxes_and_padding_is_not_a_cut(tmp_pa
         cut.write_bytes(whole.read_bytes()[:-100])
         with pytest.raises(InputError, match=r"cut short \(its '(mdat|moov)' box needs"):
             video.check_container(cut)
-    boxes_only = tmp_path / "no_index.mp4"  # the recording stopped before the phone wrote its index
     data = clip.read_bytes()
+    first = struct.unpack(">I", data[:4])[0]  # a maker's own box after the first, and a trailer after the last
+    maker = tmp_path / "maker.mp4"
+    maker.write_bytes(data[:first] + struct.pack(">I4s", 16, b"sefd") + bytes(8) + data[first:]
+                      + struct.pack(">I4s", 10**6, b"SEFT") + bytes(20))
+    video.check_container(maker)
+    boxes_only = tmp_path / "no_index.mp4"  # the recording stopped before the phone wrote its index
     boxes_only.write_bytes(data[:data.index(b"moov") - 4])
     with pytest.raises(InputError, match="no index"):
         video.check_container(boxes_only)

@@ -153,7 +153,8 @@ FIRST_BOXES = frozenset({b"ftyp", b"wide", b"free", b"skip", b"mdat", b"moov", b
 """What an MP4 or QuickTime file begins with (ISO/IEC 14496-12 and Apple's QuickTime file format)."""
 TOP_BOXES = FIRST_BOXES | {b"moof", b"mfra", b"sidx", b"ssix", b"styp", b"emsg", b"prft", b"pdin", b"meta", b"udta",
                            b"meco"}
-"""The boxes such a file holds at its top level: anything else after them is padding, not a box cut short."""
+"""The boxes such a file holds at its top level: only these are told cut short (a maker's own box that fits is passed
+over; one that does not is taken for a trailer or padding)."""
 
 
 def check_container(path: Path) -> None:
@@ -175,9 +176,11 @@ def check_container(path: Path) -> None:
             box = kind.decode("latin-1")
             if not kinds and kind not in FIRST_BOXES:
                 raise _unreadable(path, "it is not an MP4 or MOV file (it does not start as one)")
-            if length < 8 or kind not in TOP_BOXES:
+            if length < 8 or not all(32 <= c < 127 for c in kind):
                 break  # bytes after the last box (padding): not a box
             if offset + length > size:
+                if kind not in TOP_BOXES:
+                    break  # a trailer some cameras append, or padding that reads as a name
                 raise _unreadable(path, f"it is cut short (its '{box}' box needs {offset + length:,} bytes, the file "
                                         f"holds {size:,})")
             kinds.append(kind)
