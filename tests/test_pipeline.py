@@ -390,8 +390,12 @@ def test_status_without_options_tells_changed_photos_and_hashes_only_what_looks_
             path.write_bytes(b"edited while the stage ran")
         return {}
 
+    def later(ctx: StageContext) -> dict:
+        (ctx.out / "m.txt").write_text((ctx.inputs["poses"] / "n.txt").read_text())
+        return {}
+
     pipe = Pipeline([Stage("poses", "01_poses", (), 1, poses, needs_source=True, source_digest=digest,
-                           source_stat=POSES.source_stat)])
+                           source_stat=POSES.source_stat), Stage("later", "02_later", ("poses",), 1, later)])
     photos, scene = tmp_path / "photos", tmp_path / "scene"
     photos.mkdir()
     for name in ("a.jpg", "b.jpg"):
@@ -404,12 +408,16 @@ def test_status_without_options_tells_changed_photos_and_hashes_only_what_looks_
         return pipe.state(scene)[0]
 
     assert row()["state"] == "done" and hashed == []  # the same names, sizes and times: nothing read
+    assert [r["state"] for r in pipe.state(scene)] == ["done", "done"]
     os.utime(photos / "a.jpg", ns=(1, 1))  # touched, the same bytes
     assert row()["state"] == "done" and hashed == ["photos"]
     pipe.run(scene, config, Reporter(quiet=True), source=photos)  # cached: keeps the new time
     assert row()["state"] == "done" and hashed == []
     (photos / "b.jpg").write_bytes(b"edited")
     assert (row()["state"], row().get("why")) == ("stale", "the photos changed")
+    for options in (None, config):  # the stages after it run again too: their input stands for other photos
+        assert [(r["state"], r.get("why")) for r in pipe.state(scene, options)][1] == (
+            "stale", "after poses, made from other photos")
     (photos / "b.jpg").write_bytes(b"b.jpg" * 100)
     (photos / "c.jpg").write_bytes(b"one more")  # a photo added
     assert row()["state"] == "stale"

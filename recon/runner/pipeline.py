@@ -383,6 +383,7 @@ class Pipeline:
         a run with `config` (the options of `preset`) would make it again."""
         manifest = Manifest(scene_dir)
         rows = []
+        photos_changed: set[str] = set()  # stages a run makes from other photos: every stage after them runs again
         for stage in self.stages:
             entry = manifest.stages.get(stage.name)
             folder = scene_dir / stage.folder
@@ -409,8 +410,15 @@ class Pipeline:
                     )
                     if row["state"] == "done" and upstream_changed:
                         row["state"] = "stale"
+                    if digest is not None and entry.get("source_digest") not in (None, _short_digest(digest)):
+                        photos_changed.add(stage.name)
+                    after = [u for u in stage.inputs if u in photos_changed]
                     if row["state"] == "stale":
                         row["why"] = rerun_reasons(stage, entry, manifest, config, _short_digest(digest), preset)
+                    elif row["state"] == "done" and after:  # its input is made anew from other photos
+                        row["state"], row["why"] = "stale", f"after {after[0]}, made from other photos"
+                    if after:
+                        photos_changed.add(stage.name)
                 elif entry.get("status") == "failed":
                     row["state"] = "failed"
             if scratch := _scratch_note(scene_dir, stage.name):  # e.g. a stopped training, under any options
