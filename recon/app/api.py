@@ -109,7 +109,7 @@ def run(
     report.observers = list(observers or [])
     source = Path(photos).resolve() if photos is not None else None
     if source is not None:
-        check_source(source)  # a missing path, one photo, an archive, no photos: said before the scene folder is made
+        check_source(source)  # a wrong input (see check_source) is said before the scene folder is made
     outcomes = default_pipeline().run(scene_dir, config, report, source=source, from_stage=from_stage,
                                       until_stage=until_stage, force=force, preset=preset)
     return scene_result(scene_dir, {o.name: StageResult(o.name, o.action, o.wall_s, o.summary) for o in outcomes}, report.warnings)

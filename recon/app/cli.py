@@ -216,7 +216,7 @@ def _run(
             from recon.runner.ownership import resolve_path
 
             source = resolve_path(source, "The photos folder")  # a link loop is the user's to fix, not a crash
-            check_source(source)  # a typo, one photo, an archive, no photos: said before the scene folder is made
+            check_source(source)  # a wrong input (see check_source) is said before the scene folder is made
         preset = preset or _recorded_preset(scene_dir)
         config = _config(preset, overrides)
         _check_device(config)

@@ -205,9 +205,9 @@ def turntable_verdict(images: Sequence[np.ndarray]) -> tuple[Turntable | None, s
         if held + copies == 0:
             why = f"no {MIN_GROUP} or more photos share one still camera position: the camera moved between shots"
         else:
+            still = f", {copies} more show one still scene without change (copies)" if copies else ""
             why = (f"{held} of {len(images)} photos come from still camera positions with something turning in "
-                   f"front of them" + (f", {copies} more show one still scene without change (copies)" if copies
-                                       else "") + f"; a turntable capture has {MIN_SHARE:.0%} or more")
+                   f"front of them{still}; a turntable capture has {MIN_SHARE:.0%} or more")
         return None, f"turntable: no ({why}; poses.turntable=off skips this check)"
     found = Turntable(groups=groups, moving=moving, background=background, photos=len(images))
     return found, found.reason()

@@ -410,14 +410,14 @@ class Pipeline:
                     )
                     if row["state"] == "done" and upstream_changed:
                         row["state"] = "stale"
-                    if digest is not None and entry.get("source_digest") not in (None, _short_digest(digest)):
-                        photos_changed.add(stage.name)
+                    recorded = entry.get("source_digest")
+                    other_photos = digest is not None and recorded not in (None, _short_digest(digest))
                     after = [u for u in stage.inputs if u in photos_changed]
                     if row["state"] == "stale":
                         row["why"] = rerun_reasons(stage, entry, manifest, config, _short_digest(digest), preset)
                     elif row["state"] == "done" and after:  # its input is made anew from other photos
                         row["state"], row["why"] = "stale", f"after {after[0]}, made from other photos"
-                    if after:
+                    if other_photos or after:
                         photos_changed.add(stage.name)
                 elif entry.get("status") == "failed":
                     row["state"] = "failed"

@@ -8,6 +8,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 from collections import Counter
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -67,23 +68,27 @@ def source_digest(source: Path, cfg: PosesConfig | None) -> str:
     poses file with every image it refers to (an edited image re-runs poses too), or a COLMAP model with its images.
     Paths are hashed as given (absolute): the poses refer to the photos by path, so moved photos re-run poses.
     """
-    h = hashlib.sha256()
-    for label, path in source_files(source):
-        h.update(label.encode())
-        if path is not None:
-            h.update(sha256_file(path).encode())
-    return h.hexdigest()
+    return _files_digest(source, sha256_file)
 
 
 def source_stat(source: Path) -> str:
     """Digest of the same files' names, sizes and modification times: reads no photo, so `recon status` can tell
     at once that the photos are as they were (and hashes them only where this differs)."""
+    return _files_digest(source, _size_and_time)
+
+
+def _size_and_time(path: Path) -> str:
+    stat = path.stat()
+    return f"{stat.st_size}:{stat.st_mtime_ns}"
+
+
+def _files_digest(source: Path, of_file: Callable[[Path], str]) -> str:
+    """Digest of `source_files`: each label, and `of_file` of each file."""
     h = hashlib.sha256()
     for label, path in source_files(source):
         h.update(label.encode())
         if path is not None:
-            stat = path.stat()
-            h.update(f"{stat.st_size}:{stat.st_mtime_ns}".encode())
+            h.update(of_file(path).encode())
     return h.hexdigest()
 
 
@@ -198,7 +203,7 @@ def _turntable_masks(ctx: StageContext, image_dir: Path, names: list[str], mask_
         save_image(mask_dir / f"{name}.png", feature_mask(found, i, oriented_size(image_dir / name)).astype(np.float32))
         if i in found.background:
             save_image(ctx.out / STILL_FOLDER / f"{Path(name).stem}.png", found.background[i].astype(np.float32))
-    return mask_dir, found.reason()
+    return mask_dir, reason
 
 
 def _video(ctx: StageContext) -> tuple[Scene, dict]:
