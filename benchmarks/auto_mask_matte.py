@@ -59,6 +59,7 @@ def main() -> None:
     from recon.capture.images import read_image
     from recon.capture.normalization import normalize
     from recon.capture.scene import load_scene
+    from recon.runner.pipeline import recorded_source
     from recon.config import load_config
 
     where = provenance()  # before anything runs: the record below is a tracked file
@@ -69,7 +70,7 @@ def main() -> None:
     blur = [p["blur_sigma_px"] for p in json.loads((capture / "scene_info.json").read_text())["photos"]]
     config = load_config("fast", [])
     base = prepare_scene("tabletop_realistic", args.work, config, Reporter(quiet=True))
-    scene = normalize(load_scene(base / "01_poses"), config.normalize)  # the scene the masks are cut from
+    scene = normalize(load_scene(base / "01_poses", recorded_source(base)), config.normalize)  # the masks' scene
     found = segment_object(scene)
     sums: dict[str, list[dict[str, float]]] = {name: [] for name, _ in VARIANTS}
     for frame in scene.frames:

@@ -117,9 +117,10 @@ def main(argv: list[str] | None = None) -> None:
     from recon.capture import region as object_region
     from recon.capture.normalization import normalize
     from recon.capture.scene import load_scene
+    from recon.runner.pipeline import recorded_source
     from recon.config import NormalizeConfig
 
-    source = load_scene(a.scene / "01_poses")
+    source = load_scene(a.scene / "01_poses", recorded_source(a.scene))
     scene = normalize(source, NormalizeConfig())
     links = object_region.LINK_SPACINGS
     object_region.LINK_SPACINGS = 0.0

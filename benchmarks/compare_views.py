@@ -32,6 +32,7 @@ def main() -> int:
 
     from recon.atomic import atomic_open
     from recon.capture.scene import load_scene
+    from recon.runner.pipeline import recorded_source
     from recon.evaluation.metrics import psnr
     from recon.evaluation.views import load_view, render_view, target_rgb
     from recon.field import load_field
@@ -40,7 +41,7 @@ def main() -> int:
     if len(fields) != len(labels):
         print(f"error: {len(fields)} fields but {len(labels)} labels: give one label per field", file=sys.stderr)
         return 2
-    scene = load_scene(args.scene / "02_scene")
+    scene = load_scene(args.scene / "02_scene", recorded_source(args.scene))
     frames = {Path(f.file_path).stem: f for f in scene.split("test")}
     missing = [v for v in args.views.split(",") if v not in frames]
     if missing:

@@ -314,6 +314,7 @@ def run_one(args: argparse.Namespace, column: str, until: str | None, sweep: boo
     when `sweep`): its column."""
     from recon.app.progress import Reporter
     from recon.capture.scene import load_scene, spread_evenly
+    from recon.runner.pipeline import recorded_source
     from recon.config import load_config
     from recon.evaluation.views import load_views
     from recon.nerf.device import select_device
@@ -339,7 +340,7 @@ def run_one(args: argparse.Namespace, column: str, until: str | None, sweep: boo
     mesh = json.loads((scene / "04_mesh" / "mesh_report.json").read_text()) if until is None else {}
     stage_s = {o.name: round(o.wall_s, 1) for o in outcomes}
     peak_gib = round(torch.cuda.max_memory_allocated(device) / 2**30, 2) if device.type == "cuda" else None
-    normalized = load_scene(scene / "02_scene")
+    normalized = load_scene(scene / "02_scene", recorded_source(scene))
     tests = normalized.split("test") or normalized.split("val")
     timing_views = load_views(normalized, spread_evenly(tests, args.render_views + 1), config.train.max_side)
     timed = timing_views[1:] or timing_views  # the first is the warm-up's

@@ -39,6 +39,7 @@ def build_step(scene_dir: Path, preset: str, overrides: list[str]) -> tuple[Any,
     """(a training step taking its index, the training plan, the device) for a preset with overrides on a scene recon
     made, planned and built as the train stage does; on CUDA its kernels compiled (`warm_up`)."""
     from recon.capture.scene import load_scene
+    from recon.runner.pipeline import recorded_source
     from recon.config import load_config
     from recon.evaluation.views import load_views
     from recon.nerf.device import select_device
@@ -46,7 +47,7 @@ def build_step(scene_dir: Path, preset: str, overrides: list[str]) -> tuple[Any,
     from recon.plans.training import build_training, plan_training
 
     cfg = load_config(preset, overrides).train
-    scene = load_scene(scene_dir / "02_scene")
+    scene = load_scene(scene_dir / "02_scene", recorded_source(scene_dir))
     views = load_views(scene, scene.split("train"), cfg.max_side)
     device = select_device(cfg.device)
     plan = plan_training(cfg, scene, views, device)

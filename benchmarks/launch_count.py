@@ -84,6 +84,7 @@ def count(scene_dir: Path, preset: str, overrides: list[str], memory_gib: float,
     import triton.runtime.interpreter as interpreter
 
     from recon.capture.scene import load_scene
+    from recon.runner.pipeline import recorded_source
     from recon.config import device_sizing, load_config
     from recon.evaluation.views import load_views
     from recon.nerf import fast, kernels
@@ -96,7 +97,7 @@ def count(scene_dir: Path, preset: str, overrides: list[str], memory_gib: float,
     card_rays = cfg.batch_rays
     cfg.batch_rays = rays
     cfg.fast.kernels = "triton"
-    scene = load_scene(scene_dir / "02_scene")
+    scene = load_scene(scene_dir / "02_scene", recorded_source(scene_dir))
     views = load_views(scene, scene.split("train"), cfg.max_side)
     device = torch.device("cpu")
     plan = plan_training(cfg, scene, views, device)

@@ -98,11 +98,12 @@ def render_turns(args: Any, runs: list[dict[str, Any]]) -> dict[str, Any]:
     """The first training's field renders ``args.renders`` test views (training resolution, no gradients) with each
     run's setting in turns: rounds of every view once."""
     from recon.capture.scene import load_scene
+    from recon.runner.pipeline import recorded_source
     from recon.config import load_config
     from recon.evaluation.views import load_views
     from recon.nerf.evaluate import render_image
 
-    scene = load_scene(args.scene / "02_scene")
+    scene = load_scene(args.scene / "02_scene", recorded_source(args.scene))
     frames = (scene.split("test") or scene.split("val") or scene.split("train"))[: args.renders]
     views = load_views(scene, frames, load_config(args.preset, args.set).train.max_side)
     model = runs[0]["step"].model

@@ -37,6 +37,7 @@ BEFORE = ["train.fast.occupancy_alpha=0.02", "train.fast.unbounded_occupancy_alp
 def run(data: str, work: Path, overrides: list[str], budget: float) -> dict[str, Any]:
     """Train ``data`` (fox: unbounded, masks off; lego-half: bounded) for ``budget`` seconds, then score held-out views."""
     from recon.capture.scene import load_scene
+    from recon.runner.pipeline import recorded_source
     from recon.config import load_config
     from recon.evaluation.views import evaluate, load_views
 
@@ -53,7 +54,8 @@ def run(data: str, work: Path, overrides: list[str], budget: float) -> dict[str,
             per_step.append((result.out["num_samples"] / rays, float(-10 * np.log10(result.rgb_mse))))
             step += 1
         train_s, cpu_s = time.perf_counter() - t0, time.process_time() - c0
-    scene = load_scene(work / ("fox-poses" if fox else "lego-half-poses") / "02_scene")
+    scene_dir = work / ("fox-poses" if fox else "lego-half-poses")
+    scene = load_scene(scene_dir / "02_scene", recorded_source(scene_dir))
     views = load_views(scene, scene.split("val")[::2] if fox else scene.split("test")[::25],
                        load_config("fast").train.max_side)
     model.eval()

@@ -44,13 +44,15 @@ def build(data: str, work: Path, overrides: list[str], unbounded: bool = False) 
     from recon.app.bench import prepare_scene
     from recon.app.progress import Reporter
     from recon.capture.scene import load_scene
+    from recon.runner.pipeline import recorded_source
     from recon.config import load_config
     from recon.evaluation.views import load_views
     from recon.nerf.trainer import TrainStep
     from recon.plans.training import build_training, plan_training
 
     config = load_config("fast", overrides)
-    scene = load_scene(prepare_scene(data, work, load_config(None, overrides), Reporter()) / "02_scene")
+    scene_dir = prepare_scene(data, work, load_config(None, overrides), Reporter())
+    scene = load_scene(scene_dir / "02_scene", recorded_source(scene_dir))
     if unbounded:
         scene.capture = "unbounded"
     cfg = config.train

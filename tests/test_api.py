@@ -77,7 +77,7 @@ def test_load_field_renders_a_photo_camera_like_the_train_stage(built) -> None:
     view = field.render_camera(frame.stem)
     h, w = view.rgb.shape[:2]
     assert max(h, w) == TINY["train.max_side"] and view.depth.shape == (h, w) and view.opacity.shape == (h, w)
-    photo = read_image(Path(frame.file_path), max_side=TINY["train.max_side"])[..., :3]
+    photo = read_image(field.photo_path(frame.stem), max_side=TINY["train.max_side"])[..., :3]
     photo = undistort(photo, frame.fl_x * w / frame.w, frame.fl_y * h / frame.h, frame.cx * w / frame.w, frame.cy * h / frame.h, frame.distortion)
     import torch
 

@@ -379,9 +379,9 @@ def test_unicode_and_spaces_in_paths_and_symlinked_folder(tmp_path: Path) -> Non
     scene = tmp_path / "scène out" / "résultat 1"
     code, out = _run_import(link, scene)
     assert code == 0, out
-    loaded = load_scene(scene / "02_scene")
+    loaded = load_scene(scene / "02_scene", link)
     assert len(loaded.frames) == 4
-    assert all(Path(f.file_path).is_file() for f in loaded.frames)
+    assert all(loaded.image_path(f).is_file() for f in loaded.frames)
     code, out = _run_import(link, scene)
     assert code == 0 and "Traceback" not in out
 

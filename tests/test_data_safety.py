@@ -322,6 +322,31 @@ def test_photo_fingerprint_covers_only_the_photos_recon_uses(tmp_path: Path, mon
     assert poses.source_digest(photos, None) != first
 
 
+def test_photo_fingerprint_follows_the_photos_when_they_move(tmp_path: Path) -> None:
+    """The poses name the photos (and masks beside them) by their place in the photos folder, so the fingerprint does
+    too: the same capture moved elsewhere keeps its poses; moved without its masks, or with a photo renamed, it does
+    not."""
+    from recon.stages.poses import source_digest
+
+    capture = tmp_path / "capture"
+    for folder in ("photos", "masks"):
+        (capture / folder).mkdir(parents=True)
+    for i in range(3):
+        Image.fromarray(np.full((40, 40, 3), 40 * i, np.uint8)).save(capture / "photos" / f"p{i}.jpg")
+        Image.fromarray(np.full((40, 40), 255, np.uint8)).save(capture / "masks" / f"p{i}.png")
+    first = source_digest(capture / "photos", None)
+    moved = tmp_path / "elsewhere" / "the fox"
+    moved.parent.mkdir()
+    capture.rename(moved)
+    assert source_digest(moved / "photos", None) == first
+    (moved / "masks").rename(tmp_path / "masks")  # the masks left behind: other poses (no silhouettes)
+    assert source_digest(moved / "photos", None) != first
+    (tmp_path / "masks").rename(moved / "masks")
+    for folder, suffix in (("photos", ".jpg"), ("masks", ".png")):  # a photo renamed, with its mask
+        (moved / folder / f"p2{suffix}").rename(moved / folder / f"p3{suffix}")
+    assert source_digest(moved / "photos", None) != first
+
+
 def test_transforms_file_fingerprint_covers_its_images(capture: Path) -> None:
     """Given the transforms.json file itself, an edited image did not re-run poses."""
     from recon.stages.poses import source_digest

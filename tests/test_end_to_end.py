@@ -96,6 +96,29 @@ def test_normalize_option_change_reruns_normalize_not_poses(posed: tuple[Path, P
     assert "poses: up to date" in out
 
 
+def test_moved_photos_keep_their_poses(posed: tuple[Path, Path, float]) -> None:
+    """The scene names the photos by their place in the photos folder: the same photos moved elsewhere keep every
+    stage (they re-ran SfM), and the scene then reads them from the new folder."""
+    photos, scene, _ = posed
+    recon("run", str(photos), "--out", str(scene), "--until", "normalize", "-q")  # as the default options make it
+    moved = photos.parent / "moved" / "photos taken"
+    moved.parent.mkdir()
+    photos.rename(moved)
+    try:
+        out = recon("run", str(moved), "--out", str(scene), "--until", "normalize")
+        assert "poses: up to date" in out and "normalize: up to date" in out, out
+        assert f"read from {moved} now" in " ".join(out.split()), out
+        assert json.loads((scene / "manifest.json").read_text())["source"] == str(moved)  # where later commands look
+        for folder in ("01_poses", "02_scene"):
+            assert str(photos) not in (scene / folder / "scene.json").read_text()
+            found = load_scene(scene / folder, moved)
+            assert len(found.frames) == 40 and all(found.image_path(f).parent == moved for f in found.frames)
+            assert all(found.image_path(f).is_file() for f in found.frames)
+        assert "not there" not in recon("status", str(scene))
+    finally:
+        moved.rename(photos)
+
+
 def test_removing_a_photo_reruns_poses(posed: tuple[Path, Path, float]) -> None:
     photos, scene, _ = posed
     (photos / "view_039.jpg").unlink()

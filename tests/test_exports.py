@@ -18,6 +18,7 @@ from recon.app.cli import app
 from recon.app.exports import scene_in_frame
 from recon.capture.images import read_image, read_mask, save_image, undistort
 from recon.capture.scene import Frame, detect_source, import_colmap, import_transforms, load_scene
+from recon.runner.pipeline import recorded_source
 from tests.assets_scene import tiny_scene
 
 runner = CliRunner()
@@ -74,10 +75,10 @@ def test_exported_images_are_the_undistorted_photos(scene_dir: Path, tmp_path: P
     scene_dir = scene_copy
     out = tmp_path / "ns"
     export(scene_dir, "nerfstudio", out)
-    scene = load_scene(scene_dir / "02_scene")
+    scene = load_scene(scene_dir / "02_scene", recorded_source(scene_dir))
     frame = scene.frames[0]
     assert frame.k1 == -0.08
-    original = read_image(Path(frame.file_path))
+    original = read_image(scene.image_path(frame))
     expected = undistort(original, frame.fl_x, frame.fl_y, frame.cx, frame.cy, frame.distortion)
     exported = read_image(out / "images" / frame.name)
     assert np.abs(exported - expected).mean() < 1.5 / 255  # only the JPEG re-encoding differs

@@ -37,8 +37,8 @@ class _Config(RunConfig):
     b: _B = field(default_factory=_B)
 
 
-def _digest_source(source: Path, cfg: object) -> str:  # by path, as the poses stage's: its poses name the photos so
-    return "|".join(f"{p}:{p.read_text()}" for p in sorted(source.iterdir()))
+def _digest_source(source: Path, cfg: object) -> str:  # by name, as the poses stage's: the same photos may move
+    return "|".join(f"{p.name}:{p.read_text()}" for p in sorted(source.iterdir()))
 
 
 def _stage_a(ctx: StageContext) -> dict:
@@ -364,10 +364,15 @@ def test_a_finished_stage_run_again_says_why(tmp_path: Path, source: Path) -> No
     rows = {r["stage"]: r for r in pipe.state(scene, _ReasonConfig(c=_C(budget=3, grid=_Nested(res=96))), source,
                                               preset="fast")}
     assert rows["c"]["why"] == "preset quality → fast, c.grid.res 64 → 96" and "why" not in rows["a"]
-    moved = tmp_path / "moved"  # the same photos from another folder: said so, not "changed"
+    moved = tmp_path / "moved"  # the same photos from another folder: nothing runs again
     os.rename(source, moved)
-    told, _ = run(_ReasonConfig(c=_C(budget=3, grid=_Nested(res=64))), 2, "quality", photos=moved)
-    assert told[0] == f"a runs again: the photos folder changed ({source} → {moved})", told
+    assert run(_ReasonConfig(c=_C(budget=3, grid=_Nested(res=64))), 2, "quality", photos=moved)[0] == []
+    assert Manifest(scene).data["source"] == str(moved)  # where later commands find them
+    other = tmp_path / "other"  # moved and changed: both said
+    os.rename(moved, other)
+    (other / "x").write_text("6")
+    told, _ = run(_ReasonConfig(c=_C(budget=3, grid=_Nested(res=64))), 2, "quality", photos=other)
+    assert told[0] == f"a runs again: the photos changed (read from {other} now, not {moved})", told
 
 
 def test_status_without_options_tells_changed_photos_and_hashes_only_what_looks_changed(tmp_path: Path) -> None:

@@ -189,3 +189,29 @@ def test_npz_import(tmp_path: Path) -> None:
     np.savez(path, poses=poses, focal=60.0)
     with pytest.raises(InputError, match="missing array"):
         import_npz(path, tmp_path / "imgs3")
+
+
+def test_stored_paths_name_the_photos_by_their_place_in_the_input_folder(tmp_path: Path) -> None:
+    """A photo in the input's folder, or a mask beside it, is stored as `{source}/…` and found in the folder the input
+    is read from now; a file elsewhere stays absolute, and a marked path with no folder said is a clear error."""
+    from recon.capture.scene import SOURCE_MARK, stored_path
+
+    capture = tmp_path / "capture"
+    (capture / "photos").mkdir(parents=True)
+    (capture / "masks").mkdir()
+    photo, mask = capture / "photos" / "p 1.jpg", capture / "masks" / "p 1.png"
+    far = tmp_path / "elsewhere" / "x.jpg"
+    assert stored_path(photo, capture / "photos") == f"{SOURCE_MARK}/p 1.jpg"
+    assert stored_path(mask, capture / "photos") == f"{SOURCE_MARK}/../masks/p 1.png"
+    assert stored_path(far, capture / "photos") == str(far)  # two folders up: not the capture's
+    assert stored_path(capture / "clip.mp4", capture / "clip.mp4") == f"{SOURCE_MARK}/clip.mp4"  # a file input
+    frame = Frame(stored_path(photo, capture / "photos"), np.eye(4), 50.0, 50.0, 20.0, 15.0, 40, 30,
+                  mask_path=stored_path(mask, capture / "photos"))
+    Scene(frames=[frame]).save(tmp_path)
+    moved = tmp_path / "moved" / "photos"
+    scene = load_scene(tmp_path, moved)
+    assert scene.frames[0].name == "p 1.jpg"
+    assert scene.image_path(scene.frames[0]) == moved / "p 1.jpg"
+    assert scene.mask_file(scene.frames[0]) == moved.parent / "masks" / "p 1.png"
+    with pytest.raises(InputError, match="input folder"):
+        load_scene(tmp_path).image_path(scene.frames[0])

@@ -318,9 +318,9 @@ def test_masks_next_to_the_video_mask_its_kept_frames(posed: tuple[Path, Path], 
     cv2.imwrite(str(masks / f"{frames[0].stem}.png"), disc)
     code, out = _recon(*args)
     assert code == 0, out
-    scene = load_scene(tmp_path / "scene" / "01_poses")
+    scene = load_scene(tmp_path / "scene" / "01_poses", source)
     assert scene.has_alpha and len(scene.frames) == len(frames)
-    assert {Path(f.mask_path) for f in scene.frames} == {(masks / f"{f.stem}.png").resolve() for f in frames}
+    assert {scene.mask_file(f).resolve() for f in scene.frames} == {(masks / f"{f.stem}.png").resolve() for f in frames}
     config = load_config(DEFAULT_PRESET, POSES_OPTIONS)
     cv2.imwrite(str(masks / f"{frames[3].stem}.png"), 255 - disc)
     state = {r["stage"]: r["state"] for r in default_pipeline().state(tmp_path / "scene", config, source)}

@@ -174,6 +174,21 @@ class Field:
         """Every photo's camera (scene.frames): `.name`, `.c2w`, `.fl_x`…, `.w`, `.h`, `.split`."""
         return self.scene.frames
 
+    def photo_path(self, camera: str | int) -> Path:
+        """Where the photo of a camera (by name, stem or index) is: in the folder the scene was last run on."""
+        return self.scene.image_path(self._frame(camera))
+
+    def _frame(self, camera: str | int) -> Frame:
+        frames = self.scene.frames
+        if isinstance(camera, int):
+            if not -len(frames) <= camera < len(frames):
+                raise ReconError(f"Camera index {camera} is out of range: the scene has {len(frames)} cameras.")
+            return frames[camera]
+        matches = [f for f in frames if camera in (f.name, f.stem)]
+        if not matches:
+            raise ReconError(f"No camera named '{camera}' in the scene; names look like '{frames[0].name}'.")
+        return matches[0]
+
     def render(self, c2w: np.ndarray, fl_x: float, width: int, height: int, fl_y: float | None = None,
                cx: float | None = None, cy: float | None = None, chunk: int | None = None) -> Render:
         """Render a pinhole camera: c2w (4, 4) OpenGL camera-to-world; focal and centre in pixels (centre default: the middle)."""
@@ -196,16 +211,7 @@ class Field:
 
     def render_camera(self, camera: str | int, max_side: int | None = None) -> Render:
         """Render one of the photos' cameras (by name, stem or index) at `max_side` (default: the training size)."""
-        frames = self.scene.frames
-        if isinstance(camera, int):
-            if not -len(frames) <= camera < len(frames):
-                raise ReconError(f"Camera index {camera} is out of range: the scene has {len(frames)} cameras.")
-            frame = frames[camera]
-        else:
-            matches = [f for f in frames if camera in (f.name, f.stem)]
-            if not matches:
-                raise ReconError(f"No camera named '{camera}' in the scene; names look like '{frames[0].name}'.")
-            frame = matches[0]
+        frame = self._frame(camera)
         side = max_side or self.meta.get("max_side") or max(frame.w, frame.h)
         s = min(1.0, side / max(frame.w, frame.h))
         w, h = max(1, round(frame.w * s)), max(1, round(frame.h * s))
@@ -216,6 +222,7 @@ class Field:
 def load_field(scene: str | Path, device: str = "auto") -> Field:
     """The trained field of a scene folder (made by `recon.run` or `recon run`), ready to render cameras."""
     from recon.capture.scene import load_scene
+    from recon.runner.pipeline import recorded_source
     from recon.field import load_field as load_model
     from recon.nerf.device import select_device
 
@@ -228,4 +235,4 @@ def load_field(scene: str | Path, device: str = "auto") -> Field:
     except ValueError as exc:
         raise ReconError(f"device={device}: {exc}") from None
     model, meta = load_model(scene_dir / STAGE_FOLDERS["train"], device=dev)
-    return Field(load_scene(scene_dir / STAGE_FOLDERS["normalize"]), model, meta)
+    return Field(load_scene(scene_dir / STAGE_FOLDERS["normalize"], recorded_source(scene_dir)), model, meta)

@@ -299,8 +299,9 @@ def run_bench(
             row["pose_residual_rms_rel"] = acc.get("alignment", {}).get("residual_rms_rel")
             if (gt.parent / "masks").is_dir():  # true object masks beside the truth: score the cut-outs too
                 from recon.evaluation.mesh_eval import silhouette_iou
+                from recon.runner.pipeline import recorded_source
 
-                cut = silhouette_iou(scene, gt.parent / "masks")
+                cut = silhouette_iou(scene, gt.parent / "masks", recorded_source(scene))
                 row["capture"] = json.loads((scene / "02_scene" / "scene.json").read_text()).get("capture")
                 for key, name in (("mean_iou", "silhouette_iou"), ("min_iou", "silhouette_iou_min"),
                                   ("mean_masks_iou", "masks_iou"), ("min_masks_iou", "masks_iou_min")):

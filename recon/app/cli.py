@@ -24,7 +24,7 @@ from recon.app.progress import Reporter, format_seconds, format_summary, local_m
 from recon.config import (DEFAULT_PRESET, DEFAULT_PRESET_WHY, RunConfig, available_presets, check_batch_against_pixels,
                           load_config, preset_description)
 from recon.errors import ConfigError, ReconError
-from recon.runner.pipeline import RUN_LOG, install_sigterm_as_interrupt, is_disk_full
+from recon.runner.pipeline import RUN_LOG, install_sigterm_as_interrupt, is_disk_full, recorded_source
 
 app = typer.Typer(
     add_completion=False,
@@ -318,8 +318,8 @@ def status(
             console.print(f"[yellow]warning:[/] {escape(manifest.warning)}")
         if (photos := manifest.data.get("source")) and not Path(photos).exists():
             console.print(f"[yellow]warning:[/] the photos {escape(photos)} are not there (moved or deleted): training "
-                          "or meshing again reads them. Give `recon run` the folder where they are now (it poses them "
-                          "anew).")
+                          "or meshing again reads them. Give `recon run` the folder where they are now (the same "
+                          "photos keep what was made from them).")
         if pid := running_pid(scene):
             console.print(f"a recon run (pid {escape(pid)}) is writing this scene now: below are the stages it has "
                           "finished so far (a training's row: its last checkpoint)")
@@ -391,7 +391,7 @@ def eval_(
             from recon.atomic import write_json_atomic
             from recon.evaluation.mesh_eval import silhouette_iou
 
-            result = silhouette_iou(scene, gt_masks)
+            result = silhouette_iou(scene, gt_masks, recorded_source(scene))
             write_json_atomic(target / "silhouette_iou.json", result)
             parts = [f"{what} IoU {result[f'mean_{key}iou']:.3f} (least {result[f'min_{key}iou']:.3f}), precision "
                      f"{result[f'mean_{key}precision']:.3f}, recall {result[f'mean_{key}recall']:.3f}"

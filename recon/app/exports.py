@@ -29,6 +29,7 @@ from recon.capture.images import HEIF_SUFFIXES
 from recon.capture.scene import Frame, Scene, load_scene
 from recon.errors import ReconError
 from recon.runner.ownership import claim_folder, marker_name
+from recon.runner.pipeline import recorded_source
 
 ExportFormat = Literal["nerfstudio", "colmap", "points"]
 ExportFrame = Literal["normalized", "source"]
@@ -52,12 +53,12 @@ def scene_in_frame(scene_dir: Path, frame: ExportFrame) -> Scene:
     if frame == "normalized" or has_normalized:
         if not has_normalized:
             raise ReconError(f"{scene_dir} has no normalized scene yet. Run `recon run PHOTOS --out {scene_dir} --until normalize` first.")
-        normalized = load_scene(normalized_dir)
+        normalized = load_scene(normalized_dir, recorded_source(scene_dir))
         if frame == "normalized":
             return normalized
     if not (source_dir / "scene.json").is_file():
         raise ReconError(f"{scene_dir} has no poses yet. Run `recon run PHOTOS --out {scene_dir} --until poses` first.")
-    source = load_scene(source_dir)
+    source = load_scene(source_dir, recorded_source(scene_dir))
     if not has_normalized:
         return source
     by_path = {f.file_path: f for f in source.frames}

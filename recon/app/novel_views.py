@@ -28,6 +28,7 @@ from recon.evaluation.views import (
 )
 from recon.field import load_field
 from recon.runner.ownership import OwnedFolder, claim_folder, claim_names
+from recon.runner.pipeline import recorded_source
 
 PathKind = Literal["orbit", "spiral", "train", "test"]
 
@@ -77,7 +78,7 @@ def _write_video(frames: list[np.ndarray], out: Path, fps: int) -> list[Path]:
 def _trained(scene_dir: Path, device: str) -> tuple[Scene, torch.nn.Module, dict[str, Any], torch.Tensor | None]:
     from recon.nerf.device import select_device
 
-    scene = load_scene(scene_dir / "02_scene")
+    scene = load_scene(scene_dir / "02_scene", recorded_source(scene_dir))
     model, meta = load_field(scene_dir / "03_field", device=select_device(device))
     aabb = torch.tensor(meta["aabb"], dtype=torch.float32, device=next(model.parameters()).device) if meta.get("bounded", True) else None
     return scene, model, meta, aabb
@@ -102,7 +103,7 @@ def render_path(scene_dir: Path, kind: PathKind, out_dir: Path, frames: int = 60
     from recon.stages import scene_parts
 
     owned = claim_folder(out_dir, "render", scene_parts)
-    owned.check_free(render_names(load_scene(scene_dir / "02_scene"), kind, frames, depth))
+    owned.check_free(render_names(load_scene(scene_dir / "02_scene", recorded_source(scene_dir)), kind, frames, depth))
     scene, model, meta, aabb = _trained(scene_dir, device)
     background = np.asarray(meta["background"], dtype=np.float32)
     side = max_side or meta["max_side"]

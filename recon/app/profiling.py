@@ -267,6 +267,7 @@ def profile_preset(data: str, preset: str, out_dir: Path, overrides: list[str], 
     and write nothing (the caller writes profile.md)."""
     from recon.app.bench import prepare_scene
     from recon.capture.scene import load_scene
+    from recon.runner.pipeline import recorded_source
     from recon.config import load_config
     from recon.evaluation.views import load_views
     from recon.nerf.device import select_device
@@ -275,7 +276,7 @@ def profile_preset(data: str, preset: str, out_dir: Path, overrides: list[str], 
     config = load_config(preset, overrides)
     scene_dir = prepare_scene(data, out_dir, load_config(None, overrides), report)
     cfg = config.train
-    scene = load_scene(scene_dir / "02_scene")
+    scene = load_scene(scene_dir / "02_scene", recorded_source(scene_dir))
     views = load_views(scene, scene.split("train"), cfg.max_side, report, "training photos")
     device = select_device(cfg.device)
     step, plan, setup = profile_training(cfg, scene, views, report, warmup=warmup, steps=steps, title=preset,

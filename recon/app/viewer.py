@@ -20,6 +20,7 @@ import numpy as np
 from recon.app.api import require_scene
 from recon.camera import flip_camera_axes
 from recon.errors import ReconError
+from recon.runner.pipeline import recorded_source
 
 if TYPE_CHECKING:
     import viser
@@ -165,7 +166,7 @@ class SceneViewer:
         viser = require_viser()
         self.scene_dir = scene_dir
         require_scene(scene_dir, "normalize")
-        self.scene: Scene = load_scene(scene_dir / "02_scene")
+        self.scene: Scene = load_scene(scene_dir / "02_scene", recorded_source(scene_dir))
         self.log = log
         self.server = server or viser.ViserServer(host=host, port=port, verbose=False)
         self.server.scene.set_up_direction("+z")
@@ -319,7 +320,7 @@ class TrainingView:
         if not self.cameras_shown:
             from recon.capture.scene import load_scene
 
-            scene = load_scene(self.scene_dir / "02_scene")
+            scene = load_scene(self.scene_dir / "02_scene", recorded_source(self.scene_dir))
             add_cameras(self.server, scene)
             add_points(self.server, scene)
             self.cameras_shown = True

@@ -385,4 +385,5 @@ def normalize(scene: Scene, cfg: NormalizeConfig, holds: np.ndarray | None = Non
         source_kind=scene.source_kind,
         notes=notes,
         root=scene.root,
+        source=scene.source,
     )

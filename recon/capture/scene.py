@@ -4,7 +4,9 @@
 `transform_matrix`, `fl_x fl_y cx cy w h`, OpenCV distortion `k1 k2 p1 p2`, `file_path`) with our own
 keys: `aabb`, `capture`, per-frame `near`/`far`/`split`, and `world_from_source` / `source_from_world`
 (the similarity between the SfM/import frame and ours), so other tools can read it and meshes can
-be returned to the original frame. File paths are absolute (the scene folder can live anywhere).
+be returned to the original frame. A photo in the input's folder (or beside it, as its masks are) is stored as
+`{source}/NAME` (`SOURCE_MARK`, `stored_path`) and found in the folder the input is read from now, so a scene still
+holds when its photos move; images recon wrote are relative to the scene folder, anything else is absolute.
 
 The poses stage writes a `Scene` in the source frame (identity transform, no box); normalize writes
 the canonical one. Every import (COLMAP model, transforms.json, NeRF-synthetic splits, `.npz`) ends
@@ -32,6 +34,9 @@ SCENE_VERSION = 1
 Split = Literal["train", "val", "test"]
 SPLITS: tuple[str, ...] = ("train", "val", "test")
 INTRINSIC_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h", "k1", "k2", "p1", "p2", "k3", "k4", "camera_model")
+
+SOURCE_MARK = "{source}"
+"""How a stored path starts when it names a file in (or beside) the input's folder: `Scene.source` resolves it."""
 
 RAY_DISTANCE = "distance along the unit-length ray"
 """What a frame's `near` and `far` measure, everywhere in recon: the distance t along a ray with a unit-length
@@ -64,8 +69,8 @@ class Frame:
     OPENCV_FISHEYE (equidistant k1 k2 k3 k4). See `recon.capture.colmap.LENS_MODELS`."""
     split: str | None = None
     mask_path: str | None = None
-    """Mask image of the photo (white = object; nerfstudio's `mask_path`): pixels outside are background. Relative:
-    to the scene folder (`Scene.mask_file`)."""
+    """Mask image of the photo (white = object; nerfstudio's `mask_path`): pixels outside are background. Stored
+    like `file_path` (`Scene.mask_file`)."""
     near: float | None = None
     far: float | None = None
     """near/far: the ray segment to model, as a distance along unit-length rays (`RAY_DISTANCE`)."""
@@ -125,6 +130,8 @@ class Scene:
     notes: dict[str, Any] = field(default_factory=dict)
     root: Path | None = None
     """Folder that relative `file_path`s are resolved against (the scene folder for images recon wrote)."""
+    source: Path | None = None
+    """The input's folder as it is now: what a path starting `{source}/` (`SOURCE_MARK`) resolves against."""
 
     def observed_points(self, frame: Frame) -> np.ndarray | None:
         """(N, 3) the sparse points the frame's photo observes; None when the scene records none for it."""
@@ -134,18 +141,26 @@ class Scene:
         return np.asarray(self.points, np.float64).reshape(-1, 3)[np.asarray(seen, np.int64)]
 
     def image_path(self, frame: Frame) -> Path:
-        path = Path(frame.file_path)
+        return self.resolve(frame.file_path)
+
+    def mask_file(self, frame: Frame) -> Path | None:
+        """The frame's mask, resolved as `image_path` resolves photos: the masks recon wrote are relative to the scene
+        folder (which works from any folder and wherever it is moved), the user's masks to the input's folder."""
+        return self.resolve(frame.mask_path) if frame.mask_path else None
+
+    def resolve(self, stored: str) -> Path:
+        """A stored path as a file: `{source}/…` in the input's folder, another relative one in the scene folder."""
+        if stored.startswith(SOURCE_MARK + "/"):
+            if self.source is None:
+                raise InputError(
+                    f"The scene names its photos by their place in the input folder ({stored}), and which folder that "
+                    f"is was not said. Run `recon run PHOTOS --out SCENE` with the photos folder."
+                )
+            return Path(os.path.normpath(self.source / stored[len(SOURCE_MARK) + 1:]))
+        path = Path(stored)
         if path.is_absolute() or self.root is None:
             return path
         return self.root / path
-
-    def mask_file(self, frame: Frame) -> Path | None:
-        """The frame's mask, a relative path (the masks recon wrote into the scene folder) resolved as `image_path`
-        resolves photos: the scene folder works from any folder and wherever it is moved."""
-        if not frame.mask_path:
-            return None
-        path = Path(frame.mask_path)
-        return path if path.is_absolute() or self.root is None else self.root / path
 
     @property
     def source_from_world(self) -> np.ndarray:
@@ -206,8 +221,26 @@ def _shared_intrinsics(frames: list[Frame]) -> dict[str, Any]:
     return {}
 
 
-def load_scene(folder: Path) -> Scene:
-    """Read scene.json (+ points.npz) written by `Scene.save`."""
+def source_folder(source: Path) -> Path:
+    """The folder of an input (photos, a clip, a poses file or model): what `{source}/` paths are relative to. One
+    that is gone is taken for a file by its extension, so an error still names where its photos were looked for."""
+    return source.parent if source.is_file() or (not source.exists() and source.suffix) else source
+
+
+def stored_path(path: Path | str, source: Path) -> str:
+    """How a scene stores a file of the input `source`: `{source}/…` when it lies in the input's folder or beside
+    it (a `masks/` folder next to the photos), so the scene holds when the capture folder moves; else absolute."""
+    folder = os.path.realpath(source_folder(Path(source)))
+    where = os.path.realpath(path)
+    relative = os.path.relpath(where, folder)
+    if relative.startswith(os.pardir + os.sep + os.pardir) or os.path.isabs(relative):
+        return where
+    return f"{SOURCE_MARK}/{Path(relative).as_posix()}"
+
+
+def load_scene(folder: Path, source: Path | None = None) -> Scene:
+    """Read scene.json (+ points.npz) written by `Scene.save`; `source`: the input as it is now (a folder or file),
+    which the photos stored as `{source}/…` are found in."""
     path = folder / "scene.json"
     try:
         doc = read_json(path)
@@ -231,6 +264,7 @@ def load_scene(folder: Path) -> Scene:
         source_kind=doc.get("source_kind", "photos"),
         notes=doc.get("notes") if isinstance(doc.get("notes", {}), dict) and doc.get("notes") else {},
         root=folder.parent,
+        source=None if source is None else source_folder(Path(source)),
     )
     points_path = folder / "points.npz"
     if points_path.exists():

@@ -249,16 +249,17 @@ MASK_EVAL_SIDE = 800
 """Silhouettes are compared at this longest side (pixels)."""
 
 
-def silhouette_iou(scene_dir: Path, masks_dir: Path) -> dict[str, Any]:
+def silhouette_iou(scene_dir: Path, masks_dir: Path, source: Path | None = None) -> dict[str, Any]:
     """How well the scene's mesh (once meshed) and its masks (if any) cut the object out of each photo, against masks
     the user trusts (white = object, same stems as the photos): per photo and mean IoU, precision and recall.
 
     The mesh is rendered into every photo that has a mask in `masks_dir`, in the normalized frame with the scene's
-    cameras; the true masks are undistorted like the photos, so both are pinhole images of the same camera."""
+    cameras; the true masks are undistorted like the photos, so both are pinhole images of the same camera. `source`:
+    the input the scene was run on, where masks given with the photos are found."""
     from recon.capture.images import IMAGE_SUFFIXES
     from recon.geometry.raster import mesh_depth
 
-    scene = load_scene(scene_dir / SCENE_FOLDER)
+    scene = load_scene(scene_dir / SCENE_FOLDER, source)
     meshed = (scene_dir / MESH_FOLDER / "mesh_report.json").is_file()
     vertices, faces, _ = our_mesh_in_scene_frame(scene_dir) if meshed else (None, None, None)
     truth = {p.stem: p for p in sorted(masks_dir.iterdir()) if p.suffix.lower() in IMAGE_SUFFIXES} if masks_dir.is_dir() else {}

@@ -506,6 +506,9 @@ class Pipeline:
             # the finished scene's record alone (single-stage commands default to these)
             changed = False
             if stage.needs_source and source is not None and manifest.data.get("source") != str(source):
+                if outcome.action == "cached" and recorded is not None:
+                    report.info(f"{stage.name}: the same photos, read from {source} now (they were in {recorded}): "
+                                f"what was made from them is kept")
                 manifest.data["source"], changed = str(source), True
             if preset is not None and outcome.action == "ran" and manifest.data.get("preset") != preset:
                 manifest.data["preset"], changed = preset, True
@@ -537,7 +540,9 @@ class Pipeline:
                 f"Stage '{stage.name}' needs the photos folder; give it: `recon run PHOTOS_DIR --out {scene_dir}`."
             )
         if stage.needs_source and source is not None and not source.exists():
-            raise ReconError(f"The input {source} does not exist. Check the path (it is recorded in {MANIFEST}).")
+            raise ReconError(f"The input {source} does not exist. Check the path (it is recorded in {MANIFEST}); if "
+                             f"the photos moved, give `recon run` the folder they are in now: the same photos keep "
+                             f"what was made from them.")
 
         # the files' names, sizes and times before their bytes: one edited while they are read, or while the stage
         # runs, differs from what is kept, and `recon status` then hashes them again
@@ -661,17 +666,18 @@ def rerun_reasons(stage: Stage, entry: dict, manifest: Manifest, config: RunConf
                   preset: str | None = None, source: Path | None = None, most: int = 4) -> str:
     """Why a finished stage runs again, as its entry in the manifest tells against this run: another preset (`preset
     fast → quality`) and the options that changed (`train.lr 0.01 → 0.003`), an upstream output that changed, other
-    photos (or the same from another folder: the poses name them by path), or another recipe of the stage. Without a
+    photos (saying so when they are read from another folder too), or another recipe of the stage. Without a
     config (`recon status` given no options) only what the manifest itself tells."""
     reasons = []
     if config is not None and preset is not None and entry.get("preset") not in (None, preset):
         reasons.append(f"preset {entry['preset']} → {preset}")
     if entry.get("version") not in (None, stage.version):
         reasons.append(f"this recon makes it differently (stage version {entry['version']} → {stage.version})")
-    if entry.get("source_digest") is not None and source_digest not in (None, entry["source_digest"]):
+    if (entry.get("source_digest") is not None and source_digest not in (None, entry["source_digest"])
+            and entry.get("version") in (None, stage.version)):  # another recipe may read the same photos otherwise
         before = manifest.data.get("source")
         moved = source is not None and before is not None and Path(before) != source
-        reasons.append(f"the photos folder changed ({before} → {source})" if moved else "the photos changed")
+        reasons.append(f"the photos changed (read from {source} now, not {before})" if moved else "the photos changed")
     for name in stage.inputs:
         if entry.get("input_digests", {}).get(name) != manifest.stages.get(name, {}).get("output_digest"):
             reasons.append(f"the {name} stage's output changed")
@@ -709,6 +715,15 @@ def _error_line(exc: BaseException) -> str:
 def _manifest_source(manifest: Manifest) -> Path | None:
     src = manifest.data.get("source")
     return Path(src) if src else None
+
+
+def recorded_source(scene_dir: Path) -> Path | None:
+    """The input the scene was last run on (its manifest's `source`): where commands that read the scene's photos
+    after a run (export, eval, the viewer) find them. None for a scene without a readable manifest."""
+    try:
+        return _manifest_source(Manifest(Path(scene_dir)))
+    except (OSError, ValueError, ReconError):
+        return None
 
 
 def _swap_into_place(tmp: Path, folder: Path, stage: str = "") -> None:

@@ -51,7 +51,7 @@ def _mesh(ctx: StageContext) -> dict:
 
 # poses, version 6: turntable captures (features where the photos change, the still room kept for normalize); a final
 # bundle adjustment that runs away is undone
-POSES = Stage(name="poses", folder="01_poses", inputs=(), version=6, run=_poses, needs_source=True,
+POSES = Stage(name="poses", folder="01_poses", inputs=(), version=7, run=_poses, needs_source=True,
               source_digest=_photos_digest, source_stat=_photos_stat)
 
 # normalize, version 6: automatic masks are soft at their outlines, snapped to the photos' edges

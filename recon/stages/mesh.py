@@ -71,7 +71,7 @@ def run(ctx: StageContext) -> dict:
         device = select_device(ctx.run_config.train.device)  # the device training used, as the user chose it
     except ValueError as exc:
         raise ReconError(f"train.device={ctx.run_config.train.device}: {exc}") from None
-    scene = load_scene(ctx.inputs["normalize"])
+    scene = load_scene(ctx.inputs["normalize"], ctx.source)
     model, meta = load_field(ctx.inputs["train"], device)
     plan = plan_mesh(cfg, scene, meta, on_cpu=device.type == "cpu", voxel=field_voxel(model))
     for note in plan.notes:

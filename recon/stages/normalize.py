@@ -29,7 +29,7 @@ MIN_HULL_PHOTOS = 3
 
 
 def run(ctx: StageContext) -> dict:
-    source = load_scene(ctx.inputs["poses"])
+    source = load_scene(ctx.inputs["poses"], ctx.source)
     scene = normalize(source, ctx.config)
     masked, why, in_hull = 0, "", None
     turntable = bool(source.notes.get("turntable"))

@@ -28,6 +28,7 @@ from recon.capture.scene import (
     import_nerf_synthetic,
     import_npz,
     import_transforms,
+    stored_path,
     video_mask_homes,
 )
 from recon.config import PosesConfig
@@ -66,7 +67,8 @@ def source_digest(source: Path, cfg: PosesConfig | None) -> str:
 
     Exactly the files recon reads: the photos directly in a photos folder (never other files or subfolders), or a
     poses file with every image it refers to (an edited image re-runs poses too), or a COLMAP model with its images.
-    Paths are hashed as given (absolute): the poses refer to the photos by path, so moved photos re-run poses.
+    Paths are hashed as the scene stores them (`stored_path`: by their place in the input's folder), so the same
+    photos moved elsewhere, their masks beside them, keep the poses and every later stage.
     """
     return _files_digest(source, sha256_file)
 
@@ -93,11 +95,11 @@ def _files_digest(source: Path, of_file: Callable[[Path], str]) -> str:
 
 
 def source_files(source: Path) -> list[tuple[str, Path | None]]:
-    """What the poses come from, as (label, file): the source's kind (no file), then its files by path, then the
-    masks beside a photos folder or a video (labelled by name: the folder may move with the photos)."""
+    """What the poses come from, as (label, file): the source's kind (no file), then its files by their stored
+    path, then the masks beside a photos folder or a video (labelled by name: the folder may move with the photos)."""
     kind = detect_source(source)
     files: list[tuple[str, Path | None]] = [(kind, None)]
-    files += [(str(path), path) for path in sorted(set(input_files(source, kind)))]
+    files += [(stored_path(path, source), path) for path in sorted(set(input_files(source, kind)))]
     homes = {"photos": [source.parent / MASK_FOLDER], "video": video_mask_homes(source)}.get(kind, [])
     home = next((c for c in homes if c.is_dir()), None)  # masks beside the photos folder or the video are inputs too
     if home is not None:
@@ -149,6 +151,9 @@ def run(ctx: StageContext) -> dict:
         else:
             scene = import_transforms(ctx.source)
         check_cameras(scene, _poses_file(ctx.source, kind))  # here, naming the input, not later blaming recon's own files
+        for frame in scene.frames:  # the input's own files by their place in its folder (images recon wrote stay)
+            frame.file_path = _stored(frame.file_path, ctx.source)
+            frame.mask_path = _stored(frame.mask_path, ctx.source)
         splits = {s: sum(f.split == s for f in scene.frames) for s in ("train", "val", "test") if any(f.split == s for f in scene.frames)}
         summary = {
             "headline": f"imported {len(scene.frames)} cameras from {kind}" + (f" (splits {splits})" if splits else ""),
@@ -157,6 +162,11 @@ def run(ctx: StageContext) -> dict:
         }
     scene.save(ctx.out)
     return summary
+
+
+def _stored(path: str | None, source: Path) -> str | None:
+    """An absolute path as the scene stores it (`stored_path`); relative ones are the scene folder's own."""
+    return stored_path(path, source) if path and Path(path).is_absolute() else path
 
 
 def _poses_file(source: Path, kind: str) -> Path:
@@ -342,9 +352,9 @@ def _structure_from_motion(ctx: StageContext, photos: list[Path] | None = None,
         (ow, oh), (sw, sh) = original_size[path.name], sfm_size[path.name]
         # frames recon wrote live in the scene folder: stored relative to it, like the .npz import's images
         inside = path.is_relative_to(ctx.out)
-        file_path = str(Path(ctx.folder) / path.relative_to(ctx.out)) if inside else str(path.resolve())
+        file_path = str(Path(ctx.folder) / path.relative_to(ctx.out)) if inside else stored_path(path, ctx.source)
         frame = frame_from_sfm(file_path, fd, ow / sw, oh / sh)
-        frame.mask_path = str(masks[path.name].resolve()) if path.name in masks else None
+        frame.mask_path = stored_path(masks[path.name], ctx.source) if path.name in masks else None
         frames.append(frame)
     visibility = {by_sfm_name[n].name: np.asarray(v, dtype=np.int64) for n, v in result.points_visible.items()}
     sfm_scale = float(np.median([original_size[by_sfm_name[n].name][0] / sfm_size[by_sfm_name[n].name][0] for n in result.frames]))
@@ -357,7 +367,7 @@ def _structure_from_motion(ctx: StageContext, photos: list[Path] | None = None,
         source_kind="photos",
         has_alpha=mask_dir is not None,
         notes={"camera_model": result.camera_model, "camera_choice": result.choice_reason,
-               **({"masks": str(mask_dir)} if mask_dir is not None else {}),
+               **({"masks": stored_path(mask_dir, ctx.source)} if mask_dir is not None else {}),
                **({"turntable": turntable_reason} if turntable_reason else {})},
     )
     summary = {

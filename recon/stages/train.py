@@ -128,7 +128,7 @@ def run(ctx: StageContext) -> dict:
     except ValueError as exc:
         raise ReconError(f"train.device={cfg.device}: {exc}") from None
     phases = _Phases()
-    scene = load_scene(ctx.inputs["normalize"])
+    scene = load_scene(ctx.inputs["normalize"], ctx.source)
     train_frames = scene.split("train")
     held_out = scene.split("val") or scene.split("test") or train_frames[:1]
     test_frames = scene.split("test") or held_out
