@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from PIL import Image
 from typer.testing import CliRunner
 
 from recon.app.cli import app
@@ -125,3 +126,38 @@ def test_removing_a_photo_reruns_poses(posed: tuple[Path, Path, float]) -> None:
     recon("run", str(photos), "--out", str(scene), "--until", "normalize", "-q")
     summary = json.loads((scene / "manifest.json").read_text())["stages"]["poses"]["summary"]
     assert summary["total"] == 39
+
+
+def test_photos_taken_sideways_share_the_camera_and_keep_their_poses(tmp_path: Path) -> None:
+    """The sample cut to 400x300, every third photo then turned a quarter as if the phone were held sideways: SfM
+    sees those turned back, so all share one camera (it was one a photo, without EXIF), and their poses come out
+    rolled a quarter about the axis, their intrinsics those of the photo as it is."""
+    from recon.capture.scene import QUARTER_TURN
+
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    turned = set()
+    for i, path in enumerate(sorted((SAMPLE / "images").iterdir())):
+        with Image.open(path) as img:
+            cut = img.crop((0, 50, 400, 350))
+            if i % 3 == 0:
+                cut, _ = cut.transpose(Image.Transpose.ROTATE_90), turned.add(path.name)
+            cut.save(photos / path.name, quality=95)
+    out = recon("run", str(photos), "--out", str(tmp_path / "scene"), "--until", "poses")
+    assert "14 of 40 photos are 300x400" in " ".join(out.split()), out
+    summary = json.loads((tmp_path / "scene" / "manifest.json").read_text())["stages"]["poses"]["summary"]
+    assert summary["registered"] == 40 and summary["cameras"] == 1
+    ours = load_scene(tmp_path / "scene" / "01_poses", photos)
+    truth = json.loads((SAMPLE / "transforms.json").read_text())
+    true_c2w = {Path(f["file_path"]).name: np.asarray(f["transform_matrix"]) for f in truth["frames"]}
+    for name in turned:
+        true_c2w[name][:3, :3] = true_c2w[name][:3, :3] @ QUARTER_TURN.T
+    src = np.stack([f.c2w[:3, 3] for f in ours.frames])
+    s, R, t = fit_sim3(src, np.stack([true_c2w[f.name][:3, 3] for f in ours.frames]))
+    rot_err = {f.name: np.degrees(np.arccos(np.clip((np.trace((R @ f.c2w[:3, :3]).T @ true_c2w[f.name][:3, :3]) - 1)
+                                                    / 2, -1, 1))) for f in ours.frames}
+    assert max(rot_err[n] for n in turned) < 1.5 and np.median(list(rot_err.values())) < 1.0, rot_err
+    for frame in ours.frames:
+        assert (frame.w, frame.h) == ((300, 400) if frame.name in turned else (400, 300))
+        cx, cy = (150, 200) if frame.name in turned else (200, 150)  # the true centre of the cut, turned with it
+        assert abs(frame.cx - cx) < 8 and abs(frame.cy - cy) < 8 and abs(frame.fl_x / 482.84 - 1) < 0.03

@@ -215,3 +215,37 @@ def test_stored_paths_name_the_photos_by_their_place_in_the_input_folder(tmp_pat
     assert scene.mask_file(scene.frames[0]) == moved.parent / "masks" / "p 1.png"
     with pytest.raises(InputError, match="input folder"):
         load_scene(tmp_path).image_path(scene.frames[0])
+
+
+def test_a_pose_found_on_a_turned_copy_is_turned_back_to_the_photo() -> None:
+    """SfM sees a sideways photo turned a quarter (`np.rot90`) to share the others' camera: the frame made from it
+    projects every point where the turned copy put it, moved back (pixel (x, y) of the copy is (h - y, x) of the
+    photo), the lens's radial and tangential distortion included."""
+    import cv2
+    from scipy.spatial.transform import Rotation
+
+    from recon.capture.scene import frame_from_sfm
+
+    def project(frame: Frame, points: np.ndarray) -> np.ndarray:
+        c2w_cv = frame.c2w @ np.diag([1.0, -1.0, -1.0, 1.0])
+        w2c = np.linalg.inv(c2w_cv)
+        K = np.array([[frame.fl_x, 0, frame.cx], [0, frame.fl_y, frame.cy], [0, 0, 1]])
+        return cv2.projectPoints(points.reshape(-1, 1, 3), cv2.Rodrigues(w2c[:3, :3])[0], w2c[:3, 3], K,
+                                 np.array(frame.distortion))[0].reshape(-1, 2)
+
+    c2w = np.eye(4)
+    c2w[:3, :3], c2w[:3, 3] = Rotation.random(random_state=1).as_matrix(), [1.0, 2.0, 3.0]
+    copy = {"c2w": c2w, "w": 640, "h": 480, "fl_x": 500.0, "fl_y": 520.0, "cx": 330.0, "cy": 230.0, "k1": 0.05,
+            "k2": -0.02, "p1": 0.003, "p2": -0.002}
+    rng = np.random.default_rng(0)
+    in_view = np.c_[rng.uniform(-1, 1, (50, 2)), -rng.uniform(2, 4, 50)]  # OpenGL: the camera looks down -Z
+    points = in_view @ c2w[:3, :3].T + c2w[:3, 3]
+    seen = project(frame_from_sfm("a.jpg", copy), points)
+    photo = frame_from_sfm("a.jpg", copy, 2.0, 2.0, turned=True)  # the photo twice the copy's size
+    assert (photo.w, photo.h) == (960, 1280)
+    np.testing.assert_allclose(project(photo, points), 2.0 * np.c_[480 - seen[:, 1], seen[:, 0]], atol=1e-6)
+    np.testing.assert_allclose(photo.center, c2w[:3, 3])
+    image = np.zeros((3, 5))  # the pixel mapping is np.rot90's, which turns the copies
+    image[1, 3] = 1.0
+    y, x = np.argwhere(np.rot90(image))[0]
+    assert (5 - 1 - y, x) == (3, 1)

@@ -35,6 +35,7 @@ from recon.capture.sfm import (
     choose_camera,
     pose_outliers,
     run_sfm,
+    turned_to_share,
 )
 from recon.errors import ReconError
 
@@ -200,6 +201,16 @@ def test_choose_camera_auto_shares_only_one_size_and_device() -> None:
         choose_camera([(400, 300), (300, 400)], [None, None], shared_intrinsics="yes")
     with pytest.raises(ValueError):
         choose_camera([(400, 300)], [None], camera_model="FISHEYE")
+
+
+def test_photos_taken_the_other_way_up_are_turned_to_share_one_camera() -> None:
+    """Only exact transposes of a more common size turn (on a tie, the landscape ones); a square photo, a crop and a
+    capture of one orientation never do."""
+    assert turned_to_share([(400, 300)] * 4 + [(300, 400)] * 2) == [False] * 4 + [True] * 2
+    assert turned_to_share([(300, 400)] * 3 + [(400, 300)] * 2) == [False] * 3 + [True] * 2
+    assert turned_to_share([(400, 300), (300, 400)]) == [True, False]
+    assert turned_to_share([(400, 300)] * 3 + [(300, 300), (299, 400)]) == [False] * 5
+    assert turned_to_share([(1920, 1080)] * 5) == [False] * 5
 
 
 # ----------------------------------------------------------------------------------------------

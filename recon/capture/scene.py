@@ -630,8 +630,26 @@ def _has_alpha(frame: Frame) -> bool:
         ) from None
 
 
-def frame_from_sfm(file_path: str, fd: dict, sx: float = 1.0, sy: float = 1.0) -> Frame:
-    """A Frame from `recon.capture.sfm`'s per-image dict, with intrinsics scaled by (sx, sy) to the photo's size."""
+QUARTER_TURN = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+"""The camera of a photo (OpenGL camera-to-world, right) against the camera of its copy turned a quarter
+counterclockwise (`np.rot90`): the same centre, rolled about the optical axis."""
+
+
+def turned_back(fd: dict) -> dict:
+    """`recon.capture.sfm`'s per-image dict of a copy turned a quarter counterclockwise (`np.rot90`: pixel (x, y) of the
+    copy is (h - y, x) of the photo, h the copy's height), made the photo's: the axes and focal lengths swapped, the
+    principal point and the tangential distortion turned back (radial terms do not change with the roll)."""
+    c2w = np.asarray(fd["c2w"], dtype=np.float64).copy()
+    c2w[:3, :3] = c2w[:3, :3] @ QUARTER_TURN
+    return {**fd, "c2w": c2w, "w": fd["h"], "h": fd["w"], "fl_x": fd["fl_y"], "fl_y": fd["fl_x"],
+            "cx": fd["h"] - fd["cy"], "cy": fd["cx"], "p1": fd["p2"], "p2": -fd["p1"]}
+
+
+def frame_from_sfm(file_path: str, fd: dict, sx: float = 1.0, sy: float = 1.0, turned: bool = False) -> Frame:
+    """A Frame from `recon.capture.sfm`'s per-image dict, with intrinsics scaled by (sx, sy) to the photo's size;
+    `turned`: SfM saw the photo turned a quarter counterclockwise (`turned_back`), (sx, sy) are of the photo upright."""
+    if turned:
+        fd = turned_back(fd)
     return Frame(
         file_path=file_path,
         c2w=np.asarray(fd["c2w"], dtype=np.float64),

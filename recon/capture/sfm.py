@@ -20,6 +20,7 @@ import os
 import shutil
 import sys
 import time
+from collections import Counter
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -171,6 +172,13 @@ def choose_camera(
         sharing = "One per-image"
     reason = f"{sharing} {model} camera ({model_why}; {model_src}): {why}."
     return model, shared, reason
+
+
+def turned_to_share(sizes: list[tuple[int, int]]) -> list[bool]:
+    """Which photos SfM sees turned a quarter: those taken the other way up (w×h where more photos are h×w; on a tie
+    the landscape ones), so that one camera's intrinsics hold both, a COLMAP camera having one width and height."""
+    count = Counter(sizes)
+    return [w != h and (count[(h, w)], w) > (count[(w, h)], h) for w, h in sizes]
 
 
 def camera_groups(

@@ -180,14 +180,34 @@ def _poses_file(source: Path, kind: str) -> Path:
     return source
 
 
-def prepare_photo(path: Path, image_dir: Path, max_side: int) -> tuple[str, tuple[int, int], tuple[int, int]]:
-    """The copy of one photo COLMAP reads: upright, downscaled to max_side, 8-bit, with the photo's device and
-    focal-length EXIF (Orientation 1). Returns its file name, the photo's and the copy's (width, height)."""
+def prepare_photo(path: Path, image_dir: Path, max_side: int, turn: bool = False) -> tuple[str, tuple[int, int],
+                                                                                      tuple[int, int]]:
+    """The copy of one photo COLMAP reads: upright (with `turn`, then turned a quarter counterclockwise:
+    `recon.capture.sfm.turned_to_share`), downscaled to max_side, 8-bit, with the photo's device and focal-length EXIF
+    (Orientation 1). Returns its file name, the photo's and the copy's (width, height), both upright."""
     original = oriented_size(path)
     small = read_image(path, max_side=max_side)
     name = path.stem + (".png" if small.shape[-1] == 4 or path.suffix.lower() == ".png" else ".jpg")
-    save_image(image_dir / name, small[..., :3], exif=camera_exif(path))
+    pixels = np.ascontiguousarray(np.rot90(small[..., :3])) if turn else small[..., :3]
+    save_image(image_dir / name, pixels, exif=camera_exif(path))
     return name, original, (small.shape[1], small.shape[0])
+
+
+def _turned_photos(ctx: StageContext, photos: list[Path]) -> set[Path]:
+    """The photos taken the other way up from most (`turned_to_share`), said with why: SfM sees them turned, so one
+    camera's intrinsics hold every photo instead of one camera each way up (or one a photo, without EXIF)."""
+    from recon.capture.sfm import turned_to_share
+
+    sizes = [oriented_size(path) for path in photos]
+    turned = {path for path, turn in zip(photos, turned_to_share(sizes), strict=True) if turn}
+    if turned:
+        w, h = oriented_size(next(iter(turned)))
+        ctx.report.info(
+            f"{len(turned)} of {len(photos)} photos are {w}x{h} where the others are {h}x{w} (taken the other way "
+            f"up): SfM sees them turned a quarter, so that one camera's intrinsics hold them all; their poses are "
+            f"turned back"
+        )
+    return turned
 
 
 def _turntable_masks(ctx: StageContext, image_dir: Path, names: list[str], mask_dir: Path) -> tuple[Path | None, str]:
@@ -293,9 +313,11 @@ def _structure_from_motion(ctx: StageContext, photos: list[Path] | None = None,
     original_size: dict[str, tuple[int, int]] = {}
     sfm_size: dict[str, tuple[int, int]] = {}
     names = []
+    turned = _turned_photos(ctx, photos)
     with ctx.report.task("reading photos", total=len(photos)) as bar:
         for path in photos:
-            name, original_size[path.name], sfm_size[path.name] = prepare_photo(path, image_dir, cfg.max_side)
+            name, original_size[path.name], sfm_size[path.name] = prepare_photo(path, image_dir, cfg.max_side,
+                                                                                path in turned)
             names.append((path, name))
             bar.advance()
     by_sfm_name = {name: path for path, name in names}
@@ -353,7 +375,7 @@ def _structure_from_motion(ctx: StageContext, photos: list[Path] | None = None,
         # frames recon wrote live in the scene folder: stored relative to it, like the .npz import's images
         inside = path.is_relative_to(ctx.out)
         file_path = str(Path(ctx.folder) / path.relative_to(ctx.out)) if inside else stored_path(path, ctx.source)
-        frame = frame_from_sfm(file_path, fd, ow / sw, oh / sh)
+        frame = frame_from_sfm(file_path, fd, ow / sw, oh / sh, turned=path in turned)
         frame.mask_path = stored_path(masks[path.name], ctx.source) if path.name in masks else None
         frames.append(frame)
     visibility = {by_sfm_name[n].name: np.asarray(v, dtype=np.int64) for n, v in result.points_visible.items()}
