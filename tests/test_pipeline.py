@@ -5,6 +5,7 @@ import fcntl
 import json
 import multiprocessing
 import os
+import shutil
 import threading
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -373,6 +374,26 @@ def test_a_finished_stage_run_again_says_why(tmp_path: Path, source: Path) -> No
     (other / "x").write_text("6")
     told, _ = run(_ReasonConfig(c=_C(budget=3, grid=_Nested(res=64))), 2, "quality", photos=other)
     assert told[0] == f"a runs again: the photos changed (read from {other} now, not {moved})", told
+
+
+def test_a_project_folder_moved_whole_finds_its_photos_from_the_scene(tmp_path: Path) -> None:
+    """Photos and scene in one project folder, moved together: the recorded photos path is gone, the same path from
+    the scene folder finds them, so a run without the photos (and every command reading them) goes on cached."""
+    project = tmp_path / "project"
+    photos = project / "photos"
+    photos.mkdir(parents=True)
+    (photos / "x").write_text("3")
+    assert _run(project / "scene", photos) == ["a", "b"]
+    moved = tmp_path / "elsewhere" / "project moved"
+    moved.parent.mkdir()
+    project.rename(moved)
+    manifest = Manifest(moved / "scene")
+    assert manifest.source == moved / "photos" and manifest.data["source"] == str(photos)
+    assert [row["state"] for row in PIPE.state(moved / "scene")] == ["done", "done"]
+    assert _run(moved / "scene", None) == []  # cached, from the photos where they are now
+    assert Manifest(moved / "scene").data["source"] == str(moved / "photos")
+    shutil.rmtree(moved / "photos")
+    assert Manifest(moved / "scene").source == moved / "photos"  # gone both ways: the last path, for the error
 
 
 def test_status_without_options_tells_changed_photos_and_hashes_only_what_looks_changed(tmp_path: Path) -> None:

@@ -316,10 +316,10 @@ def status(
         manifest = Manifest(scene)
         if manifest.warning:
             console.print(f"[yellow]warning:[/] {escape(manifest.warning)}")
-        if (photos := manifest.data.get("source")) and not Path(photos).exists():
-            console.print(f"[yellow]warning:[/] the photos {escape(photos)} are not there (moved or deleted): training "
-                          "or meshing again reads them. Give `recon run` the folder where they are now (the same "
-                          "photos keep what was made from them).")
+        if (photos := manifest.source) and not photos.exists():
+            console.print(f"[yellow]warning:[/] the photos {escape(str(photos))} are not there (moved or deleted): "
+                          "training or meshing again reads them. Give `recon run` the folder where they are now (the "
+                          "same photos keep what was made from them).")
         if pid := running_pid(scene):
             console.print(f"a recon run (pid {escape(pid)}) is writing this scene now: below are the stages it has "
                           "finished so far (a training's row: its last checkpoint)")

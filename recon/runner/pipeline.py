@@ -142,7 +142,7 @@ def manifest_problem(data: Any) -> str | None:
         return "it has no recon manifest format/version"
     if not isinstance(data.get("stages"), dict):
         return "'stages' is missing or not an object"
-    for key in ("source", "preset"):
+    for key in ("source", "source_from_scene", "preset"):
         if not isinstance(data.get(key), (str, type(None))):
             return f"'{key}' is not a string"
     for name, entry in data["stages"].items():
@@ -186,6 +186,28 @@ class Manifest:
     @property
     def stages(self) -> dict[str, dict]:
         return self.data["stages"]
+
+    @property
+    def source(self) -> Path | None:
+        """The input the scene was last run on; where that path is gone but the same path from the scene folder
+        (`source_from_scene`) is there, that one: a project folder holding both the photos and the scene moved."""
+        recorded = self.data.get("source")
+        if not recorded:
+            return None
+        beside = self.data.get("source_from_scene")
+        if not os.path.exists(recorded) and beside and (self.path.parent / beside).exists():
+            return Path(os.path.normpath(self.path.parent.absolute() / beside))
+        return Path(recorded)
+
+    def record_source(self, source: Path) -> bool:
+        """Keep `source` as the scene's input, also as a path from the scene folder; whether that changed anything."""
+        try:
+            beside: str | None = os.path.relpath(source.absolute(), self.path.parent.absolute())
+        except ValueError:  # another drive
+            beside = None
+        before = (self.data.get("source"), self.data.get("source_from_scene"))
+        self.data["source"], self.data["source_from_scene"] = str(source), beside
+        return before != (str(source), beside)
 
     def save(self) -> None:
         self.data.setdefault("format", MANIFEST_FORMAT)
@@ -397,7 +419,7 @@ class Pipeline:
                 if entry.get("status") == "done" and folder.is_dir():
                     row["state"] = "done" if self._outputs_intact(folder, entry) else "corrupt"
                     digest = None
-                    photos = source or _manifest_source(manifest)
+                    photos = source or manifest.source
                     if row["state"] == "done" and config is not None and (photos is None or photos.exists()):
                         digest = self.source_digest(stage, config, photos)
                         if self.fingerprint(stage, manifest, config, photos, digest) != entry.get("fingerprint"):
@@ -493,7 +515,7 @@ class Pipeline:
         if manifest.warning:
             report.warn(manifest.warning)
         _remove_leftovers(scene_dir, folders)
-        recorded = _manifest_source(manifest)
+        recorded = manifest.source
         if source is None and recorded is not None:
             check_scene_dir(scene_dir, recorded, folders)
         source = source or recorded
@@ -505,11 +527,12 @@ class Pipeline:
             # recorded only once a stage succeeded: a failed run with other photos or another preset leaves
             # the finished scene's record alone (single-stage commands default to these)
             changed = False
-            if stage.needs_source and source is not None and manifest.data.get("source") != str(source):
-                if outcome.action == "cached" and recorded is not None:
-                    report.info(f"{stage.name}: the same photos, read from {source} now (they were in {recorded}): "
+            if stage.needs_source and source is not None:
+                before = manifest.data.get("source")
+                if outcome.action == "cached" and before is not None and before != str(source):
+                    report.info(f"{stage.name}: the same photos, read from {source} now (they were in {before}): "
                                 f"what was made from them is kept")
-                manifest.data["source"], changed = str(source), True
+                changed = manifest.record_source(source)
             if preset is not None and outcome.action == "ran" and manifest.data.get("preset") != preset:
                 manifest.data["preset"], changed = preset, True
             if changed:
@@ -712,16 +735,11 @@ def _error_line(exc: BaseException) -> str:
     return text.splitlines()[0][:300]
 
 
-def _manifest_source(manifest: Manifest) -> Path | None:
-    src = manifest.data.get("source")
-    return Path(src) if src else None
-
-
 def recorded_source(scene_dir: Path) -> Path | None:
     """The input the scene was last run on (its manifest's `source`): where commands that read the scene's photos
     after a run (export, eval, the viewer) find them. None for a scene without a readable manifest."""
     try:
-        return _manifest_source(Manifest(Path(scene_dir)))
+        return Manifest(Path(scene_dir)).source
     except (OSError, ValueError, ReconError):
         return None
 
