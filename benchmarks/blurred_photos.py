@@ -1,0 +1,95 @@
+"""A few shaken photos among sharp ones: what they cost the field and the mesh, and what leaving them out gains.
+
+    python benchmarks/blurred_photos.py --work /tmp/blurred --name blurred_photos --label shipped [--set KEY=VALUE]
+
+Copies the shipped sample's 40 photos into WORK/images with four training photos (view_003, _013, _021, _029: none of
+the held-out ones) smeared by a straight camera shake of 2% of the photo's width in a direction of its own, runs
+`recon run WORK/images --out WORK/scene-LABEL --preset fast` for a fixed 4,000 steps (not the time budget: the steps
+must not depend on the machine's load) with any `--set` given, then `recon eval --gt-mesh` against the sample's true
+surface. Appends a row (label, overrides, which photos normalize left out and why, steps, rays/s, held-out PSNR and
+SSIM, F@1%, F@0.5%, Chamfer, commit and machine) to benchmarks/results/NAME.json. It measures; it asserts nothing.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import subprocess
+import sys
+from datetime import datetime, timezone
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))  # this checkout's recon, not an installed one
+SAMPLE = REPO / "fixtures" / "sample"
+SHAKEN = {"view_003.jpg": 20.0, "view_013.jpg": 75.0, "view_021.jpg": 140.0, "view_029.jpg": 300.0}
+"""The photos shaken, with the direction of each shake in degrees."""
+SHAKE = 0.02
+"""The shake's length, as a share of the photo's width."""
+
+
+def shaken(image: np.ndarray, degrees: float, length: float) -> np.ndarray:
+    """`image` smeared along a straight line of `length` pixels at `degrees` (a hand's shake during the exposure)."""
+    size = int(np.ceil(length)) | 1
+    kernel = np.zeros((size, size), np.float32)
+    c, d = size // 2, np.radians(degrees)
+    for t in np.linspace(-length / 2, length / 2, 4 * size):
+        kernel[int(round(c + t * np.sin(d))), int(round(c + t * np.cos(d)))] += 1.0
+    return cv2.filter2D(image, -1, kernel / kernel.sum(), borderType=cv2.BORDER_REFLECT)
+
+
+def make_capture(images: Path) -> None:
+    shutil.rmtree(images, ignore_errors=True)
+    images.mkdir(parents=True)
+    for path in sorted((SAMPLE / "images").iterdir()):
+        if path.name in SHAKEN:
+            photo = cv2.imread(str(path))
+            cv2.imwrite(str(images / path.name), shaken(photo, SHAKEN[path.name], SHAKE * photo.shape[1]),
+                        [cv2.IMWRITE_JPEG_QUALITY, 95])
+        else:
+            shutil.copyfile(path, images / path.name)
+
+
+def recon(*args: str) -> None:
+    subprocess.run([sys.executable, "-m", "recon", *args], cwd=REPO, check=True,
+                   env={**os.environ, "PYTHONPATH": str(REPO)})
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--work", type=Path, required=True)
+    parser.add_argument("--name", required=True)
+    parser.add_argument("--label", required=True)
+    parser.add_argument("--set", dest="overrides", action="append", default=[])
+    args = parser.parse_args()
+    from recon.app.bench import provenance
+
+    where, load = provenance(), [round(x, 2) for x in os.getloadavg()]
+    date = datetime.now(timezone.utc).isoformat(timespec="seconds")
+    make_capture(args.work / "images")
+    scene = args.work / f"scene-{args.label.replace(' ', '_').replace(',', '')}"
+    shutil.rmtree(scene, ignore_errors=True)
+    sets = [a for o in ["train.budget=", "train.steps=4000", *args.overrides] for a in ("--set", o)]
+    recon("run", str(args.work / "images"), "--out", str(scene), "--preset", "fast", "-q", *sets)
+    recon("eval", str(scene), "--gt-mesh", str(SAMPLE / "gt_mesh.ply"))
+    metrics = json.loads((scene / "03_field" / "metrics.json").read_text())
+    accuracy = json.loads((scene / "eval" / "mesh_accuracy.json").read_text())
+    notes = json.loads((scene / "02_scene" / "scene.json").read_text())["notes"]
+    row = {"label": args.label, "overrides": args.overrides, "shaken": sorted(SHAKEN), "shake": SHAKE,
+           "blurred": notes.get("blurred"), "steps": metrics.get("steps"), "rays_per_s": metrics.get("rays_per_s"),
+           "psnr": metrics["test"]["psnr"], "ssim": metrics["test"]["ssim"], "fscore_1pct": accuracy.get("fscore@0.01"),
+           "fscore_05pct": accuracy.get("fscore@0.005"), "chamfer_rel": accuracy.get("chamfer_l1_rel"),
+           **where, "date": date, "load_average_start": load, "load_average_end": [round(x, 2) for x in os.getloadavg()]}
+    out = REPO / "benchmarks" / "results" / f"{args.name}.json"
+    rows = json.loads(out.read_text()) if out.is_file() else []
+    rows.append(row)
+    out.write_text(json.dumps(rows, indent=1) + "\n")
+    print(json.dumps(row, indent=1))
+
+
+if __name__ == "__main__":
+    main()
