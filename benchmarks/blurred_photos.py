@@ -83,7 +83,8 @@ def main() -> None:
            "blurred": notes.get("blurred"), "steps": metrics.get("steps"), "rays_per_s": metrics.get("rays_per_s"),
            "psnr": metrics["test"]["psnr"], "ssim": metrics["test"]["ssim"], "fscore_1pct": accuracy.get("fscore@0.01"),
            "fscore_05pct": accuracy.get("fscore@0.005"), "chamfer_rel": accuracy.get("chamfer_l1_rel"),
-           **where, "date": date, "load_average_start": load, "load_average_end": [round(x, 2) for x in os.getloadavg()]}
+           **where, "date": date, "load_average_start": load,
+           "load_average_end": [round(x, 2) for x in os.getloadavg()]}
     out = REPO / "benchmarks" / "results" / f"{args.name}.json"
     rows = json.loads(out.read_text()) if out.is_file() else []
     rows.append(row)
