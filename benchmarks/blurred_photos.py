@@ -42,13 +42,13 @@ def shaken(image: np.ndarray, degrees: float, length: float) -> np.ndarray:
     return cv2.filter2D(image, -1, kernel / kernel.sum(), borderType=cv2.BORDER_REFLECT)
 
 
-def make_capture(images: Path) -> None:
+def make_capture(images: Path, shake: float) -> None:
     shutil.rmtree(images, ignore_errors=True)
     images.mkdir(parents=True)
     for path in sorted((SAMPLE / "images").iterdir()):
-        if path.name in SHAKEN:
+        if path.name in SHAKEN and shake > 0:
             photo = cv2.imread(str(path))
-            cv2.imwrite(str(images / path.name), shaken(photo, SHAKEN[path.name], SHAKE * photo.shape[1]),
+            cv2.imwrite(str(images / path.name), shaken(photo, SHAKEN[path.name], shake * photo.shape[1]),
                         [cv2.IMWRITE_JPEG_QUALITY, 95])
         else:
             shutil.copyfile(path, images / path.name)
@@ -65,12 +65,13 @@ def main() -> None:
     parser.add_argument("--name", required=True)
     parser.add_argument("--label", required=True)
     parser.add_argument("--set", dest="overrides", action="append", default=[])
+    parser.add_argument("--shake", type=float, default=SHAKE, help="the shake's length over the width (0: none)")
     args = parser.parse_args()
     from recon.app.bench import provenance
 
     where, load = provenance(), [round(x, 2) for x in os.getloadavg()]
     date = datetime.now(timezone.utc).isoformat(timespec="seconds")
-    make_capture(args.work / "images")
+    make_capture(args.work / "images", args.shake)
     scene = args.work / f"scene-{args.label.replace(' ', '_').replace(',', '')}"
     shutil.rmtree(scene, ignore_errors=True)
     sets = [a for o in ["train.budget=", "train.steps=4000", *args.overrides] for a in ("--set", o)]
@@ -79,7 +80,7 @@ def main() -> None:
     metrics = json.loads((scene / "03_field" / "metrics.json").read_text())
     accuracy = json.loads((scene / "eval" / "mesh_accuracy.json").read_text())
     notes = json.loads((scene / "02_scene" / "scene.json").read_text())["notes"]
-    row = {"label": args.label, "overrides": args.overrides, "shaken": sorted(SHAKEN), "shake": SHAKE,
+    row = {"label": args.label, "overrides": args.overrides, "shaken": sorted(SHAKEN), "shake": args.shake,
            "blurred": notes.get("blurred"), "steps": metrics.get("steps"), "rays_per_s": metrics.get("rays_per_s"),
            "psnr": metrics["test"]["psnr"], "ssim": metrics["test"]["ssim"], "fscore_1pct": accuracy.get("fscore@0.01"),
            "fscore_05pct": accuracy.get("fscore@0.005"), "chamfer_rel": accuracy.get("chamfer_l1_rel"),

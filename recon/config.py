@@ -71,6 +71,9 @@ class NormalizeConfig:
     masks: Literal["auto", "off"] = "auto"
     """auto: an object capture without masks that shows a lot of table and room gets object masks cut from its
     photos (`recon.capture.auto_masks`, written to 02_scene/masks/) when they agree across photos; off: never."""
+    blurred: Literal["auto", "keep"] = "auto"
+    """auto: a training photo far blurrier than the photos that share its view (shaken, out of focus) is left out
+    of training (`recon.capture.blur`; 20 training photos or more, at most an eighth of them); keep: every photo."""
 
 
 @dataclass

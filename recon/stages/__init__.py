@@ -51,6 +51,8 @@ def _mesh(ctx: StageContext) -> dict:
 
 # poses, version 6: turntable captures (features where the photos change, the still room kept for normalize); a final
 # bundle adjustment that runs away is undone
+# version 7: photos named by their place in the input folder ({source}/NAME); photos taken the other way up from most
+#            turned a quarter for SfM to share one camera
 POSES = Stage(name="poses", folder="01_poses", inputs=(), version=7, run=_poses, needs_source=True,
               source_digest=_photos_digest, source_stat=_photos_stat)
 
@@ -71,7 +73,8 @@ POSES = Stage(name="poses", folder="01_poses", inputs=(), version=7, run=_poses,
 # version 19: automatic masks: the hull's silhouette splatted at each vertex's depth; a close-up it fills without
 #             background points takes it; a cut reaching the pinhole image's edge reaches the photo's border
 # version 20: automatic masks: object points nearly every mask leaves out (up to a tenth) do not count against them
-NORMALIZE = Stage(name="normalize", folder="02_scene", inputs=("poses",), version=20, run=_normalize)
+# version 21: training photos far blurrier than those sharing their view are left out (normalize.blurred)
+NORMALIZE = Stage(name="normalize", folder="02_scene", inputs=("poses",), version=21, run=_normalize)
 
 # train, version 2: train.depth_prior=auto turns the prior on for the surface model, so a cached surface field is stale
 # version 3: the surface model keys a plain backdrop (train.backdrop_key) and starts from the SfM points' hull

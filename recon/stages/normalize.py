@@ -41,6 +41,7 @@ def run(ctx: StageContext) -> dict:
         scene = normalize(source, ctx.config, holds=_masks_hull(ctx, scene))
     if why:
         scene.notes["masks"] = why
+    blurred = _leave_out_blurred(ctx, scene)
     scene.save(ctx.out)
     for key in ("up", "capture", "region", "masks", "box", "scale", "split"):
         if scene.notes.get(key):
@@ -56,7 +57,30 @@ def run(ctx: StageContext) -> dict:
         "aabb": scene.aabb.round(4).tolist(),
         "auto_masks": masked,
         "auto_masks_in_hull": in_hull,  # the median photo's share of its cut in the hull (None: no cut was made)
+        "blurred": blurred,
     }
+
+
+def _leave_out_blurred(ctx: StageContext, scene: Scene) -> dict[str, float]:
+    """Drop the training photos far blurrier than those that share their view (`recon.capture.blur`), said with why;
+    their sharpness shares, also kept in the scene's notes."""
+    from recon.capture.blur import BLURRED_SHARE, blurred_photos
+    from recon.capture.video import ANALYSIS_SIDE
+
+    if ctx.config.blurred == "keep":
+        return {}
+    blurred = blurred_photos(scene, ANALYSIS_SIDE)
+    if blurred:
+        train = len(scene.split("train"))
+        scene.frames = [f for f in scene.frames if f.name not in blurred]
+        scene.notes["blurred"] = blurred
+        ctx.report.warn(
+            f"{len(blurred)} of {train} training photos are blurred (shaken or out of focus: "
+            + ", ".join(f"{name} {share:.2f}" for name, share in blurred.items())
+            + f" of the sharpness of the photos that share their view, under {BLURRED_SHARE}): left out of training "
+            f"(normalize.blurred=keep keeps them)"
+        )
+    return blurred
 
 
 def _auto_masks(ctx: StageContext, source: Scene, scene: Scene, turntable: bool = False) -> tuple[int, str, float]:

@@ -1,0 +1,65 @@
+"""Photos shaken or out of focus: each photo's sharpness against the photos that share most of its view.
+
+A hand-held photo taken in a jerk, or focused behind the object, trains its blur into the field: the colour loss
+pulls every surface it sees towards a smear the other photos contradict, and the mesh's colours are baked from it
+too. Sharpness alone cannot tell such a photo (a close-up of a plain part has few edges when sharp), so each photo is
+compared with the `NEIGHBOURS` photos that see most of the same sparse points: the same part of the object, at about
+the same scale. The measure is the variance of the Laplacian over the variance of the gray levels, at
+`recon.capture.video.ANALYSIS_SIDE`: blur removes the high frequencies the first sums, while a darker or brighter
+exposure scales both alike.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from recon.capture.images import read_image
+from recon.capture.scene import Scene
+
+BLURRED_SHARE = 0.35
+"""A training photo whose sharpness is under this share of its neighbours' median is blurred. The fox's 67 photos
+measure 0.49 and up against theirs (median 0.97); shaken along 3 px at 640 px (0.5% of the width) a photo measures
+0.13-0.45, along 5 px 0.08-0.26 (`benchmarks/blur_shares.py`; `benchmarks/blurred_photos.py` measures what leaving
+them out gains)."""
+NEIGHBOURS = 4
+MIN_TRAINING_PHOTOS = 20
+"""With fewer training photos every photo is kept: each view counts more than its blur costs."""
+MOST_LEFT_OUT = 1 / 8
+"""At most this share of the training photos is left out (the blurriest first): a capture blurred throughout
+trains on what it has."""
+
+
+def sharpness(gray: np.ndarray) -> float:
+    """Variance of the Laplacian over the variance of the gray levels (independent of the exposure's gain)."""
+    import cv2
+
+    gray = np.asarray(gray, np.float32)
+    spread = float(gray.var())
+    return float(cv2.Laplacian(gray, cv2.CV_32F).var()) / spread if spread > 0 else 0.0
+
+
+def sharpness_shares(scene: Scene, side: int) -> dict[str, float]:
+    """{frame name: its sharpness over the median of its `NEIGHBOURS`'}, for the frames with sparse points (SfM's)."""
+    names = [f.name for f in scene.frames if len(scene.point_visibility.get(f.name, ())) > 0]
+    if len(names) <= NEIGHBOURS:
+        return {}
+    by_name = {f.name: f for f in scene.frames}
+    sharp = {n: sharpness(read_image(scene.image_path(by_name[n]), max_side=side)[..., :3].mean(axis=-1))
+             for n in names}
+    seen = [set(np.asarray(scene.point_visibility[n]).tolist()) for n in names]
+    shares = {}
+    for i, name in enumerate(names):
+        shared = sorted(((len(seen[i] & seen[j]), names[j]) for j in range(len(names)) if j != i), reverse=True)
+        shares[name] = sharp[name] / max(float(np.median([sharp[n] for _, n in shared[:NEIGHBOURS]])), 1e-12)
+    return shares
+
+
+def blurred_photos(scene: Scene, side: int) -> dict[str, float]:
+    """{training frame name: its sharpness share} of the training photos to leave out, the blurriest first; empty
+    with under `MIN_TRAINING_PHOTOS` training photos."""
+    train = scene.split("train")
+    if len(train) < MIN_TRAINING_PHOTOS:
+        return {}
+    shares = sharpness_shares(scene, side)
+    blurred = sorted((shares[f.name], f.name) for f in train if shares.get(f.name, 1.0) < BLURRED_SHARE)
+    most = min(int(len(train) * MOST_LEFT_OUT), len(train) - MIN_TRAINING_PHOTOS)
+    return {name: round(share, 3) for share, name in blurred[:max(most, 0)]}
