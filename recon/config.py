@@ -73,7 +73,8 @@ class NormalizeConfig:
     photos (`recon.capture.auto_masks`, written to 02_scene/masks/) when they agree across photos; off: never."""
     blurred: Literal["auto", "keep"] = "auto"
     """auto: a training photo far blurrier than the photos that share its view (shaken, out of focus) is left out
-    of training (`recon.capture.blur`; 20 training photos or more, at most an eighth of them); keep: every photo."""
+    of training (`recon.capture.blur`; 20 training photos or more, at most an eighth of them; a video's frames were
+    chosen for sharpness already); keep: every photo."""
 
 
 @dataclass

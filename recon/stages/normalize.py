@@ -63,11 +63,12 @@ def run(ctx: StageContext) -> dict:
 
 def _leave_out_blurred(ctx: StageContext, scene: Scene) -> dict[str, float]:
     """Drop the training photos far blurrier than those that share their view (`recon.capture.blur`), said with why;
-    their sharpness shares, also kept in the scene's notes."""
+    their sharpness shares, also kept in the scene's notes. A video's frames are not checked: choosing them already
+    weighed a blurred stretch against a gap in the orbit (`recon.capture.video`)."""
     from recon.capture.blur import BLURRED_SHARE, blurred_photos
     from recon.capture.video import ANALYSIS_SIDE
 
-    if ctx.config.blurred == "keep":
+    if ctx.config.blurred == "keep" or scene.source_kind == "video":
         return {}
     blurred = blurred_photos(scene, ANALYSIS_SIDE)
     if blurred:
