@@ -42,15 +42,18 @@ def sharpness_shares(scene: Scene, side: int) -> dict[str, float]:
     names = [f.name for f in scene.frames if len(scene.point_visibility.get(f.name, ())) > 0]
     if len(names) <= NEIGHBOURS:
         return {}
+    from scipy.sparse import csr_matrix
+
     by_name = {f.name: f for f in scene.frames}
-    sharp = {n: sharpness(read_image(scene.image_path(by_name[n]), max_side=side)[..., :3].mean(axis=-1))
-             for n in names}
-    seen = [set(np.asarray(scene.point_visibility[n]).tolist()) for n in names]
-    shares = {}
-    for i, name in enumerate(names):
-        shared = sorted(((len(seen[i] & seen[j]), names[j]) for j in range(len(names)) if j != i), reverse=True)
-        shares[name] = sharp[name] / max(float(np.median([sharp[n] for _, n in shared[:NEIGHBOURS]])), 1e-12)
-    return shares
+    sharp = np.array([sharpness(read_image(scene.image_path(by_name[n]), max_side=side)[..., :3].mean(axis=-1))
+                      for n in names])
+    seen = [np.unique(np.asarray(scene.point_visibility[n], np.int64)) for n in names]
+    rows = np.repeat(np.arange(len(names)), [len(s) for s in seen])
+    views = csr_matrix((np.ones(len(rows)), (rows, np.concatenate(seen))))
+    shared = (views @ views.T).toarray()  # points each two photos both see
+    np.fill_diagonal(shared, -1)
+    nearest = np.argsort(-shared, axis=1, kind="stable")[:, :NEIGHBOURS]
+    return {name: float(sharp[i] / max(np.median(sharp[nearest[i]]), 1e-12)) for i, name in enumerate(names)}
 
 
 def blurred_photos(scene: Scene, side: int) -> dict[str, float]:
