@@ -203,9 +203,9 @@ def _turned_photos(ctx: StageContext, photos: list[Path]) -> set[Path]:
     if turned:
         w, h = oriented_size(next(iter(turned)))
         ctx.report.info(
-            f"{len(turned)} of {len(photos)} photos are {w}x{h} where the others are {h}x{w} (taken the other way "
-            f"up): SfM sees them turned a quarter, so that one camera's intrinsics hold them all; their poses are "
-            f"turned back"
+            f"{len(turned)} of {len(photos)} photos are {w}x{h} where most are {h}x{w} (taken the other way up): "
+            f"SfM sees them turned a quarter, so that one camera's intrinsics hold them all; their poses are turned "
+            f"back"
         )
     return turned
 
