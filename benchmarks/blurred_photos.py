@@ -25,6 +25,7 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))  # this checkout's recon, not an installed one
+sys.path.insert(0, str(REPO / "benchmarks"))
 SAMPLE = REPO / "fixtures" / "sample"
 SHAKEN = {"view_003.jpg": 20.0, "view_013.jpg": 75.0, "view_021.jpg": 140.0, "view_029.jpg": 300.0}
 """The photos shaken, with the direction of each shake in degrees."""
@@ -67,6 +68,7 @@ def main() -> None:
     parser.add_argument("--set", dest="overrides", action="append", default=[])
     parser.add_argument("--shake", type=float, default=SHAKE, help="the shake's length over the width (0: none)")
     args = parser.parse_args()
+    from mixed_orientation import append_row
     from recon.app.bench import provenance
 
     where, load = provenance(), [round(x, 2) for x in os.getloadavg()]
@@ -86,11 +88,7 @@ def main() -> None:
            "fscore_05pct": accuracy.get("fscore@0.005"), "chamfer_rel": accuracy.get("chamfer_l1_rel"),
            **where, "date": date, "load_average_start": load,
            "load_average_end": [round(x, 2) for x in os.getloadavg()]}
-    out = REPO / "benchmarks" / "results" / f"{args.name}.json"
-    rows = json.loads(out.read_text()) if out.is_file() else []
-    rows.append(row)
-    out.write_text(json.dumps(rows, indent=1) + "\n")
-    print(json.dumps(row, indent=1))
+    append_row(args.name, row)
 
 
 if __name__ == "__main__":

@@ -99,7 +99,12 @@ def main() -> None:
     else:
         row["error"] = (run.stdout + run.stderr)[-2000:]
     row.update({**where, "date": date, "load_average_start": load})
-    out = REPO / "benchmarks" / "results" / f"{args.name}.json"
+    append_row(args.name, row)
+
+
+def append_row(name: str, row: dict) -> None:
+    """One more row in benchmarks/results/NAME.json (a list of rows), shown."""
+    out = REPO / "benchmarks" / "results" / f"{name}.json"
     rows = json.loads(out.read_text()) if out.is_file() else []
     rows.append(row)
     out.write_text(json.dumps(rows, indent=1) + "\n")
