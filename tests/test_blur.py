@@ -53,3 +53,27 @@ def test_the_blurred_photos_are_found_among_their_neighbours_and_few_are_left_ou
     assert len(left_out) == int(29 / 8) and set(left_out) <= {f"p{i:02d}.png" for i in range(2, 30, 5)}
     few = _capture(tmp_path / "few", MIN_TRAINING_PHOTOS, {3: 3.0})  # 19 training photos: every one counts
     assert blurred_photos(few, 640) == {}
+
+
+def test_normalize_leaves_the_blurred_photos_out_and_says_which(tmp_path: Path) -> None:
+    """The stage drops them from the scene it writes (training and meshing never read them), names each with its
+    share and how to keep them; `normalize.blurred=keep` and a video's frames (chosen for sharpness already) keep all."""
+    import io
+    from types import SimpleNamespace
+
+    from rich.console import Console
+
+    from recon.app.progress import Reporter
+    from recon.config import NormalizeConfig
+    from recon.stages.normalize import _leave_out_blurred
+
+    said = io.StringIO()
+    ctx = SimpleNamespace(config=NormalizeConfig(), report=Reporter(Console(file=said, width=300, color_system=None)))
+    scene = _capture(tmp_path, 30, {5: 2.0, 17: 3.0})
+    assert _leave_out_blurred(ctx, scene).keys() == {"p05.png", "p17.png"}
+    assert len(scene.frames) == 28 and scene.notes["blurred"].keys() == {"p05.png", "p17.png"}
+    assert "2 of 29 training photos are blurred" in said.getvalue() and "normalize.blurred=keep" in said.getvalue()
+    kept = _capture(tmp_path, 30, {5: 2.0})
+    assert _leave_out_blurred(SimpleNamespace(config=NormalizeConfig(blurred="keep"), report=ctx.report), kept) == {}
+    kept.source_kind = "video"
+    assert _leave_out_blurred(ctx, kept) == {} and len(kept.frames) == 30

@@ -51,7 +51,8 @@ def run(ctx: StageContext) -> dict:
     far = max(f.far for f in scene.frames)
     return {
         "headline": f"{scene.capture} capture, {counts['train']}/{counts['val']}/{counts['test']} train/val/test views, "
-        f"near {near:.3g} far {far:.3g}" + (f", {masked} automatic masks" if masked else ""),
+        f"near {near:.3g} far {far:.3g}" + (f", {masked} automatic masks" if masked else "")
+        + (f", {len(blurred)} blurred photo{'s' if len(blurred) > 1 else ''} left out" if blurred else ""),
         "capture": scene.capture,
         "split": counts,
         "aabb": scene.aabb.round(4).tolist(),
