@@ -77,3 +77,17 @@ def test_normalize_leaves_the_blurred_photos_out_and_says_which(tmp_path: Path) 
     assert _leave_out_blurred(SimpleNamespace(config=NormalizeConfig(blurred="keep"), report=ctx.report), kept) == {}
     kept.source_kind = "video"
     assert _leave_out_blurred(ctx, kept) == {} and len(kept.frames) == 30
+
+
+def test_a_close_up_among_wider_views_is_not_judged(tmp_path: Path) -> None:
+    """Magnified, an object's own texture is smoother than the table and room the wider views around it hold: a
+    close-up (its view under 1/1.25 of its neighbours' span) measures low and is left alone (a generated capture's
+    close-up measured 0.09 and was dropped)."""
+    scene = _capture(tmp_path, 30, {7: 3.0})  # photo 7: smooth, as a magnified plain part looks
+    scene.aabb = np.array([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
+    for i, frame in enumerate(scene.frames):
+        frame.c2w = np.eye(4)
+        frame.c2w[2, 3] = 1.5 if i == 7 else 4.0  # the close-up stands nearer the box
+    assert "p07.png" not in sharpness_shares(scene, 640) and blurred_photos(scene, 640) == {}
+    scene.frames[7].c2w[2, 3] = 4.0  # from as far as the others, the same photo is blurred
+    assert blurred_photos(scene, 640).keys() == {"p07.png"}

@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from recon.capture.images import read_image
-from recon.capture.scene import Scene
+from recon.capture.scene import Frame, Scene
 
 BLURRED_SHARE = 0.35
 """A training photo whose sharpness is under this share of its neighbours' median is blurred. The fox's 67 photos
@@ -21,6 +21,9 @@ measure 0.49 and up against theirs (median 0.97); shaken along 3 px at 640 px (0
 0.13-0.45, along 5 px 0.08-0.26 (`benchmarks/blur_shares.py`; `benchmarks/blurred_photos.py` measures what leaving
 them out gains)."""
 NEIGHBOURS = 4
+CLOSER = 1.25
+"""A photo whose view spans this many times less than its neighbours' (a close-up among wider views) is not judged:
+magnified, the object's own texture is smoother than the table and room the wider views hold."""
 MIN_TRAINING_PHOTOS = 20
 """With fewer training photos every photo is kept: each view counts more than its blur costs."""
 MOST_LEFT_OUT = 1 / 8
@@ -38,7 +41,8 @@ def sharpness(gray: np.ndarray) -> float:
 
 
 def sharpness_shares(scene: Scene, side: int) -> dict[str, float]:
-    """{frame name: its sharpness over the median of its `NEIGHBOURS`'}, for the frames with sparse points (SfM's)."""
+    """{frame name: its sharpness over the median of its `NEIGHBOURS`'}, for the frames with sparse points (SfM's),
+    close-ups among wider views left out (`CLOSER`)."""
     names = [f.name for f in scene.frames if len(scene.point_visibility.get(f.name, ())) > 0]
     if len(names) <= NEIGHBOURS:
         return {}
@@ -53,7 +57,18 @@ def sharpness_shares(scene: Scene, side: int) -> dict[str, float]:
     shared = (views @ views.T).toarray()  # points each two photos both see
     np.fill_diagonal(shared, -1)
     nearest = np.argsort(-shared, axis=1, kind="stable")[:, :NEIGHBOURS]
-    return {name: float(sharp[i] / max(np.median(sharp[nearest[i]]), 1e-12)) for i, name in enumerate(names)}
+    span = _view_span(scene, [by_name[n] for n in names])
+    return {name: float(sharp[i] / max(np.median(sharp[nearest[i]]), 1e-12)) for i, name in enumerate(names)
+            if span is None or span[i] * CLOSER >= np.median(span[nearest[i]])}
+
+
+def _view_span(scene: Scene, frames: list[Frame]) -> np.ndarray | None:
+    """How wide each photo's view is at the box's centre (its distance over its focal length in widths): a close-up
+    spans less. None without a box."""
+    if scene.aabb is None:
+        return None
+    center = np.asarray(scene.aabb, np.float64).mean(axis=0)
+    return np.array([np.linalg.norm(f.c2w[:3, 3] - center) * f.w / f.fl_x for f in frames])
 
 
 def blurred_photos(scene: Scene, side: int) -> dict[str, float]:
