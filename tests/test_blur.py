@@ -81,8 +81,7 @@ def test_normalize_leaves_the_blurred_photos_out_and_says_which(tmp_path: Path) 
 
 def test_a_close_up_among_wider_views_is_not_judged(tmp_path: Path) -> None:
     """Magnified, an object's own texture is smoother than the table and room the wider views around it hold: a
-    close-up (its view under 1/1.25 of its neighbours' span) measures low and is left alone (a generated capture's
-    close-up measured 0.09 and was dropped)."""
+    close-up (its view under 1/1.25 of its neighbours' span) measures low and is left alone."""
     scene = _capture(tmp_path, 30, {7: 3.0})  # photo 7: smooth, as a magnified plain part looks
     scene.aabb = np.array([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
     for i, frame in enumerate(scene.frames):

@@ -16,10 +16,9 @@ from recon.capture.images import read_image
 from recon.capture.scene import Frame, Scene
 
 BLURRED_SHARE = 0.35
-"""A training photo whose sharpness is under this share of its neighbours' median is blurred. The fox's 67 photos
-measure 0.49 and up against theirs (median 0.97); shaken along 3 px at 640 px (0.5% of the width) a photo measures
-0.13-0.45, along 5 px 0.08-0.26 (`benchmarks/blur_shares.py`; `benchmarks/blurred_photos.py` measures what leaving
-them out gains)."""
+"""A training photo whose sharpness is under this share of its neighbours' median is blurred: below every sharp photo
+of a real capture and above most photos shaken along 0.5% of their width (benchmarks/results/blur_shares_fox.json;
+what leaving them out gains: benchmarks/results/blurred_photos.json)."""
 NEIGHBOURS = 4
 CLOSER = 1.25
 """A photo whose view spans this many times less than its neighbours' (a close-up among wider views) is not judged:

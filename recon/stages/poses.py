@@ -199,9 +199,10 @@ def _turned_photos(ctx: StageContext, photos: list[Path]) -> set[Path]:
     from recon.capture.sfm import turned_to_share
 
     sizes = [oriented_size(path) for path in photos]
-    turned = {path for path, turn in zip(photos, turned_to_share(sizes), strict=True) if turn}
+    turns = turned_to_share(sizes)
+    turned = {path for path, turn in zip(photos, turns, strict=True) if turn}
     if turned:
-        w, h = oriented_size(next(iter(turned)))
+        w, h = sizes[turns.index(True)]
         ctx.report.info(
             f"{len(turned)} of {len(photos)} photos are {w}x{h} where most are {h}x{w} (taken the other way up): "
             f"SfM sees them turned a quarter, so that one camera's intrinsics hold them all; their poses are turned "
