@@ -98,7 +98,7 @@ def map_once(scene: Path, tuning: dict[str, Any], refine: bool, mapper: str = "i
         if mapper == "global":
             rec = map_global(database, colmap / "images", Path(work) / "models", SfmOptions().seed)
         else:
-            rec = _map(database, colmap / "images", Path(work) / "models", SfmOptions(), needed=2, relaxed=False,
+            rec, _ = _map(database, colmap / "images", Path(work) / "models", SfmOptions(), needed=2, relaxed=False,
                        tuning=tuning)
         if refine and rec is not None:
             rec, _ = refine_robust(rec)

@@ -537,7 +537,7 @@ def test_mapping_sets_recons_global_adjustment_tuning_and_refuses_an_unknown_opt
 
     seen = []
     monkeypatch.setattr(pycolmap, "incremental_mapping", lambda db, images, out, options: seen.append(options) or {})
-    assert _map(tmp_path / "database.db", tmp_path, tmp_path / "models", SfmOptions(), 3, relaxed=False) is None
+    assert _map(tmp_path / "database.db", tmp_path, tmp_path / "models", SfmOptions(), 3, relaxed=False) == (None, [])
     assert seen[-1].ba_global_frames_ratio == pytest.approx(GLOBAL_BA_TUNING["ba_global_frames_ratio"]) != 1.1
     assert seen[-1].mapper.ba_global_ignore_redundant_points3D is True
     assert seen[-1].mapper.abs_pose_min_num_inliers == 30
@@ -548,3 +548,66 @@ def test_mapping_sets_recons_global_adjustment_tuning_and_refuses_an_unknown_opt
     with pytest.raises(ValueError, match="no 'mapper.no_such_option'"):
         _map(tmp_path / "database.db", tmp_path, tmp_path / "models", SfmOptions(), 3, relaxed=False,
              tuning={"mapper.no_such_option": 1})
+
+
+def test_a_capture_fallen_apart_names_the_group_posed_on_its_own(tmp_path: Path) -> None:
+    """Photos of the sample from two opposite sides only: COLMAP poses each side as a model of its own. The run keeps
+    the larger, and its warning says the other side's photos were posed apart (not that they are bad photos) and how
+    photos between the sides mend it; the poses summary records the group."""
+    from typer.testing import CliRunner
+
+    from recon.app.cli import app
+
+    truth = json.loads((SAMPLE.parent / "transforms.json").read_text())
+    centre = np.array(json.loads((SAMPLE.parent / "scene_info.json").read_text())["object_center"])
+    photos, side = tmp_path / "photos", {}
+    photos.mkdir()
+    for frame in truth["frames"]:
+        offset = np.array(frame["transform_matrix"])[:3, 3] - centre
+        elevation = np.degrees(np.arcsin(offset[2] / np.linalg.norm(offset)))
+        azimuth = np.degrees(np.arctan2(offset[1], offset[0])) % 360
+        if elevation < 35 and (azimuth < 115 or 180 <= azimuth < 295):  # two 115-degree arcs, 65 degrees apart
+            name = Path(frame["file_path"]).name
+            shutil.copy(SAMPLE / name, photos / name)
+            side[name] = azimuth < 180
+    result = CliRunner().invoke(app, ["run", str(photos), "--out", str(tmp_path / "scene"), "--until", "poses"])
+    assert result.exit_code == 0, result.output
+    summary = json.loads((tmp_path / "scene" / "manifest.json").read_text())["stages"]["poses"]["summary"]
+    assert len(summary["groups_apart"]) == 1
+    group = summary["groups_apart"][0]
+    assert sorted(group) == sorted(summary["dropped"]) and len(group) >= 5
+    assert len({side[name] for name in group}) == 1  # one side's photos, all of them
+    assert sum(side[name] == side[group[0]] for name in side) == len(group)
+    output = " ".join(result.output.split())
+    assert f"{len(group)} were posed as a separate group of their own" in output
+    assert "photos taken from viewpoints between the groups" in output.lower()
+    assert all(name in output for name in group)
+
+
+def test_the_dropped_photos_message_tells_groups_apart_from_photos_that_matched_too_little() -> None:
+    from recon.capture.sfm import SfmResult, _too_few_message, dropped_message, models_apart
+
+    class Image:
+        def __init__(self, name: str, posed: bool = True) -> None:
+            self.name, self.has_pose = name, posed
+
+    class Model:
+        def __init__(self, *names: str) -> None:
+            self.images = {i: Image(n) for i, n in enumerate(names)}
+
+    kept = Model("a", "b", "c")
+    kept.images[9] = Image("z", posed=False)
+    # a model sharing an image with the kept one loses it; one left with a single photo is no group
+    assert models_apart(kept, [Model("d", "e"), Model("f", "c", "g", "h"), Model("c", "i")]) == [["f", "g", "h"],
+                                                                                                  ["d", "e"]]
+    empty = np.zeros((0, 3))
+    result = SfmResult("SIMPLE_RADIAL", True, "", ["a", "b", "c"], ["d", "e", "x"], {}, empty, empty, empty[:, 0], {},
+                       0.5, 0, groups_apart=[["d", "e"]])
+    message = dropped_message(result, 3, str.upper)
+    assert "2 were posed as a separate group of their own (2 photos: D, E)" in message
+    assert "with the 3 kept" in message and "1 matched too little to be posed (X)" in message
+    result.groups_apart = []
+    assert dropped_message(result, 3) == "d, e, x"
+    assert "fell apart into 2 more groups posed on their own (4 and 3 photos)" in _too_few_message(
+        3, 10, 5, [list("abcd"), list("efg")])
+    assert "fell apart" not in _too_few_message(3, 10, 5)

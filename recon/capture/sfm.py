@@ -110,6 +110,9 @@ class SfmResult:
     excluded: dict[str, str] = field(default_factory=dict)
     """Registered images whose pose disagrees with the rest (see `pose_outliers`), left out of the model:
     name -> reason, in input order. They are in neither `registered` nor `dropped`."""
+    groups_apart: list[list[str]] = field(default_factory=list)
+    """The dropped images COLMAP posed as models of their own, each in input order, largest first: the capture fell
+    apart into groups that share too few matches, which photos taken from between their viewpoints mend."""
 
 
 def choose_camera(
@@ -348,15 +351,41 @@ def loop_pairs(names: list[str], keyframes: int, overlap: int) -> list[tuple[str
     return [(ordered[a], ordered[b]) for i, a in enumerate(keys) for b in keys[i + 1 :] if b - a > overlap]
 
 
-def _too_few_message(num_registered: int, num_images: int, need: int) -> str:
+def _too_few_message(num_registered: int, num_images: int, need: int, groups: list[list[str]] | None = None) -> str:
+    apart = ""
+    if groups:
+        sizes = " and ".join(str(len(g)) for g in groups)
+        apart = (f" The rest fell apart into {len(groups)} more group{'s' if len(groups) > 1 else ''} posed on their "
+                 f"own ({sizes} photos) that share too few matches with it: photos taken from viewpoints between the "
+                 f"groups join them.")
     return (
         f"Structure from motion registered only {num_registered} of {num_images} photos "
-        f"(at least {need} needed), so their camera positions could not be recovered. "
+        f"(at least {need} needed), so their camera positions could not be recovered.{apart} "
         "COLMAP needs each photo to share plenty of recognizable detail with others: take photos "
         "with more overlap (move a little between shots, about 10-20 degrees around the object), "
         "of a subject with more texture (plain walls, glass and shiny surfaces have too little), "
         "sharper (steady the camera, avoid motion blur), or simply more photos."
     )
+
+
+def dropped_message(result: SfmResult, kept: int, label: Callable[[str], str] = str) -> str:
+    """Which photos SfM left out and why, in a sentence: those posed apart as groups of their own, and those that
+    matched too little; `label` names an image (the SfM copy's name -> the photo's)."""
+    apart = {n for group in result.groups_apart for n in group}
+    alone = [label(n) for n in result.dropped if n not in apart]
+    if not result.groups_apart:
+        return ", ".join(alone)
+    plural = len(result.groups_apart) > 1
+    counts = " and ".join(str(len(g)) for g in result.groups_apart)
+    listed = "; ".join(", ".join(label(n) for n in g) for g in result.groups_apart)
+    groups = f"{len(result.groups_apart)} separate groups" if plural else "a separate group"
+    text = (f"{len(apart)} were posed as {groups} of their own ({counts} photos: {listed}) that "
+            f"share{'' if plural else 's'} too few matches with the {kept} kept, so the field and mesh hold only what "
+            f"the kept photos see")
+    if alone:
+        text += f"; {len(alone)} matched too little to be posed ({', '.join(alone)})"
+    return text + (". Photos taken from viewpoints between the groups join them in one model: add them to the folder "
+                   "and run again")
 
 
 GLOBAL_BA_TUNING: dict[str, Any] = {
@@ -384,8 +413,9 @@ def _set_option(options: Any, name: str, value: Any) -> bool:
 def _map(
     database: Path, image_dir: Path, models_dir: Path, options: SfmOptions, needed: int, relaxed: bool,
     tuning: dict[str, Any] | None = None,
-) -> pycolmap.Reconstruction | None:
-    """Incremental mapping; returns the model with the most registered images, or None.
+) -> tuple[pycolmap.Reconstruction | None, list[list[str]]]:
+    """Incremental mapping: the model with the most registered images (or None), and the images of each other model
+    COLMAP started (`models_apart`).
 
     relaxed lowers the inliers needed to start a model (100 -> 50) and to register an image
     (30 -> 15): still RANSAC-verified, but reachable with a few hundred features per image.
@@ -409,7 +439,23 @@ def _map(
     shutil.rmtree(models_dir, ignore_errors=True)
     models_dir.mkdir(parents=True)
     models = pycolmap.incremental_mapping(database, image_dir, models_dir, options=mapping)
-    return max(models.values(), key=lambda r: r.num_reg_images(), default=None)
+    ranked = sorted(models.values(), key=lambda r: r.num_reg_images(), reverse=True)
+    if not ranked:
+        return None, []
+    return ranked[0], models_apart(ranked[0], ranked[1:])
+
+
+def posed_images(rec: pycolmap.Reconstruction) -> list[str]:
+    """The names of the images `rec` gives a pose."""
+    return [image.name for image in rec.images.values() if image.has_pose]
+
+
+def models_apart(kept: pycolmap.Reconstruction, others: list[pycolmap.Reconstruction]) -> list[list[str]]:
+    """The images of each model besides the kept one, less those the kept one poses too (COLMAP lets models share a
+    few), largest first; groups left with fewer than 2 images are no group."""
+    posed = set(posed_images(kept))
+    groups = [sorted(set(posed_images(rec)) - posed) for rec in others]
+    return sorted((g for g in groups if len(g) >= 2), key=len, reverse=True)
 
 
 FAR_OFF_SPREADS = 3.0
@@ -678,25 +724,30 @@ def run_sfm(
 
         report("map", 0.5 if retry else 0.0)
         start = time.perf_counter()
-        best = _map(database, image_dir, models_dir, options, needed, relaxed=False)
+        best, apart = _map(database, image_dir, models_dir, options, needed, relaxed=False)
         if best is None or best.num_reg_images() < len(names):
             # COLMAP's inlier thresholds suit thousands of features per image; small or plain photos
             # give hundreds, so retry with lower ones and keep whichever model registers more images.
             report("map", 0.5)
-            relaxed = _map(database, image_dir, models_dir, options, needed, relaxed=True)
+            relaxed, relaxed_apart = _map(database, image_dir, models_dir, options, needed, relaxed=True)
             if relaxed is not None and (best is None or relaxed.num_reg_images() > best.num_reg_images()):
-                best = relaxed
+                best, apart = relaxed, relaxed_apart
         shutil.rmtree(models_dir, ignore_errors=True)
         timings["map"] += time.perf_counter() - start
         report("map", 1.0)
+        mapped.append((best, apart))
         return best
+
+    mapped: list[tuple[pycolmap.Reconstruction | None, list[list[str]]]] = []
 
     with native_output_to(log_file):
         best, attempts = register_best(run_attempt, len(names), options, attempts_here)
+        apart = next((groups for model, groups in mapped if model is best), []) if best is not None else []
+        groups = [[n for n in names if n in members] for members in map(set, apart)]
         excluded = leave_out_outliers(best) if best is not None else {}
         num_registered = best.num_reg_images() if best is not None else 0
         if best is None or num_registered < needed:
-            raise ReconError(_too_few_message(num_registered, len(names), needed))
+            raise ReconError(_too_few_message(num_registered, len(names), needed, groups))
         start = time.perf_counter()
         best, refinement = refine_robust(best, num_threads=options.num_threads)
         timings["map"] += time.perf_counter() - start
@@ -725,4 +776,5 @@ def run_sfm(
         attempts=attempts,
         refinement=refinement,
         excluded={n: excluded[n] for n in names if n in excluded},
+        groups_apart=groups,
     )

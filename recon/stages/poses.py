@@ -286,7 +286,7 @@ def _structure_from_motion(ctx: StageContext, photos: list[Path] | None = None,
                            mask_homes: list[Path] | None = None) -> tuple[Scene, dict]:
     """SfM on the photos of ctx.source, or on `photos` given in order (video frames: matched sequentially, their
     masks looked for in `mask_homes`)."""
-    from recon.capture.sfm import SfmOptions, run_sfm
+    from recon.capture.sfm import SfmOptions, dropped_message, run_sfm
 
     cfg: PosesConfig = ctx.config
     ordered = photos is not None
@@ -363,10 +363,8 @@ def _structure_from_motion(ctx: StageContext, photos: list[Path] | None = None,
             f"reprojection error {ref['error_before_px']:.3f} -> {ref['error_after_px']:.3f} px"
         )
     if result.dropped:
-        ctx.report.warn(
-            f"{len(result.dropped)} of {len(names)} photos could not be registered and are left out: "
-            + ", ".join(by_sfm_name[n].name for n in result.dropped)
-        )
+        ctx.report.warn(f"{len(result.dropped)} of {len(names)} photos could not be registered and are left out: "
+                        + dropped_message(result, len(result.registered), lambda n: by_sfm_name[n].name))
     for sfm_name, reason in result.excluded.items():
         ctx.report.warn(f"{by_sfm_name[sfm_name].name} is left out of training: {reason}.")
     frames = []
@@ -404,6 +402,7 @@ def _structure_from_motion(ctx: StageContext, photos: list[Path] | None = None,
         "registered": len(result.registered),
         "total": len(names),
         "dropped": [by_sfm_name[n].name for n in result.dropped],
+        "groups_apart": [[by_sfm_name[n].name for n in group] for group in result.groups_apart],
         "excluded": {by_sfm_name[n].name: reason for n, reason in result.excluded.items()},
         "points": result.num_points,
         "reprojection_error_px": round(result.mean_reprojection_error, 4),
