@@ -385,7 +385,8 @@ def dropped_message(result: SfmResult, kept: int, label: Callable[[str], str] = 
     if alone:
         text += f"; {len(alone)} matched too little to be posed ({', '.join(alone)})"
     return text + (". Photos taken from viewpoints between the groups join them in one model: add them to the folder "
-                   "and run again")
+                   "and run again (photos taken after the object was moved or turned over never join the others: "
+                   "run them as a capture of their own)")
 
 
 GLOBAL_BA_TUNING: dict[str, Any] = {
