@@ -239,3 +239,34 @@ def test_close_ups_train_at_the_other_photos_pixel_footprint() -> None:
     even = ring(1.0)
     assert photo_sides(cfg, even, even.frames) == ({}, "")
     assert photo_sides(replace(cfg, photo_footprint="off"), scene, scene.frames)[0] == {}
+
+
+def test_a_small_object_in_wide_photos_trains_at_a_larger_side() -> None:
+    """training_side: a box of radius sqrt(3) seen by 1600-px photos (focal 1600) from 13.4 units spans 103 px at
+    max_side 400, under half of train.object_span=400: the photos train at the side where it spans 400, capped by the
+    photos' own size; from 4.5 units (310 px), an unbounded scene or train.object_span=0 keeps max_side."""
+    from recon.plans.training import MAX_OBJECT_SIDE, training_side
+
+    def ring(distance: float, size: int = 1600, capture: str = "object") -> Scene:
+        eyes = [distance * np.array([math.cos(a), math.sin(a), 0.5]) / math.hypot(1, 0.5)
+                for a in np.linspace(0, 2 * math.pi, 12, endpoint=False)]
+        frames = [Frame(f"/p/{i:02d}.jpg", look_at(eye, np.zeros(3)), size, size, size / 2, size * 3 / 8, size,
+                        size * 3 // 4) for i, eye in enumerate(eyes)]
+        return Scene(frames=frames, points=np.zeros((0, 3)), point_colors=np.zeros((0, 3), np.uint8),
+                     aabb=np.array([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]]), capture=capture)
+
+    cfg = TrainConfig(max_side=400)
+    far = ring(13.4)
+    side, why = training_side(cfg, far, far.frames)
+    span = 2 * 400 * math.sqrt(3) / 13.4
+    assert side == round(400 * 400 / span) < MAX_OBJECT_SIDE
+    assert f"spans {span:.0f} px of the 400-px photos" in why and f"train at {side} px" in why
+    assert training_side(replace(cfg, max_side=side), far, far.frames) == (side, "")  # there it spans 400: enough
+    assert training_side(cfg, ring(4.5), ring(4.5).frames) == (400, "")
+    assert training_side(replace(cfg, object_span=0), far, far.frames) == (400, "")
+    unbounded = ring(13.4, capture="unbounded")
+    assert training_side(cfg, unbounded, unbounded.frames) == (400, "")
+    farther = ring(40.0)
+    assert training_side(cfg, farther, farther.frames)[0] == MAX_OBJECT_SIDE
+    small_photos = ring(13.4, size=800)  # never larger than the photos themselves
+    assert training_side(cfg, small_photos, small_photos.frames)[0] == 800

@@ -17,6 +17,7 @@ import os
 import time
 from collections import defaultdict
 from collections.abc import Callable, Iterator
+from dataclasses import replace
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -272,11 +273,12 @@ def profile_preset(data: str, preset: str, out_dir: Path, overrides: list[str], 
     from recon.evaluation.views import load_views
     from recon.nerf.device import select_device
     from recon.nerf.evaluate import render_image
+    from recon.plans.training import training_side
 
     config = load_config(preset, overrides)
     scene_dir = prepare_scene(data, out_dir, load_config(None, overrides), report)
-    cfg = config.train
     scene = load_scene(scene_dir / "02_scene", recorded_source(scene_dir))
+    cfg = replace(config.train, max_side=training_side(config.train, scene, scene.split("train"))[0])  # as train does
     views = load_views(scene, scene.split("train"), cfg.max_side, report, "training photos")
     device = select_device(cfg.device)
     step, plan, setup = profile_training(cfg, scene, views, report, warmup=warmup, steps=steps, title=preset,

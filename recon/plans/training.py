@@ -146,6 +146,39 @@ def with_sky(kwargs: dict[str, Any]) -> dict[str, Any]:
     return {**kwargs, "config": {**kwargs["config"], "background": "sky"}}
 
 
+SMALL_OBJECT_SHARE = 0.5
+"""An object capture trains larger than max_side only where its box spans under this share of `train.object_span`:
+a capture framing its object as usual (the sample, the fox: about 430 px at 400) or a little wider keeps the preset's
+size and time per step, and a small object in wide photos gets the pixels it lacks."""
+MAX_OBJECT_SIDE = 1600
+"""The longest side `training_side` raises the photos to: each photo's pixels stay in memory while it trains."""
+
+
+def training_side(cfg: TrainConfig, scene: Scene, frames: list[Frame]) -> tuple[int, str]:
+    """(the longest side the training photos load at, why; "" where it is max_side as set), `train.object_span`.
+
+    A small object in wide photos spans few pixels at max_side: the field's grids and the mesh grid are sized to
+    the pixel footprint, so its surface comes out coarse and off by up to a pixel. Rays that miss the scene box are
+    never trained (`RayBatcher`), so larger photos add rays on the object only."""
+    if cfg.object_span <= 0 or scene.capture != "object" or scene.aabb is None or not frames:
+        return cfg.max_side, ""
+    box = np.asarray(scene.aabb, np.float64)
+    centre, radius = box.mean(axis=0), float(np.linalg.norm(box[1] - box[0])) / 2
+    spans = [2 * f.fl_x * min(1.0, cfg.max_side / max(f.w, f.h)) * radius
+             / max(float(np.linalg.norm(f.c2w[:3, 3] - centre)), radius) for f in frames]
+    span = float(np.median(spans))
+    if span >= SMALL_OBJECT_SHARE * cfg.object_span:
+        return cfg.max_side, ""
+    own = int(np.median([max(f.w, f.h) for f in frames]))
+    side = min(round(cfg.max_side * cfg.object_span / span), own, MAX_OBJECT_SIDE)
+    if side <= cfg.max_side:
+        return cfg.max_side, ""
+    return side, (f"training size: the object's box spans {span:.0f} px of the {cfg.max_side}-px photos (median), "
+                  f"under half of train.object_span={cfg.object_span}: they train at {side} px, where it spans "
+                  f"{span * side / cfg.max_side:.0f}, so the grids and the mesh see it finer (train.object_span=0 "
+                  f"keeps {cfg.max_side} px)")
+
+
 FOOTPRINT_PERCENTILE = 75
 FOOTPRINT_SLACK = 1.25
 """A photo trains at the pixel footprint on the object (its distance to the box's centre over its focal length at

@@ -14,6 +14,7 @@ import math
 import time
 import warnings
 from collections import deque
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -28,7 +29,7 @@ from recon.errors import ReconError
 from recon.evaluation.views import (View, evaluate, fitted_note, load_views, supersampling_note, training_focal,
                                     write_previews)
 from recon.field import FIELD_FILE, save_field
-from recon.plans.training import TrainPlan, TrainSetup, build_training, photo_sides, plan_training
+from recon.plans.training import TrainPlan, TrainSetup, build_training, photo_sides, plan_training, training_side
 from recon.runner.pipeline import SCRATCH_NOTE, StageContext
 
 CHECKPOINT = "checkpoint.pt"
@@ -134,14 +135,15 @@ def run(ctx: StageContext) -> dict:
     test_frames = scene.split("test") or held_out
     if not train_frames:
         raise ReconError("The scene has no training views. Re-run normalize (recon normalize SCENE).")
+    side, side_why = training_side(cfg, scene, train_frames)
+    cfg = replace(cfg, max_side=side)  # what loads, plans, evaluates and is saved for the mesh and renders
     sides, sides_why = photo_sides(cfg, scene, train_frames)
     photos = load_views(scene, train_frames, cfg.max_side, ctx.report, "training photos", sides=sides)
     phases.done("load_photos")
     plan = plan_training(cfg, scene, photos, device)
     phases.done("plan")
     ctx.report.info(f"device: {device}; background: {plan.background_why}")
-    if sides_why:
-        plan.reasons.append(sides_why)
+    plan.reasons += [why for why in (side_why, sides_why) if why]
     for r in plan.reasons:
         ctx.report.info(f"model: {r}")
     for protocol in _held_out_protocols(plan):

@@ -1,0 +1,79 @@
+"""A small object in wide photos: what training at the preset's size costs its mesh, and what the larger size the
+train stage picks (`train.object_span`) gains.
+
+    python benchmarks/small_object.py --work /tmp/small --name small_object --label shipped [--set KEY=VALUE]
+
+Pastes each of the shipped sample's 40 photos into the middle of a white canvas 3 times its size (the same cameras
+with a lens three times wider: the object's box spans about 150 px of a 400-px photo instead of 430) in WORK/images,
+runs `recon run WORK/images --out WORK/scene-LABEL --preset fast` for a fixed 4,000 steps (not the time budget: the
+steps must not depend on the machine's load) with any `--set` given, then `recon eval --gt-mesh` against the sample's
+true surface. Appends a row (label, overrides, the training size's reason, steps, rays/s, training seconds, held-out
+PSNR and SSIM, mesh faces, F@1%, F@0.5%, Chamfer, commit and machine) to benchmarks/results/NAME.json. It measures;
+it asserts nothing.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import sys
+from datetime import datetime, timezone
+from pathlib import Path
+
+from PIL import Image
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))  # this checkout's recon, not an installed one
+sys.path.insert(0, str(REPO / "benchmarks"))
+SAMPLE = REPO / "fixtures" / "sample"
+WIDER = 3
+"""The canvas's size over the photo's: the object spans a third of the frame it spanned."""
+
+
+def make_capture(images: Path) -> None:
+    shutil.rmtree(images, ignore_errors=True)
+    images.mkdir(parents=True)
+    for path in sorted((SAMPLE / "images").iterdir()):
+        photo = Image.open(path).convert("RGB")
+        canvas = Image.new("RGB", (WIDER * photo.width, WIDER * photo.height), (255, 255, 255))
+        canvas.paste(photo, ((WIDER - 1) * photo.width // 2, (WIDER - 1) * photo.height // 2))
+        canvas.save(images / path.name, quality=92)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--work", type=Path, required=True)
+    parser.add_argument("--name", required=True)
+    parser.add_argument("--label", required=True)
+    parser.add_argument("--set", dest="overrides", action="append", default=[])
+    args = parser.parse_args()
+    from blurred_photos import recon
+    from mixed_orientation import append_row
+    from recon.app.bench import provenance
+
+    where, load = provenance(), [round(x, 2) for x in os.getloadavg()]
+    date = datetime.now(timezone.utc).isoformat(timespec="seconds")
+    if not (args.work / "images").is_dir():
+        make_capture(args.work / "images")
+    scene = args.work / f"scene-{args.label.replace(' ', '_').replace(',', '').replace('=', '_')}"
+    shutil.rmtree(scene, ignore_errors=True)
+    sets = [a for o in ["train.budget=", "train.steps=4000", *args.overrides] for a in ("--set", o)]
+    recon("run", str(args.work / "images"), "--out", str(scene), "--preset", "fast", "-q", *sets)
+    recon("eval", str(scene), "--gt-mesh", str(SAMPLE / "gt_mesh.ply"))
+    metrics = json.loads((scene / "03_field" / "metrics.json").read_text())
+    accuracy = json.loads((scene / "eval" / "mesh_accuracy.json").read_text())
+    mesh = json.loads((scene / "manifest.json").read_text())["stages"]["mesh"]["summary"]
+    row = {"label": args.label, "overrides": args.overrides,
+           "training_size": next((r for r in metrics["reasons"] if r.startswith("training size")), None),
+           "steps": metrics.get("steps"), "rays_per_s": metrics.get("rays_per_s"),
+           "train_time_s": metrics.get("train_time_s"), "psnr": metrics["test"]["psnr"],
+           "ssim": metrics["test"]["ssim"], "mesh_faces": mesh.get("faces"),
+           "fscore_1pct": accuracy.get("fscore@0.01"), "fscore_05pct": accuracy.get("fscore@0.005"),
+           "chamfer_rel": accuracy.get("chamfer_l1_rel"), **where, "date": date, "load_average_start": load,
+           "load_average_end": [round(x, 2) for x in os.getloadavg()]}
+    append_row(args.name, row)
+
+
+if __name__ == "__main__":
+    main()
