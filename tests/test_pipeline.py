@@ -472,3 +472,11 @@ def test_status_says_the_photos_are_gone(tmp_path: Path, source: Path) -> None:
         shown = CliRunner().invoke(app, ["status", str(scene), *options], env={"COLUMNS": "300"})
         assert shown.exit_code == 0 and f"the photos {source} are not there (moved or deleted)" in shown.output
         assert "│ poses     │ done" in shown.output
+
+
+def test_an_option_added_or_removed_since_the_stage_ran_is_named_as_such() -> None:
+    from recon.runner.pipeline import _changed_options
+
+    assert _changed_options("train", {"lr": 0.01, "gone": 1}, {"lr": 0.01, "object_span": 400}) == [
+        "train.gone (no longer an option)", "train.object_span 400 (an option new in this recon)"]
+    assert _changed_options("train", {"lr": 0.01, "span": None}, {"lr": 0.01, "span": 4}) == ["train.span null → 4"]

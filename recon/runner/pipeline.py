@@ -680,6 +680,10 @@ def _changed_options(prefix: str, old: dict, new: dict) -> list[str]:
         a, b = old.get(key), new.get(key)
         if isinstance(a, dict) and isinstance(b, dict):
             changed += _changed_options(f"{prefix}.{key}", a, b)
+        elif key not in old:  # made by a recon without the option: say so rather than "None → value"
+            changed.append(f"{prefix}.{key} {_shown(b)} (an option new in this recon)")
+        elif key not in new:
+            changed.append(f"{prefix}.{key} (no longer an option)")
         elif a != b:
             changed.append(f"{prefix}.{key} {_shown(a)} → {_shown(b)}")
     return changed
