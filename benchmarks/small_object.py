@@ -8,8 +8,8 @@ with a lens three times wider: the object's box spans about 150 px of a 400-px p
 runs `recon run WORK/images --out WORK/scene-LABEL --preset fast` for a fixed 4,000 steps (not the time budget: the
 steps must not depend on the machine's load) with any `--set` given, then `recon eval --gt-mesh` against the sample's
 true surface. Appends a row (label, overrides, the training size's reason, steps, rays/s, training seconds, held-out
-PSNR and SSIM, mesh faces, F@1%, F@0.5%, Chamfer, commit and machine) to benchmarks/results/NAME.json. It measures;
-it asserts nothing.
+PSNR and SSIM, mesh faces, F@1%, F@0.5%, Chamfer, the share of the true surface missed at 1% that lies on the object's
+flat base, commit and machine) to benchmarks/results/NAME.json. It measures; it asserts nothing.
 """
 from __future__ import annotations
 
@@ -41,6 +41,25 @@ def make_capture(images: Path) -> None:
         canvas.save(images / path.name, quality=92)
 
 
+def missed_on_base(scene: Path, tolerance: float = 0.01, samples: int = 100_000) -> float | None:
+    """The share of the true surface's points missed at `tolerance` of its diagonal that lie on its flat base (within
+    0.5% of the diagonal of its lowest point): where the photos only graze it. None when none is missed."""
+    import numpy as np
+    import trimesh
+    from scipy.spatial import cKDTree
+
+    from recon.evaluation.mesh_eval import in_truth_frame
+
+    ours, truth, *_ = in_truth_frame(scene, SAMPLE / "gt_mesh.ply")
+    points, _ = trimesh.sample.sample_surface(truth, samples, seed=0)
+    near, _ = trimesh.sample.sample_surface(ours, 4 * samples, seed=0)
+    diagonal = float(np.linalg.norm(truth.bounds[1] - truth.bounds[0]))
+    missed = cKDTree(near).query(points)[0] > tolerance * diagonal
+    if not missed.any():
+        return None
+    return float(np.mean(points[missed, 2] <= truth.bounds[0, 2] + 0.005 * diagonal))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--work", type=Path, required=True)
@@ -70,7 +89,7 @@ def main() -> None:
            "train_time_s": metrics.get("train_time_s"), "psnr": metrics["test"]["psnr"],
            "ssim": metrics["test"]["ssim"], "mesh_faces": mesh.get("faces"),
            "fscore_1pct": accuracy.get("fscore@0.01"), "fscore_05pct": accuracy.get("fscore@0.005"),
-           "chamfer_rel": accuracy.get("chamfer_l1_rel"), **where, "date": date, "load_average_start": load,
+           "chamfer_rel": accuracy.get("chamfer_l1_rel"), "missed_1pct_on_base": missed_on_base(scene), **where, "date": date, "load_average_start": load,
            "load_average_end": [round(x, 2) for x in os.getloadavg()]}
     append_row(args.name, row)
 
