@@ -148,8 +148,8 @@ def with_sky(kwargs: dict[str, Any]) -> dict[str, Any]:
 
 SMALL_OBJECT_SHARE = 0.5
 """An object capture trains larger than max_side only where its box spans under this share of `train.object_span`:
-a capture framing its object as usual (the sample, the fox: about 430 px at 400) or a little wider keeps the preset's
-size and time per step, and a small object in wide photos gets the pixels it lacks."""
+a capture framing its object as usual (the sample, the fox) or a little wider keeps the preset's size and time per
+step, and a small object in wide photos gets the pixels it lacks (`benchmarks/results/small_object_sample.json`)."""
 MAX_OBJECT_SIDE = 1600
 """The longest side `training_side` raises the photos to: each photo's pixels stay in memory while it trains."""
 
