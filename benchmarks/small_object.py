@@ -1,5 +1,5 @@
 """A small object in wide photos: what training at the preset's size costs its mesh, and what the larger size the
-train stage picks (`train.object_span`) gains.
+train stage picks (`train.small_object`) gains.
 
     python benchmarks/small_object.py --work /tmp/small --name small_object --label shipped [--set KEY=VALUE]
 

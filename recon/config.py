@@ -177,11 +177,11 @@ class TrainConfig:
     forms on the hull rather than leaving a hole with walls behind it; off: empty everywhere. auto: on, except for an
     object that hangs on a wall (normalize's support plane): photos from one side leave a hull that reaches out towards
     them, and a plain face would form on it, in front of the true one."""
-    object_span: int = 400
-    """Pixels the scene box of an object capture should span (its bounding sphere, in the median training photo).
-    Where it spans under half of this at max_side (a small object in wide photos), the photos train larger so it
-    spans this many, up to their own size and `recon.plans.training.MAX_OBJECT_SIDE`: the field's grids and the mesh
-    grid follow the finer pixels (`recon.plans.training.training_side`). 0: always max_side."""
+    small_object: Literal["auto", "off"] = "auto"
+    """auto: where the scene box of an object capture spans under half of max_side in the median training photo (a
+    small object in wide photos), the photos train at the larger side where it spans max_side, as it does in photos
+    it fills, up to their own size (`recon.plans.training.training_side`): the field's grids and the mesh grid follow
+    the finer pixels. off: always max_side."""
     photo_footprint: Literal["auto", "off"] = "auto"
     """auto: a photo that sees the object finer than most (a close-up) trains downscaled to their pixel footprint
     (`recon.plans.training.photo_sides`), so its detail is no finer than the rest and its rays no more; off: every
@@ -597,7 +597,6 @@ BOUNDS: dict[str, Bound] = {
     "train.lr_decay": _above(0, 1),
     "train.adam_beta2": _fraction(),
     "train.max_side": _range(4, 16384),
-    "train.object_span": _range(16, 16384, off=0, off_means="always max_side"),
     "train.eval_every": STEPS,
     "train.eval_views": _range(0, 10**5),
     "train.final_eval_views": _range(0, 10**5),

@@ -356,6 +356,10 @@ def test_a_finished_stage_run_again_says_why(tmp_path: Path, source: Path) -> No
                     "of c.budget carries its output on)"]
     rows = {r["stage"]: r for r in pipe.state(scene, _ReasonConfig(a=_A(value=3), c=_C(budget=2)), source)}
     assert rows["a"]["why"] == "a.value 1 → 3" and rows["c"]["why"] == "c.grid.res 96 → 64"
+    rows = {r["stage"]: r for r in pipe.state(scene, _ReasonConfig(a=_A(value=3), c=_C(budget=2, grid=_Nested(res=96))),
+                                               source)}
+    assert rows["a"]["state"] == "stale" and rows["c"]["state"] == "done"  # whether c runs again, a's output tells
+    assert rows["c"]["why"] == "if a's new output differs from its last"
     assert "why" not in pipe.state(scene)[1]  # without options nothing is stale here
     # an entry made under no named preset names none; one made under a preset names it and the one that replaces it
     assert run(_ReasonConfig(c=_C(budget=3, grid=_Nested(res=96))), 2, "fast")[0] == ["c runs again: c.budget 2 → 3"]

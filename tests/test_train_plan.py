@@ -243,9 +243,10 @@ def test_close_ups_train_at_the_other_photos_pixel_footprint() -> None:
 
 def test_a_small_object_in_wide_photos_trains_at_a_larger_side() -> None:
     """training_side: a box of radius sqrt(3) seen by 1600-px photos (focal 1600) from 13.4 units spans 103 px at
-    max_side 400, under half of train.object_span=400: the photos train at the side where it spans 400, capped by the
-    photos' own size; from 4.5 units (310 px), an unbounded scene or train.object_span=0 keeps max_side."""
-    from recon.plans.training import MAX_OBJECT_SIDE, training_side
+    max_side 400, under half of it: the photos train at the side where it spans 400, capped by the photos' own size
+    and the pixels all of them hold; from 4.5 units (310 px), an unbounded scene or train.small_object=off keeps
+    max_side, and so does a smaller max_side (the box spans as large a share of it)."""
+    from recon.plans.training import MAX_OBJECT_PIXELS, MAX_OBJECT_SIDE, training_side
 
     def ring(distance: float, size: int = 1600, capture: str = "object") -> Scene:
         eyes = [distance * np.array([math.cos(a), math.sin(a), 0.5]) / math.hypot(1, 0.5)
@@ -261,12 +262,17 @@ def test_a_small_object_in_wide_photos_trains_at_a_larger_side() -> None:
     span = 2 * 400 * math.sqrt(3) / 13.4
     assert side == round(400 * 400 / span) < MAX_OBJECT_SIDE
     assert f"spans {span:.0f} px of the 400-px photos" in why and f"train at {side} px" in why
-    assert training_side(replace(cfg, max_side=side), far, far.frames) == (side, "")  # there it spans 400: enough
-    assert training_side(cfg, ring(4.5), ring(4.5).frames) == (400, "")
-    assert training_side(replace(cfg, object_span=0), far, far.frames) == (400, "")
+    near = ring(4.5)
+    assert training_side(cfg, near, near.frames) == (400, "")
+    assert training_side(replace(cfg, max_side=100), near, near.frames) == (100, "")  # a share of max_side counts
+    assert training_side(replace(cfg, small_object="off"), far, far.frames) == (400, "")
     unbounded = ring(13.4, capture="unbounded")
     assert training_side(cfg, unbounded, unbounded.frames) == (400, "")
     farther = ring(40.0)
     assert training_side(cfg, farther, farther.frames)[0] == MAX_OBJECT_SIDE
     small_photos = ring(13.4, size=800)  # never larger than the photos themselves
     assert training_side(cfg, small_photos, small_photos.frames)[0] == 800
+    many = ring(13.4)
+    many.frames = many.frames * 4  # 48 photos: at 1547 px, 86 million pixels
+    side = training_side(cfg, many, many.frames)[0]
+    assert 400 < side < 1547 and len(many.frames) * side * side * 3 // 4 <= MAX_OBJECT_PIXELS

@@ -743,12 +743,12 @@ def run_sfm(
 
     with native_output_to(log_file):
         best, attempts = register_best(run_attempt, len(names), options, attempts_here)
-        apart = next((groups for model, groups in mapped if model is best), []) if best is not None else []
-        groups = [[n for n in names if n in members] for members in map(set, apart)]
+        apart = next((found for model, found in mapped if model is best), []) if best is not None else []
+        posed_apart = [[n for n in names if n in members] for members in map(set, apart)]
         excluded = leave_out_outliers(best) if best is not None else {}
         num_registered = best.num_reg_images() if best is not None else 0
         if best is None or num_registered < needed:
-            raise ReconError(_too_few_message(num_registered, len(names), needed, groups))
+            raise ReconError(_too_few_message(num_registered, len(names), needed, posed_apart))
         start = time.perf_counter()
         best, refinement = refine_robust(best, num_threads=options.num_threads)
         timings["map"] += time.perf_counter() - start
@@ -777,5 +777,5 @@ def run_sfm(
         attempts=attempts,
         refinement=refinement,
         excluded={n: excluded[n] for n in names if n in excluded},
-        groups_apart=groups,
+        groups_apart=posed_apart,
     )

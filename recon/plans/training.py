@@ -4,6 +4,7 @@ which must time the very step the stage trains."""
 from __future__ import annotations
 
 import copy
+import math
 from dataclasses import asdict, dataclass, replace
 from typing import Any
 
@@ -147,36 +148,42 @@ def with_sky(kwargs: dict[str, Any]) -> dict[str, Any]:
 
 
 SMALL_OBJECT_SHARE = 0.5
-"""An object capture trains larger than max_side only where its box spans under this share of `train.object_span`:
-a capture framing its object as usual (the sample, the fox) or a little wider keeps the preset's size and time per
-step, and a small object in wide photos gets the pixels it lacks (`benchmarks/results/small_object_sample.json`)."""
+"""An object capture trains larger than max_side only where its box spans under this share of max_side: a capture
+framing its object as usual (the sample, the fox: the box spans about the whole side) or a little wider keeps the
+preset's size and time per step, and a small object in wide photos gets the pixels it lacks
+(`benchmarks/results/small_object_sample.json`)."""
 MAX_OBJECT_SIDE = 1600
-"""The longest side `training_side` raises the photos to: each photo's pixels stay in memory while it trains."""
+"""The longest side `training_side` raises the photos to."""
+MAX_OBJECT_PIXELS = 50_000_000
+"""The training photos' pixels, all together, that `training_side` raises them to at most: each pixel stays in memory
+with its ray's bookkeeping while training, so many photos rise less than a few."""
 
 
 def training_side(cfg: TrainConfig, scene: Scene, frames: list[Frame]) -> tuple[int, str]:
-    """(the longest side the training photos load at, why; "" where it is max_side as set), `train.object_span`.
+    """(the longest side the training photos load at, why; "" where it is max_side), `train.small_object`.
 
-    A small object in wide photos spans few pixels at max_side: the field's grids and the mesh grid are sized to
-    the pixel footprint, so its surface comes out coarse and off by up to a pixel. Rays that miss the scene box are
-    never trained (`RayBatcher`), so larger photos add rays on the object only."""
-    if cfg.object_span <= 0 or scene.capture != "object" or scene.aabb is None or not frames:
+    The presets' sizes suit an object that fills the frame. A small object in wide photos spans few pixels at
+    max_side: the field's grids and the mesh grid are sized to the pixel footprint, so its surface comes out coarse and
+    off by up to a pixel. Rays that miss the scene box are never trained (`RayBatcher`), so larger photos add rays on
+    the object only."""
+    if cfg.small_object == "off" or scene.capture != "object" or scene.aabb is None or not frames:
         return cfg.max_side, ""
     box = np.asarray(scene.aabb, np.float64)
     centre, radius = box.mean(axis=0), float(np.linalg.norm(box[1] - box[0])) / 2
     spans = [2 * f.fl_x * min(1.0, cfg.max_side / max(f.w, f.h)) * radius
              / max(float(np.linalg.norm(f.c2w[:3, 3] - centre)), radius) for f in frames]
-    span = float(np.median(spans))
-    if span >= SMALL_OBJECT_SHARE * cfg.object_span:
+    span = float(np.median(spans))  # the box's bounding sphere, in pixels of the photos at max_side
+    if span >= SMALL_OBJECT_SHARE * cfg.max_side:
         return cfg.max_side, ""
     own = int(np.median([max(f.w, f.h) for f in frames]))
-    side = min(round(cfg.max_side * cfg.object_span / span), own, MAX_OBJECT_SIDE)
+    fits = math.sqrt(MAX_OBJECT_PIXELS / sum(f.w * f.h / max(f.w, f.h) ** 2 for f in frames))  # pixels ∝ side²
+    side = min(round(cfg.max_side * cfg.max_side / span), own, MAX_OBJECT_SIDE, int(fits))
     if side <= cfg.max_side:
         return cfg.max_side, ""
     return side, (f"training size: the object's box spans {span:.0f} px of the {cfg.max_side}-px photos (median), "
-                  f"under half of train.object_span={cfg.object_span}: they train at {side} px, where it spans "
-                  f"{span * side / cfg.max_side:.0f}, so the grids and the mesh see it finer (train.object_span=0 "
-                  f"keeps {cfg.max_side} px)")
+                  f"under half of them: they train at {side} px, where it spans {span * side / cfg.max_side:.0f}, so "
+                  f"the grids and the mesh see it as finely as an object filling the frame "
+                  f"(train.small_object=off keeps {cfg.max_side} px)")
 
 
 FOOTPRINT_PERCENTILE = 75
