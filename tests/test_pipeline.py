@@ -481,6 +481,6 @@ def test_status_says_the_photos_are_gone(tmp_path: Path, source: Path) -> None:
 def test_an_option_added_or_removed_since_the_stage_ran_is_named_as_such() -> None:
     from recon.runner.pipeline import _changed_options
 
-    assert _changed_options("train", {"lr": 0.01, "gone": 1}, {"lr": 0.01, "object_span": 400}) == [
-        "train.gone (no longer an option)", "train.object_span 400 (an option new in this recon)"]
+    assert _changed_options("train", {"lr": 0.01, "gone": 1}, {"lr": 0.01, "small_object": "auto"}) == [
+        "train.gone (no longer an option)", "train.small_object auto (an option new in this recon)"]
     assert _changed_options("train", {"lr": 0.01, "span": None}, {"lr": 0.01, "span": 4}) == ["train.span null → 4"]
