@@ -623,3 +623,19 @@ def test_the_look_for_photos_below_a_folder_is_bounded(tmp_path: Path, monkeypat
     assert [d.relative_to(tmp_path).as_posix() for d, _ in images.photo_folders_below(tmp_path)] == ["a", "b", "c/d"]
     monkeypatch.setattr(images, "NESTED_MAX_FOLDERS", 3)  # the folder itself, a, b
     assert [d.name for d, _ in images.photo_folders_below(tmp_path)] == ["a", "b"]
+
+
+def test_unusable_photos_are_all_named_before_the_scene_folder_is_made(tmp_path: Path) -> None:
+    """An empty file, text named like a photo and a thumbnail: one message names the three with what each is, exit
+    2, and no scene folder is made (the headers are read before it)."""
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    for i in range(4):
+        _rgb(photos / f"p{i}.png", size=64, seed=i)
+    (photos / "empty.jpg").write_bytes(b"")
+    (photos / "notes.png").write_text("not a picture")
+    _rgb(photos / "thumb.png", size=20)
+    code, out = recon("run", str(photos), "--out", str(tmp_path / "scene"), "--until", "poses", "-q")
+    assert_clean_error(code, out, "3 of the 7 photos", "empty.jpg (an empty file)", "notes.png (not an image",
+                       "thumb.png (20×20 px", "Remove them from the folder")
+    assert not (tmp_path / "scene").exists()

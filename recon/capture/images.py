@@ -121,6 +121,47 @@ def check_photo_set(source: Path, photos: list[Path]) -> None:
         )
 
 
+def check_photo_headers(source: Path, photos: list[Path], most: int = 5) -> None:
+    """Refuse, naming every one, the photos whose header says they cannot be used: empty, not an image, under
+    MIN_SIDE (a photo over MAX_PIXELS is refused alone, as `oriented_size` does). Reads headers only (PIL's open
+    decodes no pixels), so `recon run` tells a bad copy before it makes the scene folder, even of a capture whose
+    stages are cached; a file cut short is told when it is read."""
+    bad = []
+    for path in photos:
+        if path.stat().st_size == 0:
+            bad.append(f"{path.name} (an empty file)")
+            continue
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+                with Image.open(path) as img:
+                    w, h = img.size
+        except Image.DecompressionBombError:
+            oriented_size(path)  # raises the error that names its size
+            raise
+        except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as exc:
+            if HEIF_READER and path.suffix.lower() in HEIF_SUFFIXES:
+                bad.append(f"{path.name} ({HEIF_READER})")
+            elif isinstance(exc, UnidentifiedImageError):
+                bad.append(f"{path.name} (not an image: no {READABLE_FORMATS} inside)")
+            else:
+                bad.append(f"{path.name} (unreadable: {exc})")
+            continue
+        if w * h > MAX_PIXELS:
+            raise too_large(path, w, h)
+        if min(w, h) < MIN_SIDE:
+            bad.append(f"{path.name} ({w}×{h} px, under {MIN_SIDE} px a side: a thumbnail?)")
+    if bad:
+        one = len(bad) == 1
+        more = f"; and {len(bad) - most} more" if len(bad) > most else ""
+        raise InputError(
+            f"{len(bad)} of the {len(photos)} photos in {source} cannot be used: {'; '.join(bad[:most])}{more}. "
+            f"Remove {'it' if one else 'them'} from the folder or replace {'it' if one else 'them'} with "
+            f"{'a good copy' if one else 'good copies'} (the photo{'' if one else 's'} as the camera saved "
+            f"{'it' if one else 'them'})."
+        )
+
+
 def too_large(path: Path | str, width: int, height: int, what: str = "image") -> InputError:
     """The error for a photo (or a video's frames) over MAX_PIXELS, told from the header before any decoding."""
     return InputError(

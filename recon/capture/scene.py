@@ -26,7 +26,8 @@ import numpy as np
 
 from recon.atomic import read_json, write_json_atomic
 from recon.capture.colmap import LENS_MODELS, find_colmap_model, read_model, reconstruction_frames
-from recon.capture.images import IMAGE_SUFFIXES, MIN_SIDE, check_photo_set, list_photos, no_photos, oriented_size
+from recon.capture.images import (IMAGE_SUFFIXES, MIN_SIDE, check_photo_headers, check_photo_set, list_photos,
+                                  no_photos, oriented_size)
 from recon.errors import InputError
 
 SCENE_FORMAT = "recon-scene"
@@ -535,6 +536,7 @@ def check_source(path: Path) -> str:
         if not photos:
             raise no_photos(path, skipped)
         check_photo_set(path, photos)
+        check_photo_headers(path, photos)
     if kind == "video":
         from recon.capture.video import check_container, list_videos
 
