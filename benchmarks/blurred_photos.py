@@ -60,12 +60,30 @@ def recon(*args: str) -> None:
                    env={**os.environ, "PYTHONPATH": str(REPO)})
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+def run_fast(images: Path, scene: Path, overrides: list[str], steps: int = 4000) -> tuple[dict, dict]:
+    """`recon run IMAGES --out SCENE --preset fast` (SCENE made anew) for a fixed number of steps, not the time budget
+    (the steps must not depend on the machine's load), then `recon eval --gt-mesh` against the sample's true surface:
+    (the field's metrics.json, the mesh's accuracy)."""
+    shutil.rmtree(scene, ignore_errors=True)
+    sets = [a for o in ["train.budget=", f"train.steps={steps}", *overrides] for a in ("--set", o)]
+    recon("run", str(images), "--out", str(scene), "--preset", "fast", "-q", *sets)
+    recon("eval", str(scene), "--gt-mesh", str(SAMPLE / "gt_mesh.ply"))
+    return (json.loads((scene / "03_field" / "metrics.json").read_text()),
+            json.loads((scene / "eval" / "mesh_accuracy.json").read_text()))
+
+
+def sample_run_parser(doc: str) -> argparse.ArgumentParser:
+    """The arguments of a benchmark that runs a variant of the sample (`run_fast`) and appends a row to a record."""
+    parser = argparse.ArgumentParser(description=doc.split("\n")[0])
     parser.add_argument("--work", type=Path, required=True)
     parser.add_argument("--name", required=True)
     parser.add_argument("--label", required=True)
     parser.add_argument("--set", dest="overrides", action="append", default=[])
+    return parser
+
+
+def main() -> None:
+    parser = sample_run_parser(__doc__)
     parser.add_argument("--shake", type=float, default=SHAKE, help="the shake's length over the width (0: none)")
     args = parser.parse_args()
     from mixed_orientation import append_row
@@ -75,12 +93,7 @@ def main() -> None:
     date = datetime.now(timezone.utc).isoformat(timespec="seconds")
     make_capture(args.work / "images", args.shake)
     scene = args.work / f"scene-{args.label.replace(' ', '_').replace(',', '')}"
-    shutil.rmtree(scene, ignore_errors=True)
-    sets = [a for o in ["train.budget=", "train.steps=4000", *args.overrides] for a in ("--set", o)]
-    recon("run", str(args.work / "images"), "--out", str(scene), "--preset", "fast", "-q", *sets)
-    recon("eval", str(scene), "--gt-mesh", str(SAMPLE / "gt_mesh.ply"))
-    metrics = json.loads((scene / "03_field" / "metrics.json").read_text())
-    accuracy = json.loads((scene / "eval" / "mesh_accuracy.json").read_text())
+    metrics, accuracy = run_fast(args.work / "images", scene, args.overrides)
     notes = json.loads((scene / "02_scene" / "scene.json").read_text())["notes"]
     row = {"label": args.label, "overrides": args.overrides, "shaken": sorted(SHAKEN), "shake": args.shake,
            "blurred": notes.get("blurred"), "steps": metrics.get("steps"), "rays_per_s": metrics.get("rays_per_s"),

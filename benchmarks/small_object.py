@@ -13,7 +13,6 @@ flat base, commit and machine) to benchmarks/results/NAME.json. It measures; it 
 """
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import shutil
@@ -61,14 +60,10 @@ def missed_on_base(scene: Path, tolerance: float = 0.01, samples: int = 100_000)
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--work", type=Path, required=True)
-    parser.add_argument("--name", required=True)
-    parser.add_argument("--label", required=True)
-    parser.add_argument("--set", dest="overrides", action="append", default=[])
-    args = parser.parse_args()
-    from blurred_photos import recon
+    from blurred_photos import run_fast, sample_run_parser
     from mixed_orientation import append_row
+
+    args = sample_run_parser(__doc__).parse_args()
     from recon.app.bench import provenance
 
     where, load = provenance(), [round(x, 2) for x in os.getloadavg()]
@@ -76,12 +71,7 @@ def main() -> None:
     if not (args.work / "images").is_dir():
         make_capture(args.work / "images")
     scene = args.work / f"scene-{args.label.replace(' ', '_').replace(',', '').replace('=', '_')}"
-    shutil.rmtree(scene, ignore_errors=True)
-    sets = [a for o in ["train.budget=", "train.steps=4000", *args.overrides] for a in ("--set", o)]
-    recon("run", str(args.work / "images"), "--out", str(scene), "--preset", "fast", "-q", *sets)
-    recon("eval", str(scene), "--gt-mesh", str(SAMPLE / "gt_mesh.ply"))
-    metrics = json.loads((scene / "03_field" / "metrics.json").read_text())
-    accuracy = json.loads((scene / "eval" / "mesh_accuracy.json").read_text())
+    metrics, accuracy = run_fast(args.work / "images", scene, args.overrides)
     mesh = json.loads((scene / "manifest.json").read_text())["stages"]["mesh"]["summary"]
     row = {"label": args.label, "overrides": args.overrides,
            "training_size": next((r for r in metrics["reasons"] if r.startswith("training size")), None),
@@ -89,8 +79,8 @@ def main() -> None:
            "train_time_s": metrics.get("train_time_s"), "psnr": metrics["test"]["psnr"],
            "ssim": metrics["test"]["ssim"], "mesh_faces": mesh.get("faces"),
            "fscore_1pct": accuracy.get("fscore@0.01"), "fscore_05pct": accuracy.get("fscore@0.005"),
-           "chamfer_rel": accuracy.get("chamfer_l1_rel"), "missed_1pct_on_base": missed_on_base(scene), **where, "date": date, "load_average_start": load,
-           "load_average_end": [round(x, 2) for x in os.getloadavg()]}
+           "chamfer_rel": accuracy.get("chamfer_l1_rel"), "missed_1pct_on_base": missed_on_base(scene), **where,
+           "date": date, "load_average_start": load, "load_average_end": [round(x, 2) for x in os.getloadavg()]}
     append_row(args.name, row)
 
 
