@@ -406,7 +406,8 @@ class Pipeline:
         manifest = Manifest(scene_dir)
         rows = []
         photos_changed: set[str] = set()  # stages a run makes from other photos: every stage after them runs again
-        remade: set[str] = set()  # stages a run makes again: a stage made from their output runs again if it differs
+        remade: dict[str, bool] = {}  # stage a run makes again -> surely (stale, not only maybe): one made from its
+        # output runs again if that output differs
         for stage in self.stages:
             entry = manifest.stages.get(stage.name)
             folder = scene_dir / stage.folder
@@ -441,11 +442,12 @@ class Pipeline:
                     elif row["state"] == "done" and after:  # its input is made anew from other photos
                         row["state"], row["why"] = "stale", f"after {after[0]}, made from other photos"
                     elif row["state"] == "done" and (again := [u for u in stage.inputs if u in remade]):
-                        row["why"] = f"if {again[0]}'s new output differs from its last"  # only running it tells
+                        nearest = max(again, key=lambda u: (remade[u], stage.inputs.index(u)))  # surely, then latest
+                        row["why"] = f"if {nearest}'s new output differs from its last"  # only running it tells
                     if other_photos or after:
                         photos_changed.add(stage.name)
                     if row["state"] == "stale" or row.get("why"):
-                        remade.add(stage.name)
+                        remade[stage.name] = row["state"] == "stale"
                 elif entry.get("status") == "failed":
                     row["state"] = "failed"
             if scratch := _scratch_note(scene_dir, stage.name):  # e.g. a stopped training, under any options
