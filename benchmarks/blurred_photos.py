@@ -72,12 +72,13 @@ def run_fast(images: Path, scene: Path, overrides: list[str], steps: int = 4000)
             json.loads((scene / "eval" / "mesh_accuracy.json").read_text()))
 
 
-def sample_run_parser(doc: str) -> argparse.ArgumentParser:
-    """The arguments of a benchmark that runs a variant of the sample (`run_fast`) and appends a row to a record."""
+def sample_run_parser(doc: str, required: bool = True) -> argparse.ArgumentParser:
+    """The arguments of a benchmark that runs a variant of the sample (`run_fast`) and appends a row to a record
+    (--name and --label not `required` where the script can also do something else)."""
     parser = argparse.ArgumentParser(description=doc.split("\n")[0])
     parser.add_argument("--work", type=Path, required=True)
-    parser.add_argument("--name", required=True)
-    parser.add_argument("--label", required=True)
+    parser.add_argument("--name", required=required)
+    parser.add_argument("--label", required=required)
     parser.add_argument("--set", dest="overrides", action="append", default=[])
     return parser
 

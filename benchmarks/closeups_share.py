@@ -41,13 +41,17 @@ def link_photos(photos: list[Path], folder: Path) -> Path:
 
 def figure(work: Path, photos: list[Path], out: Path) -> None:
     """An orbit photo, a close-up, and the mesh from the orbit photos alone and with the close-ups, in a row."""
+    tiles_row([*photos, work / "orbit" / "scene" / "04_mesh" / "preview_front.png",
+               work / "all" / "scene" / "04_mesh" / "preview_front.png"], out)
+
+
+def tiles_row(paths: list[Path], out: Path, side: int = 400) -> None:
+    """The images at `paths`, each fitted into a white square of `side` px, in a row, as a PNG at `out`."""
     import cv2
     import numpy as np
 
-    side = 400
     tiles = []
-    for path in [*photos, work / "orbit" / "scene" / "04_mesh" / "preview_front.png",
-                 work / "all" / "scene" / "04_mesh" / "preview_front.png"]:
+    for path in paths:
         img = cv2.imread(str(path))
         if img is None:
             raise SystemExit(f"cannot read {path}: run without --figure-only first")

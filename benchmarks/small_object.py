@@ -10,6 +10,10 @@ steps must not depend on the machine's load) with any `--set` given, then `recon
 true surface. Appends a row (label, overrides, the training size's reason, steps, rays/s, training seconds, held-out
 PSNR and SSIM, mesh faces, F@1%, F@0.5%, Chamfer, the share of the true surface missed at 1% that lies on the object's
 flat base, commit and machine) to benchmarks/results/NAME.json. It measures; it asserts nothing.
+
+    python benchmarks/small_object.py --work /tmp/small --figure docs/small_object.png
+
+draws a photo of the capture and the meshes of the runs labelled `train.small_object=off` and `shipped`.
 """
 from __future__ import annotations
 
@@ -59,11 +63,26 @@ def missed_on_base(scene: Path, tolerance: float = 0.01, samples: int = 100_000)
     return float(np.mean(points[missed, 2] <= truth.bounds[0, 2] + 0.005 * diagonal))
 
 
+def figure(work: Path, out: Path) -> None:
+    """A photo of the capture, then the mesh trained at the preset's side and at the side picked, in a row."""
+    from closeups_share import tiles_row
+
+    tiles_row([work / "images" / "view_000.jpg", work / "scene-train.small_object_off" / "04_mesh" / "preview_front.png",
+               work / "scene-shipped" / "04_mesh" / "preview_front.png"], out)
+
+
 def main() -> None:
     from blurred_photos import run_fast, sample_run_parser
     from mixed_orientation import append_row
 
-    args = sample_run_parser(__doc__).parse_args()
+    parser = sample_run_parser(__doc__, required=False)
+    parser.add_argument("--figure", type=Path, default=None, help="only draw a photo and the meshes of the labels "
+                        "train.small_object=off and shipped (an earlier run's scenes in --work) into this PNG")
+    args = parser.parse_args()
+    if args.figure is not None:
+        return figure(args.work, args.figure)
+    if not (args.name and args.label):
+        parser.error("--name and --label are needed to run (or --figure to draw)")
     from recon.app.bench import provenance
 
     where, load = provenance(), [round(x, 2) for x in os.getloadavg()]
