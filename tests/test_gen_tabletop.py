@@ -169,6 +169,22 @@ def test_closeups_crop_the_object_and_their_masks_stay_true(tmp_path: Path) -> N
         tt.generate(tmp_path / "no", views=2, size="32x24", realistic=True, turntable=True, closeups=True)
 
 
+def test_far_photos_hold_the_object_small_and_its_masks_stay_true(tmp_path: Path, capture: Path) -> None:
+    """far: the same capture from FAR_FRAMING / REAL_FRAMING times as far, so the object covers about that squared
+    less of each photo, its masks still its silhouette; with a turntable or close-ups it is refused."""
+    out = tt.generate(tmp_path / "far", views=3, size="96x72", mesh_res=64, realistic=True, far=True)
+    doc, rows = frames(out)
+    mesh = trimesh.load(out / "gt_mesh.ply")
+    for c2w, mask, _ in rows:
+        assert not np.concatenate([mask[0], mask[-1], mask[:, 0], mask[:, -1]]).any()  # all of it in frame
+        assert iou(mask, silhouette(mesh, c2w, doc, doc["k1"], doc["k2"])) > 0.9
+    near = np.mean([mask.mean() for _, mask, _ in frames(capture)[1]])
+    ratio = near / np.mean([mask.mean() for _, mask, _ in rows])
+    assert 0.5 * (tt.FAR_FRAMING / tt.REAL_FRAMING) ** 2 < ratio < 2 * (tt.FAR_FRAMING / tt.REAL_FRAMING) ** 2
+    with pytest.raises(ValueError, match="far"):
+        tt.generate(tmp_path / "no", views=2, size="32x24", realistic=True, closeups=True, far=True)
+
+
 def test_a_painted_object_has_the_same_shape_in_a_few_flat_colours_with_few_features(tmp_path: Path) -> None:
     """painted changes the object's albedo alone: the same masks, pixels near the palette's colours, and under a
     third of the SIFT features the richly textured object gives inside its masks (the room is the same)."""
