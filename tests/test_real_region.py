@@ -82,6 +82,30 @@ def test_floating_object_or_flat_faced_object_has_no_ground() -> None:
     assert region is not None and region.ground is None and region.points.mean() > 0.99
 
 
+def test_from_further_back_the_table_in_nearly_every_frame_is_still_the_ground() -> None:
+    """Cameras at three times the distance keep most of the table top in frame of every photo, so few of its points
+    are background: the ground is still found (the plane holding most points, with background points on it too) and
+    the region is the object, not the table."""
+    points, labels = tabletop_points(np.random.default_rng(3))
+    frames = cameras(radius=7.5)
+    c2ws = np.stack([f.c2w for f in frames])
+    seen = region_of(points, frames)
+    assert seen is not None and seen.ground is not None
+    table = labels == 1
+    background_on_table = table & ~in_frame_of_most(points, c2ws, frames)
+    assert background_on_table.sum() < 0.1 * len(points)  # what the background score alone took: under its 10%
+    np.testing.assert_allclose(seen.ground.normal, [0, 0, 1], atol=0.01)
+    assert abs(seen.ground.offset - TABLE_Z) < 0.01
+    assert (labels[seen.points] == 0).mean() > 0.97
+
+
+def in_frame_of_most(points: np.ndarray, c2ws: np.ndarray, frames: list[Frame]) -> np.ndarray:
+    from recon.capture.region import IN_VIEW_FRACTION, in_view_fraction
+
+    return in_view_fraction(points, c2ws, np.array([[f.fl_x, f.fl_y, f.cx, f.cy] for f in frames]),
+                            np.array([[f.w, f.h] for f in frames])) >= IN_VIEW_FRACTION
+
+
 def test_normalize_keeps_the_object_in_the_box_and_contracts_the_rest() -> None:
     points, labels = tabletop_points(np.random.default_rng(2))
     frames = cameras()

@@ -83,7 +83,9 @@ def fit_ground_plane(
     threshold: inlier distance (scene units). background (N,) bool: the points outside the object region; a
     ground extends beyond the object, so planes are scored by their background inliers (a flat face of the
     object itself has none). The best plane is refitted to its inliers (least squares, SVD). None when no
-    plane holds GROUND_MIN_FRACTION of the points.
+    plane holds GROUND_MIN_FRACTION of the points; where no plane's background points do (the table of photos
+    taken from further back is in nearly every frame), the plane holding most points, if GROUND_MIN_FRACTION of
+    the background points (and MIN_REGION_POINTS) lie on it too.
     """
     pts = np.asarray(points, np.float64)
     finite = np.all(np.isfinite(pts), axis=1)
@@ -98,6 +100,15 @@ def fit_ground_plane(
         return normal @ up >= cos_tilt and normal @ below - offset > threshold
 
     best = _ransac_plane(pts, up, weight, threshold, under_object, iterations, seed)
+    if best is None and background is not None:
+        # photos from further back keep most of the table in nearly every frame, so few of its points are background:
+        # score every point then, and take the plane only where it holds background points too (it reaches beyond
+        # the object's region, which a flat face of the object does not)
+        best = _ransac_plane(pts, up, np.ones(len(pts), bool), threshold, under_object, iterations, seed)
+        if best is not None:
+            beyond = int(((np.abs(pts @ best[0] - best[1]) < threshold) & weight).sum())
+            if beyond < max(MIN_REGION_POINTS, GROUND_MIN_FRACTION * weight.sum()):
+                best = None
     return None if best is None else Plane(*best, threshold)
 
 
