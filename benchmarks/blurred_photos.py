@@ -60,14 +60,15 @@ def recon(*args: str) -> None:
                    env={**os.environ, "PYTHONPATH": str(REPO)})
 
 
-def run_fast(images: Path, scene: Path, overrides: list[str], steps: int = 4000) -> tuple[dict, dict]:
+def run_fast(images: Path, scene: Path, overrides: list[str], steps: int = 4000,
+             truth: Path = SAMPLE / "gt_mesh.ply") -> tuple[dict, dict]:
     """`recon run IMAGES --out SCENE --preset fast` (SCENE made anew) for a fixed number of steps, not the time budget
-    (the steps must not depend on the machine's load), then `recon eval --gt-mesh` against the sample's true surface:
-    (the field's metrics.json, the mesh's accuracy)."""
+    (the steps must not depend on the machine's load), then `recon eval --gt-mesh` against the true surface (the
+    sample's, or `truth` with its transforms.json beside it): (the field's metrics.json, the mesh's accuracy)."""
     shutil.rmtree(scene, ignore_errors=True)
     sets = [a for o in ["train.budget=", f"train.steps={steps}", *overrides] for a in ("--set", o)]
     recon("run", str(images), "--out", str(scene), "--preset", "fast", "-q", *sets)
-    recon("eval", str(scene), "--gt-mesh", str(SAMPLE / "gt_mesh.ply"))
+    recon("eval", str(scene), "--gt-mesh", str(truth))
     return (json.loads((scene / "03_field" / "metrics.json").read_text()),
             json.loads((scene / "eval" / "mesh_accuracy.json").read_text()))
 

@@ -1,0 +1,56 @@
+"""A small object on a table photographed from further back, without masks: what recon makes of it.
+
+    python benchmarks/far_tabletop.py --work /tmp/far_tabletop --name far_tabletop --label shipped [--set KEY=VALUE]
+
+Renders `python fixtures/gen_tabletop.py --realistic --far --views 24 --size 640x480` into WORK/capture (cached: the
+object spans about 30% of each photo, the table, its clutter and the room the rest), copies its photos alone into
+WORK/images (no masks), runs `recon run WORK/images --out WORK/scene-LABEL --preset fast` for a fixed 4,000 steps with
+any `--set` given, then `recon eval --gt-mesh` against the object's true surface. Appends a row (label, overrides,
+normalize's object region and masks as it said them, the training size's reason, steps, rays/s, held-out PSNR, mesh
+faces, precision and recall at 1%, F@1%, F@0.5%, Chamfer, commit and machine) to benchmarks/results/NAME.json. It
+measures; it asserts nothing.
+"""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import sys
+from datetime import datetime, timezone
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))  # this checkout's recon, not an installed one
+sys.path.insert(0, str(REPO / "benchmarks"))
+sys.path.insert(0, str(REPO / "fixtures"))
+
+
+def main() -> None:
+    from blurred_photos import run_fast, sample_run_parser
+    from gen_tabletop import generate
+    from mixed_orientation import append_row
+    from recon.app.bench import provenance
+
+    args = sample_run_parser(__doc__).parse_args()
+    where, load = provenance(), [round(x, 2) for x in os.getloadavg()]
+    date = datetime.now(timezone.utc).isoformat(timespec="seconds")
+    capture = generate(args.work / "capture", views=24, size="640x480", realistic=True, far=True)
+    shutil.rmtree(args.work / "images", ignore_errors=True)
+    shutil.copytree(capture / "images", args.work / "images")
+    scene = args.work / f"scene-{args.label.replace(' ', '_').replace(',', '').replace('=', '_')}"
+    metrics, accuracy = run_fast(args.work / "images", scene, args.overrides, truth=capture / "gt_mesh.ply")
+    notes = json.loads((scene / "02_scene" / "scene.json").read_text())["notes"]
+    mesh = json.loads((scene / "manifest.json").read_text())["stages"]["mesh"]["summary"]
+    row = {"label": args.label, "overrides": args.overrides, "region": notes.get("region"),
+           "masks": notes.get("masks"),
+           "training_size": next((r for r in metrics["reasons"] if r.startswith("training size")), None),
+           "steps": metrics.get("steps"), "rays_per_s": metrics.get("rays_per_s"), "psnr": metrics["test"]["psnr"],
+           "mesh_faces": mesh.get("faces"), "precision_1pct": accuracy.get("precision@0.01"),
+           "recall_1pct": accuracy.get("recall@0.01"), "fscore_1pct": accuracy.get("fscore@0.01"),
+           "fscore_05pct": accuracy.get("fscore@0.005"), "chamfer_rel": accuracy.get("chamfer_l1_rel"), **where,
+           "date": date, "load_average_start": load, "load_average_end": [round(x, 2) for x in os.getloadavg()]}
+    append_row(args.name, row)
+
+
+if __name__ == "__main__":
+    main()
