@@ -67,8 +67,8 @@ def figure(work: Path, out: Path) -> None:
     """A photo of the capture, then the mesh trained at the preset's side and at the side picked, in a row."""
     from closeups_share import tiles_row
 
-    tiles_row([work / "images" / "view_000.jpg", work / "scene-train.small_object_off" / "04_mesh" / "preview_front.png",
-               work / "scene-shipped" / "04_mesh" / "preview_front.png"], out)
+    meshes = [work / scene / "04_mesh" / "preview_front.png" for scene in ("scene-train.small_object_off", "scene-shipped")]
+    tiles_row([work / "images" / "view_000.jpg", *meshes], out)
 
 
 def main() -> None:

@@ -64,7 +64,8 @@ def test_photos_named_alike_but_for_the_extension(tmp_path: Path) -> None:
 def test_corrupt_jpeg_names_the_file(tmp_path: Path) -> None:
     _noise_photos(tmp_path / "p", 3)
     (tmp_path / "p" / "bad.jpg").write_bytes(b"\xff\xd8\xff\xe0 not really a jpeg")
-    assert_clean_error(*recon("run", str(tmp_path / "p"), "--out", str(tmp_path / "s")), "bad.jpg", "Remove it from the folder")
+    code, out = recon("run", str(tmp_path / "p"), "--out", str(tmp_path / "s"))
+    assert_clean_error(code, out, "bad.jpg", "Remove it from the folder")
 
 
 def test_photos_that_do_not_overlap(tmp_path: Path) -> None:
