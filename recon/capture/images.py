@@ -123,32 +123,19 @@ def check_photo_set(source: Path, photos: list[Path]) -> None:
 
 def check_photo_headers(source: Path, photos: list[Path], most: int = 5) -> None:
     """Refuse, naming every one, the photos whose header says they cannot be used: empty, not an image, under
-    MIN_SIDE (a photo over MAX_PIXELS is refused alone, as `oriented_size` does). Reads headers only (PIL's open
-    decodes no pixels), so `recon run` tells a bad copy before it makes the scene folder, even of a capture whose
-    stages are cached; a file cut short is told when it is read."""
+    MIN_SIDE (a photo over MAX_PIXELS is refused alone, by `oriented_size`). Reads headers only, so `recon run` tells
+    a bad copy before it makes the scene folder, even of a capture whose stages are cached; a file cut short is told
+    when it is read."""
     bad = []
     for path in photos:
         if path.stat().st_size == 0:
             bad.append(f"{path.name} (an empty file)")
             continue
         try:
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", Image.DecompressionBombWarning)
-                with Image.open(path) as img:
-                    w, h = img.size
-        except Image.DecompressionBombError:
-            oriented_size(path)  # raises the error that names its size
-            raise
-        except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as exc:
-            if HEIF_READER and path.suffix.lower() in HEIF_SUFFIXES:
-                bad.append(f"{path.name} ({HEIF_READER})")
-            elif isinstance(exc, UnidentifiedImageError):
-                bad.append(f"{path.name} (not an image: no {READABLE_FORMATS} inside)")
-            else:
-                bad.append(f"{path.name} (unreadable: {exc})")
+            w, h = oriented_size(path)
+        except UnreadableImage as exc:
+            bad.append(f"{path.name} ({exc.reason})")
             continue
-        if w * h > MAX_PIXELS:
-            raise too_large(path, w, h)
         if min(w, h) < MIN_SIDE:
             bad.append(f"{path.name} ({w}×{h} px, under {MIN_SIDE} px a side: a thumbnail?)")
     if bad:
@@ -171,12 +158,22 @@ def too_large(path: Path | str, width: int, height: int, what: str = "image") ->
     )
 
 
-def unreadable(path: Path, exc: BaseException) -> InputError:
+class UnreadableImage(InputError):
+    """A photo PIL cannot open; `reason` says what it is in a few words, for a message naming several."""
+
+    def __init__(self, message: str, reason: str) -> None:
+        super().__init__(message)
+        self.reason = reason
+
+
+def unreadable(path: Path, exc: BaseException) -> UnreadableImage:
     if HEIF_READER and Path(path).suffix.lower() in HEIF_SUFFIXES:
-        return InputError(f"Cannot read the HEIC photo {path}: {HEIF_READER}.")
-    return InputError(
+        return UnreadableImage(f"Cannot read the HEIC photo {path}: {HEIF_READER}.", HEIF_READER)
+    return UnreadableImage(
         f"Cannot read the image {path}: {exc}. The file is corrupt or not an image; "
-        f"remove it from the folder or replace it with a good copy."
+        f"remove it from the folder or replace it with a good copy.",
+        f"not an image: no {READABLE_FORMATS} inside" if isinstance(exc, UnidentifiedImageError) else
+        f"unreadable: {exc}",
     )
 
 
