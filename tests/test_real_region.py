@@ -99,6 +99,38 @@ def test_from_further_back_the_table_in_nearly_every_frame_is_still_the_ground()
     assert (labels[seen.points] == 0).mean() > 0.97
 
 
+def sphere_points(rng: np.random.Generator, center: tuple[float, float, float], radius: float,
+                  n: int = 300) -> np.ndarray:
+    d = rng.normal(size=(n, 3))
+    return np.asarray(center) + radius * d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+def test_from_further_back_a_thing_beside_the_object_is_left_out_and_two_objects_side_by_side_are_kept() -> None:
+    """From further back a cup beside the object stands in frame of nearly every photo too, but off to the side of
+    each: it is left out. Two objects the photos frame together both sit near the photos' centres: both are kept."""
+    rng = np.random.default_rng(4)
+    points, labels = tabletop_points(rng, room=False)
+    cup = sphere_points(rng, (2.8, 1.0, TABLE_Z + 0.15), 0.15)
+    frames = cameras(radius=7.5)
+    c2ws = np.stack([f.c2w for f in frames])
+    everything = np.concatenate([points, cup])
+    assert in_frame_of_most(cup, c2ws, frames).mean() > 0.9  # in frame of most photos, as the object is
+    region = region_of(everything, frames)
+    assert region is not None and region.ground is not None
+    assert not region.points[len(points):].any()
+    alone = region_of(points, frames)  # without the cup: the same object
+    assert alone is not None and (region.points[:len(points)] != alone.points).sum() <= 0.01 * alone.points.sum()
+    assert (labels[alone.points] == 0).mean() > 0.97
+    assert "off to the side" in region.reason
+    # two balls the photos frame together, the cameras' focus between them: neither is left out
+    pair = np.concatenate([sphere_points(rng, (x, 0.0, TABLE_Z + 0.3), 0.3) for x in (-0.45, 0.45)])
+    table = points[labels == 1]
+    table = table[np.min([np.linalg.norm(table[:, :2] - (x, 0.0), axis=1) for x in (-0.45, 0.45)], axis=0) > 0.3]
+    both = region_of(np.concatenate([pair[pair[:, 2] > TABLE_Z], table]), frames)
+    assert both is not None and both.points[:len(pair[pair[:, 2] > TABLE_Z])].mean() > 0.7  # less the ground cut
+    assert "off to the side" not in both.reason
+
+
 def in_frame_of_most(points: np.ndarray, c2ws: np.ndarray, frames: list[Frame]) -> np.ndarray:
     from recon.capture.region import IN_VIEW_FRACTION, in_view_fraction
 
@@ -290,6 +322,7 @@ def test_the_region_holds_a_part_that_close_ups_leave_out_of_frame(monkeypatch: 
     assert not region.points[(labels == 1) | (labels == 2)].any()
     assert "linked to them" in region.reason
     monkeypatch.setattr(object_region_module, "LINK_SPACINGS", 0.0)
+    monkeypatch.setattr(object_region_module, "AIM_MAX", np.inf)  # unlinked, each point is a group of its own
     in_frame = region_of(points, frames)
     assert not in_frame.points[len(ball):][far].any()
 
@@ -306,6 +339,7 @@ def test_a_board_the_object_touches_joins_the_region_only_near_it(monkeypatch: p
     points = np.concatenate([ball, board])
     region = region_of(points, cameras())
     monkeypatch.setattr(object_region_module, "LINK_SPACINGS", 0.0)
+    monkeypatch.setattr(object_region_module, "AIM_MAX", np.inf)  # unlinked, each point is a group of its own
     in_frame = region_of(points, cameras())
     assert region is not None and in_frame is not None
     assert region.points.sum() > in_frame.points.sum()

@@ -1,12 +1,13 @@
 """The object of interest in a capture with background: what the cameras look at, and the ground it stands on.
 
 Phone captures of an object show the table, the floor and the room too. The object is what every photo keeps in
-frame: the sparse points that (nearly) all cameras see inside their image around the cameras' common focus, and the
-points linked to them off the support (close-ups leave an object's ends out of frame). The ground is the largest
-plane of sparse points roughly normal to "up" below the focus, found by RANSAC; an object with no ground under it may
-hang on a wall (a mounted head, a picture, a relief): then the support is the largest plane that every camera faces
-and the object stands out from, and what it hangs on (a plaque, a board) belongs to it though its plain faces give
-too few points to link. Numpy (and scipy's k-d tree) on sparse points and cameras (any frame; lengths in
+frame: the sparse points that (nearly) all cameras see inside their image around the cameras' common focus, less the
+groups of them apart that the photos frame off to the side (a cup or a book beside it, photographed from further
+back), and the points linked to them off the support (close-ups leave an object's ends out of frame). The ground is
+the largest plane of sparse points roughly normal to "up" below the focus, found by RANSAC; an object with no ground
+under it may hang on a wall (a mounted head, a picture, a relief): then the support is the largest plane that every
+camera faces and the object stands out from, and what it hangs on (a plaque, a board) belongs to it though its plain
+faces give too few points to link. Numpy (and scipy's k-d tree) on sparse points and cameras (any frame; lengths in
 that frame's units).
 """
 from __future__ import annotations
@@ -27,6 +28,11 @@ GROUND_MIN_FRACTION = 0.1
 WALL_MAX_BEHIND = 0.05
 """A wall has at most this fraction of the object region's points behind it (the rest on it or in front)."""
 MIN_REGION_POINTS = 20
+AIM_MAX = 0.5
+"""The photos aim at the object: of the groups the region's points fall into (`linked_groups`), only those whose
+point nearest the photo's centre lies within this fraction of the way from the centre to the frame's edge, in the
+median photo, belong to it. A book or a cup on the table beside a small object photographed from further back is in
+frame of nearly every photo too, but off to the side (benchmarks/results/far_tabletop.json)."""
 LINK_SPACINGS = 6.0
 """Points above the support closer than this many times the median spacing of the region's points are linked: the
 object is the region's points and every point linked to them, so the parts of it that close-ups leave out of frame
@@ -209,8 +215,9 @@ def object_region(
     points: np.ndarray, c2ws: np.ndarray, intrinsics: np.ndarray, sizes: np.ndarray, focus: np.ndarray, up: np.ndarray
 ) -> Region | None:
     """The sparse points of the object the cameras look at: in frame of IN_VIEW_FRACTION of the cameras and above
-    the ground plane, or in front of the wall when there is no ground (when one is found), and those linked to them
-    there (`linked_points`). None when fewer than MIN_REGION_POINTS qualify."""
+    the ground plane, or in front of the wall when there is no ground (when one is found), in the groups the photos
+    aim at (`aimed_groups`), and those linked to them there (`linked_points`). None when fewer than MIN_REGION_POINTS
+    qualify."""
     pts = np.asarray(points, np.float64)
     finite = np.all(np.isfinite(pts), axis=1)
     if finite.sum() < MIN_REGION_POINTS:
@@ -227,8 +234,12 @@ def object_region(
     keep = common & off_support
     if keep.sum() < MIN_REGION_POINTS:
         return None
+    aimed, groups_aside = aimed_groups(pts, keep, c2ws, intrinsics, sizes)
+    aside, keep = keep & ~aimed, aimed
+    if keep.sum() < MIN_REGION_POINTS:
+        return None
     in_frame = int(keep.sum())
-    keep = linked_points(pts, keep, off_support)
+    keep = linked_points(pts, keep, off_support & ~aside)  # what the photos frame off to the side is no part of it
     linked = int(keep.sum())
     mount = np.zeros_like(keep)
     if ground is not None and ground.kind == "wall":
@@ -244,6 +255,10 @@ def object_region(
     if keep.sum() > linked:
         why += (f", and the {int(keep.sum()) - linked} that stand off the wall behind it and beside it: what it is "
                 f"mounted on (a board, a plaque), too plain for SfM to place enough points on to link")
+    if aside.any():
+        why += (f"; {int(aside.sum())} more in frame of as many photos but apart from them, in {groups_aside} group(s) "
+                f"that the photos frame off to the side (stray matches, or things beside the object such as a cup or a "
+                f"book): left out")
     if ground is not None:
         tilt = np.degrees(np.arccos(np.clip(ground.normal @ up / np.linalg.norm(up), -1.0, 1.0)))
         what = ("ground plane" if ground.kind == "ground" else
@@ -252,6 +267,35 @@ def object_region(
                 f"{ground.threshold:.3g} units, tilt {tilt:.1f}° from up): cut away")
     why += f"; {background:.0%} of the points are background"
     return Region(keep, ground, float(background), why, mount)
+
+
+def aimed_groups(
+    points: np.ndarray, seeds: np.ndarray, c2ws: np.ndarray, intrinsics: np.ndarray, sizes: np.ndarray
+) -> tuple[np.ndarray, int]:
+    """The seed points (N,) bool in the groups the photos aim at (`AIM_MAX`; groups: links shorter than LINK_SPACINGS
+    times the seeds' median spacing chain) and the number of groups left out. All are kept when the seeds form one
+    group or none of them is aimed at (nothing to tell the object from)."""
+    seeds = np.asarray(seeds, bool)
+    index = np.flatnonzero(seeds)
+    spacing = median_spacing(points[index])
+    if spacing <= 0:
+        return seeds.copy(), 0
+    label = linked_groups(points[index], LINK_SPACINGS * spacing)
+    count = int(label.max()) + 1
+    if count == 1:
+        return seeds.copy(), 0
+    nearest = np.full((len(c2ws), count), np.inf)  # per photo and group: its point nearest the photo's centre
+    for k, (c2w, intr, (w, h)) in enumerate(zip(c2ws, intrinsics, sizes, strict=True)):
+        uv, z = project(points[index], c2w, intr)
+        off = np.where(z > 0, np.hypot((uv[:, 0] - w / 2) / (w / 2), (uv[:, 1] - h / 2) / (h / 2)), np.inf)
+        np.minimum.at(nearest[k], label, off)
+    aim = np.median(nearest, axis=0)
+    aimed = aim <= AIM_MAX
+    if not aimed.any():
+        return seeds.copy(), 0
+    out = seeds.copy()
+    out[index[~aimed[label]]] = False
+    return out, int((~aimed).sum())
 
 
 def linked_points(points: np.ndarray, seeds: np.ndarray, candidates: np.ndarray) -> np.ndarray:
