@@ -75,6 +75,9 @@ class NormalizeConfig:
     """auto: a training photo far blurrier than the photos that share its view (shaken, out of focus) is left out
     of training (`recon.capture.blur`; 20 training photos or more, at most an eighth of them; a video's frames were
     chosen for sharpness already); keep: every photo."""
+    beside: Literal["auto", "keep"] = "auto"
+    """auto: of the points most photos keep in frame, groups apart that the photos frame off to the side (a cup or a
+    book beside the object) are no part of the object region (`recon.capture.region.AIM_MAX`); keep: all are."""
 
 
 @dataclass

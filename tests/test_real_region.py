@@ -121,7 +121,11 @@ def test_from_further_back_a_thing_beside_the_object_is_left_out_and_two_objects
     alone = region_of(points, frames)  # without the cup: the same object
     assert alone is not None and (region.points[:len(points)] != alone.points).sum() <= 0.01 * alone.points.sum()
     assert (labels[alone.points] == 0).mean() > 0.97
-    assert "off to the side" in region.reason
+    assert "off to the side" in region.reason and "normalize.beside=keep" in region.reason
+    c2ws, intrinsics = np.stack([f.c2w for f in frames]), np.array([[f.fl_x, f.fl_y, f.cx, f.cy] for f in frames])
+    kept = object_region(everything, c2ws, intrinsics, np.array([[f.w, f.h] for f in frames]), np.zeros(3),
+                         np.array([0.0, 0.0, 1.0]), leave_aside=False)  # normalize.beside=keep
+    assert kept is not None and kept.points[len(points):].mean() > 0.4 and "off to the side" not in kept.reason
     # two balls the photos frame together, the cameras' focus between them: neither is left out
     pair = np.concatenate([sphere_points(rng, (x, 0.0, TABLE_Z + 0.3), 0.3) for x in (-0.45, 0.45)])
     table = points[labels == 1]

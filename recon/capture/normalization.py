@@ -292,7 +292,7 @@ def normalize(scene: Scene, cfg: NormalizeConfig, holds: np.ndarray | None = Non
         center = focus
         found = object_region(
             points, c2ws, np.array([[f.fl_x, f.fl_y, f.cx, f.cy] for f in scene.frames]),
-            np.array([[f.w, f.h] for f in scene.frames]), focus, up,
+            np.array([[f.w, f.h] for f in scene.frames]), focus, up, leave_aside=cfg.beside == "auto",
         )
         if found is not None:
             # the object the cameras look at (and, below it, down to the ground it stands on)

@@ -212,12 +212,13 @@ class Region:
 
 
 def object_region(
-    points: np.ndarray, c2ws: np.ndarray, intrinsics: np.ndarray, sizes: np.ndarray, focus: np.ndarray, up: np.ndarray
+    points: np.ndarray, c2ws: np.ndarray, intrinsics: np.ndarray, sizes: np.ndarray, focus: np.ndarray, up: np.ndarray,
+    leave_aside: bool = True,
 ) -> Region | None:
     """The sparse points of the object the cameras look at: in frame of IN_VIEW_FRACTION of the cameras and above
     the ground plane, or in front of the wall when there is no ground (when one is found), in the groups the photos
-    aim at (`aimed_groups`), and those linked to them there (`linked_points`). None when fewer than MIN_REGION_POINTS
-    qualify."""
+    aim at (`aimed_groups`; all of them unless `leave_aside`), and those linked to them there (`linked_points`). None
+    when fewer than MIN_REGION_POINTS qualify."""
     pts = np.asarray(points, np.float64)
     finite = np.all(np.isfinite(pts), axis=1)
     if finite.sum() < MIN_REGION_POINTS:
@@ -234,7 +235,7 @@ def object_region(
     keep = common & off_support
     if keep.sum() < MIN_REGION_POINTS:
         return None
-    aimed, groups_aside = aimed_groups(pts, keep, c2ws, intrinsics, sizes)
+    aimed, groups_aside = aimed_groups(pts, keep, c2ws, intrinsics, sizes) if leave_aside else (keep, 0)
     aside, keep = keep & ~aimed, aimed
     if keep.sum() < MIN_REGION_POINTS:
         return None
@@ -258,7 +259,7 @@ def object_region(
     if aside.any():
         why += (f"; {int(aside.sum())} more in frame of as many photos but apart from them, in {groups_aside} group(s) "
                 f"that the photos frame off to the side (stray matches, or things beside the object such as a cup or a "
-                f"book): left out")
+                f"book): left out (normalize.beside=keep keeps them)")
     if ground is not None:
         tilt = np.degrees(np.arccos(np.clip(ground.normal @ up / np.linalg.norm(up), -1.0, 1.0)))
         what = ("ground plane" if ground.kind == "ground" else
