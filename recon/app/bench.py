@@ -39,6 +39,7 @@ GENERATED = {"tabletop_realistic": ("gen_tabletop", {}), "tabletop_turntable": (
              "tabletop_closeups": ("gen_tabletop", {"closeups": True}),
              "wall_mounted": ("gen_tabletop", {"mounted": True, "closeups": True}),
              "tabletop_painted": ("gen_tabletop", {"painted": True}),
+             "tabletop_far": ("gen_tabletop", {"far": True}),
              "tabletop_video": ("gen_video", {})}
 """Data sets rendered on first use (then cached) by fixtures/<generator>.py's `bench_dataset` (with these keyword
 arguments): photos (or a video) without masks.

@@ -458,7 +458,7 @@ def fit_image_cmd(
 
 @app.command()
 def bench(
-    data: Annotated[str, typer.Option("--data", help="sample | lego-half | fox | tabletop_realistic | tabletop_turntable | tabletop_sweep | tabletop_closeups | wall_mounted | tabletop_painted | tabletop_video (NAME@SEED: another draw of it) | a path to photos or poses.")] = "sample",
+    data: Annotated[str, typer.Option("--data", help="sample | lego-half | fox | tabletop_realistic | tabletop_turntable | tabletop_sweep | tabletop_closeups | wall_mounted | tabletop_painted | tabletop_far | tabletop_video (NAME@SEED: another draw of it) | a path to photos or poses.")] = "sample",
     presets_: Annotated[str, typer.Option("--presets", help="Comma-separated presets to compare.")] = "fast,balanced,quality,surface",
     out: Annotated[Path, typer.Option("--out", "-o", help="Folder for the scenes, bench.md, bench.json, bench.png.")] = Path("bench"),
     set_: SetOpt = None,
