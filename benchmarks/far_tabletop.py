@@ -9,6 +9,10 @@ any `--set` given, then `recon eval --gt-mesh` against the object's true surface
 normalize's object region and masks as it said them, the training size's reason, steps, rays/s, held-out PSNR, mesh
 faces, precision and recall at 1%, F@1%, F@0.5%, Chamfer, commit and machine) to benchmarks/results/NAME.json. It
 measures; it asserts nothing.
+
+    python benchmarks/far_tabletop.py --work /tmp/far_tabletop --figure docs/far_tabletop.png --labels A B
+
+draws the first photo and the meshes of the runs labelled A and B (earlier runs' scenes in --work) in a row.
 """
 from __future__ import annotations
 
@@ -25,19 +29,35 @@ sys.path.insert(0, str(REPO / "benchmarks"))
 sys.path.insert(0, str(REPO / "fixtures"))
 
 
+def scene_of(work: Path, label: str) -> Path:
+    """The scene folder of the run labelled `label`."""
+    return work / f"scene-{label.replace(' ', '_').replace(',', '').replace('=', '_')}"
+
+
 def main() -> None:
     from blurred_photos import run_fast, sample_run_parser
     from gen_tabletop import generate
     from mixed_orientation import append_row
     from recon.app.bench import provenance
 
-    args = sample_run_parser(__doc__).parse_args()
+    parser = sample_run_parser(__doc__, required=False)
+    parser.add_argument("--figure", type=Path, default=None, help="only draw a photo and the meshes of --labels (an "
+                        "earlier run's scenes in --work) into this PNG")
+    parser.add_argument("--labels", nargs="+", default=[], help="the runs whose meshes --figure draws")
+    args = parser.parse_args()
+    if args.figure is not None:
+        from closeups_share import tiles_row
+
+        meshes = [scene_of(args.work, label) / "04_mesh" / "preview_front.png" for label in args.labels]
+        return tiles_row([args.work / "images" / "view_000.jpg", *meshes], args.figure)
+    if not (args.name and args.label):
+        parser.error("--name and --label are needed to run (or --figure to draw)")
     where, load = provenance(), [round(x, 2) for x in os.getloadavg()]
     date = datetime.now(timezone.utc).isoformat(timespec="seconds")
     capture = generate(args.work / "capture", views=24, size="640x480", realistic=True, far=True)
     shutil.rmtree(args.work / "images", ignore_errors=True)
     shutil.copytree(capture / "images", args.work / "images")
-    scene = args.work / f"scene-{args.label.replace(' ', '_').replace(',', '').replace('=', '_')}"
+    scene = scene_of(args.work, args.label)
     metrics, accuracy = run_fast(args.work / "images", scene, args.overrides, truth=capture / "gt_mesh.ply")
     notes = json.loads((scene / "02_scene" / "scene.json").read_text())["notes"]
     mesh = json.loads((scene / "manifest.json").read_text())["stages"]["mesh"]["summary"]
