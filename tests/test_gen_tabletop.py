@@ -185,6 +185,22 @@ def test_far_photos_hold_the_object_small_and_its_masks_stay_true(tmp_path: Path
         tt.generate(tmp_path / "no", views=2, size="32x24", realistic=True, closeups=True, far=True)
 
 
+def test_an_arc_keeps_the_photos_on_the_objects_front_and_is_refused_where_it_means_nothing(tmp_path: Path) -> None:
+    """arc: the hand-held photos' azimuths within an arc that wide around +X (the golden-ratio spread fills it), the
+    object in the middle of each; with a turntable or on a wall it is refused."""
+    world = tt.Tabletop()
+    cams = tt.poses(24, world, 5.0, 0, tt.REAL_ELEVATION_DEG, tt.REAL_LOOK_JITTER, tt.REAL_ROLL_DEG, arc_deg=90.0)
+    offset = cams[:, :3, 3] - world.center
+    azimuth = np.degrees(np.arctan2(offset[:, 1], offset[:, 0]))
+    assert np.abs(azimuth).max() <= 45 + 4 and np.ptp(azimuth) > 80
+    around = tt.poses(24, world, 5.0, 0, tt.REAL_ELEVATION_DEG, tt.REAL_LOOK_JITTER, tt.REAL_ROLL_DEG)
+    offset = around[:, :3, 3] - world.center
+    assert np.abs(np.degrees(np.arctan2(offset[:, 1], offset[:, 0]))).max() > 150  # without an arc: all around
+    for kwargs in ({"turntable": True}, {"mounted": True}, {}):
+        with pytest.raises(ValueError, match="arc"):
+            tt.generate(tmp_path / "no", views=2, size="32x24", realistic=bool(kwargs), arc=90.0, **kwargs)
+
+
 def test_a_painted_object_has_the_same_shape_in_a_few_flat_colours_with_few_features(tmp_path: Path) -> None:
     """painted changes the object's albedo alone: the same masks, pixels near the palette's colours, and under a
     third of the SIFT features the richly textured object gives inside its masks (the room is the same)."""
