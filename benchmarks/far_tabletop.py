@@ -13,6 +13,8 @@ measures; it asserts nothing.
     python benchmarks/far_tabletop.py --work /tmp/far_tabletop --figure docs/far_tabletop.png --labels A B
 
 draws the first photo and the meshes of the runs labelled A and B (earlier runs' scenes in --work) in a row.
+`--arc DEG` measures another capture the same way: the realistic tabletop at the usual distance, its photos within
+an arc of DEG degrees (`gen_tabletop.py --realistic --arc DEG`: the object's front only), in place of the far one.
 """
 from __future__ import annotations
 
@@ -44,6 +46,8 @@ def main() -> None:
     parser.add_argument("--figure", type=Path, default=None, help="only draw a photo and the meshes of --labels (an "
                         "earlier run's scenes in --work) into this PNG")
     parser.add_argument("--labels", nargs="+", default=[], help="the runs whose meshes --figure draws")
+    parser.add_argument("--arc", type=float, default=None, help="the capture from an arc this many degrees wide at the "
+                        "usual distance instead of from further back")
     args = parser.parse_args()
     if args.figure is not None:
         from closeups_share import tiles_row
@@ -54,14 +58,16 @@ def main() -> None:
         parser.error("--name and --label are needed to run (or --figure to draw)")
     where, load = provenance(), [round(x, 2) for x in os.getloadavg()]
     date = datetime.now(timezone.utc).isoformat(timespec="seconds")
-    capture = generate(args.work / "capture", views=24, size="640x480", realistic=True, far=True)
+    shape = {"far": True} if args.arc is None else {"arc": args.arc}
+    capture = generate(args.work / "capture", views=24, size="640x480", realistic=True, **shape)
     shutil.rmtree(args.work / "images", ignore_errors=True)
     shutil.copytree(capture / "images", args.work / "images")
     scene = scene_of(args.work, args.label)
     metrics, accuracy = run_fast(args.work / "images", scene, args.overrides, truth=capture / "gt_mesh.ply")
     notes = json.loads((scene / "02_scene" / "scene.json").read_text())["notes"]
     mesh = json.loads((scene / "manifest.json").read_text())["stages"]["mesh"]["summary"]
-    row = {"label": args.label, "overrides": args.overrides, "region": notes.get("region"),
+    row = {"label": args.label, "overrides": args.overrides, "capture_shape": shape, "capture": notes.get("capture"),
+           "region": notes.get("region"),
            "masks": notes.get("masks"),
            "training_size": next((r for r in metrics["reasons"] if r.startswith("training size")), None),
            "steps": metrics.get("steps"), "rays_per_s": metrics.get("rays_per_s"), "psnr": metrics["test"]["psnr"],

@@ -163,6 +163,33 @@ def test_normalize_keeps_the_object_in_the_box_and_contracts_the_rest() -> None:
     assert masked.capture == "object"
 
 
+def test_an_object_photographed_from_one_side_is_an_object_and_a_facade_is_not() -> None:
+    """Cameras on a 90° arc converge on the object but their views are too alike to count as around it: the object
+    standing on the table with the room around it makes it an object capture all the same; a facade filling the
+    views from the same arc stays a scene modelled whole."""
+    frames = []
+    for i in range(16):
+        az, el = np.radians(-45 + 90 * i / 15), np.radians(25 + 10 * np.sin(3 * i))
+        eye = 2.5 * np.array([np.cos(az) * np.cos(el), np.sin(az) * np.cos(el), np.sin(el)])
+        frames.append(Frame(f"/p/{i:02d}.jpg", look_at(eye, np.zeros(3)), FL, FL, W / 2, H / 2, W, H))
+    c2ws = np.stack([f.c2w for f in frames])
+    from recon.capture.normalization import OBJECT_MAX_MEAN_VIEW, narrow_arc
+
+    assert narrow_arc(c2ws) is not None and narrow_arc(c2ws) >= OBJECT_MAX_MEAN_VIEW  # not around it by itself
+    points, labels = tabletop_points(np.random.default_rng(7))
+    scene = normalize(Scene(frames=frames, points=points, point_colors=np.zeros((len(points), 3), np.uint8)),
+                      NormalizeConfig())
+    assert "object capture from one side" in scene.notes["capture"] and scene.region is not None
+    obj = scene.points[labels == 0]
+    region = np.asarray(scene.region)
+    assert np.all((region[1] - region[0]) < 1.3 * np.ptp(obj, axis=0))  # the object, not the table or the room
+    rng = np.random.default_rng(8)
+    facade = np.column_stack([np.full(6000, -0.5) + rng.normal(0, 0.01, 6000), rng.uniform(-3, 3, (6000, 2))])
+    wall = normalize(Scene(frames=frames, points=facade, point_colors=np.zeros((len(facade), 3), np.uint8)),
+                     NormalizeConfig())
+    assert wall.capture == "unbounded" and wall.region is None and "modelled whole" in wall.notes["capture"]
+
+
 def test_ground_cut_and_region_overrides() -> None:
     scene = Scene(frames=cameras(), region=np.array([[-0.3, -0.3, -0.3], [0.3, 0.3, 0.3]]),
                   ground=np.array([0.0, 0.0, 1.0, -0.3]))

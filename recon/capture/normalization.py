@@ -16,6 +16,10 @@ from recon.errors import InputError
 
 OBJECT_MAX_MEAN_VIEW = 0.9
 """Cameras count as 'around the object' when the mean of their unit view directions is shorter than this."""
+ARC_MAX_MEAN_VIEW = 0.96
+"""... and, up to this, cameras on a narrower arc (an object's front only: on a shelf, against a wall; a 90° arc at
+the usual heights gives 0.92) when they converge on a point and the object region found there stands on a support
+with the background around it (`narrow_arc`): a facade or a forward-facing scene has no such object."""
 BACKGROUND_FRACTION = 0.3
 """An object capture whose sparse points lie outside the object region more than this is an object on a
 background (table, room): the field contracts and models the space around the box too."""
@@ -123,6 +127,15 @@ def classify_capture(c2ws: np.ndarray) -> tuple[str, np.ndarray, str]:
         f"unbounded/forward capture: views are {'nearly parallel' if mean_view >= OBJECT_MAX_MEAN_VIEW else 'not converging'} "
         f"(mean view length {mean_view:.2f}, common point in front of {in_front:.0%} of the cameras)"
     )
+
+
+def narrow_arc(c2ws: np.ndarray) -> float | None:
+    """The mean view length of cameras that converge on a point in front of (nearly) all of them from an arc too
+    narrow to count as around an object by itself (OBJECT_MAX_MEAN_VIEW up to ARC_MAX_MEAN_VIEW); None otherwise."""
+    mean_view = float(np.linalg.norm((-c2ws[:, :3, 2]).mean(axis=0)))
+    in_front = focus_point(c2ws)[1]
+    return mean_view if len(c2ws) >= 3 and in_front >= 0.9 and OBJECT_MAX_MEAN_VIEW <= mean_view < ARC_MAX_MEAN_VIEW \
+        else None
 
 
 def similarity(scale: float, R: np.ndarray, center: np.ndarray) -> np.ndarray:
@@ -288,12 +301,29 @@ def normalize(scene: Scene, cfg: NormalizeConfig, holds: np.ndarray | None = Non
     finite = np.all(np.isfinite(points), axis=1)
     centers = c2ws[:, :3, 3]
     region = ground = None
-    if capture == "object":
+    arc = narrow_arc(c2ws) if capture != "object" else None
+    if capture == "object" or arc is not None:
         center = focus
         found = object_region(
             points, c2ws, np.array([[f.fl_x, f.fl_y, f.cx, f.cy] for f in scene.frames]),
             np.array([[f.w, f.h] for f in scene.frames]), focus, up, leave_aside=cfg.beside == "auto",
         )
+    if arc is not None:
+        if found is not None and found.ground is not None and found.background_fraction > BACKGROUND_FRACTION:
+            capture = "object"
+            support = "stands on the ground" if found.ground.kind == "ground" else "hangs on a wall"
+            notes["capture"] = (
+                f"object capture from one side: the cameras converge on a point in front of them from an arc (mean "
+                f"view length {arc:.2f}, under {ARC_MAX_MEAN_VIEW}), and what they converge on {support} with "
+                f"{found.background_fraction:.0%} of the points around it: an object's front photographed"
+            )
+        else:
+            notes["capture"] = (
+                f"unbounded capture: the cameras converge on a point from an arc (mean view length {arc:.2f}), but "
+                f"what they converge on is no object standing on a support with background around it (a facade, a "
+                f"scene): modelled whole"
+            )
+    if capture == "object":
         if found is not None:
             # the object the cameras look at (and, below it, down to the ground it stands on)
             box = _box_from_points((points[found.points & ~found.mount] - center) @ R.T, cfg.link_spacings)
