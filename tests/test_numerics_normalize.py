@@ -224,6 +224,26 @@ def test_a_thin_part_stays_in_the_box_and_stray_points_do_not() -> None:
     assert not inside(strays).any()  # no stray point is
 
 
+@pytest.mark.parametrize("arc_deg", [40.0, 60.0, 90.0])
+def test_level_photos_from_a_narrow_arc_looking_down_come_out_upright(arc_deg: float) -> None:
+    """Hand-held photos of an object's front only, looking down 15-50° with a little roll: their right vectors are
+    level and span the level plane even over a 40° arc, so up is orthogonal to them, not their mean up vector (which
+    leans back by their mean downward look)."""
+    rng = np.random.default_rng(int(arc_deg))
+    frames = []
+    for i in range(24):
+        az, el = np.radians(arc_deg * (((0.5 + 0.618034 * i) % 1) - 0.5)), np.radians(rng.uniform(15, 50))
+        c2w = look_at(4.0 * np.array([np.cos(az) * np.cos(el), np.sin(az) * np.cos(el), np.sin(el)]), np.zeros(3))
+        roll = np.radians(rng.uniform(-2, 2))
+        c2w[:3, :3] = c2w[:3, :3] @ np.array([[np.cos(roll), -np.sin(roll), 0], [np.sin(roll), np.cos(roll), 0],
+                                               [0, 0, 1]])
+        frames.append(frame(i, c2w))
+    from recon.capture.normalization import estimate_up
+
+    up, why = estimate_up(np.stack([f.c2w for f in frames]), "auto")
+    assert np.degrees(np.arccos(up @ [0, 0, 1])) < 2.0, why
+
+
 @pytest.mark.parametrize("seed", range(4))
 def test_top_down_cameras_with_random_roll_come_out_upright(seed: int) -> None:
     # up vectors all horizontal in random directions (their mean can still be long): up is the normal of the

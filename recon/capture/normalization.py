@@ -59,8 +59,10 @@ def estimate_up(c2ws: np.ndarray, mode: str) -> tuple[np.ndarray, str]:
     mean = ups.mean(axis=0)
     rights = c2ws[:, :3, 0]
     evals, evecs = np.linalg.eigh(rights.T @ rights / len(rights))
-    if len(rights) >= 3 and evals[0] < 0.02 and evals[1] > 0.1 and np.linalg.norm(mean) > 0.3:
-        # photos taken without roll: every camera's right vector is level, so up is orthogonal to all of them
+    if len(rights) >= 3 and evals[0] < 0.02 and evals[1] > max(0.03, 5 * evals[0]) and np.linalg.norm(mean) > 0.3:
+        # photos taken without roll: every camera's right vector is level, so up is orthogonal to all of them; from an
+        # arc as narrow as 40° the right vectors still span the level plane (the mean up vector of photos looking
+        # down tilts by their mean downward look)
         up = evecs[:, 0] * np.sign(evecs[:, 0] @ mean)
         return up, f"orthogonal to every camera's (level) right vector (residual tilt {np.degrees(np.sqrt(max(evals[0], 0.0))):.2f}°)"
     if np.linalg.norm(mean) > 0.3:

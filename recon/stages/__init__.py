@@ -76,7 +76,8 @@ POSES = Stage(name="poses", folder="01_poses", inputs=(), version=7, run=_poses,
 # version 21: training photos far blurrier than those sharing their view are left out (normalize.blurred)
 # version 22: groups of in-frame points the photos frame off to the side are no part of the object (normalize.beside)
 # version 23: cameras converging from a narrow arc on an object standing on a support make an object capture
-NORMALIZE = Stage(name="normalize", folder="02_scene", inputs=("poses",), version=23, run=_normalize)
+# version 24: up is orthogonal to level photos' right vectors from arcs down to about 40°, not their mean up vector
+NORMALIZE = Stage(name="normalize", folder="02_scene", inputs=("poses",), version=24, run=_normalize)
 
 # train, version 2: train.depth_prior=auto turns the prior on for the surface model, so a cached surface field is stale
 # version 3: the surface model keys a plain backdrop (train.backdrop_key) and starts from the SfM points' hull
