@@ -73,6 +73,11 @@ def run_fast(images: Path, scene: Path, overrides: list[str], steps: int = 4000,
             json.loads((scene / "eval" / "mesh_accuracy.json").read_text()))
 
 
+def scene_of(work: Path, label: str) -> Path:
+    """The scene folder of the run labelled `label` in `work` (`run_fast`'s SCENE)."""
+    return work / f"scene-{label.replace(' ', '_').replace(',', '').replace('=', '_')}"
+
+
 def sample_run_parser(doc: str, required: bool = True) -> argparse.ArgumentParser:
     """The arguments of a benchmark that runs a variant of the sample (`run_fast`) and appends a row to a record
     (--name and --label not `required` where the script can also do something else)."""

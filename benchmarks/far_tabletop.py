@@ -31,13 +31,8 @@ sys.path.insert(0, str(REPO / "benchmarks"))
 sys.path.insert(0, str(REPO / "fixtures"))
 
 
-def scene_of(work: Path, label: str) -> Path:
-    """The scene folder of the run labelled `label`."""
-    return work / f"scene-{label.replace(' ', '_').replace(',', '').replace('=', '_')}"
-
-
 def main() -> None:
-    from blurred_photos import run_fast, sample_run_parser
+    from blurred_photos import run_fast, sample_run_parser, scene_of
     from gen_tabletop import generate
     from mixed_orientation import append_row
     from recon.app.bench import provenance

@@ -65,14 +65,16 @@ def missed_on_base(scene: Path, tolerance: float = 0.01, samples: int = 100_000)
 
 def figure(work: Path, out: Path) -> None:
     """A photo of the capture, then the mesh trained at the preset's side and at the side picked, in a row."""
+    from blurred_photos import scene_of
     from closeups_share import tiles_row
 
-    meshes = [work / scene / "04_mesh" / "preview_front.png" for scene in ("scene-train.small_object_off", "scene-shipped")]
+    labels = ("train.small_object=off", "shipped")
+    meshes = [scene_of(work, label) / "04_mesh" / "preview_front.png" for label in labels]
     tiles_row([work / "images" / "view_000.jpg", *meshes], out)
 
 
 def main() -> None:
-    from blurred_photos import run_fast, sample_run_parser
+    from blurred_photos import run_fast, sample_run_parser, scene_of
     from mixed_orientation import append_row
 
     parser = sample_run_parser(__doc__, required=False)
@@ -89,7 +91,7 @@ def main() -> None:
     date = datetime.now(timezone.utc).isoformat(timespec="seconds")
     if not (args.work / "images").is_dir():
         make_capture(args.work / "images")
-    scene = args.work / f"scene-{args.label.replace(' ', '_').replace(',', '').replace('=', '_')}"
+    scene = scene_of(args.work, args.label)
     metrics, accuracy = run_fast(args.work / "images", scene, args.overrides)
     mesh = json.loads((scene / "manifest.json").read_text())["stages"]["mesh"]["summary"]
     row = {"label": args.label, "overrides": args.overrides,

@@ -43,7 +43,10 @@ GENERATED = {"tabletop_realistic": ("gen_tabletop", {}), "tabletop_turntable": (
              "tabletop_video": ("gen_video", {})}
 """Data sets rendered on first use (then cached) by fixtures/<generator>.py's `bench_dataset` (with these keyword
 arguments): photos (or a video) without masks.
-``NAME@SEED`` renders the same capture from another seed (other camera path, textures, exposures and noise)."""
+``NAME@SEED`` renders the same capture from another seed (other camera path, textures, exposures and noise).
+``tabletop_far`` is the realistic tabletop photographed from further back: a small object with things beside it on the
+table, where the object region must leave the clutter out and the object train larger than the preset's photos
+(benchmarks/results/tabletop_far_fast.json)."""
 
 
 def _generated_dataset(name: str) -> tuple[Path, Path]:

@@ -115,11 +115,16 @@ def focus_point(c2ws: np.ndarray) -> tuple[np.ndarray, float]:
     return p, in_front
 
 
+def view_spread(c2ws: np.ndarray) -> tuple[float, np.ndarray, float]:
+    """The length of the mean of the cameras' unit view directions (1: all alike), their focus (`focus_point`) and the
+    fraction of cameras it is in front of."""
+    focus, in_front = focus_point(c2ws)
+    return float(np.linalg.norm((-c2ws[:, :3, 2]).mean(axis=0))), focus, in_front
+
+
 def classify_capture(c2ws: np.ndarray) -> tuple[str, np.ndarray, str]:
     """'object' (cameras around a point, looking at it) or 'unbounded' (forward-facing / looking out)."""
-    dirs = -c2ws[:, :3, 2]
-    mean_view = float(np.linalg.norm(dirs.mean(axis=0)))
-    focus, in_front = focus_point(c2ws)
+    mean_view, focus, in_front = view_spread(c2ws)
     if len(c2ws) >= 3 and in_front >= 0.9 and mean_view < OBJECT_MAX_MEAN_VIEW:
         return "object", focus, (
             f"object capture: the cameras look inward at a common point (in front of {in_front:.0%} of them) "
@@ -134,8 +139,7 @@ def classify_capture(c2ws: np.ndarray) -> tuple[str, np.ndarray, str]:
 def narrow_arc(c2ws: np.ndarray) -> float | None:
     """The mean view length of cameras that converge on a point in front of (nearly) all of them from an arc too
     narrow to count as around an object by itself (OBJECT_MAX_MEAN_VIEW up to ARC_MAX_MEAN_VIEW); None otherwise."""
-    mean_view = float(np.linalg.norm((-c2ws[:, :3, 2]).mean(axis=0)))
-    in_front = focus_point(c2ws)[1]
+    mean_view, _, in_front = view_spread(c2ws)
     return mean_view if len(c2ws) >= 3 and in_front >= 0.9 and OBJECT_MAX_MEAN_VIEW <= mean_view < ARC_MAX_MEAN_VIEW \
         else None
 
