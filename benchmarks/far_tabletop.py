@@ -15,6 +15,8 @@ measures; it asserts nothing.
 draws the first photo and the meshes of the runs labelled A and B (earlier runs' scenes in --work) in a row.
 `--arc DEG` measures another capture the same way: the realistic tabletop at the usual distance, its photos within
 an arc of DEG degrees (`gen_tabletop.py --realistic --arc DEG`: the object's front only), in place of the far one.
+`--object NAME` does so with another object on the table (`gen_tabletop.py --realistic --object NAME`: a thin rod
+and plate, a bowl, a ring on a drilled block), photographed all round at the usual distance (or within `--arc`).
 """
 from __future__ import annotations
 
@@ -43,6 +45,8 @@ def main() -> None:
     parser.add_argument("--labels", nargs="+", default=[], help="the runs whose meshes --figure draws")
     parser.add_argument("--arc", type=float, default=None, help="the capture from an arc this many degrees wide at the "
                         "usual distance instead of from further back")
+    parser.add_argument("--object", default=None, help="another object on the table (thin, concave, hole), at the usual "
+                        "distance instead of from further back")
     args = parser.parse_args()
     if args.figure is not None:
         from closeups_share import tiles_row
@@ -53,7 +57,9 @@ def main() -> None:
         parser.error("--name and --label are needed to run (or --figure to draw)")
     where, load = provenance(), [round(x, 2) for x in os.getloadavg()]
     date = datetime.now(timezone.utc).isoformat(timespec="seconds")
-    shape = {"far": True} if args.arc is None else {"arc": args.arc}
+    shape = ({"far": True} if args.arc is None and args.object is None else
+             {**({"arc": args.arc} if args.arc is not None else {}),
+              **({"shape": args.object} if args.object is not None else {})})
     capture = generate(args.work / "capture", views=24, size="640x480", realistic=True, **shape)
     shutil.rmtree(args.work / "images", ignore_errors=True)
     shutil.copytree(capture / "images", args.work / "images")

@@ -201,6 +201,24 @@ def test_an_arc_keeps_the_photos_on_the_objects_front_and_is_refused_where_it_me
             tt.generate(tmp_path / "no", views=2, size="32x24", realistic=bool(kwargs), arc=90.0, **kwargs)
 
 
+@pytest.mark.parametrize("shape", ["thin", "concave", "hole"])
+def test_another_object_stands_on_the_table_and_its_masks_are_its_silhouette(tmp_path: Path, shape: str) -> None:
+    """shape: another of generate.py's objects in the blocks' place, sunk TABLE_SINK into the table top as they are,
+    its true mesh above the table, its masks its silhouette; a name generate.py lacks is refused."""
+    out = tt.generate(tmp_path / shape, views=2, size="96x72", mesh_res=64, realistic=True, shape=shape)
+    info = json.loads((out / "scene_info.json").read_text())
+    doc, rows = frames(out)
+    mesh = trimesh.load(out / "gt_mesh.ply")
+    assert info["object"] == shape and shape in info["description"]
+    assert abs(mesh.bounds[0, 2] - info["table_z"]) < 0.03  # it stands on the table, not above or in it
+    blocks = trimesh.load(tt.generate(tmp_path / "blocks", views=1, size="32x24", mesh_res=64) / "gt_mesh.ply")
+    assert not np.allclose(mesh.bounds, blocks.bounds, atol=0.02)  # another object, not the blocks again
+    for c2w, mask, _ in rows:
+        assert iou(mask, silhouette(mesh, c2w, doc, doc["k1"], doc["k2"])) > 0.85
+    with pytest.raises(ValueError, match="unknown object"):
+        tt.generate(tmp_path / "no", views=2, size="32x24", realistic=True, shape="teapot")
+
+
 def test_a_painted_object_has_the_same_shape_in_a_few_flat_colours_with_few_features(tmp_path: Path) -> None:
     """painted changes the object's albedo alone: the same masks, pixels near the palette's colours, and under a
     third of the SIFT features the richly textured object gives inside its masks (the room is the same)."""
