@@ -384,6 +384,55 @@ def test_false_points_beside_a_plain_object_that_every_mask_leaves_out_do_not_ma
     assert not counted.confident and counted.seed_recall < auto_masks.MIN_SEED_RECALL, counted.reason
 
 
+def test_points_normalize_left_beside_the_object_are_background_though_inside_its_box() -> None:
+    """Photos from a 90° arc; a patch of points stands behind the ball inside its region's box (false matches off a
+    wall, or a picture's corner behind a mounted head), hidden by the ball from the arc's middle and beside it from
+    its ends, and normalize left it out of the object. Taken for the object's, as every point in the box was, it
+    seeds the end photos' cuts there: each takes a blob of background round it, and as the middle photos see the
+    patch's place inside the ball's outline, the hull cannot carve it away. As what normalize left aside it is
+    background, and a point it took for neither (a stray in the box) seeds nothing."""
+    scene, photos, truth = _scene(step_deg=9.0)
+    points = np.asarray(scene.points)
+    rng = np.random.default_rng(1)
+    behind = -np.array([np.cos(np.radians(40.0)), np.sin(np.radians(40.0)), 0.0])  # away from the arc's middle
+    patch = BALL_C + 2.2 * BALL_R * behind + rng.normal(0.0, 0.02, (30, 3))
+    stray = BALL_C + np.array([[0.0, 0.0, 1.8 * BALL_R]])
+    added = np.concatenate([patch, stray])
+    visibility = {}
+    for f in scene.frames:  # where the ball does not hide them
+        eye = f.c2w[:3, 3]
+        to = (added - eye) / np.linalg.norm(added - eye, axis=1, keepdims=True)
+        b = (eye - BALL_C) @ to.T
+        hit = (b**2 - ((eye - BALL_C) @ (eye - BALL_C) - BALL_R**2) > 0) & (b < 0)
+        visibility[f.name] = np.concatenate([scene.point_visibility[f.name], len(points) + np.flatnonzero(~hit)])
+    region = np.stack([BALL_C - 2.5 * BALL_R, BALL_C + 2.5 * BALL_R])
+    ball = np.abs(np.linalg.norm(points - BALL_C, axis=1) - BALL_R) < 1e-6
+    labelled = replace(scene, points=np.concatenate([points, added]), point_visibility=visibility, region=region,
+                       region_points=np.concatenate([ball, np.zeros(len(added), bool)]),
+                       aside_points=np.concatenate([np.zeros(len(points), bool), np.ones(len(patch), bool), [False]]))
+    boxed = replace(labelled, region_points=None, aside_points=None)  # a scene from before normalize kept them
+
+    def taken(found) -> float:
+        """The share of the patch's pixels the masks take in the photos that see it beside the ball."""
+        shares = []
+        for f in scene.frames:
+            uv, _ = project(patch, f.c2w, (f.fl_x, f.fl_y, f.cx, f.cy))
+            u, v = np.clip(uv.astype(int), 0, [W - 1, H - 1]).T
+            beside = ~truth[f.name][v, u]
+            if beside.mean() > 0.5:
+                shares.append(found.masks[f.name][v[beside], u[beside]].mean())
+        assert len(shares) >= 4
+        return float(np.mean(shares))
+
+    aside = segment_object(labelled, load_photo=lambda f: photos[f.name])
+    inside = segment_object(boxed, load_photo=lambda f: photos[f.name])
+    assert np.median([_iou(aside.masks[n], truth[n]) for n in truth]) > 0.9, aside.reason
+    assert taken(aside) < 0.1 and taken(inside) > 0.25, (taken(aside), taken(inside))
+    for f in scene.frames:  # the stray point above the ball: no seed, no mask round it
+        u, v = np.clip(project(stray, f.c2w, (f.fl_x, f.fl_y, f.cx, f.cy))[0].astype(int), 0, [W - 1, H - 1])[0]
+        assert truth[f.name][v, u] or not aside.masks[f.name][v, u]
+
+
 def test_no_more_than_a_tenth_of_the_points_are_refuted_the_most_refuted_first() -> None:
     """A part of the object every cut missed holds many points: past MAX_REFUTED of them they count again."""
     from recon.capture.auto_masks import MAX_REFUTED, _refuted

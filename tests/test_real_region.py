@@ -118,6 +118,7 @@ def test_from_further_back_a_thing_beside_the_object_is_left_out_and_two_objects
     region = region_of(everything, frames)
     assert region is not None and region.ground is not None
     assert not region.points[len(points):].any()
+    assert region.aside[len(points):].mean() > 0.3 and not (region.aside & region.points).any()  # its framed part
     alone = region_of(points, frames)  # without the cup: the same object
     assert alone is not None and (region.points[:len(points)] != alone.points).sum() <= 0.01 * alone.points.sum()
     assert (labels[alone.points] == 0).mean() > 0.97
@@ -126,6 +127,7 @@ def test_from_further_back_a_thing_beside_the_object_is_left_out_and_two_objects
     kept = object_region(everything, c2ws, intrinsics, np.array([[f.w, f.h] for f in frames]), np.zeros(3),
                          np.array([0.0, 0.0, 1.0]), leave_aside=False)  # normalize.beside=keep
     assert kept is not None and kept.points[len(points):].mean() > 0.4 and "off to the side" not in kept.reason
+    assert not kept.aside.any()
     # two balls the photos frame together, the cameras' focus between them: neither is left out
     pair = np.concatenate([sphere_points(rng, (x, 0.0, TABLE_Z + 0.3), 0.3) for x in (-0.45, 0.45)])
     table = points[labels == 1]

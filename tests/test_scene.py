@@ -116,6 +116,9 @@ def test_scene_roundtrip(tmp_path: Path) -> None:
     assert np.allclose(loaded.frames[3].c2w, scene.frames[3].c2w)
     assert np.allclose(loaded.world_from_source, scene.world_from_source)
     assert np.allclose(loaded.points, scene.points)
+    assert scene.region_points is not None and scene.region_points.any()  # the object's points, kept for its masks
+    assert np.array_equal(loaded.region_points, scene.region_points)
+    assert np.array_equal(loaded.aside_points, scene.aside_points)
     doc = json.loads((tmp_path / "scene.json").read_text())
     assert doc["fl_x"] == 400.0 and "transform_matrix" in doc["frames"][0]  # transforms.json-compatible
 

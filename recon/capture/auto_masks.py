@@ -216,7 +216,8 @@ def segment_object(scene: Scene, load_photo: PhotoLoader | None = None, side: in
     extent = region[1] - region[0]
     grown = np.stack([region[0] - REGION_MARGIN * extent, region[1] + REGION_MARGIN * extent])
     points = np.asarray(scene.points, np.float64).reshape(-1, 3)
-    object_pts, background_pts = _label_points(points, region, grown, scene.ground)
+    object_pts, background_pts = _label_points(points, region, grown, scene.ground, scene.region_points,
+                                               scene.aside_points)
     # on a wall, what lies between the object and the wall beside it is the wall, seen past the object
     on_ground = STANDS_ON_SUPPORT and scene.ground is not None and support_kind(scene.ground) == "ground"
     spread = _triangulation_spread(scene, points)  # photo pixels
@@ -421,10 +422,13 @@ def matte_photos(scene: Scene, masks: dict[str, np.ndarray],
         return {f.name: soft for f, soft in zip(frames, pool.map(one, frames), strict=True)}
 
 
-def _label_points(points: np.ndarray, region: np.ndarray, grown: np.ndarray,
-                  ground: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
-    """(object (P,) bool, background (P,) bool): points inside the region and off the support plane; points outside
-    the grown region or on the plane. Points between the two boxes are neither (unsure)."""
+def _label_points(points: np.ndarray, region: np.ndarray, grown: np.ndarray, ground: np.ndarray | None,
+                  chosen: np.ndarray | None = None, aside: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(object (P,) bool, background (P,) bool): points inside the region and off the support plane (of those,
+    only the ones normalize took for the object's, ``chosen``, where it says); points outside the grown region, on
+    the plane, or left out as things beside the object (``aside``: a picture's corner inside the box of a head on
+    the wall is no seed of the head). Points between the two boxes, and those in the box that normalize took for
+    neither, are neither (unsure)."""
     finite = np.all(np.isfinite(points), axis=1)
     safe = np.where(finite[:, None], points, 0.0)
     inside = finite & np.all((safe >= region[0]) & (safe <= region[1]), axis=1)
@@ -434,7 +438,9 @@ def _label_points(points: np.ndarray, region: np.ndarray, grown: np.ndarray,
         band = GROUND_BAND * float(np.max(region[1] - region[0]))
         height = safe @ np.asarray(ground[:3], np.float64) - float(ground[3])
         on_plane = finite & (height < band)
-    return inside & ~on_plane, outside | on_plane
+    obj = inside & ~on_plane & (True if chosen is None else np.asarray(chosen, bool))
+    beside = np.zeros(len(points), bool) if aside is None else np.asarray(aside, bool) & finite
+    return obj & ~beside, outside | on_plane | beside
 
 
 def _lone_points(points: np.ndarray, chosen: np.ndarray) -> np.ndarray:

@@ -306,7 +306,7 @@ def normalize(scene: Scene, cfg: NormalizeConfig, holds: np.ndarray | None = Non
     points = np.asarray(scene.points, dtype=np.float64).reshape(-1, 3)
     finite = np.all(np.isfinite(points), axis=1)
     centers = c2ws[:, :3, 3]
-    region = ground = None
+    region = ground = region_points = aside_points = None
     arc = narrow_arc(c2ws) if capture != "object" else None
     if capture == "object" or arc is not None:
         center = focus
@@ -350,6 +350,7 @@ def normalize(scene: Scene, cfg: NormalizeConfig, holds: np.ndarray | None = Non
                     f"the object and the space around it is contracted and modelled too"
                 )
             region = box
+            region_points, aside_points = found.points, found.aside
         else:
             # points of the object: those nearer to the focus than the cameras are (drops walls/background)
             radius = np.median(np.linalg.norm(centers - focus, axis=1))
@@ -414,6 +415,8 @@ def normalize(scene: Scene, cfg: NormalizeConfig, holds: np.ndarray | None = Non
         point_errors=scene.point_errors,
         aabb=aabb,
         region=region,
+        region_points=region_points if region is not None else None,
+        aside_points=aside_points if region is not None else None,
         ground=ground,
         capture=capture,
         world_from_source=T @ scene.world_from_source,

@@ -209,6 +209,9 @@ class Region:
     mount: np.ndarray
     """(N,) bool: the object's points that are what it hangs on (`mounted_points`); too few and apart to survive a
     stray-point filter, so a box of the object holds them as they are."""
+    aside: np.ndarray
+    """(N,) bool: the points in frame as often as the object's but in groups the photos frame off to the side
+    (`aimed_groups`): things beside the object, background to its masks even where they lie inside its box."""
 
 
 def object_region(
@@ -267,7 +270,7 @@ def object_region(
         why += (f"; {what} found by RANSAC ({ground.inliers} of {int(finite.sum())} points within "
                 f"{ground.threshold:.3g} units, tilt {tilt:.1f}° from up): cut away")
     why += f"; {background:.0%} of the points are background"
-    return Region(keep, ground, float(background), why, mount)
+    return Region(keep, ground, float(background), why, mount, aside)
 
 
 def aimed_groups(

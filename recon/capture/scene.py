@@ -123,6 +123,11 @@ class Scene:
     """(4, 4) similarity mapping the source (SfM or import) frame into this scene's frame."""
     region: np.ndarray | None = None
     """(2, 3) box of the object of interest (what the cameras look at; `recon.capture.region`), scene frame; None: all."""
+    region_points: np.ndarray | None = None
+    """(P,) bool: the sparse points normalize took for the object's (`Region.points`); None: not known (a scene from
+    before they were kept, or no region), then the points inside `region` stand for them."""
+    aside_points: np.ndarray | None = None
+    """(P,) bool: the points normalize left out as things beside the object (`Region.aside`); None: not known."""
     ground: np.ndarray | None = None
     """(4,) plane (nx, ny, nz, d), n·x = d with unit n pointing up, of the ground the object stands on; None: none."""
     has_alpha: bool = False
@@ -209,6 +214,8 @@ class Scene:
             vis_names=np.array(vis_names, dtype=str),
             **{f"vis_{i}": np.asarray(self.point_visibility[n], dtype=np.int64) for i, n in enumerate(vis_names)},
             **({} if self.point_errors is None else {"error": np.asarray(self.point_errors, dtype=np.float64).reshape(-1)}),
+            **{key: np.asarray(value, dtype=bool).reshape(-1) for key, value in
+               (("region", self.region_points), ("aside", self.aside_points)) if value is not None},
         )
 
 
@@ -277,6 +284,10 @@ def load_scene(folder: Path, source: Path | None = None) -> Scene:
                 scene.point_visibility = {n: data[f"vis_{i}"] for i, n in enumerate(names)}
                 if "error" in data.files and len(data["error"]) == len(scene.points):
                     scene.point_errors = data["error"]
+                if "region" in data.files and len(data["region"]) == len(scene.points):
+                    scene.region_points = data["region"].astype(bool)
+                if "aside" in data.files and len(data["aside"]) == len(scene.points):
+                    scene.aside_points = data["aside"].astype(bool)
         except (OSError, ValueError, KeyError, zipfile.BadZipFile) as exc:
             raise InputError(f"Cannot read {points_path}: {exc}. Re-run the stage that writes it (recon run --from poses).") from None
     return scene
