@@ -35,6 +35,9 @@ without the points linked to the in-frame ones (what close-ups leave out of fram
   hull with their feet on the support plane (`STANDS_ON_SUPPORT`);
 - in-frame region: the object region of only the points most photos keep in frame, without the points linked to
   them (`recon.capture.region.LINK_SPACINGS` = 0): the region before those links;
+- box seeds: shipped, but every point inside the object region's box (off the support) seeds the object, and the
+  points normalize left beside it seed nothing (`Scene.region_points` and `aside_points` unset: the seeds before
+  normalize kept which points it took for the object's);
 - every point, seed discs: the seeds before `SEED_SPREAD_PX` (every object point seeds a disc of `SEED_RADIUS`, as
   the background points do);
 - hull tolerance T: shipped, but a hull vertex survives while at most the share T of the photos call it background
@@ -54,6 +57,7 @@ import json
 import os
 import sys
 import time
+from dataclasses import replace
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any, Callable
@@ -251,20 +255,23 @@ def main(argv: list[str] | None = None) -> None:
     oracles = ("true object seeds", "true seeds and a background ring") if a.true_masks is not None else ()
     names = ("shipped", "no grounded bites", "no table drop", "neither", "lone points counted",
              "refuted points counted", "least parallax", "close-ups vote", "filled close-ups keep their cut",
-             "short cuts kept", "no support prior", "in-frame region", "every point, seed discs", *oracles)
+             "short cuts kept", "no support prior", "in-frame region", "box seeds", "every point, seed discs", *oracles)
     chosen = a.variants.split(",") if a.variants else names
     tolerances = [v for v in chosen if v.startswith("hull tolerance ")]
     if unknown := set(chosen) - set(names) - {v for v in tolerances if _is_share(v.removeprefix("hull tolerance "))}:
         raise SystemExit(f"unknown variants {sorted(unknown)}; known: {', '.join(names)}, hull tolerance T (0 <= T < 1)")
-    rows = [variant(v, in_frame) if v == "in-frame region" else variant(v) for v in names if v in chosen]
+    boxed = replace(scene, region_points=None, aside_points=None)
+    rows = [variant(v, in_frame if v == "in-frame region" else boxed if v == "box seeds" else scene)
+            for v in names if v in chosen]
     rows += [variant(v) for v in tolerances]
 
     def object_points(scene: Any) -> np.ndarray:
-        """(N,) bool: the sparse points the cut takes for object seeds (inside the scene's object region)."""
+        """(N,) bool: the sparse points the cut takes for object seeds (the object's, inside its region's box)."""
         region = np.asarray(scene.region, np.float64)
         extent = region[1] - region[0]
         grown = np.stack([region[0] - am.REGION_MARGIN * extent, region[1] + am.REGION_MARGIN * extent])
-        return am._label_points(np.asarray(scene.points, np.float64).reshape(-1, 3), region, grown, scene.ground)[0]
+        return am._label_points(np.asarray(scene.points, np.float64).reshape(-1, 3), region, grown, scene.ground,
+                                scene.region_points, scene.aside_points)[0]
 
     points = np.asarray(scene.points, np.float64).reshape(-1, 3)
     obj = object_points(scene)
