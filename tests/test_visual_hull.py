@@ -13,7 +13,7 @@ from recon.camera import look_at
 from recon.capture.scene import Scene
 from recon.errors import ReconError
 from recon.evaluation.views import View
-from recon.geometry.visual_hull import carve, hull_bounds, hull_silhouettes, visual_hull_sdf
+from recon.geometry.visual_hull import carve, free_space, hull_bounds, hull_silhouettes, visual_hull_sdf
 from recon.nerf.surface import SurfaceConfig, SurfaceModel
 from recon.plans.training import surface_start
 
@@ -279,3 +279,50 @@ def test_a_close_ups_hull_silhouette_has_no_holes_on_the_near_side() -> None:
     assert 0.2 < truth.mean() < 0.95  # the sphere crops the frame on one side and leaves room on the other
     assert (sil & truth).sum() >= 0.995 * truth.sum()  # one spacing for all missed 1.4% of it
     assert (sil & ~truth).sum() <= 0.15 * truth.sum()
+
+
+def test_sightlines_to_a_bowls_inner_surface_free_its_hollow_that_the_silhouettes_fill() -> None:
+    """A bowl (the lower half of the sphere's shell, open upwards) seen from a ring above: its silhouettes carve
+    the half-ball whole, hollow included. The sightlines from the cameras to points on its inner surface free the
+    hollow down to a cell and a half above the surface; the shell under it, and everything outside the bowl that no
+    sightline passes, stay; one false point's sightlines free nothing where they do not cross."""
+    rng = np.random.default_rng(0)
+    d = rng.normal(size=(3000, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    inner = 0.7 * RADIUS * d * np.where(d[:, 2:] < 0, 1.0, -1.0)  # the lower hemisphere, inside: a 3-cell wall
+    eyes = [c2w[:3, 3] for c2w in _ring_cameras(elevations=(50.0, 70.0), n=8)]
+    lines = []
+    for eye in eyes:  # a point is seen when its sightline enters the bowl through the opening at the rim
+        t = eye[2] / (eye[2] - inner[:, 2])
+        rim = eye[:2] + t[:, None] * (inner[:, :2] - eye[:2])
+        lines.append((eye, inner[np.linalg.norm(rim, axis=1) < 0.7 * RADIUS]))
+    free = free_space(BOX, RES, lines)
+    axis = np.linspace(-1.0, 1.0, RES)
+    centre = RES // 2
+
+    def at(z: float) -> bool:
+        return bool(free[centre, centre, int(np.argmin(np.abs(axis - z)))])
+
+    assert at(0.0) and at(-0.2)  # the hollow, below the rim and down to 3 cells (of 0.05) above its surface
+    assert not at(-0.45) and not at(-0.6)  # the wall (0.35-0.5 down) and what lies under it
+    grid = np.stack(np.meshgrid(axis, axis, axis, indexing="ij"), -1)
+    wall = (np.linalg.norm(grid, axis=-1) >= 0.4) & (np.linalg.norm(grid, axis=-1) <= RADIUS) & (grid[..., 2] < -0.1)
+    assert not free[wall].any()  # its wall, a cell in from the surface the points lie on, keeps every vertex
+    one = free_space(BOX, RES, [(eyes[0], np.array([[0.3, 0.3, -0.3]])), (eyes[4], np.array([[0.3, 0.3, -0.3]]))])
+    assert one.sum() <= 4  # two sightlines to one point meet only near it, where they stop short
+    assert free_space(BOX, RES, lines, min_votes=1).sum() >= free.sum()
+
+
+def test_the_sightlines_are_each_training_photos_camera_and_the_points_it_observes() -> None:
+    """`sightlines_of`: a photo the scene records no observations for (an import) has none."""
+    from recon.capture.scene import Frame
+    from recon.plans.training import sightlines_of
+
+    cams = _ring_cameras(elevations=(30.0,), n=3)
+    frames = [Frame(f"v{k}.png", c2w, FOCAL, FOCAL, SIZE / 2, SIZE / 2, SIZE, SIZE) for k, c2w in enumerate(cams)]
+    points = _scene_points()
+    scene = Scene(frames=frames, points=points, point_visibility={"v0.png": np.arange(10), "v2.png": np.arange(5, 8)})
+    lines = sightlines_of(scene, frames)
+    assert len(lines) == 2
+    assert np.allclose(lines[0][0], cams[0][:3, 3]) and np.allclose(lines[0][1], points[:10])
+    assert np.allclose(lines[1][0], cams[2][:3, 3]) and np.allclose(lines[1][1], points[5:8])

@@ -15,7 +15,7 @@ import numpy as np
 
 from recon.camera import project
 
-__all__ = ["carve", "hull_bounds", "hull_silhouettes", "silhouette", "visual_hull_sdf"]
+__all__ = ["carve", "free_space", "hull_bounds", "hull_silhouettes", "silhouette", "visual_hull_sdf"]
 
 SIGHTING_CHUNK = 1 << 16
 """Grid points `_sightings` projects into every photo at a time: a 96³ grid's arrays whole outrun the cache, a
@@ -41,6 +41,55 @@ def carve(box: np.ndarray, res: int, c2ws: Sequence[np.ndarray], intrinsics: Seq
     carved_by, _ = _sightings(_grid(box, res), c2ws, intrinsics, objects, margin_px)
     carved_by = carved_by.reshape(res, res, res)
     return carved_by < min_views, carved_by
+
+
+FREE_SPACE_VOTES = 2
+"""`free_space` frees a grid vertex that at least this many sightlines pass: one false match's sightlines, each
+alone, free nothing."""
+FREE_SPACE_STOP_CELLS = 1.5
+"""A sightline stops this many grid cells short of its point: the surface it lies on, and its triangulation's
+error, keep their vertices."""
+
+
+def free_space(box: np.ndarray, res: int, sightlines: Sequence[tuple[np.ndarray, np.ndarray]],
+               min_votes: int = FREE_SPACE_VOTES, stop_cells: float = FREE_SPACE_STOP_CELLS) -> np.ndarray:
+    """(res, res, res) bool: the vertices of a res³ grid over box (2, 3), indexed [ix, iy, iz], that at least
+    `min_votes` sightlines pass within half a cell of: a camera saw a sparse point through them, so they are empty.
+
+    Why: silhouettes carve no concavity (a bowl's hollow, the wedge under an overhang): the visual hull fills it to
+    the rim, and a field started there keeps a lid. The SfM points on the hollow's inner surface were seen from the
+    cameras above it, through the lid. sightlines: per photo, (its camera centre (3,), the points (N, 3) it
+    observes); each runs from the camera to `stop_cells` short of the point, within the box."""
+    box = np.asarray(box, np.float64)
+    lo, hi = box
+    cell = (hi - lo) / (res - 1)
+    step = 0.5 * float(cell.min())
+    votes = np.zeros(res ** 3, np.int64)
+    for eye, points in sightlines:
+        eye, points = np.asarray(eye, np.float64), np.asarray(points, np.float64).reshape(-1, 3)
+        if not len(points):
+            continue
+        offset = points - eye
+        length = np.linalg.norm(offset, axis=1)
+        ok = length > 0
+        direction = offset[ok] / length[ok, None]
+        length = length[ok] - stop_cells * float(cell.max())
+        with np.errstate(divide="ignore", invalid="ignore"):  # rays along an axis: ±inf, as the slab test wants
+            t0, t1 = (lo - eye) / direction, (hi - eye) / direction
+        enter = np.nanmax(np.minimum(t0, t1), axis=1).clip(min=0.0)
+        leave = np.minimum(np.nanmin(np.maximum(t0, t1), axis=1), length)
+        count = np.where(leave > enter, np.ceil((leave - enter) / step).astype(np.int64) + 1, 0)
+        if not count.sum():
+            continue
+        line = np.repeat(np.arange(len(count)), count)
+        k = np.arange(len(line)) - np.repeat(np.cumsum(count) - count, count)
+        t = np.minimum(enter[line] + k * step, leave[line])
+        vertex = np.rint((eye + t[:, None] * direction[line] - lo) / cell).astype(np.int64)
+        inside = np.all((vertex >= 0) & (vertex < res), axis=1)
+        flat = (vertex[inside, 0] * res + vertex[inside, 1]) * res + vertex[inside, 2]
+        passed = np.unique(line[inside] * res ** 3 + flat)  # each sightline votes once a vertex
+        votes += np.bincount(passed % res ** 3, minlength=res ** 3)
+    return (votes >= min_votes).reshape(res, res, res)
 
 
 def hull_bounds(box: np.ndarray, res: int, c2ws: Sequence[np.ndarray], intrinsics: Sequence[Sequence[float]],

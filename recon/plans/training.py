@@ -322,12 +322,23 @@ def hull_start_for(cfg: TrainConfig, kind: str, kwargs: dict[str, Any], scene: S
                          "(train.hull_start=off starts it empty)")
 
 
+def sightlines_of(scene: Scene, frames: list[Frame]) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Per photo of `frames` that the scene says which points it observes (not an import's), its camera centre and
+    those points (`recon.geometry.visual_hull.free_space`)."""
+    lines = []
+    for frame in frames:
+        seen = scene.observed_points(frame)
+        if seen is not None and len(seen):
+            lines.append((np.asarray(frame.c2w, np.float64)[:3, 3].copy(), seen))
+    return lines
+
+
 def surface_start(kwargs: dict[str, Any], scene: Scene, views: list[View]) -> tuple[dict[str, Any], np.ndarray | None, str]:
     """(the surface model's kwargs with its start shape settled, the visual hull's SDF volume or None, why).
 
     Called once the training views have their alpha (masks or the backdrop key). auto: the visual hull when the
     photos have silhouettes, else the SfM points' convex hull, else a sphere."""
-    from recon.geometry.visual_hull import carve, visual_hull_sdf
+    from recon.geometry.visual_hull import carve, free_space, visual_hull_sdf
 
     surf = kwargs["config"]
     shape = surf.get("init_shape", "auto")
@@ -341,10 +352,17 @@ def surface_start(kwargs: dict[str, Any], scene: Scene, views: list[View]) -> tu
                   else "the photos have no silhouettes (masks or a keyed backdrop) for a visual hull")
     if shape in ("auto", "visual_hull") and with_alpha:
         inside, _ = carve(box, res, [v.c2w for v in views], [v.intrinsics for v in views], silhouettes(views))
+        lines = sightlines_of(scene, scene.split("train"))
+        hull = inside[1:-1, 1:-1, 1:-1].mean()
+        if lines:
+            inside &= ~free_space(box, res, lines)
         core = inside[1:-1, 1:-1, 1:-1]
         if core.any():
-            why = (f"initial surface: the visual hull of the {len(views)} training photos' silhouettes ({core.mean():.1%} "
-                   f"of the box; {VISUAL_HULL_WHY})")
+            why = (f"initial surface: the visual hull of the {len(views)} training photos' silhouettes ({hull:.1%} "
+                   f"of the box; {VISUAL_HULL_WHY})" + (
+                       f", less {hull - core.mean():.1%} of the box that lies on the sightlines from {len(lines)} photos "
+                       "to the sparse points they observe (a hollow or an overhang the silhouettes cannot carve)"
+                       if lines and core.mean() < hull else ""))
             settled = {**kwargs, "config": {**surf, "init_shape": "visual_hull", "init_planes": ()}}
             return settled, visual_hull_sdf(inside, box), why
         if shape == "visual_hull":
@@ -607,6 +625,9 @@ class TrainPlan:
     """The surface model's start shape as an SDF volume (the visual hull), or None."""
     hull_start: bool
     """The fast model starts with matter inside the training photos' visual hull (`hull_start_for`)."""
+    sightlines: list[tuple[np.ndarray, np.ndarray]]
+    """With `hull_start`: per training photo, its camera centre and the sparse points it observes, whose sightlines
+    free the hollows the hull fills (`recon.geometry.visual_hull.free_space`); empty otherwise."""
     slow_culling: bool
     """The fast model starts empty though the photos have silhouettes, so its occupancy culls slowly (`hull_start_for`)."""
     appearance: bool
@@ -693,7 +714,8 @@ def plan_training(cfg: TrainConfig, scene: Scene, views: list[View], device: tor
         views=views, aabb=np.asarray(scene.aabb) if scene.capture == "object" else None,
         background=background, random_background=random_bg, background_why=bg_why, empty=empty,
         empty_weight=empty_weight,
-        start_sdf=start_sdf, hull_start=hull_start, slow_culling=cull_slowly, appearance=appearance,
+        start_sdf=start_sdf, hull_start=hull_start, sightlines=sightlines_of(scene, frames) if hull_start else [],
+        slow_culling=cull_slowly, appearance=appearance,
         appearance_why=appearance_why, pose_refine=pose_refine, pose_why=pose_why, depth_prior=depth_prior,
         smoothness=smoothness,
         compile=cfg.compile if kind == "fast" and compile_wanted(cfg.compile, device)[0] else None,
@@ -749,13 +771,19 @@ def build_training(plan: TrainPlan, device: torch.device) -> TrainSetup:
         model.set_initial_sdf(plan.start_sdf)
     notes = []
     if plan.hull_start:
-        from recon.geometry.visual_hull import carve
+        from recon.geometry.visual_hull import carve, free_space
 
-        inside, _ = carve(model.grid_box.numpy().astype(np.float64), model.start_resolution,
-                          [v.c2w for v in plan.views], [v.intrinsics for v in plan.views], silhouettes(plan.views))
+        box = model.grid_box.numpy().astype(np.float64)
+        inside, _ = carve(box, model.start_resolution, [v.c2w for v in plan.views], [v.intrinsics for v in plan.views],
+                          silhouettes(plan.views))
+        hull = inside.mean()
+        if plan.sightlines:
+            inside &= ~free_space(box, model.start_resolution, plan.sightlines)
         model.start_inside(inside)
-        notes.append(f"start: the visual hull holds {inside.mean():.1%} of the box "
-                     f"({model.start_resolution}³ vertices)")
+        notes.append(f"start: the visual hull holds {hull:.1%} of the box ({model.start_resolution}³ vertices)"
+                     + (f"; of that, {hull - inside.mean():.1%} of the box lies on the sightlines from "
+                        f"{len(plan.sightlines)} photos to the sparse points they observe, so it is empty (a hollow "
+                        "or an overhang the silhouettes cannot carve) and starts so" if plan.sightlines else ""))
     if plan.slow_culling:
         model.cull_slowly()
     model = model.to(device)
