@@ -42,6 +42,8 @@ without the points linked to the in-frame ones (what close-ups leave out of fram
   the background points do);
 - hull tolerance T: shipped, but a hull vertex survives while at most the share T of the photos call it background
   (`HULL_TOLERANCE`; any T, e.g. "hull tolerance 0.1");
+- region margin M: shipped, but the cut's box (outside its projection every pixel is background) is the object
+  region grown by the share M of its size a side (`REGION_MARGIN`; any M, e.g. "region margin 0.3");
 - true object seeds: shipped, with the object seeds that fall outside the true mask dropped (an oracle);
 - true seeds and a background ring: also 150 background seeds 3-4 px outside the true mask (an oracle).
 
@@ -156,7 +158,7 @@ def main(argv: list[str] | None = None) -> None:
     filling, dropping, lone_spacing = am.FILL_GROUNDED_BITES, am.DROP_TABLE, am.LONE_POINT_SPACING
     max_refuted = am.MAX_REFUTED
     parallax, framed_share, max_missed = am.TABLE_PARALLAX, am.FRAMED_SHARE, am.MAX_HULL_MISSED
-    background_seeds, tolerance = am.MIN_BACKGROUND_SEEDS, am.HULL_TOLERANCE
+    background_seeds, tolerance, margin = am.MIN_BACKGROUND_SEEDS, am.HULL_TOLERANCE, am.REGION_MARGIN
     current: dict[str, str] = {}
 
     def variant(name: str, scene: Any = scene) -> dict[str, Any]:
@@ -199,6 +201,7 @@ def main(argv: list[str] | None = None) -> None:
         am.MAX_HULL_MISSED = 1.0 if name == "short cuts kept" else max_missed
         am.MIN_BACKGROUND_SEEDS = 0 if name == "filled close-ups keep their cut" else background_seeds
         am.HULL_TOLERANCE = float(name.removeprefix("hull tolerance ")) if name.startswith("hull tolerance ") else tolerance
+        am.REGION_MARGIN = float(name.removeprefix("region margin ")) if name.startswith("region margin ") else margin
         import recon.nerf.device as device
 
         threads: Callable[[], int] = device.cpu_threads
@@ -211,7 +214,7 @@ def main(argv: list[str] | None = None) -> None:
             am.FILL_GROUNDED_BITES, am.DROP_TABLE, am.LONE_POINT_SPACING = filling, dropping, lone_spacing
             am.MAX_REFUTED = max_refuted
             am.TABLE_PARALLAX, am.FRAMED_SHARE, am.MAX_HULL_MISSED = parallax, framed_share, max_missed
-            am.MIN_BACKGROUND_SEEDS, am.HULL_TOLERANCE = background_seeds, tolerance
+            am.MIN_BACKGROUND_SEEDS, am.HULL_TOLERANCE, am.REGION_MARGIN = background_seeds, tolerance, margin
         if a.write_masks is not None:
             folder = a.write_masks / name.replace(" ", "_").replace(",", "")
             folder.mkdir(parents=True, exist_ok=True)
@@ -258,12 +261,15 @@ def main(argv: list[str] | None = None) -> None:
              "short cuts kept", "no support prior", "in-frame region", "box seeds", "every point, seed discs", *oracles)
     chosen = a.variants.split(",") if a.variants else names
     tolerances = [v for v in chosen if v.startswith("hull tolerance ")]
-    if unknown := set(chosen) - set(names) - {v for v in tolerances if _is_share(v.removeprefix("hull tolerance "))}:
-        raise SystemExit(f"unknown variants {sorted(unknown)}; known: {', '.join(names)}, hull tolerance T (0 <= T < 1)")
+    margins = [v for v in chosen if v.startswith("region margin ")]
+    if unknown := set(chosen) - set(names) - {v for v in tolerances if _is_share(v.removeprefix("hull tolerance "))} \
+            - {v for v in margins if _is_share(v.removeprefix("region margin "))}:
+        raise SystemExit(f"unknown variants {sorted(unknown)}; known: {', '.join(names)}, hull tolerance T, region margin M "
+                         "(0 <= T, M < 1)")
     boxed = replace(scene, region_points=None, aside_points=None)
     rows = [variant(v, in_frame if v == "in-frame region" else boxed if v == "box seeds" else scene)
             for v in names if v in chosen]
-    rows += [variant(v) for v in tolerances]
+    rows += [variant(v) for v in tolerances + margins]
 
     def object_points(scene: Any) -> np.ndarray:
         """(N,) bool: the sparse points the cut takes for object seeds (the object's, inside its region's box)."""
