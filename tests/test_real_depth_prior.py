@@ -185,6 +185,70 @@ def test_depth_prior_is_on_for_a_masked_field_that_starts_empty(mode: str, cull_
         assert "the photos constrain the geometry" in why
 
 
+@pytest.mark.parametrize("mode, hollow, on", [("auto", 0.3, True), ("auto", 0.02, False), ("auto", None, False),
+                                              ("off", 0.3, False)])
+def test_depth_prior_is_on_for_a_masked_field_whose_hull_has_a_hollow(mode: str, hollow: float | None, on: bool) -> None:
+    """24 masked photos of an object leave the prior off, unless their sightlines to the sparse points pass through
+    HOLLOW_SHARE of their silhouettes' hull or more (a bowl, which the silhouettes fill): it says why either way."""
+    from dataclasses import replace
+
+    from recon.plans.training import depth_prior_for
+
+    cfg, scene, frames, views = _scene_with_points(24)
+    cfg = replace(cfg, depth_prior=mode)
+    scene.has_alpha = True
+    views = [replace(v, image=np.concatenate([v.image, np.full(v.image.shape[:2] + (1,), 255, np.uint8)], -1))
+             for v in views]
+    prior, why = depth_prior_for(cfg, "fast", scene, frames, views, {"config": {"density_res": 64}}, hollow=hollow)
+    assert (prior is not None) == on and why.startswith(f"depth prior: {'on' if on else 'off'}")
+    if on:
+        assert "30% of their silhouettes' visual hull" in why and "hollow" in why
+    elif mode == "auto":
+        assert ("no hollow" in why and "2% of" in why) == (hollow is not None)
+
+
+def test_a_bowls_hull_is_mostly_hollow_and_a_balls_is_not() -> None:
+    """`hollow_share`: the sightlines from cameras above to points inside a bowl pass through most of its silhouettes'
+    hull (the half-ball); to points on a ball's upper half, through little of its hull."""
+    from recon.capture.scene import Scene
+    from recon.evaluation.views import View
+    from recon.plans.training import hollow_share
+
+    rng = np.random.default_rng(0)
+    d = rng.normal(size=(2000, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    views, lines = [], []
+    for i in range(16):
+        a = 2 * math.pi * i / 16
+        c2w = look_at(np.array([2.5 * math.cos(a), 2.5 * math.sin(a), 2.0]), np.zeros(3))
+        v, u = np.mgrid[0:H, 0:W] + 0.5
+        ray = np.stack([(u - W / 2) / FL, -(v - H / 2) / FL, -np.ones_like(u)], -1) @ c2w[:3, :3].T
+        ray /= np.linalg.norm(ray, axis=-1, keepdims=True)
+        o = c2w[:3, 3]
+        b = ray @ o
+        hit = (b**2 - (o @ o - 0.5**2) > 0) & (-b > 0)  # the ball of radius 0.5; the bowl is its lower half
+        root = np.sqrt(np.maximum(b**2 - (o @ o - 0.25), 0))
+        low = np.minimum(o[2] + (-b - root) * ray[..., 2], o[2] + (-b + root) * ray[..., 2]) < 0  # meets the lower half
+        views.append((c2w, hit, hit & low))
+    scene = Scene(frames=[], points=np.zeros((0, 3)), aabb=np.array([[-1.0] * 3, [1.0] * 3]), capture="object")
+    inner = 0.35 * d * np.where(d[:, 2:] < 0, 1.0, -1.0)
+    outer = 0.5 * d * np.where(d[:, 2:] > 0, 1.0, -1.0)
+    for points, k in ((inner, 2), (outer, 1)):
+        shown = [View(f"{i}", np.concatenate([np.full((H, W, 3), 128, np.uint8), (sil[k] * 255).astype(np.uint8)[..., None]],
+                                             -1), sil[0], (FL, FL, W / 2, H / 2), 1.0, 5.0) for i, sil in enumerate(views)]
+        seen = []
+        for c2w, *_ in views:
+            eye = c2w[:3, 3]
+            if k == 2:  # inside the bowl: seen through its opening
+                t = eye[2] / (eye[2] - points[:, 2])
+                seen.append(np.linalg.norm(eye[:2] + t[:, None] * (points[:, :2] - eye[:2]), axis=1) < 0.35)
+            else:  # on the ball: seen from the side it faces
+                seen.append(np.einsum("ij,ij->i", points, eye - points) > 0)
+        lines.append([(sil[0][:3, 3], points[ok]) for sil, ok in zip(views, seen)])
+        share = hollow_share(scene, shown, lines[-1])
+        assert (share > 0.3) if k == 2 else (share < 0.1), share
+
+
 def test_point_errors_survive_save_load_and_normalize(tmp_path) -> None:
     from recon.capture.normalization import normalize
     from recon.capture.scene import load_scene

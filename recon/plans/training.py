@@ -474,6 +474,15 @@ EMPTY_START_DEPTH_WHY = (
     "face, and the corner where it meets the object, at many depths; the SfM points say at which"
 )
 
+HOLLOW_SHARE = 0.1
+"""`train.depth_prior=auto` turns the prior on for a field started in the visual hull when the photos' sightlines to the
+sparse points pass through at least this share of the hull (`hollow_share`): a bowl's hollow, which the silhouettes
+fill to the rim, and which a field started there kept as a lid (benchmarks/results/object_shapes.json). On the objects
+without a hollow the share stayed under 5%."""
+
+HOLLOW_RES = 41
+"""Vertices a side of the grid `hollow_share` measures the hull and its sightlines on."""
+
 UNBOUNDED_DEPTH_WHY = (
     "an unbounded capture without masks: where the object's colour matches what lies behind it the photos alone leave "
     "the surface soft and holed at any depth; the SfM points say at which depth the surface is"
@@ -488,14 +497,32 @@ def own_ray_bounds(scene: Scene, views: list[View]) -> dict[str, torch.Tensor]:
     return {"near_far": torch.tensor([[v.near, v.far] for v in views], dtype=torch.float32)}
 
 
+def hollow_share(scene: Scene, views: list[View], lines: list[tuple[np.ndarray, np.ndarray]]) -> float:
+    """The share of the training photos' visual hull (on a HOLLOW_RES³ grid over the scene box) that their sightlines
+    to the sparse points they observe pass through (`free_space`): 0 for a shape the silhouettes bound, most of it for a
+    bowl, whose hollow they fill."""
+    from recon.geometry.visual_hull import carve, free_space
+
+    if not lines or scene.aabb is None:
+        return 0.0
+    box = np.asarray(scene.aabb, np.float64)
+    inside, _ = carve(box, HOLLOW_RES, [v.c2w for v in views], [v.intrinsics for v in views], silhouettes(views))
+    if not inside.any():
+        return 0.0
+    return float((inside & free_space(box, HOLLOW_RES, lines)).sum() / inside.sum())
+
+
 def depth_prior_for(cfg: TrainConfig, kind: str, scene: Scene, frames: list[Frame], views: list[View],
-                    kwargs: dict[str, Any], cull_slowly: bool = False) -> tuple[DepthPrior | None, str]:
+                    kwargs: dict[str, Any], cull_slowly: bool = False,
+                    hollow: float | None = None) -> tuple[DepthPrior | None, str]:
     """The sparse-depth prior (`recon.nerf.depth_prior.DepthPrior`, on the CPU) or None, and why (printed either way).
 
     auto: on with few photos, for the surface model (`SURFACE_DEPTH_WHY`), for unbounded captures
-    (`UNBOUNDED_DEPTH_WHY`) and for a fast field that starts empty though its photos have silhouettes (`cull_slowly`,
-    `EMPTY_START_DEPTH_WHY`); otherwise off with masks. Its rays are cut to the scene box of an object capture, else
-    to each photo's near/far, as the training rays are."""
+    (`UNBOUNDED_DEPTH_WHY`), for a fast field that starts empty though its photos have silhouettes (`cull_slowly`,
+    `EMPTY_START_DEPTH_WHY`) and for one started in a hull whose `hollow` share (None: not measured) is at least
+    HOLLOW_SHARE; otherwise
+    off with masks. Its rays are cut to the scene box of an object capture, else to each photo's near/far, as the
+    training rays are."""
     from recon.capture.normalization import FEW_PHOTOS
 
     if cfg.depth_prior == "off":
@@ -503,10 +530,13 @@ def depth_prior_for(cfg: TrainConfig, kind: str, scene: Scene, frames: list[Fram
     visible = [np.asarray(scene.point_visibility.get(f.name, []), np.int64) for f in frames]
     n_obs = sum(len(v) for v in visible)
     few = len(frames) < FEW_PHOTOS
-    if cfg.depth_prior == "auto" and not cull_slowly:  # an empty start with silhouettes takes it whatever follows
+    hollowed = hollow is not None and hollow >= HOLLOW_SHARE
+    if cfg.depth_prior == "auto" and not cull_slowly and not hollowed:  # either takes it whatever follows
         if not few and kind != "surface" and scene.capture != "unbounded":
+            shape = ("" if hollow is None else f"; their sightlines to the sparse points pass through {hollow:.0%} of "
+                     f"their silhouettes' hull, under {HOLLOW_SHARE:.0%}: no hollow the silhouettes fill")
             return None, (f"depth prior: off ({len(frames)} training photos >= {FEW_PHOTOS} of an object capture: the "
-                          f"photos constrain the geometry; train.depth_prior=on forces it)")
+                          f"photos constrain the geometry{shape}; train.depth_prior=on forces it)")
         if scene.has_alpha:
             return None, (f"depth prior: off ({len(frames)} training photos, but masks: their silhouettes already "
                           f"constrain the geometry, and with masks the prior makes the surface lumpy; "
@@ -531,6 +561,10 @@ def depth_prior_for(cfg: TrainConfig, kind: str, scene: Scene, frames: list[Fram
         why = SURFACE_DEPTH_WHY
     elif cull_slowly:
         why = EMPTY_START_DEPTH_WHY
+    elif hollowed:
+        why = (f"the photos' sightlines to the sparse points they observe pass through {hollow:.0%} of their "
+               f"silhouettes' visual hull (from {HOLLOW_SHARE:.0%}): a hollow, such as a bowl's, that the silhouettes "
+               "fill and the colours alone place at many depths; the SfM points say at which")
     elif not few:
         why = UNBOUNDED_DEPTH_WHY
     else:
@@ -704,7 +738,9 @@ def plan_training(cfg: TrainConfig, scene: Scene, views: list[View], device: tor
     optimizer, optimizer_why = choose_optimizer(cfg, kind, device)
     if optimizer_why:
         reasons.append(optimizer_why)
-    depth_prior, depth_why = depth_prior_for(cfg, kind, scene, frames, views, kwargs, cull_slowly)
+    sightlines = sightlines_of(scene, frames) if hull_start else []
+    hollow = hollow_share(scene, views, sightlines) if hull_start else None
+    depth_prior, depth_why = depth_prior_for(cfg, kind, scene, frames, views, kwargs, cull_slowly, hollow)
     reasons.append(depth_why)
     smoothness, smooth_why = smoothness_for(cfg, kind, scene, views, hull_start, cull_slowly)
     if smooth_why:
@@ -714,7 +750,7 @@ def plan_training(cfg: TrainConfig, scene: Scene, views: list[View], device: tor
         views=views, aabb=np.asarray(scene.aabb) if scene.capture == "object" else None,
         background=background, random_background=random_bg, background_why=bg_why, empty=empty,
         empty_weight=empty_weight,
-        start_sdf=start_sdf, hull_start=hull_start, sightlines=sightlines_of(scene, frames) if hull_start else [],
+        start_sdf=start_sdf, hull_start=hull_start, sightlines=sightlines,
         slow_culling=cull_slowly, appearance=appearance,
         appearance_why=appearance_why, pose_refine=pose_refine, pose_why=pose_why, depth_prior=depth_prior,
         smoothness=smoothness,
