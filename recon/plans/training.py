@@ -477,8 +477,8 @@ EMPTY_START_DEPTH_WHY = (
 HOLLOW_SHARE = 0.1
 """`train.depth_prior=auto` turns the prior on for a field started in the visual hull when the photos' sightlines to the
 sparse points pass through at least this share of the hull (`hollow_share`): a bowl's hollow, which the silhouettes
-fill to the rim, and which a field started there kept as a lid (benchmarks/results/object_shapes.json). On the objects
-without a hollow the share stayed under 5%."""
+fill to the rim, and which a field started there kept as a lid; objects without a hollow stay well under it
+(benchmarks/results/object_shapes.json, docs/real_captures.md "Hollows")."""
 
 HOLLOW_RES = 41
 """Vertices a side of the grid `hollow_share` measures the hull and its sightlines on."""
@@ -520,9 +520,8 @@ def depth_prior_for(cfg: TrainConfig, kind: str, scene: Scene, frames: list[Fram
     auto: on with few photos, for the surface model (`SURFACE_DEPTH_WHY`), for unbounded captures
     (`UNBOUNDED_DEPTH_WHY`), for a fast field that starts empty though its photos have silhouettes (`cull_slowly`,
     `EMPTY_START_DEPTH_WHY`) and for one started in a hull whose `hollow` share (None: not measured) is at least
-    HOLLOW_SHARE; otherwise
-    off with masks. Its rays are cut to the scene box of an object capture, else to each photo's near/far, as the
-    training rays are."""
+    HOLLOW_SHARE; otherwise off with masks. Its rays are cut to the scene box of an object capture, else to each
+    photo's near/far, as the training rays are."""
     from recon.capture.normalization import FEW_PHOTOS
 
     if cfg.depth_prior == "off":
