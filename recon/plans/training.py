@@ -738,7 +738,7 @@ def plan_training(cfg: TrainConfig, scene: Scene, views: list[View], device: tor
     if optimizer_why:
         reasons.append(optimizer_why)
     sightlines = sightlines_of(scene, frames) if hull_start else []
-    hollow = hollow_share(scene, views, sightlines) if hull_start else None
+    hollow = hollow_share(scene, views, sightlines) if sightlines else None  # unknown without them (an import)
     depth_prior, depth_why = depth_prior_for(cfg, kind, scene, frames, views, kwargs, cull_slowly, hollow)
     reasons.append(depth_why)
     smoothness, smooth_why = smoothness_for(cfg, kind, scene, views, hull_start, cull_slowly)
