@@ -28,7 +28,7 @@ from recon.evaluation.views import (
     training_focal,
     view_tensors,
 )
-from recon.geometry.visual_hull import hull_silhouettes
+from recon.geometry.visual_hull import carve, free_space, hull_silhouettes
 from recon.nerf.appearance import PhotoAppearance, decide, exposure_spread
 from recon.nerf.depth_prior import DepthPrior, sparse_depth_targets
 from recon.nerf.smoothness import PatchSmoothness
@@ -333,12 +333,20 @@ def sightlines_of(scene: Scene, frames: list[Frame]) -> list[tuple[np.ndarray, n
     return lines
 
 
+def freed_hull(box: np.ndarray, res: int, views: list[View],
+               lines: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray]:
+    """(the training photos' visual hull on a res³ grid over box, the part of it that the sightlines `lines` pass
+    through: `free_space`, a hollow or an overhang the silhouettes cannot carve), both (res, res, res) bool."""
+    inside, _ = carve(box, res, [v.c2w for v in views], [v.intrinsics for v in views], silhouettes(views))
+    return inside, (inside & free_space(box, res, lines)) if lines else np.zeros_like(inside)
+
+
 def surface_start(kwargs: dict[str, Any], scene: Scene, views: list[View]) -> tuple[dict[str, Any], np.ndarray | None, str]:
     """(the surface model's kwargs with its start shape settled, the visual hull's SDF volume or None, why).
 
     Called once the training views have their alpha (masks or the backdrop key). auto: the visual hull when the
     photos have silhouettes, else the SfM points' convex hull, else a sphere."""
-    from recon.geometry.visual_hull import carve, free_space, visual_hull_sdf
+    from recon.geometry.visual_hull import visual_hull_sdf
 
     surf = kwargs["config"]
     shape = surf.get("init_shape", "auto")
@@ -351,18 +359,16 @@ def surface_start(kwargs: dict[str, Any], scene: Scene, views: list[View]) -> tu
     not_visual = ("train.surface.init_shape=" + shape if shape != "auto"
                   else "the photos have no silhouettes (masks or a keyed backdrop) for a visual hull")
     if shape in ("auto", "visual_hull") and with_alpha:
-        inside, _ = carve(box, res, [v.c2w for v in views], [v.intrinsics for v in views], silhouettes(views))
         lines = sightlines_of(scene, scene.split("train"))
-        hull = inside[1:-1, 1:-1, 1:-1].mean()
-        if lines:
-            inside &= ~free_space(box, res, lines)
-        core = inside[1:-1, 1:-1, 1:-1]
+        hull, free = freed_hull(box, res, views, lines)
+        inside = hull & ~free
+        core, freed = inside[1:-1, 1:-1, 1:-1], free[1:-1, 1:-1, 1:-1].mean()
         if core.any():
-            why = (f"initial surface: the visual hull of the {len(views)} training photos' silhouettes ({hull:.1%} "
-                   f"of the box; {VISUAL_HULL_WHY})" + (
-                       f", less {hull - core.mean():.1%} of the box that lies on the sightlines from {len(lines)} photos "
+            why = (f"initial surface: the visual hull of the {len(views)} training photos' silhouettes "
+                   f"({hull[1:-1, 1:-1, 1:-1].mean():.1%} of the box; {VISUAL_HULL_WHY})" + (
+                       f", less {freed:.1%} of the box that lies on the sightlines from {len(lines)} photos "
                        "to the sparse points they observe (a hollow or an overhang the silhouettes cannot carve)"
-                       if lines and core.mean() < hull else ""))
+                       if freed > 0 else ""))
             settled = {**kwargs, "config": {**surf, "init_shape": "visual_hull", "init_planes": ()}}
             return settled, visual_hull_sdf(inside, box), why
         if shape == "visual_hull":
@@ -501,15 +507,10 @@ def hollow_share(scene: Scene, views: list[View], lines: list[tuple[np.ndarray, 
     """The share of the training photos' visual hull (on a HOLLOW_RES³ grid over the scene box) that their sightlines
     to the sparse points they observe pass through (`free_space`): 0 for a shape the silhouettes bound, most of it for a
     bowl, whose hollow they fill."""
-    from recon.geometry.visual_hull import carve, free_space
-
     if not lines or scene.aabb is None:
         return 0.0
-    box = np.asarray(scene.aabb, np.float64)
-    inside, _ = carve(box, HOLLOW_RES, [v.c2w for v in views], [v.intrinsics for v in views], silhouettes(views))
-    if not inside.any():
-        return 0.0
-    return float((inside & free_space(box, HOLLOW_RES, lines)).sum() / inside.sum())
+    inside, free = freed_hull(np.asarray(scene.aabb, np.float64), HOLLOW_RES, views, lines)
+    return float(free.sum() / inside.sum()) if inside.any() else 0.0
 
 
 def depth_prior_for(cfg: TrainConfig, kind: str, scene: Scene, frames: list[Frame], views: list[View],
@@ -806,17 +807,11 @@ def build_training(plan: TrainPlan, device: torch.device) -> TrainSetup:
         model.set_initial_sdf(plan.start_sdf)
     notes = []
     if plan.hull_start:
-        from recon.geometry.visual_hull import carve, free_space
-
-        box = model.grid_box.numpy().astype(np.float64)
-        inside, _ = carve(box, model.start_resolution, [v.c2w for v in plan.views], [v.intrinsics for v in plan.views],
-                          silhouettes(plan.views))
-        hull = inside.mean()
-        if plan.sightlines:
-            inside &= ~free_space(box, model.start_resolution, plan.sightlines)
-        model.start_inside(inside)
-        notes.append(f"start: the visual hull holds {hull:.1%} of the box ({model.start_resolution}³ vertices)"
-                     + (f"; of that, {hull - inside.mean():.1%} of the box lies on the sightlines from "
+        hull, free = freed_hull(model.grid_box.numpy().astype(np.float64), model.start_resolution, plan.views,
+                                plan.sightlines)
+        model.start_inside(hull & ~free)
+        notes.append(f"start: the visual hull holds {hull.mean():.1%} of the box ({model.start_resolution}³ vertices)"
+                     + (f"; of that, {free.mean():.1%} of the box lies on the sightlines from "
                         f"{len(plan.sightlines)} photos to the sparse points they observe, so it is empty (a hollow "
                         "or an overhang the silhouettes cannot carve) and starts so" if plan.sightlines else ""))
     if plan.slow_culling:
