@@ -44,6 +44,8 @@ without the points linked to the in-frame ones (what close-ups leave out of fram
   (`HULL_TOLERANCE`; any T, e.g. "hull tolerance 0.1");
 - region margin M: shipped, but the cut's box (outside its projection every pixel is background) is the object
   region grown by the share M of its size a side (`REGION_MARGIN`; any M, e.g. "region margin 0.3");
+- region box: shipped, but the cut's box is the scene's object region alone, not grown to hold every point normalize
+  took for the object (`BOX_EVERY_OBJECT_POINT`: the box before a thin part's few points apart from the rest counted);
 - true object seeds: shipped, with the object seeds that fall outside the true mask dropped (an oracle);
 - true seeds and a background ring: also 150 background seeds 3-4 px outside the true mask (an oracle).
 
@@ -159,6 +161,7 @@ def main(argv: list[str] | None = None) -> None:
     max_refuted = am.MAX_REFUTED
     parallax, framed_share, max_missed = am.TABLE_PARALLAX, am.FRAMED_SHARE, am.MAX_HULL_MISSED
     background_seeds, tolerance, margin = am.MIN_BACKGROUND_SEEDS, am.HULL_TOLERANCE, am.REGION_MARGIN
+    every_point = am.BOX_EVERY_OBJECT_POINT
     current: dict[str, str] = {}
 
     def variant(name: str, scene: Any = scene) -> dict[str, Any]:
@@ -202,6 +205,7 @@ def main(argv: list[str] | None = None) -> None:
         am.MIN_BACKGROUND_SEEDS = 0 if name == "filled close-ups keep their cut" else background_seeds
         am.HULL_TOLERANCE = float(name.removeprefix("hull tolerance ")) if name.startswith("hull tolerance ") else tolerance
         am.REGION_MARGIN = float(name.removeprefix("region margin ")) if name.startswith("region margin ") else margin
+        am.BOX_EVERY_OBJECT_POINT = name != "region box"
         import recon.nerf.device as device
 
         threads: Callable[[], int] = device.cpu_threads
@@ -215,6 +219,7 @@ def main(argv: list[str] | None = None) -> None:
             am.MAX_REFUTED = max_refuted
             am.TABLE_PARALLAX, am.FRAMED_SHARE, am.MAX_HULL_MISSED = parallax, framed_share, max_missed
             am.MIN_BACKGROUND_SEEDS, am.HULL_TOLERANCE, am.REGION_MARGIN = background_seeds, tolerance, margin
+            am.BOX_EVERY_OBJECT_POINT = every_point
         if a.write_masks is not None:
             folder = a.write_masks / name.replace(" ", "_").replace(",", "")
             folder.mkdir(parents=True, exist_ok=True)
@@ -258,7 +263,8 @@ def main(argv: list[str] | None = None) -> None:
     oracles = ("true object seeds", "true seeds and a background ring") if a.true_masks is not None else ()
     names = ("shipped", "no grounded bites", "no table drop", "neither", "lone points counted",
              "refuted points counted", "least parallax", "close-ups vote", "filled close-ups keep their cut",
-             "short cuts kept", "no support prior", "in-frame region", "box seeds", "every point, seed discs", *oracles)
+             "short cuts kept", "no support prior", "in-frame region", "box seeds", "region box",
+             "every point, seed discs", *oracles)
     chosen = a.variants.split(",") if a.variants else names
     tolerances = [v for v in chosen if v.startswith("hull tolerance ")]
     margins = [v for v in chosen if v.startswith("region margin ")]
@@ -272,12 +278,12 @@ def main(argv: list[str] | None = None) -> None:
     rows += [variant(v) for v in tolerances + margins]
 
     def object_points(scene: Any) -> np.ndarray:
-        """(N,) bool: the sparse points the cut takes for object seeds (the object's, inside its region's box)."""
-        region = np.asarray(scene.region, np.float64)
+        """(N,) bool: the sparse points the cut takes for object seeds (the object's, inside its cut's box)."""
+        points = np.asarray(scene.points, np.float64).reshape(-1, 3)
+        region = am.cut_region(scene, points)
         extent = region[1] - region[0]
         grown = np.stack([region[0] - am.REGION_MARGIN * extent, region[1] + am.REGION_MARGIN * extent])
-        return am._label_points(np.asarray(scene.points, np.float64).reshape(-1, 3), region, grown, scene.ground,
-                                scene.region_points, scene.aside_points)[0]
+        return am._label_points(points, region, grown, scene.ground, scene.region_points, scene.aside_points)[0]
 
     points = np.asarray(scene.points, np.float64).reshape(-1, 3)
     obj = object_points(scene)

@@ -39,6 +39,11 @@ SEGMENT_SIDE = 640
 """Photos are segmented at this longest side (pixels); the masks are written back at the photos' own size."""
 REGION_MARGIN = 0.1
 """Outside the object region's box grown by this fraction of its size on each side, every pixel is background."""
+BOX_EVERY_OBJECT_POINT = True
+"""The cut's box holds every sparse point normalize took for the object. The scene's region box leaves out small
+groups of them as stray triangulations, but a thin part reaching out of the object (a rod's top, an antenna) gives SfM
+just as few points apart from the rest; the cuts and their hull then say whether it is object (a stray point's island
+is dropped, `MIN_PIECE`)."""
 GROUND_BAND = 0.02
 """Sparse points within this fraction of the region's size of the support plane are the plane's (background)."""
 SEED_RADIUS = 0.004
@@ -212,10 +217,10 @@ def segment_object(scene: Scene, load_photo: PhotoLoader | None = None, side: in
     if scene.region is None:
         raise ValueError("segment_object needs the scene's object region (normalize finds it for object captures)")
     load = load_photo or (lambda f: read_image(scene.image_path(f), max_side=side)[..., :3])
-    region = np.asarray(scene.region, np.float64)
+    points = np.asarray(scene.points, np.float64).reshape(-1, 3)
+    region = cut_region(scene, points)
     extent = region[1] - region[0]
     grown = np.stack([region[0] - REGION_MARGIN * extent, region[1] + REGION_MARGIN * extent])
-    points = np.asarray(scene.points, np.float64).reshape(-1, 3)
     object_pts, background_pts = _label_points(points, region, grown, scene.ground, scene.region_points,
                                                scene.aside_points)
     # on a wall, what lies between the object and the wall beside it is the wall, seen past the object
@@ -420,6 +425,18 @@ def matte_photos(scene: Scene, masks: dict[str, np.ndarray],
 
     with ThreadPoolExecutor(max_workers=cpu_threads()) as pool:  # OpenCV's filter releases the GIL
         return {f.name: soft for f, soft in zip(frames, pool.map(one, frames), strict=True)}
+
+
+def cut_region(scene: Scene, points: np.ndarray) -> np.ndarray:
+    """(2, 3) the box the cuts look for the object in: the scene's region, grown to hold the sparse points (P, 3)
+    normalize took for the object where it says which (`BOX_EVERY_OBJECT_POINT`)."""
+    region = np.asarray(scene.region, np.float64)
+    if not BOX_EVERY_OBJECT_POINT or scene.region_points is None:
+        return region
+    chosen = points[np.asarray(scene.region_points, bool) & np.all(np.isfinite(points), axis=1)]
+    if not len(chosen):
+        return region
+    return np.stack([np.minimum(region[0], chosen.min(axis=0)), np.maximum(region[1], chosen.max(axis=0))])
 
 
 def _label_points(points: np.ndarray, region: np.ndarray, grown: np.ndarray, ground: np.ndarray | None,
