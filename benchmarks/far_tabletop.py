@@ -16,7 +16,9 @@ draws the first photo and the meshes of the runs labelled A and B (earlier runs'
 `--arc DEG` measures another capture the same way: the realistic tabletop at the usual distance, its photos within
 an arc of DEG degrees (`gen_tabletop.py --realistic --arc DEG`: the object's front only), in place of the far one.
 `--object NAME` does so with another object on the table (`gen_tabletop.py --realistic --object NAME`: a thin rod
-and plate, a bowl, a ring on a drilled block), photographed all round at the usual distance (or within `--arc`).
+and plate, a bowl, a ring on a drilled block), photographed all round at the usual distance (or within `--arc`);
+`--table plain` with a plain white table top (`gen_tabletop.py --realistic --table plain`), which gives SfM next to
+nothing to match beside the object.
 """
 from __future__ import annotations
 
@@ -47,6 +49,8 @@ def main() -> None:
                         "usual distance instead of from further back")
     parser.add_argument("--object", default=None, help="another object on the table (thin, concave, hole), at the usual "
                         "distance instead of from further back")
+    parser.add_argument("--table", default=None, choices=("plain",), help="a plain white table top, at the usual "
+                        "distance instead of from further back")
     args = parser.parse_args()
     if args.figure is not None:
         from closeups_share import tiles_row
@@ -57,9 +61,10 @@ def main() -> None:
         parser.error("--name and --label are needed to run (or --figure to draw)")
     where, load = provenance(), [round(x, 2) for x in os.getloadavg()]
     date = datetime.now(timezone.utc).isoformat(timespec="seconds")
-    shape = ({"far": True} if args.arc is None and args.object is None else
+    shape = ({"far": True} if args.arc is None and args.object is None and args.table is None else
              {**({"arc": args.arc} if args.arc is not None else {}),
-              **({"shape": args.object} if args.object is not None else {})})
+              **({"shape": args.object} if args.object is not None else {}),
+              **({"table": args.table} if args.table is not None else {})})
     capture = generate(args.work / "capture", views=24, size="640x480", realistic=True, **shape)
     shutil.rmtree(args.work / "images", ignore_errors=True)
     shutil.copytree(capture / "images", args.work / "images")
