@@ -18,7 +18,7 @@ an arc of DEG degrees (`gen_tabletop.py --realistic --arc DEG`: the object's fro
 `--object NAME` does so with another object on the table (`gen_tabletop.py --realistic --object NAME`: a thin rod
 and plate, a bowl, a ring on a drilled block), photographed all round at the usual distance (or within `--arc`);
 `--table plain` with a plain white table top (`gen_tabletop.py --realistic --table plain`), which gives SfM next to
-nothing to match beside the object.
+nothing to match beside the object; `--painted` with the object painted in a few flat colours (few features on it).
 """
 from __future__ import annotations
 
@@ -51,6 +51,8 @@ def main() -> None:
                         "distance instead of from further back")
     parser.add_argument("--table", default=None, choices=("plain",), help="a plain white table top, at the usual "
                         "distance instead of from further back")
+    parser.add_argument("--painted", action="store_true", help="the object painted in a few flat colours, at the "
+                        "usual distance instead of from further back")
     args = parser.parse_args()
     if args.figure is not None:
         from closeups_share import tiles_row
@@ -61,10 +63,11 @@ def main() -> None:
         parser.error("--name and --label are needed to run (or --figure to draw)")
     where, load = provenance(), [round(x, 2) for x in os.getloadavg()]
     date = datetime.now(timezone.utc).isoformat(timespec="seconds")
-    shape = ({"far": True} if args.arc is None and args.object is None and args.table is None else
+    shape = ({"far": True} if args.arc is None and args.object is None and args.table is None and not args.painted else
              {**({"arc": args.arc} if args.arc is not None else {}),
               **({"shape": args.object} if args.object is not None else {}),
-              **({"table": args.table} if args.table is not None else {})})
+              **({"table": args.table} if args.table is not None else {}),
+              **({"painted": True} if args.painted else {})})
     capture = generate(args.work / "capture", views=24, size="640x480", realistic=True, **shape)
     shutil.rmtree(args.work / "images", ignore_errors=True)
     shutil.copytree(capture / "images", args.work / "images")
