@@ -849,3 +849,37 @@ def test_a_thin_part_beyond_the_region_box_stays_in_the_masks() -> None:
     for f in scene.frames:
         u, v = np.clip(project(stray, f.c2w, (f.fl_x, f.fl_y, f.cx, f.cy))[0].astype(int), 0, [W - 1, H - 1])[0]
         assert truth[f.name][v, u] or not found.masks[f.name][v - 2:v + 3, u - 2:u + 3].any(), f.name
+
+
+def test_a_photo_sfm_misplaced_is_left_out_and_the_other_masks_stay_trusted(monkeypatch: pytest.MonkeyPatch) -> None:
+    """One photo registered on a few matches far from where it was taken, looking 55 degrees off the object: its mask
+    comes out empty and it observes none of the object's points, so it is left out (`ASTRAY_SHARE`) and the others'
+    masks are trusted. Had SfM matched it to as many of the object's points as the others, its empty mask would be
+    a cut that failed, and all the masks unsure."""
+    from recon.capture import auto_masks
+
+    scene, photos, truth = _scene()
+    points = np.asarray(scene.points)
+    ball = np.abs(np.linalg.norm(points - BALL_C, axis=1) - BALL_R) < 1e-6
+    frames = list(scene.frames)
+    lost = frames[3]
+    turn = np.radians(55.0)
+    spin = np.array([[np.cos(turn), -np.sin(turn), 0.0], [np.sin(turn), np.cos(turn), 0.0], [0.0, 0.0, 1.0]])
+    c2w = lost.c2w.copy()
+    c2w[:3, :3] = spin @ c2w[:3, :3]
+    c2w[:3, 3] = BALL_C + 2.0 * (c2w[:3, 3] - BALL_C)
+    frames[3] = replace(lost, c2w=c2w)
+    visibility = dict(scene.point_visibility)
+    visibility[lost.name] = np.flatnonzero(~ball)[:6]  # a few table matches
+    moved = replace(scene, frames=frames, point_visibility=visibility, region_points=ball)
+    found = segment_object(moved, load_photo=lambda f: photos[f.name])
+    assert found.astray == [lost.name] and found.confident, found.reason
+    assert not found.masks[lost.name].any()
+    assert np.median([_iou(found.masks[n], truth[n]) for n in truth if n != lost.name]) > 0.9
+    monkeypatch.setattr(auto_masks, "ASTRAY_SHARE", 0.0)  # the rule off: its empty mask makes them all unsure
+    off = segment_object(moved, load_photo=lambda f: photos[f.name])
+    assert not off.astray and not off.confident and "empty mask" in off.reason
+    monkeypatch.undo()
+    visibility[lost.name] = scene.point_visibility[lost.name]  # the object's points, as the photo really sees them
+    seen = segment_object(replace(moved, point_visibility=visibility), load_photo=lambda f: photos[f.name])
+    assert not seen.astray and not seen.confident

@@ -142,6 +142,13 @@ match in the air and does not count in that fraction: every mask leaves it out, 
 that three such points weigh a tenth."""
 EDGE_PERCENTILE = 80
 """A pixel is an edge when its colour gradient is in the photo's top (100 - this) percent."""
+ASTRAY_SHARE = 0.1
+"""A photo whose mask comes out empty and that observes fewer than this share of the median photo's count of the
+object's sparse points shows none of the object where SfM placed it (a photo misregistered on a few matches, or one
+that misses the object): it is left out of the masked training rather than making every mask unsure. A photo that
+sees the object's points and still gets an empty mask is a cut that failed, and does make them unsure."""
+MAX_ASTRAY_SHARE = 0.1
+"""... at most this share of the photos (at least one): more empty masks say the cuts failed, not a pose."""
 MIN_EDGE_SUPPORT = 0.5
 """... and the median photo's mask outline runs along edges for at least this fraction of its length: seeds alone
 (photos that do not show what their cameras should) give outlines that agree across photos but ignore the image."""
@@ -172,6 +179,8 @@ class ObjectMasks:
     reason: str
     coverage: dict[str, float] = field(default_factory=dict)
     """Frame name -> fraction of the photo's pixels that are object."""
+    astray: list[str] = field(default_factory=list)
+    """The photos that show none of the object where SfM placed them (`ASTRAY_SHARE`): to be left out of training."""
 
 
 PhotoLoader = Callable[[Frame], np.ndarray]
@@ -341,6 +350,8 @@ def segment_object(scene: Scene, load_photo: PhotoLoader | None = None, side: in
     recall = kept / total if total else 0.0
     worst = min(agreement, key=agreement.get) if agreement else ""
     empty = [name for name, c in coverage.items() if c <= 0.0]
+    astray = _astray(scene, object_pts, empty)
+    empty = [name for name in empty if name not in astray]
     on_edges = float(np.median(list(support.values()))) if support else 0.0
     confident = median >= MIN_AGREEMENT and recall >= MIN_SEED_RECALL and on_edges >= MIN_EDGE_SUPPORT and not empty
     lone = int(np.sum(object_pts & ~counted))
@@ -367,6 +378,10 @@ def segment_object(scene: Scene, load_photo: PhotoLoader | None = None, side: in
         reason += (f"; {len(under_cut)} photo(s) that frame it ({', '.join(scene.frames[k].name for k in under_cut)}) "
                    f"were cut again inside the hull's silhouette: their first cut left out over "
                    f"{MAX_HULL_MISSED:.0%} of it, which the other photos show as object")
+    if astray:
+        reason += (f"; {len(astray)} photo(s) ({', '.join(astray)}) show none of the object where SfM placed them "
+                   f"(an empty mask, and under {ASTRAY_SHARE:.0%} of the object's sparse points the median photo "
+                   "observes: misregistered on a few matches, or missing the object): left out of training")
     if table_dropped:
         reason += (f"; {table_dropped} photo(s) gave back table their cut had taken (its texture lines up with "
                    "the other photos' views of the table: a cast shadow)")
@@ -379,7 +394,20 @@ def segment_object(scene: Scene, load_photo: PhotoLoader | None = None, side: in
             [f"outlines on edges {on_edges:.0%} < {MIN_EDGE_SUPPORT:.0%}"] if on_edges < MIN_EDGE_SUPPORT else []) + (
             [f"{len(empty)} photo(s) with an empty mask"] if empty else [])
         reason += f" — not sure enough ({'; '.join(why)})"
-    return ObjectMasks(masks, agreement, recall, support, confident, reason, coverage)
+    return ObjectMasks(masks, agreement, recall, support, confident, reason, coverage, astray)
+
+
+def _astray(scene: Scene, object_pts: np.ndarray, empty: list[str]) -> list[str]:
+    """Of the photos with an empty mask (names), those that observe under ASTRAY_SHARE of the object's sparse points
+    (`object_pts` (P,) bool) the median photo does; none when they are over MAX_ASTRAY_SHARE of the photos, or when
+    the scene does not say which photo observes which point."""
+    if not empty or not scene.point_visibility:
+        return []
+    seen = {f.name: int(object_pts[np.asarray(scene.point_visibility.get(f.name, []), np.int64)].sum())
+            for f in scene.frames}
+    median = float(np.median(list(seen.values())))
+    astray = [name for name in empty if seen[name] < ASTRAY_SHARE * median]
+    return astray if len(astray) <= max(1, int(MAX_ASTRAY_SHARE * len(scene.frames))) else []
 
 
 def undercut(cuts: list[np.ndarray], silhouettes: list[np.ndarray], framing: list[bool]) -> list[int]:

@@ -80,7 +80,8 @@ POSES = Stage(name="poses", folder="01_poses", inputs=(), version=7, run=_poses,
 # version 25: the automatic masks take only the points normalize took for the object's as its seeds, and those it
 # left out as things beside the object as background (a picture's corner inside the box of a head on a wall)
 # version 26: the automatic masks' box holds every point normalize took for the object (a thin part's top)
-NORMALIZE = Stage(name="normalize", folder="02_scene", inputs=("poses",), version=26, run=_normalize)
+# version 27: a photo with an empty automatic mask that observes next to none of the object's points is left out
+NORMALIZE = Stage(name="normalize", folder="02_scene", inputs=("poses",), version=27, run=_normalize)
 
 # train, version 2: train.depth_prior=auto turns the prior on for the surface model, so a cached surface field is stale
 # version 3: the surface model keys a plain backdrop (train.backdrop_key) and starts from the SfM points' hull

@@ -105,13 +105,19 @@ def _auto_masks(ctx: StageContext, source: Scene, scene: Scene, turntable: bool 
             f"Give {home} a masks/ folder next to it (white = object; {final.with_name('masks_unsure')} holds these "
             f"cuts, named as recon names the photos, to start from) to mesh the object alone"
         ), in_hull
-    with ctx.report.task("automatic masks: snapping each outline to the photo's edges", total=len(found.masks)) as bar:
-        mattes = matte_photos(scene, found.masks, progress=bar.advance)
+    masks = {name: mask for name, mask in found.masks.items() if name not in found.astray}
+    if found.astray:  # shows none of the object where SfM placed it: no part of the masked object's training
+        source.frames = [f for f in source.frames if f.name in masks]
+        ctx.report.warn(f"{len(found.astray)} photo(s) show none of the object where SfM placed them (an empty mask, "
+                        f"and next to none of the object's sparse points seen): {', '.join(found.astray)}; left out "
+                        "of training")
+    with ctx.report.task("automatic masks: snapping each outline to the photo's edges", total=len(masks)) as bar:
+        mattes = matte_photos(scene, masks, progress=bar.advance)
     _write(ctx.out / MASK_FOLDER, mattes, scene)
     for frame in source.frames:
         frame.mask_path = str(Path(ctx.folder) / MASK_FOLDER / f"{Path(frame.file_path).stem}.png")  # in the scene
     source.has_alpha = True
-    return len(found.masks), (
+    return len(masks), (
         f"{found.reason}: trained and meshed as a masked object. To fix a mask, copy {final} next to {home} as "
         f"masks/, edit it (white = object) and run again"
     ), in_hull
