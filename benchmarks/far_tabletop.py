@@ -19,6 +19,7 @@ an arc of DEG degrees (`gen_tabletop.py --realistic --arc DEG`: the object's fro
 and plate, a bowl, a ring on a drilled block), photographed all round at the usual distance (or within `--arc`);
 `--table plain` with a plain white table top (`gen_tabletop.py --realistic --table plain`), which gives SfM next to
 nothing to match beside the object; `--painted` with the object painted in a few flat colours (few features on it).
+`--poses-from LABEL` starts from the SfM poses of the earlier run labelled LABEL (SfM differs from run to run).
 """
 from __future__ import annotations
 
@@ -53,6 +54,8 @@ def main() -> None:
                         "distance instead of from further back")
     parser.add_argument("--painted", action="store_true", help="the object painted in a few flat colours, at the "
                         "usual distance instead of from further back")
+    parser.add_argument("--poses-from", default=None, help="the label of an earlier run in --work whose SfM poses "
+                        "this run starts from (SfM differs from run to run)")
     args = parser.parse_args()
     if args.figure is not None:
         from closeups_share import tiles_row
@@ -72,10 +75,13 @@ def main() -> None:
     shutil.rmtree(args.work / "images", ignore_errors=True)
     shutil.copytree(capture / "images", args.work / "images")
     scene = scene_of(args.work, args.label)
-    metrics, accuracy = run_fast(args.work / "images", scene, args.overrides, truth=capture / "gt_mesh.ply")
+    poses_from = scene_of(args.work, args.poses_from) if args.poses_from is not None else None
+    metrics, accuracy = run_fast(args.work / "images", scene, args.overrides, truth=capture / "gt_mesh.ply",
+                                 poses_from=poses_from)
     notes = json.loads((scene / "02_scene" / "scene.json").read_text())["notes"]
     mesh = json.loads((scene / "manifest.json").read_text())["stages"]["mesh"]["summary"]
-    row = {"label": args.label, "overrides": args.overrides, "capture_shape": shape, "capture": notes.get("capture"),
+    row = {"label": args.label, "overrides": args.overrides, "poses_from": args.poses_from, "capture_shape": shape,
+           "capture": notes.get("capture"),
            "region": notes.get("region"),
            "masks": notes.get("masks"),
            "training_size": next((r for r in metrics["reasons"] if r.startswith("training size")), None),
