@@ -16,10 +16,11 @@ draws the first photo and the meshes of the runs labelled A and B (earlier runs'
 `--arc DEG` measures another capture the same way: the realistic tabletop at the usual distance, its photos within
 an arc of DEG degrees (`gen_tabletop.py --realistic --arc DEG`: the object's front only), in place of the far one.
 `--object NAME` does so with another object on the table (`gen_tabletop.py --realistic --object NAME`: a thin rod
-and plate, a bowl, a ring on a drilled block), photographed all round at the usual distance (or within `--arc`);
-`--table plain` with a plain white table top (`gen_tabletop.py --realistic --table plain`), which gives SfM next to
-nothing to match beside the object; `--painted` with the object painted in a few flat colours (few features on it).
-`--poses-from LABEL` starts from the SfM poses of the earlier run labelled LABEL (SfM differs from run to run).
+and plate, a bowl, a ring on a drilled block, three separate pieces), photographed all round at the usual distance
+(or within `--arc`); `--table plain` with a plain white table top (`gen_tabletop.py --realistic --table plain`),
+which gives SfM next to nothing to match beside the object; `--painted` with the object painted in a few flat
+colours (few features on it). `--poses-from LABEL` starts from the SfM poses of the earlier run labelled LABEL (SfM
+differs from run to run).
 """
 from __future__ import annotations
 
@@ -48,8 +49,8 @@ def main() -> None:
     parser.add_argument("--labels", nargs="+", default=[], help="the runs whose meshes --figure draws")
     parser.add_argument("--arc", type=float, default=None, help="the capture from an arc this many degrees wide at the "
                         "usual distance instead of from further back")
-    parser.add_argument("--object", default=None, help="another object on the table (thin, concave, hole), at the usual "
-                        "distance instead of from further back")
+    parser.add_argument("--object", default=None, help="another object on the table (thin, concave, hole, pieces), at "
+                        "the usual distance instead of from further back")
     parser.add_argument("--table", default=None, choices=("plain",), help="a plain white table top, at the usual "
                         "distance instead of from further back")
     parser.add_argument("--painted", action="store_true", help="the object painted in a few flat colours, at the "

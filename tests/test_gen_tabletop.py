@@ -201,7 +201,7 @@ def test_an_arc_keeps_the_photos_on_the_objects_front_and_is_refused_where_it_me
             tt.generate(tmp_path / "no", views=2, size="32x24", realistic=bool(kwargs), arc=90.0, **kwargs)
 
 
-@pytest.mark.parametrize("shape", ["thin", "concave", "hole"])
+@pytest.mark.parametrize("shape", ["thin", "concave", "hole", "pieces"])
 def test_another_object_stands_on_the_table_and_its_masks_are_its_silhouette(tmp_path: Path, shape: str) -> None:
     """shape: another of generate.py's objects in the blocks' place, sunk TABLE_SINK into the table top as they are,
     its true mesh above the table, its masks its silhouette; a name generate.py lacks is refused."""
