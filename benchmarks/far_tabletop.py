@@ -20,7 +20,7 @@ and plate, a bowl, a ring on a drilled block, three separate pieces), photograph
 (or within `--arc`); `--table plain` with a plain white table top (`gen_tabletop.py --realistic --table plain`),
 which gives SfM next to nothing to match beside the object; `--painted` with the object painted in a few flat
 colours (few features on it). `--poses-from LABEL` starts from the SfM poses of the earlier run labelled LABEL (SfM
-differs from run to run).
+differs from run to run). `--views N` takes N photos instead of 24.
 """
 from __future__ import annotations
 
@@ -55,6 +55,7 @@ def main() -> None:
                         "distance instead of from further back")
     parser.add_argument("--painted", action="store_true", help="the object painted in a few flat colours, at the "
                         "usual distance instead of from further back")
+    parser.add_argument("--views", type=int, default=24, help="how many photos (default 24)")
     parser.add_argument("--poses-from", default=None, help="the label of an earlier run in --work whose SfM poses "
                         "this run starts from (SfM differs from run to run)")
     args = parser.parse_args()
@@ -72,7 +73,7 @@ def main() -> None:
               **({"shape": args.object} if args.object is not None else {}),
               **({"table": args.table} if args.table is not None else {}),
               **({"painted": True} if args.painted else {})})
-    capture = generate(args.work / "capture", views=24, size="640x480", realistic=True, **shape)
+    capture = generate(args.work / "capture", views=args.views, size="640x480", realistic=True, **shape)
     shutil.rmtree(args.work / "images", ignore_errors=True)
     shutil.copytree(capture / "images", args.work / "images")
     scene = scene_of(args.work, args.label)
@@ -81,7 +82,8 @@ def main() -> None:
                                  poses_from=poses_from)
     notes = json.loads((scene / "02_scene" / "scene.json").read_text())["notes"]
     mesh = json.loads((scene / "manifest.json").read_text())["stages"]["mesh"]["summary"]
-    row = {"label": args.label, "overrides": args.overrides, "poses_from": args.poses_from, "capture_shape": shape,
+    row = {"label": args.label, "overrides": args.overrides, "poses_from": args.poses_from, "views": args.views,
+           "capture_shape": shape,
            "capture": notes.get("capture"),
            "region": notes.get("region"),
            "masks": notes.get("masks"),
