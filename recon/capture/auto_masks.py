@@ -42,8 +42,7 @@ REGION_MARGIN = 0.1
 BOX_EVERY_OBJECT_POINT = True
 """The cut's box holds every sparse point normalize took for the object. The scene's region box leaves out small
 groups of them as stray triangulations, but a thin part reaching out of the object (a rod's top, an antenna) gives SfM
-just as few points apart from the rest; the cuts and their hull then say whether it is object (a stray point's island
-is dropped, `MIN_PIECE`)."""
+just as few points apart from the rest; the cuts and the hull they vote on then say whether it is object."""
 GROUND_BAND = 0.02
 """Sparse points within this fraction of the region's size of the support plane are the plane's (background)."""
 SEED_RADIUS = 0.004
