@@ -154,10 +154,11 @@ class TrainConfig:
     one with AMX, the casts around the colour network's small layers cost more than they save (docs/profile.md)."""
     depth_prior: Literal["auto", "on", "off"] = "auto"
     """Sparse-depth supervision from the SfM points (DS-NeRF). auto: on when fewer than 20 photos train the field
-    (few views leave the geometry ambiguous), the model is `surface` (its SDF starts closed and needs the
-    points' depths to open concavities) or the capture is unbounded (the object in front of a background it may
-    match in colour), the scene has sparse points and no masks; and for a fast field that starts empty though its
-    photos have silhouettes (an object on a wall: its plain faces have no other depth to go by); on / off force it."""
+    (few views leave the geometry ambiguous; with masks too for the fast field, as few silhouettes carve no
+    concavity), the model is `surface` (its SDF starts closed and needs the points' depths to open concavities) or
+    the capture is unbounded (the object in front of a background it may match in colour), the scene has sparse
+    points and no masks; and for a fast field that starts empty though its photos have silhouettes (an object on a
+    wall: its plain faces have no other depth to go by) or in a hull the sightlines show hollow; on / off force it."""
     depth_weight: float = 0.002
     """Weight of the sparse-depth loss (robust, in units of each point's depth uncertainty)."""
     depth_rays: int = 512

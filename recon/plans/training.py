@@ -518,10 +518,10 @@ def depth_prior_for(cfg: TrainConfig, kind: str, scene: Scene, frames: list[Fram
                     hollow: float | None = None) -> tuple[DepthPrior | None, str]:
     """The sparse-depth prior (`recon.nerf.depth_prior.DepthPrior`, on the CPU) or None, and why (printed either way).
 
-    auto: on with few photos, for the surface model (`SURFACE_DEPTH_WHY`), for unbounded captures
-    (`UNBOUNDED_DEPTH_WHY`), for a fast field that starts empty though its photos have silhouettes (`cull_slowly`,
-    `EMPTY_START_DEPTH_WHY`) and for one started in a hull whose `hollow` share (None: not measured) is at least
-    HOLLOW_SHARE; otherwise off with masks. Its rays are cut to the scene box of an object capture, else to each
+    auto: on with few photos (masks or not, for the fast field), for the surface model (`SURFACE_DEPTH_WHY`), for
+    unbounded captures (`UNBOUNDED_DEPTH_WHY`), for a fast field that starts empty though its photos have silhouettes
+    (`cull_slowly`, `EMPTY_START_DEPTH_WHY`) and for one started in a hull whose `hollow` share (None: not measured)
+    is at least HOLLOW_SHARE; otherwise off with masks. Its rays are cut to the scene box of an object capture, else to each
     photo's near/far, as the training rays are."""
     from recon.capture.normalization import FEW_PHOTOS
 
@@ -537,10 +537,9 @@ def depth_prior_for(cfg: TrainConfig, kind: str, scene: Scene, frames: list[Fram
                      f"their silhouettes' hull, under {HOLLOW_SHARE:.0%}: no hollow the silhouettes fill")
             return None, (f"depth prior: off ({len(frames)} training photos >= {FEW_PHOTOS} of an object capture: the "
                           f"photos constrain the geometry{shape}; train.depth_prior=on forces it)")
-        if scene.has_alpha:
+        if scene.has_alpha and (not few or kind == "surface"):
             return None, (f"depth prior: off ({len(frames)} training photos, but masks: their silhouettes already "
-                          f"constrain the geometry, and with masks the prior makes the surface lumpy; "
-                          f"train.depth_prior=on forces it)")
+                          f"constrain the geometry; train.depth_prior=on forces it)")
     if n_obs == 0:
         return None, "depth prior: off (the scene has no sparse points seen by the training photos)"
     scale = float(np.median([v.hw[1] / f.w for f, v in zip(frames, views, strict=True)]))
@@ -568,7 +567,8 @@ def depth_prior_for(cfg: TrainConfig, kind: str, scene: Scene, frames: list[Fram
     elif not few:
         why = UNBOUNDED_DEPTH_WHY
     else:
-        why = f"{len(frames)} training photos (< {FEW_PHOTOS}): few views leave the geometry ambiguous"
+        why = (f"{len(frames)} training photos (< {FEW_PHOTOS}): few views leave the geometry ambiguous"
+               + (", and few silhouettes carve no concavity" if scene.has_alpha else ""))
     sig = prior.sigma.cpu().numpy() if len(prior) else np.zeros(1)
     return prior, (f"depth prior: on ({why}): {len(prior):,} depth targets from the SfM points the photos observe "
                    f"(DS-NeRF; uncertainty from reprojection error and triangulation angle, median {np.median(sig):.3g} "

@@ -99,11 +99,12 @@ NORMALIZE = Stage(name="normalize", folder="02_scene", inputs=("poses",), versio
 # version 15: train.depth_prior=auto is on for a fast field that starts empty though its photos have silhouettes
 # version 16: a field started in the visual hull starts empty where sightlines to the sparse points pass (hollows)
 # version 17: train.depth_prior=auto is on for a field started in a hull that sightlines pass through 10% of or more
+# version 18: train.depth_prior=auto is on for a fast field under 20 training photos with masks too
 TRAINS_ON_UNDER = ("budget", "eval_every", "checkpoint_every", "final_eval_views", "depth_rays")
 """The options a checkpoint or a finished field trains on under (the rest make another field, from step 0): the time
 budget, how often training is watched and kept, how many test views score it, and the sparse-depth rays a step
 renders (a term's sample size, drawn afresh each step) -- so `balanced` after `fast` trains fast's field on."""
-TRAIN = Stage(name="train", folder="03_field", inputs=("normalize",), version=17, run=_train,
+TRAIN = Stage(name="train", folder="03_field", inputs=("normalize",), version=18, run=_train,
               scratch_survives=TRAINS_ON_UNDER)
 
 # mesh, version 4: zero-area faces marching cubes leaves stay (dropping one opened a three-edge hole in a closed zero
