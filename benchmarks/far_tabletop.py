@@ -18,9 +18,9 @@ an arc of DEG degrees (`gen_tabletop.py --realistic --arc DEG`: the object's fro
 `--object NAME` does so with another object on the table (`gen_tabletop.py --realistic --object NAME`: a thin rod
 and plate, a bowl, a ring on a drilled block, three separate pieces), photographed all round at the usual distance
 (or within `--arc`); `--table plain` with a plain white table top (`gen_tabletop.py --realistic --table plain`),
-which gives SfM next to nothing to match beside the object; `--painted` with the object painted in a few flat
-colours (few features on it). `--poses-from LABEL` starts from the SfM poses of the earlier run labelled LABEL (SfM
-differs from run to run). `--views N` takes N photos instead of 24.
+which gives SfM next to nothing to match beside the object; `--painted` with the object painted in a few flat colours
+(few features on it); `--dark` with the object dark. `--poses-from LABEL` starts from the SfM poses of the earlier run
+labelled LABEL (SfM differs from run to run). `--views N` takes N photos instead of 24.
 """
 from __future__ import annotations
 
@@ -55,6 +55,8 @@ def main() -> None:
                         "distance instead of from further back")
     parser.add_argument("--painted", action="store_true", help="the object painted in a few flat colours, at the "
                         "usual distance instead of from further back")
+    parser.add_argument("--dark", action="store_true", help="the object dark, at the usual distance instead of "
+                        "from further back")
     parser.add_argument("--views", type=int, default=24, help="how many photos (default 24)")
     parser.add_argument("--poses-from", default=None, help="the label of an earlier run in --work whose SfM poses "
                         "this run starts from (SfM differs from run to run)")
@@ -68,11 +70,13 @@ def main() -> None:
         parser.error("--name and --label are needed to run (or --figure to draw)")
     where, load = provenance(), [round(x, 2) for x in os.getloadavg()]
     date = datetime.now(timezone.utc).isoformat(timespec="seconds")
-    shape = ({"far": True} if args.arc is None and args.object is None and args.table is None and not args.painted else
+    no_variant = args.arc is None and args.object is None and args.table is None and not (args.painted or args.dark)
+    shape = ({"far": True} if no_variant else
              {**({"arc": args.arc} if args.arc is not None else {}),
               **({"shape": args.object} if args.object is not None else {}),
               **({"table": args.table} if args.table is not None else {}),
-              **({"painted": True} if args.painted else {})})
+              **({"painted": True} if args.painted else {}),
+              **({"dark": True} if args.dark else {})})
     capture = generate(args.work / "capture", views=args.views, size="640x480", realistic=True, **shape)
     shutil.rmtree(args.work / "images", ignore_errors=True)
     shutil.copytree(capture / "images", args.work / "images")

@@ -370,3 +370,19 @@ def test_a_plain_table_gives_sift_next_to_nothing_beside_the_object(tmp_path: Pa
     assert counts["plain"] < counts["wood"] / 5, counts
     with pytest.raises(ValueError, match="plain"):
         tt.generate(tmp_path / "no", views=2, size="32x24", table="plain")
+
+
+def test_a_dark_object_has_the_same_masks_and_a_fifth_of_the_light(tmp_path: Path) -> None:
+    """dark scales the object's albedo alone (`DARK_ALBEDO`): the same masks, and inside them the photos are far
+    darker than the textured object's (the exposure is the same: the room fills most of the frame)."""
+    def capture(dark: bool) -> list[tuple[np.ndarray, np.ndarray]]:
+        out = tt.generate(tmp_path / str(dark), views=2, size="160x120", mesh_res=64, realistic=True, dark=dark)
+        return [(np.asarray(Image.open(path).convert("L"), np.float32), mask) for _, mask, path in frames(out)[1]]
+
+    light, dark = capture(False), capture(True)
+    assert [m.tolist() for _, m in light] == [m.tolist() for _, m in dark]
+    inside = [binary_erosion(m, iterations=2) for _, m in light]
+    ratio = np.mean([d[k].mean() / l[k].mean() for (l, _), (d, _), k in zip(light, dark, inside)])
+    assert ratio < 0.45, ratio
+    with pytest.raises(ValueError, match="dark"):
+        tt.generate(tmp_path / "no", views=2, size="32x24", dark=True)
