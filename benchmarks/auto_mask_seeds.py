@@ -270,8 +270,8 @@ def main(argv: list[str] | None = None) -> None:
     margins = [v for v in chosen if v.startswith("region margin ")]
     if unknown := set(chosen) - set(names) - {v for v in tolerances if _is_share(v.removeprefix("hull tolerance "))} \
             - {v for v in margins if _is_share(v.removeprefix("region margin "))}:
-        raise SystemExit(f"unknown variants {sorted(unknown)}; known: {', '.join(names)}, hull tolerance T, region margin M "
-                         "(0 <= T, M < 1)")
+        raise SystemExit(f"unknown variants {sorted(unknown)}; known: {', '.join(names)}, hull tolerance T, "
+                         "region margin M (0 <= T, M < 1)")
     boxed = replace(scene, region_points=None, aside_points=None)
     rows = [variant(v, in_frame if v == "in-frame region" else boxed if v == "box seeds" else scene)
             for v in names if v in chosen]

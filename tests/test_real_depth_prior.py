@@ -188,7 +188,8 @@ def test_depth_prior_is_on_for_a_masked_field_that_starts_empty(mode: str, cull_
 
 @pytest.mark.parametrize("mode, hollow, on", [("auto", 0.3, True), ("auto", 0.02, False), ("auto", None, False),
                                               ("off", 0.3, False)])
-def test_depth_prior_is_on_for_a_masked_field_whose_hull_has_a_hollow(mode: str, hollow: float | None, on: bool) -> None:
+def test_depth_prior_is_on_for_a_masked_field_whose_hull_has_a_hollow(mode: str, hollow: float | None,
+                                                                       on: bool) -> None:
     """24 masked photos of an object leave the prior off, unless their sightlines to the sparse points pass through
     HOLLOW_SHARE of their silhouettes' hull or more (a bowl, which the silhouettes fill): it says why either way."""
     from dataclasses import replace
@@ -235,8 +236,9 @@ def test_a_bowls_hull_is_mostly_hollow_and_a_balls_is_not() -> None:
     inner = 0.35 * d * np.where(d[:, 2:] < 0, 1.0, -1.0)
     outer = 0.5 * d * np.where(d[:, 2:] > 0, 1.0, -1.0)
     for points, k in ((inner, 2), (outer, 1)):
-        shown = [View(f"{i}", np.concatenate([np.full((H, W, 3), 128, np.uint8), (sil[k] * 255).astype(np.uint8)[..., None]],
-                                             -1), sil[0], (FL, FL, W / 2, H / 2), 1.0, 5.0) for i, sil in enumerate(views)]
+        grey = np.full((H, W, 3), 128, np.uint8)
+        shown = [View(f"{i}", np.concatenate([grey, (sil[k] * 255).astype(np.uint8)[..., None]], -1), sil[0],
+                      (FL, FL, W / 2, H / 2), 1.0, 5.0) for i, sil in enumerate(views)]
         seen = []
         for c2w, *_ in views:
             eye = c2w[:3, 3]

@@ -521,8 +521,8 @@ def depth_prior_for(cfg: TrainConfig, kind: str, scene: Scene, frames: list[Fram
     auto: on with few photos (masks or not, for the fast field), for the surface model (`SURFACE_DEPTH_WHY`), for
     unbounded captures (`UNBOUNDED_DEPTH_WHY`), for a fast field that starts empty though its photos have silhouettes
     (`cull_slowly`, `EMPTY_START_DEPTH_WHY`) and for one started in a hull whose `hollow` share (None: not measured)
-    is at least HOLLOW_SHARE; otherwise off with masks. Its rays are cut to the scene box of an object capture, else to each
-    photo's near/far, as the training rays are."""
+    is at least HOLLOW_SHARE; otherwise off with masks. Its rays are cut to the scene box of an object capture, else
+    to each photo's near/far, as the training rays are."""
     from recon.capture.normalization import FEW_PHOTOS
 
     if cfg.depth_prior == "off":
