@@ -650,7 +650,8 @@ def run_sfm(
     """Recover camera poses, intrinsics and sparse points for `names` (paths relative to image_dir).
 
     Writes work_dir/database.db (features and matches; any old one is replaced) and the largest
-    model, less the cameras whose pose disagrees with the rest (`leave_out_outliers`), to work_dir/sparse/.
+    model, less the cameras whose pose disagrees with the rest (`leave_out_outliers`, before and after the final
+    adjustment), to work_dir/sparse/.
     Raises ReconError when fewer than options.min_registered images, or fewer than
     options.min_registered_fraction of them, get a pose.
     progress(phase, fraction) is called at the start and end of "extract", "match" and "map"
@@ -747,11 +748,16 @@ def run_sfm(
         posed_apart = [[n for n in names if n in members] for members in map(set, apart)]
         excluded = leave_out_outliers(best) if best is not None else {}
         num_registered = best.num_reg_images() if best is not None else 0
+        if best is not None and num_registered >= needed:
+            start = time.perf_counter()
+            best, refinement = refine_robust(best, num_threads=options.num_threads)
+            timings["map"] += time.perf_counter() - start
+            # judged again: the final adjustment can carry a photo held by a few matches off the rest. Its few
+            # observations barely pulled the other poses, so they are not adjusted once more.
+            excluded.update(leave_out_outliers(best))
+            num_registered = best.num_reg_images()
         if best is None or num_registered < needed:
             raise ReconError(_too_few_message(num_registered, len(names), needed, posed_apart))
-        start = time.perf_counter()
-        best, refinement = refine_robust(best, num_threads=options.num_threads)
-        timings["map"] += time.perf_counter() - start
 
     sparse_dir = work_dir / "sparse"
     shutil.rmtree(sparse_dir, ignore_errors=True)

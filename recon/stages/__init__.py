@@ -53,7 +53,8 @@ def _mesh(ctx: StageContext) -> dict:
 # bundle adjustment that runs away is undone
 # version 7: photos named by their place in the input folder ({source}/NAME); photos taken the other way up from most
 #            turned a quarter for SfM to share one camera
-POSES = Stage(name="poses", folder="01_poses", inputs=(), version=7, run=_poses, needs_source=True,
+# version 8: the pose outliers are judged after the final bundle adjustment too
+POSES = Stage(name="poses", folder="01_poses", inputs=(), version=8, run=_poses, needs_source=True,
               source_digest=_photos_digest, source_stat=_photos_stat)
 
 # normalize, version 6: automatic masks are soft at their outlines, snapped to the photos' edges
