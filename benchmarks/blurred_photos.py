@@ -65,14 +65,16 @@ def run_fast(images: Path, scene: Path, overrides: list[str], steps: int = 4000,
     """`recon run IMAGES --out SCENE --preset fast` (SCENE made anew) for a fixed number of steps, not the time budget
     (the steps must not depend on the machine's load), then `recon eval --gt-mesh` against the true surface (the
     sample's, or `truth` with its transforms.json beside it): (the field's metrics.json, the mesh's accuracy).
-    poses_from: an earlier run's scene whose poses (SfM differs from run to run) SCENE starts from, cached."""
+    poses_from: an earlier run's scene whose poses (SfM differs from run to run) SCENE starts from: the run starts at
+    normalize, so they are used even where the poses stage's version changed since."""
     shutil.rmtree(scene, ignore_errors=True)
     if poses_from is not None:
         scene.mkdir(parents=True)
         shutil.copytree(poses_from / "01_poses", scene / "01_poses")
         shutil.copy2(poses_from / "manifest.json", scene / "manifest.json")
     sets = [a for o in ["train.budget=", f"train.steps={steps}", *overrides] for a in ("--set", o)]
-    recon("run", str(images), "--out", str(scene), "--preset", "fast", "-q", *sets)
+    start = ["--from", "normalize"] if poses_from is not None else []
+    recon("run", str(images), "--out", str(scene), "--preset", "fast", "-q", *start, *sets)
     recon("eval", str(scene), "--gt-mesh", str(truth))
     return (json.loads((scene / "03_field" / "metrics.json").read_text()),
             json.loads((scene / "eval" / "mesh_accuracy.json").read_text()))
