@@ -264,6 +264,11 @@ class MeshConfig:
     mask_keep_fraction: float = 0.5
     """With masks, a vertex stays when it falls inside the object's mask in at least this fraction of the photos
     that have it in frame (below 1: room for a pixel of mask edge; lower it when imperfect masks bite into the mesh)."""
+    unsure_masks: Literal["auto", "off"] = "auto"
+    """auto: where the automatic masks were not sure enough to train the object alone (normalize's masks_unsure/),
+    the mesh of the field trained on the whole photos keeps only what at least mesh.mask_keep_fraction of the photos
+    framing it call object, as with masks: the table and room that field holds around the object go, while a part
+    a few masks miss stays. off: the mesh region alone crops it."""
     color: Literal["photos", "field"] = "photos"
     """Per-vertex color: baked from the photos (depth-tested), or queried from the field."""
     cpu_bake_views: int = 0

@@ -332,6 +332,22 @@ def test_a_closed_mesh_is_planned_for_an_object_keeps_every_face_and_caps_at_the
     assert not scattered.closed and "unbounded" in scattered.closed_why  # no object to close: said, not done
 
 
+def test_unsure_masks_crop_the_mesh_of_a_field_trained_without_them_and_say_so() -> None:
+    """The automatic masks normalize was not sure of crop the mesh of the field trained on the whole photos; not a
+    masked capture's (its own masks do), not a closed solid, not with mesh.unsure_masks=off or without such masks."""
+    plan = mesh_plan.plan_mesh(MeshConfig(resolution=65), _capture(masks=False), PLAN_META, on_cpu=True, voxel=0.0,
+                               unsure_masks=True)
+    assert plan.unsure_frames and len(plan.unsure_frames) <= mesh_plan.CPU_BAKE_VIEWS["fast"]
+    assert "masks_unsure/" in plan.unsure_why and "mesh.unsure_masks=off" in plan.unsure_why
+    assert plan.notes[-1] == plan.unsure_why and "at least 50% of" in plan.unsure_why
+    for cfg, scene, unsure in ((MeshConfig(resolution=65), _capture(masks=False), False),
+                               (MeshConfig(resolution=65, unsure_masks="off"), _capture(masks=False), True),
+                               (MeshConfig(resolution=65), _capture(masks=True), True),
+                               (MeshConfig(resolution=65, closed=True), _capture(masks=False), True)):
+        other = mesh_plan.plan_mesh(cfg, scene, PLAN_META, on_cpu=True, voxel=0.0, unsure_masks=unsure)
+        assert other.unsure_frames == [] and other.unsure_why == "" and other.unsure_why not in other.notes
+
+
 def test_iso_opacity_is_lower_with_masks_unless_set() -> None:
     choose = mesh_plan.capture_iso_opacity
     assert choose(MeshConfig(), masked=False)[0] == 0.0  # 0: the stage's ISO_OPACITY

@@ -109,3 +109,52 @@ def test_tabletop_fixture_masks_are_the_object_silhouette_and_cached(tmp_path: P
     stamp = os.stat(out / "images" / "view_000.jpg").st_mtime_ns
     gen_tabletop.generate(out, views=3, size="64x48", supersample=1, mesh_res=64)
     assert os.stat(out / "images" / "view_000.jpg").st_mtime_ns == stamp  # cached: not rendered again
+
+
+def test_unsure_masks_crop_a_mesh_by_majority_in_the_photos_pixels(tmp_path: Path) -> None:
+    """normalize's unsure masks are at the photos' own (distorted) pixels: a ball off the middle of strongly distorted
+    photos stays whole and the table around it goes; a vertex stays while at least half of the photos with a mask
+    call it object, and a photo without a mask file casts no vote."""
+    from recon.camera import project
+    from recon.capture.scene import Frame
+    from recon.meshing.photos import inside_photo_masks
+
+    ball = trimesh.creation.icosphere(subdivisions=3, radius=0.3)
+    table = trimesh.creation.box(extents=(3, 3, 0.02))
+    table.apply_translation((0, 0, -0.31))
+    w, h, fl, k1 = 160, 120, 110.0, -0.3
+    frames, masks = [], {}
+    for i in range(8):
+        az = 2 * np.pi * i / 8
+        # aimed beside the ball, so it sits off the image centre, where the lens moves it most
+        c2w = look_at(2.0 * np.array([np.cos(az), np.sin(az), 0.6]), np.array([-np.sin(az), np.cos(az), 0.0]) * 0.45)
+        frame = Frame(f"photos/v{i}.jpg", c2w, fl, fl, w / 2, h / 2, w, h, k1=k1)
+        uv, z = project(ball.sample(40000, seed=i), c2w, frame.intrinsics_at(w, h), frame.distortion)
+        u, r = np.floor(uv[:, 0]).astype(int), np.floor(uv[:, 1]).astype(int)
+        mask = np.zeros((h, w), np.float32)
+        ok = (z > 0) & (u >= 0) & (u < w) & (r >= 0) & (r < h)
+        mask[r[ok], u[ok]] = 1.0
+        frames.append(frame)
+        masks[frame.stem] = mask
+    folder = tmp_path / "masks_unsure"
+    folder.mkdir()
+
+    def write(empty: int = 0, missing: int = 0) -> None:
+        for path in folder.iterdir():
+            path.unlink()
+        for k, (stem, mask) in enumerate(masks.items()):
+            if k >= missing:
+                save_image(folder / f"{stem}.png", (np.zeros_like(mask) if k < missing + empty else mask)[..., None])
+
+    write()
+    keep = inside_photo_masks(frames, folder, 0.5)
+    assert keep(ball.vertices).mean() > 0.99  # the mask is read at the photo's pixels and undistorted
+    around = np.stack([np.cos(np.linspace(0, 2 * np.pi, 64)), np.sin(np.linspace(0, 2 * np.pi, 64)), np.zeros(64)], -1)
+    assert not keep(0.48 * around).any()  # a ring around the ball's equator, inside under half of its silhouettes
+    assert not keep(table.vertices).any()
+    write(empty=3)  # 5 of 8 call the ball object: kept
+    assert keep(ball.vertices).mean() > 0.99
+    write(empty=5)  # 3 of 8: dropped
+    assert not keep(ball.vertices).any()
+    write(missing=5)  # 3 masks, all calling it object: kept
+    assert keep(ball.vertices).mean() > 0.99

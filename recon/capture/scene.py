@@ -481,6 +481,9 @@ def _mask_path(base: Path, fd: dict, source: Path | str, check_files: bool) -> s
 
 
 MASK_FOLDER = "masks"
+UNSURE_MASK_FOLDER = "masks_unsure"
+"""The scene folder's automatic masks that normalize was not sure enough of to train with: a start for the user's
+masks, and what crops the mesh of the field trained without them (mesh.unsure_masks)."""
 
 
 def mask_homes(photos: Sequence[Path]) -> list[Path]:

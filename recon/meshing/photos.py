@@ -10,13 +10,15 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
 
 from recon.camera import project
+from recon.capture.images import read_mask, undistort
 from recon.capture.scene import Frame, Scene, spread_evenly
 from recon.config import MeshConfig
 from recon.evaluation.views import View, load_views, render_view, target_rgb
@@ -118,25 +120,53 @@ def hidden_from_views(views: Sequence[View], depths: Sequence[np.ndarray], opaci
     return hidden
 
 
-def inside_masks(views: Sequence[View], keep_fraction: float) -> Callable[[np.ndarray], np.ndarray]:
-    """``keep_fn`` of `clean_mesh`: True for vertices (V, 3) that the masks (the views' alpha) call object.
+Silhouette = tuple[np.ndarray, np.ndarray, Sequence[float]]
+"""A photo's object mask as a pinhole image (H, W) bool, its camera's c2w (4, 4) and intrinsics (fl_x, fl_y, cx, cy)
+at the mask's size."""
 
-    A point of the object projects inside the object's silhouette in every photo, occluded or not, so no depth
-    test is needed; ``keep_fraction`` (mesh.mask_keep_fraction) of the photos that frame it leaves room for a
-    pixel of mask edge."""
+
+def _inside_silhouettes(silhouettes: Callable[[], Iterator[Silhouette]],
+                        keep_fraction: float) -> Callable[[np.ndarray], np.ndarray]:
+    """``keep_fn`` of `clean_mesh`: True for vertices (V, 3) inside the silhouettes of at least ``keep_fraction`` of
+    the photos that frame them (or framed by none). A point of the object projects inside the object's silhouette in
+    every photo, occluded or not, so no depth test is needed."""
     def keep(vertices: np.ndarray) -> np.ndarray:
         inside = np.zeros(len(vertices))
         framed = np.zeros(len(vertices))
-        for v in views:
-            h, w = v.hw
-            uv, z = project(np.asarray(vertices, np.float64), v.c2w, v.intrinsics)
+        for mask, c2w, intrinsics in silhouettes():
+            h, w = mask.shape
+            uv, z = project(np.asarray(vertices, np.float64), c2w, intrinsics)
             ok = z > 1e-9
             u, r = np.floor(uv[:, 0]).astype(np.int64), np.floor(uv[:, 1]).astype(np.int64)
             ok &= (u >= 0) & (u < w) & (r >= 0) & (r < h)
             framed += ok
-            inside[ok] += v.image[r[ok], u[ok], 3] >= 128
+            inside[ok] += mask[r[ok], u[ok]]
         return (framed == 0) | (inside >= keep_fraction * framed)
     return keep
+
+
+def inside_masks(views: Sequence[View], keep_fraction: float) -> Callable[[np.ndarray], np.ndarray]:
+    """``keep_fn`` of `clean_mesh`: True for vertices (V, 3) that the masks (the views' alpha) call object in at least
+    ``keep_fraction`` (mesh.mask_keep_fraction) of the photos that frame them, which leaves room for a pixel of mask
+    edge."""
+    return _inside_silhouettes(lambda: ((v.image[..., 3] >= 128, v.c2w, v.intrinsics) for v in views),
+                               keep_fraction)
+
+
+def inside_photo_masks(frames: Sequence[Frame], mask_folder: Path,
+                       keep_fraction: float) -> Callable[[np.ndarray], np.ndarray]:
+    """``keep_fn`` of `clean_mesh` from masks in ``mask_folder`` named like the photos (``<stem>.png``, white =
+    object, at the photo's pixels: normalize's masks_unsure/): True for vertices (V, 3) that at least
+    ``keep_fraction`` of the photos with a mask there call object. Each mask is read (and undistorted to a pinhole
+    image, fisheyes too) when the keep_fn runs, one at a time (a clip's frames would not all fit in memory)."""
+    def silhouettes() -> Iterator[Silhouette]:
+        for frame in frames:
+            path = mask_folder / f"{Path(frame.name).stem}.png"
+            if path.is_file():
+                intrinsics = frame.intrinsics_at(frame.w, frame.h)
+                mask = undistort(read_mask(path, (frame.w, frame.h)), *intrinsics, frame.distortion, frame.camera_model)
+                yield mask >= 0.5, frame.c2w, intrinsics
+    return _inside_silhouettes(silhouettes, keep_fraction)
 
 
 # ---------------------------------------------------------------------------------------- coherence

@@ -241,6 +241,10 @@ class MeshPlan:
     """The mesh passes through an SfM point this close to it (coherence)."""
     masked: bool
     """Every training photo has a mask: vertices outside them go, and the masks are the coherence check's object."""
+    unsure_frames: list[Frame]
+    """The training photos whose unsure automatic masks (normalize's masks_unsure/) crop the mesh as masks would
+    (mesh.unsure_masks); none when the photos trained masked, the mesh is closed or normalize made no such masks."""
+    unsure_why: str
     max_side: int
     """The photos' longest side at training size, as the views are loaded."""
     uses_views: bool
@@ -261,7 +265,7 @@ class MeshPlan:
         """The decisions' reasons the stage prints before it starts, in order."""
         return [line for line in (self.unbounded_why, f"mesh region: {self.region_why}",
                                   f"resolution: {self.resolution_why}", self.ground_margin_why, self.iso_why,
-                                  self.fill_why, self.closed_why) if line]
+                                  self.fill_why, self.closed_why, self.unsure_why) if line]
 
     @property
     def support_plane(self) -> np.ndarray | None:
@@ -271,10 +275,12 @@ class MeshPlan:
         return np.append(self.ground[:3], self.ground[3] + self.ground_margin)
 
 
-def plan_mesh(cfg: MeshConfig, scene: Scene, meta: dict[str, Any], *, on_cpu: bool, voxel: float) -> MeshPlan:
+def plan_mesh(cfg: MeshConfig, scene: Scene, meta: dict[str, Any], *, on_cpu: bool, voxel: float,
+              unsure_masks: bool = False) -> MeshPlan:
     """The mesh stage's decisions for this scene and field. meta: the field's metadata (`load_field`: kind, aabb,
     bounded, max_side); on_cpu: the field runs on the CPU (fewer, smaller depth renders); voxel: the field's own
-    voxel (`field_voxel`), the finest layer it can make opaque."""
+    voxel (`field_voxel`), the finest layer it can make opaque; unsure_masks: normalize cut the object out of the
+    photos but was not sure enough of the cuts to train with them (its masks_unsure/)."""
     aabb = np.asarray(meta.get("aabb", scene.aabb), np.float64)
     bounded = bool(meta.get("bounded", True))
     max_side = int(meta.get("max_side", 400))
@@ -314,6 +320,14 @@ def plan_mesh(cfg: MeshConfig, scene: Scene, meta: dict[str, Any], *, on_cpu: bo
         if depth_side:
             views_why += f", depth rendered at ≤ {depth_side} px"
 
+    unsure_frames, unsure_why = [], ""
+    if unsure_masks and cfg.unsure_masks == "auto" and not masked and not closed:
+        unsure_frames = spread_evenly(train_frames, limit)
+        unsure_why = (f"unsure masks: the mesh keeps what at least {cfg.mask_keep_fraction:.0%} of {len(unsure_frames)} "
+                      "photos call object in the automatic masks that were not sure enough to train the object alone "
+                      "(masks_unsure/): the table and room the field holds around the object go, a part a few of "
+                      "them miss stays (mesh.unsure_masks=off keeps all the mesh region holds)")
+
     texture = cfg.texture_faces > 0
     held_out = scene.split("test") if texture else []
     held_out_frames = spread_evenly(held_out, HELD_OUT_VIEWS)
@@ -329,6 +343,6 @@ def plan_mesh(cfg: MeshConfig, scene: Scene, meta: dict[str, Any], *, on_cpu: bo
         cell=cell, hidden_tolerance=HIDDEN_TOL_CELLS * cell if drop_hidden else None,
         ground_margin=margin_cells * cell, ground_margin_why=margin_why, ground_layer=GROUND_LAYER_CELLS * cell,
         point_tolerance=POINT_TOL_CELLS * cell,
-        masked=masked, max_side=max_side, uses_views=uses_views, view_frames=view_frames, depth_side=depth_side,
+        masked=masked, unsure_frames=unsure_frames, unsure_why=unsure_why, max_side=max_side, uses_views=uses_views, view_frames=view_frames, depth_side=depth_side,
         views_why=views_why, texture=texture, held_out_frames=held_out_frames, held_out_why=held_out_why,
     )

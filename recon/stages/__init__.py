@@ -110,7 +110,8 @@ TRAIN = Stage(name="train", folder="03_field", inputs=("normalize",), version=18
 
 # mesh, version 4: zero-area faces marching cubes leaves stay (dropping one opened a three-edge hole in a closed zero
 # set)
-MESH = Stage(name="mesh", folder="04_mesh", inputs=("normalize", "train"), version=4, run=_mesh)
+# version 5: a field trained without the automatic masks (unsure) is meshed cropped by them
+MESH = Stage(name="mesh", folder="04_mesh", inputs=("normalize", "train"), version=5, run=_mesh)
 
 STAGES: list[Stage] = [POSES, NORMALIZE, TRAIN, MESH]
 

@@ -27,7 +27,7 @@ import trimesh
 
 from recon.atomic import write_json_atomic
 from recon.capture.region import support_kind
-from recon.capture.scene import Scene, load_scene
+from recon.capture.scene import UNSURE_MASK_FOLDER, Scene, load_scene
 from recon.config import MeshConfig
 from recon.errors import ReconError
 from recon.evaluation.views import View, load_views
@@ -46,6 +46,7 @@ from recon.meshing.photos import (
     field_views,
     hidden_from_views,
     inside_masks,
+    inside_photo_masks,
     mesh_depths,
     render_depths,
     see_with_views,
@@ -73,7 +74,9 @@ def run(ctx: StageContext) -> dict:
         raise ReconError(f"train.device={ctx.run_config.train.device}: {exc}") from None
     scene = load_scene(ctx.inputs["normalize"], ctx.source)
     model, meta = load_field(ctx.inputs["train"], device)
-    plan = plan_mesh(cfg, scene, meta, on_cpu=device.type == "cpu", voxel=field_voxel(model))
+    unsure_folder = ctx.inputs["normalize"] / UNSURE_MASK_FOLDER
+    plan = plan_mesh(cfg, scene, meta, on_cpu=device.type == "cpu", voxel=field_voxel(model),
+                     unsure_masks=unsure_folder.is_dir())
     for note in plan.notes:
         ctx.report.info(note)
     background = np.asarray(meta.get("background", [1.0, 1.0, 1.0]), np.float32)
@@ -110,7 +113,9 @@ def run(ctx: StageContext) -> dict:
         seen_fn=see_with_views(views, depths, plan.hidden_tolerance, device) if plan.hidden_tolerance is not None else None,
         ground=None if plan.closed else plan.ground,  # a closed solid was capped there already
         ground_margin=plan.ground_margin,
-        keep_fn=inside_masks(views, cfg.mask_keep_fraction) if plan.masked and not plan.closed else None,
+        keep_fn=(inside_masks(views, cfg.mask_keep_fraction) if plan.masked and not plan.closed else
+                 inside_photo_masks(plan.unsure_frames, unsure_folder, cfg.mask_keep_fraction) if plan.unsure_frames
+                 else None),
         closed=plan.closed,
     )
     timings["clean_s"] = round(time.perf_counter() - t, 3)
@@ -213,7 +218,11 @@ def _say_cleaning(ctx: StageContext, clean: dict, plan: MeshPlan, n_views: int) 
     """What cleaning removed, a line per step that ran."""
     components = clean["components"]
     ctx.report.info(f"cleaning: {components['rule']}: {components['removed']} of {components['components']} pieces removed")
-    if "masked" in clean:
+    if "masked" in clean and plan.unsure_frames:
+        ctx.report.info(f"unsure masks: {clean['masked']['faces_removed']:,} faces that under "
+                        f"{ctx.config.mask_keep_fraction:.0%} of {len(plan.unsure_frames)} photos' automatic masks "
+                        "call object removed")
+    elif "masked" in clean:
         ctx.report.info(f"masks: {clean['masked']['faces_removed']:,} faces outside the object masks removed ({n_views} photos)")
     if "ground_cut" in clean:
         kind = support_kind(plan.ground)

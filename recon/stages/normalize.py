@@ -11,7 +11,7 @@ import numpy as np
 from recon.capture.auto_masks import HULL_RES, SEGMENT_SIDE, matte_photos, object_on_background, segment_object
 from recon.capture.images import read_image, save_image
 from recon.capture.normalization import box_corners, normalize
-from recon.capture.scene import Frame, Scene, load_scene
+from recon.capture.scene import UNSURE_MASK_FOLDER, Frame, Scene, load_scene
 from recon.capture.turntable import STILL_FOLDER
 from recon.evaluation.views import load_view
 from recon.geometry.visual_hull import hull_bounds
@@ -99,10 +99,10 @@ def _auto_masks(ctx: StageContext, source: Scene, scene: Scene, turntable: bool 
                         f"no field can hold it. Check {final}.png; to fix a mask, copy {final} next to {home} as "
                         f"masks/, edit it (white = object) and run again.")
     elif not found.confident:
-        _write(ctx.out / "masks_unsure", found.masks, scene)  # for a look; not used
+        _write(ctx.out / UNSURE_MASK_FOLDER, found.masks, scene)  # a start for the user's masks; crops the mesh
         return 0, (
             f"{found.reason}: kept the photos unmasked, so the table and room are modelled too (contracted). "
-            f"Give {home} a masks/ folder next to it (white = object; {final.with_name('masks_unsure')} holds these "
+            f"Give {home} a masks/ folder next to it (white = object; {final.with_name(UNSURE_MASK_FOLDER)} holds these "
             f"cuts, named as recon names the photos, to start from) to mesh the object alone"
         ), in_hull
     masks = {name: mask for name, mask in found.masks.items() if name not in found.astray}
