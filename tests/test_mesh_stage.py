@@ -3,6 +3,7 @@ resolution choice, the extracted radius, colors baked from rendered photos, expo
 `compare_to_gt` in the known-pose and SfM cases — all against closed forms, no training."""
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import threading
@@ -346,6 +347,36 @@ def test_unsure_masks_crop_the_mesh_of_a_field_trained_without_them_and_say_so()
                                (MeshConfig(resolution=65, closed=True), _capture(masks=False), True)):
         other = mesh_plan.plan_mesh(cfg, scene, PLAN_META, on_cpu=True, voxel=0.0, unsure_masks=unsure)
         assert other.unsure_frames == [] and other.unsure_why == "" and other.unsure_why not in other.notes
+
+
+def test_the_stage_crops_with_the_unsure_masks_it_finds_beside_the_scene(tmp_path: Path,
+                                                                       monkeypatch: pytest.MonkeyPatch) -> None:
+    """Unsure masks in 02_scene/masks_unsure/ that call the whole sphere object keep every face; masks that call it
+    background in every photo leave no surface (the stage says so), unless mesh.unsure_masks=off."""
+    from recon.capture.images import save_image
+    from recon.errors import ReconError
+
+    model = SoftSphere(amplitude=400.0, width=0.05, samples=64)
+    cfg = MeshConfig(resolution=33, target_faces=0, color="field", coarse_to_fine=False, texture_faces=0)
+    faces = {}
+    for label, white, setting in (("none", None, "auto"), ("all object", 1.0, "auto"),
+                                  ("all background, off", 0.0, "off"), ("all background", 0.0, "auto")):
+        scene_dir = _scene_dir(tmp_path / label.replace(" ", "_").replace(",", ""), model, np.eye(4), kind="transforms")
+        if white is not None:
+            folder = scene_dir / "02_scene" / "masks_unsure"
+            folder.mkdir()
+            for frame in json.loads((scene_dir / "02_scene" / "scene.json").read_text())["frames"]:
+                save_image(folder / f"{Path(frame['file_path']).stem}.png", np.full((64, 64, 1), white, np.float32))
+        run_cfg = dataclasses.replace(cfg, unsure_masks=setting)
+        if label == "all background":
+            with pytest.raises(ReconError, match="Every piece of the extracted surface was removed"):
+                _run_stage(scene_dir, model, run_cfg, monkeypatch)
+            continue
+        summary, out = _run_stage(scene_dir, model, run_cfg, monkeypatch)
+        report = json.loads((out / "mesh_report.json").read_text())
+        faces[label] = summary["faces"]
+        assert ("masked" in report["clean"]) == (label == "all object")
+    assert faces["all object"] == faces["none"] == faces["all background, off"] > 0
 
 
 def test_iso_opacity_is_lower_with_masks_unless_set() -> None:
