@@ -323,10 +323,10 @@ def plan_mesh(cfg: MeshConfig, scene: Scene, meta: dict[str, Any], *, on_cpu: bo
     unsure_frames, unsure_why = [], ""
     if unsure_masks and cfg.unsure_masks == "auto" and not masked and not closed:
         unsure_frames = spread_evenly(train_frames, limit)
-        unsure_why = (f"unsure masks: the mesh keeps what at least {cfg.mask_keep_fraction:.0%} of {len(unsure_frames)} "
-                      "photos call object in the automatic masks that were not sure enough to train the object alone "
-                      "(masks_unsure/): the table and room the field holds around the object go, a part a few of "
-                      "them miss stays (mesh.unsure_masks=off keeps all the mesh region holds)")
+        unsure_why = (f"unsure masks: the mesh keeps what at least {cfg.mask_keep_fraction:.0%} of "
+                      f"{len(unsure_frames)} photos call object in the automatic masks that were not sure enough to "
+                      "train the object alone (masks_unsure/): the table and room the field holds around the object go, "
+                      "a part a few of them miss stays (mesh.unsure_masks=off keeps all the mesh region holds)")
 
     texture = cfg.texture_faces > 0
     held_out = scene.split("test") if texture else []
@@ -343,6 +343,7 @@ def plan_mesh(cfg: MeshConfig, scene: Scene, meta: dict[str, Any], *, on_cpu: bo
         cell=cell, hidden_tolerance=HIDDEN_TOL_CELLS * cell if drop_hidden else None,
         ground_margin=margin_cells * cell, ground_margin_why=margin_why, ground_layer=GROUND_LAYER_CELLS * cell,
         point_tolerance=POINT_TOL_CELLS * cell,
-        masked=masked, unsure_frames=unsure_frames, unsure_why=unsure_why, max_side=max_side, uses_views=uses_views, view_frames=view_frames, depth_side=depth_side,
+        masked=masked, unsure_frames=unsure_frames, unsure_why=unsure_why, max_side=max_side, uses_views=uses_views,
+        view_frames=view_frames, depth_side=depth_side,
         views_why=views_why, texture=texture, held_out_frames=held_out_frames, held_out_why=held_out_why,
     )

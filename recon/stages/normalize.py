@@ -102,8 +102,8 @@ def _auto_masks(ctx: StageContext, source: Scene, scene: Scene, turntable: bool 
         _write(ctx.out / UNSURE_MASK_FOLDER, found.masks, scene)  # a start for the user's masks; crops the mesh
         return 0, (
             f"{found.reason}: kept the photos unmasked, so the table and room are modelled too (contracted). "
-            f"Give {home} a masks/ folder next to it (white = object; {final.with_name(UNSURE_MASK_FOLDER)} holds these "
-            f"cuts, named as recon names the photos, to start from) to mesh the object alone"
+            f"Give {home} a masks/ folder next to it (white = object; {final.with_name(UNSURE_MASK_FOLDER)} holds "
+            f"these cuts, named as recon names the photos, to start from) to mesh the object alone"
         ), in_hull
     masks = {name: mask for name, mask in found.masks.items() if name not in found.astray}
     if found.astray:  # shows none of the object where SfM placed it: no part of the masked object's training
