@@ -325,8 +325,8 @@ def plan_mesh(cfg: MeshConfig, scene: Scene, meta: dict[str, Any], *, on_cpu: bo
         unsure_frames = spread_evenly(train_frames, limit)
         unsure_why = (f"unsure masks: the mesh keeps what at least {cfg.mask_keep_fraction:.0%} of "
                       f"{len(unsure_frames)} photos call object in the automatic masks that were not sure enough to "
-                      "train the object alone (masks_unsure/): the table and room the field holds around the object go, "
-                      "a part a few of them miss stays (mesh.unsure_masks=off keeps all the mesh region holds)")
+                      "train the object alone (masks_unsure/): the table and room the field holds around the object "
+                      "go, a part a few of them miss stays (mesh.unsure_masks=off keeps all the mesh region holds)")
 
     texture = cfg.texture_faces > 0
     held_out = scene.split("test") if texture else []
