@@ -376,6 +376,7 @@ def test_the_stage_crops_with_the_unsure_masks_it_finds_beside_the_scene(tmp_pat
         report = json.loads((out / "mesh_report.json").read_text())
         faces[label] = summary["faces"]
         assert ("masked" in report["clean"]) == (label == "all object")
+        assert (report["masks"] is not None and "unsure" in report["masks"]) == (label == "all object")
     assert faces["all object"] == faces["none"] == faces["all background, off"] > 0
 
 

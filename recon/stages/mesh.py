@@ -189,6 +189,9 @@ def run(ctx: StageContext) -> dict:
         "iso": extraction["iso"],
         "iso_reason": extraction["iso_reason"],
         "clean": clean,
+        "masks": ("the photos' masks" if plan.masked else
+                  f"unsure automatic masks ({UNSURE_MASK_FOLDER}/ of {len(plan.unsure_frames)} photos)"
+                  if plan.unsure_frames else None),
         "coherence": coherent,
         "colors": color_info,
         "export": export_record(cfg.frame, frame_why, transform, paths),
