@@ -565,11 +565,22 @@ def test_recon_eval_gt_masks_scores_the_mesh_silhouette(tmp_path) -> None:
     for name, mask in truth.items():
         Image.fromarray(np.roll(mask, 25, axis=1).astype(np.uint8) * 255).save(moved / f"{name[:-4]}.png")
     assert silhouette_iou(tmp_path, moved)["mean_iou"] < result["mean_iou"] - 0.3
+    # normalize's unsure masks (at the photos' pixels) are scored beside the mesh: here the moved ones
+    (tmp_path / "02_scene" / "masks_unsure").mkdir()
+    for path in moved.iterdir():
+        (tmp_path / "02_scene" / "masks_unsure" / path.name).write_bytes(path.read_bytes())
+    unsure = silhouette_iou(tmp_path, masks)
+    assert unsure["mean_iou"] == result["mean_iou"] and "mean_masks_iou" not in unsure
+    assert unsure["mean_unsure_masks_iou"] == pytest.approx(silhouette_iou(tmp_path, moved)["mean_iou"], abs=0.1)
+    assert unsure["mean_unsure_masks_iou"] < result["mean_iou"] - 0.3
     import shutil
 
     from recon.errors import ReconError
 
-    shutil.rmtree(mesh_dir)  # before the mesh stage only the scene's own masks can be scored, and this scene has none
+    shutil.rmtree(mesh_dir)  # before the mesh stage only the scene's own masks can be scored
+    assert sorted(k for k in silhouette_iou(tmp_path, masks) if k.startswith("mean")) == [
+        "mean_unsure_masks_iou", "mean_unsure_masks_precision", "mean_unsure_masks_recall"]
+    shutil.rmtree(tmp_path / "02_scene" / "masks_unsure")  # and this scene has none
     with pytest.raises(ReconError, match="neither a mesh nor masks"):
         silhouette_iou(tmp_path, masks)
 

@@ -395,7 +395,8 @@ def eval_(
             write_json_atomic(target / "silhouette_iou.json", result)
             parts = [f"{what} IoU {result[f'mean_{key}iou']:.3f} (least {result[f'min_{key}iou']:.3f}), precision "
                      f"{result[f'mean_{key}precision']:.3f}, recall {result[f'mean_{key}recall']:.3f}"
-                     for what, key in (("mesh silhouette", ""), ("the scene's masks", "masks_")) if f"mean_{key}iou" in result]
+                     for what, key in (("mesh silhouette", ""), ("the scene's masks", "masks_"),
+                                       ("the unsure automatic masks", "unsure_masks_")) if f"mean_{key}iou" in result]
             out_console.print(f"against {gt_masks} over {len(result['views'])} photos: " + "; ".join(parts)
                               + f" — {target / 'silhouette_iou.json'}", markup=False)
         if gt_mesh is not None:

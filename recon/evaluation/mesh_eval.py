@@ -18,7 +18,7 @@ import trimesh
 
 from recon.atomic import read_json
 from recon.capture.normalization import transform_c2w
-from recon.capture.scene import Frame, Scene, load_scene, parse_frames
+from recon.capture.scene import UNSURE_MASK_FOLDER, Frame, Scene, load_scene, parse_frames
 from recon.errors import ReconError
 from recon.geometry.compare import Camera, chamfer_fscore, fit_sim3_robust, icp_sim3, sample_surface
 
@@ -250,8 +250,9 @@ MASK_EVAL_SIDE = 800
 
 
 def silhouette_iou(scene_dir: Path, masks_dir: Path, source: Path | None = None) -> dict[str, Any]:
-    """How well the scene's mesh (once meshed) and its masks (if any) cut the object out of each photo, against masks
-    the user trusts (white = object, same stems as the photos): per photo and mean IoU, precision and recall.
+    """How well the scene's mesh (once meshed) and its masks (if any: the masks it trained with, `masks_*`, or the
+    automatic ones normalize was not sure of, `unsure_masks_*`) cut the object out of each photo, against masks the
+    user trusts (white = object, same stems as the photos): per photo and mean IoU, precision and recall.
 
     The mesh is rendered into every photo that has a mask in `masks_dir`, in the normalized frame with the scene's
     cameras; the true masks are undistorted like the photos, so both are pinhole images of the same camera. `source`:
@@ -276,6 +277,9 @@ def silhouette_iou(scene_dir: Path, masks_dir: Path, source: Path | None = None)
         mask = scene.mask_file(frame)
         if mask is not None and mask.is_file():  # the masks the scene trained with
             row.update({f"masks_{k}": v for k, v in _overlap(_pinhole_mask(mask, frame, w, h), true).items()})
+        unsure = scene_dir / SCENE_FOLDER / UNSURE_MASK_FOLDER / f"{frame.stem}.png"
+        if unsure.is_file():  # the automatic masks normalize was not sure enough of to train with
+            row.update({f"unsure_masks_{k}": v for k, v in _overlap(_pinhole_mask(unsure, frame, w, h), true).items()})
         rows[frame.name] = row
     if not rows:
         raise ReconError(f"No mask in {masks_dir} has the name of a photo of {scene_dir}. Give masks named like the photos.")
