@@ -27,7 +27,7 @@ import numpy as np
 from recon.atomic import read_json, write_json_atomic
 from recon.capture.colmap import LENS_MODELS, find_colmap_model, read_model, reconstruction_frames
 from recon.capture.images import (IMAGE_SUFFIXES, MIN_SIDE, check_photo_headers, check_photo_set, list_photos,
-                                  no_photos, oriented_size)
+                                  no_photos, oriented_size, read_mask, undistort)
 from recon.errors import InputError
 
 SCENE_FORMAT = "recon-scene"
@@ -484,6 +484,12 @@ MASK_FOLDER = "masks"
 UNSURE_MASK_FOLDER = "masks_unsure"
 """The scene folder's automatic masks that normalize was not sure enough of to train with: a start for the user's
 masks, and what crops the mesh of the field trained without them (mesh.unsure_masks)."""
+
+
+def pinhole_mask(path: Path, frame: Frame, w: int, h: int) -> np.ndarray:
+    """A photo's mask (white = object, at the photo's pixels) at w × h with the photo's lens distortion removed, as
+    bool: a pinhole image of the frame's camera, as the scene's cameras project."""
+    return undistort(read_mask(path, (w, h)), *frame.intrinsics_at(w, h), frame.distortion, frame.camera_model) >= 0.5
 
 
 def mask_homes(photos: Sequence[Path]) -> list[Path]:

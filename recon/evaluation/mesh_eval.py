@@ -18,7 +18,7 @@ import trimesh
 
 from recon.atomic import read_json
 from recon.capture.normalization import transform_c2w
-from recon.capture.scene import UNSURE_MASK_FOLDER, Frame, Scene, load_scene, parse_frames
+from recon.capture.scene import UNSURE_MASK_FOLDER, Frame, Scene, load_scene, parse_frames, pinhole_mask
 from recon.errors import ReconError
 from recon.geometry.compare import Camera, chamfer_fscore, fit_sim3_robust, icp_sim3, sample_surface
 
@@ -270,16 +270,16 @@ def silhouette_iou(scene_dir: Path, masks_dir: Path, source: Path | None = None)
             continue
         scale = min(1.0, MASK_EVAL_SIDE / max(frame.w, frame.h))
         w, h = max(1, round(frame.w * scale)), max(1, round(frame.h * scale))
-        true = _pinhole_mask(truth[frame.stem], frame, w, h)
+        true = pinhole_mask(truth[frame.stem], frame, w, h)
         row: dict[str, float] = {}
         if meshed:
             row = _overlap(np.isfinite(mesh_depth(vertices, faces, frame.c2w, frame.intrinsics_at(w, h), (h, w))), true)
         mask = scene.mask_file(frame)
         if mask is not None and mask.is_file():  # the masks the scene trained with
-            row.update({f"masks_{k}": v for k, v in _overlap(_pinhole_mask(mask, frame, w, h), true).items()})
+            row.update({f"masks_{k}": v for k, v in _overlap(pinhole_mask(mask, frame, w, h), true).items()})
         unsure = scene_dir / SCENE_FOLDER / UNSURE_MASK_FOLDER / f"{frame.stem}.png"
         if unsure.is_file():  # the automatic masks normalize was not sure enough of to train with
-            row.update({f"unsure_masks_{k}": v for k, v in _overlap(_pinhole_mask(unsure, frame, w, h), true).items()})
+            row.update({f"unsure_masks_{k}": v for k, v in _overlap(pinhole_mask(unsure, frame, w, h), true).items()})
         rows[frame.name] = row
     if not rows:
         raise ReconError(f"No mask in {masks_dir} has the name of a photo of {scene_dir}. Give masks named like the photos.")
@@ -288,13 +288,6 @@ def silhouette_iou(scene_dir: Path, masks_dir: Path, source: Path | None = None)
         raise ReconError(f"{scene_dir} has neither a mesh nor masks to score: run recon on it first.")
     return {"views": rows, **{f"mean_{k}": float(np.mean([r[k] for r in rows.values() if k in r])) for k in keys},
             **{f"min_{k}": float(min(r[k] for r in rows.values() if k in r)) for k in keys if k.endswith("iou")}}
-
-
-def _pinhole_mask(path: Path, frame: Frame, w: int, h: int) -> np.ndarray:
-    """A mask (white = object) at w × h with the photo's lens distortion removed, as bool."""
-    from recon.capture.images import read_mask, undistort
-
-    return undistort(read_mask(path, (w, h)), *frame.intrinsics_at(w, h), frame.distortion, frame.camera_model) >= 0.5
 
 
 def _overlap(found: np.ndarray, true: np.ndarray) -> dict[str, float]:

@@ -18,8 +18,7 @@ import numpy as np
 import torch
 
 from recon.camera import project
-from recon.capture.images import read_mask, undistort
-from recon.capture.scene import Frame, Scene, spread_evenly
+from recon.capture.scene import Frame, Scene, pinhole_mask, spread_evenly
 from recon.config import MeshConfig
 from recon.evaluation.views import View, load_views, render_view, target_rgb
 from recon.geometry.clean import SeenFn
@@ -163,9 +162,7 @@ def inside_photo_masks(frames: Sequence[Frame], mask_folder: Path,
         for frame in frames:
             path = mask_folder / f"{Path(frame.name).stem}.png"
             if path.is_file():
-                intrinsics = frame.intrinsics_at(frame.w, frame.h)
-                mask = undistort(read_mask(path, (frame.w, frame.h)), *intrinsics, frame.distortion, frame.camera_model)
-                yield mask >= 0.5, frame.c2w, intrinsics
+                yield pinhole_mask(path, frame, frame.w, frame.h), frame.c2w, frame.intrinsics_at(frame.w, frame.h)
     return _inside_silhouettes(silhouettes, keep_fraction)
 
 
